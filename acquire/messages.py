@@ -1,0 +1,765 @@
+"""The fieldlog data model: ROS 2 message types as CDR bytes, with vectorised encode/decode.
+
+Every message is little-endian CDR (encapsulation header ``00 01 00 00``) exactly as
+``mcap-ros2-support`` writes it, stored in MCAP with schema encoding ``ros2msg`` and message
+encoding ``cdr``, so rerun, Foxglove and ROS 2 tools read the files as they are.
+
+Fixed-layout types (every field has a fixed size once ``frame_id`` and other per-call strings are
+fixed) are built for a whole batch at once through a numpy structured dtype with explicit byte
+offsets. A batch is a :class:`Packed`: one contiguous ``uint8`` buffer plus ``n + 1`` offsets.
+Variable-length types (NMEA sentences, raw bytes, outages) are low rate and encoded per message.
+
+Times: stamps are int64 UTC ns since the Unix epoch, split into ``sec`` (int32, floor) and
+``nanosec`` (uint32, 0..999_999_999) as ``builtin_interfaces/Time`` requires.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+from mcap.records import Schema
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap_ros2.decoder import DecoderFactory
+
+CDR_LE_HEADER = b"\x00\x01\x00\x00"
+SCHEMA_ENCODING = SchemaEncoding.ROS2  # "ros2msg"
+MESSAGE_ENCODING = MessageEncoding.CDR  # "cdr"
+
+# ---------------------------------------------------------------------------------------------
+# Message definitions (ros2msg text). Keys are full type names; references inside use pkg/Name.
+
+MSG_DEFS: dict[str, str] = {
+    "builtin_interfaces/msg/Time": "int32 sec\nuint32 nanosec\n",
+    "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/msg/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n",
+    "geometry_msgs/msg/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n",
+    "geometry_msgs/msg/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance\n",
+    "geometry_msgs/msg/TwistWithCovarianceStamped": (
+        "std_msgs/Header header\ngeometry_msgs/TwistWithCovariance twist\n"
+    ),
+    "geometry_msgs/msg/QuaternionStamped": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion quaternion\n"
+    ),
+    "geometry_msgs/msg/Vector3Stamped": "std_msgs/Header header\ngeometry_msgs/Vector3 vector\n",
+    "sensor_msgs/msg/Imu": (
+        "std_msgs/Header header\n"
+        "geometry_msgs/Quaternion orientation\n"
+        "float64[9] orientation_covariance\n"
+        "geometry_msgs/Vector3 angular_velocity\n"
+        "float64[9] angular_velocity_covariance\n"
+        "geometry_msgs/Vector3 linear_acceleration\n"
+        "float64[9] linear_acceleration_covariance\n"
+    ),
+    "sensor_msgs/msg/NavSatStatus": (
+        "int8 STATUS_NO_FIX = -1\n"
+        "int8 STATUS_FIX = 0\n"
+        "int8 STATUS_SBAS_FIX = 1\n"
+        "int8 STATUS_GBAS_FIX = 2\n"
+        "int8 status\n"
+        "uint16 SERVICE_GPS = 1\n"
+        "uint16 SERVICE_GLONASS = 2\n"
+        "uint16 SERVICE_COMPASS = 4\n"
+        "uint16 SERVICE_GALILEO = 8\n"
+        "uint16 service\n"
+    ),
+    "sensor_msgs/msg/NavSatFix": (
+        "uint8 COVARIANCE_TYPE_UNKNOWN = 0\n"
+        "uint8 COVARIANCE_TYPE_APPROXIMATED = 1\n"
+        "uint8 COVARIANCE_TYPE_DIAGONAL_KNOWN = 2\n"
+        "uint8 COVARIANCE_TYPE_KNOWN = 3\n"
+        "std_msgs/Header header\n"
+        "sensor_msgs/NavSatStatus status\n"
+        "float64 latitude\n"
+        "float64 longitude\n"
+        "float64 altitude\n"
+        "float64[9] position_covariance\n"
+        "uint8 position_covariance_type\n"
+    ),
+    "sensor_msgs/msg/TimeReference": (
+        "std_msgs/Header header\nbuiltin_interfaces/Time time_ref\nstring source\n"
+    ),
+    "nmea_msgs/msg/Sentence": "std_msgs/Header header\nstring sentence\n",
+    "fieldlog_msgs/msg/TimeSyncState": (
+        "uint8 FREE = 0\n"
+        "uint8 HOLDOVER = 1\n"
+        "uint8 LOCKED = 2\n"
+        "std_msgs/Header header\n"
+        "uint8 state\n"
+        "float64 rate_ppm\n"
+        "float64 residual_us\n"
+        "uint32 edges_used\n"
+        "uint32 edges_rejected\n"
+    ),
+    "fieldlog_msgs/msg/RawBytes": (
+        "std_msgs/Header header\nint64 mono_ns\nstring port\nuint8[] data\n"
+    ),
+    "fieldlog_msgs/msg/Outage": (
+        "std_msgs/Header header\nint64 start_ns\nint64 end_ns\nstring reason\n"
+    ),
+}
+
+_SEPARATOR = "=" * 80
+
+
+def _full_name(ref: str) -> str:
+    pkg, name = ref.split("/")[0], ref.split("/")[-1]
+    return f"{pkg}/msg/{name}"
+
+
+def _deps(type_name: str) -> list[str]:
+    """All message types used by ``type_name``, depth first, each once."""
+    out: list[str] = []
+
+    def visit(t: str) -> None:
+        for line in MSG_DEFS[t].splitlines():
+            ftype = re.split(r"[\s\[]", line.strip(), maxsplit=1)[0]
+            if "/" in ftype:
+                dep = _full_name(ftype)
+                if dep not in out:
+                    out.append(dep)
+                    visit(dep)
+
+    visit(type_name)
+    return out
+
+
+@lru_cache(maxsize=None)
+def schema_text(type_name: str) -> str:
+    """Concatenated ros2msg definition (as rosbag2 / mcap_ros2 expect) for ``type_name``."""
+    parts = [MSG_DEFS[type_name]]
+    for dep in _deps(type_name):
+        pkg, _, name = dep.split("/")
+        parts.append(f"{_SEPARATOR}\nMSG: {pkg}/{name}\n{MSG_DEFS[dep]}")
+    return "".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Topic registry (contract topic names -> type names).
+
+IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+TWIST = "geometry_msgs/msg/TwistWithCovarianceStamped"
+QUATERNION = "geometry_msgs/msg/QuaternionStamped"
+VECTOR3 = "geometry_msgs/msg/Vector3Stamped"
+SENTENCE = "nmea_msgs/msg/Sentence"
+TIMEREF = "sensor_msgs/msg/TimeReference"
+TIMESYNC = "fieldlog_msgs/msg/TimeSyncState"
+RAWBYTES = "fieldlog_msgs/msg/RawBytes"
+OUTAGE = "fieldlog_msgs/msg/Outage"
+
+TOPICS: dict[str, str] = {
+    "/raw/daq": RAWBYTES,
+    "/raw/gps": RAWBYTES,
+    "/imu": IMU,
+    "/gps/fix": NAVSATFIX,
+    "/gps/vel": TWIST,
+    "/gps/nmea": SENTENCE,
+    "/pps": TIMEREF,
+    "/time/sync": TIMESYNC,
+    "/truth/imu": IMU,
+    "/truth/fix": NAVSATFIX,
+    "/truth/vel": TWIST,
+    "/truth/attitude": QUATERNION,
+    "/fusion/outage": OUTAGE,
+}
+FUSION_SUBTOPICS: dict[str, str] = {
+    "fix": NAVSATFIX,
+    "vel": TWIST,
+    "attitude": QUATERNION,
+    "std": VECTOR3,
+}
+_FUSION_RE = re.compile(r"^/fusion/([A-Za-z0-9_-]+)/(fix|vel|attitude|std)$")
+
+
+def topic_type(topic: str) -> str:
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std}``.
+
+    Raises KeyError for a topic outside the contract.
+    """
+    if topic in TOPICS:
+        return TOPICS[topic]
+    m = _FUSION_RE.match(topic)
+    if m is None:
+        raise KeyError(f"not a fieldlog topic: {topic!r}")
+    return FUSION_SUBTOPICS[m.group(2)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Packed batches
+
+
+@dataclass(frozen=True)
+class Packed:
+    """A batch of serialised messages: message i is ``buf[offsets[i]:offsets[i+1]]``."""
+
+    buf: np.ndarray  # uint8, contiguous
+    offsets: np.ndarray  # int64, shape (n + 1,)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, i: int) -> bytes:
+        return self.buf[self.offsets[i] : self.offsets[i + 1]].tobytes()
+
+    def __iter__(self) -> Iterator[bytes]:
+        raw = self.buf.tobytes()
+        o = self.offsets.tolist()
+        return (raw[o[i] : o[i + 1]] for i in range(len(o) - 1))
+
+    def to_list(self) -> list[bytes]:
+        return list(self)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def width(self) -> int | None:
+        """The common message length, or None when lengths differ (or the batch is empty)."""
+        lens = self.lengths
+        if len(lens) == 0 or not np.all(lens == lens[0]):
+            return None
+        return int(lens[0])
+
+    def matrix(self) -> np.ndarray:
+        """(n, width) uint8 view of a batch of equal-length messages."""
+        w = self.width()
+        if w is None:
+            raise ValueError("messages differ in length")
+        return self.buf[self.offsets[0] : self.offsets[-1]].reshape(len(self), w)
+
+    @classmethod
+    def from_matrix(cls, mat: np.ndarray) -> "Packed":
+        n, w = mat.shape
+        return cls(np.ascontiguousarray(mat).reshape(-1), np.arange(n + 1, dtype=np.int64) * w)
+
+    @classmethod
+    def from_list(cls, msgs: Sequence[bytes]) -> "Packed":
+        lens = np.fromiter((len(m) for m in msgs), dtype=np.int64, count=len(msgs))
+        offsets = np.zeros(len(msgs) + 1, dtype=np.int64)
+        np.cumsum(lens, out=offsets[1:])
+        return cls(np.frombuffer(b"".join(msgs), dtype=np.uint8), offsets)
+
+
+def as_packed(msgs: "Packed | Sequence[bytes]") -> Packed:
+    return msgs if isinstance(msgs, Packed) else Packed.from_list(msgs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fixed layouts: structured dtypes with explicit CDR offsets.
+
+# A field is (name, numpy base format, shape) or (name, "string", None); strings are fixed per
+# layout, so each layout is keyed by the string lengths it holds.
+_Field = tuple[str, str, tuple[int, ...] | None]
+
+_HEADER: list[_Field] = [("sec", "<i4", ()), ("nanosec", "<u4", ()), ("frame_id", "string", None)]
+
+_FIELDS: dict[str, list[_Field]] = {
+    IMU: _HEADER
+    + [
+        ("orientation", "<f8", (4,)),
+        ("orientation_covariance", "<f8", (9,)),
+        ("angular_velocity", "<f8", (3,)),
+        ("angular_velocity_covariance", "<f8", (9,)),
+        ("linear_acceleration", "<f8", (3,)),
+        ("linear_acceleration_covariance", "<f8", (9,)),
+    ],
+    NAVSATFIX: _HEADER
+    + [
+        ("status", "<i1", ()),
+        ("service", "<u2", ()),
+        ("latitude", "<f8", ()),
+        ("longitude", "<f8", ()),
+        ("altitude", "<f8", ()),
+        ("position_covariance", "<f8", (9,)),
+        ("position_covariance_type", "<u1", ()),
+    ],
+    TWIST: _HEADER
+    + [("linear", "<f8", (3,)), ("angular", "<f8", (3,)), ("covariance", "<f8", (36,))],
+    QUATERNION: _HEADER + [("quaternion", "<f8", (4,))],
+    VECTOR3: _HEADER + [("vector", "<f8", (3,))],
+    TIMEREF: _HEADER
+    + [("ref_sec", "<i4", ()), ("ref_nanosec", "<u4", ()), ("source", "string", None)],
+    TIMESYNC: _HEADER
+    + [
+        ("state", "<u1", ()),
+        ("rate_ppm", "<f8", ()),
+        ("residual_us", "<f8", ()),
+        ("edges_used", "<u4", ()),
+        ("edges_rejected", "<u4", ()),
+    ],
+}
+
+
+@lru_cache(maxsize=256)
+def _layout(type_name: str, string_lengths: tuple[int, ...]) -> np.dtype:
+    """Structured dtype for one fixed layout; ``string_lengths`` are byte lengths without NUL.
+
+    String ``s`` becomes fields ``s_len`` (uint32, length incl. NUL) and ``s`` (bytes incl. NUL).
+    """
+    names, formats, offsets = ["enc"], [np.dtype(("u1", (4,)))], [0]
+    pos = 0  # CDR alignment counts from the end of the encapsulation header
+    strings = iter(string_lengths)
+    for name, fmt, shape in _FIELDS[type_name]:
+        if fmt == "string":
+            pos = -(-pos // 4) * 4
+            names += [name + "_len", name]
+            length = next(strings) + 1
+            formats += [np.dtype("<u4"), np.dtype(f"S{length}")]
+            offsets += [4 + pos, 8 + pos]
+            pos += 4 + length
+        else:
+            base = np.dtype(fmt)
+            pos = -(-pos // base.itemsize) * base.itemsize
+            names.append(name)
+            formats.append(np.dtype((base, shape)) if shape else base)
+            offsets.append(4 + pos)
+            pos += base.itemsize * int(np.prod(shape or (1,)))
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": 4 + pos})
+
+
+def split_stamp(stamp_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """int64 ns -> (sec int32 floor, nanosec uint32 in [0, 1e9))."""
+    stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
+    sec, nsec = np.divmod(stamp_ns, 1_000_000_000)
+    return sec.astype(np.int32), nsec.astype(np.uint32)
+
+
+def join_stamp(sec: np.ndarray, nanosec: np.ndarray) -> np.ndarray:
+    return np.asarray(sec, dtype=np.int64) * 1_000_000_000 + np.asarray(nanosec, dtype=np.int64)
+
+
+def _new(type_name: str, n: int, strings: dict[str, str], stamp_ns: np.ndarray) -> np.ndarray:
+    enc = {k: v.encode() for k, v in strings.items()}
+    dt = _layout(type_name, tuple(len(b) for b in enc.values()))
+    arr = np.zeros(n, dtype=dt)
+    arr["enc"] = np.frombuffer(CDR_LE_HEADER, dtype=np.uint8)
+    for name, b in enc.items():
+        arr[name + "_len"] = len(b) + 1
+        arr[name] = b
+    arr["sec"], arr["nanosec"] = split_stamp(stamp_ns)
+    return arr
+
+
+def _pack(arr: np.ndarray) -> Packed:
+    return Packed(arr.view(np.uint8).reshape(-1), np.arange(len(arr) + 1, dtype=np.int64) * arr.dtype.itemsize)
+
+
+def _cov(cov: np.ndarray | None, n: int, size: int) -> np.ndarray:
+    if cov is None:
+        return np.zeros((n, size))
+    cov = np.asarray(cov, dtype=np.float64).reshape(-1, size)
+    return np.broadcast_to(cov, (n, size))
+
+
+# ---------------------------------------------------------------------------------------------
+# Vectorised encoders
+
+
+def encode_imu(
+    stamp_ns: np.ndarray,
+    omega_ib_b: np.ndarray,
+    f_b: np.ndarray,
+    gyro_cov: np.ndarray | None = None,
+    accel_cov: np.ndarray | None = None,
+    orientation_xyzw: np.ndarray | None = None,
+    frame_id: str = "imu",
+) -> Packed:
+    """``sensor_msgs/msg/Imu`` batch.
+
+    stamp_ns (n,) int64 UTC ns; omega_ib_b (n,3) rad/s and f_b (n,3) m/s^2 in the body frame
+    (right-forward-up); gyro_cov / accel_cov (9,) or (n,9) row-major 3x3 in (rad/s)^2, (m/s^2)^2.
+    orientation_xyzw (n,4) body->ENU quaternion; None -> orientation_covariance[0] = -1
+    ("orientation unknown", as REP 145 says).
+    """
+    stamp_ns = np.asarray(stamp_ns)
+    n = len(stamp_ns)
+    arr = _new(IMU, n, {"frame_id": frame_id}, stamp_ns)
+    arr["angular_velocity"] = omega_ib_b
+    arr["linear_acceleration"] = f_b
+    arr["angular_velocity_covariance"] = _cov(gyro_cov, n, 9)
+    arr["linear_acceleration_covariance"] = _cov(accel_cov, n, 9)
+    if orientation_xyzw is None:
+        arr["orientation_covariance"][:, 0] = -1.0
+    else:
+        arr["orientation"] = orientation_xyzw
+    return _pack(arr)
+
+
+def encode_navsatfix(
+    stamp_ns: np.ndarray,
+    lat_deg: np.ndarray,
+    lon_deg: np.ndarray,
+    alt_m: np.ndarray,
+    position_covariance: np.ndarray | None = None,
+    covariance_type: int | np.ndarray = 2,
+    status: int | np.ndarray = 0,
+    service: int | np.ndarray = 1,
+    frame_id: str = "gps",
+) -> Packed:
+    """``sensor_msgs/msg/NavSatFix`` batch.
+
+    Latitude/longitude in degrees, altitude in metres above the WGS-84 ellipsoid;
+    position_covariance (9,) or (n,9) ENU in m^2; covariance_type 0..3 (2 = diagonal known);
+    status -1 no fix, 0 fix, 1 SBAS, 2 GBAS; service bit mask (1 = GPS).
+    """
+    stamp_ns = np.asarray(stamp_ns)
+    n = len(stamp_ns)
+    arr = _new(NAVSATFIX, n, {"frame_id": frame_id}, stamp_ns)
+    arr["status"], arr["service"] = status, service
+    arr["latitude"], arr["longitude"], arr["altitude"] = lat_deg, lon_deg, alt_m
+    arr["position_covariance"] = _cov(position_covariance, n, 9)
+    arr["position_covariance_type"] = covariance_type
+    return _pack(arr)
+
+
+def encode_twist(
+    stamp_ns: np.ndarray,
+    v_n: np.ndarray,
+    omega: np.ndarray | None = None,
+    covariance: np.ndarray | None = None,
+    frame_id: str = "enu",
+) -> Packed:
+    """``geometry_msgs/msg/TwistWithCovarianceStamped`` batch.
+
+    v_n (n,3) ENU velocity in m/s; omega (n,3) rad/s (zeros if None); covariance (36,) or (n,36)
+    row-major 6x6 over (vE, vN, vU, wx, wy, wz).
+    """
+    stamp_ns = np.asarray(stamp_ns)
+    n = len(stamp_ns)
+    arr = _new(TWIST, n, {"frame_id": frame_id}, stamp_ns)
+    arr["linear"] = v_n
+    if omega is not None:
+        arr["angular"] = omega
+    arr["covariance"] = _cov(covariance, n, 36)
+    return _pack(arr)
+
+
+def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = "enu") -> Packed:
+    """``geometry_msgs/msg/QuaternionStamped`` batch: q_xyzw (n,4) rotation body -> ENU (C_bn)."""
+    stamp_ns = np.asarray(stamp_ns)
+    arr = _new(QUATERNION, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
+    arr["quaternion"] = q_xyzw
+    return _pack(arr)
+
+
+def encode_vector3(stamp_ns: np.ndarray, xyz: np.ndarray, frame_id: str = "enu") -> Packed:
+    """``geometry_msgs/msg/Vector3Stamped`` batch; xyz (n,3), units set by the topic."""
+    stamp_ns = np.asarray(stamp_ns)
+    arr = _new(VECTOR3, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
+    arr["vector"] = xyz
+    return _pack(arr)
+
+
+def encode_time_reference(
+    stamp_ns: np.ndarray, time_ref_ns: np.ndarray, source: str = "pps", frame_id: str = "daq"
+) -> Packed:
+    """``sensor_msgs/msg/TimeReference`` batch: stamp = the PPS edge on the DAQ clock (UTC ns),
+    time_ref = the GPS second the edge marks (UTC ns)."""
+    stamp_ns = np.asarray(stamp_ns)
+    arr = _new(TIMEREF, len(stamp_ns), {"frame_id": frame_id, "source": source}, stamp_ns)
+    arr["ref_sec"], arr["ref_nanosec"] = split_stamp(time_ref_ns)
+    return _pack(arr)
+
+
+def encode_time_sync(
+    stamp_ns: np.ndarray,
+    state: np.ndarray,
+    rate_ppm: np.ndarray,
+    residual_us: np.ndarray,
+    edges_used: np.ndarray,
+    edges_rejected: np.ndarray,
+    frame_id: str = "daq",
+) -> Packed:
+    """``fieldlog_msgs/msg/TimeSyncState`` batch; state FREE=0, HOLDOVER=1, LOCKED=2;
+    rate_ppm = DAQ oscillator rate error (ppm); residual_us = fit residual RMS (µs)."""
+    stamp_ns = np.asarray(stamp_ns)
+    arr = _new(TIMESYNC, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
+    arr["state"], arr["rate_ppm"], arr["residual_us"] = state, rate_ppm, residual_us
+    arr["edges_used"], arr["edges_rejected"] = edges_used, edges_rejected
+    return _pack(arr)
+
+
+TIMESYNC_FREE, TIMESYNC_HOLDOVER, TIMESYNC_LOCKED = 0, 1, 2
+COVARIANCE_TYPE_UNKNOWN, COVARIANCE_TYPE_APPROXIMATED, COVARIANCE_TYPE_DIAGONAL_KNOWN = 0, 1, 2
+STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -1, 0, 1, 2
+
+
+def fix_status(gga_quality: int) -> int:
+    """NMEA GGA fix quality -> NavSatFix status: 0 none, 1 GPS, 2 DGPS/SBAS, 4/5 RTK (ground based)."""
+    return {0: STATUS_NO_FIX, 2: STATUS_SBAS_FIX, 4: STATUS_GBAS_FIX, 5: STATUS_GBAS_FIX}.get(gga_quality,
+                                                                                               STATUS_FIX)
+
+# ---------------------------------------------------------------------------------------------
+# Per-message encoders for variable-length types
+
+
+class _Cdr:
+    """Minimal little-endian CDR writer for the few variable-length types."""
+
+    def __init__(self) -> None:
+        self.parts = [CDR_LE_HEADER]
+        self.pos = 0
+
+    def _align(self, size: int) -> None:
+        pad = -self.pos % size
+        if pad:
+            self.parts.append(b"\x00" * pad)
+            self.pos += pad
+
+    def put(self, fmt: str, *values: Any) -> "_Cdr":
+        self._align(struct.calcsize("<" + fmt[0]))
+        b = struct.pack("<" + fmt, *values)
+        self.parts.append(b)
+        self.pos += len(b)
+        return self
+
+    def string(self, s: str) -> "_Cdr":
+        b = s.encode() + b"\x00"
+        self.put("I", len(b))
+        self.parts.append(b)
+        self.pos += len(b)
+        return self
+
+    def octets(self, data: bytes) -> "_Cdr":
+        self.put("I", len(data))
+        self.parts.append(bytes(data))
+        self.pos += len(data)
+        return self
+
+    def header(self, stamp_ns: int, frame_id: str) -> "_Cdr":
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        return self.put("iI", sec, nsec).string(frame_id)
+
+    def bytes(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def encode_sentence(stamp_ns: int, sentence: str, frame_id: str = "gps") -> bytes:
+    """``nmea_msgs/msg/Sentence``: one NMEA line without CR/LF, stamp = read time mapped to UTC."""
+    return _Cdr().header(stamp_ns, frame_id).string(sentence).bytes()
+
+
+def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: str = "") -> bytes:
+    """``fieldlog_msgs/msg/RawBytes``: bytes exactly as read; stamp = host wall clock at read,
+    mono_ns = host monotonic clock at read, port = device path."""
+    return _Cdr().header(stamp_ns, frame_id).put("q", mono_ns).string(port).octets(data).bytes()
+
+
+def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:
+    """``fieldlog_msgs/msg/RawBytes`` -> (wall_ns, mono_ns, port, data); the inverse of ``encode_raw``."""
+    sec, nsec, flen = struct.unpack_from("<iII", data, 4)
+    pos = 12 + flen
+    pos += -pos % 8
+    (mono_ns,) = struct.unpack_from("<q", data, 4 + pos)
+    pos += 8
+    (plen,) = struct.unpack_from("<I", data, 4 + pos)
+    port = data[4 + pos + 4: 4 + pos + 4 + plen - 1].decode()
+    pos += 4 + plen
+    pos += -pos % 4
+    (dlen,) = struct.unpack_from("<I", data, 4 + pos)
+    return sec * 1_000_000_000 + nsec, mono_ns, port, data[4 + pos + 4: 4 + pos + 4 + dlen]
+
+
+def encode_outage(stamp_ns: int, start_ns: int, end_ns: int, reason: str, frame_id: str = "") -> bytes:
+    """``fieldlog_msgs/msg/Outage``: GPS outage window [start_ns, end_ns) in UTC ns;
+    reason e.g. "injected", "no_fix", "low_quality"."""
+    return _Cdr().header(stamp_ns, frame_id).put("qq", start_ns, end_ns).string(reason).bytes()
+
+
+# ---------------------------------------------------------------------------------------------
+# Vectorised decoders (fixed layouts). Rows that are not valid CDR of the type get valid=False
+# and zeros; decoders never raise on bad input.
+
+
+def _decode_fixed(type_name: str, msgs: "Packed | Sequence[bytes]") -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Numeric fields by name (rows that are not valid are zero), and a valid mask (n,)."""
+    p = as_packed(msgs)
+    n = len(p)
+    common = _common_dtype(type_name)
+    starts, lens = p.offsets[:-1], p.lengths
+    # Every layout starts with header(sec, nanosec, frame_id): frame_id length at byte 12.
+    ok = lens >= 17
+    str_lens = [_u32_at(p.buf, np.where(ok, starts + 12, 0)) - 1]
+    if type_name == TIMEREF:  # source length after frame_id and the 8-byte time_ref
+        pos = 4 + (-(-(13 + str_lens[0]) // 4) * 4) + 8
+        ok &= lens >= pos + 4
+        str_lens.append(_u32_at(p.buf, np.where(ok, starts + pos, 0)) - 1)
+    keys = np.stack(str_lens, axis=1)
+    ok &= (keys >= 0).all(axis=1) & (keys < 1 << 20).all(axis=1)
+    ok &= _u32_at(p.buf, np.where(ok, starts, 0)) == 0x100  # 00 01 00 00: CDR little-endian
+    if not ok.any():
+        return {k: np.zeros(n, dtype=common.fields[k][0]) for k in common.names}, ok
+    good_rows = np.flatnonzero(ok)
+    if (keys[good_rows] == keys[good_rows[0]]).all():  # the usual case: one layout
+        uniq, inverse = keys[good_rows[:1]], np.zeros(len(good_rows), dtype=np.int64)
+    else:
+        uniq, inverse = np.unique(keys[good_rows], axis=0, return_inverse=True)
+    out: dict[str, np.ndarray] | None = None
+    for g, key in enumerate(uniq):
+        dt = _layout(type_name, tuple(int(k) for k in key))
+        rows = good_rows[inverse.reshape(-1) == g]
+        fits = lens[rows] == dt.itemsize
+        ok[rows[~fits]] = False
+        rows = rows[fits]
+        part = _gather(p, rows, dt)
+        if len(rows) == n:
+            return {k: np.ascontiguousarray(part[k]) for k in common.names}, ok
+        if out is None:
+            out = {k: np.zeros(n, dtype=common.fields[k][0]) for k in common.names}
+        for k in common.names:
+            out[k][rows] = part[k]
+    if out is None:
+        out = {k: np.zeros(n, dtype=common.fields[k][0]) for k in common.names}
+    return out, ok
+
+
+def _gather(p: Packed, rows: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Rows of ``p`` (all of length dt.itemsize) viewed or copied as a structured array."""
+    w = dt.itemsize
+    if len(rows) == len(p) and p.width() == w:
+        return p.matrix().reshape(-1).view(dt)
+    out = np.empty((len(rows), w), dtype=np.uint8)
+    step = max(1, (1 << 22) // w)  # bound the index matrix to ~32 MB
+    for i in range(0, len(rows), step):
+        s = p.offsets[rows[i : i + step]]
+        out[i : i + step] = p.buf[s[:, None] + np.arange(w)]
+    return out.reshape(-1).view(dt)
+
+
+def _u32_at(buf: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Little-endian uint32 at each byte position (int64 result; positions clipped in range)."""
+    if len(buf) < 4:
+        return np.zeros(len(pos), dtype=np.int64)
+    pos = np.clip(np.asarray(pos, dtype=np.int64), 0, len(buf) - 4)
+    b = buf[pos[:, None] + np.arange(4)].astype(np.int64)
+    return b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16) | (b[:, 3] << 24)
+
+
+@lru_cache(maxsize=None)
+def _common_dtype(type_name: str) -> np.dtype:
+    """Aligned (non-CDR) dtype holding a type's numeric fields, for decoded output."""
+    fields = [(name, fmt, shape) for name, fmt, shape in _FIELDS[type_name] if fmt != "string"]
+    return np.dtype([(name, fmt, shape) if shape else (name, fmt) for name, fmt, shape in fields])
+
+
+def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """Imu batch -> stamp_ns (n,) int64, omega_ib_b (n,3), f_b (n,3), orientation_xyzw (n,4),
+    gyro_cov / accel_cov / orientation_cov (n,9), valid (n,) bool."""
+    a, ok = _decode_fixed(IMU, msgs)
+    return {
+        "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
+        "omega_ib_b": a["angular_velocity"],
+        "f_b": a["linear_acceleration"],
+        "orientation_xyzw": a["orientation"],
+        "gyro_cov": a["angular_velocity_covariance"],
+        "accel_cov": a["linear_acceleration_covariance"],
+        "orientation_cov": a["orientation_covariance"],
+        "valid": ok,
+    }
+
+
+def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """NavSatFix batch -> stamp_ns, lat_deg, lon_deg, alt_m, position_covariance (n,9) ENU m^2,
+    covariance_type, status, service, valid."""
+    a, ok = _decode_fixed(NAVSATFIX, msgs)
+    return {
+        "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
+        "lat_deg": a["latitude"],
+        "lon_deg": a["longitude"],
+        "alt_m": a["altitude"],
+        "position_covariance": a["position_covariance"],
+        "covariance_type": a["position_covariance_type"],
+        "status": a["status"],
+        "service": a["service"],
+        "valid": ok,
+    }
+
+
+def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """TwistWithCovarianceStamped batch -> stamp_ns, v_n (n,3) ENU m/s, omega (n,3),
+    covariance (n,36), valid."""
+    a, ok = _decode_fixed(TWIST, msgs)
+    return {
+        "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
+        "v_n": a["linear"],
+        "omega": a["angular"],
+        "covariance": a["covariance"],
+        "valid": ok,
+    }
+
+
+def decode_quaternion(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """QuaternionStamped batch -> stamp_ns, q_xyzw (n,4), valid."""
+    a, ok = _decode_fixed(QUATERNION, msgs)
+    return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "q_xyzw": a["quaternion"], "valid": ok}
+
+
+def decode_vector3(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """Vector3Stamped batch -> stamp_ns, xyz (n,3), valid."""
+    a, ok = _decode_fixed(VECTOR3, msgs)
+    return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "xyz": a["vector"], "valid": ok}
+
+
+def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """TimeReference batch -> stamp_ns (edge), time_ref_ns (GPS second), valid."""
+    a, ok = _decode_fixed(TIMEREF, msgs)
+    return {
+        "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
+        "time_ref_ns": join_stamp(a["ref_sec"], a["ref_nanosec"]),
+        "valid": ok,
+    }
+
+
+def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """TimeSyncState batch -> stamp_ns, state, rate_ppm, residual_us, edges_used,
+    edges_rejected, valid."""
+    a, ok = _decode_fixed(TIMESYNC, msgs)
+    out = {"stamp_ns": join_stamp(a["sec"], a["nanosec"])}
+    out.update({k: a[k] for k in ("state", "rate_ppm", "residual_us", "edges_used", "edges_rejected")})
+    out["valid"] = ok
+    return out
+
+
+BATCH_DECODERS: dict[str, Callable[["Packed | Sequence[bytes]"], dict[str, np.ndarray]]] = {
+    IMU: decode_imu,
+    NAVSATFIX: decode_navsatfix,
+    TWIST: decode_twist,
+    QUATERNION: decode_quaternion,
+    VECTOR3: decode_vector3,
+    TIMEREF: decode_time_reference,
+    TIMESYNC: decode_time_sync,
+}
+
+# ---------------------------------------------------------------------------------------------
+# Generic decode (any registered type, per message) through mcap_ros2's own decoder.
+
+_factory = DecoderFactory()
+_schema_ids = {name: i + 1 for i, name in enumerate(MSG_DEFS)}
+
+
+def schema_record(type_name: str) -> Schema:
+    """An mcap Schema record for ``type_name`` (id is a stable local number)."""
+    return Schema(
+        id=_schema_ids[type_name],
+        name=type_name,
+        encoding=SCHEMA_ENCODING,
+        data=schema_text(type_name).encode(),
+    )
+
+
+def decoder_for(type_name: str) -> Callable[[bytes], Any]:
+    """mcap_ros2's decoder for one registered type: bytes -> message object."""
+    dec = _factory.decoder_for(MESSAGE_ENCODING, schema_record(type_name))
+    assert dec is not None
+    return dec
+
+
+def decode_message(type_name: str, data: bytes) -> Any:
+    """Decode one message of any registered type (attribute access, e.g. ``m.header.stamp``)."""
+    return decoder_for(type_name)(data)

@@ -1,0 +1,251 @@
+"""Raw serial reads in, the drive's derived topics out: the one processing path of the daemon, the
+simulator, ``import`` and ``rebuild``.
+
+Reads must be fed in host-monotonic order across ports. Everything written is a deterministic function of
+the reads, so re-running on ``/raw/*`` reproduces the derived topics bit for bit.
+"""
+from __future__ import annotations
+
+import ast
+import datetime as _dt
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from acquire import calib, daq, messages, nmea, timesync
+
+NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class RawRead:
+    """One read() from a serial port: host monotonic and wall-clock time at return, and the bytes."""
+
+    port: str
+    mono_ns: int
+    wall_ns: int
+    data: bytes
+
+
+PORT_ORDER = {"daq": 0, "gps": 1}
+
+
+def read_order(port: str, mono_ns: int) -> tuple[int, int]:
+    """The order reads are processed in: host monotonic time, DAQ first on a tie. The daemon, the
+    simulator and ``rebuild`` all use it, so they feed the pipeline identically."""
+    return (mono_ns, PORT_ORDER.get(port, 2))
+
+
+class Sink(Protocol):
+    def write(self, topic: str, log_time_ns: int, data: bytes) -> None: ...
+
+    def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None: ...
+
+
+@dataclass
+class PipelineConfig:
+    """Processing settings that are not calibration. SI units."""
+
+    gyro_noise_density: float = np.radians(0.01)   # rad/s/sqrt(Hz), for the /imu covariance
+    accel_noise_density: float = 5e-6 * 9.80665    # m/s^2/sqrt(Hz) (Table 2: 5 ug/sqrt(Hz))
+    gps_vel_sigma_mps: float = 0.1                  # NMEA carries no velocity accuracy
+    uere_m: float = 4.0                             # sigma_h = HDOP * UERE when no GST
+    vertical_over_horizontal: float = 2.0
+    imu_frame_id: str = "imu"
+    gps_frame_id: str = "gps"
+    gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
+
+
+@dataclass
+class Counters:
+    """What the pipeline saw besides good data; every field is a count."""
+
+    daq: daq.DaqStats
+    nmea: nmea.NmeaStats
+    imu_samples: int = 0
+    gps_epochs: int = 0
+    gps_no_fix: int = 0
+    pps_edges: int = 0
+    pps_rejected: int = 0
+    reads: dict = field(default_factory=dict)
+
+
+class Pipeline:
+    """Feed ``RawRead``-like records; derived messages go to ``sink.write_batch``."""
+
+    def __init__(self, sink: Sink, cal: calib.Calibration | None = None,
+                 sync_cfg: timesync.TimeSyncConfig | None = None, cfg: PipelineConfig | None = None) -> None:
+        self.sink = sink
+        self.cal = cal or calib.load_calibration(None)
+        self.cfg = cfg or PipelineConfig()
+        self.sync = timesync.TimeSync(sync_cfg or timesync.TimeSyncConfig())
+        self.fs = self.sync.cfg.fs_hz
+        self._daq = daq.DaqDecoder()
+        self._nmea = nmea.NmeaDecoder()
+        self._epochs = nmea.EpochAssembler()
+        self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
+        self._last_fix_key: tuple | None = None
+        self._date: _dt.date | None = None
+        self._last_tod = -1.0
+        bw = self.fs / 2
+        self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
+        self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
+        self.counters = Counters(daq=self._daq.stats, nmea=self._nmea.stats)
+
+    # -- input ---------------------------------------------------------------------------------------
+    def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
+        self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
+        if port == "daq":
+            self._feed_daq(mono_ns, wall_ns, data)
+        elif port == "gps":
+            self._feed_gps(mono_ns, wall_ns, data)
+        self._emit_sync()
+        self._emit_imu(final=False)
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
+        return {"calibration": {"toml": self.cal.to_toml()},
+                "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()}}
+
+    @staticmethod
+    def settings_from_metadata(meta: dict[str, dict[str, str]]) -> tuple[calib.Calibration,
+                                                                        timesync.TimeSyncConfig]:
+        """The inverse of ``metadata``; defaults for what a drive does not record."""
+        cal = calib.loads_calibration(meta["calibration"]["toml"]) if "calibration" in meta else \
+            calib.load_calibration(None)
+        sync = {k: ast.literal_eval(v) for k, v in meta.get("timesync", {}).items()}
+        return cal, timesync.TimeSyncConfig.from_dict(sync)
+
+    def counters_metadata(self) -> dict[str, str]:
+        """The counters, flattened for an MCAP metadata record."""
+        c = self.counters
+        out = {f"daq.{k}": str(v) for k, v in asdict(c.daq).items()}
+        out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
+        out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
+                                                    "pps_rejected")})
+        out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
+        return out
+
+    def finish(self) -> None:
+        for ep in self._epochs.flush():
+            self._emit_epoch(ep)
+        self.sync.finish()
+        self._emit_sync()
+        self._emit_imu(final=True)
+
+    def _feed_daq(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        fr = self._daq.feed(data)
+        if len(fr.k) == 0:
+            return
+        self.sync.add_frames(fr.k, fr.pps, fr.latch, fr.latch_valid, mono_ns, wall_ns)
+        self._pending.append((fr.k, fr.counts))
+
+    def _feed_gps(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        sentences = self._nmea.feed(data)
+        if not sentences:
+            return
+        stamp = int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0])
+        for s in sentences:
+            self.sink.write("/gps/nmea", stamp, messages.encode_sentence(
+                stamp, s.raw.decode("ascii", "replace"), self.cfg.gps_frame_id))
+            self._note_time(s, mono_ns, wall_ns)
+            for ep in self._epochs.add(s, mono_ns):
+                self._emit_epoch(ep)
+
+    def _note_time(self, s, mono_ns: int, wall_ns: int) -> None:
+        """Tell time sync about the first sentence of each new whole UTC second (gpsd-style labelling)."""
+        date = getattr(s, "date", None)
+        if date is not None:
+            self._date = date
+        tod = getattr(s, "time_of_day_s", None)
+        if tod is None or not np.isfinite(tod):
+            return
+        if self._date is None:
+            self._date = _dt.datetime.fromtimestamp(wall_ns / NS, _dt.timezone.utc).date()
+        elif tod < self._last_tod - 43200 and date is None:
+            self._date = self._date + _dt.timedelta(days=1)
+        self._last_tod = tod
+        if tod != np.floor(tod):
+            return
+        utc_s = int(_dt.datetime.combine(self._date, _dt.time(), _dt.timezone.utc).timestamp()) + int(tod)
+        if self._last_fix_key != utc_s:
+            self._last_fix_key = utc_s
+            self.sync.add_fix(utc_s, mono_ns)
+
+    # -- output --------------------------------------------------------------------------------------
+    def _emit_epoch(self, ep) -> None:
+        if ep.date is None and self._date is None:
+            return
+        date = ep.date or self._date
+        t_ns = np.array([int(_dt.datetime.combine(date, _dt.time(), _dt.timezone.utc).timestamp()) * NS
+                         + int(round(ep.time_of_day_s * NS))], np.int64)
+        fix = bool(ep.quality) and ep.quality > 0 and np.isfinite(ep.lat_deg)
+        self.counters.gps_epochs += 1
+        self.counters.gps_no_fix += not fix
+        if np.isfinite(ep.sd_east_m) and np.isfinite(ep.sd_north_m):
+            var = np.array([ep.sd_east_m**2, ep.sd_north_m**2, ep.sd_up_m**2])
+            cov_type = messages.COVARIANCE_TYPE_DIAGONAL_KNOWN
+        else:
+            sh = (ep.hdop if np.isfinite(ep.hdop or np.nan) else 99.0) * self.cfg.uere_m
+            var = np.array([sh**2, sh**2, (self.cfg.vertical_over_horizontal * sh) ** 2])
+            cov_type = messages.COVARIANCE_TYPE_APPROXIMATED
+        status = messages.fix_status(ep.quality if fix else 0)
+        nan = np.nan
+        self.sink.write_batch("/gps/fix", t_ns, messages.encode_navsatfix(
+            t_ns, [ep.lat_deg if fix else nan], [ep.lon_deg if fix else nan], [ep.alt_ellipsoid_m if fix else nan],
+            np.diag(var).ravel(), cov_type, status, self.cfg.gps_service, frame_id=self.cfg.gps_frame_id))
+        if fix and ep.speed_mps is not None and np.isfinite(ep.speed_mps):
+            course = ep.course_rad if ep.course_rad is not None and np.isfinite(ep.course_rad) else 0.0
+            lin = np.array([[ep.speed_mps * np.sin(course), ep.speed_mps * np.cos(course), 0.0]])
+            cov = np.zeros((1, 36))
+            s2 = self.cfg.gps_vel_sigma_mps**2
+            cov[0, [0, 7]] = s2
+            cov[0, 14] = 1e4          # NMEA has no vertical velocity: unobserved
+            cov[0, [21, 28, 35]] = -1.0  # no angular velocity
+            self.sink.write_batch("/gps/vel", t_ns, messages.encode_twist(
+                t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))
+
+    def _emit_sync(self) -> None:
+        edges = self.sync.pop_edges()
+        if len(edges):
+            self.counters.pps_edges += len(edges)
+            self.counters.pps_rejected += int(np.count_nonzero(~edges.accepted))
+            log = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
+            daq_clock_ns = np.round(edges.k_edge / self.fs * NS).astype(np.int64)
+            ref_ns = np.where(edges.accepted, edges.label_s * NS, 0)
+            for reason in dict.fromkeys(edges.reason):
+                sel = edges.reason == reason
+                self.sink.write_batch("/pps", log[sel].astype(np.int64), messages.encode_time_reference(
+                    daq_clock_ns[sel], ref_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
+        st = self.sync.pop_status()
+        if len(st):
+            self.sink.write_batch("/time/sync", st.utc_ns, messages.encode_time_sync(
+                st.utc_ns, st.state, st.rate_ppm, st.residual_us, st.edges_used, st.edges_rejected))
+
+    def _emit_imu(self, final: bool) -> None:
+        """Stamp, calibrate and write the buffered samples whose time stamps are final."""
+        fin = None if final else self.sync.final_until()
+        ks, cs = [], []
+        while self._pending:
+            k, c = self._pending[0]
+            if fin is None or k[-1] < fin:
+                self._pending.popleft()
+            elif k[0] < fin:
+                n = int(np.searchsorted(k, fin))
+                self._pending[0] = (k[n:], c[n:])
+                k, c = k[:n], c[:n]
+            else:
+                break
+            ks.append(k)
+            cs.append(c)
+        if not ks:
+            return
+        k = np.concatenate(ks)
+        t_ns, _state = self.sync.stamp(k)
+        omega_ib_b, f_b = calib.apply(self.cal, np.concatenate(cs))
+        self.counters.imu_samples += len(k)
+        self.sink.write_batch("/imu", t_ns, messages.encode_imu(
+            t_ns, omega_ib_b, f_b, self._gyro_cov, self._accel_cov, frame_id=self.cfg.imu_frame_id))

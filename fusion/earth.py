@@ -1,0 +1,240 @@
+"""WGS-84 Earth model, frames and rotation conventions.
+
+Frames: e = ECEF (WGS-84), n = local ENU (x east, y north, z up), b = body right-forward-up.
+Angles are radians throughout fusion, including latitude and longitude. Heights are ellipsoidal, in m.
+
+Rotation conventions
+- A DCM named ``C_xy`` maps x-frame coordinates to y-frame coordinates: ``v_y = C_xy @ v_x``.
+- Euler angles (heading psi, pitch theta, roll phi): heading clockwise from north, pitch nose-up positive,
+  roll right-side-down positive; ``C_bn = R_z(-psi) @ R_x(theta) @ R_y(phi)`` (R_* are right-handed
+  active rotations about the ENU axes).
+- Quaternions are Hamilton, scalar-last ``[x, y, z, w]`` (the ROS ``geometry_msgs/Quaternion`` and scipy order),
+  with w >= 0 on output. The quaternion of ``C_bn`` rotates body vectors into ENU, so it is exactly the
+  body->ENU orientation that ``sensor_msgs/Imu.orientation`` wants.
+- A rotation vector r (axis * angle) corresponds to ``exp([r x])``.
+
+All functions are vectorised over leading axes: vectors are (..., 3), quaternions (..., 4), DCMs (..., 3, 3).
+``principal_radii`` and ``gravity`` use only ufuncs so that numba can compile them for the INS kernel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+A = 6378137.0  # semi-major axis, m
+F = 1.0 / 298.257223563  # flattening
+E2 = F * (2.0 - F)  # first eccentricity squared
+B = A * (1.0 - F)  # semi-minor axis, m
+OMEGA_IE = 7.292115e-5  # Earth rotation rate, rad/s
+GM = 3.986004418e14  # m^3/s^2
+GAMMA_E = 9.7803253359  # normal gravity at the equator, m/s^2
+GAMMA_P = 9.8321849378  # normal gravity at the poles, m/s^2
+_K_SOMIGLIANA = B * GAMMA_P / (A * GAMMA_E) - 1.0
+_M = OMEGA_IE**2 * A**2 * B / GM
+
+
+def principal_radii(lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Meridian and prime-vertical radii of curvature plus height, ``(R_M + h, R_N + h)`` in m.
+
+    lat in rad, h ellipsoidal height in m.
+    """
+    s2 = np.sin(lat) ** 2
+    w = np.sqrt(1.0 - E2 * s2)
+    r_n = A / w
+    r_m = r_n * (1.0 - E2) / (w * w)
+    return r_m + h, r_n + h
+
+
+def gravity(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
+    """Magnitude of WGS-84 normal gravity, m/s^2 (Somigliana on the ellipsoid, 2nd-order height correction).
+
+    lat in rad, h ellipsoidal height in m (NIMA TR8350.2 eq. 4-1 and 4-3). This is the one gravity model of
+    the project: the INS and the simulator both use it, with direction along -up of the ENU frame.
+    """
+    s2 = np.sin(lat) ** 2
+    g0 = GAMMA_E * (1.0 + _K_SOMIGLIANA * s2) / np.sqrt(1.0 - E2 * s2)
+    return g0 * (1.0 - 2.0 / A * (1.0 + F + _M - 2.0 * F * s2) * h + 3.0 * h * h / (A * A))
+
+
+def gravity_n(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
+    """Normal gravity vector in ENU, ``[0, 0, -g]``, shape (..., 3), m/s^2."""
+    g = np.asarray(gravity(lat, h), dtype=float)
+    out = np.zeros(g.shape + (3,))
+    out[..., 2] = -g
+    return out
+
+
+def lla_to_ecef(lat: ArrayLike, lon: ArrayLike, h: ArrayLike) -> np.ndarray:
+    """Geodetic (lat, lon in rad, h in m) to ECEF position, shape (..., 3), m."""
+    lat, lon, h = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (lat, lon, h)))
+    sl, cl = np.sin(lat), np.cos(lat)
+    r_n = A / np.sqrt(1.0 - E2 * sl * sl)
+    return np.stack(
+        [(r_n + h) * cl * np.cos(lon), (r_n + h) * cl * np.sin(lon), (r_n * (1.0 - E2) + h) * sl], axis=-1
+    )
+
+
+def ecef_to_lla(r_e: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ECEF position (..., 3) in m to geodetic ``(lat, lon, h)``: rad, rad, m.
+
+    Bowring's iteration on the reduced latitude (cubic convergence), three passes: round-trip error below
+    1e-8 m from below the surface to satellite altitudes (not meant for points near the Earth's centre).
+    """
+    r_e = np.asarray(r_e, dtype=float)
+    x, y, z = r_e[..., 0], r_e[..., 1], r_e[..., 2]
+    p = np.hypot(x, y)
+    lon = np.arctan2(y, x)
+    ep2 = E2 / (1.0 - E2)
+    beta = np.arctan2(z, (1.0 - F) * p)
+    for _ in range(3):
+        lat = np.arctan2(z + ep2 * B * np.sin(beta) ** 3, p - E2 * A * np.cos(beta) ** 3)
+        beta = np.arctan2((1.0 - F) * np.sin(lat), np.cos(lat))
+    sl, cl = np.sin(lat), np.cos(lat)
+    h = p * cl + z * sl - A * np.sqrt(1.0 - E2 * sl * sl)
+    return lat, lon, h
+
+
+def C_en(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
+    """DCM ECEF -> ENU at (lat, lon) in rad, shape (..., 3, 3): ``v_n = C_en @ v_e``."""
+    lat, lon = np.broadcast_arrays(np.asarray(lat, dtype=float), np.asarray(lon, dtype=float))
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    out = np.empty(lat.shape + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = -so, co, 0.0
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = -sl * co, -sl * so, cl
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = cl * co, cl * so, sl
+    return out
+
+
+def omega_ie_n(lat: ArrayLike) -> np.ndarray:
+    """Earth rotation rate in ENU, ``[0, Omega cos(lat), Omega sin(lat)]``, rad/s, shape (..., 3)."""
+    lat = np.asarray(lat, dtype=float)
+    return np.stack([np.zeros_like(lat), OMEGA_IE * np.cos(lat), OMEGA_IE * np.sin(lat)], axis=-1)
+
+
+def omega_en_n(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike) -> np.ndarray:
+    """Transport rate (n relative to e, in n) for ENU velocity v_n (..., 3) in m/s; rad/s, shape (..., 3)."""
+    v_n = np.asarray(v_n, dtype=float)
+    lat = np.asarray(lat, dtype=float)
+    rm, rn = principal_radii(lat, np.asarray(h, dtype=float))
+    ve, vn = v_n[..., 0], v_n[..., 1]
+    return np.stack([-vn / rm, ve / rn, ve * np.tan(lat) / rn], axis=-1)
+
+
+def skew(v: ArrayLike) -> np.ndarray:
+    """Cross-product matrix ``[v x]`` of (..., 3) vectors, shape (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def euler_to_dcm(heading: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> np.ndarray:
+    """``C_bn`` (body RFU -> ENU) from heading, pitch, roll in rad (conventions in the module docstring)."""
+    heading, pitch, roll = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (heading, pitch, roll)))
+    sh, ch = np.sin(heading), np.cos(heading)
+    sp, cp = np.sin(pitch), np.cos(pitch)
+    sr, cr = np.sin(roll), np.cos(roll)
+    out = np.empty(heading.shape + (3, 3))
+    out[..., 0, 0] = ch * cr + sh * sp * sr
+    out[..., 0, 1] = sh * cp
+    out[..., 0, 2] = ch * sr - sh * sp * cr
+    out[..., 1, 0] = -sh * cr + ch * sp * sr
+    out[..., 1, 1] = ch * cp
+    out[..., 1, 2] = -sh * sr - ch * sp * cr
+    out[..., 2, 0] = -cp * sr
+    out[..., 2, 1] = sp
+    out[..., 2, 2] = cp * cr
+    return out
+
+
+def dcm_to_euler(C_bn: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(heading, pitch, roll)`` in rad from ``C_bn``; heading in [0, 2 pi), pitch in [-pi/2, pi/2]."""
+    C = np.asarray(C_bn, dtype=float)
+    pitch = np.arcsin(np.clip(C[..., 2, 1], -1.0, 1.0))
+    roll = np.arctan2(-C[..., 2, 0], C[..., 2, 2])
+    heading = np.mod(np.arctan2(C[..., 0, 1], C[..., 1, 1]), 2.0 * np.pi)
+    return heading, pitch, roll
+
+
+def quat_to_dcm(q: ArrayLike) -> np.ndarray:
+    """DCM of a Hamilton quaternion ``[x, y, z, w]`` (need not be exactly unit; it is normalised)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    out[..., 0, 1] = 2.0 * (x * y - z * w)
+    out[..., 0, 2] = 2.0 * (x * z + y * w)
+    out[..., 1, 0] = 2.0 * (x * y + z * w)
+    out[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    out[..., 1, 2] = 2.0 * (y * z - x * w)
+    out[..., 2, 0] = 2.0 * (x * z - y * w)
+    out[..., 2, 1] = 2.0 * (y * z + x * w)
+    out[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return out
+
+
+def dcm_to_quat(C: ArrayLike) -> np.ndarray:
+    """Hamilton quaternion ``[x, y, z, w]`` (w >= 0) of a DCM; Shepperd's method, stable for all angles."""
+    C = np.asarray(C, dtype=float)
+    tr = C[..., 0, 0] + C[..., 1, 1] + C[..., 2, 2]
+    # four candidate 4*q_i^2 values; pick the largest per matrix
+    cand = np.stack([1.0 + 2.0 * C[..., 0, 0] - tr, 1.0 + 2.0 * C[..., 1, 1] - tr,
+                     1.0 + 2.0 * C[..., 2, 2] - tr, 1.0 + tr], axis=-1)
+    i = np.argmax(cand, axis=-1)
+    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(cand, i[..., None], axis=-1)[..., 0], 0.0))
+    d21, d12 = C[..., 2, 1] - C[..., 1, 2], C[..., 2, 1] + C[..., 1, 2]
+    d02, d20 = C[..., 0, 2] - C[..., 2, 0], C[..., 0, 2] + C[..., 2, 0]
+    d10, d01 = C[..., 1, 0] - C[..., 0, 1], C[..., 1, 0] + C[..., 0, 1]
+    q = np.empty(C.shape[:-2] + (4,))
+    sel = [i == k for k in range(4)]
+    q[..., 0] = np.select(sel, [s / 4, d01 / s, d20 / s, d21 / s])
+    q[..., 1] = np.select(sel, [d01 / s, s / 4, d12 / s, d02 / s])
+    q[..., 2] = np.select(sel, [d20 / s, d12 / s, s / 4, d10 / s])
+    q[..., 3] = np.select(sel, [d21 / s, d02 / s, d10 / s, s / 4])
+    q *= np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
+    return q
+
+
+def quat_multiply(p: ArrayLike, q: ArrayLike) -> np.ndarray:
+    """Hamilton product ``p * q`` of ``[x, y, z, w]`` quaternions (DCM of the product = DCM(p) @ DCM(q))."""
+    p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
+    pv, pw = p[..., :3], p[..., 3:]
+    qv, qw = q[..., :3], q[..., 3:]
+    v = pw * qv + qw * pv + np.cross(pv, qv)
+    w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
+    return np.concatenate([v, w], axis=-1)
+
+
+def rotvec_to_quat(rv: ArrayLike) -> np.ndarray:
+    """Quaternion ``[x, y, z, w]`` of rotation vector(s) rv (..., 3) in rad."""
+    rv = np.asarray(rv, dtype=float)
+    a = np.linalg.norm(rv, axis=-1, keepdims=True)
+    a2 = a * a
+    # sin(a/2)/a with its Taylor series near zero
+    k = np.where(a < 1e-4, 0.5 - a2 / 48.0 + a2 * a2 / 3840.0, np.sin(0.5 * a) / np.where(a == 0.0, 1.0, a))
+    return np.concatenate([k * rv, np.cos(0.5 * a)], axis=-1)
+
+
+def quat_to_rotvec(q: ArrayLike) -> np.ndarray:
+    """Rotation vector(s) (..., 3) in rad, angle in [0, pi], of ``[x, y, z, w]`` quaternion(s)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = q * np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
+    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
+    a = 2.0 * np.arctan2(s, q[..., 3:4])
+    k = np.where(s < 1e-8, 2.0 / q[..., 3:4], a / np.where(s == 0.0, 1.0, s))
+    return k * q[..., :3]
+
+
+def rotvec_to_dcm(rv: ArrayLike) -> np.ndarray:
+    """DCM ``exp([rv x])`` of rotation vector(s) rv (..., 3) in rad."""
+    return quat_to_dcm(rotvec_to_quat(rv))
+
+
+def dcm_to_rotvec(C: ArrayLike) -> np.ndarray:
+    """Rotation vector(s) of DCM(s) C, angle in [0, pi]."""
+    return quat_to_rotvec(dcm_to_quat(C))

@@ -1,0 +1,223 @@
+"""Read a drive (MCAP) back as numpy arrays, whole topics or streaming blocks.
+
+The hot path never decodes one message at a time: chunks are located through the summary's
+chunk indexes, decompressed, their message records parsed with a vectorised walk
+(``acquire.recorder.chunk_messages``), and the payloads of each topic decoded as one batch by
+the vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA
+sentences, raw bytes, outages) are decoded per message with mcap_ros2's decoder; they are low
+rate.
+
+Every result dict has ``log_time_ns`` (int64 UTC ns, ascending) plus the decoder's fields;
+generic types carry ``msgs`` (a list of decoded message objects).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Iterator, Sequence
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap.records import Chunk, ChunkIndex
+from mcap.data_stream import ReadDataStream
+from mcap.summary import Summary
+
+from acquire import messages
+from acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    topic: str
+    type: str
+    count: int
+    first_ns: int  # first log_time, int64 UTC ns
+    last_ns: int  # last log_time
+
+
+@dataclass(frozen=True)
+class Block:
+    """Messages with log_time in [t0_ns, t1_ns), per topic."""
+
+    t0_ns: int
+    t1_ns: int
+    data: dict[str, dict[str, object]]
+
+
+def _summary(f) -> Summary:
+    summary = make_reader(f).get_summary()
+    if summary is None or summary.statistics is None:
+        raise ValueError("MCAP file has no summary (cut short?): run `fieldlog recover` first")
+    return summary
+
+
+def _channel_ids(summary: Summary, topics: Sequence[str]) -> dict[int, str]:
+    return {cid: ch.topic for cid, ch in summary.channels.items() if ch.topic in topics}
+
+
+def _type_of(summary: Summary, cid: int) -> str:
+    return summary.schemas[summary.channels[cid].schema_id].name
+
+
+def _read_chunk(f, ci: ChunkIndex) -> ChunkMessages:
+    f.seek(ci.chunk_start_offset + 9)
+    return chunk_messages(decompress_chunk(Chunk.read(ReadDataStream(f))))
+
+
+def _chunks_for(summary: Summary, cids: set[int]) -> list[ChunkIndex]:
+    out = [
+        ci
+        for ci in summary.chunk_indexes
+        if not ci.message_index_offsets or cids & set(ci.message_index_offsets)
+    ]
+    return sorted(out, key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
+
+
+def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -> dict[str, object]:
+    """Decode a batch of one type; rows are sorted by log_time (stable)."""
+    order = np.argsort(log_time_ns, kind="stable")
+    if not np.all(order == np.arange(len(order))):
+        log_time_ns = log_time_ns[order]
+        payloads = messages.Packed.from_list([payloads[i] for i in order.tolist()])
+    batch = messages.BATCH_DECODERS.get(type_name)
+    if batch is not None:
+        out: dict[str, object] = {"log_time_ns": log_time_ns}
+        out.update(batch(payloads))
+        return out
+    dec = messages.decoder_for(type_name)
+    msgs, ok = [], []
+    for b in payloads:
+        try:
+            msgs.append(dec(b))
+            ok.append(True)
+        except Exception:  # bad payload: count it, carry on
+            msgs.append(None)
+            ok.append(False)
+    return {"log_time_ns": log_time_ns, "msgs": msgs, "valid": np.array(ok, dtype=bool)}
+
+
+def _select(cm: ChunkMessages, cid: int) -> tuple[np.ndarray, messages.Packed]:
+    sel = cm.select(cm.channel_id == cid)
+    return sel.log_time, sel.packed()
+
+
+def _concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
+    if len(parts) == 1:
+        return parts[0]
+    t = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    bufs = [p[1].buf[p[1].offsets[0] : p[1].offsets[-1]] for p in parts]
+    lens = np.concatenate([p[1].lengths for p in parts]) if parts else np.zeros(0, np.int64)
+    offsets = np.zeros(len(lens) + 1, dtype=np.int64)
+    np.cumsum(lens, out=offsets[1:])
+    buf = np.concatenate(bufs) if bufs else np.zeros(0, np.uint8)
+    return t, messages.Packed(buf, offsets)
+
+
+def topics(path: str | os.PathLike[str]) -> list[TopicInfo]:
+    """Topics in a drive from its summary: type, message count, first/last log_time (exact,
+    from the message indexes; chunk bounds when a chunk has none)."""
+    with open(path, "rb") as f:
+        s = _summary(f)
+        first: dict[int, int] = {}
+        last: dict[int, int] = {}
+        for ci in s.chunk_indexes:
+            items = ci.message_index_offsets.items()
+            for cid, off in items:
+                f.seek(off + 1)
+                length = int.from_bytes(f.read(8), "little")
+                body = f.read(length)
+                entries = np.frombuffer(body, dtype="<u8", offset=6).reshape(-1, 2)
+                if len(entries):
+                    lo, hi = int(entries[:, 0].min()), int(entries[:, 0].max())
+                    first[cid] = min(first.get(cid, lo), lo)
+                    last[cid] = max(last.get(cid, hi), hi)
+            if not items:
+                for cid in s.channels:
+                    first[cid] = min(first.get(cid, ci.message_start_time), ci.message_start_time)
+                    last[cid] = max(last.get(cid, ci.message_end_time), ci.message_end_time)
+        counts = s.statistics.channel_message_counts
+        return [
+            TopicInfo(ch.topic, _type_of(s, cid), counts.get(cid, 0), first.get(cid, 0), last.get(cid, 0))
+            for cid, ch in sorted(s.channels.items())
+        ]
+
+
+def read_topic(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
+    """All messages of one topic, decoded into arrays, sorted by log_time."""
+    with open(path, "rb") as f:
+        s = _summary(f)
+        cids = _channel_ids(s, [topic])
+        if not cids:
+            raise KeyError(f"topic {topic!r} not in {path}")
+        (cid,) = cids
+        parts = [_select(_read_chunk(f, ci), cid) for ci in _chunks_for(s, {cid})]
+        t, p = _concat(parts)
+        return decode(_type_of(s, cid), t, p)
+
+
+def iter_blocks(
+    path: str | os.PathLike[str], topics: Sequence[str], block_s: float
+) -> Iterator[Block]:
+    """Stream a drive in consecutive blocks of ``block_s`` seconds of log_time.
+
+    Blocks start at the first message of the selected topics and follow each other without
+    gaps (a block may be empty for some topics). Memory holds only the chunks that overlap the
+    block being built.
+    """
+    step = int(round(block_s * 1e9))
+    if step <= 0:
+        raise ValueError("block_s must be > 0")
+    with open(path, "rb") as f:
+        s = _summary(f)
+        cids = _channel_ids(s, topics)
+        chunks = _chunks_for(s, set(cids))
+        if not chunks:
+            return
+        types = {cid: _type_of(s, cid) for cid in cids}
+        pending: dict[int, list[tuple[np.ndarray, messages.Packed]]] = {cid: [] for cid in cids}
+        t0: int | None = None
+        k = 0
+
+        def emit(t_end: int | None) -> Iterator[Block]:
+            nonlocal t0
+            while t0 is not None and (t_end is None or t0 + step <= t_end):
+                t1 = t0 + step
+                data: dict[str, dict[str, object]] = {}
+                left = 0
+                for cid, parts in pending.items():
+                    t, p = _concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
+                    inside = t < t1
+                    idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
+                    data[cids[cid]] = decode(types[cid], t[idx_in], _take(p, idx_in))
+                    pending[cid] = [(t[idx_out], _take(p, idx_out))] if len(idx_out) else []
+                    left += len(idx_out)
+                yield Block(t0, t1, data)
+                t0 = t1
+                if t_end is None and left == 0:
+                    t0 = None
+
+        while k < len(chunks):
+            ci = chunks[k]
+            yield from emit(ci.message_start_time)
+            cm = _read_chunk(f, ci)
+            for cid in cids:
+                t, p = _select(cm, cid)
+                if len(t):
+                    pending[cid].append((t, p))
+                    if t0 is None:
+                        t0 = int(t.min())
+                    t0 = min(t0, int(t.min()))
+            k += 1
+        yield from emit(None)
+
+
+def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
+    if len(idx) == len(p):
+        return p
+    if len(idx) == 0:
+        return messages.Packed.from_list([])
+    if idx[-1] - idx[0] + 1 == len(idx):  # contiguous: slice without copying
+        a, b = p.offsets[idx[0]], p.offsets[idx[-1] + 1]
+        return messages.Packed(p.buf[a:b], p.offsets[idx[0] : idx[-1] + 2] - a)
+    return messages.Packed.from_list([p[i] for i in idx.tolist()])

@@ -1,0 +1,204 @@
+"""acquire.recorder (write, flush, recover) and replay.reader, checked with mcap's own readers
+and with rerun's MCAP importer."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+from mcap_ros2.decoder import DecoderFactory
+
+from acquire import messages as m
+from acquire.recorder import Recorder, recover
+from replay import reader
+
+T0 = 1_700_000_000 * 10**9
+DT = 2_000_000  # 500 Hz
+
+
+def _all_messages(path) -> list[tuple[str, int, bytes]]:
+    with open(path, "rb") as f:
+        return [(c.topic, msg.log_time, msg.data) for _, c, msg in make_reader(f).iter_messages(log_time_order=False)]
+
+
+def _drive(path: Path, n: int = 3000, flush_every: int = 250, **kw) -> dict:
+    """Offline-style writer: /imu at 500 Hz, /gps/fix and /gps/nmea at 5 Hz, flush by data time."""
+    rng = np.random.default_rng(3)
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    w, f = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    g = np.arange(0, n, 100)
+    lat = 48.0 + rng.normal(size=len(g)) * 1e-4
+    with Recorder(path, flush_interval_s=None, metadata={"scenario": "unit", "seed": "3"}, **kw) as rec:
+        for k in range(0, n, flush_every):
+            sl = slice(k, k + flush_every)
+            rec.write_batch("/imu", t[sl], m.encode_imu(t[sl], w[sl], f[sl]))
+            gi = g[(g >= k) & (g < k + flush_every)]
+            if len(gi):
+                rec.write_batch("/gps/fix", t[gi], m.encode_navsatfix(t[gi], lat[gi // 100], lat[gi // 100], lat[gi // 100]))
+                for i in gi:
+                    rec.write("/gps/nmea", int(t[i]), m.encode_sentence(int(t[i]), f"$GPGGA,{i}*00"))
+            rec.flush()
+    return {"t": t, "w": w, "f": f, "g": g, "lat": lat}
+
+
+def test_roundtrip_with_mcap_reader_and_ros2_decoder(tmp_path):
+    path = tmp_path / "d.mcap"
+    d = _drive(path)
+    msgs = _all_messages(path)
+    imu = [x for x in msgs if x[0] == "/imu"]
+    assert [x[1] for x in imu] == d["t"].tolist()
+    assert len([x for x in msgs if x[0] == "/gps/nmea"]) == len(d["g"])
+    with open(path, "rb") as fh:
+        r = make_reader(fh, decoder_factories=[DecoderFactory()])
+        s = r.get_summary()
+        assert s.statistics.message_count == len(msgs)
+        assert len(s.chunk_indexes) == 12  # one chunk per flush
+        assert {md.name: md.metadata for md in r.iter_metadata()} == {"drive": {"scenario": "unit", "seed": "3"}}
+        decoded = [x.decoded_message for x in r.iter_decoded_messages(topics=["/imu"])]
+    assert decoded[7].angular_velocity.y == d["w"][7, 1]
+    assert decoded[-1].header.stamp.sec * 10**9 + decoded[-1].header.stamp.nanosec == d["t"][-1]
+
+
+def test_write_batch_splits_by_chunk_size_and_rejects_zero_time(tmp_path):
+    path = tmp_path / "c.mcap"
+    n = 2000
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    p = m.encode_imu(t, np.zeros((n, 3)), np.ones((n, 3)))
+    with Recorder(path, chunk_size=64 * 1024, flush_interval_s=None, compression="") as rec:
+        with pytest.raises(ValueError):
+            rec.write("/imu", 0, p[0])
+        with pytest.raises(ValueError):
+            rec.write_batch("/imu", np.zeros(n, np.int64), p)
+        rec.write_batch("/imu", t, p)
+    with open(path, "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    assert len(chunks) > 5
+    assert all(c.uncompressed_size <= 64 * 1024 for c in chunks)
+    assert [x[1] for x in _all_messages(path)] == t.tolist()
+
+
+def test_unclosed_file_after_host_time_flush_recovers_everything_written(tmp_path):
+    """flush_interval_s=0 flushes after every write: a copy of the file taken while it is
+    still open (as after a power cut) recovers every message written so far."""
+    path, cut, out = tmp_path / "live.mcap", tmp_path / "cut.mcap", tmp_path / "rec.mcap"
+    rec = Recorder(path, flush_interval_s=0.0)
+    t = T0 + np.arange(50, dtype=np.int64) * DT
+    for k in range(5):
+        sl = slice(10 * k, 10 * k + 10)
+        rec.write_batch("/imu", t[sl], m.encode_imu(t[sl], np.zeros((10, 3)), np.zeros((10, 3))))
+        rec.write("/raw/gps", int(t[10 * k]), m.encode_raw(int(t[10 * k]), 5, "/dev/ttyS0", b"$GP\r\n"))
+    shutil.copy(path, cut)
+    rep = recover(cut, out)
+    rec.close()
+    assert rep.messages == {"/imu": 50, "/raw/gps": 5}
+    assert rep.last_log_time_ns == t[-1] and not rep.had_summary and rep.bytes_discarded == 0
+    assert len(_all_messages(out)) == 55
+
+
+def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
+    path = tmp_path / "d.mcap"
+    _drive(path, n=2000, flush_every=100)
+    raw = path.read_bytes()
+    full = _all_messages(path)
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    chunks = summary.chunk_indexes
+    md_end = summary.metadata_indexes[0].offset + summary.metadata_indexes[0].length
+    by_time = {(tp, lt): dat for tp, lt, dat in full}
+    rng = np.random.default_rng(11)
+    cuts = sorted(set(rng.integers(1, len(raw), 40).tolist()) | {8, md_end - 1, md_end, chunks[0].chunk_start_offset + chunks[0].chunk_length, len(raw) - 1})
+    for cut in cuts:
+        src, dst = tmp_path / "cut.mcap", tmp_path / "rec.mcap"
+        src.write_bytes(raw[:cut])
+        rep = recover(src, dst)
+        complete = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
+        expected = {(tp, lt) for tp, lt, _ in full if any(c.message_start_time <= lt <= c.message_end_time for c in complete)}
+        got = _all_messages(dst)  # make_reader reads the recovered file completely
+        assert {(tp, lt) for tp, lt, _ in got} == expected, cut
+        assert all(by_time[(tp, lt)] == dat for tp, lt, dat in got)
+        assert sum(rep.messages.values()) == len(got)
+        assert rep.chunks == len(complete)
+        with open(dst, "rb") as fh:
+            names = [md.name for md in make_reader(fh).iter_metadata()]
+        assert names == (["drive"] if cut >= md_end else [])
+
+
+def test_recover_file_from_mcap_writer(tmp_path):
+    """Files from other writers keep schemas and channels inside chunks; recover handles them."""
+    src = tmp_path / "w.mcap"
+    with open(src, "wb") as fh:
+        w = Writer(fh, chunk_size=2000)
+        w.start()
+        sid = w.register_schema(m.IMU, "ros2msg", m.schema_text(m.IMU).encode())
+        cid = w.register_channel("/imu", "cdr", sid)
+        t = T0 + np.arange(100, dtype=np.int64) * DT
+        for i, b in enumerate(m.encode_imu(t, np.zeros((100, 3)), np.zeros((100, 3)))):
+            w.add_message(cid, int(t[i]), b, int(t[i]))
+        w.finish()
+    raw = src.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    with open(src, "rb") as fh:
+        last = make_reader(fh).get_summary().chunk_indexes[-3]
+    cut.write_bytes(raw[: last.chunk_start_offset + last.chunk_length // 2])
+    rep = recover(cut, tmp_path / "r.mcap")
+    got = _all_messages(tmp_path / "r.mcap")
+    assert 0 < len(got) == rep.messages["/imu"] < 100
+    assert [lt for _, lt, _ in got] == t[: len(got)].tolist()
+
+
+def test_reader_topics_read_topic_and_blocks(tmp_path):
+    path = tmp_path / "d.mcap"
+    d = _drive(path, n=3000, flush_every=333)
+    info = {ti.topic: ti for ti in reader.topics(path)}
+    assert info["/imu"].type == m.IMU and info["/imu"].count == 3000
+    assert (info["/imu"].first_ns, info["/imu"].last_ns) == (d["t"][0], d["t"][-1])
+    assert info["/gps/fix"].count == len(d["g"])
+
+    imu = reader.read_topic(path, "/imu")
+    np.testing.assert_array_equal(imu["log_time_ns"], d["t"])
+    np.testing.assert_array_equal(imu["stamp_ns"], d["t"])
+    np.testing.assert_array_equal(imu["omega_ib_b"], d["w"])
+    np.testing.assert_array_equal(imu["f_b"], d["f"])
+    fix = reader.read_topic(path, "/gps/fix")
+    np.testing.assert_array_equal(fix["lat_deg"], d["lat"])
+    nmea = reader.read_topic(path, "/gps/nmea")
+    assert [x.sentence for x in nmea["msgs"]] == [f"$GPGGA,{i}*00" for i in d["g"]]
+
+    blocks = list(reader.iter_blocks(path, ["/imu", "/gps/fix"], block_s=0.7))
+    assert blocks[0].t0_ns == d["t"][0]
+    assert all(b.t1_ns - b.t0_ns == 700_000_000 for b in blocks)
+    assert all(a.t1_ns == b.t0_ns for a, b in zip(blocks, blocks[1:]))
+    for b in blocks:
+        lt = b.data["/imu"]["log_time_ns"]
+        assert ((lt >= b.t0_ns) & (lt < b.t1_ns)).all()
+    np.testing.assert_array_equal(np.concatenate([b.data["/imu"]["omega_ib_b"] for b in blocks]), d["w"])
+    np.testing.assert_array_equal(np.concatenate([b.data["/gps/fix"]["lat_deg"] for b in blocks]), d["lat"])
+    assert len(blocks) == int(np.ceil((d["t"][-1] - d["t"][0] + 1) / 700_000_000))
+
+
+@pytest.mark.skipif(not (Path(os.sys.executable).parent / "rerun").exists(), reason="rerun CLI not installed")
+def test_rerun_shows_imu_as_scalars_and_fix_as_geopoints(tmp_path):
+    path = tmp_path / "d.mcap"
+    _drive(path, n=500, flush_every=250)
+    rerun = str(Path(os.sys.executable).parent / "rerun")
+    # CI set -> rerun's analytics pipeline is off; HOME/XDG point at tmp so no config is touched.
+    env = dict(os.environ, CI="1", HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "cfg"), XDG_DATA_HOME=str(tmp_path / "data"))
+    subprocess.run([rerun, "mcap", "convert", str(path), "-o", str(tmp_path / "d.rrd")], env=env, check=True, capture_output=True, timeout=120)
+    out = subprocess.run([rerun, "rrd", "print", str(tmp_path / "d.rrd")], env=env, check=True, capture_output=True, text=True, timeout=120).stdout
+    lines = out.splitlines()
+    fix = [ln for ln in lines if " - /gps/fix - " in ln]
+    imu = [ln for ln in lines if " - /imu - " in ln]
+    # rerun emits one chunk per MCAP chunk: add the rows up.
+    assert _rows(fix, "GeoPoints:positions") == 5, out
+    assert _rows(imu, "Scalars:scalars") == 500, out
+
+
+def _rows(lines: list[str], column: str) -> int:
+    return sum(int(re.search(r"with (\d+) rows", ln).group(1)) for ln in lines if column in ln)

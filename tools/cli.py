@@ -1,0 +1,134 @@
+"""The ``fieldlog`` command line (contract names: design section 2)."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+class Progress:
+    """A one-line progress display on a terminal; silent otherwise."""
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.tty = sys.stderr.isatty()
+        self.t0 = time.monotonic()
+
+    def __call__(self, fraction: float) -> None:
+        if self.tty:
+            sys.stderr.write(f"\r{self.label}: {fraction * 100:5.1f} %  {time.monotonic() - self.t0:6.1f} s")
+            if fraction >= 1.0:
+                sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def cmd_sim(a: argparse.Namespace) -> int:
+    from tools.sim.simulate import simulate
+
+    t0 = time.monotonic()
+    res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"))
+    print(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial reads "
+          f"in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def cmd_info(a: argparse.Namespace) -> int:
+    from tools.info import drive_info, format_info
+
+    print(format_info(drive_info(a.drive)))
+    return 0
+
+
+def cmd_import(a: argparse.Namespace) -> int:
+    from tools.importer import import_captures
+
+    res = import_captures(a.gps, a.daq, a.out, fs_hz=a.fs, pps_mode=a.pps)
+    print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs "
+          f"({res.counters.gps_no_fix} without fix), {res.counters.nmea.lines} NMEA lines, "
+          f"{res.counters.nmea.bad_checksum} bad checksums")
+    return 0
+
+
+def cmd_rebuild(a: argparse.Namespace) -> int:
+    from tools.rebuild import rebuild
+
+    res = rebuild(a.drive, a.out, calibration=a.calib, progress=Progress("rebuild"))
+    print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
+    return 0
+
+
+def cmd_allan(a: argparse.Namespace) -> int:
+    from tools.allan import drive_report
+
+    print(drive_report(a.drive))
+    return 0
+
+
+def cmd_demo(a: argparse.Namespace) -> int:
+    from tools.info import drive_info, format_info
+    from tools.sim.simulate import simulate
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    drive = out / "figure8.mcap"
+    print(f"1/2  simulating a {a.duration:.0f} s figure8 drive (seed 1) -> {drive}")
+    simulate("figure8", a.duration, 1, drive, progress=Progress("sim figure8"))
+    print(f"2/2  fieldlog info {drive}\n")
+    print(format_info(drive_info(drive)))
+    print(f"\nOpen it in rerun:  .venv/bin/rerun {drive}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("sim", help="simulate a drive through the real acquisition code")
+    s.add_argument("--scenario", default="figure8", help="scenario name (tools/sim/scenarios) or a TOML path")
+    s.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--pps", choices=["flag", "latch"], default=None, help="PPS as a sampled flag or a latch")
+    s.add_argument("--out", required=True, help="output MCAP")
+    s.set_defaults(func=cmd_sim)
+
+    s = sub.add_parser("info", help="topics, rates, duration, time-sync quality, gaps, counters")
+    s.add_argument("drive")
+    s.set_defaults(func=cmd_info)
+
+    s = sub.add_parser("import", help="build a drive from raw captures made elsewhere")
+    s.add_argument("--gps", required=True, help="NMEA log from any receiver or logger")
+    s.add_argument("--daq", default=None, help="DAQ byte capture")
+    s.add_argument("--fs", type=float, default=500.0, help="DAQ sample rate, Hz")
+    s.add_argument("--pps", choices=["flag", "latch"], default="flag")
+    s.add_argument("--out", required=True)
+    s.set_defaults(func=cmd_import)
+
+    s = sub.add_parser("rebuild", help="re-derive every topic from /raw/*")
+    s.add_argument("drive")
+    s.add_argument("--out", required=True)
+    s.add_argument("--calib", default=None, help="calibration TOML (default: the one stored in the drive)")
+    s.set_defaults(func=cmd_rebuild)
+
+    s = sub.add_parser("allan", help="Allan deviation and noise parameters of a static drive")
+    s.add_argument("drive")
+    s.set_defaults(func=cmd_allan)
+
+    s = sub.add_parser("demo", help="simulate a drive and show what it holds")
+    s.add_argument("--out", default="out/demo")
+    s.add_argument("--duration", type=float, default=300.0)
+    s.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"fieldlog {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""``fieldlog import``: build a drive from captures made elsewhere, which carry no host read times.
+
+The bytes are kept exactly (``/raw/*``) and go through the normal pipeline. Host read times have to be
+invented, and the rule is stated here because time sync depends on it:
+
+* NMEA: a line is read 0.2 s after the UTC second of the last time-bearing sentence at or before it (the
+  typical receiver latency); lines before the first time-bearing sentence take the first one's time.
+  Reads are the lines of one such second. Logs without a date (GGA only) take the file's modification date.
+* DAQ: its first PPS-flagged frame is taken to mark the second after the log's first NMEA fix (the two
+  captures were started together, within a second). Frame k is then read at that second + 10 ms
+  + (k - k_pps) / fs. A capture without any PPS flag is placed to start at the first NMEA second.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from pathlib import Path
+
+import numpy as np
+
+from acquire import daq, nmea, recorder, timesync
+from acquire.pipeline import Pipeline, RawRead, read_order
+from tools.rebuild import RebuildResult
+
+NS = 1_000_000_000
+NMEA_LATENCY_S = 0.2
+DAQ_READ_BYTES = 512
+
+
+def nmea_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
+    """Cut an NMEA log into reads, one per UTC second of content, timed by the rule above."""
+    dec = nmea.NmeaDecoder()
+    date = None
+    times: list[float | None] = []
+    lines = data.splitlines(keepends=True)
+    last_tod = None
+    for line in lines:
+        t = None
+        for s in dec.feed(line):
+            date = getattr(s, "date", None) or date
+            tod = getattr(s, "time_of_day_s", None)
+            if tod is not None and np.isfinite(tod):
+                d = date or fallback_date
+                if last_tod is not None and tod < last_tod - 43200 and getattr(s, "date", None) is None:
+                    date = d = d + _dt.timedelta(days=1)
+                last_tod = tod
+                t = _dt.datetime.combine(d, _dt.time(), _dt.timezone.utc).timestamp() + np.floor(tod)
+        times.append(t)
+    known = [t for t in times if t is not None]
+    if not known:
+        raise ValueError("the NMEA log has no sentence with a UTC time (GGA, RMC, GST or ZDA)")
+    cur = known[0]
+    groups: dict[float, list[bytes]] = {}
+    order: list[float] = []
+    for line, t in zip(lines, times):
+        cur = t if t is not None else cur
+        if cur not in groups:
+            groups[cur] = []
+            order.append(cur)
+        groups[cur].append(line)
+    reads = []
+    last_ns = 0
+    for t in order:
+        ns = max(int(round((t + NMEA_LATENCY_S) * NS)), last_ns + 1)
+        last_ns = ns
+        reads.append(RawRead("gps", ns, ns, b"".join(groups[t])))
+    return reads
+
+
+def daq_reads(data: bytes, fs_hz: float, first_second_s: float) -> list[RawRead]:
+    """Cut a DAQ capture into reads of DAQ_READ_BYTES, timed by the rule above."""
+    dec = daq.DaqDecoder()
+    ends: list[int] = []
+    k_pps = None
+    k_first = None
+    for off in range(0, len(data), DAQ_READ_BYTES):
+        fr = dec.feed(data[off:off + DAQ_READ_BYTES])
+        ends.append(int(fr.k[-1]) if len(fr.k) else -1)
+        if len(fr.k) and k_first is None:
+            k_first = int(fr.k[0])
+        if k_pps is None and np.any(fr.pps):
+            k_pps = int(fr.k[np.argmax(fr.pps)])
+    if k_first is None:
+        raise ValueError("the DAQ capture holds no valid frame")
+    t_ref, k_ref = (first_second_s + 1.01, k_pps) if k_pps is not None else (first_second_s, k_first)
+    reads = []
+    last_k = k_first
+    for i, off in enumerate(range(0, len(data), DAQ_READ_BYTES)):
+        last_k = ends[i] if ends[i] >= 0 else last_k
+        ns = int(round((t_ref + (last_k - k_ref + 1) / fs_hz) * NS)) + i  # +i keeps equal times ordered
+        reads.append(RawRead("daq", ns, ns, data[off:off + DAQ_READ_BYTES]))
+    return reads
+
+
+def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,
+                    pps_mode: str = "flag") -> RebuildResult:
+    gps_bytes = Path(gps).read_bytes()
+    mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
+    reads = nmea_reads(gps_bytes, mdate)
+    if daq_path is not None:
+        first_second = (reads[0].mono_ns / NS) - NMEA_LATENCY_S
+        reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_second)
+    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
+    sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
+    meta = {"drive": {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}}
+    with recorder.Recorder(out, metadata=meta) as rec:
+        pipe = Pipeline(rec, sync_cfg=sync_cfg)
+        for name, d in pipe.metadata().items():
+            rec.add_metadata(name, d)
+        for r in reads:
+            pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+        pipe.finish()
+        rec.add_metadata("acquire.counters", pipe.counters_metadata())
+    return RebuildResult(pipe.counters.imu_samples, pipe.counters.gps_epochs, len(reads), pipe.counters)

@@ -1,0 +1,181 @@
+"""What the hardware puts on the wire: the GPS receiver model, serial byte timing and the host clocks.
+
+Everything here works on the *true* time axis, seconds since the drive start (float64), and turns it into
+raw serial reads ``RawRead(port, mono_ns, wall_ns, data)`` exactly as the daemon would see them. The
+acquisition pipeline then processes those reads; nothing downstream sees the truth.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from acquire import nmea
+from acquire.pipeline import RawRead
+from fusion import earth
+
+
+@dataclass
+class GpsConfig:
+    """Receiver model, from a scenario's ``[gps]`` table. Metres, seconds, m/s."""
+
+    rate_hz: float = 1.0
+    talker: str = "GN"
+    baud: int = 115200
+    white_h_m: float = 0.5          # white position noise, per horizontal axis (1 sigma)
+    white_v_m: float = 0.8
+    gm_h_m: float = 1.2            # first-order Gauss-Markov position error, per horizontal axis
+    gm_v_m: float = 2.0
+    gm_tau_s: float = 300.0
+    vel_noise_mps: float = 0.05    # horizontal velocity noise, per axis
+    latency_min_s: float = 0.05    # NMEA burst starts 50-500 ms after the second it reports
+    latency_max_s: float = 0.5
+    latency_jitter_s: float = 0.03
+    dropped_sentences: int = 5
+    num_sats: int = 12
+    hdop: float = 0.8
+    uere_m: float = 1.5            # what the receiver believes; reported through GST
+    outages: list = field(default_factory=list)    # [[start_s, len_s], ...]: no fix
+    degraded: list = field(default_factory=list)   # [[start_s, len_s, factor], ...]: noise and HDOP x factor
+    pps_in_outage: bool = True     # the receiver keeps its time pulse from its own clock through outages
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "GpsConfig":
+        known = {f.name for f in fields(cls)}
+        bad = sorted(set(d) - known)
+        if bad:
+            raise ValueError(f"[gps]: unknown key(s) {bad}; known keys: {sorted(known)}")
+        return cls(**d)
+
+    def windows(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per time: (fix available, noise factor) from the outage and degraded windows."""
+        valid = np.ones(t_s.shape, bool)
+        for start, length in self.outages:
+            valid &= ~((t_s >= start) & (t_s < start + length))
+        factor = np.ones(t_s.shape)
+        for start, length, k in self.degraded:
+            factor[(t_s >= start) & (t_s < start + length)] = k
+        return valid, factor
+
+
+@dataclass(frozen=True)
+class HostClock:
+    """The logging laptop: a monotonic clock with its own rate error and a wall clock that is not synced."""
+
+    boot_s: float = 1234.5          # monotonic clock reading at the drive start
+    rate_ppm: float = 12.0
+    wall_offset_s: float = 0.37      # host wall clock minus true UTC
+
+    def mono_ns(self, t_s: np.ndarray) -> np.ndarray:
+        return np.round((self.boot_s + t_s * (1 + self.rate_ppm * 1e-6)) * 1e9).astype(np.int64)
+
+    def wall_ns(self, t_s: np.ndarray, t0_ns: int) -> np.ndarray:
+        return t0_ns + np.round((t_s + self.wall_offset_s) * 1e9).astype(np.int64)
+
+
+def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Receiver solutions at the true times ``seconds`` (s since start): truth plus white + GM error.
+
+    Returns lat/lon (deg), h (m, ellipsoidal), v_n (ENU m/s), valid, factor and the receiver's own sigma.
+    """
+    n = len(seconds)
+    ts = truth.evaluate(seconds)
+    valid, factor = cfg.windows(seconds)
+    dt = 1.0 / cfg.rate_hz
+    phi = np.exp(-dt / cfg.gm_tau_s)
+    gm_sigma = np.array([cfg.gm_h_m, cfg.gm_h_m, cfg.gm_v_m])
+    drive = rng.standard_normal((n, 3)) * gm_sigma * np.sqrt(1 - phi**2)
+    drive[0] = rng.standard_normal(3) * gm_sigma
+    from scipy.signal import lfilter
+
+    gm = lfilter([1.0], [1.0, -phi], drive, axis=0)
+    white = rng.standard_normal((n, 3)) * np.array([cfg.white_h_m, cfg.white_h_m, cfg.white_v_m])
+    err_enu = (gm + white) * factor[:, None]
+    r_m, r_n = earth.principal_radii(ts.lat, ts.h)
+    lat = ts.lat + err_enu[:, 1] / r_m
+    lon = ts.lon + err_enu[:, 0] / (r_n * np.cos(ts.lat))
+    h = ts.h + err_enu[:, 2]
+    v_n = ts.v_n + rng.standard_normal((n, 3)) * cfg.vel_noise_mps * factor[:, None]
+    sigma_h = np.hypot(cfg.white_h_m, cfg.gm_h_m) * factor
+    sigma_v = np.hypot(cfg.white_v_m, cfg.gm_v_m) * factor
+    return dict(lat_deg=np.degrees(lat), lon_deg=np.degrees(lon), h=h, v_n=v_n, valid=valid, factor=factor,
+                sigma_h=sigma_h, sigma_v=sigma_v)
+
+
+def nmea_bursts(sol: dict[str, np.ndarray], utc_s: np.ndarray, cfg: GpsConfig,
+                rng: np.random.Generator) -> tuple[np.ndarray, list[bytes]]:
+    """One burst of sentences per epoch. Returns the true time (s since start) each sentence is complete
+    on the wire, and the sentences (with CRLF). ``utc_s`` is the whole UTC second of each epoch."""
+    n = len(utc_s)
+    base = rng.uniform(cfg.latency_min_s, cfg.latency_max_s - 0.1)
+    latency = np.clip(base + rng.standard_normal(n) * cfg.latency_jitter_s, cfg.latency_min_s, cfg.latency_max_s - 0.06)
+    sentences: list[bytes] = []
+    starts: list[float] = []
+    for i in range(n):
+        dt = datetime.fromtimestamp(int(utc_s[i]), tz=timezone.utc)
+        tod = dt.hour * 3600 + dt.minute * 60 + dt.second
+        ok = bool(sol["valid"][i])
+        hdop = cfg.hdop * sol["factor"][i]
+        vE, vN, _ = sol["v_n"][i]
+        speed = float(np.hypot(vE, vN))
+        course = float(np.arctan2(vE, vN) % (2 * np.pi))
+        lat, lon, h = float(sol["lat_deg"][i]), float(sol["lon_deg"][i]), float(sol["h"][i])
+        burst = [
+            nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,
+                            valid=ok),
+            nmea.format_rmc(cfg.talker, tod, dt.date(), lat, lon, speed, course, valid=ok),
+            nmea.format_vtg(cfg.talker, course, speed, valid=ok),
+            nmea.format_gst(cfg.talker, tod, float(sol["sigma_h"][i]), float(sol["sigma_h"][i]),
+                            float(sol["sigma_h"][i]), float(sol["sigma_v"][i]), valid=ok),
+            nmea.format_zda(cfg.talker, tod, dt.date()),
+        ]
+        t = utc_s[i] - utc_s[0] + latency[i]
+        for s in burst:
+            starts.append(t)
+            sentences.append(s)
+            t += len(s) * 10.0 / cfg.baud
+    keep = np.ones(len(sentences), bool)
+    if cfg.dropped_sentences:
+        keep[rng.choice(len(sentences), size=min(cfg.dropped_sentences, len(sentences)), replace=False)] = False
+    starts_a = np.asarray(starts)
+    return starts_a[keep], [s for s, k in zip(sentences, keep) if k]
+
+
+def serial_reads(port: str, byte_start_s: np.ndarray, chunks: list[bytes] | bytes, chunk_len: int | None,
+                 baud: int, read_period_s: tuple[float, float], clock: HostClock, t0_ns: int,
+                 rng: np.random.Generator) -> list[RawRead]:
+    """Cut a byte stream into host reads, as a USB-serial adapter delivers it.
+
+    ``byte_start_s`` is the true time each unit (frame or sentence) starts on the wire; units are either the
+    fixed-length ``chunk_len`` pieces of ``chunks`` (bytes) or the variable pieces of ``chunks`` (list).
+    Bytes arrive at ``baud`` (10 bits each). The host reads every ``read_period_s`` (uniform range) and gets
+    every byte that has fully arrived by then; a unit may be split between reads.
+    """
+    if isinstance(chunks, bytes):
+        data = chunks
+        lens = np.full(len(byte_start_s), chunk_len, np.int64)
+    else:
+        data = b"".join(chunks)
+        lens = np.fromiter((len(c) for c in chunks), np.int64, len(chunks))
+    offsets = np.concatenate(([0], np.cumsum(lens)))
+    byte_s = 10.0 / baud
+    t_end = byte_start_s[-1] + lens[-1] * byte_s
+    n_reads = int(t_end / read_period_s[0]) + 16
+    reads_t = byte_start_s[0] + np.cumsum(rng.uniform(read_period_s[0], read_period_s[1], n_reads))
+    reads_t = reads_t[: np.searchsorted(reads_t, t_end) + 1]
+    # bytes of the unit in progress at each read time
+    unit = np.searchsorted(byte_start_s, reads_t, side="right") - 1
+    arrived = np.minimum(np.floor((reads_t - byte_start_s[unit]) / byte_s).astype(np.int64), lens[unit])
+    cut = offsets[unit] + arrived
+    cut = np.maximum.accumulate(cut)
+    mono = clock.mono_ns(reads_t)
+    wall = clock.wall_ns(reads_t, t0_ns)
+    out = []
+    prev = 0
+    for c, m, w in zip(cut.tolist(), mono.tolist(), wall.tolist()):
+        if c > prev:
+            out.append(RawRead(port, m, w, data[prev:c]))
+            prev = c
+    return out

@@ -1,0 +1,230 @@
+"""MEMS IMU error model for the simulator: true body rates and specific forces -> DAQ ADC counts.
+
+The measured SI value of each triad is::
+
+    x_meas = (I + S) (I + E) x_true + b_turn_on + b_flicker(t) + w(t)
+
+- S = diag(scale-factor errors), E = misalignment (off-diagonal small angles), both relative to the
+  nominal calibration and constant over a run;
+- b_turn_on: constant run-to-run bias; b_flicker: bias instability (1/f noise, see below);
+- w: white noise (angle / velocity random walk) of density N: each sample is the mean of white
+  noise over its own sample interval dt_k, so its standard deviation is N / sqrt(dt_k)
+  (convention: Allan deviation at tau = 1 s equals N; ARW [deg/sqrt(h)] = 60 N [deg/s/sqrt(Hz)]).
+The ADC then sees volts from the nominal calibration shifted by an electrical zero-output offset
+(``*_zero_bias_V``), quantised and clipped by ``acquire.calib.to_counts``.
+
+Bias instability. A sum of independent first-order Gauss-Markov processes with correlation times
+T_i log-spaced by a ratio r between ``bias_corr_time_min_s`` and ``bias_corr_time_max_s``. Each has
+the same variance s^2: the sum of Lorentzians 2 s^2 T_i / (1 + (2 pi f T_i)^2) over a log-uniform
+set of T_i (density 1/ln r per unit ln T) integrates to the two-sided PSD s^2 / (2 f ln r), i.e. a
+one-sided h_-1 / f with h_-1 = s^2 / ln r. Flicker noise has Allan variance 2 ln2 h_-1, and the
+IEEE 952 bias instability B is defined by that floor being (0.664 B)^2 = (2 ln2 / pi) B^2, so
+s^2 = B^2 ln r / pi. The Allan floor is within 1 % of 0.664 B from about 50 T_min to T_max / 20
+(3 % from 20 T_min to T_max / 5); the defaults (2 ms to 1e4 s) keep it flat over any drive. The slow
+processes are generated on coarse uniform grids (step <= T_i / 8) and linearly interpolated onto the
+sample times, which keeps the cost near a few random draws per sample.
+
+Defaults. From Table 2 of the distributed-KF paper where it gives a figure: accel noise 5 ug/sqrt(Hz),
+gyro bias stability 0.02 deg/s. Our choices where it does not:
+- gyro noise density 0.01 deg/s/sqrt(Hz) (0.6 deg/sqrt(h)), typical of low-cost MEMS rate gyros;
+- accel bias instability 20 ug, typical of a 5 ug/sqrt(Hz) capacitive accelerometer;
+- turn-on biases 0.05 deg/s and 1 mg, scale-factor errors 1000 ppm, misalignment 1 mrad (1-sigma):
+  the residuals after a unit calibration (Table 2's 0.5 % sensitivity drift and +-0.5 deg/s, 0 +-0.2 V
+  zero biases are unit-to-unit and temperature spreads that a calibration file removes);
+- electrical zero-output offsets 0 V: set ``gyro_zero_bias_V`` = 0.25 and ``accel_zero_bias_V`` = 0.2
+  (Table 2's zero-bias spreads) to simulate a unit running on the nominal, uncalibrated, file.
+All error magnitudes are 1-sigma of zero-mean Gaussian draws, per axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+from scipy.signal import lfilter
+
+from acquire.calib import G0, Calibration, SensorTriadCal, to_counts
+
+_DEG = math.pi / 180.0
+_UG = 1e-6 * G0
+_CORR_PER_DECADE = 3  # Gauss-Markov processes per decade of correlation time
+_GRID_PER_CORR = 8  # grid steps per correlation time for the coarse-grid processes
+
+
+@dataclass(frozen=True)
+class ImuErrorConfig:
+    """IMU error magnitudes in datasheet units (1-sigma per axis); see the module docstring."""
+
+    rate_hz: float = 500.0  # nominal sample rate, Hz (the model itself uses the actual sample times)
+    gyro_noise_density_dps_rthz: float = 0.01  # deg/s/sqrt(Hz)
+    gyro_bias_instability_dps: float = 0.02  # deg/s, Table 2 "bias stability"
+    gyro_turn_on_bias_dps: float = 0.05  # deg/s
+    gyro_scale_factor_ppm: float = 1000.0
+    gyro_misalignment_mrad: float = 1.0
+    gyro_zero_bias_V: float = 0.0  # V, electrical zero-rate offset not in the calibration file
+    accel_noise_density_ug_rthz: float = 5.0  # ug/sqrt(Hz), Table 2
+    accel_bias_instability_ug: float = 20.0  # ug
+    accel_turn_on_bias_ug: float = 1000.0  # ug
+    accel_scale_factor_ppm: float = 1000.0
+    accel_misalignment_mrad: float = 1.0
+    accel_zero_bias_V: float = 0.0  # V, electrical zero-g offset not in the calibration file
+    bias_corr_time_min_s: float = 0.002  # s, shortest correlation time of the flicker model
+    bias_corr_time_max_s: float = 1.0e4  # s, longest
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"[imu] {f.name}: expected a finite number, got {value!r}")
+            if value < 0.0:
+                raise ValueError(f"[imu] {f.name}: must be >= 0, got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+        if self.rate_hz <= 0.0:
+            raise ValueError("[imu] rate_hz: must be > 0")
+        if not 0.0 < self.bias_corr_time_min_s < self.bias_corr_time_max_s:
+            raise ValueError("[imu] bias_corr_time_min_s, bias_corr_time_max_s: need 0 < min < max")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ImuErrorConfig:
+        """Build from a scenario's [imu] TOML table; unknown keys raise ValueError naming them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"[imu] unknown key(s) {unknown}; allowed: {sorted(known)}")
+        return cls(**d)
+
+
+def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, float]:
+    """Log-spaced correlation times (s) covering [t_min_s, t_max_s] and the unit-B variance of each.
+
+    Returns (T (m,), s2) with s2 = ln(r) / pi: each process has variance s2 * B^2.
+    """
+    m = max(int(round(_CORR_PER_DECADE * math.log10(t_max_s / t_min_s))), 1) + 1
+    T = np.geomspace(t_min_s, t_max_s, m)
+    r = T[1] / T[0] if m > 1 else 10.0 ** (1.0 / _CORR_PER_DECADE)
+    return T, math.log(r) / math.pi
+
+
+def _lerp_uniform(y: np.ndarray, h: float, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation of rows y[k] at times k*h onto times t (0 <= t <= (len(y)-1)*h)."""
+    pos = t / h
+    k = np.minimum(pos.astype(np.int64), y.shape[0] - 2)
+    lo = np.take(y, k, axis=0)  # np.take: several times faster than fancy indexing here
+    out = np.take(y, k + 1, axis=0)
+    out -= lo
+    out *= (pos - k)[:, None]
+    out += lo
+    return out
+
+
+def flicker_noise(
+    t_rel_s: np.ndarray, n_channels: int, t_min_s: float, t_max_s: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Unit bias-instability (B = 1) flicker noise at times t_rel_s (n,) >= 0, s -> (n, n_channels).
+
+    Sum of Gauss-Markov processes (module docstring). Each process runs on the coarsest power-of-two
+    multiple of the median sample interval that is <= T_i / 8; levels are accumulated from coarse
+    to fine by linear interpolation, then interpolated onto t_rel_s.
+    """
+    T, s2 = flicker_corr_times(t_min_s, t_max_s)
+    dt = np.diff(t_rel_s)
+    h0 = float(np.median(dt)) if dt.size else 1.0
+    span = float(t_rel_s[-1])
+    level = np.maximum(np.floor(np.log2(T / (_GRID_PER_CORR * h0))), 0).astype(int)
+    acc = None
+    for lvl in range(int(level.max()), -1, -1):
+        h = h0 * 2.0**lvl
+        grid = np.arange(int(math.ceil(span / h)) + 2) * h
+        acc = np.zeros((grid.size, n_channels)) if acc is None else _lerp_uniform(acc, 2.0 * h, grid)
+        for Ti in T[level == lvl]:
+            phi = math.exp(-h / Ti)
+            z = rng.standard_normal((grid.size, n_channels))
+            x_prev = rng.standard_normal(n_channels)  # stationary start
+            y, _ = lfilter([math.sqrt(1.0 - phi * phi)], [1.0, -phi], z, axis=0, zi=phi * x_prev[None, :])
+            acc += y
+    return _lerp_uniform(acc, h0, t_rel_s) * math.sqrt(s2)
+
+
+def _si_magnitudes(cfg: ImuErrorConfig) -> dict[str, dict[str, float]]:
+    """Error magnitudes per triad in SI units (rad/s or m/s^2; fractions; radians; volts)."""
+    return {
+        "gyro": {
+            "noise_density": cfg.gyro_noise_density_dps_rthz * _DEG,
+            "bias_instability": cfg.gyro_bias_instability_dps * _DEG,
+            "turn_on_bias": cfg.gyro_turn_on_bias_dps * _DEG,
+            "scale_factor": cfg.gyro_scale_factor_ppm * 1e-6,
+            "misalignment": cfg.gyro_misalignment_mrad * 1e-3,
+            "zero_bias_V": cfg.gyro_zero_bias_V,
+        },
+        "accel": {
+            "noise_density": cfg.accel_noise_density_ug_rthz * _UG,
+            "bias_instability": cfg.accel_bias_instability_ug * _UG,
+            "turn_on_bias": cfg.accel_turn_on_bias_ug * _UG,
+            "scale_factor": cfg.accel_scale_factor_ppm * 1e-6,
+            "misalignment": cfg.accel_misalignment_mrad * 1e-3,
+            "zero_bias_V": cfg.accel_zero_bias_V,
+        },
+    }
+
+
+def _misalignment_error(rng: np.random.Generator, sigma: float) -> np.ndarray:
+    """(3,3) misalignment error E: independent off-diagonal entries, zero diagonal."""
+    E = rng.normal(0.0, sigma, (3, 3))
+    np.fill_diagonal(E, 0.0)
+    return E
+
+
+def imu_counts(
+    t_s: np.ndarray,
+    omega_ib_b: np.ndarray,
+    f_b: np.ndarray,
+    cfg: ImuErrorConfig,
+    cal: Calibration,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Simulate the DAQ ADC counts of a MEMS IMU.
+
+    t_s: (n,) true sample times, s, increasing (any offset; only differences are used).
+    omega_ib_b: (n,3) true angular rate, rad/s; f_b: (n,3) true specific force, m/s^2; body frame RFU.
+    cal: the nominal calibration the recording will be converted with.
+    Returns (counts (n,6) int32, realised) where realised holds the drawn errors:
+      gyro_turn_on_bias (3,) rad/s, accel_turn_on_bias (3,) m/s^2, *_scale_factor (3,) (fraction),
+      *_misalignment (3,3) (E), *_zero_bias_V (3,) V, gyro_bias (n,3) rad/s and accel_bias (n,3) m/s^2
+      (turn-on + flicker + electrical offset, as seen through the nominal calibration), saturated (6,).
+    The draws come from rng in a fixed order: the same seed gives identical counts.
+    """
+    t_s = np.asarray(t_s, dtype=np.float64)
+    omega_ib_b, f_b = np.asarray(omega_ib_b, np.float64), np.asarray(f_b, np.float64)
+    n = t_s.shape[0]
+    if n < 2 or omega_ib_b.shape != (n, 3) or f_b.shape != (n, 3):
+        raise ValueError("imu_counts: need t_s (n,), omega_ib_b (n,3), f_b (n,3) with n >= 2")
+    dt = np.diff(t_s)
+    if np.any(dt <= 0.0):
+        raise ValueError("imu_counts: t_s must be strictly increasing")
+    dt = np.concatenate([dt[:1], dt])
+
+    x_true = {"gyro": omega_ib_b, "accel": f_b}
+    nominal = {"gyro": cal.gyro, "accel": cal.accel}
+    mag = _si_magnitudes(cfg)
+    realised: dict[str, np.ndarray] = {}
+    for name, m in mag.items():
+        realised[f"{name}_turn_on_bias"] = rng.normal(0.0, m["turn_on_bias"], 3)
+        realised[f"{name}_scale_factor"] = rng.normal(0.0, m["scale_factor"], 3)
+        realised[f"{name}_misalignment"] = _misalignment_error(rng, m["misalignment"])
+        realised[f"{name}_zero_bias_V"] = rng.normal(0.0, m["zero_bias_V"], 3)
+    flicker = flicker_noise(t_s - t_s[0], 6, cfg.bias_corr_time_min_s, cfg.bias_corr_time_max_s, rng)
+    white = rng.standard_normal((n, 6)) / np.sqrt(dt)[:, None]
+
+    measured, true_cal = {}, {}
+    for j, (name, m) in enumerate(mag.items()):
+        cols = slice(3 * j, 3 * j + 3)
+        bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * flicker[:, cols]
+        gain = (np.eye(3) + np.diag(realised[f"{name}_scale_factor"])) @ (np.eye(3) + realised[f"{name}_misalignment"])
+        measured[name] = np.dot(x_true[name], gain.T) + bias + m["noise_density"] * white[:, cols]
+        nom = nominal[name]
+        bias_V = nom.bias_V + realised[f"{name}_zero_bias_V"]
+        true_cal[name] = SensorTriadCal(nom.sensitivity, bias_V, nom.misalignment)
+        realised[f"{name}_bias"] = bias + nom.to_si(bias_V)  # as seen through the nominal calibration
+    counts, realised["saturated"] = to_counts(Calibration(**true_cal), measured["gyro"], measured["accel"])
+    return counts, realised
