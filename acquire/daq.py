@@ -13,7 +13,7 @@ import numpy as np
 
 SYNC0, SYNC1 = 0xA5, 0x5A
 VERSION = 1
-FRAME_LEN = 38
+FRAME_SIZE = 38
 FLAG_PPS, FLAG_LATCH, FLAG_TEMP = 0x01, 0x02, 0x04
 COUNTS_MIN, COUNTS_MAX = -(2**23), 2**23 - 1
 _CRC_FROM, _CRC_TO = 2, 36    # CRC covers frame[2:36]
@@ -106,7 +106,7 @@ def encode_frames(counter: np.ndarray, counts: np.ndarray, pps: np.ndarray, latc
         rec["temp_cc"] = np.where(ok, np.clip(np.round(np.where(ok, t, 0.0) * 100), -32768, 32767), 0)
         flags |= np.where(ok, FLAG_TEMP, 0).astype(np.uint8)
     rec["flags"] = flags
-    rec["crc"] = crc16_frames(rec.view(np.uint8).reshape(n, FRAME_LEN)[:, _CRC_FROM:_CRC_TO])
+    rec["crc"] = crc16_frames(rec.view(np.uint8).reshape(n, FRAME_SIZE)[:, _CRC_FROM:_CRC_TO])
     return rec.tobytes()
 
 
@@ -155,7 +155,7 @@ def _residue_tables() -> np.ndarray:
     difference of each sync byte from its value, bits 48..55 the difference of the version from 1.
     """
     v = np.arange(256, dtype=np.uint64)
-    r = np.zeros((FRAME_LEN, 256), np.uint64)
+    r = np.zeros((FRAME_SIZE, 256), np.uint64)
     r[0] = (v ^ SYNC0) << 32
     r[1] = (v ^ SYNC1) << 40
     r[_CRC_FROM:_CRC_TO] = _POS_TABLES
@@ -166,9 +166,9 @@ def _residue_tables() -> np.ndarray:
 
 
 _RES_FLAT = _residue_tables().ravel()
-_RES_OFFSETS = (np.arange(FRAME_LEN) * 256).astype(np.uint16)
+_RES_OFFSETS = (np.arange(FRAME_SIZE) * 256).astype(np.uint16)
 _SYNC_CRC_MASK = np.uint64(2**48 - 1)
-_ROW = np.arange(FRAME_LEN, dtype=np.intp)
+_ROW = np.arange(FRAME_SIZE, dtype=np.intp)
 _SCAN_WINDOW = 512
 
 
@@ -214,15 +214,15 @@ class DaqDecoder:
         pos = 0
         while True:
             if self._synced:
-                m = (n - pos) // FRAME_LEN
+                m = (n - pos) // FRAME_SIZE
                 if m == 0:
                     break
-                res = _residue(b[pos:pos + m * FRAME_LEN].reshape(m, FRAME_LEN))
+                res = _residue(b[pos:pos + m * FRAME_SIZE].reshape(m, FRAME_SIZE))
                 good = res == _RES_VALID
                 n_good = m if good.all() else int(np.argmin(good))
                 if n_good:
                     segments.append((pos, n_good))
-                    pos += n_good * FRAME_LEN
+                    pos += n_good * FRAME_SIZE
                 if n_good == m:
                     continue
                 if res[n_good] & _SYNC_CRC_MASK == _RES_VALID:
@@ -240,18 +240,18 @@ class DaqDecoder:
                 pos = keep
                 break
             st.bytes_skipped += found - skip_from
-            if self._lost_at is not None and self._stream_pos + found != self._lost_at + FRAME_LEN:
+            if self._lost_at is not None and self._stream_pos + found != self._lost_at + FRAME_SIZE:
                 st.resyncs += 1
             self._synced = True
             pos = found
         self._carry = buf[pos:]
         self._stream_pos += pos
-        ends = [np.arange(s - base + FRAME_LEN, s - base + (c + 1) * FRAME_LEN, FRAME_LEN, dtype=np.int64)
+        ends = [np.arange(s - base + FRAME_SIZE, s - base + (c + 1) * FRAME_SIZE, FRAME_SIZE, dtype=np.int64)
                 for s, c in segments]
         if len(segments) == 1:
             return self._decode(buf, segments[0][0], segments[0][1], ends[0])
-        raw = b"".join(buf[s:s + c * FRAME_LEN] for s, c in segments)
-        return self._decode(raw, 0, len(raw) // FRAME_LEN, np.concatenate(ends) if ends else np.zeros(0, np.int64))
+        raw = b"".join(buf[s:s + c * FRAME_SIZE] for s, c in segments)
+        return self._decode(raw, 0, len(raw) // FRAME_SIZE, np.concatenate(ends) if ends else np.zeros(0, np.int64))
 
     def _scan(self, b: np.ndarray, start: int) -> tuple[int, int]:
         """First valid frame at or after ``start``: (position, -1), or (-1, where to keep bytes from)."""
@@ -260,7 +260,7 @@ class DaqDecoder:
         while lo < n - 1:
             hi = min(n - 1, lo + width)
             cand = np.flatnonzero((b[lo:hi] == SYNC0) & (b[lo + 1:hi + 1] == SYNC1)) + lo
-            complete = cand[cand + FRAME_LEN <= n]
+            complete = cand[cand + FRAME_SIZE <= n]
             if complete.size:
                 res = _residue(b[complete[:, None] + _ROW])
                 good = res == _RES_VALID
@@ -271,7 +271,7 @@ class DaqDecoder:
             if complete.size < cand.size:
                 return -1, int(cand[complete.size])
             lo, width = hi, width * 2
-        return -1, (n - 1 if n > start and b[n - 1] == SYNC0 else max(n, start))
+        return -1, (n - 1 if n > start and b[n - 1] == SYNC0 else n)   # a lone 0xA5 may start a sync
 
     def _unwrap(self, counter: np.ndarray) -> np.ndarray:
         """k for int64 counters: each step is the counter step modulo 2**32 taken in [-2**31, 2**31)."""

@@ -14,7 +14,6 @@ from datetime import timedelta
 
 KNOT_MPS = 1852.0 / 3600.0
 MAX_LINE = 256          # NMEA allows 82 characters; proprietary lines run longer
-_DEG = math.pi / 180.0
 
 
 # ---------------------------------------------------------------------------------------------- framing

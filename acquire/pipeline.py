@@ -9,7 +9,7 @@ from __future__ import annotations
 import ast
 import datetime as _dt
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -114,7 +114,7 @@ class Pipeline:
     def settings_from_metadata(meta: dict[str, dict[str, str]]) -> tuple[calib.Calibration,
                                                                         timesync.TimeSyncConfig]:
         """The inverse of ``metadata``; defaults for what a drive does not record."""
-        cal = calib.loads_calibration(meta["calibration"]["toml"]) if "calibration" in meta else \
+        cal = calib.Calibration.from_toml(meta["calibration"]["toml"]) if "calibration" in meta else \
             calib.load_calibration(None)
         sync = {k: ast.literal_eval(v) for k, v in meta.get("timesync", {}).items()}
         return cal, timesync.TimeSyncConfig.from_dict(sync)
@@ -173,15 +173,16 @@ class Pipeline:
         utc_s = int(_dt.datetime.combine(self._date, _dt.time(), _dt.timezone.utc).timestamp()) + int(tod)
         if self._last_fix_key != utc_s:
             self._last_fix_key = utc_s
-            self.sync.add_fix(utc_s, mono_ns)
+            self.sync.add_fix(utc_s, mono_ns, wall_ns)
 
     # -- output --------------------------------------------------------------------------------------
-    def _emit_epoch(self, ep) -> None:
-        if ep.date is None and self._date is None:
-            return
-        date = ep.date or self._date
-        t_ns = np.array([int(_dt.datetime.combine(date, _dt.time(), _dt.timezone.utc).timestamp()) * NS
-                         + int(round(ep.time_of_day_s * NS))], np.int64)
+    def _emit_epoch(self, ep: nmea.GnssEpoch) -> None:
+        utc_ns = ep.utc_ns
+        if utc_ns is None:
+            if self._date is None:
+                return
+            utc_ns = replace(ep, date=self._date).utc_ns
+        t_ns = np.array([utc_ns], np.int64)
         fix = bool(ep.quality) and ep.quality > 0 and np.isfinite(ep.lat_deg)
         self.counters.gps_epochs += 1
         self.counters.gps_no_fix += not fix

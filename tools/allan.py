@@ -81,7 +81,7 @@ def _fit_avar(taus: np.ndarray, avar: np.ndarray, iterations: int = 6) -> np.nda
     """
     basis = np.stack([taus**-2, taus**-1, np.ones_like(taus), taus], axis=1)
     w = 1.0 / np.sqrt(taus)
-    scale = avar
+    scale = np.maximum(avar, np.finfo(float).tiny)
     for _ in range(iterations):
         coef = _nnls(basis * (w / scale)[:, None], avar * w / scale)
         scale = np.maximum(basis @ coef, np.finfo(float).tiny)
@@ -98,7 +98,8 @@ def noise_parameters(
     flicker floor is high enough to hide the white-noise line above a fraction of a second.
     Generic keys, in the units of the data u (e.g. rad/s):
       white_density N [u/sqrt(Hz)] (= the white line read at tau = 1 s), bias_instability B [u]
-      (flat-region floor / 0.664), rate_random_walk K [u/sqrt(s)], quantization Q [u*s],
+      (flat-region floor / 0.664), rate_random_walk K [u/sqrt(s)] (NaN unless visible: the K line
+      must rise above the other terms by a tenth of the longest tau), quantization Q [u*s],
       adev_min [u] and tau_min [s] (the raw minimum of the curve, for reference: with a short
       record its noise biases it low, which is why B comes from the fit).
     sensor="gyro" (data in rad/s) adds arw_deg_rthr, arw_dps_rthz, bias_instability_deg_hr,
@@ -109,6 +110,11 @@ def noise_parameters(
     adev = np.asarray(adev, dtype=np.float64)
     avar = adev.reshape(adev.shape[0], -1) ** 2
     coef = np.stack([_fit_avar(taus, avar[:, j]) for j in range(avar.shape[1])], axis=1)
+    # RRW counts as visible only if it dominates the fit at a tenth of the longest tau (where the
+    # curve still has ~20 clusters for default taus); otherwise the term is just soaking up scatter.
+    tau_vis = taus.max() / 10.0
+    visible = coef[3] * tau_vis > coef[0] / tau_vis**2 + coef[1] / tau_vis + coef[2]
+    coef[3] = np.where(visible, coef[3], np.nan)
     shape = adev.shape[1:]
     i_min = np.argmin(adev, axis=0)
     out = {
@@ -166,3 +172,15 @@ def report(omega_ib_b: np.ndarray, f_b: np.ndarray, fs_hz: float) -> str:
             f" {a['bias_instability_ug'][i]:10.4g} {'':>10} {a['rrw_ug_rthr'][i]:18.4g}"
         )
     return "\n".join(rows) + "\n"
+
+
+def drive_report(path: str) -> str:
+    """``report`` of the /imu topic of a recorded drive (meant for a static drive); rate from the stamps."""
+    from replay.reader import read_topic
+
+    imu = read_topic(path, "/imu")
+    stamp_ns = np.asarray(imu["stamp_ns"])
+    if stamp_ns.size < 3:
+        raise ValueError(f"{path}: /imu has {stamp_ns.size} samples, need at least 3")
+    fs_hz = (stamp_ns.size - 1) / ((stamp_ns[-1] - stamp_ns[0]) * 1e-9)
+    return report(np.asarray(imu["omega_ib_b"]), np.asarray(imu["f_b"]), fs_hz)

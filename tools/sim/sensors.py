@@ -48,7 +48,7 @@ from acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 
 _DEG = math.pi / 180.0
 _UG = 1e-6 * G0
-_CORR_PER_DECADE = 3  # Gauss-Markov processes per decade of correlation time
+_CORR_PER_DECADE = 2  # Gauss-Markov processes per decade of correlation time
 _GRID_PER_CORR = 8  # grid steps per correlation time for the coarse-grid processes
 
 
@@ -102,8 +102,7 @@ def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, floa
     """
     m = max(int(round(_CORR_PER_DECADE * math.log10(t_max_s / t_min_s))), 1) + 1
     T = np.geomspace(t_min_s, t_max_s, m)
-    r = T[1] / T[0] if m > 1 else 10.0 ** (1.0 / _CORR_PER_DECADE)
-    return T, math.log(r) / math.pi
+    return T, math.log(T[1] / T[0]) / math.pi
 
 
 def _lerp_uniform(y: np.ndarray, h: float, t: np.ndarray) -> np.ndarray:
@@ -115,6 +114,14 @@ def _lerp_uniform(y: np.ndarray, h: float, t: np.ndarray) -> np.ndarray:
     out -= lo
     out *= (pos - k)[:, None]
     out += lo
+    return out
+
+
+def _upsample2(y: np.ndarray, m: int) -> np.ndarray:
+    """Linear interpolation of rows y[k] at times 2k*h onto the first m points of the grid k*h."""
+    out = np.empty((m,) + y.shape[1:])
+    out[0::2] = y[: (m + 1) // 2]
+    out[1::2] = 0.5 * (y[: m // 2] + y[1 : m // 2 + 1])
     return out
 
 
@@ -136,7 +143,7 @@ def flicker_noise(
     for lvl in range(int(level.max()), -1, -1):
         h = h0 * 2.0**lvl
         grid = np.arange(int(math.ceil(span / h)) + 2) * h
-        acc = np.zeros((grid.size, n_channels)) if acc is None else _lerp_uniform(acc, 2.0 * h, grid)
+        acc = np.zeros((grid.size, n_channels)) if acc is None else _upsample2(acc, grid.size)
         for Ti in T[level == lvl]:
             phi = math.exp(-h / Ti)
             z = rng.standard_normal((grid.size, n_channels))

@@ -1,0 +1,611 @@
+"""GPS time sync: UTC (int64 ns) of every DAQ sample from the PPS edges and the NMEA seconds.
+
+Records from both ports are fed in host-monotonic order: ``add_fix`` for each NMEA epoch, ``add_frames`` for
+each read of decoded DAQ frames. Every result is a deterministic function of the fed records, whatever way the
+frames of a read are split across calls and whenever the outputs are polled, so ``fieldlog rebuild``
+reproduces a live drive bit for bit.
+
+Edges. A flagged frame k gives the edge position k_edge = k - 1 + latch/65536 (latch valid) or k - 0.5
+(flag only), in sample-index units. Each edge is labelled as gpsd does: the UTC second of the last fix
+received before it, plus 1. It is rejected when there was no fix (``no_fix``), that fix is older than
+``max_fix_age_s`` (``stale_fix``), the label minus the edge's host time disagrees by more than
+``max_disagree_s`` with the same offset of the previous edges (``disagree``: a glitch mid-second), its label
+was already used (``duplicate``) or it is off the running clock fit (``outlier``). Before the first lock,
+candidates wait until ``min_edges`` of them within ``acquire_s`` fit one line (Theil-Sen); those that do not
+are ``outlier``, those never part of a lock ``unlocked``.
+
+Clock fit. For every accepted edge i, a knot: Theil-Sen then least squares on the inliers of the accepted
+edges within +-window_s/2 (on the DAQ clock) around it, fitting k_edge = kr + c + (fs + e) * (label - L_i)
+(the noise is in k_edge, the labels are exact); at the first and last edges of the stream the window is
+shifted to keep its full length. The knot's UTC is that fit evaluated at k_edge_i; rate error
+ppm = e / fs * 1e6. A knot needs ``min_edges`` inliers. With a flag only, the quantisation error is a
+sawtooth (the edge slips by frac(samples per second) every second), so the knot's UTC comes from a centred
+window of a whole number of beat periods (<= window_s) when one fits, which cancels most of it.
+
+Stamping rule for sample k (i = last knot at or before k, j = first knot after k, H = window_s/2):
+  1. i and j, and j - i <= holdover_s: linear interpolation between the two knots' UTC;
+  2. only i (or the next knot is more than holdover_s after i): extrapolation of the fit over the window_s
+     before knot i ("holdover on the last fit"), kept after holdover_s too, flagged FREE;
+  3. no knot before k, j within H after k: the first fit extrapolated backwards (samples just before the
+     first lock get the first fit, not the host clock);
+  4. otherwise host clock: k / fs plus the lower envelope of (frame wall_ns - k / fs) over the reads within
+     +-host_window_s/2, FREE.
+  States: LOCKED while the last accepted edge before k (rule 3: the first knot after k) is at most
+  max_edge_gap_s away, HOLDOVER up to holdover_s, FREE beyond and for rule 4.
+  Stamps never go backwards: the final stamp is M(k) = max(raw(k), M(k-1) + 1 ns), a forward clamp after a
+  backward step (e.g. host clock -> first lock), which only ever occurs at a rule change.
+A sample is final once nothing that can still arrive can change it: about window_s/2 + 1 s after it is read
+when locked (window_s for the first knots of a stream), up to holdover_s + window_s/2 in a PPS gap, and
+window_s/2 after the last pending lock candidate before the first lock. Memory is bounded: edges, knots and envelope bins older than
+window_s + retain_s are dropped.
+"""
+from __future__ import annotations
+
+import math
+from bisect import bisect_left, bisect_right, insort
+from collections import deque
+from dataclasses import dataclass, fields
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+from scipy.stats import theilslopes
+
+
+class SyncState(IntEnum):
+    """Per-sample time-sync state (stored as uint8)."""
+
+    FREE = 0
+    HOLDOVER = 1
+    LOCKED = 2
+
+
+@dataclass
+class TimeSyncConfig:
+    """Time-sync settings. Seconds unless stated; None picks the default for ``pps_mode``."""
+
+    fs_hz: float = 500.0
+    pps_mode: str = "flag"              # 'flag': sampled PPS flag only; 'latch': sub-sample latch
+    window_s: float | None = None       # fit window: 120 s for 'flag' (>= 120), 30 s for 'latch'
+    holdover_s: float = 30.0
+    max_edge_gap_s: float = 2.5         # LOCKED while the last accepted edge is this recent (one drop is fine)
+    max_fix_age_s: float = 1.1
+    max_disagree_s: float = 0.4
+    min_edges: int = 5                  # edges to lock, and inliers for a knot fit
+    acquire_s: float = 10.0             # the first lock needs min_edges consistent edges within this span
+    inlier_tol_s: float | None = None   # fit residual gate: 1 sample for 'flag', 50 us for 'latch'
+    rate_tol_ppm: float = 2.0           # widens the edge gate with the time since the last accepted edge
+    max_rate_ppm: float = 500.0         # a lock with a larger DAQ rate error is refused
+    host_window_s: float = 10.0         # lower-envelope window of the pre-lock host-clock stamps
+    retain_s: float = 300.0             # stamp() answers for samples up to this far behind final_until()
+
+    def __post_init__(self) -> None:
+        if self.pps_mode not in ("flag", "latch"):
+            raise ValueError(f"[timesync] pps_mode: {self.pps_mode!r} is not 'flag' or 'latch'")
+        if self.window_s is None:
+            # latch edges carry ~30 ns of noise, so a short window averages enough and follows the wander
+            # better (the curvature bias of a linear fit grows as window^2).
+            self.window_s = 120.0 if self.pps_mode == "flag" else 30.0
+        if self.inlier_tol_s is None:
+            self.inlier_tol_s = 1.0 / self.fs_hz if self.pps_mode == "flag" else 50e-6
+        if self.pps_mode == "flag" and self.window_s < 120.0:
+            raise ValueError(f"[timesync] window_s: {self.window_s} < 120 s with a sampled PPS flag")
+        for name in ("fs_hz", "window_s", "holdover_s", "max_edge_gap_s", "max_fix_age_s", "max_disagree_s",
+                     "acquire_s", "inlier_tol_s", "rate_tol_ppm", "max_rate_ppm", "host_window_s", "retain_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"[timesync] {name}: must be > 0, got {getattr(self, name)!r}")
+        if self.min_edges < 3:
+            raise ValueError(f"[timesync] min_edges: must be >= 3, got {self.min_edges!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "TimeSyncConfig":
+        known = {f.name for f in fields(cls)}
+        bad = sorted(set(d) - known)
+        if bad:
+            raise ValueError(f"[timesync]: unknown key(s) {bad}; known keys: {sorted(known)}")
+        return cls(**d)
+
+
+@dataclass
+class PpsEdge:
+    """A processed PPS edge: position on the DAQ clock (sample units), host read time, GPS second or -1."""
+
+    k_edge: float
+    mono_ns: int
+    label: int = -1
+    accepted: bool = False
+    reason: str = ""          # '' when accepted, else why it was rejected
+
+
+@dataclass(frozen=True)
+class SyncStatus:
+    """One /time/sync record, at the whole UTC second ``utc_ns`` (first final sample of that second)."""
+
+    utc_ns: int
+    state: SyncState
+    rate_ppm: float           # DAQ oscillator rate error (nan without a fit)
+    residual_us: float        # RMS residual of the fit's inlier edges (nan without a fit)
+    edges_used: int
+    edges_rejected_total: int
+
+
+@dataclass(frozen=True)
+class EdgeBatch:
+    """Processed edges as arrays (what ``pop_edges`` returns)."""
+
+    k_edge: np.ndarray        # float64, sample-index units
+    mono_ns: np.ndarray       # int64 host read time
+    label_s: np.ndarray       # int64 GPS second, -1 if none
+    accepted: np.ndarray      # bool
+    reason: np.ndarray        # str, '' when accepted
+
+    @classmethod
+    def of(cls, edges: list[PpsEdge]) -> "EdgeBatch":
+        return cls(np.array([e.k_edge for e in edges], np.float64), np.array([e.mono_ns for e in edges], np.int64),
+                   np.array([e.label for e in edges], np.int64), np.array([e.accepted for e in edges], bool),
+                   np.array([e.reason for e in edges], str))
+
+    def __len__(self) -> int:
+        return len(self.k_edge)
+
+
+@dataclass(frozen=True)
+class StatusBatch:
+    """/time/sync records as arrays (what ``pop_status`` returns); fields as in SyncStatus."""
+
+    utc_ns: np.ndarray
+    state: np.ndarray         # uint8 SyncState
+    rate_ppm: np.ndarray
+    residual_us: np.ndarray
+    edges_used: np.ndarray
+    edges_rejected: np.ndarray
+
+    @classmethod
+    def of(cls, st: list[SyncStatus]) -> "StatusBatch":
+        return cls(np.array([s.utc_ns for s in st], np.int64), np.array([s.state for s in st], np.uint8),
+                   np.array([s.rate_ppm for s in st], np.float64), np.array([s.residual_us for s in st], np.float64),
+                   np.array([s.edges_used for s in st], np.int64),
+                   np.array([s.edges_rejected_total for s in st], np.int64))
+
+    def __len__(self) -> int:
+        return len(self.utc_ns)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """k_edge = kr + c + (fs + e) * (label - lr), from ``n`` inliers with RMS residual ``rms`` (samples)."""
+
+    lr: int
+    kr: int
+    c: float
+    e: float
+    n: int
+    rms: float
+    x_mean: float
+    sxx: float
+
+    def predict_k(self, label: int, fs: float) -> float:
+        return self.kr + self.c + (fs + self.e) * (label - self.lr)
+
+
+def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
+               min_inliers: int) -> tuple[_Fit, np.ndarray] | None:
+    """Theil-Sen, then least squares on the edges within ``tol`` samples of it. None if too few inliers."""
+    x = (label - lr).astype(np.float64)
+    y = k_edge - kr - fs * x
+    if len(x) < min_inliers or np.ptp(x) == 0:
+        return None
+    res = theilslopes(y, x)
+    inl = np.abs(y - res.intercept - res.slope * x) <= tol
+    if inl.sum() < min_inliers or np.ptp(x[inl]) == 0:
+        return None
+    xi, yi = x[inl], y[inl]
+    xm, ym = xi.mean(), yi.mean()
+    sxx = float(((xi - xm) ** 2).sum())
+    e = float(((xi - xm) * (yi - ym)).sum() / sxx)
+    c = float(ym - e * xm)
+    rms = float(np.sqrt(np.mean((yi - c - e * xi) ** 2)))
+    return _Fit(lr, kr, c, e, int(inl.sum()), rms, float(xm), sxx), inl
+
+
+class TimeSync:
+    """Streaming PPS/NMEA time sync; see the module docstring for the rules."""
+
+    def __init__(self, cfg: TimeSyncConfig | None = None) -> None:
+        self.cfg = c = cfg or TimeSyncConfig()
+        self._fs = float(c.fs_hz)
+        self._ns_per_sample = 1e9 / self._fs
+        self._H = c.window_s / 2 * self._fs
+        self._G = c.max_edge_gap_s * self._fs
+        self._HO = c.holdover_s * self._fs
+        self._tol = c.inlier_tol_s * self._fs
+        self._bin = max(1, round(self._fs))                      # host-envelope bins of ~1 s of samples
+        self._bin_half = max(1, math.ceil(c.host_window_s / 2))
+        # inputs
+        self._fix: tuple[int, int] | None = None                 # (utc_s, mono_ns) of the last fix
+        self._k_first: int | None = None
+        self._k_max = -1
+        self._wall_minus_mono: int | None = None
+        self.frames_out_of_order = 0
+        self._finished = False
+        # edges
+        self._edges: deque[PpsEdge] = deque()                    # in k order, until popped
+        self._pending: list[PpsEdge] = []                        # lock candidates
+        self._offsets: deque[int] = deque(maxlen=9)              # label - edge mono (ns), recent labelled edges
+        self._host_offsets: deque[int] = deque(maxlen=16)        # the same, accepted edges only
+        self._fit: _Fit | None = None                            # causal fit: the acceptance gate
+        self._acc_k: list[float] = []                            # accepted edges (retained)
+        self._acc_label: list[int] = []
+        self._acc_first: float | None = None                     # first accepted edge ever
+        self._n_knotted = 0                                      # accepted edges already turned into knots
+        self._rej_k: list[float] = []                            # rejected edges (retained)
+        self._rej_dropped = 0
+        # knots: (k_edge, label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n)
+        self._knot_k: list[float] = []
+        self._knot: list[tuple[int, float, float, float, float, int]] = []
+        self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
+        self._bins: dict[int, int] = {}                          # bin -> min(wall_ns - k*ns_per_sample)
+        # outputs
+        self._final = 0
+        self._floor = 0
+        self._pmax: int | None = None                            # max over final samples of raw(k) - k
+        self._clamps: list[tuple[int, int, int]] = []            # [k0, k1) stamped P + k
+        self._status: list[SyncStatus] = []
+        self._status_sec: int | None = None
+
+    # ---------------------------------------------------------------- input
+    def add_fix(self, utc_s: int, mono_ns: int, wall_ns: int | None = None) -> None:
+        """An NMEA epoch for the whole UTC second ``utc_s`` whose first sentence was read at ``mono_ns``."""
+        self._fix = (int(utc_s), int(mono_ns))
+        if wall_ns is not None:
+            self._wall_minus_mono = int(wall_ns) - int(mono_ns)
+
+    def add_frames(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
+                   mono_ns: int, wall_ns: int) -> None:
+        """Decoded DAQ frames (sample index k, PPS flag, latch) from one read at host ``mono_ns``/``wall_ns``.
+
+        Frames whose k does not increase are counted in ``frames_out_of_order`` and ignored.
+        """
+        if self._finished:
+            raise RuntimeError("TimeSync.add_frames after finish()")
+        k = np.asarray(k, np.int64)
+        if k.size == 0:
+            return
+        pps = np.asarray(pps, bool)
+        if k[0] <= self._k_max or (k.size > 1 and not (k[1:] > k[:-1]).all()):
+            ok = k > np.maximum.accumulate(np.concatenate(([self._k_max], k[:-1])))
+            self.frames_out_of_order += int((~ok).sum())
+            k, pps, latch, latch_valid = k[ok], pps[ok], np.asarray(latch)[ok], np.asarray(latch_valid)[ok]
+            if k.size == 0:
+                return
+        if self._k_first is None:
+            self._k_first = self._final = self._floor = int(k[0])
+        mono_ns, wall_ns = int(mono_ns), int(wall_ns)
+        self._wall_minus_mono = wall_ns - mono_ns
+        self._add_host(k, wall_ns)
+        if pps.any():
+            for i in np.flatnonzero(pps).tolist():
+                ke = float(k[i] - 1) + (float(latch[i]) / 65536.0 if latch_valid[i] else 0.5)
+                self._on_edge(PpsEdge(ke, mono_ns))
+        self._k_max = int(k[-1])
+        self._expire_pending()
+        self._advance()
+
+    def finish(self) -> None:
+        """End of stream: every sample seen becomes final."""
+        for e in self._pending:
+            self._reject(e, "unlocked")
+        self._pending = []
+        self._finished = True
+        self._advance()
+
+    # ---------------------------------------------------------------- output
+    def final_until(self) -> int:
+        """First sample index whose stamp is not final yet."""
+        return self._final
+
+    def stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """UTC (int64 ns) and SyncState (uint8) of final samples k, in [final_until() - retain_s, final_until())."""
+        k = np.asarray(k, np.int64)
+        if k.size and (k.min() < self._floor or k.max() >= self._final):
+            raise ValueError(f"stamp: k outside the final, retained range [{self._floor}, {self._final})")
+        raw, state, _ = self._raw(k)
+        for k0, k1, p in self._clamps:
+            m = (k >= k0) & (k < k1)
+            raw[m] = p + k[m]
+        return raw, state
+
+    def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
+        """Host monotonic time -> UTC (int64 ns), with the data fed so far.
+
+        Locked: the largest (label - host read time) of the last 16 accepted edges (the read with the least
+        latency). Before that: the host wall clock of the latest read or fix.
+        """
+        if self._host_offsets:
+            off = max(self._host_offsets)
+        elif self._wall_minus_mono is not None:
+            off = self._wall_minus_mono
+        else:
+            raise RuntimeError("mono_to_utc before any read: pass wall_ns to add_fix")
+        return np.asarray(mono_ns, np.int64) + np.int64(off)
+
+    def pop_edges(self) -> EdgeBatch:
+        """Edges whose fate is decided, in k order (each returned once)."""
+        out = []
+        while self._edges and (self._edges[0].accepted or self._edges[0].reason):
+            out.append(self._edges.popleft())
+        return EdgeBatch.of(out)
+
+    def pop_status(self) -> StatusBatch:
+        """/time/sync records of the samples made final since the last call, at most one per UTC second."""
+        out, self._status = self._status, []
+        return StatusBatch.of(out)
+
+    # ---------------------------------------------------------------- edges
+    def _reject(self, e: PpsEdge, reason: str) -> None:
+        e.reason = reason
+        insort(self._rej_k, e.k_edge)
+
+    def _accept(self, e: PpsEdge) -> None:
+        e.accepted = True
+        if self._acc_first is None:
+            self._acc_first = e.k_edge
+        self._acc_k.append(e.k_edge)
+        self._acc_label.append(e.label)
+        self._host_offsets.append(e.label * 1_000_000_000 - e.mono_ns)
+
+    def _on_edge(self, e: PpsEdge) -> None:
+        self._edges.append(e)
+        c = self.cfg
+        if self._fix is None:
+            return self._reject(e, "no_fix")
+        fix_utc, fix_mono = self._fix
+        if e.mono_ns - fix_mono > c.max_fix_age_s * 1e9:
+            return self._reject(e, "stale_fix")
+        e.label = fix_utc + 1
+        off = e.label * 1_000_000_000 - e.mono_ns
+        ref = float(np.median(self._offsets)) if self._offsets else off
+        self._offsets.append(off)
+        if abs(off - ref) > c.max_disagree_s * 1e9:
+            return self._reject(e, "disagree")
+        if self._fit is None:
+            return self._acquire(e)
+        if self._acc_label and e.label <= self._acc_label[-1]:
+            return self._reject(e, "duplicate")
+        f = self._fit
+        dx = e.label - f.lr - f.x_mean
+        sigma = max(f.rms, 0.1 * self._tol) * math.sqrt(1.0 / f.n + dx * dx / f.sxx)
+        gate = self._tol + 4.0 * sigma + c.rate_tol_ppm * 1e-6 * self._fs * (e.label - self._acc_label[-1])
+        if abs(e.k_edge - f.predict_k(e.label, self._fs)) > gate:
+            return self._reject(e, "outlier")
+        self._accept(e)
+        self._refit(e)
+
+    def _refit(self, e: PpsEdge) -> None:
+        """Causal fit over the accepted edges within window_s before ``e``."""
+        i0 = bisect_left(self._acc_k, e.k_edge - 2 * self._H)
+        fit = robust_fit(np.asarray(self._acc_label[i0:]), np.asarray(self._acc_k[i0:]), e.label,
+                         math.floor(e.k_edge), self._fs, self._tol, 2)
+        if fit is not None:
+            self._fit = fit[0]
+
+    def _acquire(self, e: PpsEdge) -> None:
+        span = self.cfg.acquire_s * self._fs
+        for old in [p for p in self._pending if p.k_edge < e.k_edge - span]:
+            self._reject(old, "unlocked")
+        self._pending = [p for p in self._pending if p.k_edge >= e.k_edge - span] + [e]
+        labels = np.array([p.label for p in self._pending])
+        ks = np.array([p.k_edge for p in self._pending])
+        fit = robust_fit(labels, ks, e.label, math.floor(e.k_edge), self._fs, self._tol, self.cfg.min_edges)
+        if fit is None:
+            return
+        f, inl = fit
+        if abs(f.e / self._fs * 1e6) > self.cfg.max_rate_ppm or len(set(labels[inl].tolist())) < inl.sum():
+            return
+        for p, good in zip(self._pending, inl):
+            self._accept(p) if good else self._reject(p, "outlier")
+        self._pending = []
+        self._fit = f
+
+    def _expire_pending(self) -> None:
+        # a candidate further than acquire_s from any edge still to come can no longer join a lock
+        limit = self._k_max - 1 - self.cfg.acquire_s * self._fs
+        while self._pending and self._pending[0].k_edge < limit:
+            self._reject(self._pending.pop(0), "unlocked")
+
+    # ---------------------------------------------------------------- host clock
+    def _add_host(self, k: np.ndarray, wall_ns: int) -> None:
+        b = k // self._bin
+        if b[0] == b[-1]:
+            last = [k.size - 1]
+        else:
+            last = np.flatnonzero(np.diff(b, append=b[-1] + 1)).tolist()   # last frame of each bin in this read
+        for i in last:
+            bb = int(b[i])
+            v = wall_ns - round(int(k[i]) * self._ns_per_sample)
+            old = self._bins.get(bb)
+            self._bins[bb] = v if old is None else min(old, v)
+
+    def _host_offset(self, b: int) -> int:
+        vals = [self._bins[x] for x in range(b - self._bin_half, b + self._bin_half + 1) if x in self._bins]
+        if vals:
+            return min(vals)
+        return self._bins[max(x for x in self._bins if x <= b)]    # a long frame gap: the last bin before
+
+    # ---------------------------------------------------------------- knots and finality
+    def _knot_window(self, idx: int) -> tuple[float, float]:
+        """DAQ-clock span of knot idx's fit: +-window_s/2, stretched to the full window_s at the data's ends."""
+        ke = self._acc_k[idx]
+        lo, hi = ke - self._H, max(ke + self._H, self._acc_first + 2 * self._H)
+        if self._finished and hi > self._acc_k[-1]:
+            lo = min(lo, self._acc_k[-1] - 2 * self._H)
+        return lo, hi
+
+    def _fit_span(self, lo: float, hi: float, lab: int, kr: int) -> _Fit | None:
+        i0, i1 = bisect_left(self._acc_k, lo), bisect_right(self._acc_k, hi)
+        fit = robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), lab, kr, self._fs,
+                         self._tol, self.cfg.min_edges)
+        return None if fit is None else fit[0]
+
+    def _knot_fit(self, idx: int) -> None:
+        ke, lab = self._acc_k[idx], self._acc_label[idx]
+        lo, hi = self._knot_window(idx)
+        kr = math.floor(ke)
+        f = fc = self._fit_span(lo, hi, lab, kr)
+        if f is not None and self.cfg.pps_mode == "flag":
+            # The flag's quantisation error is a sawtooth: the edge slips by frac(samples per second) each
+            # second. A window of whole beat periods centred on the knot averages it out; other windows leave
+            # part of a period. At the data's ends (no centred window) the full window does better.
+            slip = abs((self._fs + f.e + 0.5) % 1.0 - 0.5)
+            n_beats = math.floor((hi - lo) / self._fs * slip)
+            half = n_beats / slip * self._fs / 2
+            # (Its slope is biased by the sawtooth: the rate and the statistics come from the full window.)
+            if n_beats >= 1 and lo <= ke - half and ke + half <= hi:
+                fc = self._fit_span(ke - half, ke + half, lab, kr) or f
+        if f is None:
+            return
+        rate = self._fs + f.e
+        d = (ke - kr - fc.c) / (self._fs + fc.e)
+        self._knot_k.append(ke)
+        self._knot.append((lab, d, 1.0 / rate, f.e / self._fs * 1e6, f.rms / rate * 1e6, f.n))
+
+    def _trail_slope(self, j: int) -> float:
+        """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
+        ke = self._knot_k[j]
+        if ke not in self._trail:
+            i0, i1 = bisect_left(self._acc_k, ke - 2 * self._H), bisect_right(self._acc_k, ke)
+            fit = robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), self._knot[j][0],
+                             math.floor(ke), self._fs, self._tol, self.cfg.min_edges)
+            self._trail[ke] = 1.0 / (self._fs + fit[0].e) if fit is not None else self._knot[j][2]
+        return self._trail[ke]
+
+    def _advance(self) -> None:
+        if self._k_first is None:
+            return
+        if self._finished:
+            kd = math.inf
+        else:
+            kd = self._k_max - 1
+            if self._pending:
+                kd = min(kd, math.floor(self._pending[0].k_edge) - 1)
+        while self._n_knotted < len(self._acc_k) and self._knot_window(self._n_knotted)[1] <= kd:
+            self._knot_fit(self._n_knotted)
+            self._n_knotted += 1
+        kf = kd                                # every knot at or before kf is known
+        if self._n_knotted < len(self._acc_k):
+            kf = min(kf, math.nextafter(self._acc_k[self._n_knotted], -math.inf))
+        end = self._k_max + 1
+        if self._knot_k:
+            last = self._knot_k[-1]
+            fu = end if kf >= last + self._HO else math.ceil(last)
+        else:
+            fu = end if kf == math.inf else math.floor(kf - self._H) + 1
+        fu = min(fu, end)
+        # host-clock stamps (no knot yet) are finalised in steps of >= 1 s, not on every read
+        if fu > self._final and (self._knot_k or self._finished or fu - self._final >= self._bin):
+            self._finalise(self._final, fu)
+
+    def _raw(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unclamped stamp (int64 ns), state (uint8) and governing knot (-1: host clock) of samples k."""
+        n = len(k)
+        raw = np.zeros(n, np.int64)
+        state = np.full(n, SyncState.FREE, np.uint8)
+        gov = np.full(n, -1, np.int64)
+        kk = k.astype(np.float64)
+        K = np.asarray(self._knot_k)
+        nk = len(K)
+        if nk:
+            kn = np.asarray(self._knot, dtype=np.float64)
+            i = np.searchsorted(K, kk, "right") - 1
+            ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
+            has_i, has_j = i >= 0, i + 1 < nk
+            interp = has_i & has_j & (K[jj] - K[ii] <= self._HO)
+            extrap = has_i & ~interp
+            back = ~has_i & has_j & (K[jj] - kk <= self._H)
+            lab = np.asarray([kn_[0] for kn_ in self._knot], np.int64)
+            d = kn[:, 1]
+            if interp.any():
+                a, b = ii[interp], jj[interp]
+                span = (lab[b] - lab[a]) + (d[b] - d[a])
+                frac = (kk[interp] - K[a]) / (K[b] - K[a])
+                raw[interp] = lab[a] * 1_000_000_000 + np.round((d[a] + frac * span) * 1e9).astype(np.int64)
+            if extrap.any():
+                a = ii[extrap]
+                slope = np.array([self._trail_slope(j) for j in a.tolist()])
+                raw[extrap] = lab[a] * 1_000_000_000 + np.round((d[a] + (kk[extrap] - K[a]) * slope) * 1e9).astype(
+                    np.int64)
+            if back.any():
+                b = jj[back]
+                raw[back] = lab[b] * 1_000_000_000 + np.round((d[b] + (kk[back] - K[b]) * kn[b, 2]) * 1e9).astype(
+                    np.int64)
+            gov[interp | extrap] = ii[interp | extrap]
+            gov[back] = jj[back]
+            A = np.asarray(self._acc_k)
+            a = np.searchsorted(A, kk, "right") - 1
+            age = np.where(a >= 0, kk - A[np.maximum(a, 0)], np.inf)
+            age[back] = K[jj[back]] - kk[back]
+            synced = interp | extrap | back
+            state[synced & (age <= self._HO)] = SyncState.HOLDOVER
+            state[synced & (age <= self._G)] = SyncState.LOCKED
+        host = gov < 0
+        if host.any():
+            kh = k[host]
+            bins = kh // self._bin
+            off = np.array([self._host_offset(b) for b in bins.tolist()], np.int64)
+            raw[host] = np.round(kh * self._ns_per_sample).astype(np.int64) + off
+        return raw, state, gov
+
+    def _finalise(self, f0: int, f1: int) -> None:
+        k = np.arange(f0, f1, dtype=np.int64)
+        raw, state, gov = self._raw(k)
+        r = raw - k
+        cm = np.maximum.accumulate(r)
+        if self._pmax is not None:
+            cm = np.maximum(cm, self._pmax)
+        clamped = cm > r
+        if clamped.any():
+            starts = np.flatnonzero(clamped & ~np.concatenate(([False], clamped[:-1])))
+            ends = np.flatnonzero(clamped & ~np.concatenate((clamped[1:], [False]))) + 1
+            for s, e in zip(starts.tolist(), ends.tolist()):
+                self._clamps.append((f0 + s, f0 + e, int(cm[s])))
+        self._pmax = int(cm[-1])
+        stamp = cm + k
+        sec = stamp // 1_000_000_000
+        first = np.flatnonzero(np.diff(sec, prepend=sec[0] - 1) > 0)
+        rej = np.asarray(self._rej_k)
+        for i in first.tolist():
+            s = int(sec[i])
+            if self._status_sec is not None and s <= self._status_sec:
+                continue
+            self._status_sec = s
+            g = int(gov[i])
+            n_rej = self._rej_dropped + int(np.searchsorted(rej, k[i], "right"))
+            if g >= 0:
+                _, _, _, ppm, rms_us, used = self._knot[g]
+                self._status.append(SyncStatus(s * 1_000_000_000, SyncState(int(state[i])), ppm, rms_us, used, n_rej))
+            else:
+                self._status.append(SyncStatus(s * 1_000_000_000, SyncState.FREE, math.nan, math.nan, 0, n_rej))
+        self._final = f1
+        self._prune()
+
+    def _prune(self) -> None:
+        floor = max(self._k_first, self._final - int(self.cfg.retain_s * self._fs))
+        self._floor = floor
+        nk = bisect_right(self._knot_k, floor) - 1                  # keep the last knot at or before the floor
+        if nk > 0:
+            for ke in self._knot_k[:nk]:
+                self._trail.pop(ke, None)
+            del self._knot_k[:nk], self._knot[:nk]
+        keep_from = (self._knot_k[0] if self._knot_k else floor) - 2 * self._H - 1
+        na = min(bisect_left(self._acc_k, keep_from), self._n_knotted, max(0, bisect_right(self._acc_k, floor) - 1))
+        if na > 0:
+            del self._acc_k[:na], self._acc_label[:na]
+            self._n_knotted -= na
+        nr = bisect_right(self._rej_k, floor)
+        if nr > 0:
+            self._rej_dropped += nr
+            del self._rej_k[:nr]
+        self._clamps = [c for c in self._clamps if c[1] > floor]
+        old = sorted(b for b in self._bins if b < floor // self._bin - self._bin_half - 1)
+        for b in old[:-1]:                                          # the last one may still be the nearest
+            del self._bins[b]
