@@ -147,6 +147,7 @@ class Pipeline:
         sentences = self._nmea.feed(data)
         if not sentences:
             return
+        self.sync.add_host_time(mono_ns, wall_ns)
         stamp = int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0])
         for s in sentences:
             self.sink.write("/gps/nmea", stamp, messages.encode_sentence(

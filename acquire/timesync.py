@@ -258,7 +258,11 @@ class TimeSync:
         """An NMEA epoch for the whole UTC second ``utc_s`` whose first sentence was read at ``mono_ns``."""
         self._fix = (int(utc_s), int(mono_ns))
         if wall_ns is not None:
-            self._wall_minus_mono = int(wall_ns) - int(mono_ns)
+            self.add_host_time(mono_ns, wall_ns)
+
+    def add_host_time(self, mono_ns: int, wall_ns: int) -> None:
+        """A read's host clocks: what ``mono_to_utc`` falls back on before the first lock."""
+        self._wall_minus_mono = int(wall_ns) - int(mono_ns)
 
     def add_frames(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
                    mono_ns: int, wall_ns: int) -> None:

@@ -24,12 +24,48 @@ class Progress:
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
+    if a.serve:
+        return cmd_sim_serve(a)
+    if not a.out:
+        raise ValueError("--out is required (or --serve)")
     from tools.sim.simulate import simulate
 
     t0 = time.monotonic()
     res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"))
     print(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial reads "
           f"in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def cmd_sim_serve(a: argparse.Namespace) -> int:
+    from tools.sim.serve import Unplug, serve
+
+    return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, truth=a.truth,
+                 unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold)
+
+
+def cmd_acquire(a: argparse.Namespace) -> int:
+    from acquire import config, daemon
+
+    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out})
+    return daemon.run_daemon(cfg, quiet=a.quiet)
+
+
+def cmd_recover(a: argparse.Namespace) -> int:
+    from acquire.recorder import recover
+
+    src = Path(a.drive)
+    if not src.is_file():
+        raise FileNotFoundError(f"{src} does not exist")
+    out = Path(a.out) if a.out else src.with_name(src.stem + ".recovered.mcap")
+    if out.resolve() == src.resolve():
+        raise ValueError("--out must differ from the damaged file (it is kept as it is)")
+    rep = recover(src, out)
+    state = "was already complete" if rep.had_summary else f"{rep.bytes_discarded} bytes after the last complete " \
+                                                            f"chunk discarded"
+    print(f"wrote {out}: {sum(rep.messages.values())} messages in {rep.chunks} chunks ({state})")
+    for topic, n in sorted(rep.messages.items()):
+        print(f"  {topic:<20} {n}")
     return 0
 
 
@@ -65,6 +101,18 @@ def cmd_allan(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fuse(a: argparse.Namespace) -> int:
+    from fusion.engine import FusionConfig
+    from tools.fuse import fuse, parse_outage
+
+    cfg = FusionConfig(outages=tuple(parse_outage(o) for o in a.outage or ()))
+    t0 = time.monotonic()
+    res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"))
+    print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples, {res.updates} GPS updates, "
+          f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
     from tools.info import drive_info, format_info
     from tools.sim.simulate import simulate
@@ -89,8 +137,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--pps", choices=["flag", "latch"], default=None, help="PPS as a sampled flag or a latch")
-    s.add_argument("--out", required=True, help="output MCAP")
+    s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
+    s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
+    s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")
+    s.add_argument("--truth", default=None, help="--serve: write /truth/* and what was sent to this MCAP at the end")
+    s.add_argument("--unplug", action="append", default=[], metavar="PORT:START:LEN",
+                   help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable)")
+    s.add_argument("--link-dir", default=None, help="--serve: keep symlinks DIR/daq and DIR/gps to the current ptys")
+    s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
     s.set_defaults(func=cmd_sim)
+
+    s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")
+    s.add_argument("--daq", default=None, help="DAQ serial port (overrides the config)")
+    s.add_argument("--gps", default=None, help="GPS serial port (overrides the config)")
+    s.add_argument("--out", default=None, help="output directory (overrides the config)")
+    s.add_argument("--config", default=None, help="TOML config (acquire/config.py documents the keys)")
+    s.add_argument("--quiet", action="store_true", help="no status line (logs still go to stderr)")
+    s.set_defaults(func=cmd_acquire)
+
+    s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
+    s.add_argument("drive")
+    s.add_argument("--out", default=None, help="output MCAP (default: DRIVE.recovered.mcap next to it)")
+    s.set_defaults(func=cmd_recover)
 
     s = sub.add_parser("info", help="topics, rates, duration, time-sync quality, gaps, counters")
     s.add_argument("drive")
@@ -113,6 +181,14 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("allan", help="Allan deviation and noise parameters of a static drive")
     s.add_argument("drive")
     s.set_defaults(func=cmd_allan)
+
+    s = sub.add_parser("fuse", help="run one fusion method over a drive and write its solution")
+    s.add_argument("drive")
+    s.add_argument("--method", choices=["ins", "kf", "dkf"], default="kf")
+    s.add_argument("--outage", action="append", metavar="START:LEN",
+                   help="force a GPS outage, seconds from the first IMU sample (repeatable)")
+    s.add_argument("--out", required=True, help="output MCAP")
+    s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("demo", help="simulate a drive and show what it holds")
     s.add_argument("--out", default="out/demo")

@@ -5,10 +5,13 @@ invented, and the rule is stated here because time sync depends on it:
 
 * NMEA: a line is read 0.2 s after the UTC second of the last time-bearing sentence at or before it (the
   typical receiver latency); lines before the first time-bearing sentence take the first one's time.
-  Reads are the lines of one such second. Logs without a date (GGA only) take the file's modification date.
-* DAQ: its first PPS-flagged frame is taken to mark the second after the log's first NMEA fix (the two
-  captures were started together, within a second). Frame k is then read at that second + 10 ms
-  + (k - k_pps) / fs. A capture without any PPS flag is placed to start at the first NMEA second.
+  Reads are the lines of one such second. Lines before the first RMC/ZDA take its date; logs without any
+  date (GGA only) take the file's modification date.
+* DAQ: both captures are taken to have started together, at T. The log's first epoch E is then the first
+  burst that began after T, so T lies in (E - 1 + L, E + L) for a receiver latency L, and the first PPS edge,
+  k_pps / fs after T, marks E when k_pps / fs < 1 - L and E + 1 otherwise (L = NMEA_LATENCY_S). Frame k is
+  read at that second + 10 ms + (k - k_pps) / fs. A capture without any PPS flag starts at E.
+  A latency far from L, or captures started apart, shift the labels by whole seconds: check ``fieldlog info``.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ DAQ_READ_BYTES = 512
 def nmea_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
     """Cut an NMEA log into reads, one per UTC second of content, timed by the rule above."""
     dec = nmea.NmeaDecoder()
-    date = None
+    date = _first_date(data) or fallback_date
     times: list[float | None] = []
     lines = data.splitlines(keepends=True)
     last_tod = None
@@ -40,7 +43,7 @@ def nmea_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
             date = getattr(s, "date", None) or date
             tod = getattr(s, "time_of_day_s", None)
             if tod is not None and np.isfinite(tod):
-                d = date or fallback_date
+                d = date
                 if last_tod is not None and tod < last_tod - 43200 and getattr(s, "date", None) is None:
                     date = d = d + _dt.timedelta(days=1)
                 last_tod = tod
@@ -67,7 +70,17 @@ def nmea_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
     return reads
 
 
-def daq_reads(data: bytes, fs_hz: float, first_second_s: float) -> list[RawRead]:
+def _first_date(data: bytes) -> _dt.date | None:
+    """The first date an RMC or ZDA sentence gives, for the lines before it."""
+    dec = nmea.NmeaDecoder()
+    for off in range(0, len(data), 65536):
+        for s in dec.feed(data[off:off + 65536]):
+            if getattr(s, "date", None) is not None:
+                return s.date
+    return None
+
+
+def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
     """Cut a DAQ capture into reads of DAQ_READ_BYTES, timed by the rule above."""
     dec = daq.DaqDecoder()
     ends: list[int] = []
@@ -82,7 +95,11 @@ def daq_reads(data: bytes, fs_hz: float, first_second_s: float) -> list[RawRead]
             k_pps = int(fr.k[np.argmax(fr.pps)])
     if k_first is None:
         raise ValueError("the DAQ capture holds no valid frame")
-    t_ref, k_ref = (first_second_s + 1.01, k_pps) if k_pps is not None else (first_second_s, k_first)
+    if k_pps is None:
+        t_ref, k_ref = first_epoch_s, k_first
+    else:
+        marks = first_epoch_s if (k_pps - k_first + 1) / fs_hz < 1 - NMEA_LATENCY_S else first_epoch_s + 1
+        t_ref, k_ref = marks + 0.01, k_pps
     reads = []
     last_k = k_first
     for i, off in enumerate(range(0, len(data), DAQ_READ_BYTES)):
@@ -98,8 +115,8 @@ def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Pat
     mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
     reads = nmea_reads(gps_bytes, mdate)
     if daq_path is not None:
-        first_second = (reads[0].mono_ns / NS) - NMEA_LATENCY_S
-        reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_second)
+        first_epoch = round(reads[0].mono_ns / NS - NMEA_LATENCY_S)
+        reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
     meta = {"drive": {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}}

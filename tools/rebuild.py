@@ -14,6 +14,7 @@ from typing import Callable, Iterator
 from mcap.reader import make_reader
 
 from acquire import calib, messages, recorder
+from replay import reader
 from acquire.pipeline import Counters, Pipeline, RawRead, read_order
 
 
@@ -34,7 +35,7 @@ def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
     """The reads of one port in the order they were recorded (file order, not log-time order)."""
     with open(path, "rb") as f:
         for _schema, _channel, msg in make_reader(f).iter_messages(topics=[f"/raw/{port}"], log_time_order=False):
-            wall_ns, mono_ns, _port, data = messages.decode_raw_bytes(msg.data)
+            wall_ns, mono_ns, _port, data = messages.decode_raw(msg.data)
             yield RawRead(port, mono_ns, wall_ns, data)
 
 
@@ -46,7 +47,7 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
         cal = calib.load_calibration(calibration)
     keep = {k: v for k, v in meta.items() if k not in ("calibration", "timesync", "acquire.counters")}
     keep["rebuild"] = {"source": str(src)}
-    total = max(Path(src).stat().st_size, 1)
+    total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
     n = 0
     with recorder.Recorder(dst, metadata=keep) as rec:
         pipe = Pipeline(rec, cal, sync_cfg)
@@ -57,7 +58,7 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
             n += 1
             if progress and n % 2000 == 0:
-                progress(min(rec.bytes_written / total, 0.99))
+                progress(n / total)
         pipe.finish()
         with open(src, "rb") as f:
             for _s, channel, msg in make_reader(f).iter_messages(log_time_order=False):

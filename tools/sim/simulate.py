@@ -48,21 +48,21 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     clock_d = dict(scenario.clock)
     if pps_mode:
         clock_d["pps_mode"] = pps_mode
+    clock_d.setdefault("start_utc_ns", drive_start_ns(seed))
     ccfg = simclock.ClockConfig.from_dict(clock_d)
     imu_d = dict(scenario.imu)
     imu_cfg = sensors.ImuErrorConfig.from_dict(imu_d)
     gps_cfg = GpsConfig.from_dict(dict(scenario.gps))
     cal = calib.load_calibration(None)
     host = HostClock()
-    t0_ns = drive_start_ns(seed)
+    t0_ns = ccfg.start_utc_ns
     truth = trajectory.generate(scenario, duration_s)
 
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
     ts = truth.evaluate(t_k)
     counts, realised = sensors.imu_counts(t_k, ts.omega_ib_b, ts.f_b, imu_cfg, cal, rng_imu)
-    first_second = int(np.ceil(t0_ns / NS))
-    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, first_second - t0_ns / NS)
+    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock)
     if not gps_cfg.pps_in_outage:
         valid, _ = gps_cfg.windows(t_k)
         pps &= valid
@@ -72,7 +72,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
                          t0_ns, rng_daq_reads)
 
-    utc_s = np.arange(first_second, int((t0_ns + duration_s * NS) // NS) + 1, dtype=np.int64)
+    utc_s = np.arange(ccfg.first_utc_s(), int((t0_ns + duration_s * NS) // NS) + 1, dtype=np.int64)
     rel_s = utc_s - t0_ns / NS
     if len(utc_s):
         sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)

@@ -1,0 +1,214 @@
+"""``fieldlog acquire`` configuration: a TOML file, overridden by the command line.
+
+Every section and key is optional except the two ports (from the file or ``--daq``/``--gps``). A bad file
+raises ``ConfigError`` with one line that names the offending key, e.g. ``[gps] baud: 12345 is not a
+standard baud rate``.
+
+    [daq]                       # the DAQ board
+    port = "/dev/ttyUSB0"
+    baud = 921600
+    [gps]                       # the GPS receiver (NMEA)
+    port = "/dev/ttyUSB1"
+    baud = 115200
+    [calibration]
+    file = "cal.toml"           # acquire/calib.py layout; omitted: the built-in defaults
+    [timesync]                  # acquire/timesync.py TimeSyncConfig keys, e.g. pps_mode = "latch"
+    [output]
+    dir = "drives"              # files are DIR/<session start UTC>_<NNNN>.mcap, e.g. 2026-11-22T10-15-00Z_0001.mcap
+    [rotation]
+    max_duration_s = 3600.0     # start the next file after this much host time (0: never)
+    max_size_mb = 2048.0        # ... or once the file is this big (0: never)
+    [recorder]
+    chunk_size = 4194304        # uncompressed bytes per MCAP chunk
+    flush_interval_s = 1.0      # a power cut loses at most this much (<= 1 s)
+    compression = "zstd"        # "zstd", "lz4" or ""
+    fsync = true
+    [daemon]
+    queue_reads = 4096          # bounded queue per port, in reads
+    merge_wait_s = 0.25         # longest wait for the other port before a read is processed anyway
+    reconnect_s = 0.5           # retry period of a port that disappeared
+    status_interval_s = 1.0
+    bus = ""                    # live bus Unix socket path ("" = none)
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from acquire import timesync
+
+# termios rates pyserial can set on Linux; anything else is a typo.
+STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
+                  1000000, 1152000, 1500000, 2000000, 2500000, 3000000, 3500000, 4000000)
+NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
+
+
+class ConfigError(ValueError):
+    """A bad configuration; the message names the key."""
+
+
+@dataclass
+class PortConfig:
+    port: str = ""
+    baud: int = 115200
+
+
+@dataclass
+class RotationConfig:
+    max_duration_s: float = 3600.0
+    max_size_mb: float = 2048.0
+
+
+@dataclass
+class RecorderConfig:
+    chunk_size: int = 4 * 1024 * 1024
+    flush_interval_s: float = 1.0
+    compression: str = "zstd"
+    fsync: bool = True
+
+
+@dataclass
+class DaemonConfig:
+    queue_reads: int = 4096
+    merge_wait_s: float = 0.25
+    reconnect_s: float = 0.5
+    status_interval_s: float = 1.0
+    bus: str = ""
+
+
+@dataclass
+class AcquireConfig:
+    daq: PortConfig = field(default_factory=lambda: PortConfig(baud=921600))
+    gps: PortConfig = field(default_factory=lambda: PortConfig(baud=115200))
+    calibration_file: str = ""
+    timesync: dict[str, Any] = field(default_factory=dict)
+    out_dir: str = "drives"
+    rotation: RotationConfig = field(default_factory=RotationConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
+
+    def sync_config(self) -> timesync.TimeSyncConfig:
+        return timesync.TimeSyncConfig.from_dict(self.timesync)
+
+
+def _typed(section: str, key: str, value: Any, like: Any) -> Any:
+    """``value`` checked against the type of the default ``like`` (int accepted for float)."""
+    if isinstance(like, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(like, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif isinstance(like, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    else:
+        ok = isinstance(value, type(like))
+    if not ok:
+        raise ConfigError(f"[{section}] {key}: expected {type(like).__name__}, got {value!r}")
+    return value
+
+
+def _section(d: dict[str, Any], name: str, obj: Any) -> None:
+    """Copy table ``name`` of ``d`` onto dataclass ``obj`` with type checks; unknown keys are errors."""
+    table = d.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"[{name}]: expected a table, got {table!r}")
+    known = {f.name for f in fields(obj)}
+    for key, value in table.items():
+        if key not in known:
+            raise ConfigError(f"[{name}] {key}: unknown key; known keys: {', '.join(sorted(known))}")
+        setattr(obj, key, _typed(name, key, value, getattr(obj, key)))
+
+
+def from_dict(d: dict[str, Any]) -> AcquireConfig:
+    """An AcquireConfig from parsed TOML; raises ConfigError naming the key."""
+    known = {"daq", "gps", "calibration", "timesync", "output", "rotation", "recorder", "daemon"}
+    for key in d:
+        if key not in known:
+            raise ConfigError(f"[{key}]: unknown section; known sections: {', '.join(sorted(known))}")
+    c = AcquireConfig()
+    _section(d, "daq", c.daq)
+    _section(d, "gps", c.gps)
+    _section(d, "rotation", c.rotation)
+    _section(d, "recorder", c.recorder)
+    _section(d, "daemon", c.daemon)
+    cal = d.get("calibration", {})
+    if not isinstance(cal, dict) or set(cal) - {"file"}:
+        raise ConfigError("[calibration]: only the key 'file' is allowed")
+    c.calibration_file = _typed("calibration", "file", cal.get("file", ""), "")
+    out = d.get("output", {})
+    if not isinstance(out, dict) or set(out) - {"dir"}:
+        raise ConfigError("[output]: only the key 'dir' is allowed")
+    c.out_dir = _typed("output", "dir", out.get("dir", c.out_dir), "")
+    ts = d.get("timesync", {})
+    if not isinstance(ts, dict):
+        raise ConfigError("[timesync]: expected a table")
+    c.timesync = dict(ts)
+    return c
+
+
+def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:
+    """Read the TOML file (None: defaults), apply ``overrides`` (``daq``, ``gps``: port paths; ``out``: output
+    directory) and validate. Raises ConfigError with a one-line message naming the key."""
+    d: dict[str, Any] = {}
+    if path is not None:
+        try:
+            d = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config file {path} does not exist") from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    c = from_dict(d)
+    o = overrides or {}
+    if o.get("daq"):
+        c.daq.port = o["daq"]
+    if o.get("gps"):
+        c.gps.port = o["gps"]
+    if o.get("out"):
+        c.out_dir = o["out"]
+    validate(c)
+    return c
+
+
+def validate(c: AcquireConfig) -> None:
+    """Raise ConfigError naming the first bad key."""
+    for name, p in (("daq", c.daq), ("gps", c.gps)):
+        if not p.port:
+            raise ConfigError(f"[{name}] port: no {name} port given (--{name} PORT or [{name}] port in the config)")
+        if p.baud not in STANDARD_BAUDS:
+            raise ConfigError(f"[{name}] baud: {p.baud} is not a standard baud rate")
+    if c.daq.port == c.gps.port:
+        raise ConfigError(f"[gps] port: same device as [daq] port ({c.gps.port})")
+    if c.calibration_file and not Path(c.calibration_file).is_file():
+        raise ConfigError(f"[calibration] file: {c.calibration_file} does not exist")
+    if c.rotation.max_duration_s < 0:
+        raise ConfigError("[rotation] max_duration_s: must be >= 0 (0 = no rotation by duration)")
+    if c.rotation.max_size_mb < 0:
+        raise ConfigError("[rotation] max_size_mb: must be >= 0 (0 = no rotation by size)")
+    r = c.recorder
+    if r.chunk_size < 1024:
+        raise ConfigError(f"[recorder] chunk_size: {r.chunk_size} is below 1024 bytes")
+    if not 0 < r.flush_interval_s <= 1.0:
+        raise ConfigError(f"[recorder] flush_interval_s: {r.flush_interval_s} is not in (0, 1] s")
+    if r.compression not in ("zstd", "lz4", ""):
+        raise ConfigError(f"[recorder] compression: {r.compression!r} is not 'zstd', 'lz4' or ''")
+    dm = c.daemon
+    if dm.queue_reads < 16:
+        raise ConfigError(f"[daemon] queue_reads: {dm.queue_reads} is below 16")
+    for key in ("merge_wait_s", "reconnect_s", "status_interval_s"):
+        if not getattr(dm, key) > 0:
+            raise ConfigError(f"[daemon] {key}: must be > 0")
+    try:
+        c.sync_config()
+    except (TypeError, ValueError) as e:
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith("[timesync]") else f"[timesync]: {msg}") from None
+
+
+def file_name(session_start_wall_ns: int, index: int) -> str:
+    """``2026-11-22T10-15-00Z_0001.mcap``: the session's start (host wall clock, UTC) and the file's number
+    in the session (1, 2, ... as files rotate), so a session's files sort together and in order."""
+    t = _dt.datetime.fromtimestamp(session_start_wall_ns / 1e9, _dt.timezone.utc)
+    return f"{t.strftime(NAME_FORMAT)}_{index:04d}.mcap"

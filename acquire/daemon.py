@@ -1,0 +1,573 @@
+"""``fieldlog acquire``: live capture from the DAQ and GPS serial ports into crash-safe, rotated MCAP files.
+
+Threads. One reader thread per port (pyserial opens and configures the port; the thread waits with
+``select`` and takes whatever ``os.read`` returns, stamping host monotonic and wall-clock time the moment the
+read returns) puts ``RawRead``s on that port's bounded queue. One processing thread owns the Pipeline, the
+Recorder and the live bus: it merges the two queues in ``read_order`` and feeds the Pipeline, so the daemon
+writes exactly what ``fieldlog rebuild`` of its ``/raw/*`` writes.
+
+Merge rule. The processing thread holds the head read of each queue and processes the earliest head in
+``read_order`` once no read that sorts before it can still come from the other port, that is when the other
+port (a) has a head of its own (which sorts later), or (b) is idle: its reader is waiting for bytes or for
+the port to come back and its queue is empty (a reader marks itself busy before ``os.read`` and idle only
+after the read is queued, so every read it delivers later is stamped after the moment the idle flag was
+seen), or (c) is gone (its thread ended). A bounded wait, ``merge_wait_s``, caps this: a head older than that
+is processed anyway, so a stalled port never stalls the other. A read that then arrives out of order is
+still processed (never dropped) and counted in ``daemon.late_reads``; ``rebuild`` sorts by ``read_order`` and
+would differ from the live derived topics only there.
+
+Queues are bounded (``queue_reads`` per port); when one stays full for a second the read is dropped and
+counted (``port.<name>.dropped_reads/bytes``); that only happens when processing cannot keep up.
+
+Faults. A port whose read fails or hits end of file (adapter unplugged, pty closed) is closed and reopened
+every ``reconnect_s`` until it comes back; the outage is recorded as an ``acquire.port_event`` metadata
+record (``event`` = ``lost`` / ``back``, host mono and wall ns, the error) and counted in
+``port.<name>.disconnects``; ``/raw`` has no reads in the gap. Corrupt bytes are the decoders' business
+(resynchronised and counted). ENOSPC stops the daemon with a clear message; the file keeps every chunk
+flushed before (``fieldlog recover`` or the next start rescues it if the summary could not be written).
+SIGINT/SIGTERM finish the file (summary and index) and exit 0.
+
+Files. ``DIR/<session start UTC>_<NNNN>.mcap`` (``config.file_name``). One Pipeline runs for the whole
+session and its sink switches files on rotation (by host time since the file was opened or by size), so
+decoder and time-sync state carry over: the raw bytes are split between files at a read boundary, and the
+derived topics go to the file open when they become final (``/imu`` lags ``/raw/daq`` by about half the
+time-sync window). Each file carries the ``drive``, ``calibration`` and ``timesync`` metadata, and at close
+the session's cumulative ``acquire.counters``. On start, files in DIR without a summary (a crash or power
+loss) are recovered to ``NAME.recovered.mcap`` next to the untouched original.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import queue
+import select
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, TextIO
+
+import numpy as np
+import serial
+
+from acquire import calib, messages, nmea, recorder
+from acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
+from acquire.pipeline import Pipeline, RawRead, read_order
+
+NS = 1_000_000_000
+PORTS = ("daq", "gps")
+
+
+class PortError(ValueError):
+    """A port that cannot be opened at start (a config or wiring problem: exit code 2)."""
+
+
+@dataclass(frozen=True)
+class PortEvent:
+    """A port went away (``lost``) or came back (``back``), at host mono/wall ns."""
+
+    port: str
+    kind: str
+    mono_ns: int
+    wall_ns: int
+    detail: str
+
+
+@dataclass
+class PortStats:
+    reads: int = 0
+    bytes: int = 0
+    dropped_reads: int = 0
+    dropped_bytes: int = 0
+    disconnects: int = 0
+    connected: bool = False
+
+
+def open_port(cfg: PortConfig) -> serial.Serial:
+    """The port, raw, at the configured baud rate, non-blocking (the reader waits with select)."""
+    return serial.Serial(cfg.port, cfg.baud, timeout=0, exclusive=True)
+
+
+class PortReader(threading.Thread):
+    """Reads one port into a bounded queue of RawRead / PortEvent; reconnects when the port goes away."""
+
+    def __init__(self, name: str, cfg: PortConfig, ser: serial.Serial, maxsize: int, wake: threading.Event,
+                 stop: threading.Event, reconnect_s: float) -> None:
+        super().__init__(name=f"read-{name}", daemon=True)
+        self.port, self.cfg, self.ser = name, cfg, ser
+        self.q: queue.Queue = queue.Queue(maxsize)
+        self.wake, self.stop, self.reconnect_s = wake, stop, reconnect_s
+        self.stats = PortStats(connected=True)
+        self.busy = False     # True from the moment bytes may be read until that read is queued
+
+    def _put(self, item: RawRead | PortEvent) -> None:
+        try:
+            self.q.put(item, timeout=1.0)
+        except queue.Full:
+            self.stats.dropped_reads += 1
+            self.stats.dropped_bytes += len(getattr(item, "data", b""))
+        self.wake.set()
+
+    def _event(self, kind: str, detail: str) -> None:
+        self._put(PortEvent(self.port, kind, time.monotonic_ns(), time.time_ns(), detail))
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            if self.ser is None:
+                try:
+                    self.ser = open_port(self.cfg)
+                except (serial.SerialException, OSError):
+                    self.stop.wait(self.reconnect_s)
+                    continue
+                self.busy = True
+                self.stats.connected = True
+                self._event("back", self.cfg.port)
+                self.busy = False
+            self._read_until_lost()
+        if self.ser is not None:
+            self.ser.close()
+
+    def _read_until_lost(self) -> None:
+        fd = self.ser.fileno()
+        st = self.stats
+        while not self.stop.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.1)
+            if not ready:
+                continue
+            self.busy = True
+            try:
+                data = os.read(fd, 65536)
+                err = "end of file" if not data else ""
+            except OSError as e:
+                data, err = b"", os.strerror(e.errno or 0) or str(e)
+            mono, wall = time.monotonic_ns(), time.time_ns()
+            if err:
+                self.ser.close()
+                self.ser = None
+                st.connected = False
+                st.disconnects += 1
+                self._event("lost", err)
+                self.busy = False
+                return
+            st.reads += 1
+            st.bytes += len(data)
+            self._put(RawRead(self.port, mono, wall, data))
+            self.busy = False
+
+
+class RotatingSink:
+    """The Pipeline's sink: writes to the session's current file; ``open_next`` closes it and opens the next.
+
+    Also keeps what the status line shows (the latest /time/sync record and GGA sentence) and forwards
+    derived messages to ``publish`` (the live bus)."""
+
+    def __init__(self, out_dir: Path, session_wall_ns: int, rcfg: RecorderConfig,
+                 headers: Callable[[int, Path | None], dict[str, dict[str, str]]],
+                 publish: Callable[[str, np.ndarray, messages.Packed], None] | None = None) -> None:
+        self.out_dir, self.session_wall_ns, self.rcfg, self.headers = out_dir, session_wall_ns, rcfg, headers
+        self.publish = publish
+        self.rec: recorder.Recorder | None = None
+        self.index = 0
+        self.opened_mono = 0.0
+        self.files: list[Path] = []
+        self.last_sync: bytes | None = None
+        self.last_gga: bytes | None = None
+
+    def open_next(self, closing: dict[str, dict[str, str]] | None = None) -> Path:
+        prev = self.close(closing) if self.rec is not None else None
+        self.index += 1
+        path = self.out_dir / file_name(self.session_wall_ns, self.index)
+        self.rec = recorder.Recorder(path, chunk_size=self.rcfg.chunk_size,
+                                     flush_interval_s=self.rcfg.flush_interval_s,
+                                     compression=self.rcfg.compression, fsync=self.rcfg.fsync)
+        for name, d in self.headers(self.index, prev).items():
+            self.rec.add_metadata(name, d)
+        self.rec.flush()
+        self.opened_mono = time.monotonic()
+        self.files.append(path)
+        return path
+
+    def close(self, closing: dict[str, dict[str, str]] | None = None) -> Path:
+        rec, self.rec = self.rec, None
+        for name, d in (closing or {}).items():
+            rec.add_metadata(name, d)
+        rec.close()
+        return rec.path
+
+    def size(self) -> int:
+        return os.path.getsize(self.rec.path)
+
+    def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        self.rec.write(topic, log_time_ns, data)
+        if topic == "/gps/nmea" and b"GGA," in data:
+            self.last_gga = data
+        if self.publish is not None and not topic.startswith("/raw"):
+            self.publish(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
+
+    def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None:
+        self.rec.write_batch(topic, log_time_ns, data)
+        p = messages.as_packed(data)
+        if topic == "/time/sync" and len(p):
+            self.last_sync = p[len(p) - 1]
+        if self.publish is not None:
+            self.publish(topic, np.asarray(log_time_ns, np.int64), p)
+
+
+class BusServer:
+    """The live bus: a Unix domain socket (local only, mode 0600) streaming the derived messages.
+
+    Each ``publish`` (one topic, n messages) is one frame, little-endian: u32 length of the rest, u16 topic
+    length, topic (UTF-8), u32 n, n x i64 log_time_ns, (n + 1) x i64 payload offsets, the CDR payloads
+    (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the processing thread
+    without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
+    ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``).
+    """
+
+    def __init__(self, path: str, max_buffer: int = 16 << 20) -> None:
+        self.path = path
+        Path(path).unlink(missing_ok=True)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            self.sock.bind(path)
+        finally:
+            os.umask(old)
+        self.sock.listen(8)
+        self.sock.setblocking(False)
+        self.max_buffer = max_buffer
+        self.clients: dict[socket.socket, bytearray] = {}
+        self.dropped_clients = 0
+
+    def publish(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed) -> None:
+        self._accept()
+        if not self.clients or len(p) == 0:
+            return
+        t = topic.encode()
+        body = b"".join((struct.pack("<H", len(t)), t, struct.pack("<I", len(p)),
+                         np.asarray(log_time_ns, "<i8").tobytes(),
+                         (p.offsets - p.offsets[0]).astype("<i8").tobytes(),
+                         p.buf[p.offsets[0]:p.offsets[-1]].tobytes()))
+        frame = struct.pack("<I", len(body)) + body
+        for c, buf in list(self.clients.items()):
+            buf += frame
+            self._send(c, buf)
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                c, _ = self.sock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            c.setblocking(False)
+            self.clients[c] = bytearray()
+
+    def _send(self, c: socket.socket, buf: bytearray) -> None:
+        try:
+            n = c.send(buf)
+            del buf[:n]
+        except BlockingIOError:
+            pass
+        except OSError:
+            self._drop(c)
+            return
+        if len(buf) > self.max_buffer:
+            self._drop(c)
+            self.dropped_clients += 1
+
+    def _drop(self, c: socket.socket) -> None:
+        self.clients.pop(c, None)
+        c.close()
+
+    def pump(self) -> None:
+        """Accept new clients and send what is buffered (call when idle)."""
+        self._accept()
+        for c, buf in list(self.clients.items()):
+            if buf:
+                self._send(c, buf)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Send what is buffered (at most ``timeout_s`` per client), then close."""
+        for c, buf in list(self.clients.items()):
+            try:
+                c.settimeout(timeout_s)
+                c.sendall(buf)
+            except OSError:
+                pass
+            self._drop(c)
+        self.sock.close()
+        Path(self.path).unlink(missing_ok=True)
+
+
+def is_finished(path: Path) -> bool:
+    """A closed MCAP ends with the magic after its footer; a file cut by a crash does not."""
+    size = path.stat().st_size
+    if size < 2 * len(recorder.MAGIC):
+        return False
+    with open(path, "rb") as f:
+        f.seek(-len(recorder.MAGIC), os.SEEK_END)
+        return f.read() == recorder.MAGIC
+
+
+def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[Path, Path]]:
+    """Recover every unfinished ``*.mcap`` in ``out_dir`` (no summary) into ``NAME.recovered.mcap`` next to
+    it, once; the original is left as it is. Returns (original, recovered) pairs."""
+    done = []
+    for p in sorted(out_dir.glob("*.mcap")):
+        if p.name.endswith(".recovered.mcap") or is_finished(p):
+            continue
+        dst = p.with_name(p.stem + ".recovered.mcap")
+        if dst.exists():
+            continue
+        rep = recorder.recover(p, dst)
+        n = sum(rep.messages.values())
+        log(f"recovered unfinished {p.name} -> {dst.name}: {n} messages in {rep.chunks} chunks, "
+            f"{rep.bytes_discarded} bytes after the last complete chunk discarded")
+        done.append((p, dst))
+    return done
+
+
+class Daemon:
+    """The acquisition daemon; ``start`` opens the ports and the first file, ``run`` processes until stopped."""
+
+    def __init__(self, cfg: AcquireConfig, quiet: bool = False, err: TextIO = sys.stderr) -> None:
+        self.cfg = cfg
+        self.quiet = quiet
+        self.err = err
+        self.tty = err.isatty()
+        self.stop = threading.Event()
+        self.wake = threading.Event()
+        self.cal = calib.load_calibration(cfg.calibration_file or None)
+        self.sync_cfg = cfg.sync_config()
+        self.out_dir = Path(cfg.out_dir)
+        self.session_wall_ns = time.time_ns()
+        self.readers: dict[str, PortReader] = {}
+        self.sink: RotatingSink | None = None
+        self.pipe: Pipeline | None = None
+        self.bus = None
+        self.events: list[PortEvent] = []
+        self.late_reads = 0
+        self.merge_timeouts = 0
+        self.error = ""
+        self._last_mono = 0
+        self._status_prev: tuple[float, int, int, int, int] | None = None
+
+    def log(self, msg: str) -> None:
+        if self.tty and not self.quiet:
+            self.err.write("\r\033[K")
+        self.err.write(f"fieldlog acquire: {msg}\n")
+        self.err.flush()
+
+    # -- start -------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open both ports (PortError if one cannot be opened), recover unfinished files, open the first file,
+        start the readers."""
+        sers = {}
+        for name in PORTS:
+            pc: PortConfig = getattr(self.cfg, name)
+            try:
+                sers[name] = open_port(pc)
+            except (serial.SerialException, OSError, ValueError) as e:
+                for s in sers.values():
+                    s.close()
+                raise PortError(f"[{name}] port: cannot open {pc.port}: {getattr(e, 'strerror', None) or e}") \
+                    from None
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        recover_unfinished(self.out_dir, self.log)
+        if self.cfg.daemon.bus:
+            self.bus = BusServer(self.cfg.daemon.bus)
+        self.sink = RotatingSink(self.out_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
+                                 self.bus.publish if self.bus else None)
+        self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg)
+        path = self.sink.open_next()
+        self.log(f"recording {self.cfg.daq.port} (daq) and {self.cfg.gps.port} (gps) to {path}")
+        dm = self.cfg.daemon
+        for name in PORTS:
+            r = PortReader(name, getattr(self.cfg, name), sers[name], dm.queue_reads, self.wake, self.stop,
+                           dm.reconnect_s)
+            self.readers[name] = r
+            r.start()
+
+    def _headers(self, index: int, prev: Path | None) -> dict[str, dict[str, str]]:
+        c = self.cfg
+        drive = {"source": "fieldlog acquire", "session_start_wall_ns": str(self.session_wall_ns),
+                 "file_index": str(index), "previous_file": prev.name if prev else "",
+                 "daq_port": c.daq.port, "daq_baud": str(c.daq.baud), "gps_port": c.gps.port,
+                 "gps_baud": str(c.gps.baud), "pps_mode": self.sync_cfg.pps_mode,
+                 "calibration_file": c.calibration_file}
+        return {"drive": drive, **self.pipe.metadata()}
+
+    def counters(self) -> dict[str, str]:
+        out = self.pipe.counters_metadata()
+        for name, r in self.readers.items():
+            out.update({f"port.{name}.{k}": str(v) for k, v in asdict(r.stats).items() if k != "connected"})
+        out["daemon.late_reads"] = str(self.late_reads)
+        out["daemon.merge_timeouts"] = str(self.merge_timeouts)
+        if self.bus is not None:
+            out["bus.dropped_clients"] = str(self.bus.dropped_clients)
+        return out
+
+    # -- processing ---------------------------------------------------------------------------------
+    def run(self) -> int:
+        """Process until stopped and the queues are drained; finish the file. Returns the exit code."""
+        heads: dict[str, RawRead | PortEvent | None] = {name: None for name in PORTS}
+        wait_ns = int(self.cfg.daemon.merge_wait_s * NS)
+        next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
+        code = 0
+        try:
+            while True:
+                self.wake.clear()
+                for name, r in self.readers.items():
+                    if heads[name] is None:
+                        try:
+                            heads[name] = r.q.get_nowait()
+                        except queue.Empty:
+                            pass
+                ready = [h for h in heads.values() if h is not None]
+                if ready:
+                    h = min(ready, key=lambda x: read_order(x.port, x.mono_ns))
+                    if self._may_process(h, heads, wait_ns):
+                        heads[h.port] = None
+                        self._process(h)
+                        if time.monotonic() >= next_tick:
+                            next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
+                            self._tick()
+                        continue
+                elif self.stop.is_set() and not any(r.is_alive() or not r.q.empty()
+                                                    for r in self.readers.values()):
+                    break
+                self.sink.rec.maybe_flush()
+                if self.bus is not None:
+                    self.bus.pump()
+                if time.monotonic() >= next_tick:
+                    next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
+                    self._tick()
+                self.wake.wait(0.05)
+            self.pipe.finish()
+        except OSError as e:
+            if e.errno != errno.ENOSPC:
+                raise
+            self.error = (f"disk full (ENOSPC) writing {self.sink.rec.path}: recording stopped; "
+                          f"the file keeps every chunk flushed before this")
+            code = 1
+        finally:
+            self.stop.set()
+            for r in self.readers.values():
+                r.join(2.0)
+            self._close(code)
+        return code
+
+    def _may_process(self, h: RawRead | PortEvent, heads: dict, wait_ns: int) -> bool:
+        now = time.monotonic_ns()
+        for name, r in self.readers.items():
+            if name == h.port or heads[name] is not None:
+                continue
+            if (not r.busy and r.q.empty()) or not r.is_alive():
+                continue
+            if now - h.mono_ns >= wait_ns:
+                self.merge_timeouts += 1
+                continue
+            return False
+        return True
+
+    def _process(self, h: RawRead | PortEvent) -> None:
+        if isinstance(h, PortEvent):
+            self.events.append(h)
+            self.sink.rec.add_metadata("acquire.port_event", {"port": h.port, "event": h.kind,
+                                                              "mono_ns": str(h.mono_ns), "wall_ns": str(h.wall_ns),
+                                                              "detail": h.detail})
+            self.log(f"{h.port} port {'lost' if h.kind == 'lost' else 'back'}: {h.detail}"
+                     + ("; retrying" if h.kind == "lost" else ""))
+            return
+        if h.mono_ns < self._last_mono:
+            self.late_reads += 1
+        self._last_mono = max(self._last_mono, h.mono_ns)
+        self.pipe.feed(h.port, h.mono_ns, h.wall_ns, h.data)
+
+    def _tick(self) -> None:
+        """Once a second: rotation, status line."""
+        rot = self.cfg.rotation
+        size = self.sink.size()
+        if (rot.max_duration_s and time.monotonic() - self.sink.opened_mono >= rot.max_duration_s) or \
+                (rot.max_size_mb and size >= rot.max_size_mb * 1e6):
+            path = self.sink.open_next({"acquire.counters": self.counters()})
+            self.log(f"rotated to {path}")
+            size = 0
+        if not self.quiet:
+            line = self.status_line(size)
+            if self.tty:
+                self.err.write("\r\033[K" + line)
+            else:
+                self.err.write(line + "\n")
+            self.err.flush()
+
+    def status_line(self, size: int) -> str:
+        c = self.pipe.counters
+        now = time.monotonic()
+        frames, lines = c.daq.frames, c.nmea.lines
+        db, gb = self.readers["daq"].stats.bytes, self.readers["gps"].stats.bytes
+        prev = self._status_prev or (now - 1.0, frames, lines, db, gb)
+        dt = max(now - prev[0], 1e-3)
+        self._status_prev = (now, frames, lines, db, gb)
+        sync = "FREE"
+        if self.sink.last_sync is not None:
+            s = messages.decode_time_sync([self.sink.last_sync])
+            sync = (f"{['FREE', 'HOLDOVER', 'LOCKED'][int(s['state'][0])]} {s['rate_ppm'][0]:+.2f} ppm "
+                    f"{s['residual_us'][0]:.0f} us")
+        fix = "no GGA"
+        if self.sink.last_gga is not None:
+            text = messages.decode_message("nmea_msgs/msg/Sentence", self.sink.last_gga).sentence
+            body, ok = nmea.split_checksum(text.encode())
+            g = nmea.decode_body(body) if ok else None
+            if isinstance(g, nmea.Gga):
+                fix = f"fix {g.quality} sats {g.num_sats}"
+
+        def port(name: str) -> str:
+            return "" if self.readers[name].stats.connected else " DOWN"
+
+        d, n = c.daq, c.nmea
+        drop = sum(r.stats.dropped_reads for r in self.readers.values())
+        return (f"daq {(frames - prev[1]) / dt:.0f} fr/s {(db - prev[3]) / dt / 1e3:.1f} kB/s{port('daq')} | "
+                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | "
+                f"pps {c.pps_edges - c.pps_rejected} ok {c.pps_rejected} rej | sync {sync} | {fix} | "
+                f"{self.sink.rec.path.name} {size / 1e6:.1f} MB | dropped {drop} lost {d.lost_frames} "
+                f"crc {d.bad_crc} resync {d.resyncs} nmea-bad {n.bad_checksum} late {self.late_reads}")
+
+    def _close(self, code: int) -> None:
+        try:
+            self.sink.close({"acquire.counters": self.counters()})
+        except OSError as e:
+            self.error = self.error or f"closing {self.sink.rec.path}: {e}"
+            self.error += "; the file has no summary: run `fieldlog recover` on it (or restart, which does)"
+        finally:
+            if self.bus is not None:
+                self.bus.close()
+        if self.tty and not self.quiet:
+            self.err.write("\n")
+        if self.error:
+            self.log(f"error: {self.error}")
+        else:
+            files = ", ".join(str(p) for p in self.sink.files)
+            self.log(f"stopped; finished {files}")
+
+
+def run_daemon(cfg: AcquireConfig, quiet: bool = False) -> int:
+    """The ``fieldlog acquire`` command: SIGINT/SIGTERM stop it cleanly. Returns the exit code."""
+    d = Daemon(cfg, quiet)
+    d.start()
+
+    def on_signal(signum: int, frame: object) -> None:
+        d.stop.set()
+        d.wake.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    result: list[int] = []
+    worker = threading.Thread(target=lambda: result.append(d.run()), name="process")
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.2)
+    return result[0] if result else 1

@@ -1,0 +1,373 @@
+"""The fusion loop every method runs in: blocks of IMU samples and GPS epochs in, a solution out.
+
+Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only one IMU
+sample, the navigation state and the filter between calls, so memory does not grow with the drive.
+
+Per block:
+
+1. The INS (numba, ``fusion.ins.integrate``) runs over the bias-corrected IMU samples up to each GPS
+   epoch in one call, then to the end of the block.
+2. The error covariance is propagated at a lower rate than the IMU: the samples are cut into filter
+   cycles of ``cov_step_s`` (0.1 s by default, 50 samples at 500 Hz; a cycle also ends at every GPS
+   epoch). F, G, Phi and Q of all the cycles of a segment are built in one vectorised call
+   (``fusion.errmodel``), with F taken at the cycle's middle sample and the cycle's mean specific force.
+   Only the 15x15 covariance recursion loops in Python, at 10 Hz.
+3. At a usable GPS epoch the filter is updated with the velocity and position measurements (lever
+   arm from the config), the estimate corrects the INS and the bias estimates, and is reset (closed
+   loop).
+
+Initialisation (alignment): levelling from the accelerometers while the vehicle stands still (GPS speed
+below ``static_speed_mps`` at both ends of a GPS interval), plus heading from the GPS course at the
+first epoch where the speed reaches ``align_speed_mps``; position and velocity come from that epoch.
+The static mean gyro output minus the Earth rate gives the initial gyro bias. Without a static start
+roll and pitch start at zero with a large variance, and the gyro bias at zero.
+
+Outages: an epoch is unusable when its status is NO_FIX, its lat/lon are NaN, its horizontal sigma
+is above ``max_fix_sigma_m``, or it falls in a forced window (``outages``, seconds from the first IMU
+sample). Detected windows run from the first unusable epoch to the next usable one. A fix without
+height (NaN altitude: the GGA of that second was lost) updates the horizontal position only.
+
+Output: the (closed-loop) INS state at the first IMU sample of each 1/output_hz slot of UTC
+(10 Hz by default), stamped with that sample's time, with the filter's sigmas.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion import earth, errmodel, ins, kf
+from fusion.dkf import DistributedKF
+from fusion.errmodel import BA, BG
+
+METHODS = ("ins", "kf", "dkf")
+NS = 1_000_000_000
+_DEG = math.pi / 180.0
+_UG = 9.80665e-6
+
+
+@dataclass
+class FusionConfig:
+    """Fusion settings. Sensor figures default to the distributed-KF paper's Table 2 class of MEMS
+    IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), inflated to absorb
+    the scale-factor and misalignment errors the 15-state model does not carry."""
+
+    lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, body RFU, m
+    output_hz: float = 10.0
+    cov_step_s: float = 0.1  # covariance propagation cycle, s
+    gyro_noise_dps_rthz: float = 0.03
+    accel_noise_ug_rthz: float = 300.0
+    gyro_bias_rw_dps_rts: float = 2e-4  # deg/s/sqrt(s)
+    accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
+    init_vel_sigma_mps: float = 0.2
+    init_level_sigma_deg: float = 0.5  # roll/pitch after levelling (5 deg without a static start)
+    init_heading_sigma_deg: float = 3.0
+    init_gyro_bias_sigma_dps: float = 0.02  # after the static gyro mean (0.1 deg/s without)
+    init_accel_bias_sigma_ug: float = 2000.0
+    static_speed_mps: float = 0.3
+    align_speed_mps: float = 3.0
+    vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
+    max_fix_sigma_m: float = 30.0
+    outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
+
+    def noise_psd(self) -> np.ndarray:
+        return errmodel.noise_psd(self.gyro_noise_dps_rthz * _DEG, self.accel_noise_ug_rthz * _UG,
+                                  self.gyro_bias_rw_dps_rts * _DEG, self.accel_bias_rw_ug_rts * _UG)
+
+
+@dataclass
+class ImuBlock:
+    """IMU samples: t_ns (n,) int64 UTC, omega_ib_b (n, 3) rad/s, f_b (n, 3) m/s^2, body RFU."""
+
+    t_ns: np.ndarray
+    omega_ib_b: np.ndarray
+    f_b: np.ndarray
+
+
+@dataclass
+class GpsBlock:
+    """GPS epochs: t_ns (m,) UTC of the fix; lat_deg, lon_deg, h (m, ellipsoidal); pos_cov (m, 3, 3) ENU m^2;
+    status (m,) NavSatFix status (-1 no fix); v_n (m, 3) ENU m/s (NaN where missing); vel_cov (m, 3, 3)."""
+
+    t_ns: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    h: np.ndarray
+    pos_cov: np.ndarray
+    status: np.ndarray
+    v_n: np.ndarray
+    vel_cov: np.ndarray
+
+    @staticmethod
+    def empty() -> "GpsBlock":
+        z = np.zeros(0)
+        return GpsBlock(np.zeros(0, np.int64), z, z, z, np.zeros((0, 3, 3)), np.zeros(0, np.int8),
+                        np.zeros((0, 3)), np.zeros((0, 3, 3)))
+
+
+@dataclass
+class Solution:
+    """Output rows: t_ns (n,), lat, lon (rad), h (m), v_n (n, 3), q (n, 4) [x, y, z, w] of C_bn,
+    sigma (n, 9): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad."""
+
+    t_ns: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    v_n: np.ndarray
+    q: np.ndarray
+    sigma: np.ndarray
+
+    @staticmethod
+    def concat(parts: list["Solution"]) -> "Solution":
+        if not parts:
+            return Solution(np.zeros(0, np.int64), *(np.zeros(0),) * 3, np.zeros((0, 3)), np.zeros((0, 4)),
+                            np.zeros((0, 9)))
+        return Solution(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma")))
+
+
+@dataclass
+class Outage:
+    """A GPS outage window [start_ns, end_ns) UTC; reason "injected", "no_fix" or "low_quality"."""
+
+    start_ns: int
+    end_ns: int
+    reason: str
+
+
+@dataclass
+class _Static:
+    sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    n: int = 0
+
+
+class Engine:
+    """One fusion run (method ``ins``, ``kf`` or ``dkf``) over a stream of blocks."""
+
+    def __init__(self, method: str, config: FusionConfig | None = None) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; one of {METHODS}")
+        self.method = method
+        self.cfg = config or FusionConfig()
+        self.lever = np.asarray(self.cfg.lever_arm_b, dtype=float)
+        self.q = self.cfg.noise_psd()
+        self.t_ref_ns: int | None = None
+        self.nav: ins.NavState | None = None
+        self.filter: kf.KalmanFilter | DistributedKF | None = None
+        self.bg = np.zeros(3)
+        self.ba = np.zeros(3)
+        self.updates = 0
+        self._carry: tuple[int, np.ndarray, np.ndarray] | None = None  # last sample: t_ns, omega, f (raw)
+        self._gps: list[dict] = []  # epochs not yet reached by the IMU
+        self._sigma = np.zeros(9)
+        self._static = _Static()
+        self._interval = _Static()
+        self._last_speed = math.inf
+        self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
+        self._open: Outage | None = None
+        self._forced: list[tuple[int, int]] = []
+        self._outages: list[Outage] = []
+
+    # -- public ---------------------------------------------------------------------------------
+
+    def process(self, imu: ImuBlock, gps: GpsBlock) -> tuple[Solution, list[Outage]]:
+        """Consume the next block; returns the solution rows it produced and the outages that closed."""
+        ok = np.isfinite(imu.omega_ib_b).all(axis=1) & np.isfinite(imu.f_b).all(axis=1)
+        t_ns = np.asarray(imu.t_ns, np.int64)[ok]
+        w, f = np.asarray(imu.omega_ib_b, float)[ok], np.asarray(imu.f_b, float)[ok]
+        if self._carry is not None:
+            keep = t_ns > self._carry[0]
+            t_ns = np.concatenate([[self._carry[0]], t_ns[keep]])
+            w = np.concatenate([self._carry[1][None], w[keep]])
+            f = np.concatenate([self._carry[2][None], f[keep]])
+        if self.t_ref_ns is None and len(t_ns):
+            self.t_ref_ns = int(t_ns[0])
+            self._forced = [(self.t_ref_ns + int(s * NS), self.t_ref_ns + int((s + n) * NS))
+                            for s, n in self.cfg.outages]
+            self._outages += [Outage(a, b, "injected") for a, b in self._forced]
+        self._gps += _epochs(gps)
+        if self.t_ref_ns is None or len(t_ns) == 0:
+            return Solution.concat([]), self._take_outages()
+        t = (t_ns - self.t_ref_ns) * 1e-9
+        out: list[Solution] = []
+        cursor = 0
+        while self._gps and self._gps[0]["t_ns"] <= t_ns[-1]:
+            ep = self._gps.pop(0)
+            k = int(np.searchsorted(t_ns, ep["t_ns"], side="right")) - 1
+            if k < cursor:  # the epoch precedes the samples still to process (IMU gap): skip it
+                self._classify(ep)
+                continue
+            if self.nav is None:
+                self._accumulate(w, f, cursor, k)
+                cursor = k
+                self._pre_init_epoch(ep, t, w, k)
+            else:
+                out.append(self._advance(t, t_ns, w, f, cursor, k))
+                cursor = k
+                self._epoch(ep, w[k] - self.bg)
+        if self.nav is None:
+            self._accumulate(w, f, cursor, len(t) - 1)
+        else:
+            out.append(self._advance(t, t_ns, w, f, cursor, len(t) - 1))
+        self._carry = (int(t_ns[-1]), w[-1].copy(), f[-1].copy())
+        return Solution.concat(out), self._take_outages()
+
+    def finish(self) -> list[Outage]:
+        """Close an outage still open at the end of the drive; returns the outages not yet returned."""
+        if self._open is not None:
+            self._open.end_ns = self._carry[0] if self._carry else self._open.start_ns
+            self._outages.append(self._open)
+            self._open = None
+        return self._take_outages()
+
+    # -- epochs ---------------------------------------------------------------------------------
+
+    def _classify(self, ep: dict) -> bool:
+        """Whether an epoch's fix is usable; opens and closes the detected outage windows."""
+        t = ep["t_ns"]
+        good_fix = ep["status"] >= 0 and math.isfinite(ep["lat"]) and math.isfinite(ep["lon"])  # h may be NaN
+        low = good_fix and not math.sqrt(max(ep["pos_cov"][0, 0], ep["pos_cov"][1, 1])) <= self.cfg.max_fix_sigma_m
+        usable = good_fix and not low
+        if not usable and self._open is None:
+            self._open = Outage(t, t, "low_quality" if low else "no_fix")
+        elif usable and self._open is not None:
+            self._open.end_ns = t
+            self._outages.append(self._open)
+            self._open = None
+        forced = any(a <= t < b for a, b in self._forced)
+        return usable and not forced
+
+    def _velocity(self, ep: dict) -> np.ndarray:
+        """GPS velocity, or the difference of this and the previous good fix when the drive has none."""
+        if np.isfinite(ep["v_n"][:2]).all():
+            return ep["v_n"]
+        ts = (ep["t_ns"] - self.t_ref_ns) * 1e-9
+        if self._last_fix is None or not 0.0 < ts - self._last_fix[0] <= 2.0:
+            return np.full(3, np.nan)
+        t0, lat0, lon0, h0 = self._last_fix
+        return kf.enu_offset(ep["lat"], ep["lon"], ep["h"], lat0, lon0, h0) / (ts - t0)
+
+    def _pre_init_epoch(self, ep: dict, t: np.ndarray, w: np.ndarray, k: int) -> None:
+        usable = self._classify(ep)
+        v = self._velocity(ep) if usable else np.full(3, np.nan)
+        speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
+        if speed < self.cfg.static_speed_mps and self._last_speed < self.cfg.static_speed_mps:
+            self._static.sum_w += self._interval.sum_w
+            self._static.sum_f += self._interval.sum_f
+            self._static.n += self._interval.n
+        self._interval = _Static()
+        self._last_speed = speed
+        if usable:
+            self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
+        if usable and math.isfinite(ep["h"]) and math.isfinite(speed) and speed >= self.cfg.align_speed_mps:
+            self._initialise(ep, v, float(t[k]))
+
+    def _accumulate(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
+        """Add samples (i0, i1] to the current GPS interval's sums (static detection before alignment)."""
+        self._interval.sum_w += w[i0 + 1:i1 + 1].sum(axis=0)
+        self._interval.sum_f += f[i0 + 1:i1 + 1].sum(axis=0)
+        self._interval.n += max(i1 - i0, 0)
+
+    def _initialise(self, ep: dict, v: np.ndarray, t_k: float) -> None:
+        c = self.cfg
+        heading = math.atan2(v[0], v[1])
+        static = self._static.n >= 200
+        if static:
+            fm = self._static.sum_f / self._static.n
+            pitch, roll = math.atan2(fm[1], math.hypot(fm[0], fm[2])), math.atan2(-fm[0], fm[2])
+        else:
+            pitch = roll = 0.0
+        C = earth.euler_to_dcm(heading, pitch, roll)
+        if static:
+            self.bg = self._static.sum_w / self._static.n - C.T @ earth.omega_ie_n(ep["lat"])
+        arm = C @ self.lever
+        rm, rn = earth.principal_radii(ep["lat"], ep["h"])
+        dt = t_k - (ep["t_ns"] - self.t_ref_ns) * 1e-9
+        d_enu = v * dt - arm
+        v0 = np.array([v[0], v[1], 0.0])
+        self.nav = ins.NavState(t_k, ep["lat"] + d_enu[1] / rm, ep["lon"] + d_enu[0] / (rn * math.cos(ep["lat"])),
+                                ep["h"] + d_enu[2], v0, earth.dcm_to_quat(C))
+        speed = math.hypot(v[0], v[1])
+        sd_level = (c.init_level_sigma_deg if static else 5.0) * _DEG
+        sd_head = math.hypot(c.init_heading_sigma_deg * _DEG, math.sqrt(max(ep["vel_cov"][0, 0], 0.01)) / speed)
+        sd_bg = (c.init_gyro_bias_sigma_dps if static else 0.1) * _DEG
+        pos_var = np.diag(ep["pos_cov"]).copy()
+        pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
+        P0 = np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
+                                     [sd_level ** 2, sd_level ** 2, sd_head ** 2], np.full(3, sd_bg ** 2),
+                                     np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
+        self.filter = DistributedKF(P0, self.q) if self.method == "dkf" else kf.KalmanFilter(P0, self.q)
+        self._sigma = _sigmas(np.diag(P0))
+
+    def _epoch(self, ep: dict, omega_k: np.ndarray) -> None:
+        """GPS epoch at the current sample: update, feed back, reset."""
+        usable = self._classify(ep)
+        if usable:
+            self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
+        if not usable or self.method == "ins":
+            return
+        t_g = (ep["t_ns"] - self.t_ref_ns) * 1e-9
+        pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
+        vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
+        self.filter.update_gps(vel, pos)
+        x = self.filter.state
+        self.nav = kf.correct_ins(self.nav, x)
+        self.bg = self.bg + x[BG]
+        self.ba = self.ba + x[BA]
+        self.filter.reset()
+        self._sigma = _sigmas(np.diag(self.filter.covariance))
+        self.updates += 1
+
+    # -- INS and covariance between epochs ------------------------------------------------------------
+
+    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int
+                 ) -> Solution:
+        """INS and covariance from sample i0 (the current state) to sample i1; solution rows in (i0, i1]."""
+        if i1 <= i0:
+            return Solution.concat([])
+        wc, fc = w[i0:i1 + 1] - self.bg, f[i0:i1 + 1] - self.ba
+        sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
+        self.nav = sol.state(-1)
+        # filter cycles: end at the first sample of each cov_step_s slot after i0, and at i1
+        tt = sol.t
+        slot = np.floor((tt - tt[0]) / self.cfg.cov_step_s).astype(np.int64)
+        ends = np.flatnonzero(np.diff(slot) != 0) + 1
+        if len(ends) == 0 or ends[-1] != len(tt) - 1:
+            ends = np.append(ends, len(tt) - 1)
+        starts = np.concatenate([[0], ends[:-1]])
+        mid = (starts + ends) // 2
+        csum = np.cumsum(np.vstack([np.zeros(3), fc[1:]]), axis=0)
+        f_mean = (csum[ends] - csum[starts]) / (ends - starts)[:, None]
+        C = earth.quat_to_dcm(sol.q[mid])
+        F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
+                                        np.einsum("kij,kj->ki", C, f_mean))
+        Phi, Q = errmodel.discretise(F, G, self.q, tt[ends] - tt[starts])
+        diag = self.filter.propagate(Phi, Q)
+        # output rows: first sample of each 1/output_hz slot of UTC
+        tn = t_ns[i0:i1 + 1]
+        slot_ns = NS / self.cfg.output_hz
+        bucket = np.floor(tn / slot_ns).astype(np.int64)
+        rows = np.flatnonzero(np.diff(bucket) != 0) + 1
+        sig = _sigmas(diag)
+        cyc = np.searchsorted(ends, rows)
+        self._sigma = sig[-1]
+        return Solution(tn[rows], sol.lat[rows], sol.lon[rows], sol.h[rows], sol.v_n[rows], sol.q[rows], sig[cyc])
+
+    def _take_outages(self) -> list[Outage]:
+        out, self._outages = self._outages, []
+        return out
+
+
+def _sigmas(diag: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(np.asarray(diag)[..., :9], 0.0))
+
+
+def _epochs(g: GpsBlock) -> list[dict]:
+    """GPS epochs as dicts (1 Hz: a Python object per epoch is fine), lat/lon in rad."""
+    return [dict(t_ns=int(g.t_ns[i]), lat=math.radians(float(g.lat_deg[i])), lon=math.radians(float(g.lon_deg[i])),
+                 h=float(g.h[i]), pos_cov=g.pos_cov[i], status=int(g.status[i]), v_n=g.v_n[i], vel_cov=g.vel_cov[i])
+            for i in range(len(g.t_ns))]

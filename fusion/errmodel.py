@@ -1,0 +1,132 @@
+"""15-state INS error model (phi-angle form) in the ENU navigation frame, and its discretisation.
+
+State order (the distributed-KF paper's, eq. 1), all errors = computed - true:
+
+====  =========================================================================================
+0:3   position error dr_n = [dE, dN, dU] in m. The paper names its first two states "longitude
+      error dL, latitude error d-lambda", swapping its own symbols (elsewhere lambda is longitude
+      and L latitude; its H^(2) picks states 1, 2, 3 for (d-lambda, dL, dh)). The physically
+      consistent order is longitude (east), latitude (north), height (up), which is ENU; we keep it
+      and use metres rather than radians so the covariance is well conditioned.
+3:6   velocity error dv_n = [dvE, dvN, dvU], m/s.
+6:9   attitude error phi = [phiE, phiN, phiU], rad, a small rotation of the nav frame:
+      C_bn_computed = (I - [phi x]) C_bn_true. phiE ~ the pitch error, phiN ~ roll, phiU ~ yaw
+      (the paper's order: pitch, roll, yaw).
+9:12  gyro bias error (residual after the current estimate), body RFU, rad/s.
+12:15 accelerometer bias error, body RFU, m/s^2.
+====  =========================================================================================
+
+Continuous model x' = F x + G w (hybrid KF-UKF paper eq. 5, phi-angle version with the
+transport-rate and Earth-rate perturbations by dv and dr)::
+
+    phi'  = -w_in x phi + dw_in(dr, dv) - C_bn b_g - C_bn w_g
+    dv'   = f_n x phi - (2 w_ie + w_en) x dv - (2 dw_ie + dw_en) x v + dg(dU) + C_bn b_a + C_bn w_a
+    dr'   = dv - w_en x dr
+    b_g'  = w_bg,   b_a' = w_ba            (random walks)
+
+Noise w = [w_g, w_a, w_bg, w_ba] (12,), power spectral densities q = diag(N_g^2, N_a^2, N_bg^2,
+N_ba^2) in (rad/s)^2/Hz, (m/s^2)^2/Hz, (rad/s)^2/s, (m/s^2)^2/s.
+
+Discretisation over a filter cycle dT (hybrid KF-UKF paper eq. 13, plus the next term of the same
+series for Q)::
+
+    Phi = I + F dT + 1/2 F^2 dT^2
+    Q   = G q G^T dT + 1/2 (F G q G^T + G q G^T F^T) dT^2 + 1/3 F G q G^T F^T dT^3
+
+Eq. 13 alone stops at dT^2; that Q is indefinite (the position block gets cross terms with velocity
+but no diagonal, since position has no direct noise), which can cost the covariance its positive
+definiteness. The dT^3 term gives position its diagonal and makes Q positive semi-definite.
+
+Every function is vectorised over leading axes (a stack of filter cycles is built in one call).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from fusion import earth
+
+N_STATES = 15
+N_NOISE = 12
+POS, VEL, ATT, BG, BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+
+
+def system_matrices(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike, C_bn: ArrayLike, f_n: ArrayLike
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous-time ``(F, G)``: shapes (..., 15, 15) and (..., 15, 12).
+
+    lat rad, h m, v_n (..., 3) ENU m/s, C_bn (..., 3, 3) body RFU -> ENU, f_n (..., 3) specific force
+    in ENU m/s^2 (the mean over the filter cycle).
+    """
+    lat = np.asarray(lat, dtype=float)
+    h = np.asarray(h, dtype=float)
+    v = np.asarray(v_n, dtype=float)
+    C = np.asarray(C_bn, dtype=float)
+    f = np.asarray(f_n, dtype=float)
+    shape = np.broadcast_shapes(lat.shape, h.shape, v.shape[:-1], C.shape[:-2], f.shape[:-1])
+    rm, rn = earth.principal_radii(lat, h)
+    sl, cl = np.sin(lat), np.cos(lat)
+    tl = sl / cl
+    ve, vn = v[..., 0], v[..., 1]
+    w_ie = earth.omega_ie_n(lat)
+    w_en = earth.omega_en_n(lat, h, v)
+    g = earth.gravity(lat, h)
+
+    # derivatives of w_ie and w_en with respect to dr (columns E, N, U) and dv (columns vE, vN, vU)
+    z = np.zeros(shape)
+    d_ie_r = np.zeros(shape + (3, 3))
+    d_ie_r[..., 1, 1] = -earth.OMEGA_IE * sl / rm
+    d_ie_r[..., 2, 1] = earth.OMEGA_IE * cl / rm
+    d_en_r = np.zeros(shape + (3, 3))
+    d_en_r[..., 2, 1] = ve / (cl * cl * rn * rm)
+    d_en_r[..., 0, 2] = vn / (rm * rm)
+    d_en_r[..., 1, 2] = -ve / (rn * rn)
+    d_en_r[..., 2, 2] = -ve * tl / (rn * rn)
+    d_en_v = np.zeros(shape + (3, 3))
+    d_en_v[..., 1, 0] = 1.0 / rn + z
+    d_en_v[..., 2, 0] = tl / rn + z
+    d_en_v[..., 0, 1] = -1.0 / rm + z
+
+    sv = earth.skew(np.broadcast_to(v, shape + (3,)))
+    F = np.zeros(shape + (N_STATES, N_STATES))
+    F[..., POS, POS] = -earth.skew(np.broadcast_to(w_en, shape + (3,)))
+    F[..., POS, VEL] = np.eye(3)
+    F[..., VEL, POS] = sv @ (2.0 * d_ie_r + d_en_r)
+    F[..., 5, 2] += 2.0 * g / np.sqrt(rm * rn)  # normal gravity falls off with height: dg_U = +2g/R dU
+    F[..., VEL, VEL] = -earth.skew(np.broadcast_to(2.0 * w_ie + w_en, shape + (3,))) + sv @ d_en_v
+    F[..., VEL, ATT] = earth.skew(np.broadcast_to(f, shape + (3,)))
+    F[..., VEL, BA] = C
+    F[..., ATT, POS] = d_ie_r + d_en_r
+    F[..., ATT, VEL] = d_en_v
+    F[..., ATT, ATT] = -earth.skew(np.broadcast_to(w_ie + w_en, shape + (3,)))
+    F[..., ATT, BG] = -C
+
+    G = np.zeros(shape + (N_STATES, N_NOISE))
+    G[..., ATT, 0:3] = -C
+    G[..., VEL, 3:6] = C
+    G[..., BG, 6:9] = np.eye(3)
+    G[..., BA, 9:12] = np.eye(3)
+    return F, G
+
+
+def noise_psd(gyro_noise: float, accel_noise: float, gyro_bias_rw: float, accel_bias_rw: float) -> np.ndarray:
+    """Diagonal noise PSD matrix q (12, 12) from densities: gyro rad/s/sqrt(Hz), accel m/s^2/sqrt(Hz),
+    gyro bias random walk rad/s/sqrt(s), accel bias random walk m/s^2/sqrt(s)."""
+    d = np.repeat([gyro_noise, accel_noise, gyro_bias_rw, accel_bias_rw], 3) ** 2
+    return np.diag(d)
+
+
+def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """``(Phi, Q)`` over a filter cycle of dt seconds (module docstring: hybrid KF-UKF paper eq. 13 + dT^3).
+
+    F (..., 15, 15), G (..., 15, 12), q (12, 12), dt scalar or (...,).
+    """
+    dt = np.asarray(dt, dtype=float)[..., None, None]
+    Fdt = F * dt
+    Phi = np.eye(F.shape[-1]) + Fdt + 0.5 * (Fdt @ Fdt)
+    GqG = G @ q @ np.swapaxes(G, -1, -2)
+    FGqG = F @ GqG
+    Q = (GqG * dt + 0.5 * (FGqG + np.swapaxes(FGqG, -1, -2)) * dt * dt
+         + (FGqG @ np.swapaxes(F, -1, -2)) * (dt * dt * dt / 3.0))
+    return Phi, Q

@@ -1,0 +1,161 @@
+"""The shared error-state Kalman filter, GPS measurement models and the closed-loop INS correction.
+
+Every filter of the project exposes the interface of design section 6: ``predict(dt, ins_state, imu)``,
+``update(z, H, R)``, ``state``, ``covariance``; :class:`KalmanFilter` is the 15-state one
+(``fusion.errmodel`` for the state order and the model). Closed loop: after each GPS epoch the estimate
+is fed back into the INS (:func:`correct_ins`) and the biases, and the error state is reset to zero.
+
+Both the centralised ``kf`` (one filter, z = [dv; dp]) and the two local filters of ``dkf``
+(``fusion.dkf``) are this class; they differ only in the measurements they are given.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion import earth, errmodel
+from fusion.errmodel import ATT, BG, N_STATES, POS, VEL
+from fusion.ins import NavState
+
+Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]  # (z (m,), H (m, 15), R (m, m))
+
+
+class KalmanFilter:
+    """Linear KF on the 15-state INS error (``fusion.errmodel``).
+
+    P0 (15, 15) initial covariance; q (12, 12) noise PSD (``errmodel.noise_psd``); q_scale multiplies
+    the discrete Q (the information-sharing factor 1/beta of a federated local filter; 1 otherwise).
+    """
+
+    def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
+        self.x = np.zeros(N_STATES)
+        self.P = np.array(P0, dtype=float)
+        self.q = np.asarray(q, dtype=float)
+        self.q_scale = float(q_scale)
+
+    @property
+    def state(self) -> np.ndarray:
+        """Error-state estimate (15,), ``fusion.errmodel`` order and units."""
+        return self.x
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Error covariance (15, 15)."""
+        return self.P
+
+    def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
+        """Propagate over one filter cycle of dt s.
+
+        ins_state: the INS state in the middle of the cycle; imu = (omega_ib_b, f_b), the mean
+        bias-corrected rate (rad/s) and specific force (m/s^2) over the cycle, body RFU.
+        """
+        C = ins_state.C_bn
+        F, G = errmodel.system_matrices(ins_state.lat, ins_state.h, ins_state.v_n, C, C @ np.asarray(imu[1]))
+        self.propagate(*errmodel.discretise(F[None], G[None], self.q, np.array([dt])))
+
+    def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """Apply a sequence of discrete cycles: Phi, Q (m, 15, 15). Returns diag(P) after each, (m, 15)."""
+        out = np.empty((len(Phi), N_STATES))
+        x, P = self.x, self.P
+        for i in range(len(Phi)):
+            x = Phi[i] @ x
+            P = Phi[i] @ P @ Phi[i].T + self.q_scale * Q[i]
+            P = 0.5 * (P + P.T)
+            out[i] = np.diag(P)
+        self.x, self.P = x, P
+        return out
+
+    def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Measurement update (Joseph form). z (m,), H (m, 15), R (m, m).
+
+        Returns the innovation component of the estimate, K (z - H x) (15,) (the distributed-KF
+        paper's Delta X, eq. 7).
+        """
+        S = H @ self.P @ H.T + R
+        K = np.linalg.solve(S, H @ self.P).T
+        dx = K @ (z - H @ self.x)
+        self.x = self.x + dx
+        A = np.eye(N_STATES) - K @ H
+        P = A @ self.P @ A.T + K @ R @ K.T
+        self.P = 0.5 * (P + P.T)
+        return dx
+
+    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
+        """Centralised update with the available GPS measurements stacked, z = [dv; dp]."""
+        ms = [m for m in (vel, pos) if m is not None]
+        if not ms:
+            return
+        z = np.concatenate([m[0] for m in ms])
+        H = np.concatenate([m[1] for m in ms])
+        R = _block_diag([m[2] for m in ms])
+        self.update(z, H, R)
+
+    def reset(self) -> None:
+        """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
+        self.x = np.zeros(N_STATES)
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    n = sum(len(b) for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        out[i:i + len(b), i:i + len(b)] = b
+        i += len(b)
+    return out
+
+
+def enu_offset(lat: float, lon: float, h: float, lat_ref: float, lon_ref: float, h_ref: float) -> np.ndarray:
+    """Small ENU displacement (m) of (lat, lon, h) from (lat_ref, lon_ref, h_ref) (rad, rad, m)."""
+    rm, rn = earth.principal_radii(lat_ref, h_ref)
+    return np.array([(lon - lon_ref) * rn * np.cos(lat_ref), (lat - lat_ref) * rm, h - h_ref])
+
+
+def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h: float, cov_enu: np.ndarray,
+                         lever_b: np.ndarray) -> Measurement:
+    """GPS position measurement: z = INS antenna position - GPS position, ENU m.
+
+    The INS state is extrapolated from nav.t to the fix time t_gps (s) with its velocity. lat, lon in
+    rad, h in m (NaN for a fix without height: horizontal rows only); cov_enu (3, 3) ENU m^2 (the fix's
+    covariance); lever_b (3,) IMU -> antenna, body RFU, m.
+    """
+    C = nav.C_bn
+    arm_n = C @ lever_b
+    z = enu_offset(nav.lat, nav.lon, nav.h, lat, lon, h) + arm_n + nav.v_n * (t_gps - nav.t)
+    H = np.zeros((3, N_STATES))
+    H[:, POS] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_n)
+    keep = np.flatnonzero(np.isfinite(z))
+    return z[keep], H[keep], np.asarray(cov_enu, dtype=float)[np.ix_(keep, keep)]
+
+
+def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omega_ib_b: np.ndarray,
+                         lever_b: np.ndarray, max_var: float) -> Measurement | None:
+    """GPS velocity measurement: z = INS antenna velocity - GPS velocity, ENU m/s.
+
+    cov (3, 3) ENU (m/s)^2; components with variance above max_var (NMEA's unobserved vertical
+    velocity) are left out. omega_ib_b (3,) bias-corrected rate, rad/s. None when nothing is left.
+    """
+    cov = np.asarray(cov, dtype=float)
+    keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
+    if len(keep) == 0:
+        return None
+    C = nav.C_bn
+    arm_v = C @ np.cross(omega_ib_b, lever_b)
+    z = nav.v_n + arm_v - v_gps
+    H = np.zeros((3, N_STATES))
+    H[:, VEL] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_v)
+    H[:, BG] = -C @ earth.skew(lever_b)
+    return z[keep], H[keep], cov[np.ix_(keep, keep)]
+
+
+def correct_ins(nav: NavState, x: np.ndarray) -> NavState:
+    """Feed the error estimate x (15,) back into the navigation state (errors are computed - true)."""
+    rm, rn = earth.principal_radii(nav.lat, nav.h)
+    lat = nav.lat - x[1] / rm
+    lon = nav.lon - x[0] / (rn * np.cos(nav.lat))
+    q = earth.quat_multiply(earth.rotvec_to_quat(x[ATT]), nav.q)  # C_true = (I + [phi x]) C_computed
+    q = q / np.linalg.norm(q)
+    q = q if q[3] >= 0.0 else -q
+    return NavState(nav.t, float(lat), float(lon), float(nav.h - x[2]), nav.v_n - x[VEL], q)

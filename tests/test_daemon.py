@@ -1,0 +1,159 @@
+"""``fieldlog acquire`` as a real subprocess against ``fieldlog sim --serve`` ptys; the MCAP is read back."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquire import messages
+from acquire.daemon import is_finished
+from replay import live, reader
+from test_serve import ROOT, expected_bytes, start_serve
+from tools.rebuild import read_metadata
+
+
+def start_daemon(out: Path, paths: dict[str, str], *extra: str) -> tuple[subprocess.Popen, str]:
+    """Start the daemon and wait until it has opened both ports; returns it and its log up to then."""
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "acquire", "--daq", paths["daq"], "--gps", paths["gps"],
+                          "--out", str(out), "--quiet", *extra], cwd=ROOT, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    lines = []
+    while True:
+        line = p.stderr.readline()
+        assert line, f"daemon exited early: {''.join(lines)}"
+        lines.append(line)
+        if "recording" in line:
+            return p, "".join(lines)
+
+
+def raw_stream(path: Path, port: str) -> tuple[bytes, np.ndarray]:
+    """The bytes recorded on ``/raw/<port>`` in order, and the host mono time of each read."""
+    msgs = reader.read_topic(path, f"/raw/{port}")["msgs"]
+    return b"".join(bytes(m.data) for m in msgs), np.array([m.mono_ns for m in msgs], np.int64)
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(tmp_path: Path) -> None:
+    truth = tmp_path / "truth.mcap"
+    bus = tmp_path / "bus.sock"
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text(f'[rotation]\nmax_duration_s = 1.0\n[daemon]\nbus = "{bus}"\n')
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "40", "--seed", "5", "--speed", "20",
+                               "--hold", "--truth", str(truth))
+    d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
+    blocks: list = []
+    client = threading.Thread(target=lambda: blocks.extend(live.iter_blocks(str(bus), ["/imu", "/gps/fix"], 1.0)))
+    client.start()
+    time.sleep(0.2)                                     # let the client connect
+    serve.send_signal(signal.SIGUSR1)
+    assert serve.wait(30) == 0                         # the drive ended and the daemon drained the ptys
+    d.send_signal(signal.SIGTERM)
+    assert d.wait(30) == 0, d.stderr.read()
+    client.join(10)
+    files = sorted((tmp_path / "drives").glob("*.mcap"))
+    assert len(files) >= 2 and all(is_finished(f) for f in files)
+    metas = [read_metadata(f) for f in files]
+    assert [m["drive"]["previous_file"] for m in metas] == [""] + [f.name for f in files[:-1]]
+    want = expected_bytes(truth, "figure8", 40.0, 5)
+    got_daq = b"".join(raw_stream(f, "daq")[0] for f in files)
+    got_gps = b"".join(raw_stream(f, "gps")[0] for f in files)
+    mono = np.concatenate([raw_stream(f, "daq")[1] for f in files])
+    assert got_daq == want["daq"]                       # every byte, in order: 0 lost DAQ frames
+    assert got_gps == want["gps"]                       # 0 lost NMEA lines
+    assert np.all(np.diff(mono) >= 0)                   # files follow each other seamlessly
+    c = metas[-1]["acquire.counters"]                   # cumulative over the session
+    assert int(c["daq.frames"]) == 20000 == int(read_metadata(truth)["serve"]["daq_frames"])
+    assert int(c["daq.lost_frames"]) == 0 and int(c["daq.bad_crc"]) == 0
+    assert int(c["nmea.lines"]) == want["gps"].count(b"\n")
+    assert int(c["port.daq.dropped_reads"]) == 0 and int(c["daemon.late_reads"]) == 0
+    # /imu: one message per frame, increasing stamps, and frame k carries truth sample k (scored by index:
+    # at x20 the stamps are host-clock based, see tools/sim/serve.py)
+    parts = [reader.read_topic(f, "/imu") for f in files if "/imu" in {t.topic for t in reader.topics(f)}]
+    imu = {k: np.concatenate([p[k] for p in parts]) for k in ("log_time_ns", "omega_ib_b", "f_b")}
+    tru = reader.read_topic(truth, "/truth/imu")
+    assert len(imu["log_time_ns"]) == len(tru["log_time_ns"]) == 20000
+    assert np.all(np.diff(imu["log_time_ns"]) > 0)
+    err = imu["omega_ib_b"] - tru["omega_ib_b"]
+    assert np.sqrt(np.mean(err[:, 2] ** 2)) < 0.01                    # rad/s: noise + bias only
+    f, f_true = imu["f_b"], tru["f_b"]
+    assert np.ptp(f_true[:, 1]) > 0.5                                # it drives off at 30 s
+    assert np.corrcoef(f[:, 1], f_true[:, 1])[0, 1] > 0.95           # forward acceleration lines up sample by sample
+    # the live bus delivered the same IMU samples, in reader blocks
+    live_t = np.concatenate([b.data["/imu"]["log_time_ns"] for b in blocks])
+    live_f = np.concatenate([b.data["/imu"]["f_b"] for b in blocks])
+    order = np.argsort(live_t, kind="stable")
+    assert np.array_equal(live_t[order], imu["log_time_ns"]) and np.array_equal(live_f[order], f)
+    assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == 40
+
+
+def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
+    out = tmp_path / "drives"
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "80", "--speed", "10", "--hold")
+    try:
+        d, _ = start_daemon(out, paths)
+        serve.send_signal(signal.SIGUSR1)
+        time.sleep(4.0)                                  # let it record for a while
+        kill_mono = time.monotonic_ns()
+        d.send_signal(signal.SIGKILL)
+        d.wait(10)
+        (cut,) = sorted(out.glob("*.mcap"))
+        assert not is_finished(cut)
+        r = run("recover", str(cut), "--out", str(tmp_path / "rescued.mcap"))
+        assert r.returncode == 0, r.stderr
+        _, mono = raw_stream(tmp_path / "rescued.mcap", "daq")
+        assert len(mono) > 100
+        assert (kill_mono - mono[-1]) / 1e9 <= 1.5     # at most 1.5 s of data before the kill is missing
+        # a restart notices the unfinished file, recovers it next to the original, and SIGTERM finishes its own
+        d2, log = start_daemon(out, paths)
+        time.sleep(1.0)
+        d2.send_signal(signal.SIGTERM)
+        assert d2.wait(30) == 0
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        serve.wait(10)
+    assert f"recovered unfinished {cut.name}" in log
+    rec = cut.with_name(cut.stem + ".recovered.mcap")
+    assert is_finished(rec) and not is_finished(cut)
+    assert len(raw_stream(rec, "daq")[1]) == len(mono)
+    new = [p for p in out.glob("*.mcap") if p not in (cut, rec)]
+    assert len(new) == 1 and is_finished(new[0])
+    assert reader.read_topic(new[0], "/raw/daq")["log_time_ns"].size > 0
+
+
+@pytest.mark.parametrize("config, extra, key", [
+    ("", ["--gps", "/dev/null"], "[daq] port"),                      # missing port
+    ("[daq]\nbaud = 12345\n", ["--daq", "/dev/ptmx", "--gps", "/dev/null"], "[daq] baud"),
+    ("[daq\nport = 1\n", ["--daq", "/dev/ptmx", "--gps", "/dev/null"], "not valid TOML"),
+    ("[recorder]\nflush_interval_s = 5\n", ["--daq", "a", "--gps", "b"], "[recorder] flush_interval_s"),
+    ("[gps]\nbaudrate = 9600\n", ["--daq", "a", "--gps", "b"], "[gps] baudrate"),
+    ("", ["--daq", "/nonexistent/ttyUSB9", "--gps", "/nonexistent/ttyUSB8"], "[daq] port: cannot open"),
+])
+def test_bad_config_is_one_clear_line_and_exit_2(tmp_path: Path, config: str, extra: list[str], key: str) -> None:
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text(config)
+    r = run("acquire", "--config", str(cfg), "--out", str(tmp_path / "d"), *extra)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and key in lines[0] and "Traceback" not in r.stderr
+
+
+def test_nmea_status_decoding_from_sink_payload() -> None:
+    """The status line reads fix and satellites back from the /gps/nmea payload the sink saw."""
+    from acquire import nmea
+
+    line = nmea.format_gga("GN", 3600.0, 30.5, 104.0, 1, 11, 0.9, 500.0, -35.0).decode().strip()
+    data = messages.encode_sentence(1, line)
+    text = messages.decode_message("nmea_msgs/msg/Sentence", data).sentence
+    body, ok = nmea.split_checksum(text.encode())
+    g = nmea.decode_body(body)
+    assert ok and g.num_sats == 11 and g.quality == 1

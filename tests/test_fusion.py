@@ -1,0 +1,231 @@
+"""Error model, closed-loop KF, distributed KF and `fieldlog fuse` on a short simulated figure-eight."""
+
+import math
+
+import numpy as np
+import pytest
+
+from fusion import earth, errmodel, ins, kf
+from fusion.dkf import DistributedKF
+from fusion.engine import Engine, FusionConfig
+from replay.reader import read_topic
+from tools.cli import main as cli_main
+from tools.fuse import fuse
+from tools.sim.simulate import simulate
+
+DURATION = 240.0
+OUTAGE = (170.0, 30.0)
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    path = tmp_path_factory.mktemp("fusion") / "figure8.mcap"
+    simulate("figure8", DURATION, 3, path)
+    return path
+
+
+def _errors(drive, fused, method, window_ns=None):
+    """RMS errors of a fused solution against truth: (2D position m, 3D velocity m/s, heading deg)
+    overall or inside window_ns, plus the heading RMS over the last 30 s."""
+    tr, tv, ta = (read_topic(drive, f"/truth/{x}") for x in ("fix", "vel", "attitude"))
+    s, v, a = (read_topic(fused, f"/fusion/{method}/{x}") for x in ("fix", "vel", "attitude"))
+    t, tt = s["log_time_ns"], tr["log_time_ns"]
+    m = (t >= tt[0]) & (t <= tt[-1])
+    if window_ns is not None:
+        m &= (t >= window_ns[0]) & (t < window_ns[1])
+    lat, lon = (np.radians(np.interp(t[m], tt, tr[k])) for k in ("lat_deg", "lon_deg"))
+    rm, rn = earth.principal_radii(lat, np.interp(t[m], tt, tr["alt_m"]))
+    de = (np.radians(s["lon_deg"][m]) - lon) * rn * np.cos(lat)
+    dn = (np.radians(s["lat_deg"][m]) - lat) * rm
+    dv = v["v_n"][m] - np.stack([np.interp(t[m], tt, tv["v_n"][:, i]) for i in range(3)], axis=1)
+    j = np.searchsorted(tt, t[m]).clip(0, len(tt) - 1)
+    hq = earth.dcm_to_euler(earth.quat_to_dcm(a["q_xyzw"][m]))[0]
+    ht = earth.dcm_to_euler(earth.quat_to_dcm(ta["q_xyzw"][j]))[0]
+    dh = np.degrees((hq - ht + np.pi) % (2 * np.pi) - np.pi)
+    rms = lambda x: float(np.sqrt(np.mean(x ** 2)))  # noqa: E731
+    return rms(np.hypot(de, dn)), rms(np.linalg.norm(dv, axis=1)), rms(dh), rms(dh[-300:])
+
+
+def _gps_error(drive):
+    g, tr = read_topic(drive, "/gps/fix"), read_topic(drive, "/truth/fix")
+    t, tt = g["log_time_ns"], tr["log_time_ns"]
+    m = (t <= tt[-1]) & np.isfinite(g["lat_deg"])
+    lat, lon = (np.radians(np.interp(t[m], tt, tr[k])) for k in ("lat_deg", "lon_deg"))
+    rm, rn = earth.principal_radii(lat, 0.0)
+    de = (np.radians(g["lon_deg"][m]) - lon) * rn * np.cos(lat)
+    dn = (np.radians(g["lat_deg"][m]) - lat) * rm
+    return float(np.sqrt(np.mean(de ** 2 + dn ** 2)))
+
+
+# -- error model ---------------------------------------------------------------------------------
+
+
+def test_transition_matrix_predicts_ins_error_growth():
+    """Phi (product over 0.1 s cycles) against the INS itself: perturb the initial state and the sensors,
+    integrate both, compare the error after 20 s with Phi x0."""
+    dt, n = 0.002, 10_000
+    t = np.arange(n + 1) * dt
+    w = np.tile([0.0, 0.0, 0.1], (n + 1, 1))  # turning left at 0.1 rad/s
+    f = np.tile([0.0, 0.0, 9.79], (n + 1, 1))
+    f[:, 0] = -1.0  # centripetal: 10 m/s * 0.1 rad/s towards the left (-x body)
+    q0 = earth.dcm_to_quat(earth.euler_to_dcm(0.3, 0.0, 0.0))
+    v0 = earth.quat_to_dcm(q0) @ np.array([0.0, 10.0, 0.0])
+    true = ins.NavState(0.0, 0.5, 1.8, 400.0, v0, q0)
+    x0 = np.zeros(15)
+    x0[0:3] = [1.0, -2.0, 0.5]
+    x0[3:6] = [0.05, -0.03, 0.02]
+    x0[6:9] = [1e-3, -2e-3, 3e-3]
+    x0[9:12] = np.radians([0.02, -0.01, 0.03])
+    x0[12:15] = [2e-3, -1e-3, 3e-3]
+    rm, rn = earth.principal_radii(true.lat, true.h)
+    q_err = earth.quat_multiply(earth.rotvec_to_quat(-x0[6:9]), q0)  # C_computed = (I - [phi x]) C_true
+    pert = ins.NavState(0.0, true.lat + x0[1] / rm, true.lon + x0[0] / (rn * math.cos(true.lat)),
+                        true.h + x0[2], v0 + x0[3:6], q_err)
+    a = ins.integrate(true, t, w, f)
+    b = ins.integrate(pert, t, w + x0[9:12], f + x0[12:15])
+    r = earth.principal_radii(a.lat[-1], a.h[-1])
+    err = np.concatenate([
+        [(b.lon[-1] - a.lon[-1]) * r[1] * math.cos(a.lat[-1]), (b.lat[-1] - a.lat[-1]) * r[0], b.h[-1] - a.h[-1]],
+        b.v_n[-1] - a.v_n[-1],
+        earth.quat_to_rotvec(earth.quat_multiply(a.q[-1], b.q[-1] * [-1, -1, -1, 1]))])
+    step = 50
+    idx = np.arange(0, n, step) + step // 2
+    C = earth.quat_to_dcm(a.q[idx])
+    F, G = errmodel.system_matrices(a.lat[idx], a.h[idx], a.v_n[idx], C, np.einsum("kij,j->ki", C, f[0]))
+    Phi, _ = errmodel.discretise(F, G, np.eye(12), step * dt)
+    x = x0.copy()
+    for P in Phi:
+        x = P @ x
+    assert np.abs(err[0:3] - x[0:3]).max() < 0.02 * np.abs(err[0:3]).max()
+    assert np.abs(err[3:6] - x[3:6]).max() < 0.02 * np.abs(err[3:6]).max()
+    assert np.abs(err[6:9] - x[6:9]).max() < 0.02 * np.abs(err[6:9]).max()
+    assert np.abs(err[0:2]).max() > 2.5 * np.abs(x0[0:2]).max()  # errors grew: the comparison is not trivial
+
+
+def test_discrete_q_is_symmetric_positive_semidefinite_and_grows_with_dt():
+    C = earth.euler_to_dcm(1.0, 0.1, -0.05)
+    F, G = errmodel.system_matrices(0.5, 100.0, np.array([5.0, 3.0, 0.1]), C, C @ np.array([0.5, 1.0, 9.8]))
+    q = errmodel.noise_psd(1e-4, 1e-3, 1e-6, 1e-5)
+    _, Q1 = errmodel.discretise(F, G, q, 0.1)
+    _, Q2 = errmodel.discretise(F, G, q, 0.2)
+    assert np.allclose(Q1, Q1.T)
+    assert np.linalg.eigvalsh(Q1).min() > -1e-12 * np.abs(Q1).max()
+    assert np.trace(Q2) > 1.9 * np.trace(Q1)
+
+
+# -- filters -------------------------------------------------------------------------------------
+
+
+def test_correct_ins_removes_the_estimated_error():
+    q0 = earth.dcm_to_quat(earth.euler_to_dcm(2.0, 0.05, -0.02))
+    true = ins.NavState(1.0, 0.6, 2.0, 300.0, np.array([3.0, -4.0, 0.2]), q0)
+    x = np.zeros(15)
+    x[0:3], x[3:6], x[6:9] = [3.0, -4.0, 1.5], [0.2, -0.1, 0.05], [2e-3, -1e-3, 5e-3]
+    rm, rn = earth.principal_radii(true.lat, true.h)
+    wrong = ins.NavState(1.0, true.lat + x[1] / rm, true.lon + x[0] / (rn * math.cos(true.lat)), true.h + x[2],
+                         true.v_n + x[3:6], earth.quat_multiply(earth.rotvec_to_quat(-x[6:9]), q0))
+    fixed = kf.correct_ins(wrong, x)
+    assert abs(fixed.lat - true.lat) * rm < 1e-4 and abs(fixed.lon - true.lon) * rn < 1e-4
+    assert np.allclose(fixed.v_n, true.v_n) and abs(fixed.h - true.h) < 1e-9
+    assert np.linalg.norm(earth.quat_to_rotvec(earth.quat_multiply(fixed.q, q0 * [-1, -1, -1, 1]))) < 1e-7
+
+
+def test_distributed_equals_centralised_with_information_sharing():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((15, 15))
+    P0 = A @ A.T + 15 * np.eye(15)
+    C = earth.euler_to_dcm(0.4, 0.0, 0.0)
+    F, G = errmodel.system_matrices(0.5, 0.0, np.array([5.0, 5.0, 0.0]), C, np.array([0.3, -0.2, 9.8]))
+    q = errmodel.noise_psd(1e-3, 1e-2, 1e-5, 1e-4)
+    Phi, Q = errmodel.discretise(np.repeat(F[None], 10, 0), np.repeat(G[None], 10, 0), q, 0.1)
+    c, d = kf.KalmanFilter(P0, q), DistributedKF(P0, q)
+    assert np.allclose(d.covariance, P0)
+    H_v, H_p = np.zeros((3, 15)), np.zeros((3, 15))
+    H_v[:, 3:6], H_p[:, 0:3] = np.eye(3), np.eye(3)
+    for _ in range(3):
+        c.propagate(Phi, Q)
+        d.propagate(Phi, Q)
+        vel = (rng.standard_normal(3) * 0.1, H_v, 0.01 * np.eye(3))
+        pos = (rng.standard_normal(3), H_p, 2.0 * np.eye(3))
+        c.update_gps(vel, pos)
+        d.update_gps(vel, pos)
+        assert np.allclose(d.state, c.state, atol=1e-9 * np.abs(c.state).max())
+        assert np.allclose(d.covariance, c.covariance, rtol=1e-7, atol=1e-12)
+        assert np.abs(c.state).max() > 0
+        c.reset()
+        d.reset()
+        for f in (c, *d.locals):
+            assert not f.state.any()
+
+
+def test_closed_loop_resets_and_keeps_covariance_spd(drive):
+    from replay.reader import iter_blocks
+    from tools.fuse import IN_TOPICS, gps_block
+    from fusion.engine import ImuBlock
+
+    for method in ("kf", "dkf"):
+        eng = Engine(method, FusionConfig())
+        checked = 0
+        for b in iter_blocks(drive, IN_TOPICS, 20.0):
+            imu = b.data["/imu"]
+            eng.process(ImuBlock(imu["log_time_ns"], imu["omega_ib_b"], imu["f_b"]),
+                        gps_block(b.data["/gps/fix"], b.data["/gps/vel"]))
+            if eng.filter is not None:
+                P = eng.filter.covariance
+                assert not eng.filter.state.any()  # reset after the last correction, nothing since
+                assert np.allclose(P, P.T, rtol=0, atol=1e-12 * np.abs(P).max())
+                assert np.linalg.eigvalsh(P).min() > 0.0
+                checked += 1
+        assert checked >= 8 and eng.updates > 150
+
+
+# -- fieldlog fuse on a simulated drive -----------------------------------------------------------
+
+
+def test_kf_and_dkf_with_gps(drive, tmp_path):
+    gps = _gps_error(drive)
+    for method in ("kf", "dkf"):
+        out = fuse(drive, method, tmp_path / f"{method}.mcap")
+        pos, vel, head, head_end = _errors(drive, out.path, method)
+        print(f"{method}: 2D position RMS {pos:.2f} m (raw GPS {gps:.2f} m), velocity RMS {vel:.3f} m/s, "
+              f"heading RMS {head:.2f} deg, last 30 s {head_end:.2f} deg")
+        assert pos < 0.95 * gps
+        assert vel < 0.15
+        assert head_end < 0.6
+
+
+def test_outage_drifts_less_than_free_ins(drive, tmp_path):
+    cfg = FusionConfig(outages=(OUTAGE,))
+    t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
+    win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
+    res = {}
+    for method in ("ins", "kf", "dkf"):
+        out = fuse(drive, method, tmp_path / f"{method}.mcap", cfg)
+        res[method] = _errors(drive, out.path, method, win)
+        assert out.updates == 0 if method == "ins" else out.updates > 100
+    print("30 s outage, RMS inside it: " + ", ".join(f"{m} {r[0]:.1f} m {r[1]:.2f} m/s" for m, r in res.items()))
+    for method in ("kf", "dkf"):
+        assert res[method][0] < 0.1 * res["ins"][0]
+        assert res[method][0] < 25.0
+    o = read_topic(tmp_path / "kf.mcap", "/fusion/outage")["msgs"]
+    assert [(m.start_ns, m.end_ns, m.reason) for m in o] == [(win[0], win[1], "injected")]
+
+
+def test_cli_fuse_writes_the_fusion_topics(drive, tmp_path):
+    out = tmp_path / "fused.mcap"
+    assert cli_main(["fuse", str(drive), "--method", "dkf", "--outage", "100:20", "--outage", "200:10",
+                     "--out", str(out)]) == 0
+    counts = {}
+    for sub in ("fix", "vel", "attitude", "std"):
+        d = read_topic(out, f"/fusion/dkf/{sub}")
+        assert d["valid"].all()
+        counts[sub] = len(d["log_time_ns"])
+    n = counts["fix"]
+    assert set(counts.values()) == {n}
+    assert abs(n - 10 * (DURATION - 45.0)) < 10 * 20  # 10 Hz from alignment (~35-45 s) to the end
+    fix = read_topic(out, "/fusion/dkf/fix")
+    assert np.all(np.diff(fix["log_time_ns"]) > 0)
+    std = read_topic(out, "/fusion/dkf/std")["xyz"]
+    assert np.allclose(fix["position_covariance"][:, [0, 4, 8]], std ** 2)
+    assert len(read_topic(out, "/fusion/outage")["msgs"]) == 2
+    assert cli_main(["fuse", str(drive), "--outage", "x", "--out", str(out)]) == 2

@@ -1,0 +1,254 @@
+"""``fieldlog sim --serve``: simulated hardware on pseudo-terminals, for running the daemon as in the car.
+
+The byte streams are exactly those of ``fieldlog sim`` (``simulate.make_reads``): every DAQ frame and NMEA
+sentence, cut into the reads a USB-serial adapter would deliver. Each read is written to its port's pty at
+its simulated time (relative to the first read), divided by ``speed``. The masters are non-blocking: when the
+reader does not keep up, the bytes wait in the serve process (never dropped) and the pty's buffer applies
+back-pressure, as a UART's flow control would.
+
+Truth (``/truth/*``, as ``fieldlog sim`` writes it) and what was sent go to a side MCAP at the end: metadata
+``serve`` holds ``daq_bytes``, ``daq_frames`` (complete frames written), ``gps_bytes``, ``nmea_lines``,
+``speed``, ``completed`` and the unplug windows. The daemon's host clock is the real machine clock, not the
+simulator's, so a live recording is scored by DAQ sample index: the simulator's frame counter starts at 0,
+so frame k of ``/raw/daq`` is truth sample k (``/truth/imu`` holds one record per frame, in order), and the
+i-th ``/imu`` message is the i-th decoded frame. At ``speed`` 1 the GPS-disciplined ``/imu`` stamps are
+simulated UTC and compare directly with ``/truth/imu``; at other speeds the host-time gates of time sync
+(fix age, NMEA/PPS agreement) see compressed seconds and the sync does not lock, so only the content and
+the index are scored.
+
+Unplugging: ``unplug`` windows (port, start, length in simulated seconds) close the port's pty and open a
+new one after the gap; the bytes due meanwhile are lost, as on a pulled adapter. Because a new pty has a
+new path, ``link_dir`` keeps stable symlinks ``link_dir/daq`` and ``link_dir/gps`` pointing at the current
+ones; point the daemon at those.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import select
+import signal
+import sys
+import termios
+import threading
+import time
+import tty
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, TextIO
+
+import numpy as np
+
+from acquire import daq, recorder
+from tools.sim import simulate, trajectory
+
+NS = 1_000_000_000
+PORTS = ("daq", "gps")
+
+
+@dataclass
+class Unplug:
+    port: str
+    start_s: float      # simulated seconds after the first read
+    length_s: float
+
+    @classmethod
+    def parse(cls, text: str) -> "Unplug":
+        """``PORT:START:LENGTH`` in simulated seconds, e.g. ``gps:20:3``."""
+        try:
+            port, a, b = text.split(":")
+            u = cls(port, float(a), float(b))
+        except ValueError:
+            raise ValueError(f"--unplug {text!r}: expected PORT:START_S:LENGTH_S") from None
+        if port not in PORTS or u.length_s <= 0 or u.start_s < 0:
+            raise ValueError(f"--unplug {text!r}: PORT is daq or gps, START_S >= 0, LENGTH_S > 0")
+        return u
+
+
+@dataclass
+class _Port:
+    """One simulated serial device: pty pair, the reads scheduled on it, and what was written."""
+
+    name: str
+    t_s: np.ndarray                     # due time of each read, simulated seconds from the first read
+    data: list[bytes]
+    master: int = -1
+    slave: int = -1
+    path: str = ""
+    next_read: int = 0
+    pending: bytearray = field(default_factory=bytearray)
+    sent: bytearray = field(default_factory=bytearray)
+    lost_bytes: int = 0
+
+    def open(self, link_dir: Path | None) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)          # no echo, no CR/LF translation, no line buffering
+        os.set_blocking(self.master, False)
+        self.path = os.ttyname(self.slave)
+        if link_dir is not None:
+            tmp = link_dir / f".{self.name}.tmp"
+            tmp.unlink(missing_ok=True)
+            tmp.symlink_to(self.path)
+            tmp.replace(link_dir / self.name)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                os.close(fd)
+        self.master = self.slave = -1
+
+    def unread(self) -> int:
+        """Bytes written to the master that the reader has not read yet."""
+        buf = fcntl.ioctl(self.slave, termios.FIONREAD, b"\0\0\0\0")
+        return int.from_bytes(buf, sys.byteorder)
+
+
+class Server:
+    """Streams a simulated drive to two ptys; ``run`` returns when the drive ends or ``stop`` is set."""
+
+    def __init__(self, scenario: str, duration_s: float | None, seed: int, speed: float = 1.0,
+                 pps_mode: str | None = None, unplug: list[Unplug] | None = None,
+                 link_dir: str | Path | None = None) -> None:
+        if not speed > 0:
+            raise ValueError(f"--speed {speed}: must be > 0")
+        sc = trajectory.load_scenario(scenario)
+        # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
+        sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()})
+        self.scenario = sc.name
+        self.duration_s = float(duration_s or sc.duration_s)
+        self.seed = seed
+        self.speed = speed
+        reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode)
+        m0 = reads[0].mono_ns
+        self.ports = {}
+        for name in PORTS:
+            rs = [r for r in reads if r.port == name]
+            self.ports[name] = _Port(name, np.array([(r.mono_ns - m0) / NS for r in rs]), [r.data for r in rs])
+        self.unplug = sorted(unplug or [], key=lambda u: u.start_s)
+        self.link_dir = Path(link_dir) if link_dir else None
+        self.stop = threading.Event()
+        self.completed = False
+
+    def open(self, out: TextIO = sys.stdout) -> None:
+        """Open the ptys and print ``daq PATH`` and ``gps PATH`` (flushed)."""
+        if self.link_dir is not None:
+            self.link_dir.mkdir(parents=True, exist_ok=True)
+        for p in self.ports.values():
+            p.open(self.link_dir)
+            out.write(f"{p.name} {p.path}\n")
+        out.flush()
+
+    def _unplugged(self, name: str, t_s: float) -> Unplug | None:
+        for u in self.unplug:
+            if u.port == name and u.start_s <= t_s < u.start_s + u.length_s:
+                return u
+        return None
+
+    def run(self, log: Callable[[str], None] = lambda s: None) -> None:
+        """Stream until the drive ends (then wait for the reader to drain the ptys, at most 10 s) or stop."""
+        start = time.monotonic()
+        while not self.stop.is_set():
+            t_s = (time.monotonic() - start) * self.speed
+            busy = False
+            for p in self.ports.values():
+                busy |= self._step(p, t_s, log)
+            if not busy:
+                self.completed = True
+                break
+            fds = [p.master for p in self.ports.values() if p.pending and p.master >= 0]
+            if fds:
+                select.select([], fds, [], 0.002)
+            else:
+                time.sleep(0.002)
+        deadline = time.monotonic() + 10.0
+        while self.completed and not self.stop.is_set() and time.monotonic() < deadline:
+            if all(p.master < 0 or p.unread() == 0 for p in self.ports.values()):
+                break
+            time.sleep(0.05)
+
+    def _step(self, p: _Port, t_s: float, log: Callable[[str], None]) -> bool:
+        """Queue the reads due by ``t_s`` and write what the pty takes; False once the port has nothing left."""
+        j = int(np.searchsorted(p.t_s, t_s, side="right"))
+        u = self._unplugged(p.name, t_s)
+        if u is not None:
+            if p.master >= 0:
+                log(f"{p.name} unplugged for {u.length_s:g} s")
+                p.lost_bytes += len(p.pending)
+                p.pending.clear()
+                p.close()
+            p.lost_bytes += sum(len(d) for d in p.data[p.next_read:j])
+            p.next_read = j
+            return True
+        if p.master < 0:
+            p.open(self.link_dir)
+            log(f"{p.name} back as {p.path}")
+        if j > p.next_read:
+            p.pending += b"".join(p.data[p.next_read:j])
+            p.next_read = j
+        if p.pending:
+            try:
+                n = os.write(p.master, p.pending)
+            except BlockingIOError:
+                n = 0
+            except OSError as e:
+                if e.errno != errno.EIO:
+                    raise
+                n = 0
+            p.sent += p.pending[:n]
+            del p.pending[:n]
+        return p.next_read < len(p.data) or bool(p.pending)
+
+    def sent_metadata(self) -> dict[str, str]:
+        d, g = self.ports["daq"], self.ports["gps"]
+        return {"scenario": self.scenario, "seed": str(self.seed), "duration_s": repr(self.duration_s),
+                "speed": repr(self.speed), "completed": str(self.completed),
+                "daq_bytes": str(len(d.sent)), "daq_frames": str(len(d.sent) // daq.FRAME_SIZE),
+                "daq_lost_bytes": str(d.lost_bytes), "gps_bytes": str(len(g.sent)),
+                "nmea_lines": str(bytes(g.sent).count(b"\n")), "gps_lost_bytes": str(g.lost_bytes),
+                "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
+                "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode}
+
+    def write_truth(self, path: str | Path) -> None:
+        """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path``."""
+        with recorder.Recorder(path, flush_interval_s=None, fsync=False,
+                               metadata={"source": "fieldlog sim --serve", "scenario": self.scenario,
+                                         "seed": str(self.seed)}) as rec:
+            rec.add_metadata("serve", self.sent_metadata())
+            simulate.write_truth(rec, self.truth, self.duration_s)
+
+    def close(self) -> None:
+        for p in self.ports.values():
+            p.close()
+
+
+def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_mode: str | None = None,
+          truth: str | None = None, unplug: list[Unplug] | None = None, link_dir: str | None = None,
+          hold: bool = False) -> int:
+    """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
+    streaming (so a test can start the reader first)."""
+    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir)
+    go = threading.Event()
+    if not hold:
+        go.set()
+
+    def on_stop(signum, frame) -> None:
+        srv.stop.set()
+        go.set()
+
+    signal.signal(signal.SIGINT, on_stop)
+    signal.signal(signal.SIGTERM, on_stop)
+    signal.signal(signal.SIGUSR1, lambda s, f: go.set())
+    srv.open()
+    log = lambda s: print(f"sim --serve: {s}", file=sys.stderr, flush=True)  # noqa: E731
+    try:
+        while not go.wait(0.1):
+            pass
+        if not srv.stop.is_set():
+            log(f"streaming {srv.scenario} ({srv.duration_s:g} s) at x{speed:g}")
+            srv.run(log)
+        log("drive ended" if srv.completed else "stopped")
+    finally:
+        if truth:
+            srv.write_truth(truth)
+        srv.close()
+    return 0
