@@ -17,6 +17,7 @@ import numpy as np
 from acquire import calib, daq, messages, nmea, timesync
 
 NS = 1_000_000_000
+EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,7 @@ class Pipeline:
         self._last_fix_key: tuple | None = None
         self._date: _dt.date | None = None
         self._last_tod = -1.0
+        self._last_emit_ns = -(2**62)
         bw = self.fs / 2
         self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
         self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
@@ -102,8 +104,10 @@ class Pipeline:
             self._feed_daq(mono_ns, wall_ns, data)
         elif port == "gps":
             self._feed_gps(mono_ns, wall_ns, data)
-        self._emit_sync()
-        self._emit_imu(final=False)
+        if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
+            self._last_emit_ns = mono_ns
+            self._emit_sync()
+            self._emit_imu(final=False)
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""

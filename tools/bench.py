@@ -1,0 +1,182 @@
+"""``make bench``: speed and accuracy figures. Medians of several runs; ratios where two things are compared.
+
+    python -m tools.bench [--only NAME ...] [--runs N]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+
+def timed(fn: Callable[[], object], runs: int) -> tuple[float, list[float], object]:
+    times, out = [], None
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times, out
+
+
+def fmt_times(ts: list[float]) -> str:
+    return ", ".join(f"{t:.2f}" for t in ts)
+
+
+def bench_sim(runs: int, tmp: Path) -> None:
+    """fieldlog sim of the 600 s figure8 drive (target <= 30 s), and its time-stamp accuracy (flag <= 100 us)."""
+    from tools.info import drive_info
+    from tools.sim.simulate import simulate
+
+    rms = []
+
+    def one(seed: list[int] = [0]) -> None:
+        seed[0] += 1
+        path = tmp / f"f8_{seed[0]}.mcap"
+        simulate("figure8", 600, seed[0], path)
+        rms.append(drive_info(path).timing.rms_us)
+
+    med, ts, _ = timed(one, runs)
+    print(f"sim figure8 600 s:            median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 30 s")
+    print(f"timestamp RMS, sampled PPS:   median {statistics.median(rms):6.1f} us (seeds 1..{runs}: "
+          f"{', '.join(f'{r:.1f}' for r in rms)})   target <= 100 us")
+    lat = []
+    for seed in range(1, runs + 1):
+        path = tmp / f"f8l_{seed}.mcap"
+        simulate("figure8", 600, seed, path, pps_mode="latch")
+        lat.append(drive_info(path).timing.rms_us)
+    print(f"timestamp RMS, latched PPS:   median {statistics.median(lat):6.3f} us (seeds 1..{runs}: "
+          f"{', '.join(f'{r:.3f}' for r in lat)})   target <= 5 us")
+
+
+def bench_codecs(runs: int, tmp: Path) -> None:
+    """DAQ frame decode of a 600 s drive in read-sized chunks; NMEA decode, ours against pynmeagps."""
+    from acquire import daq, nmea
+
+    rng = np.random.default_rng(0)
+    n = 300_000
+    data = daq.encode_frames(np.arange(n), rng.integers(-2**23, 2**23, (n, 6)), rng.random(n) < 0.002)
+    cuts = np.sort(rng.integers(0, len(data), len(data) // (20 * daq.FRAME_SIZE)))
+    chunks = [data[a:b] for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(data)])]
+
+    def decode_daq() -> int:
+        dec = daq.DaqDecoder()
+        return sum(len(dec.feed(c).k) for c in chunks)
+
+    med, ts, got = timed(decode_daq, runs)
+    assert got == n
+    print(f"DAQ decode 300k frames:       median {med:6.3f} s  ({n / med / 1e6:.2f} M frames/s, "
+          f"{len(chunks)} chunks)")
+
+    from datetime import date
+
+    lines = []
+    for i in range(2000):
+        tod = 36000.0 + i
+        lines += [nmea.format_gga("GN", tod, 30.7 + i * 1e-6, 103.9, 1, 12, 0.8, 470.0, 0.0),
+                  nmea.format_rmc("GN", tod, date(2026, 5, 4), 30.7, 103.9, 10.0, 1.0),
+                  nmea.format_vtg("GN", 1.0, 10.0), nmea.format_gst("GN", tod, 1, 1, 1, 2),
+                  nmea.format_zda("GN", tod, date(2026, 5, 4))]
+    blob = b"".join(lines)
+    pieces = [blob[i:i + 64] for i in range(0, len(blob), 64)]
+
+    def ours() -> int:
+        dec = nmea.NmeaDecoder()
+        return sum(len(dec.feed(p)) for p in pieces)
+
+    med_ours, _, got = timed(ours, runs)
+    assert got == len(lines)
+    print(f"NMEA decode 10k sentences:    median {med_ours * 1e3:6.1f} ms ({med_ours / len(lines) * 1e6:.1f} us each)")
+    try:
+        from pynmeagps import NMEAReader
+    except ImportError:
+        return
+
+    def theirs() -> int:
+        fr = nmea.LineFramer()
+        return sum(1 for p in pieces for line in fr.feed(p) if NMEAReader.parse(line) is not None)
+
+    med_theirs, _, _ = timed(theirs, runs)
+    print(f"  same with pynmeagps.parse:  median {med_theirs * 1e3:6.1f} ms  -> ours is {med_theirs / med_ours:.1f}x faster")
+
+
+def bench_recorder(runs: int, tmp: Path) -> None:
+    """Encoding and writing 600k IMU messages (a 600 s drive's /imu and /truth/imu)."""
+    from acquire import messages, recorder
+
+    n = 300_000
+    t = 1_777_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 2_000_000
+    w = np.random.default_rng(1).normal(size=(n, 3))
+
+    def write() -> None:
+        with recorder.Recorder(tmp / "rec.mcap") as rec:
+            for topic in ("/imu", "/truth/imu"):
+                for s in range(0, n, 500):
+                    sl = slice(s, s + 500)
+                    rec.write_batch(topic, t[sl], messages.encode_imu(t[sl], w[sl], w[sl]))
+
+    med, ts, _ = timed(write, runs)
+    print(f"encode+write 600k Imu msgs:   median {med:6.2f} s  ({2 * n / med / 1e6:.2f} M msg/s, "
+          f"{(tmp / 'rec.mcap').stat().st_size / 1e6:.0f} MB)")
+
+
+def bench_ins(runs: int, tmp: Path) -> None:
+    """Strapdown INS over 300k samples (numba), and the truth it is fed from."""
+    from fusion import ins
+    from tools.sim import trajectory
+
+    truth = trajectory.generate(trajectory.load_scenario("figure8"), 600)
+    t = np.arange(300_000) / 500.0
+    med_eval, _, ts = timed(lambda: truth.evaluate(t), runs)
+    s0 = ins.NavState(t[0], ts.lat[0], ts.lon[0], ts.h[0], ts.v_n[0], ts.q[0])
+    ins.integrate(s0, t[:10], ts.omega_ib_b[:10], ts.f_b[:10])      # compile outside the timing
+    med, _, sol = timed(lambda: ins.integrate(s0, t, ts.omega_ib_b, ts.f_b), runs)
+    print(f"truth evaluate 300k samples:  median {med_eval:6.3f} s")
+    print(f"INS integrate 300k samples:   median {med:6.3f} s  ({300_000 / med / 1e6:.1f} M samples/s)")
+
+
+def bench_allan(runs: int, tmp: Path) -> None:
+    """The 2-hour static drive through the whole chain: Allan deviation recovers ARW/VRW and bias instability."""
+    from replay import reader
+    from tools.allan import allan_deviation, noise_parameters
+    from tools.sim.sensors import ImuErrorConfig
+    from tools.sim.simulate import simulate
+
+    path = tmp / "static.mcap"
+    t0 = time.perf_counter()
+    simulate("static", 7200, 11, path)
+    t_sim = time.perf_counter() - t0
+    imu = reader.read_topic(path, "/imu")
+    cfg = ImuErrorConfig()
+    taus, adev = allan_deviation(imu["omega_ib_b"], 500.0)
+    g = noise_parameters(taus, adev, sensor="gyro")
+    taus, adev = allan_deviation(imu["f_b"], 500.0)
+    a = noise_parameters(taus, adev, sensor="accel")
+    print(f"static 7200 s drive simulated in {t_sim:.1f} s; recovered / configured per axis x, y, z (within 15 %):")
+    print("  gyro ARW          " + " ".join(f"{v / cfg.gyro_noise_density_dps_rthz:6.3f}" for v in g["arw_dps_rthz"]))
+    print("  gyro bias instab. " + " ".join(f"{v / cfg.gyro_bias_instability_dps:6.3f}" for v in g["bias_instability_dps"]))
+    print("  accel VRW         " + " ".join(f"{v / cfg.accel_noise_density_ug_rthz:6.3f}" for v in a["vrw_ug_rthz"]))
+    print("  accel bias instab." + " ".join(f"{v / cfg.accel_bias_instability_ug:6.3f}" for v in a["bias_instability_ug"]))
+
+
+BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
+           "allan": bench_allan}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
+    p.add_argument("--runs", type=int, default=3)
+    a = p.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        for name in a.only or BENCHES:
+            print(f"--- {name}: {BENCHES[name].__doc__.splitlines()[0]}")
+            BENCHES[name](a.runs, Path(d))
+
+
+if __name__ == "__main__":
+    main()
