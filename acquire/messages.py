@@ -547,7 +547,7 @@ def encode_sentence(stamp_ns: int, sentence: str, frame_id: str = "gps") -> byte
 
 def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: str = "") -> bytes:
     """``fieldlog_msgs/msg/RawBytes``: bytes exactly as read; stamp = host wall clock at read,
-    mono_ns = host monotonic clock at read, port = device path."""
+    mono_ns = host monotonic clock at read, port = the port's role ("daq" or "gps")."""
     return _Cdr().header(stamp_ns, frame_id).put("q", mono_ns).string(port).octets(data).bytes()
 
 

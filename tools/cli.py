@@ -41,13 +41,14 @@ def cmd_sim_serve(a: argparse.Namespace) -> int:
     from tools.sim.serve import Unplug, serve
 
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, truth=a.truth,
-                 unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold)
+                 unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
+                 corrupt=a.corrupt)
 
 
 def cmd_acquire(a: argparse.Namespace) -> int:
     from acquire import config, daemon
 
-    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out})
+    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
     return daemon.run_daemon(cfg, quiet=a.quiet)
 
 
@@ -107,9 +108,41 @@ def cmd_fuse(a: argparse.Namespace) -> int:
 
     cfg = FusionConfig(outages=tuple(parse_outage(o) for o in a.outage or ()))
     t0 = time.monotonic()
-    res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"))
+    res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"), smooth=a.smooth)
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples, {res.updates} GPS updates, "
           f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    from tools.evaluate import check_methods, evaluate
+
+    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    check_methods(methods)
+    try:
+        lengths = [float(x) for x in a.outages.split(",")]
+    except ValueError:
+        raise ValueError(f"--outages expects lengths in s separated by commas, got {a.outages!r}") from None
+    if not lengths or min(lengths) <= 0:
+        raise ValueError("--outages: lengths must be > 0")
+    report = Path(a.report)
+    drives = [Path(d) for d in a.drive]
+    if a.seeds:
+        from tools.sim.simulate import simulate
+
+        (report / "drives").mkdir(parents=True, exist_ok=True)
+        for seed in range(1, a.seeds + 1):
+            path = report / "drives" / f"{a.scenario}_s{seed}.mcap"
+            print(f"simulating {a.scenario} {a.duration:g} s seed {seed} -> {path}")
+            simulate(a.scenario, a.duration, seed, path, progress=Progress(f"sim {a.scenario} seed {seed}"))
+            drives.append(path)
+    for d in drives:
+        if not d.is_file():
+            raise FileNotFoundError(f"{d} does not exist")
+    t0 = time.monotonic()
+    evaluate(drives, lengths, methods, report, smooth=a.smooth)
+    print((report / "table.md").read_text())
+    print(f"wrote {report / 'table.md'} and {report / 'table.csv'} in {time.monotonic() - t0:.1f} s")
     return 0
 
 
@@ -145,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable)")
     s.add_argument("--link-dir", default=None, help="--serve: keep symlinks DIR/daq and DIR/gps to the current ptys")
     s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
+    s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
+                   help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")
@@ -153,6 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, help="output directory (overrides the config)")
     s.add_argument("--config", default=None, help="TOML config (acquire/config.py documents the keys)")
     s.add_argument("--quiet", action="store_true", help="no status line (logs still go to stderr)")
+    s.add_argument("--time-scale", type=float, default=None, metavar="X",
+                   help="for simulator playback at `sim --serve --speed X` only: the host clock runs X times "
+                        "slower than the data ([timesync] host_time_scale)")
     s.set_defaults(func=cmd_acquire)
 
     s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
@@ -188,7 +226,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help="force a GPS outage, seconds from the first IMU sample (repeatable)")
     s.add_argument("--out", required=True, help="output MCAP")
+    s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     s.set_defaults(func=cmd_fuse)
+
+    s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
+    s.add_argument("drive", nargs="*", help="drives (MCAP); none with --seeds")
+    s.add_argument("--outages", default="30,60", help="outage lengths, s, comma separated")
+    s.add_argument("--methods", default="ins,kf,dkf", help="comma separated: ins, kf, dkf")
+    s.add_argument("--report", required=True, help="output directory (table.md, table.csv, fused/)")
+    s.add_argument("--seeds", type=int, default=0, help="also simulate this many drives (seeds 1..N) into DIR/drives")
+    s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
+    s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
+    s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
+    s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("demo", help="simulate a drive and show what it holds")
     s.add_argument("--out", default="out/demo")
@@ -204,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"fieldlog {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `fieldlog info X | head`
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

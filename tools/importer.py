@@ -119,7 +119,7 @@ def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Pat
         reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
-    meta = {"drive": {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}}
+    meta = {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}
     with recorder.Recorder(out, metadata=meta) as rec:
         pipe = Pipeline(rec, sync_cfg=sync_cfg)
         for name, d in pipe.metadata().items():

@@ -8,7 +8,7 @@ import numpy as np
 
 from acquire import messages
 from replay import reader
-from tools.rebuild import read_metadata
+from tools.rebuild import read_metadata_records
 
 NS = 1_000_000_000
 
@@ -39,6 +39,7 @@ class DriveInfo:
     gps_no_fix: int = 0
     counters: dict[str, str] = field(default_factory=dict)
     drive: dict[str, str] = field(default_factory=dict)
+    port_events: list[dict[str, str]] = field(default_factory=list)   # the daemon's lost/back port records
 
 
 def timing_error(imu_ns: np.ndarray, truth_ns: np.ndarray, first_lock_ns: int | None) -> TimingError | None:
@@ -67,9 +68,11 @@ def drive_info(path: str | Path) -> DriveInfo:
     by = {t.topic: t for t in tops}
     first = min((t.first_ns for t in tops if t.count), default=0)
     last = max((t.last_ns for t in tops if t.count), default=0)
-    meta = read_metadata(path)
+    records = read_metadata_records(path)
+    meta = dict(records)
     info = DriveInfo(path, (last - first) / NS, tops, counters=meta.get("acquire.counters", {}),
-                     drive=meta.get("drive", {}))
+                     drive=meta.get("drive", {}),
+                     port_events=[d for name, d in records if name == "acquire.port_event"])
 
     if "/time/sync" in by and by["/time/sync"].count:
         ts = reader.read_topic(path, "/time/sync")
@@ -127,6 +130,8 @@ def format_info(info: DriveInfo) -> str:
                      f"mean {t.mean_us:+.2f} us over {t.samples} samples")
     lines.append(f"gaps      IMU {info.imu_gaps} (longest {info.imu_longest_gap_s:.3f} s); "
                  f"GPS epochs missing {info.gps_missing_epochs}, without fix {info.gps_no_fix}")
+    for ev in info.port_events:
+        lines.append("port      " + ", ".join(f"{k}={v}" for k, v in ev.items()))
     if info.counters:
         keys = ["daq.bytes_skipped", "daq.resyncs", "daq.bad_crc", "daq.counter_gaps", "daq.lost_frames",
                 "nmea.bad_checksum", "nmea.unknown", "nmea.proprietary", "pps_edges", "pps_rejected"]

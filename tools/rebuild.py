@@ -26,9 +26,15 @@ class RebuildResult:
     counters: Counters
 
 
-def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+def read_metadata_records(path: str | Path) -> list[tuple[str, dict[str, str]]]:
+    """Every metadata record, in file order (names may repeat, e.g. ``acquire.port_event``)."""
     with open(path, "rb") as f:
-        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+        return [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+
+
+def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """Metadata by name; for a repeated name, the last record."""
+    return dict(read_metadata_records(path))
 
 
 def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
@@ -41,15 +47,17 @@ def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
 
 def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = None,
             progress: Callable[[float], None] | None = None) -> RebuildResult:
-    meta = read_metadata(src)
-    cal, sync_cfg = Pipeline.settings_from_metadata(meta)
+    records = read_metadata_records(src)
+    cal, sync_cfg = Pipeline.settings_from_metadata(dict(records))
     if calibration is not None:
         cal = calib.load_calibration(calibration)
-    keep = {k: v for k, v in meta.items() if k not in ("calibration", "timesync", "acquire.counters")}
-    keep["rebuild"] = {"source": str(src)}
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
     n = 0
-    with recorder.Recorder(dst, metadata=keep) as rec:
+    with recorder.Recorder(dst) as rec:
+        for name, d in records:
+            if name not in ("calibration", "timesync", "acquire.counters"):
+                rec.add_metadata(name, d)
+        rec.add_metadata("rebuild", {"source": str(src)})
         pipe = Pipeline(rec, cal, sync_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)

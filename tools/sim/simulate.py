@@ -115,7 +115,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
             "drive_start_utc_ns": str(t0_ns)}
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz})
-    with recorder.Recorder(out, metadata={"drive": meta}) as rec:
+    with recorder.Recorder(out, metadata=meta) as rec:
         pipe = Pipeline(rec, cal, sync_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
