@@ -27,6 +27,10 @@ is above ``max_fix_sigma_m``, or it falls in a forced window (``outages``, secon
 sample). Detected windows run from the first unusable epoch to the next usable one. A fix without
 height (NaN altitude: the GGA of that second was lost) updates the horizontal position only.
 
+Smoothing: given a ``log`` (``fusion.smoother.SmootherLog``) the engine records, per covariance cycle,
+Phi and the predicted covariance, and at each update the correction fed back and the covariance after
+it (the covariance is then propagated one cycle per call, to capture each P).
+
 Output: the (closed-loop) INS state at the first IMU sample of each 1/output_hz slot of UTC
 (10 Hz by default), stamped with that sample's time, with the filter's sigmas.
 """
@@ -35,12 +39,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fusion import earth, errmodel, ins, kf
 from fusion.dkf import DistributedKF
 from fusion.errmodel import BA, BG
+
+if TYPE_CHECKING:
+    from fusion.smoother import SmootherLog
 
 METHODS = ("ins", "kf", "dkf")
 NS = 1_000_000_000
@@ -148,10 +156,12 @@ class _Static:
 class Engine:
     """One fusion run (method ``ins``, ``kf`` or ``dkf``) over a stream of blocks."""
 
-    def __init__(self, method: str, config: FusionConfig | None = None) -> None:
+    def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
+        """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; one of {METHODS}")
         self.method = method
+        self.log = log
         self.cfg = config or FusionConfig()
         self.lever = np.asarray(self.cfg.lever_arm_b, dtype=float)
         self.q = self.cfg.noise_psd()
@@ -204,7 +214,7 @@ class Engine:
             if self.nav is None:
                 self._accumulate(w, f, cursor, k)
                 cursor = k
-                self._pre_init_epoch(ep, t, w, k)
+                self._pre_init_epoch(ep, t, t_ns, w, k)
             else:
                 out.append(self._advance(t, t_ns, w, f, cursor, k))
                 cursor = k
@@ -251,7 +261,7 @@ class Engine:
         t0, lat0, lon0, h0 = self._last_fix
         return kf.enu_offset(ep["lat"], ep["lon"], ep["h"], lat0, lon0, h0) / (ts - t0)
 
-    def _pre_init_epoch(self, ep: dict, t: np.ndarray, w: np.ndarray, k: int) -> None:
+    def _pre_init_epoch(self, ep: dict, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, k: int) -> None:
         usable = self._classify(ep)
         v = self._velocity(ep) if usable else np.full(3, np.nan)
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
@@ -264,7 +274,7 @@ class Engine:
         if usable:
             self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
         if usable and math.isfinite(ep["h"]) and math.isfinite(speed) and speed >= self.cfg.align_speed_mps:
-            self._initialise(ep, v, float(t[k]))
+            self._initialise(ep, v, float(t[k]), int(t_ns[k]))
 
     def _accumulate(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
         """Add samples (i0, i1] to the current GPS interval's sums (static detection before alignment)."""
@@ -272,7 +282,7 @@ class Engine:
         self._interval.sum_f += f[i0 + 1:i1 + 1].sum(axis=0)
         self._interval.n += max(i1 - i0, 0)
 
-    def _initialise(self, ep: dict, v: np.ndarray, t_k: float) -> None:
+    def _initialise(self, ep: dict, v: np.ndarray, t_k: float, t_k_ns: int) -> None:
         c = self.cfg
         heading = math.atan2(v[0], v[1])
         static = self._static.n >= 200
@@ -302,6 +312,8 @@ class Engine:
                                      np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
         self.filter = DistributedKF(P0, self.q) if self.method == "dkf" else kf.KalmanFilter(P0, self.q)
         self._sigma = _sigmas(np.diag(P0))
+        if self.log is not None:
+            self.log.start(t_k_ns, self.filter.covariance)
 
     def _epoch(self, ep: dict, omega_k: np.ndarray) -> None:
         """GPS epoch at the current sample: update, feed back, reset."""
@@ -315,6 +327,8 @@ class Engine:
         vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
         self.filter.update_gps(vel, pos)
         x = self.filter.state
+        if self.log is not None:
+            self.log.update(x.copy(), self.filter.covariance.copy())
         self.nav = kf.correct_ins(self.nav, x)
         self.bg = self.bg + x[BG]
         self.ba = self.ba + x[BA]
@@ -346,7 +360,10 @@ class Engine:
         F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
                                         np.einsum("kij,kj->ki", C, f_mean))
         Phi, Q = errmodel.discretise(F, G, self.q, tt[ends] - tt[starts])
-        diag = self.filter.propagate(Phi, Q)
+        if self.log is None:
+            diag = self.filter.propagate(Phi, Q)
+        else:
+            diag = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
         # output rows: first sample of each 1/output_hz slot of UTC
         tn = t_ns[i0:i1 + 1]
         slot_ns = NS / self.cfg.output_hz
@@ -356,6 +373,15 @@ class Engine:
         cyc = np.searchsorted(ends, rows)
         self._sigma = sig[-1]
         return Solution(tn[rows], sol.lat[rows], sol.lon[rows], sol.h[rows], sol.v_n[rows], sol.q[rows], sig[cyc])
+
+    def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray) -> np.ndarray:
+        """``filter.propagate`` one cycle at a time, recording Phi and each predicted P; returns diag(P)."""
+        P = np.empty_like(Phi)
+        for i in range(len(Phi)):
+            self.filter.propagate(Phi[i:i + 1], Q[i:i + 1])
+            P[i] = self.filter.covariance
+        self.log.cycles(t_end_ns, Phi, P)
+        return np.diagonal(P, axis1=1, axis2=2).copy()
 
     def _take_outages(self) -> list[Outage]:
         out, self._outages = self._outages, []

@@ -9,6 +9,10 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/<method>/attitude`` QuaternionStamped: C_bn (body RFU -> ENU), x, y, z, w;
 - ``/fusion/<method>/std`` Vector3Stamped: position sigma E, N, U in m;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
+
+With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
+RTS backward pass (``fusion.smoother``) under the same topics; memory then grows with the drive
+(about 200 MB per hour, see ``fusion.smoother``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 from acquire import messages
 from acquire.recorder import Recorder
 from fusion.engine import Engine, FusionConfig, GpsBlock, ImuBlock, Solution
+from fusion.smoother import SmootherLog, smooth_solution
 from replay import reader
 
 BLOCK_S = 10.0
@@ -91,17 +96,21 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
 
 
 def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str],
-         config: FusionConfig | None = None, progress: Callable[[float], None] | None = None) -> FuseResult:
-    """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block."""
+         config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
+         smooth: bool = False) -> FuseResult:
+    """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
+    ``smooth`` (RTS backward pass after the drive)."""
     cfg = config or FusionConfig()
-    engine = Engine(method, cfg)
+    log = SmootherLog() if smooth else None
+    engine = Engine(method, cfg, log=log)
+    kept: list[Solution] = []
     span = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
     if not any(t.topic == "/imu" for t in span):
         raise ValueError(f"{drive}: no /imu messages")
     t_first = min(t.first_ns for t in span)
     t_last = max(t.last_ns for t in span)
     rows = outages = n_imu = 0
-    meta = {"source": str(drive), "method": method, "config": repr(asdict(cfg))}
+    meta = {"source": str(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no"}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:
         rec.add_metadata("fusion", meta)
 
@@ -121,12 +130,17 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
                 ib = ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
             n_imu += len(ib.t_ns)
             sol, done = engine.process(ib, gps_block(block.data.get("/gps/fix", {}), block.data.get("/gps/vel", {})))
-            _write(rec, method, sol)
+            if smooth:
+                kept.append(sol)
+            else:
+                _write(rec, method, sol)
             write_outages(done)
             rows += len(sol.t_ns)
             if progress:
                 progress(min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
         write_outages(engine.finish())
+        if smooth:
+            _write(rec, method, smooth_solution(Solution.concat(kept), log))
     if progress:
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, n_imu)

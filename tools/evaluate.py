@@ -1,0 +1,226 @@
+"""``fieldlog evaluate DRIVE... --outages 30,60 --methods ins,kf,dkf --report DIR [--seeds N] [--smooth]``.
+
+The outage study of the distributed-KF paper (its Table 3). For each outage length L, windows of L s are
+placed in the drive's good GPS (every fix in the window usable), the first starting at ``first_s`` (120 s,
+after the filter has converged), the next ``gap_s`` (max(60 s, L)) after the previous one ends, so the
+filter reconverges in between; the same windows are forced for every method (``fieldlog fuse --outage``).
+
+Errors during the outages, per quantity, are RMS over all the solution rows inside the windows of a drive:
+longitude, latitude, altitude (east, north, up position error, m), vE, vN, vU (m/s), and roll, pitch,
+heading (deg). The reference is ``/truth`` when the drive has it; otherwise the withheld GPS fixes (as the
+paper does), the solution interpolated to their times, and no attitude. Over several drives the table gives
+the mean and the spread (sample standard deviation) of the per-drive RMS.
+
+Writes DIR/table.md (rows = quantities, columns = method x outage length, like the paper's Table 3),
+DIR/table.csv (long form: quantity, unit, method, outage_s, mean, std, drives, windows) and the fused
+solutions in DIR/fused/. No plots: matplotlib is not a dependency.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import polars as pl
+
+from fusion import earth
+from fusion.engine import METHODS, FusionConfig
+from replay import reader
+from tools.fuse import fuse
+
+PLANNED = ("rbfn", "tdln", "dkf-rbfn")  # issue 4, items 4-5
+QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
+              ("vU", "m/s"), ("roll", "deg"), ("pitch", "deg"), ("heading", "deg"))
+
+
+@dataclass
+class StudyConfig:
+    first_s: float = 120.0  # earliest outage start, s from the first IMU sample
+    min_gap_s: float = 60.0  # good GPS between two outages at least max(min_gap_s, L)
+    end_margin_s: float = 5.0  # an outage ends this long before the last fix at the latest
+
+
+def check_methods(methods: list[str]) -> None:
+    """Raise ValueError naming methods that are planned but not implemented, or unknown."""
+    planned = [m for m in methods if m in PLANNED]
+    if planned:
+        raise ValueError(f"method(s) not implemented yet: {', '.join(planned)} (available: {', '.join(METHODS)})")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s): {', '.join(unknown)} (available: {', '.join(METHODS)})")
+
+
+def place_outages(t_fix_s: np.ndarray, good: np.ndarray, length_s: float, cfg: StudyConfig = StudyConfig()
+                  ) -> list[tuple[float, float]]:
+    """Outage windows (start_s, length_s) of one length in good GPS.
+
+    t_fix_s (m,) fix times in s from the first IMU sample; good (m,) bool, usable fix. A window needs
+    every fix inside [start, start + L] good and at least 0.9 L of them; candidates step by 1 s."""
+    if len(t_fix_s) == 0:
+        return []
+    out: list[tuple[float, float]] = []
+    s = cfg.first_s
+    t_end = t_fix_s[-1] - cfg.end_margin_s
+    while s + length_s <= t_end:
+        inside = (t_fix_s >= s) & (t_fix_s <= s + length_s)
+        if inside.sum() >= 0.9 * length_s and good[inside].all():
+            out.append((s, length_s))
+            s += length_s + max(cfg.min_gap_s, length_s)
+        else:
+            s += 1.0
+    return out
+
+
+def _fix_quality(drive: Path, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """GPS fix times (s from the first IMU sample), usable flags, first IMU time ns."""
+    t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
+    g = reader.read_topic(drive, "/gps/fix")
+    cov = g["position_covariance"].reshape(-1, 3, 3)
+    sig = np.sqrt(np.maximum(cov[:, 0, 0], cov[:, 1, 1]))
+    good = g["valid"] & (g["status"] >= 0) & np.isfinite(g["lat_deg"]) & np.isfinite(g["lon_deg"]) & \
+        (sig <= max_sigma_m)
+    return (g["log_time_ns"] - t0) * 1e-9, good, int(t0)
+
+
+def _interp(t: np.ndarray, tr: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return np.stack([np.interp(t, tr, x[:, i]) for i in range(x.shape[1])], axis=1)
+
+
+def _quat_interp(t: np.ndarray, tr: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Normalised linear interpolation of [x, y, z, w] quaternions (100 Hz truth: exact to ~1e-6 rad)."""
+    j = np.searchsorted(tr, t).clip(1, len(tr) - 1)
+    a = ((t - tr[j - 1]) / np.maximum(tr[j] - tr[j - 1], 1))[:, None]
+    q0, q1 = q[j - 1], q[j]
+    q1 = q1 * np.where(np.sum(q0 * q1, axis=1, keepdims=True) < 0.0, -1.0, 1.0)
+    qi = (1.0 - a) * q0 + a * q1
+    return qi / np.linalg.norm(qi, axis=1, keepdims=True)
+
+
+def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]) -> np.ndarray:
+    """Errors (n, 9) in QUANTITIES order (m, m/s, deg) of the rows inside the windows: against /truth
+    when the drive has it, else against the withheld GPS fixes (attitude NaN)."""
+    s = reader.read_topic(fused, f"/fusion/{method}/fix")
+    v = reader.read_topic(fused, f"/fusion/{method}/vel")
+    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    ts = s["log_time_ns"]
+    names = {t.topic for t in reader.topics(drive) if t.count}
+    truth = "/truth/fix" in names
+    ref = reader.read_topic(drive, "/truth/fix" if truth else "/gps/fix")
+    tr = ref["log_time_ns"]
+    if truth:
+        t = ts
+        inside = np.zeros(len(t), bool)
+        for w0, w1 in windows_ns:
+            inside |= (t >= w0) & (t < w1)
+        inside &= (t >= tr[0]) & (t <= tr[-1])
+        t = t[inside]
+        llh = _interp(t, tr, np.stack([ref["lat_deg"], ref["lon_deg"], ref["alt_m"]], axis=1))
+        sol = np.stack([s["lat_deg"][inside], s["lon_deg"][inside], s["alt_m"][inside]], axis=1)
+        tv = reader.read_topic(drive, "/truth/vel")
+        dv = v["v_n"][inside] - _interp(t, tv["log_time_ns"], tv["v_n"])
+        ta = reader.read_topic(drive, "/truth/attitude")
+        eul_s = earth.dcm_to_euler(earth.quat_to_dcm(a["q_xyzw"][inside]))
+        eul_t = earth.dcm_to_euler(earth.quat_to_dcm(_quat_interp(t, ta["log_time_ns"], ta["q_xyzw"])))
+        datt = np.stack([np.degrees((eul_s[i] - eul_t[i] + np.pi) % (2 * np.pi) - np.pi) for i in (2, 1, 0)],
+                        axis=1)
+    else:
+        ok = ref["valid"] & (ref["status"] >= 0) & np.isfinite(ref["lat_deg"])
+        t = tr[ok]
+        inside = np.zeros(len(t), bool)
+        for w0, w1 in windows_ns:
+            inside |= (t >= w0) & (t < w1)
+        inside &= (t >= ts[0]) & (t <= ts[-1])
+        t = t[inside]
+        llh = np.stack([ref["lat_deg"][ok][inside], ref["lon_deg"][ok][inside], ref["alt_m"][ok][inside]], axis=1)
+        sol = _interp(t, ts, np.stack([s["lat_deg"], s["lon_deg"], s["alt_m"]], axis=1))
+        gv = reader.read_topic(drive, "/gps/vel")
+        vg = np.full((len(t), 3), np.nan)
+        j = np.searchsorted(gv["log_time_ns"], t).clip(0, max(len(gv["log_time_ns"]) - 1, 0))
+        hit = gv["log_time_ns"][j] == t if len(gv["log_time_ns"]) else np.zeros(len(t), bool)
+        vg[hit] = gv["v_n"][j[hit]]
+        dv = _interp(t, ts, v["v_n"]) - vg
+        datt = np.full((len(t), 3), np.nan)
+    lat = np.radians(llh[:, 0])
+    rm, rn = earth.principal_radii(lat, np.nan_to_num(llh[:, 2]))
+    dpos = np.stack([np.radians(sol[:, 1] - llh[:, 1]) * rn * np.cos(lat), np.radians(sol[:, 0] - llh[:, 0]) * rm,
+                     sol[:, 2] - llh[:, 2]], axis=1)
+    return np.hstack([dpos, dv, datt])
+
+
+def _rms(e: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        n = np.isfinite(e).sum(axis=0)
+        return np.where(n > 0, np.sqrt(np.nansum(e ** 2, axis=0) / np.maximum(n, 1)), np.nan)
+
+
+def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
+             config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
+             say: Callable[[str], None] = print) -> pl.DataFrame:
+    """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap. Returns the long table.
+
+    smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``)."""
+    check_methods(methods)
+    if not drives:
+        raise ValueError("no drive to evaluate")
+    base = config or FusionConfig()
+    report = Path(report)
+    (report / "fused").mkdir(parents=True, exist_ok=True)
+    runs = [(m, sm) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
+    per: dict[tuple[str, float], list[np.ndarray]] = {}
+    windows: dict[tuple[str, float], int] = {}
+    total, done = len(drives) * len(lengths) * len(runs), 0
+    for drive in map(Path, drives):
+        t_fix, good, t0 = _fix_quality(drive, base.max_fix_sigma_m)
+        for L in lengths:
+            win = place_outages(t_fix, good, L, study)
+            if not win:
+                say(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
+                done += len(runs)
+                continue
+            win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
+            cfg = replace(base, outages=tuple(win))
+            for m, sm in runs:
+                name = m + ("+rts" if sm else "")
+                out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
+                fuse(drive, m, out, cfg, smooth=sm)
+                rms = _rms(outage_errors(drive, out, m, win_ns))
+                per.setdefault((name, L), []).append(rms)
+                windows[(name, L)] = windows.get((name, L), 0) + len(win)
+                done += 1
+                say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s x {len(win)}: "
+                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {np.linalg.norm(rms[3:6]):.3f} m/s")
+    rows = []
+    for (name, L), vals in per.items():
+        arr = np.array(vals)
+        std = arr.std(axis=0, ddof=1) if len(arr) > 1 else np.full(arr.shape[1], np.nan)
+        for i, (q, unit) in enumerate(QUANTITIES):
+            rows.append(dict(quantity=q, unit=unit, method=name, outage_s=float(L), mean=float(np.nanmean(arr[:, i]))
+                             if np.isfinite(arr[:, i]).any() else None, std=float(std[i]) if np.isfinite(std[i])
+                             else None, drives=len(arr), windows=windows[(name, L)]))
+    table = pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
+                                       "mean": pl.Float64, "std": pl.Float64, "drives": pl.Int64, "windows": pl.Int64})
+    table.write_csv(report / "table.csv")
+    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)]))
+    return table
+
+
+def markdown(table: pl.DataFrame, drives: list[str]) -> str:
+    """The long table laid out like the paper's Table 3: rows = quantity, columns = method x outage length."""
+    cols = table.select("method", "outage_s").unique(maintain_order=True).sort("outage_s", maintain_order=True).rows()
+    head = "| quantity | unit | " + " | ".join(f"{m} {L:g} s" for m, L in cols) + " |"
+    lines = ["# RMS errors during GPS outages", "",
+             f"Drives: {', '.join(drives)}. Mean over drives, ± sample standard deviation when more than one.", "",
+             head, "|" + "---|" * (len(cols) + 2)]
+    for q, unit in QUANTITIES:
+        cells = []
+        for m, L in cols:
+            r = table.filter((pl.col("quantity") == q) & (pl.col("method") == m) & (pl.col("outage_s") == L))
+            mean, std = (r["mean"][0], r["std"][0]) if len(r) else (None, None)
+            cells.append("–" if mean is None else f"{mean:.3f}" + (f" ± {std:.3f}" if std is not None else ""))
+        lines.append(f"| {q} | {unit} | " + " | ".join(cells) + " |")
+    n = table.select("method", "outage_s", "windows").unique(maintain_order=True).rows()
+    lines += ["", "Outage windows per column: " + ", ".join(f"{m} {L:g} s: {w}" for m, L, w in n), ""]
+    return "\n".join(lines)
