@@ -13,6 +13,7 @@ standard baud rate``.
     [calibration]
     file = "cal.toml"           # acquire/calib.py layout; omitted: the built-in defaults
     [timesync]                  # acquire/timesync.py TimeSyncConfig keys, e.g. pps_mode = "latch"
+                                # (host_time_scale / --time-scale X: for `sim --serve --speed X` playback only)
     [output]
     dir = "drives"              # files are DIR/<session start UTC>_<NNNN>.mcap, e.g. 2026-11-22T10-15-00Z_0001.mcap
     [rotation]
@@ -151,7 +152,8 @@ def from_dict(d: dict[str, Any]) -> AcquireConfig:
 
 def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:
     """Read the TOML file (None: defaults), apply ``overrides`` (``daq``, ``gps``: port paths; ``out``: output
-    directory) and validate. Raises ConfigError with a one-line message naming the key."""
+    directory; ``time_scale``: ``[timesync] host_time_scale``, for simulator playback only) and validate.
+    Raises ConfigError with a one-line message naming the key."""
     d: dict[str, Any] = {}
     if path is not None:
         try:
@@ -168,6 +170,8 @@ def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> Ac
         c.gps.port = o["gps"]
     if o.get("out"):
         c.out_dir = o["out"]
+    if o.get("time_scale") is not None:
+        c.timesync["host_time_scale"] = float(o["time_scale"])
     validate(c)
     return c
 

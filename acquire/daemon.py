@@ -23,8 +23,10 @@ Faults. A port whose read fails or hits end of file (adapter unplugged, pty clos
 every ``reconnect_s`` until it comes back; the outage is recorded as an ``acquire.port_event`` metadata
 record (``event`` = ``lost`` / ``back``, host mono and wall ns, the error) and counted in
 ``port.<name>.disconnects``; ``/raw`` has no reads in the gap. Corrupt bytes are the decoders' business
-(resynchronised and counted). ENOSPC stops the daemon with a clear message; the file keeps every chunk
-flushed before (``fieldlog recover`` or the next start rescues it if the summary could not be written).
+(resynchronised and counted). A full disk (ENOSPC), an exceeded quota (EDQUOT) or file size limit (EFBIG;
+SIGXFSZ is ignored so that a ``ulimit -f`` gives the error rather than a kill) stops the daemon with a clear
+message and exit code 1; the file keeps every chunk flushed before (``fieldlog recover`` or the next start
+rescues it if the summary could not be written).
 SIGINT/SIGTERM finish the file (summary and index) and exit 0.
 
 Files. ``DIR/<session start UTC>_<NNNN>.mcap`` (``config.file_name``). One Pipeline runs for the whole
@@ -60,6 +62,7 @@ from acquire.pipeline import Pipeline, RawRead, read_order
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+STORAGE_FULL = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file size limit"}
 
 
 class PortError(ValueError):
@@ -448,10 +451,10 @@ class Daemon:
                 self.wake.wait(0.05)
             self.pipe.finish()
         except OSError as e:
-            if e.errno != errno.ENOSPC:
+            if e.errno not in STORAGE_FULL:
                 raise
-            self.error = (f"disk full (ENOSPC) writing {self.sink.rec.path}: recording stopped; "
-                          f"the file keeps every chunk flushed before this")
+            self.error = (f"{STORAGE_FULL[e.errno]} ({errno.errorcode[e.errno]}) writing {self.sink.rec.path}: "
+                          f"recording stopped; the file keeps every chunk flushed before this")
             code = 1
         finally:
             self.stop.set()
@@ -565,6 +568,7 @@ def run_daemon(cfg: AcquireConfig, quiet: bool = False) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     result: list[int] = []
     worker = threading.Thread(target=lambda: result.append(d.run()), name="process")
     worker.start()

@@ -78,6 +78,10 @@ class TimeSyncConfig:
     max_rate_ppm: float = 500.0         # a lock with a larger DAQ rate error is refused
     host_window_s: float = 10.0         # lower-envelope window of the pre-lock host-clock stamps
     retain_s: float = 300.0             # stamp() answers for samples up to this far behind final_until()
+    # For simulator playback at ``sim --serve --speed X`` only: the data runs X times faster than the host
+    # clock, so host durations are multiplied by X before the fix-age and disagreement gates and in the
+    # locked ``mono_to_utc``. Never set it for real hardware.
+    host_time_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.pps_mode not in ("flag", "latch"):
@@ -91,7 +95,8 @@ class TimeSyncConfig:
         if self.pps_mode == "flag" and self.window_s < 120.0:
             raise ValueError(f"[timesync] window_s: {self.window_s} < 120 s with a sampled PPS flag")
         for name in ("fs_hz", "window_s", "holdover_s", "max_edge_gap_s", "max_fix_age_s", "max_disagree_s",
-                     "acquire_s", "inlier_tol_s", "rate_tol_ppm", "max_rate_ppm", "host_window_s", "retain_s"):
+                     "acquire_s", "inlier_tol_s", "rate_tol_ppm", "max_rate_ppm", "host_window_s", "retain_s",
+                     "host_time_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"[timesync] {name}: must be > 0, got {getattr(self, name)!r}")
         if self.min_edges < 3:
@@ -326,12 +331,15 @@ class TimeSync:
         latency). Before that: the host wall clock of the latest read or fix.
         """
         if self._host_offsets:
-            off = max(self._host_offsets)
-        elif self._wall_minus_mono is not None:
-            off = self._wall_minus_mono
-        else:
+            return self._scaled(np.asarray(mono_ns, np.int64)) + np.int64(max(self._host_offsets))
+        if self._wall_minus_mono is None:
             raise RuntimeError("mono_to_utc before any read: pass wall_ns to add_fix")
-        return np.asarray(mono_ns, np.int64) + np.int64(off)
+        return np.asarray(mono_ns, np.int64) + np.int64(self._wall_minus_mono)
+
+    def _scaled(self, mono_ns: int | np.ndarray) -> int | np.ndarray:
+        """Host time in data seconds (``host_time_scale``; the identity at 1)."""
+        x = self.cfg.host_time_scale
+        return mono_ns if x == 1.0 else np.round(np.asarray(mono_ns, np.float64) * x).astype(np.int64)
 
     def pop_edges(self) -> EdgeBatch:
         """Edges whose fate is decided, in k order (each returned once)."""
@@ -356,7 +364,7 @@ class TimeSync:
             self._acc_first = e.k_edge
         self._acc_k.append(e.k_edge)
         self._acc_label.append(e.label)
-        self._host_offsets.append(e.label * 1_000_000_000 - e.mono_ns)
+        self._host_offsets.append(e.label * 1_000_000_000 - int(self._scaled(e.mono_ns)))
 
     def _on_edge(self, e: PpsEdge) -> None:
         self._edges.append(e)
@@ -364,10 +372,10 @@ class TimeSync:
         if self._fix is None:
             return self._reject(e, "no_fix")
         fix_utc, fix_mono = self._fix
-        if e.mono_ns - fix_mono > c.max_fix_age_s * 1e9:
+        if int(self._scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
             return self._reject(e, "stale_fix")
         e.label = fix_utc + 1
-        off = e.label * 1_000_000_000 - e.mono_ns
+        off = e.label * 1_000_000_000 - int(self._scaled(e.mono_ns))
         ref = float(np.median(self._offsets)) if self._offsets else off
         self._offsets.append(off)
         if abs(off - ref) > c.max_disagree_s * 1e9:
@@ -462,7 +470,7 @@ class TimeSync:
             # part of a period. At the data's ends (no centred window) the full window does better.
             slip = abs((self._fs + f.e + 0.5) % 1.0 - 0.5)
             n_beats = math.floor((hi - lo) / self._fs * slip)
-            half = n_beats / slip * self._fs / 2
+            half = n_beats / slip * self._fs / 2 if n_beats >= 1 else 0.0   # slip 0: a whole number of samples
             # (Its slope is biased by the sawtooth: the rate and the statistics come from the full window.)
             if n_beats >= 1 and lo <= ke - half and ke + half <= hi:
                 fc = self._fit_span(ke - half, ke + half, lab, kr) or f

@@ -10,9 +10,12 @@ import tty
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from replay import reader
 from tools.rebuild import read_metadata
 from tools.sim import simulate, trajectory
+from tools.sim.serve import corrupt_stream
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,7 +36,7 @@ def expected_bytes(truth_path: Path, scenario: str, duration_s: float, seed: int
     meta = read_metadata(truth_path)["serve"]
     sc = trajectory.load_scenario(scenario)
     sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])})
-    reads = simulate.make_reads(sc, duration_s, seed)[0]
+    reads = simulate.make_reads(sc, duration_s, seed, meta["pps_mode"])[0]
     return {port: b"".join(r.data for r in reads if r.port == port) for port in ("daq", "gps")}
 
 
@@ -86,3 +89,11 @@ def test_serve_stops_on_sigterm_and_writes_truth(tmp_path: Path) -> None:
     meta = read_metadata(truth)["serve"]
     assert meta["completed"] == "False"
     assert 0 < int(meta["daq_frames"]) < 30000
+
+
+def test_corrupt_stream_changes_exactly_the_positions_it_reports() -> None:
+    data = bytes(range(256)) * 100
+    out, pos = corrupt_stream(data, 0.01, 3, "daq")
+    changed = np.flatnonzero(np.frombuffer(out, np.uint8) != np.frombuffer(data, np.uint8))
+    assert np.array_equal(changed, pos) and pos.size == 256
+    assert corrupt_stream(data, 0.01, 3, "daq")[0] == out != corrupt_stream(data, 0.01, 3, "gps")[0]

@@ -12,14 +12,25 @@ Truth (``/truth/*``, as ``fieldlog sim`` writes it) and what was sent go to a si
 simulator's, so a live recording is scored by DAQ sample index: the simulator's frame counter starts at 0,
 so frame k of ``/raw/daq`` is truth sample k (``/truth/imu`` holds one record per frame, in order), and the
 i-th ``/imu`` message is the i-th decoded frame. At ``speed`` 1 the GPS-disciplined ``/imu`` stamps are
-simulated UTC and compare directly with ``/truth/imu``; at other speeds the host-time gates of time sync
-(fix age, NMEA/PPS agreement) see compressed seconds and the sync does not lock, so only the content and
-the index are scored.
+simulated UTC and compare directly with ``/truth/imu``. At other speeds the host-time gates of time sync
+(fix age, NMEA/PPS agreement) see compressed seconds and the sync does not lock unless the daemon runs with
+``--time-scale X`` (X = ``speed``; ``[timesync] host_time_scale``), which rescales them; then the stamps
+compare with truth as at speed 1.
 
 Unplugging: ``unplug`` windows (port, start, length in simulated seconds) close the port's pty and open a
-new one after the gap; the bytes due meanwhile are lost, as on a pulled adapter. Because a new pty has a
-new path, ``link_dir`` keeps stable symlinks ``link_dir/daq`` and ``link_dir/gps`` pointing at the current
-ones; point the daemon at those.
+new one after the gap; the bytes due meanwhile are lost, as on a pulled adapter, and so are the bytes
+written before the close that the reader had not read yet. Because a new pty has a new path, ``link_dir``
+keeps stable symlinks ``link_dir/daq`` and ``link_dir/gps`` pointing at the current ones (removed while
+unplugged, as the device node of a pulled adapter); point the daemon at those. After a replug the device
+streams on, but its bytes are lost until the reader has opened the port (pyserial flushes the input on
+open, so bytes written before would vanish untracked): the master is in packet mode (TIOCPKT), where the
+slave's input flush shows up as TIOCPKT_FLUSHREAD. The bytes lost are recorded as byte ranges of the
+port's full stream (metadata ``daq_gaps`` / ``gps_gaps``, ``START:LENGTH;...``), so the stream actually
+delivered is the simulated one minus those ranges.
+
+Corruption: ``corrupt`` > 0 replaces that fraction of the bytes of both streams with other values
+(``corrupt_stream``: deterministic from the seed and the port, so a test can redo it and know every
+corrupted position); metadata ``daq_corrupt_bytes`` / ``gps_corrupt_bytes`` count them.
 """
 from __future__ import annotations
 
@@ -44,6 +55,19 @@ from tools.sim import simulate, trajectory
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
+TIOCPKT_FLUSHREAD = 0x01
+
+
+def corrupt_stream(data: bytes, fraction: float, seed: int, port: str) -> tuple[bytes, np.ndarray]:
+    """``data`` with round(fraction * len) bytes, at random distinct positions, each XORed with a random
+    non-zero value (so it really changes); also returns the sorted positions. Deterministic from
+    ``seed`` and ``port``."""
+    rng = np.random.default_rng([seed, PORTS.index(port), 0xC0])
+    b = np.frombuffer(data, np.uint8).copy()
+    pos = np.sort(rng.choice(b.size, size=int(round(fraction * b.size)), replace=False))
+    b[pos] ^= rng.integers(1, 256, pos.size, dtype=np.uint8)
+    return b.tobytes(), pos
 
 
 @dataclass
@@ -79,11 +103,16 @@ class _Port:
     pending: bytearray = field(default_factory=bytearray)
     sent: bytearray = field(default_factory=bytearray)
     lost_bytes: int = 0
+    gaps: list[tuple[int, int]] = field(default_factory=list)   # (offset in the full stream, length) lost
+    corrupt_bytes: int = 0
+    wait_reader: bool = False           # bytes are lost until the reader has opened (flushed) the port
 
-    def open(self, link_dir: Path | None) -> None:
+    def open(self, link_dir: Path | None, wait_reader: bool = False) -> None:
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)          # no echo, no CR/LF translation, no line buffering
         os.set_blocking(self.master, False)
+        fcntl.ioctl(self.master, TIOCPKT, (1).to_bytes(4, sys.byteorder))
+        self.wait_reader = wait_reader
         self.path = os.ttyname(self.slave)
         if link_dir is not None:
             tmp = link_dir / f".{self.name}.tmp"
@@ -97,6 +126,40 @@ class _Port:
                 os.close(fd)
         self.master = self.slave = -1
 
+    def unplug(self, link_dir: Path | None) -> None:
+        """Close the pty: what the reader has not read yet and what waits here is lost."""
+        unread = self.unread()
+        del self.sent[len(self.sent) - unread:]
+        self.lose(unread + len(self.pending))
+        self.pending.clear()
+        self.close()
+        if link_dir is not None:
+            (link_dir / self.name).unlink(missing_ok=True)
+
+    def lose(self, n: int) -> None:
+        """The next ``n`` bytes of the stream (after those sent) are lost."""
+        if n <= 0:
+            return
+        start = len(self.sent)
+        if self.gaps and sum(self.gaps[-1]) == start + self.lost_bytes:
+            self.gaps[-1] = (self.gaps[-1][0], self.gaps[-1][1] + n)
+        else:
+            self.gaps.append((start + self.lost_bytes, n))
+        self.lost_bytes += n
+
+    def reader_opened(self) -> bool:
+        """True once the reader has flushed its input, which pyserial does on open (packet mode status)."""
+        if not self.wait_reader:
+            return True
+        while select.select([self.master], [], [], 0)[0]:
+            try:
+                pkt = os.read(self.master, 4096)
+            except OSError:
+                return False
+            if pkt and pkt[0] & TIOCPKT_FLUSHREAD:
+                self.wait_reader = False
+        return not self.wait_reader
+
     def unread(self) -> int:
         """Bytes written to the master that the reader has not read yet."""
         buf = fcntl.ioctl(self.slave, termios.FIONREAD, b"\0\0\0\0")
@@ -108,9 +171,11 @@ class Server:
 
     def __init__(self, scenario: str, duration_s: float | None, seed: int, speed: float = 1.0,
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
-                 link_dir: str | Path | None = None) -> None:
+                 link_dir: str | Path | None = None, corrupt: float = 0.0) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
+        if not 0 <= corrupt < 1:
+            raise ValueError(f"--corrupt {corrupt}: must be in [0, 1)")
         sc = trajectory.load_scenario(scenario)
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
         sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()})
@@ -123,7 +188,16 @@ class Server:
         self.ports = {}
         for name in PORTS:
             rs = [r for r in reads if r.port == name]
-            self.ports[name] = _Port(name, np.array([(r.mono_ns - m0) / NS for r in rs]), [r.data for r in rs])
+            data = [r.data for r in rs]
+            n_corrupt = 0
+            if corrupt > 0:
+                whole, pos = corrupt_stream(b"".join(data), corrupt, seed, name)
+                ends = np.cumsum([len(d) for d in data])
+                data = [whole[e - len(d):e] for d, e in zip(data, ends)]
+                n_corrupt = pos.size
+            self.ports[name] = _Port(name, np.array([(r.mono_ns - m0) / NS for r in rs]), data,
+                                     corrupt_bytes=n_corrupt)
+        self.corrupt = corrupt
         self.unplug = sorted(unplug or [], key=lambda u: u.start_s)
         self.link_dir = Path(link_dir) if link_dir else None
         self.stop = threading.Event()
@@ -170,18 +244,16 @@ class Server:
         """Queue the reads due by ``t_s`` and write what the pty takes; False once the port has nothing left."""
         j = int(np.searchsorted(p.t_s, t_s, side="right"))
         u = self._unplugged(p.name, t_s)
-        if u is not None:
-            if p.master >= 0:
-                log(f"{p.name} unplugged for {u.length_s:g} s")
-                p.lost_bytes += len(p.pending)
-                p.pending.clear()
-                p.close()
-            p.lost_bytes += sum(len(d) for d in p.data[p.next_read:j])
-            p.next_read = j
-            return True
-        if p.master < 0:
-            p.open(self.link_dir)
+        if u is not None and p.master >= 0:
+            log(f"{p.name} unplugged for {u.length_s:g} s")
+            p.unplug(self.link_dir)
+        elif u is None and p.master < 0:
+            p.open(self.link_dir, wait_reader=True)
             log(f"{p.name} back as {p.path}")
+        if u is not None or not p.reader_opened():
+            p.lose(sum(len(d) for d in p.data[p.next_read:j]))
+            p.next_read = j
+            return p.next_read < len(p.data)
         if j > p.next_read:
             p.pending += b"".join(p.data[p.next_read:j])
             p.next_read = j
@@ -205,6 +277,9 @@ class Server:
                 "daq_bytes": str(len(d.sent)), "daq_frames": str(len(d.sent) // daq.FRAME_SIZE),
                 "daq_lost_bytes": str(d.lost_bytes), "gps_bytes": str(len(g.sent)),
                 "nmea_lines": str(bytes(g.sent).count(b"\n")), "gps_lost_bytes": str(g.lost_bytes),
+                "daq_gaps": ";".join(f"{a}:{n}" for a, n in d.gaps),
+                "gps_gaps": ";".join(f"{a}:{n}" for a, n in g.gaps), "corrupt": repr(self.corrupt),
+                "daq_corrupt_bytes": str(d.corrupt_bytes), "gps_corrupt_bytes": str(g.corrupt_bytes),
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
                 "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode}
 
@@ -223,10 +298,10 @@ class Server:
 
 def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_mode: str | None = None,
           truth: str | None = None, unplug: list[Unplug] | None = None, link_dir: str | None = None,
-          hold: bool = False) -> int:
+          hold: bool = False, corrupt: float = 0.0) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first)."""
-    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir)
+    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt)
     go = threading.Event()
     if not hold:
         go.set()

@@ -1,0 +1,175 @@
+"""``fieldlog acquire`` riding through faults, as a real subprocess against ``fieldlog sim --serve`` ptys:
+corrupt bytes, a port unplugged and replugged, and time sync at ``--speed 20`` with ``--time-scale 20``."""
+from __future__ import annotations
+
+import resource
+import signal
+from pathlib import Path
+
+import numpy as np
+
+from acquire import daq
+from acquire.daemon import is_finished
+from replay import reader
+from test_daemon import raw_stream, run, start_daemon
+from test_serve import expected_bytes, start_serve
+from tools.rebuild import read_metadata, read_metadata_records
+from tools.sim.serve import PORTS, corrupt_stream
+
+SPEED = 20
+FRAME_NS = 2_000_000
+LOCKED = 2
+
+
+def record(tmp_path: Path, *serve_args: str, duration: float, seed: int,
+           daemon_args: tuple[str, ...] = ()) -> tuple[Path, Path, str]:
+    """Serve a figure8 drive at x20 to a running daemon, stop both; returns the one drive file, the truth file
+    and the daemon's log."""
+    truth = tmp_path / "truth.mcap"
+    serve, paths = start_serve("--scenario", "figure8", "--duration", str(duration), "--seed", str(seed),
+                               "--speed", str(SPEED), "--hold", "--truth", str(truth), *serve_args)
+    links = tmp_path / "ports" if "--link-dir" in serve_args else None
+    if links is not None:
+        paths = {p: str(links / p) for p in PORTS}
+    try:
+        d, _ = start_daemon(tmp_path / "drives", paths, "--time-scale", str(SPEED), *daemon_args)
+        serve.send_signal(signal.SIGUSR1)
+        assert serve.wait(60) == 0                  # the drive ended and the daemon drained the ptys
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+    d.send_signal(signal.SIGTERM)
+    code, log = d.wait(30), d.stderr.read()
+    assert code == 0, log
+    (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
+    assert is_finished(f)
+    return f, truth, log
+
+
+def sentences(path: Path) -> list[str]:
+    """The /gps/nmea sentence texts, in log-time order."""
+    return [m.sentence for m in reader.read_topic(path, "/gps/nmea")["msgs"]]
+
+
+def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame_recorded(tmp_path: Path) -> None:
+    f, truth, _ = record(tmp_path, "--corrupt", "0.01", duration=20, seed=7)
+    clean = expected_bytes(truth, "figure8", 20.0, 7)
+    sent = {p: corrupt_stream(clean[p], 0.01, 7, p) for p in PORTS}
+    meta = read_metadata(truth)["serve"]
+    for p in PORTS:
+        assert int(meta[f"{p}_corrupt_bytes"]) == sent[p][1].size == round(0.01 * len(clean[p]))
+        assert raw_stream(f, p)[0] == sent[p][0]        # every byte as sent, corrupt ones included
+    # DAQ: the counters follow from where the corrupt bytes fell
+    pos = sent["daq"][1]
+    n = len(clean["daq"]) // daq.FRAME_SIZE
+    bad = np.zeros(n, bool)
+    bad[pos // daq.FRAME_SIZE] = True
+    intact = np.flatnonzero(~bad)
+    sync_hit = np.zeros(n, bool)
+    sync_hit[pos[pos % daq.FRAME_SIZE < 2] // daq.FRAME_SIZE] = True
+    # a bad frame right after a good one is a bad CRC when its sync bytes survived (else a resync scan)
+    want_bad_crc = int((bad[1:] & ~bad[:-1] & ~sync_hit[1:]).sum())
+    # a resync is counted when the next good frame is not the one right after the lost one: runs of >= 2
+    # bad frames between good ones
+    edges = np.diff(np.concatenate(([0], bad.astype(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    inner = (starts > 0) & (ends < n)
+    want_resyncs = int(((ends - starts)[inner] >= 2).sum())
+    c = read_metadata(f)["acquire.counters"]
+    assert 0.25 * n < bad.sum() < 0.4 * n                      # 1 - 0.99**38 of the frames
+    assert int(c["daq.frames"]) == intact.size
+    assert int(c["daq.lost_frames"]) == intact[-1] - intact[0] + 1 - intact.size
+    assert int(c["daq.bad_crc"]) == want_bad_crc > 0
+    assert int(c["daq.resyncs"]) == want_resyncs > 0
+    # every intact frame is on /imu, in order, with its own sample's stamp (sync locks at x20 with the scale)
+    imu = reader.read_topic(f, "/imu")
+    tru = reader.read_topic(truth, "/truth/imu")
+    assert len(imu["log_time_ns"]) == intact.size
+    assert np.array_equal(np.round(np.diff(imu["log_time_ns"]) / FRAME_NS).astype(np.int64), np.diff(intact))
+    assert np.abs(imu["log_time_ns"] - tru["log_time_ns"][intact]).max() < 3_000_000
+    assert np.sqrt(np.mean((imu["omega_ib_b"] - tru["omega_ib_b"][intact])[:, 2] ** 2)) < 0.01
+    assert LOCKED in reader.read_topic(f, "/time/sync")["state"]       # (PPS flags in corrupt frames are lost)
+    # NMEA: corrupt lines are counted and dropped; every line whose text and CR are intact is recorded (a
+    # corrupt LF alone leaves the line ended by its CR)
+    text = bytes(clean["gps"])
+    lines = text.split(b"\r\n")[:-1]
+    starts_g = np.cumsum([0] + [len(x) + 2 for x in lines[:-1]])
+    hit = np.zeros(len(text), bool)
+    hit[sent["gps"][1]] = True
+    ok = [not hit[s:s + len(x) + 1].any() for s, x in zip(starts_g, lines)]
+    got = sentences(f)
+    intact_lines = [x.decode() for x, o in zip(lines, ok) if o]
+    assert set(intact_lines) <= set(got) <= {x.decode() for x in lines}
+    assert len(got) - len(intact_lines) <= ok.count(False)
+    assert 0 < int(c["nmea.bad_checksum"]) <= ok.count(False)
+
+
+def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_path: Path) -> None:
+    # the DAQ pty disappears 20 s into the drive for 60 simulated s (3 s at x20) and comes back as a new pty.
+    # (PPS latch: a sampled flag's rate fit over the 40 s around a 60 s hole is too coarse for a few ms.)
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text('[timesync]\npps_mode = "latch"\n')
+    f, truth, log = record(tmp_path, "--unplug", "daq:20:60", "--link-dir", str(tmp_path / "ports"),
+                           "--pps", "latch", duration=120, seed=3, daemon_args=("--config", str(cfg)))
+    assert "daq port lost" in log and "daq port back" in log
+    clean = expected_bytes(truth, "figure8", 120.0, 3)
+    meta = read_metadata(truth)["serve"]
+    (gap,) = meta["daq_gaps"].split(";")
+    a, n_gap = map(int, gap.split(":"))
+    assert 59 * 500 * daq.FRAME_SIZE < n_gap < 80 * 500 * daq.FRAME_SIZE      # + until the daemon reopened
+    assert meta["gps_gaps"] == "" and meta["completed"] == "True"
+    # everything the port delivered before and after the gap is recorded, in order; the GPS lost nothing
+    got, mono = raw_stream(f, "daq")
+    assert got == clean["daq"][:a] + clean["daq"][a + n_gap:]
+    assert raw_stream(f, "gps")[0] == clean["gps"]
+    # the gap is in the drive: a lost and a back record, and no DAQ read between them
+    events = [d for name, d in read_metadata_records(f) if name == "acquire.port_event"]
+    # (both ports are lost again at the end, when sim --serve exits)
+    assert [(e["port"], e["event"]) for e in events[:2]] == [("daq", "lost"), ("daq", "back")]
+    assert sorted((e["port"], e["event"]) for e in events[2:]) == [("daq", "lost"), ("gps", "lost")]
+    lost, back = (int(e["mono_ns"]) for e in events[:2])
+    assert not np.any((mono > lost) & (mono < back))
+    assert np.any(mono < lost) and np.any(mono > back)
+    info = run("info", str(f))
+    assert info.returncode == 0 and "port=daq, event=lost" in info.stdout and "port=daq, event=back" in info.stdout
+    # every whole frame outside the gap is decoded, and time sync carries on across it
+    n = len(clean["daq"]) // daq.FRAME_SIZE
+    start = np.arange(n) * daq.FRAME_SIZE
+    whole = (start + daq.FRAME_SIZE <= a) | (start >= a + n_gap)
+    c = read_metadata(f)["acquire.counters"]
+    assert int(c["port.daq.disconnects"]) == 2 and int(c["port.gps.disconnects"]) == 1
+    assert int(c["daq.frames"]) == whole.sum() and int(c["daq.lost_frames"]) == n - whole.sum()
+    assert int(c["nmea.lines"]) == clean["gps"].count(b"\n") and int(c["nmea.bad_checksum"]) == 0
+    imu = reader.read_topic(f, "/imu")
+    tru = reader.read_topic(truth, "/truth/imu")
+    assert len(imu["log_time_ns"]) == whole.sum()
+    assert np.abs(imu["log_time_ns"] - tru["log_time_ns"][whole]).max() < 3_000_000
+    assert reader.read_topic(f, "/time/sync")["state"][-1] == LOCKED
+
+
+def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -> None:
+    """ENOSPC cannot be provoked here (no tmpfs to fill); RLIMIT_FSIZE gives EFBIG at the limit, which the
+    daemon handles exactly as a full disk."""
+    limit = 600_000
+    out = tmp_path / "drives"
+    truth = tmp_path / "truth.mcap"
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "120", "--seed", "2", "--speed", "20", "--hold",
+                               "--truth", str(truth))
+    try:
+        d, _ = start_daemon(out, paths, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+        serve.send_signal(signal.SIGUSR1)
+        code, log = d.wait(60), d.stderr.read()
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        serve.wait(10)
+    assert code == 1, log
+    assert "Traceback" not in log and "Exception" not in log
+    (err,) = [line for line in log.splitlines() if "error:" in line]
+    (f,) = sorted(out.glob("*.mcap"))
+    assert f"file size limit (EFBIG) writing {f}: recording stopped" in err and "fieldlog recover" in err
+    assert not is_finished(f) and f.stat().st_size <= limit
+    r = run("recover", str(f), "--out", str(tmp_path / "rescued.mcap"))
+    assert r.returncode == 0, r.stderr
+    got, _ = raw_stream(tmp_path / "rescued.mcap", "daq")
+    assert len(got) > 100 * daq.FRAME_SIZE
+    assert got == expected_bytes(truth, "figure8", 120.0, 2)["daq"][:len(got)]    # what it kept is intact
