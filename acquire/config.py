@@ -37,9 +37,12 @@ import datetime as _dt
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from acquire import timesync
+if TYPE_CHECKING:
+    from acquire import timesync
+
+T = TypeVar("T")
 
 # termios rates pyserial can set on Linux; anything else is a typo.
 STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
@@ -49,6 +52,16 @@ NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
 
 class ConfigError(ValueError):
     """A bad configuration; the message names the key."""
+
+
+def from_table(cls: type[T], table: str, d: dict[str, Any]) -> T:
+    """Dataclass ``cls`` from the TOML table ``[table]``; an unknown key raises ConfigError naming it.
+    Value checks are the dataclass's own (``__post_init__``)."""
+    known = {f.name for f in fields(cls)}
+    bad = sorted(set(d) - known)
+    if bad:
+        raise ConfigError(f"[{table}] {', '.join(bad)}: unknown key; known keys: {', '.join(sorted(known))}")
+    return cls(**d)
 
 
 @dataclass
@@ -91,7 +104,9 @@ class AcquireConfig:
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
-    def sync_config(self) -> timesync.TimeSyncConfig:
+    def sync_config(self) -> "timesync.TimeSyncConfig":
+        from acquire import timesync
+
         return timesync.TimeSyncConfig.from_dict(self.timesync)
 
 

@@ -44,12 +44,14 @@ from __future__ import annotations
 import math
 from bisect import bisect_left, bisect_right, insort
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
 import numpy as np
 from scipy.stats import theilslopes
+
+from acquire.config import from_table
 
 
 class SyncState(IntEnum):
@@ -104,11 +106,7 @@ class TimeSyncConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TimeSyncConfig":
-        known = {f.name for f in fields(cls)}
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"[timesync]: unknown key(s) {bad}; known keys: {sorted(known)}")
-        return cls(**d)
+        return from_table(cls, "timesync", d)
 
 
 @dataclass

@@ -150,6 +150,7 @@ def test_urban_outages_are_in_the_data(tmp_path):
     t = (fix["stamp_ns"] - fix["stamp_ns"][0]) / 1e9
     no_fix = fix["status"] < 0
     assert no_fix.sum() >= 40                      # the 45 s underpass at 212 s
+    assert np.all((t[no_fix] > 210) & (t[no_fix] < 259))
     assert np.all(np.isnan(fix["lat_deg"][no_fix]))
     assert drive_info(path).timing.rms_us < 300    # PPS keeps going in the tunnel; a short drive: edge effects
 

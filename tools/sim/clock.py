@@ -8,10 +8,12 @@ sample's clock edge (a timer capture), so k_edge = k - 1 + latch / 65536 is 15 n
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from acquire.config import from_table
 
 
 @dataclass
@@ -37,11 +39,7 @@ class ClockConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ClockConfig":
-        known = {f.name for f in fields(cls)}
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"[clock]: unknown key(s) {bad}; known keys: {sorted(known)}")
-        return cls(**d)
+        return from_table(cls, "clock", d)
 
     def first_second(self) -> float:
         """True time (s since start) of the first whole UTC second after the drive start."""

@@ -6,13 +6,14 @@ acquisition pipeline then processes those reads; nothing downstream sees the tru
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
 
 from acquire import nmea
+from acquire.config import from_table
 from acquire.pipeline import RawRead
 from fusion import earth
 
@@ -43,11 +44,7 @@ class GpsConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GpsConfig":
-        known = {f.name for f in fields(cls)}
-        bad = sorted(set(d) - known)
-        if bad:
-            raise ValueError(f"[gps]: unknown key(s) {bad}; known keys: {sorted(known)}")
-        return cls(**d)
+        return from_table(cls, "gps", d)
 
     def windows(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per time: (fix available, noise factor) from the outage and degraded windows."""

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from acquire.calib import G0, Calibration, SensorTriadCal, to_counts
+from acquire.config import from_table
 
 _DEG = math.pi / 180.0
 _UG = 1e-6 * G0
@@ -88,11 +89,7 @@ class ImuErrorConfig:
     @classmethod
     def from_dict(cls, d: dict) -> ImuErrorConfig:
         """Build from a scenario's [imu] TOML table; unknown keys raise ValueError naming them."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"[imu] unknown key(s) {unknown}; allowed: {sorted(known)}")
-        return cls(**d)
+        return from_table(cls, "imu", d)
 
 
 def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, float]:
