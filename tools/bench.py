@@ -163,8 +163,58 @@ def bench_allan(runs: int, tmp: Path) -> None:
     print("  accel bias instab." + " ".join(f"{v / cfg.accel_bias_instability_ug:6.3f}" for v in a["bias_instability_ug"]))
 
 
+def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
+    """fieldlog acquire against sim --serve ptys: 10 min at real speed, then x20; loss, timing, CPU."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from acquire.timesync import SyncState
+    from replay import reader
+    from tools.rebuild import read_metadata
+
+    def one(speed: float, duration: float) -> None:
+        out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
+        cli = [sys.executable, "-m", "tools.cli"]
+        serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration),
+                                  "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        paths = dict(serve.stdout.readline().split() for _ in range(2))
+        extra = ["--time-scale", str(speed)] if speed != 1 else []
+        d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
+                              "--quiet", *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        while "recording" not in (line := d.stderr.readline()):
+            assert line, "the daemon exited early"
+        serve.send_signal(signal.SIGUSR1)
+        serve.wait()
+        d.send_signal(signal.SIGTERM)
+        _, status, usage = os.wait4(d.pid, 0)
+        d.returncode = os.waitstatus_to_exitcode(status)
+        cpu = usage.ru_utime + usage.ru_stime
+        sent = read_metadata(truth)["serve"]
+        files = sorted(out.glob("*.mcap"))
+        counters = read_metadata(files[-1])["acquire.counters"]
+        imu = np.concatenate([reader.read_topic(f, "/imu")["log_time_ns"] for f in files])
+        state = np.concatenate([reader.read_topic(f, "/time/sync")["state"] for f in files])
+        tru = reader.read_topic(truth, "/truth/imu")["log_time_ns"]
+        lost_frames = int(sent["daq_frames"]) - int(counters["daq.frames"])
+        lost_lines = int(sent["nmea_lines"]) - int(counters["nmea.lines"])
+        line = (f"x{speed:<4g} {duration:5.0f} s of data: lost DAQ frames {lost_frames}, lost NMEA lines {lost_lines}, "
+                f"daemon CPU {cpu:.1f} s = {100 * cpu * speed / duration:.1f} % of one core")
+        if speed == 1 and len(imu) == len(tru):
+            # at real speed the serve process sets the drive start to 'now', so stamps compare with truth directly
+            locked = np.searchsorted(imu, imu[0]) if (state == SyncState.LOCKED).any() else 0
+            err = (imu[locked:] - tru[locked:]) / 1e3
+            line += f", timestamp RMS vs truth {np.sqrt(np.mean(err ** 2)):.1f} us"
+        print(line)
+
+    one(1.0, duration_s)
+    one(20.0, 120.0)
+
+
 BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan}
+           "allan": bench_allan, "daemon": bench_daemon}
 
 
 def main() -> None:
