@@ -27,6 +27,13 @@ is above ``max_fix_sigma_m``, or it falls in a forced window (``outages``, secon
 sample). Detected windows run from the first unusable epoch to the next usable one. A fix without
 height (NaN altitude: the GGA of that second was lost) updates the horizontal position only.
 
+Predictors (``rbfn``, ``tdln``, ``dkf-rbfn``; ``fusion.predictors`` for the mapping of the paper onto
+this closed loop): the distributed filter runs as in ``dkf``. At each usable epoch the predictor is given
+the INS position (ENU m from the alignment point) and velocity before the correction, and its target:
+the observation z = INS - GPS (``rbfn``, ``tdln``) or the position and velocity components of the
+correction fed back (``dkf-rbfn``). At each unusable or withheld epoch after the networks have enough
+training, the predicted correction is fed into the INS; the error state and covariance are untouched.
+
 Smoothing: given a ``log`` (``fusion.smoother.SmootherLog``) the engine records, per covariance cycle,
 Phi and the predicted covariance, and at each update the correction fed back and the covariance after
 it (the covariance is then propagated one cycle per call, to capture each P).
@@ -43,14 +50,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion import earth, errmodel, ins, kf
+from fusion import earth, errmodel, ins, kf, predictors
 from fusion.dkf import DistributedKF
-from fusion.errmodel import BA, BG
+from fusion.errmodel import BA, BG, N_STATES, POS, VEL
 
 if TYPE_CHECKING:
     from fusion.smoother import SmootherLog
 
-METHODS = ("ins", "kf", "dkf")
+METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn")
+PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
 NS = 1_000_000_000
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
@@ -79,6 +87,7 @@ class FusionConfig:
     vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
     max_fix_sigma_m: float = 30.0
     outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
+    predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
 
     def noise_psd(self) -> np.ndarray:
         return errmodel.noise_psd(self.gyro_noise_dps_rthz * _DEG, self.accel_noise_ug_rthz * _UG,
@@ -154,7 +163,7 @@ class _Static:
 
 
 class Engine:
-    """One fusion run (method ``ins``, ``kf`` or ``dkf``) over a stream of blocks."""
+    """One fusion run (a method of ``METHODS``) over a stream of blocks."""
 
     def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
         """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
@@ -171,6 +180,10 @@ class Engine:
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
         self.updates = 0
+        self.predicted = 0  # outage epochs bridged by a predicted correction
+        self.predictor = (predictors.OutagePredictor(PREDICTOR_NETWORK[method], self.cfg.predictor)
+                          if method in PREDICTOR_NETWORK else None)
+        self._origin: tuple[float, float, float] | None = None  # lat, lon, h of the alignment point
         self._carry: tuple[int, np.ndarray, np.ndarray] | None = None  # last sample: t_ns, omega, f (raw)
         self._gps: list[dict] = []  # epochs not yet reached by the IMU
         self._sigma = np.zeros(9)
@@ -310,23 +323,33 @@ class Engine:
         P0 = np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
                                      [sd_level ** 2, sd_level ** 2, sd_head ** 2], np.full(3, sd_bg ** 2),
                                      np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
-        self.filter = DistributedKF(P0, self.q) if self.method == "dkf" else kf.KalmanFilter(P0, self.q)
+        self._origin = (self.nav.lat, self.nav.lon, self.nav.h)
+        distributed = self.method == "dkf" or self.predictor is not None
+        self.filter = DistributedKF(P0, self.q) if distributed else kf.KalmanFilter(P0, self.q)
         self._sigma = _sigmas(np.diag(P0))
         if self.log is not None:
             self.log.start(t_k_ns, self.filter.covariance)
 
     def _epoch(self, ep: dict, omega_k: np.ndarray) -> None:
-        """GPS epoch at the current sample: update, feed back, reset."""
+        """GPS epoch at the current sample: update, feed back, reset; in an outage, the predicted correction."""
         usable = self._classify(ep)
         if usable:
             self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
-        if not usable or self.method == "ins":
+        if self.method == "ins":
+            return
+        if not usable:
+            if self.predictor is not None:
+                self._bridge()
             return
         t_g = (ep["t_ns"] - self.t_ref_ns) * 1e-9
         pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
         vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
+        u = self._predictor_input() if self.predictor is not None else None
         self.filter.update_gps(vel, pos)
         x = self.filter.state
+        if self.predictor is not None:
+            y = np.concatenate([x[POS], x[VEL]]) if self.method == "dkf-rbfn" else _observation(pos, vel)
+            self.predictor.train(t_g, u, y)
         if self.log is not None:
             self.log.update(x.copy(), self.filter.covariance.copy())
         self.nav = kf.correct_ins(self.nav, x)
@@ -335,6 +358,23 @@ class Engine:
         self.filter.reset()
         self._sigma = _sigmas(np.diag(self.filter.covariance))
         self.updates += 1
+
+    def _predictor_input(self) -> np.ndarray:
+        """INS position (ENU m from the alignment point) and velocity (ENU m/s), (6,)."""
+        r = kf.enu_offset(self.nav.lat, self.nav.lon, self.nav.h, *self._origin)
+        return np.concatenate([r, self.nav.v_n])
+
+    def _bridge(self) -> None:
+        """Outage epoch: feed the predicted position and velocity correction into the INS."""
+        d = np.nan_to_num(self.predictor.predict(self._predictor_input()))  # a channel without a model: none
+        if not d.any():
+            return
+        x = np.zeros(N_STATES)
+        x[POS], x[VEL] = d[:3], d[3:]
+        self.nav = kf.correct_ins(self.nav, x)
+        if self.log is not None:
+            self.log.update(x, self.filter.covariance.copy())
+        self.predicted += 1
 
     # -- INS and covariance between epochs ------------------------------------------------------------
 
@@ -390,6 +430,15 @@ class Engine:
 
 def _sigmas(diag: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.asarray(diag)[..., :9], 0.0))
+
+
+def _observation(pos: kf.Measurement, vel: kf.Measurement | None) -> np.ndarray:
+    """z = INS - GPS as (6,): position E, N, U (m), velocity E, N, U (m/s); NaN for a component not measured."""
+    out = np.full(6, np.nan)
+    for m, cols, at in ((pos, POS, 0), (vel, VEL, 3)):
+        if m is not None and len(m[0]):
+            out[at + np.argmax(np.abs(m[1][:, cols]), axis=1)] = m[0]
+    return out
 
 
 def _epochs(g: GpsBlock) -> list[dict]:

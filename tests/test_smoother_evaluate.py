@@ -74,8 +74,8 @@ def test_evaluate_writes_tables_and_kf_beats_ins(drive, tmp_path):
     assert len(list((rep / "fused").glob("*.mcap"))) == 3
 
 
-def test_evaluate_names_the_methods_not_implemented(drive, tmp_path, capsys):
-    assert cli_main(["evaluate", str(drive), "--methods", "kf,rbfn,dkf-rbfn", "--report", str(tmp_path)]) == 2
+def test_evaluate_names_the_unknown_methods(drive, tmp_path, capsys):
+    assert cli_main(["evaluate", str(drive), "--methods", "kf,rbf,dkf-rbfn,ukf", "--report", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "not implemented yet: rbfn, dkf-rbfn" in err
+    assert "unknown method(s): rbf, ukf" in err
     assert not (tmp_path / "table.md").exists()

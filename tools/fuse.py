@@ -1,4 +1,4 @@
-"""``fieldlog fuse DRIVE --method ins|kf|dkf [--outage START:LEN ...] --out FUSED.mcap``.
+"""``fieldlog fuse DRIVE --method ins|kf|dkf|rbfn|tdln|dkf-rbfn [--outage START:LEN ...] --out FUSED.mcap``.
 
 Streams the drive in blocks (``replay.reader.iter_blocks``: vectorised decode, no per-message Python on the
 IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md:
@@ -43,6 +43,7 @@ class FuseResult:
     updates: int
     outages: int
     imu_samples: int
+    predicted: int = 0  # outage epochs bridged by a predictor (rbfn, tdln, dkf-rbfn)
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -143,4 +144,4 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
             _write(rec, method, smooth_solution(Solution.concat(kept), log))
     if progress:
         progress(1.0)
-    return FuseResult(Path(out), method, rows, engine.updates, outages, n_imu)
+    return FuseResult(Path(out), method, rows, engine.updates, outages, n_imu, engine.predicted)
