@@ -161,6 +161,36 @@ def cmd_demo(a: argparse.Namespace) -> int:
     return 0
 
 
+
+def cmd_view(a: argparse.Namespace) -> int:
+    from replay.view import view
+
+    t0 = time.monotonic()
+    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"))
+    if res.rrd is None:
+        print(f"sent {a.drive} to the rerun viewer")
+        return 0
+    size = res.rrd.stat().st_size
+    print(f"wrote {res.rrd} ({size / 1e6:.1f} MB) in {time.monotonic() - t0:.1f} s: {res.gps_fixes} GPS fixes "
+          f"({res.no_fix} epochs without fix), {res.imu_rows} IMU rows (decimated), methods: "
+          f"{', '.join(res.methods) or 'none'}, {res.outages} outage windows\nOpen it with:  .venv/bin/rerun {res.rrd}")
+    return 0
+
+
+def cmd_export(a: argparse.Namespace) -> int:
+    from replay.export import export
+
+    topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
+    t0 = time.monotonic()
+    try:
+        written = export(a.drive, a.out, a.format, topics, progress=Progress("export"))
+    except KeyError as e:
+        raise ValueError(e.args[0]) from None
+    for topic, (path, rows) in written.items():
+        print(f"  {topic:<24} {rows:>9} rows  {path}")
+    print(f"wrote {len(written)} tables to {a.out} in {time.monotonic() - t0:.1f} s")
+    return 0
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay")
     sub = p.add_subparsers(dest="command", required=True)
@@ -222,7 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("fuse", help="run one fusion method over a drive and write its solution")
     s.add_argument("drive")
-    s.add_argument("--method", choices=["ins", "kf", "dkf"], default="kf")
+    s.add_argument("--method", choices=["ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn"], default="kf")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help="force a GPS outage, seconds from the first IMU sample (repeatable)")
     s.add_argument("--out", required=True, help="output MCAP")
@@ -232,13 +262,26 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
     s.add_argument("drive", nargs="*", help="drives (MCAP); none with --seeds")
     s.add_argument("--outages", default="30,60", help="outage lengths, s, comma separated")
-    s.add_argument("--methods", default="ins,kf,dkf", help="comma separated: ins, kf, dkf")
+    s.add_argument("--methods", default="ins,kf,dkf", help="comma separated: ins, kf, dkf, rbfn, tdln, dkf-rbfn")
     s.add_argument("--report", required=True, help="output directory (table.md, table.csv, fused/)")
     s.add_argument("--seeds", type=int, default=0, help="also simulate this many drives (seeds 1..N) into DIR/drives")
     s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
     s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
     s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
     s.set_defaults(func=cmd_evaluate)
+
+    s = sub.add_parser("view", help="show a drive and fused solutions in rerun, or write an .rrd")
+    s.add_argument("drive")
+    s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods)")
+    s.add_argument("--rrd", default=None, help="write this .rrd instead of opening the viewer")
+    s.set_defaults(func=cmd_view)
+
+    s = sub.add_parser("export", help="one Parquet or CSV table per topic, through polars")
+    s.add_argument("drive")
+    s.add_argument("--out", required=True, help="output directory (DIR/<topic>.parquet)")
+    s.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
+    s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("demo", help="simulate a drive and show what it holds")
     s.add_argument("--out", default="out/demo")

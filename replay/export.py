@@ -1,0 +1,186 @@
+"""A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE --out DIR``.
+
+One table per topic, rows in ``log_time`` order (one row per MCAP message). Written as
+``DIR/<topic>.parquet`` (or ``.csv``), the topic's path kept: ``/gps/fix`` -> ``DIR/gps/fix.parquet``,
+``/fusion/kf/std`` -> ``DIR/fusion/kf/std.parquet``.
+
+Columns. Every table starts with ``log_time_ns`` (int64, the MCAP log time: UTC ns for derived topics, host
+wall clock for ``/raw/*``; see docs/data-model.md), ``stamp_ns`` (int64, ``header.stamp`` in ns) and
+``valid`` (bool, False for a payload that could not be decoded; its other columns are then 0 / null).
+Units and frames are those of docs/data-model.md (SI, ENU, body right-forward-up).
+
+==============================  ====================================================================================
+type                            further columns
+==============================  ====================================================================================
+``sensor_msgs/Imu``             ``omega_ib_b_x/y/z`` rad/s, ``f_b_x/y/z`` m/s^2 (specific force),
+                                ``orientation_x/y/z/w``, ``gyro_cov``, ``accel_cov``, ``orientation_cov`` (9 each)
+``sensor_msgs/NavSatFix``       ``lat_deg``, ``lon_deg``, ``alt_m`` (ellipsoidal), ``position_covariance`` (9, ENU m^2,
+                                row-major), ``covariance_type``, ``status`` (-1 = no fix), ``service``
+``TwistWithCovarianceStamped``  ``v_east``, ``v_north``, ``v_up`` m/s, ``omega_x/y/z`` rad/s, ``covariance`` (36)
+``QuaternionStamped``           ``q_x``, ``q_y``, ``q_z``, ``q_w`` (body RFU -> ENU)
+``Vector3Stamped``              ``x``, ``y``, ``z`` (``/fusion/<m>/std``: position sigma E, N, U in m)
+``sensor_msgs/TimeReference``   ``time_ref_ns`` (the GPS second the edge marks), ``source``; ``stamp_ns`` is the edge
+                                on the DAQ clock, k_edge / fs
+``TimeSyncState``               ``state`` (0 free, 1 holdover, 2 locked), ``rate_ppm``, ``residual_us``,
+                                ``edges_used``, ``edges_rejected``
+``nmea_msgs/Sentence``          ``frame_id``, ``sentence``
+``RawBytes``                    ``mono_ns`` (host monotonic at read), ``port``, ``data`` (binary)
+``Outage``                      ``start_ns``, ``end_ns`` (UTC), ``reason``
+==============================  ====================================================================================
+
+Covariances are fixed-size list columns (``pl.Array``) in Parquet. CSV cannot hold lists or bytes, so there
+each covariance becomes ``<name>_0`` ... ``<name>_8`` (or ``_35``) and ``data`` is written as hex.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import polars as pl
+from mcap.reader import make_reader
+
+from acquire import messages
+from replay import reader
+
+
+def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:
+    return {f"{prefix}{n}": a[:, i] for i, n in enumerate(names)}
+
+
+def _array(a: np.ndarray) -> pl.Series:
+    return pl.Series(values=np.ascontiguousarray(a, dtype=np.float64), dtype=pl.Array(pl.Float64, a.shape[1]))
+
+
+def _stamp(msg) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def _generic(d: dict, fields: dict[str, Callable]) -> dict[str, object]:
+    msgs = d["msgs"]
+    cols: dict[str, object] = {"stamp_ns": pl.Series([_stamp(m) if m is not None else None for m in msgs],
+                                                     dtype=pl.Int64)}
+    for name, get in fields.items():
+        cols[name] = [get(m) if m is not None else None for m in msgs]
+    return cols
+
+
+def _pps_sources(path: str | os.PathLike[str], topic: str) -> list[str | None]:
+    dec = messages.decoder_for(messages.TIMEREF)
+    out = []
+    with open(path, "rb") as f:
+        for _, _, msg in make_reader(f).iter_messages(topics=[topic], log_time_order=True):
+            try:
+                out.append(dec(msg.data).source)
+            except Exception:  # bad payload: it is already marked invalid by the batch decoder
+                out.append(None)
+    return out
+
+
+def topic_frame(path: str | os.PathLike[str], topic: str, type_name: str) -> pl.DataFrame:
+    """One topic as a DataFrame (columns: module docstring)."""
+    d = reader.read_topic(path, topic)
+    cols: dict[str, object] = {"log_time_ns": d["log_time_ns"]}
+    if type_name == messages.IMU:
+        cols["stamp_ns"] = d["stamp_ns"]
+        cols.update(_xyz("omega_ib_b_", d["omega_ib_b"]))
+        cols.update(_xyz("f_b_", d["f_b"]))
+        cols.update(_xyz("orientation_", d["orientation_xyzw"], ("x", "y", "z", "w")))
+        cols.update(gyro_cov=_array(d["gyro_cov"]), accel_cov=_array(d["accel_cov"]),
+                    orientation_cov=_array(d["orientation_cov"]))
+    elif type_name == messages.NAVSATFIX:
+        cols.update({k: d[k] for k in ("stamp_ns", "lat_deg", "lon_deg", "alt_m")})
+        cols["position_covariance"] = _array(d["position_covariance"])
+        cols.update({k: d[k] for k in ("covariance_type", "status", "service")})
+    elif type_name == messages.TWIST:
+        cols["stamp_ns"] = d["stamp_ns"]
+        cols.update(_xyz("v_", d["v_n"], ("east", "north", "up")))
+        cols.update(_xyz("omega_", d["omega"]))
+        cols["covariance"] = _array(d["covariance"])
+    elif type_name == messages.QUATERNION:
+        cols["stamp_ns"] = d["stamp_ns"]
+        cols.update(_xyz("q_", d["q_xyzw"], ("x", "y", "z", "w")))
+    elif type_name == messages.VECTOR3:
+        cols["stamp_ns"] = d["stamp_ns"]
+        cols.update(_xyz("", d["xyz"]))
+    elif type_name == messages.TIMEREF:
+        cols.update(stamp_ns=d["stamp_ns"], time_ref_ns=d["time_ref_ns"], source=_pps_sources(path, topic))
+    elif type_name == messages.TIMESYNC:
+        cols.update({k: d[k] for k in ("stamp_ns", "state", "rate_ppm", "residual_us", "edges_used",
+                                       "edges_rejected")})
+    elif type_name == messages.SENTENCE:
+        cols.update(_generic(d, {"frame_id": lambda m: m.header.frame_id, "sentence": lambda m: m.sentence}))
+    elif type_name == messages.RAWBYTES:
+        cols.update(_generic(d, {"mono_ns": lambda m: int(m.mono_ns), "port": lambda m: m.port,
+                                 "data": lambda m: bytes(m.data)}))
+        cols["mono_ns"] = pl.Series(cols["mono_ns"], dtype=pl.Int64)
+        cols["data"] = pl.Series(cols["data"], dtype=pl.Binary)
+    elif type_name == messages.OUTAGE:
+        cols.update(_generic(d, {"start_ns": lambda m: int(m.start_ns), "end_ns": lambda m: int(m.end_ns),
+                                 "reason": lambda m: m.reason}))
+        cols["start_ns"] = pl.Series(cols["start_ns"], dtype=pl.Int64)
+        cols["end_ns"] = pl.Series(cols["end_ns"], dtype=pl.Int64)
+    else:
+        raise KeyError(f"{topic}: no table layout for type {type_name!r}")
+    cols["valid"] = d["valid"]
+    return pl.DataFrame(cols)
+
+
+def _topic_types(path: str | os.PathLike[str], topics: Sequence[str] | None) -> list[tuple[str, str]]:
+    infos = reader.topics(path)
+    if topics is not None:
+        known = {t.topic for t in infos}
+        missing = [t for t in topics if t not in known]
+        if missing:
+            raise KeyError(f"not in {path}: {', '.join(missing)}")
+        infos = [t for t in infos if t.topic in topics]
+    return [(t.topic, t.type) for t in infos]
+
+
+def drive_frames(path: str | os.PathLike[str], topics: Sequence[str] | None = None) -> dict[str, pl.DataFrame]:
+    """A drive as ``{topic: DataFrame}`` (all topics, or ``topics``); columns in the module docstring."""
+    return {topic: topic_frame(path, topic, type_name) for topic, type_name in _topic_types(path, topics)}
+
+
+def csv_ready(df: pl.DataFrame) -> pl.DataFrame:
+    """Array columns -> ``<name>_<i>`` columns, binary -> hex text (CSV holds neither)."""
+    exprs = []
+    for name, dtype in df.schema.items():
+        if isinstance(dtype, pl.Array):
+            exprs += [pl.col(name).arr.get(i).alias(f"{name}_{i}") for i in range(dtype.size)]
+        elif dtype == pl.Binary:
+            exprs.append(pl.col(name).bin.encode("hex"))
+        else:
+            exprs.append(pl.col(name))
+    return df.select(exprs)
+
+
+def table_path(out: Path, topic: str, fmt: str) -> Path:
+    return out.joinpath(*topic.strip("/").split("/")).with_suffix(f".{fmt}")
+
+
+def export(path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: str = "parquet",
+           topics: Sequence[str] | None = None,
+           progress: Callable[[float], None] | None = None) -> dict[str, tuple[Path, int]]:
+    """Write one table per topic under ``out``; memory holds one topic at a time. -> {topic: (file, rows)}."""
+    if fmt not in ("parquet", "csv"):
+        raise ValueError(f"format must be parquet or csv, got {fmt!r}")
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path} does not exist")
+    out = Path(out)
+    todo = _topic_types(path, topics)
+    written: dict[str, tuple[Path, int]] = {}
+    for i, (topic, type_name) in enumerate(todo):
+        df = topic_frame(path, topic, type_name)
+        dest = table_path(out, topic, fmt)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        if fmt == "parquet":
+            df.write_parquet(dest, compression="zstd")
+        else:
+            csv_ready(df).write_csv(dest)
+        written[topic] = (dest, df.height)
+        if progress:
+            progress((i + 1) / len(todo))
+    return written

@@ -1,0 +1,502 @@
+"""``fieldlog view DRIVE.mcap [FUSED.mcap ...] [--rrd OUT.rrd]``: a drive and its fused solutions in rerun.
+
+Everything is logged on one timeline, ``gps_time`` (UTC timestamps: the MCAP ``log_time`` of the derived
+topics), with ``rr.send_columns`` in blocks; the IMU is streamed in ``IMU_BLOCK_S`` blocks, so memory does not
+grow with the 500 Hz data. A default blueprint is sent with the recording (``blueprint()``).
+
+Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>`` is ``east``, ``north``, ``up``):
+
+====================================  =============================================================================
+``map/gps``                           GeoPoints, one row per ``/gps/fix`` epoch with a fix (finite lat/lon)
+``map/truth``                         GeoPoints at 10 Hz (every ``TRUTH_DECIMATION``-th ``/truth/fix`` row)
+``map/fusion/<method>``               GeoPoints, one row per ``/fusion/<method>/fix`` message (10 Hz)
+``map/<src>/track``                   static GeoLineStrings: the whole track, so the map shows it at any time
+``map/no_fix``                        GeoPoints, one row per GPS epoch without a fix, at the last fix position
+``map/outage``                        static GeoLineStrings: the reference track (truth, else GPS) inside each
+                                      outage window of ``/fusion/outage`` (merged over all files)
+``enu/<src>``                         LineStrips3D in the local ENU frame, m (origin = first GPS fix, else the
+                                      first truth or fused position; one tangent plane for the whole drive):
+                                      row i is the segment from point i-1 to point i (row 0 degenerate), same
+                                      rows as ``map/<src>``; the 3D view shows everything up to the time
+                                      cursor, so the path grows as you scrub
+``errors/pos/<axis>/<method>``        Scalars [error, +sigma, -sigma], m: fused minus reference position (ENU);
+                                      sigma from ``/fusion/<method>/std``
+``errors/vel/<axis>/<method>``        Scalars [error, +sigma, -sigma], m/s: sigma from the ``/vel`` covariance
+``status/outage``                     Scalars 0/1 (step): 1 inside a ``/fusion/outage`` window; rows at the
+                                      drive start and at every merged window's start and end
+``status/no_fix``                     Scalars 0/1 (step), one row per ``/gps/fix`` epoch: 1 = no fix
+``imu/gyro``, ``imu/accel``           Scalars x, y, z (body RFU): rad/s and m/s^2, DECIMATED by means of
+                                      ``IMU_DECIMATION`` consecutive valid samples (500 Hz -> 50 Hz), stamped at
+                                      the mean sample time; a trailing incomplete group is dropped, so the row
+                                      count is ``valid /imu samples // IMU_DECIMATION``
+``timesync/state``                    Scalars: FREE=0, HOLDOVER=1, LOCKED=2 (``/time/sync``)
+``timesync/rate_ppm``                 Scalars: DAQ oscillator rate error, ppm
+``timesync/residual_us``              Scalars: RMS fit residual of the inlier PPS edges, us
+====================================  =============================================================================
+
+The error reference is the truth (``/truth/fix``, ``/truth/vel``, interpolated linearly to the fused times)
+when the drive has it, otherwise the GPS: fused states interpolated to the GPS fix epochs (no vertical
+velocity error then: NMEA has none).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from fusion import earth
+from replay import reader
+
+TIMELINE = "gps_time"
+IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
+IMU_BLOCK_S = 60.0
+TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
+AXES = ("east", "north", "up")
+
+GPS_COLOR = (255, 140, 0)
+TRUTH_COLOR = (20, 160, 20)
+NO_FIX_COLOR = (230, 30, 30)
+OUTAGE_COLOR = (230, 30, 30, 200)
+METHOD_COLORS = {"ins": (200, 40, 40), "kf": (30, 100, 255), "dkf": (150, 60, 210), "dkf-rbfn": (0, 175, 190),
+                 "rbfn": (200, 120, 0), "tdln": (120, 80, 40), "kf-ukf": (230, 60, 160), "ssr-sckf": (90, 90, 90),
+                 "hinf": (40, 40, 140)}
+_PALETTE = [(0, 150, 150), (180, 0, 120), (100, 100, 0), (0, 80, 160), (160, 80, 0)]
+
+
+@dataclass
+class Track:
+    """One source's positions (and velocities) on the timeline."""
+
+    t_ns: np.ndarray  # int64 UTC ns
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    v_n: np.ndarray | None = None  # (n,3) ENU m/s
+    sigma_pos: np.ndarray | None = None  # (n,3) ENU m
+    sigma_vel: np.ndarray | None = None  # (n,3) ENU m/s
+
+
+@dataclass
+class ViewResult:
+    rrd: Path | None
+    gps_fixes: int
+    no_fix: int
+    imu_rows: int
+    methods: list[str] = field(default_factory=list)
+    outages: int = 0
+
+
+def method_color(method: str, index: int) -> tuple[int, int, int]:
+    return METHOD_COLORS.get(method, _PALETTE[index % len(_PALETTE)])
+
+
+def _times(t_ns: np.ndarray) -> list[rr.TimeColumn]:
+    return [rr.TimeColumn(TIMELINE, timestamp=np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]"))]
+
+
+def to_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray,
+           origin: tuple[float, float, float]) -> np.ndarray:
+    """Geodetic (deg, deg, m ellipsoidal) -> ENU (n,3) m in the tangent frame at ``origin`` (lat deg, lon deg, h m)."""
+    lat0, lon0, h0 = np.radians(origin[0]), np.radians(origin[1]), origin[2]
+    r_e = earth.lla_to_ecef(np.radians(lat_deg), np.radians(lon_deg), alt_m) - earth.lla_to_ecef(lat0, lon0, h0)
+    return r_e @ earth.C_en(lat0, lon0).T
+
+
+def _fill_alt(alt: np.ndarray) -> np.ndarray:
+    """NaN heights (horizontal-only fixes) filled by interpolation over the finite ones."""
+    ok = np.isfinite(alt)
+    if ok.all() or not ok.any():
+        return np.where(ok, alt, 0.0)
+    idx = np.arange(len(alt))
+    return np.interp(idx, idx[ok], alt[ok])
+
+
+def _step_segments(p: np.ndarray) -> np.ndarray:
+    """Row i = segment [p[i-1], p[i]] (row 0: [p[0], p[0]]), (n,2,3)."""
+    return np.stack([np.concatenate([p[:1], p[:-1]]), p], axis=1)
+
+
+def merge_windows(windows: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Union of [start, end) windows (int ns), sorted."""
+    out: list[list[int]] = []
+    for s, e in sorted(windows):
+        if out and s <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], e)
+        else:
+            out.append([s, e])
+    return [(s, e) for s, e in out]
+
+
+def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Means of consecutive groups of ``n`` rows (trailing partial group dropped): (t_mean int64, x_mean)."""
+    m = len(t_ns) // n
+    t = t_ns[: m * n].reshape(m, n)
+    t_mean = t[:, 0] + np.round((t - t[:, :1]).mean(axis=1)).astype(np.int64)
+    return t_mean, x[: m * n].reshape(m, n, -1).mean(axis=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def _topic_names(path: str | os.PathLike[str]) -> dict[str, int]:
+    return {t.topic: t.count for t in reader.topics(path)}
+
+
+def gps_track(fix: dict) -> tuple[Track, np.ndarray, np.ndarray]:
+    """Decoded ``/gps/fix`` -> (track of the fix epochs, all epoch times, no-fix mask over all epochs)."""
+    ok = fix["valid"] & (fix["status"] >= 0) & np.isfinite(fix["lat_deg"]) & np.isfinite(fix["lon_deg"])
+    trk = Track(fix["log_time_ns"][ok], fix["lat_deg"][ok], fix["lon_deg"][ok], _fill_alt(fix["alt_m"][ok]))
+    return trk, fix["log_time_ns"][fix["valid"]], ~ok[fix["valid"]]
+
+
+def truth_track(fix: dict, vel: dict | None) -> Track:
+    """Decoded ``/truth/fix`` (and ``/truth/vel``) -> track."""
+    ok = fix["valid"]
+    trk = Track(fix["log_time_ns"][ok], fix["lat_deg"][ok], fix["lon_deg"][ok], fix["alt_m"][ok])
+    if vel is not None and len(vel["log_time_ns"]):
+        trk.v_n = _interp(trk.t_ns, vel["log_time_ns"][vel["valid"]], vel["v_n"][vel["valid"]])
+    return trk
+
+
+def _fused(path: str | os.PathLike[str], method: str) -> Track:
+    base = f"/fusion/{method}"
+    f = reader.read_topic(path, f"{base}/fix")
+    ok = f["valid"]
+    t = f["log_time_ns"][ok]
+    trk = Track(t, f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
+    names = _topic_names(path)
+    if names.get(f"{base}/std"):
+        s = reader.read_topic(path, f"{base}/std")
+        trk.sigma_pos = _interp(t, s["log_time_ns"][s["valid"]], s["xyz"][s["valid"]])
+    if names.get(f"{base}/vel"):
+        v = reader.read_topic(path, f"{base}/vel")
+        vok = v["valid"]
+        trk.v_n = _interp(t, v["log_time_ns"][vok], v["v_n"][vok])
+        var = v["covariance"][vok][:, [0, 7, 14]]
+        trk.sigma_vel = _interp(t, v["log_time_ns"][vok], np.sqrt(np.clip(var, 0.0, None)))
+    return trk
+
+
+def _interp(t: np.ndarray, tp: np.ndarray, xp: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (m,k) rows at times tp to times t; NaN outside [tp[0], tp[-1]]."""
+    out = np.full((len(t), xp.shape[1]), np.nan)
+    if len(tp) == 0:
+        return out
+    x = (t - tp[0]).astype(np.float64)
+    xp_s = (tp - tp[0]).astype(np.float64)
+    inside = (t >= tp[0]) & (t <= tp[-1])
+    for k in range(xp.shape[1]):
+        out[inside, k] = np.interp(x[inside], xp_s, xp[:, k])
+    return out
+
+
+def _outages(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[int, int]]:
+    windows = []
+    for p in paths:
+        if _topic_names(p).get("/fusion/outage"):
+            d = reader.read_topic(p, "/fusion/outage")
+            windows += [(int(m.start_ns), int(m.end_ns)) for m in d["msgs"] if m is not None]
+    return merge_windows(windows)
+
+
+def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str, Path]]:
+    """(label, file) for every ``/fusion/<method>/fix`` in ``paths``; a method seen twice gets the file's stem."""
+    out: list[tuple[str, Path]] = []
+    seen: set[str] = set()
+    for p in paths:
+        for topic in _topic_names(p):
+            parts = topic.split("/")
+            if len(parts) == 4 and parts[1] == "fusion" and parts[3] == "fix":
+                label = parts[2] if parts[2] not in seen else f"{parts[2]}@{Path(p).stem}"
+                seen.add(parts[2])
+                out.append((label, Path(p)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Logging
+
+
+def _log_track(rec: rr.RecordingStream, src: str, trk: Track, color, origin, radius: float) -> None:
+    if len(trk.t_ns) == 0:
+        return
+    times = _times(trk.t_ns)
+    rr.send_columns(f"map/{src}", indexes=times,
+                    columns=rr.GeoPoints.columns(positions=np.stack([trk.lat_deg, trk.lon_deg], axis=1)),
+                    recording=rec)
+    rec.log(f"map/{src}", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(radius), colors=[color]), static=True)
+    rec.log(f"map/{src}/track", rr.GeoLineStrings(lat_lon=[np.stack([trk.lat_deg, trk.lon_deg], axis=1)],
+                                                  radii=rr.Radius.ui_points(1.5), colors=[color]), static=True)
+    p = to_enu(trk.lat_deg, trk.lon_deg, trk.alt_m, origin)
+    rr.send_columns(f"enu/{src}", indexes=times, columns=rr.LineStrips3D.columns(strips=_step_segments(p)),
+                    recording=rec)
+    rec.log(f"enu/{src}", rr.LineStrips3D.from_fields(colors=[color], radii=rr.Radius.ui_points(1.5)), static=True)
+
+
+@dataclass
+class Errors:
+    """Fused minus reference on the times ``t_ns``, ENU: position m, velocity m/s; sigmas (n,3) or None."""
+
+    t_ns: np.ndarray
+    pos: np.ndarray
+    sigma_pos: np.ndarray | None
+    vel: np.ndarray | None
+    sigma_vel: np.ndarray | None
+
+
+def errors(trk: Track, ref: Track, ref_is_truth: bool, origin: tuple[float, float, float]) -> Errors:
+    """Errors of a fused track: against the truth at the fused times (truth interpolated), or against the GPS
+    at its fix epochs (fused interpolated; no vertical velocity error, NMEA has none). Rows with no
+    reference are dropped."""
+    p_f = to_enu(trk.lat_deg, trk.lon_deg, trk.alt_m, origin)
+    p_r = to_enu(ref.lat_deg, ref.lon_deg, ref.alt_m, origin)
+    has_v = trk.v_n is not None and ref.v_n is not None
+    if ref_is_truth:
+        t = trk.t_ns
+        dp = p_f - _interp(t, ref.t_ns, p_r)
+        sp, sv = trk.sigma_pos, trk.sigma_vel
+        dv = trk.v_n - _interp(t, ref.t_ns, ref.v_n) if has_v else None
+    else:
+        t = ref.t_ns
+        dp = _interp(t, trk.t_ns, p_f) - p_r
+        sp = _interp(t, trk.t_ns, trk.sigma_pos) if trk.sigma_pos is not None else None
+        sv = _interp(t, trk.t_ns, trk.sigma_vel) if trk.sigma_vel is not None else None
+        dv = _interp(t, trk.t_ns, trk.v_n) - ref.v_n if has_v else None
+        if dv is not None:
+            dv[:, 2] = np.nan
+    keep = np.isfinite(dp).all(axis=1)
+
+    def sel(a: np.ndarray | None) -> np.ndarray | None:
+        return a[keep] if a is not None else None
+
+    return Errors(t[keep], dp[keep], sel(sp), sel(dv), sel(sv))
+
+
+def _log_errors(rec: rr.RecordingStream, method: str, e: Errors, color) -> None:
+    """``errors/{pos,vel}/<axis>/<method>`` as [error, +sigma, -sigma]."""
+    light = tuple(int(c + (255 - c) * 0.55) for c in color)
+    for kind, err, sig, unit in (("pos", e.pos, e.sigma_pos, "m"), ("vel", e.vel, e.sigma_vel, "m/s")):
+        if err is None:
+            continue
+        for k, axis in enumerate(AXES):
+            ok = np.isfinite(err[:, k])
+            if not ok.any():
+                continue
+            s = sig[ok, k] if sig is not None else np.full(ok.sum(), np.nan)
+            path = f"errors/{kind}/{axis}/{method}"
+            rr.send_columns(path, indexes=_times(e.t_ns[ok]),
+                            columns=rr.Scalars.columns(scalars=np.stack([err[ok, k], s, -s], axis=1)),
+                            recording=rec)
+            rec.log(path, rr.SeriesLines(colors=[color, light, light], widths=[2.0, 1.0, 1.0],
+                                         names=[f"{method} {axis} ({unit})", f"{method} +σ", f"{method} −σ"]),
+                    static=True)
+
+
+def _log_scalar(rec: rr.RecordingStream, path: str, t_ns: np.ndarray, x: np.ndarray, name: str | list[str],
+                color=None, step: bool = False) -> None:
+    if len(t_ns) == 0:
+        return
+    rr.send_columns(path, indexes=_times(t_ns), columns=rr.Scalars.columns(scalars=np.asarray(x, dtype=np.float64)),
+                    recording=rec)
+    names = name if isinstance(name, list) else [name]
+    rec.log(path, rr.SeriesLines(names=names, colors=color,
+                                 interpolation_mode=rr.components.InterpolationMode.StepAfter if step else None),
+            static=True)
+
+
+LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
+    "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
+    "/gps/vel": ("v_n",),
+    "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
+    "/truth/vel": ("v_n",),
+    "/time/sync": ("state", "rate_ppm", "residual_us"),
+}
+
+
+def _read_drive(rec: rr.RecordingStream, drive: str | os.PathLike[str], names: dict[str, int],
+                progress: Callable[[float], None] | None = None) -> tuple[dict[str, dict[str, np.ndarray]], int]:
+    """One streaming pass (each chunk decompressed once): /imu is logged block by block, decimated by means of
+    IMU_DECIMATION valid samples (carried across blocks); the LOW_RATE topics are returned whole.
+    -> ({topic: {field: array}}, IMU rows logged)."""
+    wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
+    span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
+    t_first = min((t.first_ns for t in span), default=0)
+    t_last = max((t.last_ns for t in span), default=1)
+    parts: dict[str, list[dict[str, np.ndarray]]] = {t: [] for t in LOW_RATE if names.get(t)}
+    rows = 0
+    carry_t = np.zeros(0, np.int64)
+    carry_x = np.zeros((0, 6))
+    for block in reader.iter_blocks(drive, wanted, IMU_BLOCK_S):
+        if progress:
+            progress(0.8 * min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
+        for topic, keep in LOW_RATE.items():
+            d = block.data.get(topic)
+            if d is not None and len(d["log_time_ns"]):
+                parts[topic].append({k: d[k] for k in ("log_time_ns", "valid", *keep)})
+        imu = block.data.get("/imu")
+        if imu is None or not len(imu["log_time_ns"]):
+            continue
+        ok = imu["valid"]
+        t = np.concatenate([carry_t, imu["log_time_ns"][ok]])
+        x = np.concatenate([carry_x, np.hstack([imu["omega_ib_b"][ok], imu["f_b"][ok]])])
+        tm, xm = decimate_means(t, x, IMU_DECIMATION)
+        carry_t, carry_x = t[len(tm) * IMU_DECIMATION:], x[len(tm) * IMU_DECIMATION:]
+        if len(tm):
+            rr.send_columns("imu/gyro", indexes=_times(tm), columns=rr.Scalars.columns(scalars=xm[:, 0:3]),
+                            recording=rec)
+            rr.send_columns("imu/accel", indexes=_times(tm), columns=rr.Scalars.columns(scalars=xm[:, 3:6]),
+                            recording=rec)
+            rows += len(tm)
+    if rows:
+        xyz = [(220, 50, 50), (40, 160, 40), (40, 90, 230)]
+        rec.log("imu/gyro", rr.SeriesLines(names=["gyro x (rad/s)", "gyro y", "gyro z"], colors=xyz), static=True)
+        rec.log("imu/accel", rr.SeriesLines(names=["accel x (m/s²)", "accel y", "accel z"], colors=xyz),
+                static=True)
+    whole = {t: {k: np.concatenate([p[k] for p in ps]) for k in ps[0]} for t, ps in parts.items() if ps}
+    return whole, rows
+
+
+def blueprint() -> rrb.Blueprint:
+    """Map and 3D trajectory on the left; errors, outages, IMU and time sync on the right."""
+    up_to_cursor = rrb.VisibleTimeRange(TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+                                        end=rrb.TimeRangeBoundary.cursor_relative())
+    err = [rrb.TimeSeriesView(origin=f"errors/{kind}/{axis}", name=f"{label} error {axis}")
+           for kind, label in (("pos", "position"), ("vel", "velocity")) for axis in AXES]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.MapView(origin="map", name="Map"),
+                rrb.Spatial3DView(origin="enu", name="Local ENU trajectory (m)", time_ranges=up_to_cursor),
+            ),
+            rrb.Vertical(
+                rrb.Tabs(*err[:3], name="position error"),
+                rrb.Tabs(*err[3:], name="velocity error"),
+                rrb.TimeSeriesView(origin="status", name="GPS outage / no fix (1 = yes)"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(origin="imu/gyro", name="gyro (50 Hz means)"),
+                    rrb.TimeSeriesView(origin="imu/accel", name="accel (50 Hz means)"),
+                    rrb.Vertical(
+                        rrb.TimeSeriesView(origin="timesync/state", name="sync state"),
+                        rrb.TimeSeriesView(origin="timesync/rate_ppm", name="rate error (ppm)"),
+                        rrb.TimeSeriesView(origin="timesync/residual_us", name="fit residual (us)"),
+                        name="time sync",
+                    ),
+                ),
+                row_shares=[3, 2, 1, 2],
+            ),
+            column_shares=[1, 1],
+        ),
+        collapse_panels=False,
+    )
+
+
+def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
+          progress: Callable[[float], None] | None = None) -> ViewResult:
+    """Log a drive and its fused files into ``rec`` (which must already have its sink)."""
+    names = _topic_names(drive)
+    files = [drive, *fused]
+    methods = discover_methods(files)
+    low, imu_rows = _read_drive(rec, drive, names, progress)
+    gps, epochs_t, no_fix = None, np.zeros(0, np.int64), np.zeros(0, bool)
+    if "/gps/fix" in low:
+        gps, epochs_t, no_fix = gps_track(low["/gps/fix"])
+    truth = truth_track(low["/truth/fix"], low.get("/truth/vel")) if "/truth/fix" in low else None
+    fused_trk = [(m, _fused(p, m.split("@")[0])) for m, p in methods]
+    candidates = [t for t in [gps, truth, *(f for _, f in fused_trk)] if t is not None and len(t.t_ns)]
+    if not candidates:
+        raise ValueError(f"{drive}: no /gps/fix, /truth/fix or /fusion/*/fix positions to show")
+    o = candidates[0]
+    ok_alt = np.isfinite(o.alt_m)
+    origin = (float(o.lat_deg[0]), float(o.lon_deg[0]), float(o.alt_m[ok_alt][0]) if ok_alt.any() else 0.0)
+
+    if gps is not None:
+        if "/gps/vel" in low:
+            v = low["/gps/vel"]
+            gps.v_n = _interp(gps.t_ns, v["log_time_ns"][v["valid"]], v["v_n"][v["valid"]])
+        _log_track(rec, "gps", gps, GPS_COLOR, origin, 3.0)
+        _log_scalar(rec, "status/no_fix", epochs_t, no_fix.astype(float), "GPS no fix", [NO_FIX_COLOR], step=True)
+        if no_fix.any() and len(gps.t_ns):
+            idx = np.searchsorted(gps.t_ns, epochs_t[no_fix], side="right") - 1
+            has = idx >= 0
+            pos = np.stack([gps.lat_deg[idx[has]], gps.lon_deg[idx[has]]], axis=1)
+            rr.send_columns("map/no_fix", indexes=_times(epochs_t[no_fix][has]),
+                            columns=rr.GeoPoints.columns(positions=pos), recording=rec)
+            rec.log("map/no_fix", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(6.0), colors=[NO_FIX_COLOR]),
+                    static=True)
+    truth_map = None
+    if truth is not None:
+        sl = slice(None, None, TRUTH_DECIMATION)
+        truth_map = Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl])
+        _log_track(rec, "truth", truth_map, TRUTH_COLOR, origin, 2.0)
+
+    ref = truth if truth is not None else gps
+    for i, (m, trk) in enumerate(fused_trk):
+        color = method_color(m.split("@")[0], i)
+        _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
+        if ref is not None and len(ref.t_ns):
+            _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
+
+    windows = _outages(files)
+    t_start = min(int(c.t_ns[0]) for c in candidates)
+    if windows:
+        t_edges = np.array([t_start] + [x for w in windows for x in w], dtype=np.int64)
+        level = np.array([0.0] + [1.0, 0.0] * len(windows))
+        order = np.argsort(t_edges, kind="stable")
+        _log_scalar(rec, "status/outage", t_edges[order], level[order], "outage", [OUTAGE_COLOR[:3]], step=True)
+        track = truth_map if truth_map is not None else gps
+        if track is not None and len(track.t_ns):
+            strips = []
+            for s, e in windows:
+                inside = (track.t_ns >= s) & (track.t_ns <= e)
+                if inside.sum() >= 2:
+                    strips.append(np.stack([track.lat_deg[inside], track.lon_deg[inside]], axis=1))
+            if strips:
+                rec.log("map/outage", rr.GeoLineStrings(lat_lon=strips, radii=rr.Radius.ui_points(5.0),
+                                                        colors=[OUTAGE_COLOR]), static=True)
+
+    if "/time/sync" in low:
+        ts = low["/time/sync"]
+        ok = ts["valid"]
+        t = ts["log_time_ns"][ok]
+        _log_scalar(rec, "timesync/state", t, ts["state"][ok], "state (0 free, 1 holdover, 2 locked)", step=True)
+        _log_scalar(rec, "timesync/rate_ppm", t, ts["rate_ppm"][ok], "rate error (ppm)")
+        _log_scalar(rec, "timesync/residual_us", t, ts["residual_us"][ok], "fit residual (us)")
+    if progress:
+        progress(1.0)
+    return ViewResult(None, len(gps.t_ns) if gps is not None else 0, int(no_fix.sum()), imu_rows,
+                      [m for m, _ in fused_trk], len(windows))
+
+
+def has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def view(drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
+         rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None) -> ViewResult:
+    """Write ``rrd`` (streamed to the file as it is logged), or spawn the rerun viewer when ``rrd`` is None."""
+    for p in (drive, *fused):
+        if not Path(p).is_file():
+            raise FileNotFoundError(f"{p} does not exist")
+    if rrd is None and not has_display():
+        raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd")
+    rec = rr.RecordingStream("fieldlog")
+    bp = blueprint()
+    if rrd is not None:
+        rec.save(rrd, default_blueprint=bp)
+    else:
+        rec.spawn(default_blueprint=bp)
+    try:
+        res = build(rec, drive, fused, progress)
+    finally:
+        rec.flush()
+        if rrd is not None:
+            rec.disconnect()
+    res.rrd = Path(rrd) if rrd is not None else None
+    return res

@@ -1,0 +1,209 @@
+"""`fieldlog view` (.rrd checked with the rerun command line) and `fieldlog export` (Parquet round trip)."""
+
+import os
+import re
+import subprocess
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from mcap.reader import make_reader
+
+from replay import view as rview
+from replay.export import drive_frames
+from replay.reader import read_topic
+from tools.cli import main as cli_main
+from tools.sim.simulate import simulate
+from tools.sim.trajectory import SCENARIO_DIR
+
+os.environ["CI"] = "1"  # rerun analytics off
+RERUN = Path(__file__).resolve().parents[1] / ".venv" / "bin" / "rerun"
+NO_FIX = (90.0, 8.0)  # receiver outage in the scenario: /gps/fix epochs without a fix
+
+
+@pytest.fixture(scope="module")
+def drives(tmp_path_factory):
+    d = tmp_path_factory.mktemp("view")
+    text = (SCENARIO_DIR / "figure8.toml").read_text()
+    text, n = re.subn(r"(?m)^outages = \[\]", f"outages = [[{NO_FIX[0]}, {NO_FIX[1]}]]", text)
+    assert n == 1
+    scenario = d / "figure8_nofix.toml"
+    scenario.write_text(text)
+    sim = d / "sim.mcap"
+    simulate(str(scenario), 120.0, 2, sim)
+    kf = d / "kf.mcap"
+    assert cli_main(["fuse", str(sim), "--method", "kf", "--outage", "60:15", "--out", str(kf)]) == 0
+    return sim, kf
+
+
+def _rerun(*args: str) -> str:
+    res = subprocess.run([str(RERUN), "rrd", *args], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "CI": "1"})
+    assert res.returncode == 0, res.stderr
+    return res.stdout + res.stderr
+
+
+def _rows(printed: str) -> Counter:
+    """Rows per (entity, component) summed over the chunks that `rerun rrd print` lists."""
+    out: Counter = Counter()
+    for m in re.finditer(r"with (\d+) rows .* - (/\S+) - data columns: \[([^\]]*)\]", printed):
+        for comp in m.group(3).split():
+            out[m.group(2), comp] += int(m.group(1))
+    return out
+
+
+def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
+    sim, kf = drives
+    rrd = tmp_path / "out.rrd"
+    assert cli_main(["view", str(sim), str(kf), "--rrd", str(rrd)]) == 0
+    print(f"{rrd.stat().st_size / 1e6:.2f} MB")
+    assert "1 file verified without error" in _rerun("verify", str(rrd))
+    rows = _rows(_rerun("print", str(rrd)))
+
+    fix = read_topic(sim, "/gps/fix")
+    has_fix = (fix["status"] >= 0) & np.isfinite(fix["lat_deg"])
+    n_fix, n_no_fix = int(has_fix.sum()), int((~has_fix).sum())
+    assert n_no_fix >= NO_FIX[1] - 1  # the scenario's outage is there
+    imu = read_topic(sim, "/imu")
+    n_imu = int(imu["valid"].sum()) // rview.IMU_DECIMATION
+    n_kf = len(read_topic(kf, "/fusion/kf/fix")["log_time_ns"])
+    n_truth = -(-len(read_topic(sim, "/truth/fix")["log_time_ns"]) // rview.TRUTH_DECIMATION)
+    n_sync = len(read_topic(sim, "/time/sync")["log_time_ns"])
+    reasons = sorted(m.reason for m in read_topic(kf, "/fusion/outage")["msgs"])
+    assert reasons == ["injected", "no_fix"]  # the forced outage and the receiver's (disjoint windows)
+
+    expected = {
+        ("/map/gps", "GeoPoints:positions"): n_fix,
+        ("/enu/gps", "LineStrips3D:strips"): n_fix,
+        ("/map/no_fix", "GeoPoints:positions"): n_no_fix,
+        ("/status/no_fix", "Scalars:scalars"): n_fix + n_no_fix,
+        ("/map/truth", "GeoPoints:positions"): n_truth,
+        ("/enu/truth", "LineStrips3D:strips"): n_truth,
+        ("/map/fusion/kf", "GeoPoints:positions"): n_kf,
+        ("/enu/fusion/kf", "LineStrips3D:strips"): n_kf,
+        ("/errors/pos/east/kf", "Scalars:scalars"): n_kf,
+        ("/errors/vel/up/kf", "Scalars:scalars"): n_kf,
+        ("/status/outage", "Scalars:scalars"): 1 + 2 * 2,  # drive start, then each window's start and end
+        ("/map/outage", "GeoLineStrings:line_strings"): 1,  # one static row holding both windows' strips
+        ("/map/gps/track", "GeoLineStrings:line_strings"): 1,
+        ("/imu/gyro", "Scalars:scalars"): n_imu,
+        ("/imu/accel", "Scalars:scalars"): n_imu,
+        ("/timesync/state", "Scalars:scalars"): n_sync,
+        ("/timesync/rate_ppm", "Scalars:scalars"): n_sync,
+        ("/timesync/residual_us", "Scalars:scalars"): n_sync,
+    }
+    got = {k: rows.get(k, 0) for k in expected}
+    assert got == expected
+    assert n_imu == 60000 // rview.IMU_DECIMATION
+    assert rows["/viewport", "ViewportBlueprint:root_container"] == 1  # the default blueprint is in the file
+    stats = _rerun("stats", str(rrd))
+    assert "gps_time" in stats
+
+
+def test_errors_against_truth(drives):
+    sim, kf = drives
+    truth = rview.truth_track(read_topic(sim, "/truth/fix"), read_topic(sim, "/truth/vel"))
+    origin = (float(truth.lat_deg[0]), float(truth.lon_deg[0]), float(truth.alt_m[0]))
+    self_err = rview.errors(truth, truth, True, origin)  # the truth against itself: zero
+    assert np.abs(self_err.pos).max() < 1e-6 and np.abs(self_err.vel).max() < 1e-9
+    e = rview.errors(rview._fused(kf, "kf"), truth, True, origin)
+    t0 = int(read_topic(sim, "/imu")["log_time_ns"][0])
+    with_gps = (e.t_ns > t0 + 50e9) & (e.t_ns < t0 + 60e9)  # the filter aligns at ~46 s
+    in_outage = (e.t_ns > t0 + 65e9) & (e.t_ns < t0 + 75e9)
+    h = np.hypot(e.pos[:, 0], e.pos[:, 1])
+    assert h[with_gps].max() < 5.0
+    assert (e.sigma_pos[in_outage, 0].mean() > e.sigma_pos[with_gps, 0].mean())  # sigma grows in the outage
+    assert np.all(e.sigma_pos > 0)
+
+
+def test_pure_helpers():
+    assert rview.merge_windows([(5, 9), (1, 3), (2, 4), (9, 10)]) == [(1, 4), (5, 10)]
+    t = np.arange(25, dtype=np.int64) * 2_000_000 + 10**18
+    x = np.arange(25 * 6, dtype=float).reshape(25, 6)
+    tm, xm = rview.decimate_means(t, x, 10)
+    assert len(tm) == 2 and tm[0] == t[0] + 9_000_000
+    np.testing.assert_allclose(xm[1], x[10:20].mean(axis=0))
+    p = np.array([[0.0, 0, 0], [1, 0, 0], [1, 2, 0]])
+    seg = rview._step_segments(p)
+    assert seg.shape == (3, 2, 3)
+    np.testing.assert_array_equal(seg[0], p[[0, 0]])
+    np.testing.assert_array_equal(seg[2], p[1:3])
+    enu = rview.to_enu(np.array([45.0, 45.0 + 1 / 111_132.954]), np.array([7.0, 7.0]), np.array([100.0, 101.0]),
+                       (45.0, 7.0, 100.0))
+    np.testing.assert_allclose(enu[0], 0, atol=1e-6)
+    np.testing.assert_allclose(enu[1], [0.0, 1.0, 1.0], atol=0.01)  # ~1 m north, 1 m up
+
+
+def _mcap_log_times(path: Path) -> dict[str, np.ndarray]:
+    """log_time per topic straight from the mcap library (independent of replay.reader)."""
+    out: dict[str, list[int]] = {}
+    with open(path, "rb") as f:
+        for _, channel, msg in make_reader(f).iter_messages(log_time_order=False):
+            out.setdefault(channel.topic, []).append(msg.log_time)
+    return {k: np.sort(np.array(v, dtype=np.int64)) for k, v in out.items()}
+
+
+def test_export_parquet_round_trip(drives, tmp_path):
+    sim, kf = drives
+    out = tmp_path / "export"
+    assert cli_main(["export", str(sim), "--out", str(out)]) == 0
+    assert cli_main(["export", str(kf), "--out", str(out)]) == 0
+    for drive in (sim, kf):
+        truth = _mcap_log_times(drive)
+        for topic, times in truth.items():
+            df = pl.read_parquet(out.joinpath(*topic.strip("/").split("/")).with_suffix(".parquet"))
+            assert df.height == len(times), topic
+            np.testing.assert_array_equal(df["log_time_ns"].to_numpy(), times, err_msg=topic)
+            assert df["valid"].all(), topic
+    imu = pl.read_parquet(out / "imu.parquet")
+    assert imu.schema["log_time_ns"] == pl.Int64 and imu.schema["stamp_ns"] == pl.Int64
+    assert (imu["stamp_ns"] == imu["log_time_ns"]).all()  # derived topics: stamp = log_time = UTC
+    assert abs(imu["f_b_z"].mean() - 9.8) < 0.3  # specific force, body up
+    fix = pl.read_parquet(out / "gps" / "fix.parquet")
+    assert fix.schema["position_covariance"] == pl.Array(pl.Float64, 9)
+    assert (fix["status"] == -1).sum() >= NO_FIX[1] - 1
+    outage = pl.read_parquet(out / "fusion" / "outage.parquet")
+    assert outage["reason"].to_list() == ["injected", "no_fix"]
+    assert (outage["end_ns"] - outage["start_ns"]).to_list()[0] == 15 * 10**9
+    nmea = pl.read_parquet(out / "gps" / "nmea.parquet")
+    assert nmea["sentence"].str.starts_with("$").all()
+    frames = drive_frames(sim, ["/gps/fix", "/pps"])
+    assert set(frames) == {"/gps/fix", "/pps"} and frames["/gps/fix"].equals(fix)
+    assert frames["/pps"]["source"].str.starts_with("pps").all()
+
+
+def test_export_csv_flattens_lists(drives, tmp_path):
+    sim, _ = drives
+    assert cli_main(["export", str(sim), "--out", str(tmp_path), "--format", "csv",
+                     "--topics", "/gps/fix,/raw/gps"]) == 0
+    fix = pl.read_csv(tmp_path / "gps" / "fix.csv")
+    assert "position_covariance_8" in fix.columns and fix.height == len(read_topic(sim, "/gps/fix")["log_time_ns"])
+    raw = pl.read_csv(tmp_path / "raw" / "gps.csv")
+    first = bytes.fromhex(raw["data"][0])
+    assert b"$" in first or first.isascii()
+    assert cli_main(["export", str(sim), "--out", str(tmp_path), "--topics", "/nope"]) == 2
+
+
+def test_errors_against_gps_and_an_imported_nmea_log_on_the_map(drives, tmp_path):
+    sim, kf = drives
+    gps, epochs, no_fix = rview.gps_track(read_topic(sim, "/gps/fix"))
+    v = read_topic(sim, "/gps/vel")
+    gps.v_n = rview._interp(gps.t_ns, v["log_time_ns"], v["v_n"])
+    origin = (float(gps.lat_deg[0]), float(gps.lon_deg[0]), float(gps.alt_m[0]))
+    fused = rview._fused(kf, "kf")
+    e = rview.errors(fused, gps, False, origin)
+    inside = (gps.t_ns >= fused.t_ns[0]) & (gps.t_ns <= fused.t_ns[-1])
+    np.testing.assert_array_equal(e.t_ns, gps.t_ns[inside])  # evaluated at the GPS fix epochs
+    assert np.isnan(e.vel[:, 2]).all() and np.isfinite(e.vel[:, :2]).all()
+    assert np.median(np.hypot(e.pos[:, 0], e.pos[:, 1])) < 5.0
+
+    nmea = tmp_path / "log.nmea"
+    nmea.write_text("".join(m.sentence.strip() + "\r\n" for m in read_topic(sim, "/gps/nmea")["msgs"]))
+    imported, rrd = tmp_path / "imported.mcap", tmp_path / "imported.rrd"
+    assert cli_main(["import", "--gps", str(nmea), "--out", str(imported)]) == 0
+    assert cli_main(["view", str(imported), "--rrd", str(rrd)]) == 0
+    rows = _rows(_rerun("print", str(rrd)))
+    assert rows["/map/gps", "GeoPoints:positions"] == len(epochs) - int(no_fix.sum())
+    assert rows["/map/gps/track", "GeoLineStrings:line_strings"] == 1
