@@ -79,7 +79,7 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
     order = np.argsort(log_time_ns, kind="stable")
     if not np.all(order == np.arange(len(order))):
         log_time_ns = log_time_ns[order]
-        payloads = messages.Packed.from_list([payloads[i] for i in order.tolist()])
+        payloads = payloads.take(order)
     batch = messages.BATCH_DECODERS.get(type_name)
     if batch is not None:
         out: dict[str, object] = {"log_time_ns": log_time_ns}
@@ -220,4 +220,4 @@ def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
     if idx[-1] - idx[0] + 1 == len(idx):  # contiguous: slice without copying
         a, b = p.offsets[idx[0]], p.offsets[idx[-1] + 1]
         return messages.Packed(p.buf[a:b], p.offsets[idx[0] : idx[-1] + 2] - a)
-    return messages.Packed.from_list([p[i] for i in idx.tolist()])
+    return p.take(idx)

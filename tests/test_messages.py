@@ -223,3 +223,12 @@ def test_topics_registry():
     for type_name in set(m.TOPICS.values()) | set(m.FUSION_SUBTOPICS.values()):
         text = m.schema_text(type_name)
         assert "MSG: std_msgs/Header" in text and "MSG: builtin_interfaces/Time" in text
+
+
+def test_packed_take_gathers_any_order():
+    msgs = [bytes([i % 256]) * (i % 7 + 1) for i in range(1000)]
+    idx = np.random.default_rng(0).permutation(1000)[:700]
+    for batch in (msgs, [b"abcd" * 3] * 500 + [b"wxyz" * 3] * 500):    # variable and equal lengths
+        p = m.Packed.from_list(batch)
+        assert p.take(idx).to_list() == [batch[i] for i in idx]
+        assert p.take(np.zeros(0, np.int64)).to_list() == []
