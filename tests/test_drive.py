@@ -195,3 +195,10 @@ def test_static_drive_allan_arw(tmp_path):
     taus, adev = allan_deviation(imu["f_b"][:, 1], 500.0)
     p = noise_parameters(taus, adev, sensor="accel")
     assert p["vrw_ug_rthz"] == pytest.approx(cfg.accel_noise_density_ug_rthz, rel=0.15)
+
+
+def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
+    assert fieldlog(["demo", "--out", str(tmp_path), "--duration", "240"]) == 0
+    for name in ("figure8.mcap", "dkf-rbfn.mcap", "figure8.rrd", "report/table.md", "report/table.csv"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert "/fusion/dkf-rbfn/fix" in counts(tmp_path / "dkf-rbfn.mcap")

@@ -147,19 +147,27 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def cmd_demo(a: argparse.Namespace) -> int:
-    from tools.info import drive_info, format_info
-    from tools.sim.simulate import simulate
-
+    """Simulate, look, fuse, evaluate and view: the whole pipeline through the same commands a user types."""
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    drive = out / "figure8.mcap"
-    print(f"1/2  simulating a {a.duration:.0f} s figure8 drive (seed 1) -> {drive}")
-    simulate("figure8", a.duration, 1, drive, progress=Progress("sim figure8"))
-    print(f"2/2  fieldlog info {drive}\n")
-    print(format_info(drive_info(drive)))
-    print(f"\nOpen it in rerun:  .venv/bin/rerun {drive}")
+    drive, fused, rrd, report = out / "figure8.mcap", out / "dkf-rbfn.mcap", out / "figure8.rrd", out / "report"
+    steps = [
+        ("simulate a figure8 drive", ["sim", "--scenario", "figure8", "--duration", f"{a.duration:g}", "--seed", "1",
+                                      "--out", str(drive)]),
+        ("what the drive holds", ["info", str(drive)]),
+        ("fuse with the KF+RBFN hybrid through a 30 s GPS outage",
+         ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "180:30", "--out", str(fused)]),
+        ("the outage study", ["evaluate", str(drive), "--outages", "30", "--methods", "ins,dkf,dkf-rbfn",
+                              "--report", str(report)]),
+        ("a rerun recording", ["view", str(drive), str(fused), "--rrd", str(rrd)]),
+    ]
+    for i, (title, argv) in enumerate(steps, 1):
+        print(f"\n{i}/{len(steps)}  {title}:  fieldlog {' '.join(argv)}\n", flush=True)
+        rc = main(argv)
+        if rc:
+            return rc
+    print(f"\nreport:  {report / 'table.md'}\nrerun:   .venv/bin/rerun {rrd}   (or: .venv/bin/rerun {drive})")
     return 0
-
 
 
 def cmd_view(a: argparse.Namespace) -> int:
@@ -283,9 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
     s.set_defaults(func=cmd_export)
 
-    s = sub.add_parser("demo", help="simulate a drive and show what it holds")
+    s = sub.add_parser("demo", help="simulate, fuse, evaluate and view, on the built-in default")
     s.add_argument("--out", default="out/demo")
-    s.add_argument("--duration", type=float, default=300.0)
+    s.add_argument("--duration", type=float, default=300.0, help="seconds of drive to simulate (>= 240)")
     s.set_defaults(func=cmd_demo)
     return p
 
