@@ -7,7 +7,14 @@ import pytest
 from fusion.engine import FusionConfig
 from replay.reader import read_topic
 from tools.cli import main as cli_main
-from tools.evaluate import QUANTITIES, StudyConfig, outage_errors, place_outages
+from tools.evaluate import (
+    PLOT_DT_S,
+    QUANTITIES,
+    StudyConfig,
+    outage_errors,
+    place_outages,
+    window_curves,
+)
 from tools.fuse import fuse
 from tools.sim.simulate import simulate
 
@@ -79,3 +86,35 @@ def test_evaluate_names_the_unknown_methods(drive, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "unknown method(s): rbf, ukf" in err
     assert not (tmp_path / "table.md").exists()
+
+
+def test_evaluate_writes_one_error_figure_per_outage_length(drive, tmp_path, capsys):
+    rep = tmp_path / "report"
+    assert cli_main(["evaluate", str(drive), "--outages", "20,30", "--methods", "ins,kf", "--report", str(rep)]) == 0
+    out = capsys.readouterr().out
+    md = (rep / "table.md").read_text()
+    for name in ("errors_20s.png", "errors_30s.png"):
+        png = (rep / name).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and png[12:16] == b"IHDR", name
+        w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+        assert w >= 600 and h >= 400, (name, w, h)
+        assert len(png) > 20_000, (name, len(png))  # curves drawn, not an empty frame
+        assert f"]({name})" in md and str(rep / name) in out
+
+
+def test_window_curves_put_each_window_on_time_since_its_start():
+    t0 = 1_700_000_000_000_000_000
+    wins = [(t0 + 10 * 10**9, t0 + 20 * 10**9), (t0 + 50 * 10**9, t0 + 60 * 10**9), (t0 + 90 * 10**9, t0 + 100 * 10**9)]
+    t = t0 + np.arange(0, 70 * 10**9, 10**8)  # 10 Hz rows; the third window has none
+    since = np.zeros(len(t))
+    for w0, w1 in wins[:2]:
+        m = (t >= w0) & (t < w1)
+        since[m] = (t[m] - w0) * 1e-9
+    err = np.zeros((len(t), 9))
+    err[:, 0], err[:, 1], err[:, 5] = 3 * since, 4 * since, 2 * since  # |horizontal| = 5 s, |dv| = 2 s
+    c = window_curves(t, err, wins, 10.0)
+    grid = np.arange(0, 10.0, PLOT_DT_S)
+    assert c.shape == (3, 2, len(grid))
+    np.testing.assert_allclose(c[:2, 0], np.broadcast_to(5 * grid, (2, len(grid))), atol=1e-9)
+    np.testing.assert_allclose(c[:2, 1], np.broadcast_to(2 * grid, (2, len(grid))), atol=1e-9)
+    assert np.isnan(c[2]).all()

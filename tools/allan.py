@@ -174,8 +174,36 @@ def report(omega_ib_b: np.ndarray, f_b: np.ndarray, fs_hz: float) -> str:
     return "\n".join(rows) + "\n"
 
 
-def drive_report(path: str) -> str:
-    """``report`` of the /imu topic of a recorded drive (meant for a static drive); rate from the stamps."""
+def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan deviation", title: str = "") -> str:
+    """Log-log PNG of an Allan deviation curve, one line per axis when adev is (m,3) (x, y, z).
+
+    taus (m,) s; adev (m,) or (m,k) in the units named by ylabel. Returns path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a = np.asarray(adev, dtype=np.float64).reshape(len(taus), -1)
+    fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
+    for j in range(a.shape[1]):
+        ax.loglog(taus, a[:, j], lw=1.6, label="xyz"[j] if a.shape[1] == 3 else f"channel {j}")
+    ax.set_xlabel("cluster time tau (s)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="major", alpha=0.5)
+    ax.grid(True, which="minor", alpha=0.15)
+    if a.shape[1] > 1:
+        ax.legend(title="axis")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def drive_report(path: str, plot_prefix: str | None = None) -> str:
+    """``report`` of the /imu topic of a recorded drive (meant for a static drive); rate from the stamps.
+
+    With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
+    names them at the end of the text."""
     from replay.reader import read_topic
 
     imu = read_topic(path, "/imu")
@@ -183,4 +211,13 @@ def drive_report(path: str) -> str:
     if stamp_ns.size < 3:
         raise ValueError(f"{path}: /imu has {stamp_ns.size} samples, need at least 3")
     fs_hz = (stamp_ns.size - 1) / ((stamp_ns[-1] - stamp_ns[0]) * 1e-9)
-    return report(np.asarray(imu["omega_ib_b"]), np.asarray(imu["f_b"]), fs_hz)
+    text = report(np.asarray(imu["omega_ib_b"]), np.asarray(imu["f_b"]), fs_hz)
+    if plot_prefix is None:
+        return text
+    taus, adev_g = allan_deviation(np.asarray(imu["omega_ib_b"]), fs_hz)
+    _, adev_a = allan_deviation(np.asarray(imu["f_b"]), fs_hz, taus)
+    files = [plot(taus, adev_g * _RAD2DEG * 3600.0, f"{plot_prefix}_gyro.png", "gyro Allan deviation (deg/h)",
+                  f"gyro, {path}"),
+             plot(taus, adev_a / G0 * 1e6, f"{plot_prefix}_accel.png", "accel Allan deviation (ug)",
+                  f"accelerometer, {path}")]
+    return text + "".join(f"wrote {f}\n" for f in files)

@@ -163,6 +163,21 @@ def bench_allan(runs: int, tmp: Path) -> None:
     print("  accel bias instab." + " ".join(f"{v / cfg.accel_bias_instability_ug:6.3f}" for v in a["bias_instability_ug"]))
 
 
+def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
+    """fieldlog fuse of a 600 s figure8 drive by ins, kf, dkf and dkf-rbfn: seconds and real-time factor."""
+    from tools.fuse import fuse
+    from tools.sim.simulate import simulate
+
+    path, warm = tmp / "fuse_f8.mcap", tmp / "fuse_warm.mcap"
+    simulate("figure8", duration_s, 1, path)
+    simulate("figure8", 30.0, 2, warm)
+    for method in ("ins", "kf", "dkf", "dkf-rbfn"):
+        fuse(warm, method, tmp / "fused_warm.mcap")  # numba compile / cache load outside the timing
+        med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap"), runs)
+        print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
+              f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
+
+
 def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog acquire against sim --serve ptys: 10 min at real speed, then x20; loss, timing, CPU."""
     import os
@@ -214,7 +229,7 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
 
 BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan, "daemon": bench_daemon}
+           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon}
 
 
 def main() -> None:

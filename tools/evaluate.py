@@ -13,8 +13,9 @@ paper does), the solution interpolated to their times, and no attitude. Over sev
 the mean and the spread (sample standard deviation) of the per-drive RMS.
 
 Writes DIR/table.md (rows = quantities, columns = method x outage length, like the paper's Table 3),
-DIR/table.csv (long form: quantity, unit, method, outage_s, mean, std, drives, windows) and the fused
-solutions in DIR/fused/. No plots: matplotlib is not a dependency.
+DIR/table.csv (long form: quantity, unit, method, outage_s, mean, std, drives, windows), the fused
+solutions in DIR/fused/ and, per outage length L, DIR/errors_<L>s.png: horizontal position error (m) and
+velocity error magnitude (m/s) against time since the outage start, each window thin, the mean thick.
 
 Methods: ``fusion.engine.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
 distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
@@ -23,9 +24,10 @@ distributed filter while GPS is good and differ from ``dkf`` only inside the out
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import polars as pl
@@ -102,6 +104,12 @@ def _quat_interp(t: np.ndarray, tr: np.ndarray, q: np.ndarray) -> np.ndarray:
 def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]) -> np.ndarray:
     """Errors (n, 9) in QUANTITIES order (m, m/s, deg) of the rows inside the windows: against /truth
     when the drive has it, else against the withheld GPS fixes (attitude NaN)."""
+    return outage_error_series(drive, fused, method, windows_ns)[1]
+
+
+def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``outage_errors`` with the times of its rows: (t_ns (n,), errors (n, 9))."""
     s = reader.read_topic(fused, f"/fusion/{method}/fix")
     v = reader.read_topic(fused, f"/fusion/{method}/vel")
     a = reader.read_topic(fused, f"/fusion/{method}/attitude")
@@ -147,7 +155,72 @@ def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[
     rm, rn = earth.principal_radii(lat, np.nan_to_num(llh[:, 2]))
     dpos = np.stack([np.radians(sol[:, 1] - llh[:, 1]) * rn * np.cos(lat), np.radians(sol[:, 0] - llh[:, 0]) * rm,
                      sol[:, 2] - llh[:, 2]], axis=1)
-    return np.hstack([dpos, dv, datt])
+    return t, np.hstack([dpos, dv, datt])
+
+
+PLOT_DT_S = 0.5  # time step of the error curves, s
+
+
+def window_curves(t_ns: np.ndarray, err: np.ndarray, windows_ns: list[tuple[int, int]], length_s: float
+                  ) -> np.ndarray:
+    """Per window, horizontal position error (m) and velocity error magnitude (m/s) on the grid
+    0, PLOT_DT_S, ... < length_s s since the outage start: (windows, 2, grid); NaN where the window has no rows."""
+    grid = np.arange(0.0, length_s, PLOT_DT_S)
+    out = np.full((len(windows_ns), 2, len(grid)), np.nan)
+    h = np.hypot(err[:, 0], err[:, 1])
+    v = np.linalg.norm(err[:, 3:6], axis=1)
+    for i, (w0, w1) in enumerate(windows_ns):
+        m = (t_ns >= w0) & (t_ns < w1) & np.isfinite(h) & np.isfinite(v)
+        if m.sum() < 2:
+            continue
+        ts = (t_ns[m] - w0) * 1e-9
+        span = (grid >= ts[0]) & (grid <= ts[-1])
+        out[i, 0, span] = np.interp(grid[span], ts, h[m])
+        out[i, 1, span] = np.interp(grid[span], ts, v[m])
+    return out
+
+
+def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, drives: int) -> Path:
+    """PNG of the outage error curves of one outage length: curves[method] = (windows, 2, grid) from
+    ``window_curves``; each window thin, the mean over windows thick. A method has its own colour and line
+    style, the first methods the widest lines (so equal curves, such as kf and dkf, both show), its ``+rts``
+    variant the lighter shade of that colour; log error axes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), sharex=True, constrained_layout=True)
+    base = list(dict.fromkeys(m.removesuffix("+rts") for m in curves))
+    tab20 = plt.get_cmap("tab20")
+    styles = ("-", "--", "-.", ":")
+    n_win = 0
+    for name, c in curves.items():
+        grid = np.arange(c.shape[2]) * PLOT_DT_S
+        i = base.index(name.removesuffix("+rts"))
+        colour, style = tab20((2 * i + name.endswith("+rts")) % 20), styles[i % len(styles)]
+        n_win = max(n_win, c.shape[0])
+        for k, ax in enumerate(axes):
+            for w in c[:, k]:
+                ax.plot(grid, w, color=colour, lw=0.6, alpha=0.3)
+            with warnings.catch_warnings():  # all-NaN columns (no window reaches that far): mean NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean = np.nanmean(c[:, k], axis=0)
+            ax.plot(grid, mean, color=colour, ls=style, lw=3.4 - 1.8 * i / max(len(base) - 1, 1), label=name)
+    for ax, label in zip(axes, ("horizontal position error (m)", "velocity error magnitude (m/s)")):
+        ax.set_yscale("log")
+        ax.set_ylabel(label)
+        ax.grid(True, which="major", alpha=0.4)
+        ax.grid(True, which="minor", alpha=0.12)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(curves), 6), fontsize=9,
+               title="method: mean over the windows thick, each window thin")
+    axes[1].set_xlabel("time since outage start (s)")
+    axes[1].set_xlim(0.0, length_s)
+    fig.suptitle(f"Errors during {length_s:g} s GPS outages: {n_win} windows over {drives} drive(s)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _rms(e: np.ndarray) -> np.ndarray:
@@ -159,7 +232,8 @@ def _rms(e: np.ndarray) -> np.ndarray:
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
              say: Callable[[str], None] = print) -> pl.DataFrame:
-    """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap. Returns the long table.
+    """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
+    Returns the long table.
 
     smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``)."""
     check_methods(methods)
@@ -171,6 +245,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     runs = [(m, sm) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
+    curves: dict[float, dict[str, list[np.ndarray]]] = {}
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
         t_fix, good, t0 = _fix_quality(drive, base.max_fix_sigma_m)
@@ -186,7 +261,9 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 name = m + ("+rts" if sm else "")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
                 fuse(drive, m, out, cfg, smooth=sm)
-                rms = _rms(outage_errors(drive, out, m, win_ns))
+                t_err, err = outage_error_series(drive, out, m, win_ns)
+                rms = _rms(err)
+                curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
                 per.setdefault((name, L), []).append(rms)
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
                 done += 1
@@ -203,12 +280,17 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     table = pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
                                        "mean": pl.Float64, "std": pl.Float64, "drives": pl.Int64, "windows": pl.Int64})
     table.write_csv(report / "table.csv")
-    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)]))
+    figures = [plot_errors({m: np.concatenate(c) for m, c in by.items()}, L, report / f"errors_{L:g}s.png",
+                           max(map(len, by.values()))) for L, by in curves.items()]
+    for f in figures:
+        say(f"wrote {f}")
+    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures]))
     return table
 
 
-def markdown(table: pl.DataFrame, drives: list[str]) -> str:
-    """The long table laid out like the paper's Table 3: rows = quantity, columns = method x outage length."""
+def markdown(table: pl.DataFrame, drives: list[str], figures: Sequence[str] = ()) -> str:
+    """The long table laid out like the paper's Table 3: rows = quantity, columns = method x outage length;
+    then image links to the figures (file names relative to the report directory)."""
     cols = table.select("method", "outage_s").unique(maintain_order=True).sort("outage_s", maintain_order=True).rows()
     head = "| quantity | unit | " + " | ".join(f"{m} {L:g} s" for m, L in cols) + " |"
     lines = ["# RMS errors during GPS outages", "",
@@ -223,4 +305,6 @@ def markdown(table: pl.DataFrame, drives: list[str]) -> str:
         lines.append(f"| {q} | {unit} | " + " | ".join(cells) + " |")
     n = table.select("method", "outage_s", "windows").unique(maintain_order=True).rows()
     lines += ["", "Outage windows per column: " + ", ".join(f"{m} {L:g} s: {w}" for m, L, w in n), ""]
+    for f in figures:
+        lines += [f"![errors against time in the outages: {f}]({f})", ""]
     return "\n".join(lines)
