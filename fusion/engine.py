@@ -34,6 +34,11 @@ the observation z = INS - GPS (``rbfn``, ``tdln``) or the position and velocity 
 correction fed back (``dkf-rbfn``). At each unusable or withheld epoch after the networks have enough
 training, the predicted correction is fed into the INS; the error state and covariance are untouched.
 
+``hinf`` and ``kf-ukf`` run the ``kf`` path with another filter object: ``fusion.hinf.HInfinityFilter``
+(``hinf_gamma``) and ``fusion.ukf.HybridKfUkf``, which is given the navigation solution at the start, middle
+and end of each covariance cycle (the nodes of its outage RK4) and told of an outage at its first unusable
+epoch.
+
 Smoothing: given a ``log`` (``fusion.smoother.SmootherLog``) the engine records, per covariance cycle,
 Phi and the predicted covariance, and at each update the correction fed back and the covariance after
 it (the covariance is then propagated one cycle per call, to capture each P).
@@ -50,14 +55,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion import earth, errmodel, ins, kf, predictors
+from fusion import earth, errmodel, hinf, ins, kf, predictors, ukf
 from fusion.dkf import DistributedKF
 from fusion.errmodel import BA, BG, N_STATES, POS, VEL
 
 if TYPE_CHECKING:
     from fusion.smoother import SmootherLog
 
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn")
+METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf")
 PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
 NS = 1_000_000_000
 _DEG = math.pi / 180.0
@@ -87,6 +92,7 @@ class FusionConfig:
     vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
     max_fix_sigma_m: float = 30.0
     outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
+    hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
 
     def noise_psd(self) -> np.ndarray:
@@ -176,7 +182,7 @@ class Engine:
         self.q = self.cfg.noise_psd()
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
-        self.filter: kf.KalmanFilter | DistributedKF | None = None
+        self.filter: kf.KalmanFilter | DistributedKF | None = None  # hinf, kf-ukf: KalmanFilter subclasses
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
         self.updates = 0
@@ -325,7 +331,14 @@ class Engine:
                                      np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
         self._origin = (self.nav.lat, self.nav.lon, self.nav.h)
         distributed = self.method == "dkf" or self.predictor is not None
-        self.filter = DistributedKF(P0, self.q) if distributed else kf.KalmanFilter(P0, self.q)
+        if distributed:
+            self.filter = DistributedKF(P0, self.q)
+        elif self.method == "hinf":
+            self.filter = hinf.HInfinityFilter(P0, self.q, c.hinf_gamma)
+        elif self.method == "kf-ukf":
+            self.filter = ukf.HybridKfUkf(P0, self.q)
+        else:
+            self.filter = kf.KalmanFilter(P0, self.q)
         self._sigma = _sigmas(np.diag(P0))
         if self.log is not None:
             self.log.start(t_k_ns, self.filter.covariance)
@@ -338,6 +351,8 @@ class Engine:
         if self.method == "ins":
             return
         if not usable:
+            if isinstance(self.filter, ukf.HybridKfUkf):
+                self.filter.start_outage()
             if self.predictor is not None:
                 self._bridge()
             return
@@ -400,6 +415,9 @@ class Engine:
         F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
                                         np.einsum("kij,kj->ki", C, f_mean))
         Phi, Q = errmodel.discretise(F, G, self.q, tt[ends] - tt[starts])
+        if isinstance(self.filter, ukf.HybridKfUkf):  # the nodes of its outage RK4
+            self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, starts, mid, ends, f_mean,
+                                                  tt[ends] - tt[starts]))
         if self.log is None:
             diag = self.filter.propagate(Phi, Q)
         else:

@@ -1,0 +1,81 @@
+"""The H-infinity filter of the KF-versus-H-infinity paper (eqs. 20-26) on the shared filter interface.
+
+The paper's recursion (eq. 26, one-step predictor form, A = Phi, C = H, B B^T = Q, D D^T = R)::
+
+    H_k     = P_k^-1 - L^T L / gamma^2
+    K_k     = A H_k^-1 C^T (D D^T + C H_k^-1 C^T)^-1
+    P_{k+1} = (A - K_k C) H_k^-1 (A - K_k C)^T + (B - K_k D)(B - K_k D)^T
+
+is the Kalman filter run on Pbar = H_k^-1 = (P^-1 - gamma^-2 L^T L)^-1 instead of P: its gain is A times
+the KF gain computed with Pbar, and its P_{k+1} is the Joseph-form KF update of Pbar followed by the KF
+prediction (B D^T = 0). So :class:`HInfinityFilter` is :class:`fusion.kf.KalmanFilter` (same predict,
+same closed loop) whose measurement update first inflates P to Pbar. As gamma -> infinity Pbar -> P: the
+Kalman filter. (The paper's text says "when gamma -> 0, H_k -> P^-1, the filter is transformed into the
+Kalman filter": a slip, it is gamma -> infinity, as its own next sentence says.)
+
+L (eq. 20, z = L x, the combination of states to be estimated) defaults to the position and velocity
+error (the paper estimates "the speed and position error"); gamma is then in metres / (m/s) of those.
+
+Existence: the paper's form inverts H_k and uses H_k^-1 as a covariance, so it needs
+H_k = P^-1 - gamma^-2 L^T L > 0, i.e. gamma^2 > lambda_max(S^T L^T L S) with P = S S^T. That is the
+condition checked here, at every update; a smaller gamma raises :class:`GammaTooSmall` naming the bound.
+It is stricter than the general H-infinity existence condition P^-1 - gamma^-2 L^T L + H^T R^-1 H > 0
+(Simon, Optimal State Estimation, sec. 11.3), which it implies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.errmodel import N_STATES
+from fusion.kf import KalmanFilter
+
+
+class GammaTooSmall(ValueError):
+    """gamma below the existence bound of the H-infinity filter at this step."""
+
+
+def position_velocity_weights() -> np.ndarray:
+    """Default L (6, 15): picks the position (m) and velocity (m/s) errors."""
+    L = np.zeros((6, N_STATES))
+    L[:, 0:6] = np.eye(6)
+    return L
+
+
+def existence_bound(P: np.ndarray, L: np.ndarray) -> float:
+    """Smallest gamma for which H_k = P^-1 - gamma^-2 L^T L is positive definite: sqrt(lambda_max(S^T L^T L S))."""
+    S = np.linalg.cholesky(P)
+    LS = L @ S
+    return float(np.sqrt(max(np.linalg.eigvalsh(LS.T @ LS)[-1], 0.0)))
+
+
+class HInfinityFilter(KalmanFilter):
+    """H-infinity filter (paper eq. 26) with performance bound gamma; L (p, 15) the estimated combination
+    (default :func:`position_velocity_weights`). P0, q, q_scale as :class:`fusion.kf.KalmanFilter`."""
+
+    def __init__(self, P0: np.ndarray, q: np.ndarray, gamma: float, L: np.ndarray | None = None,
+                 q_scale: float = 1.0) -> None:
+        super().__init__(P0, q, q_scale)
+        if not gamma > 0.0:
+            raise ValueError(f"gamma must be > 0, got {gamma}")
+        self.gamma = float(gamma)
+        self.L = position_velocity_weights() if L is None else np.asarray(L, dtype=float)
+
+    def inflated(self) -> np.ndarray:
+        """Pbar = H_k^-1 = (P^-1 - gamma^-2 L^T L)^-1 (15, 15); raises GammaTooSmall if H_k is not > 0."""
+        S = np.linalg.cholesky(self.P)
+        LS = self.L @ S
+        M = np.eye(N_STATES) - (LS.T @ LS) / self.gamma ** 2  # S^T H_k S
+        w, V = np.linalg.eigh(M)
+        if w[0] <= 0.0:
+            bound = self.gamma * np.sqrt(1.0 - w[0])
+            raise GammaTooSmall(f"H-infinity gamma={self.gamma:g} is below the existence bound {bound:.4g} at this "
+                                f"step (P^-1 - gamma^-2 L^T L must be positive definite); use a larger gamma")
+        SV = S @ V
+        Pbar = (SV / w) @ SV.T
+        return 0.5 * (Pbar + Pbar.T)
+
+    def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """H-infinity measurement update: the KF update (Joseph form) of Pbar. Returns K (z - H x) (15,)."""
+        self.P = self.inflated()
+        return super().update(z, H, R)
