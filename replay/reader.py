@@ -25,6 +25,7 @@ from mcap.summary import Summary
 
 from acquire import messages
 from acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
+from fusion.engine import GpsBlock
 
 
 @dataclass(frozen=True)
@@ -221,3 +222,28 @@ def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
         a, b = p.offsets[idx[0]], p.offsets[idx[-1] + 1]
         return messages.Packed(p.buf[a:b], p.offsets[idx[0] : idx[-1] + 2] - a)
     return p.take(idx)
+
+
+# -- what fusion reads ---------------------------------------------------------------------------------
+
+IN_TOPICS = ("/imu", "/gps/fix", "/gps/vel")   # the topics ``fusion.engine`` runs on
+
+
+def gps_block(fix: dict, vel: dict) -> GpsBlock:
+    """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs."""
+    n = len(fix.get("log_time_ns", ()))
+    if n == 0:
+        return GpsBlock.empty()
+    ok = fix["valid"]
+    t = fix["log_time_ns"][ok]
+    v_n = np.full((len(t), 3), np.nan)
+    vel_cov = np.full((len(t), 3, 3), np.nan)
+    if len(vel.get("log_time_ns", ())):
+        vok = vel["valid"]
+        tv = vel["log_time_ns"][vok]
+        idx = np.searchsorted(tv, t).clip(0, max(len(tv) - 1, 0))
+        hit = (tv[idx] == t) if len(tv) else np.zeros(len(t), bool)
+        v_n[hit] = vel["v_n"][vok][idx[hit]]
+        vel_cov[hit] = vel["covariance"][vok][idx[hit]].reshape(-1, 6, 6)[:, :3, :3]
+    return GpsBlock(t, fix["lat_deg"][ok], fix["lon_deg"][ok], fix["alt_m"][ok],
+                    fix["position_covariance"][ok].reshape(-1, 3, 3), fix["status"][ok].astype(int), v_n, vel_cov)

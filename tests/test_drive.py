@@ -202,3 +202,10 @@ def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
     for name in ("figure8.mcap", "dkf-rbfn.mcap", "figure8.rrd", "report/table.md", "report/table.csv"):
         assert (tmp_path / name).stat().st_size > 0, name
     assert "/fusion/dkf-rbfn/fix" in counts(tmp_path / "dkf-rbfn.mcap")
+
+
+def test_cli_method_list_is_the_engines():
+    from fusion.engine import METHODS
+    from tools import cli
+
+    assert tuple(cli.METHODS) == tuple(METHODS)

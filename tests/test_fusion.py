@@ -160,7 +160,7 @@ def test_distributed_equals_centralised_with_information_sharing():
 
 def test_closed_loop_resets_and_keeps_covariance_spd(drive):
     from replay.reader import iter_blocks
-    from tools.fuse import IN_TOPICS, gps_block
+    from replay.reader import IN_TOPICS, gps_block
     from fusion.engine import ImuBlock
 
     for method in ("kf", "dkf"):

@@ -33,7 +33,6 @@ def _static(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _adev_brute_force(x: np.ndarray, m: int, fs: float) -> float:
-    tau = m / fs
     ybar = np.array([x[k : k + m].mean() for k in range(x.size - m + 1)])
     return math.sqrt(np.mean((ybar[m:] - ybar[:-m]) ** 2) / 2.0)
 

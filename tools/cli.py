@@ -7,6 +7,11 @@ import time
 from pathlib import Path
 
 
+# fusion.engine.METHODS, spelled out so that `fieldlog --help` does not import the fusion stack
+# (tests/test_drive.py checks the two agree)
+METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf")
+
+
 class Progress:
     """A one-line progress display on a terminal; silent otherwise."""
 
@@ -98,7 +103,7 @@ def cmd_rebuild(a: argparse.Namespace) -> int:
 def cmd_allan(a: argparse.Namespace) -> int:
     from tools.allan import drive_report
 
-    print(drive_report(a.drive))
+    print(drive_report(a.drive, plot_prefix=a.plot))
     return 0
 
 
@@ -199,6 +204,43 @@ def cmd_export(a: argparse.Namespace) -> int:
     print(f"wrote {len(written)} tables to {a.out} in {time.monotonic() - t0:.1f} s")
     return 0
 
+def cmd_batch(a: argparse.Namespace) -> int:
+    import glob
+
+    from tools.batch import run_batch, summary
+    from tools.evaluate import check_methods
+
+    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    check_methods(methods)
+    try:
+        lengths = [float(x) for x in a.outages.split(",") if x.strip()] if a.outages else []
+    except ValueError:
+        raise ValueError(f"--outages expects lengths in s separated by commas, got {a.outages!r}") from None
+    if lengths and min(lengths) <= 0:
+        raise ValueError("--outages: lengths must be > 0")
+    drives = sorted({p for pattern in a.drives for p in (glob.glob(pattern) or [pattern])})
+    missing = [d for d in drives if not Path(d).exists()]
+    if missing:
+        raise FileNotFoundError(f"{', '.join(missing)} does not exist")
+    if a.workers < 1:
+        raise ValueError("--workers must be >= 1")
+    res = run_batch(drives, methods, lengths, a.out, scheduler=a.scheduler, workers=a.workers)
+    print(summary(res.table))
+    print(f"wrote {res.parquet} ({len(res.table)} rows, {len(drives) - len(res.failed)} drives ok, "
+          f"{len(res.failed)} failed); batch wall time {res.wall_s:.1f} s")
+    return 1 if res.failed and len(res.failed) == len(drives) else 0
+
+
+def cmd_replay(a: argparse.Namespace) -> int:
+    from replay.player import replay
+
+    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, progress=Progress(f"replay {a.method}"))
+    print(f"played {res.data_s:.1f} s of {a.drive} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
+          f"{res.solutions} {a.method} solutions, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, "
+          f"{res.outages} outages -> {res.sink}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay")
     sub = p.add_subparsers(dest="command", required=True)
@@ -256,11 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("allan", help="Allan deviation and noise parameters of a static drive")
     s.add_argument("drive")
+    s.add_argument("--plot", default=None, metavar="PREFIX", help="also write PREFIX_gyro.png and PREFIX_accel.png")
     s.set_defaults(func=cmd_allan)
 
     s = sub.add_parser("fuse", help="run one fusion method over a drive and write its solution")
     s.add_argument("drive")
-    s.add_argument("--method", choices=["ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn"], default="kf")
+    s.add_argument("--method", choices=METHODS, default="kf")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help="force a GPS outage, seconds from the first IMU sample (repeatable)")
     s.add_argument("--out", required=True, help="output MCAP")
@@ -270,7 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
     s.add_argument("drive", nargs="*", help="drives (MCAP); none with --seeds")
     s.add_argument("--outages", default="30,60", help="outage lengths, s, comma separated")
-    s.add_argument("--methods", default="ins,kf,dkf", help="comma separated: ins, kf, dkf, rbfn, tdln, dkf-rbfn")
+    s.add_argument("--methods", default="ins,kf,dkf",
+                   help=f"comma separated: {', '.join(METHODS)}")
     s.add_argument("--report", required=True, help="output directory (table.md, table.csv, fused/)")
     s.add_argument("--seeds", type=int, default=0, help="also simulate this many drives (seeds 1..N) into DIR/drives")
     s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
@@ -290,6 +334,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--format", choices=["parquet", "csv"], default="parquet")
     s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
     s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("batch", help="reprocess many drives on Dask distributed into one Parquet table")
+    s.add_argument("drives", nargs="+", help="drives or glob patterns (quote them), e.g. 'drives/*.mcap'")
+    s.add_argument("--methods", default="kf,dkf", help=f"comma separated: {', '.join(METHODS)}")
+    s.add_argument("--outages", default="", help="also forced outages of these lengths, s, comma separated")
+    s.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="a running Dask scheduler (default: a local cluster on 127.0.0.1)")
+    s.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (1 thread each)")
+    s.add_argument("--out", required=True, help="output directory (results.parquet, fused/)")
+    s.set_defaults(func=cmd_batch)
+
+    s = sub.add_parser("replay", help="play a drive through live fusion into rerun at X times real time")
+    s.add_argument("drive")
+    s.add_argument("--speed", type=float, default=1.0, help="times real time (0: as fast as possible)")
+    s.add_argument("--method", choices=METHODS, default="kf")
+    sink = s.add_mutually_exclusive_group()
+    sink.add_argument("--rrd", default=None, help="stream into this .rrd file instead of a viewer")
+    sink.add_argument("--connect", default=None, metavar="URL",
+                      help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy")
+    s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("demo", help="simulate, fuse, evaluate and view, on the built-in default")
     s.add_argument("--out", default="out/demo")

@@ -76,7 +76,7 @@ def place_outages(t_fix_s: np.ndarray, good: np.ndarray, length_s: float, cfg: S
     return out
 
 
-def _fix_quality(drive: Path, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+def fix_quality(drive: Path, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray, int]:
     """GPS fix times (s from the first IMU sample), usable flags, first IMU time ns."""
     t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
     g = reader.read_topic(drive, "/gps/fix")
@@ -223,7 +223,7 @@ def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, driv
     return path
 
 
-def _rms(e: np.ndarray) -> np.ndarray:
+def rms_columns(e: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         n = np.isfinite(e).sum(axis=0)
         return np.where(n > 0, np.sqrt(np.nansum(e ** 2, axis=0) / np.maximum(n, 1)), np.nan)
@@ -248,7 +248,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
-        t_fix, good, t0 = _fix_quality(drive, base.max_fix_sigma_m)
+        t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m)
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
             if not win:
@@ -262,7 +262,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
                 fuse(drive, m, out, cfg, smooth=sm)
                 t_err, err = outage_error_series(drive, out, m, win_ns)
-                rms = _rms(err)
+                rms = rms_columns(err)
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
                 per.setdefault((name, L), []).append(rms)
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)

@@ -27,12 +27,12 @@ import numpy as np
 
 from acquire import messages
 from acquire.recorder import Recorder
-from fusion.engine import Engine, FusionConfig, GpsBlock, ImuBlock, Solution
+from fusion.engine import Engine, FusionConfig, ImuBlock, Solution
 from fusion.smoother import SmootherLog, smooth_solution
 from replay import reader
+from replay.reader import IN_TOPICS, gps_block
 
 BLOCK_S = 10.0
-IN_TOPICS = ("/imu", "/gps/fix", "/gps/vel")
 
 
 @dataclass
@@ -56,26 +56,6 @@ def parse_outage(text: str) -> tuple[float, float]:
     if not (math.isfinite(start) and math.isfinite(length) and start >= 0.0 and length > 0.0):
         raise ValueError(f"--outage {text!r}: need START >= 0 and LEN > 0")
     return start, length
-
-
-def gps_block(fix: dict, vel: dict) -> GpsBlock:
-    """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs."""
-    n = len(fix.get("log_time_ns", ()))
-    if n == 0:
-        return GpsBlock.empty()
-    ok = fix["valid"]
-    t = fix["log_time_ns"][ok]
-    v_n = np.full((len(t), 3), np.nan)
-    vel_cov = np.full((len(t), 3, 3), np.nan)
-    if len(vel.get("log_time_ns", ())):
-        vok = vel["valid"]
-        tv = vel["log_time_ns"][vok]
-        idx = np.searchsorted(tv, t).clip(0, max(len(tv) - 1, 0))
-        hit = (tv[idx] == t) if len(tv) else np.zeros(len(t), bool)
-        v_n[hit] = vel["v_n"][vok][idx[hit]]
-        vel_cov[hit] = vel["covariance"][vok][idx[hit]].reshape(-1, 6, 6)[:, :3, :3]
-    return GpsBlock(t, fix["lat_deg"][ok], fix["lon_deg"][ok], fix["alt_m"][ok],
-                    fix["position_covariance"][ok].reshape(-1, 3, 3), fix["status"][ok].astype(int), v_n, vel_cov)
 
 
 def _write(rec: Recorder, method: str, s: Solution) -> None:

@@ -1,0 +1,254 @@
+"""``fieldlog replay DRIVE --speed X [--method M] [--rrd OUT.rrd | --connect URL]``: live fusion into rerun.
+
+The drive is read in ``PLAY_BLOCK_S`` blocks (``replay.reader.iter_blocks``), each block goes through the
+incremental ``fusion.engine.Engine`` and what it holds and produced is logged at once on the ``gps_time``
+timeline, paced so that data time runs X times faster than the wall clock. ``play`` takes any iterator of
+``replay.reader.Block`` (the daemon's live bus yields the same, ``replay.live.iter_blocks``).
+
+The entities and colours are those of ``replay.view`` (its module docstring), with the blueprint of
+``replay.view.blueprint`` plus a time panel that follows the newest data. Logged live: ``map/gps``,
+``enu/gps``, ``map/truth`` and ``enu/truth`` (every ``TRUTH_DECIMATION``-th row), ``map/fusion/<method>``,
+``enu/fusion/<method>`` (one row per solution row; ENU origin: the first GPS fix, else the first truth
+point), ``errors/{pos,vel}/<axis>/<method>`` (against the truth when the drive has it, else the GPS),
+``status/no_fix``, ``status/outage``, ``imu/gyro``, ``imu/accel`` (decimated by ``IMU_DECIMATION`` block means).
+The whole-track GeoLineStrings of ``fieldlog view`` are not logged: the track grows in the 3D view up to the
+cursor.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from fusion.engine import Engine, FusionConfig, ImuBlock, Outage, Solution
+from replay import reader
+from replay.reader import IN_TOPICS, gps_block
+from replay import view as rv
+
+PLAY_BLOCK_S = 1.0  # data seconds per logged block
+TOPICS = (*IN_TOPICS, "/truth/fix", "/truth/vel")
+
+
+@dataclass
+class ReplayResult:
+    sink: str
+    blocks: int = 0
+    solutions: int = 0
+    gps_fixes: int = 0
+    imu_rows: int = 0
+    outages: int = 0
+    data_s: float = 0.0  # drive time played, s
+    wall_s: float = 0.0
+
+
+def live_blueprint() -> rrb.Blueprint:
+    """``replay.view.blueprint`` with the time panel following the newest data on ``gps_time``."""
+    bp = rv.blueprint()
+    return rrb.Blueprint(bp.root_container, rrb.TimePanel(timeline=rv.TIMELINE, play_state="following"),
+                         collapse_panels=False)
+
+
+class _Source:
+    """One positioned source on the map and in 3D, logged block by block (segments continue across blocks)."""
+
+    def __init__(self, rec: rr.RecordingStream, src: str, color, radius: float) -> None:
+        self.rec, self.src, self.color, self.radius = rec, src, color, radius
+        self.last: np.ndarray | None = None  # last ENU point, m
+
+    def log(self, trk: rv.Track, origin: tuple[float, float, float]) -> None:
+        if len(trk.t_ns) == 0:
+            return
+        times = rv._times(trk.t_ns)
+        rr.send_columns(f"map/{self.src}", indexes=times,
+                        columns=rr.GeoPoints.columns(positions=np.stack([trk.lat_deg, trk.lon_deg], axis=1)),
+                        recording=self.rec)
+        p = rv.to_enu(trk.lat_deg, trk.lon_deg, trk.alt_m, origin)
+        seg = rv._step_segments(p)
+        if self.last is not None:
+            seg[0, 0] = self.last
+        else:
+            self.rec.log(f"map/{self.src}", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(self.radius),
+                                                                     colors=[self.color]), static=True)
+            self.rec.log(f"enu/{self.src}", rr.LineStrips3D.from_fields(colors=[self.color],
+                                                                        radii=rr.Radius.ui_points(1.5)), static=True)
+        self.last = p[-1]
+        rr.send_columns(f"enu/{self.src}", indexes=times, columns=rr.LineStrips3D.columns(strips=seg),
+                        recording=self.rec)
+
+
+def _fused_track(s: Solution) -> rv.Track:
+    return rv.Track(s.t_ns, np.degrees(s.lat), np.degrees(s.lon), s.h, v_n=s.v_n, sigma_pos=s.sigma[:, 0:3],
+                    sigma_vel=s.sigma[:, 3:6])
+
+
+class Player:
+    """Logs blocks and their fusion output into ``rec``; state carried between blocks."""
+
+    def __init__(self, rec: rr.RecordingStream, method: str, config: FusionConfig | None = None) -> None:
+        self.rec, self.method = rec, method
+        self.engine = Engine(method, config)
+        self.origin: tuple[float, float, float] | None = None
+        self.gps = _Source(rec, "gps", rv.GPS_COLOR, 3.0)
+        self.truth = _Source(rec, "truth", rv.TRUTH_COLOR, 2.0)
+        self.fused = _Source(rec, f"fusion/{method}", rv.method_color(method, 0), 2.5)
+        self.truth_row = 0  # rows of /truth/fix seen, for the decimation phase
+        self.imu_carry = (np.zeros(0, np.int64), np.zeros((0, 6)))
+        self.res = ReplayResult("")
+        self._styled: set[str] = set()
+
+    def _style(self, path: str, archetype) -> None:
+        if path not in self._styled:
+            self.rec.log(path, archetype, static=True)
+            self._styled.add(path)
+
+    def _imu(self, imu: dict) -> None:
+        if not len(imu.get("log_time_ns", ())):
+            return
+        ok = imu["valid"]
+        t = np.concatenate([self.imu_carry[0], imu["log_time_ns"][ok]])
+        x = np.concatenate([self.imu_carry[1], np.hstack([imu["omega_ib_b"][ok], imu["f_b"][ok]])])
+        tm, xm = rv.decimate_means(t, x, rv.IMU_DECIMATION)
+        self.imu_carry = (t[len(tm) * rv.IMU_DECIMATION:], x[len(tm) * rv.IMU_DECIMATION:])
+        if not len(tm):
+            return
+        xyz = [(220, 50, 50), (40, 160, 40), (40, 90, 230)]
+        for path, cols, names in (("imu/gyro", slice(0, 3), ["gyro x (rad/s)", "gyro y", "gyro z"]),
+                                  ("imu/accel", slice(3, 6), ["accel x (m/s²)", "accel y", "accel z"])):
+            rr.send_columns(path, indexes=rv._times(tm), columns=rr.Scalars.columns(scalars=xm[:, cols]),
+                            recording=self.rec)
+            self._style(path, rr.SeriesLines(names=names, colors=xyz))
+        self.res.imu_rows += len(tm)
+
+    def _outages(self, done: list[Outage]) -> None:
+        if not done:
+            return
+        t = np.array([x for o in done for x in (o.start_ns, o.end_ns)], np.int64)
+        level = np.tile([1.0, 0.0], len(done))
+        order = np.argsort(t, kind="stable")
+        rr.send_columns("status/outage", indexes=rv._times(t[order]), columns=rr.Scalars.columns(
+            scalars=level[order]), recording=self.rec)
+        self._style("status/outage", rr.SeriesLines(names=["outage"], colors=[rv.OUTAGE_COLOR[:3]],
+                                                    interpolation_mode=rr.components.InterpolationMode.StepAfter))
+        self.res.outages += len(done)
+
+    def block(self, b: reader.Block) -> None:
+        """Fuse one block and log it."""
+        d = b.data
+        imu = d.get("/imu", {})
+        if len(imu.get("log_time_ns", ())):
+            ok = imu["valid"]
+            ib = ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
+        else:
+            ib = ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        sol, done = self.engine.process(ib, gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {})))
+        self._imu(imu)
+        ref = None
+        fix = d.get("/gps/fix")
+        if fix is not None and len(fix["log_time_ns"]):
+            gps, epochs_t, no_fix = rv.gps_track(fix)
+            vel = d.get("/gps/vel")
+            if vel is not None and len(vel["log_time_ns"]):
+                gps.v_n = rv._interp(gps.t_ns, vel["log_time_ns"][vel["valid"]], vel["v_n"][vel["valid"]])
+            if self.origin is None and len(gps.t_ns):
+                self.origin = (float(gps.lat_deg[0]), float(gps.lon_deg[0]), float(gps.alt_m[0]))
+            if self.origin is not None:
+                self.gps.log(gps, self.origin)
+            if len(epochs_t):
+                rr.send_columns("status/no_fix", indexes=rv._times(epochs_t),
+                                columns=rr.Scalars.columns(scalars=no_fix.astype(float)), recording=self.rec)
+                self._style("status/no_fix", rr.SeriesLines(
+                    names=["GPS no fix"], colors=[rv.NO_FIX_COLOR],
+                    interpolation_mode=rr.components.InterpolationMode.StepAfter))
+            self.res.gps_fixes += len(gps.t_ns)
+            ref, ref_is_truth = gps, False
+        tf = d.get("/truth/fix")
+        if tf is not None and len(tf["log_time_ns"]):
+            truth = rv.truth_track(tf, d.get("/truth/vel"))
+            ref, ref_is_truth = truth, True
+            if self.origin is None:  # no GPS fix yet: the truth's first point
+                self.origin = (float(truth.lat_deg[0]), float(truth.lon_deg[0]), float(truth.alt_m[0]))
+            if self.origin is not None:
+                sl = slice((-self.truth_row) % rv.TRUTH_DECIMATION, None, rv.TRUTH_DECIMATION)
+                self.truth.log(rv.Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl]),
+                               self.origin)
+            self.truth_row += len(tf["log_time_ns"])
+        if len(sol.t_ns) and self.origin is not None:
+            trk = _fused_track(sol)
+            self.fused.log(trk, self.origin)
+            if ref is not None and len(ref.t_ns):
+                rv._log_errors(self.rec, self.method, rv.errors(trk, ref, ref_is_truth, self.origin),
+                               rv.method_color(self.method, 0))
+        self.res.solutions += len(sol.t_ns)
+        self._outages(done)
+        self.res.blocks += 1
+
+    def finish(self) -> ReplayResult:
+        self._outages(self.engine.finish())
+        return self.res
+
+
+def play(rec: rr.RecordingStream, blocks: Iterable[reader.Block], method: str, speed: float,
+         config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
+         span_ns: tuple[int, int] | None = None) -> ReplayResult:
+    """Fuse and log ``blocks`` into ``rec``, paced at ``speed`` times real time (``speed <= 0``: no pacing).
+    ``span_ns`` (first, last data time) only drives ``progress``."""
+    player = Player(rec, method, config)
+    t_wall0 = time.monotonic()
+    t_data0: int | None = None
+    t_end = 0
+    for b in blocks:
+        if t_data0 is None:
+            t_data0 = b.t0_ns
+        player.block(b)
+        t_end = b.t1_ns
+        rec.flush()
+        if speed > 0:
+            wait = t_wall0 + (b.t1_ns - t_data0) * 1e-9 / speed - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+        if progress and span_ns:
+            progress(min((b.t1_ns - span_ns[0]) / max(span_ns[1] - span_ns[0], 1), 1.0))
+    res = player.finish()
+    res.data_s = (t_end - t_data0) * 1e-9 if t_data0 is not None else 0.0
+    res.wall_s = time.monotonic() - t_wall0
+    return res
+
+
+def replay(drive: str | os.PathLike[str], method: str, speed: float, rrd: str | os.PathLike[str] | None = None,
+           connect: str | None = None, config: FusionConfig | None = None,
+           progress: Callable[[float], None] | None = None) -> ReplayResult:
+    """Play ``drive`` into a rerun viewer: ``connect`` (a gRPC URL, e.g. ``rerun+http://127.0.0.1:9876/proxy``),
+    else the ``rrd`` file, else a spawned viewer."""
+    if not Path(drive).is_file():
+        raise FileNotFoundError(f"{drive} does not exist")
+    tops = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
+    if not any(t.topic == "/imu" for t in tops):
+        raise ValueError(f"{drive}: no /imu messages")
+    if connect is None and rrd is None and not rv.has_display():
+        raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd or --connect URL")
+    rec = rr.RecordingStream("fieldlog")
+    bp = live_blueprint()
+    if connect is not None:
+        rec.connect_grpc(connect, default_blueprint=bp)
+        sink = connect
+    elif rrd is not None:
+        rec.save(rrd, default_blueprint=bp)
+        sink = str(rrd)
+    else:
+        rec.spawn(default_blueprint=bp)
+        sink = "viewer"
+    span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
+    try:
+        res = play(rec, reader.iter_blocks(drive, TOPICS, PLAY_BLOCK_S), method, speed, config, progress, span)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    res.sink = sink
+    return res

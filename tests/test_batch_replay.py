@@ -1,0 +1,172 @@
+"""`fieldlog batch` on a local Dask cluster against the same drives one by one in-process, and `fieldlog replay`
+into an .rrd (checked with the rerun command line) and into a `rerun --serve-grpc` server on loopback."""
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import time
+from collections import Counter
+from pathlib import Path
+
+import polars as pl
+import pytest
+
+from replay import view as rview
+from tools.batch import RESULT_SCHEMA, drive_rows, results_table
+from replay.reader import read_topic
+from tools.cli import main as cli_main
+from tools.fuse import fuse
+from tools.sim.simulate import simulate
+
+os.environ["CI"] = "1"  # rerun analytics off
+RERUN = Path(__file__).resolve().parents[1] / ".venv" / "bin" / "rerun"
+SEEDS = (1, 2, 3)
+DURATION_S = 160.0  # room for one 30 s outage after the 120 s convergence time of the outage study
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    for s in SEEDS:
+        simulate("figure8", DURATION_S, s, d / f"drive{s}.mcap")
+    (d / "garbage.mcap").write_bytes(b"\x89MCAP0\r\n" + os.urandom(4000))
+    whole = (d / "drive1.mcap").read_bytes()
+    (d / "truncated.mcap").write_bytes(whole[: len(whole) // 2])  # cut short, as by a power loss
+    return d
+
+
+def test_batch_on_two_workers_equals_one_by_one_and_skips_the_garbage(fleet, tmp_path, capsys):
+    out = tmp_path / "batch"
+    rc = cli_main(["batch", str(fleet / "*.mcap"), "--methods", "kf,dkf", "--outages", "30", "--workers", "2",
+                   "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    assert "garbage.mcap: FAILED" in printed and "truncated.mcap: FAILED" in printed
+    assert "batch wall time" in printed
+    n = len(SEEDS) + 2
+    assert len(re.findall(rf"^\[\d/{n}\]", printed, re.M)) == n  # a progress line per drive done
+
+    table = pl.read_parquet(out / "results.parquet")
+    assert table.schema == pl.Schema(RESULT_SCHEMA)
+    failed = table.filter(pl.col("status") == "failed")
+    assert failed["drive"].to_list() == ["garbage", "truncated"] and failed["error"].is_not_null().all()
+    ok = table.filter(pl.col("status") == "ok")
+    assert sorted(set(ok["drive"])) == [f"drive{s}" for s in SEEDS]
+    assert len(ok) == len(SEEDS) * 2 * 2  # (whole drive, 30 s outages) x (kf, dkf)
+    assert (ok["reference"] == "truth").all() and ok["timing_rms_us"].is_not_null().all()
+    assert ok.filter(pl.col("outage_s") == 30.0)["windows"].min() >= 1
+    for s in SEEDS:
+        for m in ("kf", "dkf"):
+            assert (out / "fused" / f"drive{s}_{m}.mcap").is_file()
+            assert (out / "fused" / f"drive{s}_{m}_30s.mcap").is_file()
+    # GPS outages cost accuracy: RMS inside the outages is worse than over the whole drive
+    whole = ok.filter(pl.col("outage_s").is_null()).sort("drive", "method")["pos_2d_m"]
+    gap = ok.filter(pl.col("outage_s") == 30.0).sort("drive", "method")["pos_2d_m"]
+    assert (gap > whole).all() and (whole < 5.0).all()
+
+    rows = []
+    for s in SEEDS:
+        rows += drive_rows(fleet / f"drive{s}.mcap", ["kf", "dkf"], [30.0], tmp_path / "one_by_one")
+    ref = results_table(rows)
+    assert ok.drop("path").equals(ref.drop("path"))
+
+
+def _rerun(*args: str) -> str:
+    res = subprocess.run([str(RERUN), "rrd", *args], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "CI": "1"})
+    assert res.returncode == 0, res.stderr
+    return res.stdout + res.stderr
+
+
+def _rows(printed: str) -> Counter:
+    """Rows per (entity, component) summed over the chunks that `rerun rrd print` lists."""
+    out: Counter = Counter()
+    for m in re.finditer(r"with (\d+) rows .* - (/\S+) - data columns: \[([^\]]*)\]", printed):
+        for comp in m.group(3).split():
+            out[m.group(2), comp] += int(m.group(1))
+    return out
+
+
+def _check_recording(rrd: Path, drive: Path, tmp_path: Path) -> None:
+    """The recording verifies and holds the live entities with the rows of the same fusion run offline."""
+    assert "1 file verified without error" in _rerun("verify", str(rrd))
+    rows = _rows(_rerun("print", str(rrd)))
+    fused = fuse(drive, "kf", tmp_path / "kf.mcap")
+    assert rows["/map/fusion/kf", "GeoPoints:positions"] == fused.rows > 0
+    assert rows["/enu/fusion/kf", "LineStrips3D:strips"] == fused.rows
+    gps, _, _ = rview.gps_track(read_topic(drive, "/gps/fix"))
+    assert rows["/map/gps", "GeoPoints:positions"] == len(gps.t_ns) > 0
+    imu = read_topic(drive, "/imu")
+    assert rows["/imu/gyro", "Scalars:scalars"] == int(imu["valid"].sum()) // rview.IMU_DECIMATION
+    assert rows["/map/truth", "GeoPoints:positions"] == -(-len(read_topic(drive, "/truth/fix")["log_time_ns"])
+                                                           // rview.TRUTH_DECIMATION)
+    assert fused.rows * 0.9 < rows["/errors/pos/east/kf", "Scalars:scalars"] <= fused.rows
+    assert any(e == "/time_panel" for e, _ in rows)  # the blueprint's time panel follows the newest data
+
+
+def test_replay_to_rrd(fleet, tmp_path, capsys):
+    drive = fleet / "drive1.mcap"
+    rrd = tmp_path / "replay.rrd"
+    assert cli_main(["replay", str(drive), "--speed", "200", "--method", "kf", "--rrd", str(rrd)]) == 0
+    assert "160.0 s of" in capsys.readouterr().out
+    _check_recording(rrd, drive, tmp_path)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_port(port: int, deadline_s: float) -> bool:
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.1)
+    return False
+
+
+def test_replay_live_to_a_rerun_server_on_loopback(fleet, tmp_path):
+    """`rerun --serve-grpc` on 127.0.0.1 receives the stream; `rerun download` reads back what it buffered
+    (the proxy stream never ends, so the download is stopped once the rows are in and the copy compacted)."""
+    drive = fleet / "drive1.mcap"
+    port = _free_port()
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    env = {**os.environ, "CI": "1"}
+    # own process groups: .venv/bin/rerun is a Python launcher whose child is the real server
+    server = subprocess.Popen([str(RERUN), "--serve-grpc", "--bind", "127.0.0.1", "--port", str(port)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True)
+    download = None
+    try:
+        assert _wait_port(port, 15.0), "rerun server did not listen"
+        assert cli_main(["replay", str(drive), "--speed", "200", "--method", "kf", "--connect", url]) == 0
+        dl = tmp_path / "dl"
+        dl.mkdir()
+        download = subprocess.Popen([str(RERUN), "download", url, "-o", str(dl)], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL, env=env, start_new_session=True)
+        received = dl / "output.rrd"
+        expected = int(read_topic(drive, "/imu")["valid"].sum()) // rview.IMU_DECIMATION
+        end = time.monotonic() + 30.0
+        got = 0
+        while time.monotonic() < end and got < expected:
+            time.sleep(0.5)
+            if received.is_file():
+                res = subprocess.run([str(RERUN), "rrd", "print", str(received)], capture_output=True, text=True,
+                                     timeout=60, env=env)
+                got = _rows(res.stdout)["/imu/gyro", "Scalars:scalars"]
+        assert got == expected
+    finally:
+        for proc in (download, server):
+            if proc is not None:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(timeout=10)
+    compact = tmp_path / "received.rrd"
+    with open(compact, "wb") as f:
+        res = subprocess.run([str(RERUN), "rrd", "optimize", str(received)], stdout=f, stderr=subprocess.PIPE,
+                             text=True, timeout=60, env=env)
+    assert res.returncode == 0, res.stderr
+    _check_recording(compact, drive, tmp_path)
