@@ -209,3 +209,16 @@ def test_cli_method_list_is_the_engines():
     from tools import cli
 
     assert tuple(cli.METHODS) == tuple(METHODS)
+
+
+def test_sample_data_opens(tmp_path):
+    """The shipped sample drive reads back, and its NMEA log imports to the same fixes."""
+    data = Path(__file__).resolve().parent.parent / "data"
+    c = counts(data / "urban_60s.mcap")
+    assert c["/imu"] == 30_000 and c["/gps/fix"] >= 59
+    out = tmp_path / "gps.mcap"
+    assert fieldlog(["import", "--gps", str(data / "urban_60s.nmea"), "--out", str(out)]) == 0
+    a = reader.read_topic(data / "urban_60s.mcap", "/gps/fix")
+    b = reader.read_topic(out, "/gps/fix")
+    np.testing.assert_array_equal(a["stamp_ns"], b["stamp_ns"])
+    np.testing.assert_array_equal(a["lat_deg"], b["lat_deg"])
