@@ -7,21 +7,20 @@ import signal
 import socket
 import subprocess
 import time
-from collections import Counter
 from pathlib import Path
 
 import polars as pl
 import pytest
+from test_view_export import RERUN, _rerun, _rows
 
 from replay import view as rview
-from tools.batch import RESULT_SCHEMA, drive_rows, results_table
 from replay.reader import read_topic
+from tools.batch import RESULT_SCHEMA, drive_rows, results_table
 from tools.cli import main as cli_main
 from tools.fuse import fuse
 from tools.sim.simulate import simulate
 
 os.environ["CI"] = "1"  # rerun analytics off
-RERUN = Path(__file__).resolve().parents[1] / ".venv" / "bin" / "rerun"
 SEEDS = (1, 2, 3)
 DURATION_S = 160.0  # room for one 30 s outage after the 120 s convergence time of the outage study
 
@@ -71,22 +70,6 @@ def test_batch_on_two_workers_equals_one_by_one_and_skips_the_garbage(fleet, tmp
         rows += drive_rows(fleet / f"drive{s}.mcap", ["kf", "dkf"], [30.0], tmp_path / "one_by_one")
     ref = results_table(rows)
     assert ok.drop("path").equals(ref.drop("path"))
-
-
-def _rerun(*args: str) -> str:
-    res = subprocess.run([str(RERUN), "rrd", *args], capture_output=True, text=True, timeout=60,
-                         env={**os.environ, "CI": "1"})
-    assert res.returncode == 0, res.stderr
-    return res.stdout + res.stderr
-
-
-def _rows(printed: str) -> Counter:
-    """Rows per (entity, component) summed over the chunks that `rerun rrd print` lists."""
-    out: Counter = Counter()
-    for m in re.finditer(r"with (\d+) rows .* - (/\S+) - data columns: \[([^\]]*)\]", printed):
-        for comp in m.group(3).split():
-            out[m.group(2), comp] += int(m.group(1))
-    return out
 
 
 def _check_recording(rrd: Path, drive: Path, tmp_path: Path) -> None:

@@ -3,6 +3,7 @@
 import os
 import re
 import subprocess
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from tools.sim.simulate import simulate
 from tools.sim.trajectory import SCENARIO_DIR
 
 os.environ["CI"] = "1"  # rerun analytics off
-RERUN = Path(__file__).resolve().parents[1] / ".venv" / "bin" / "rerun"
+RERUN = Path(sys.executable).parent / "rerun"
 NO_FIX = (90.0, 8.0)  # receiver outage in the scenario: /gps/fix epochs without a fix
 
 

@@ -228,8 +228,39 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     one(20.0, 120.0)
 
 
+def bench_view(runs: int, tmp: Path) -> None:
+    """A 1-hour 500 Hz drive plus one fused method (kf) to .rrd (target <= 10 s), and the file size."""
+    from fusion.engine import FusionConfig
+    from replay.view import view
+    from tools.fuse import fuse
+    from tools.sim.simulate import simulate
+
+    drive, fused, rrd = tmp / "hour.mcap", tmp / "hour_kf.mcap", tmp / "hour.rrd"
+    simulate("figure8", 3600, 1, drive)
+    fuse(drive, "kf", fused, FusionConfig())
+    med, ts, _ = timed(lambda: view(drive, [fused], rrd), runs)
+    print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
+          f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
+
+
+def bench_batch(runs: int, tmp: Path) -> None:
+    """fieldlog batch of 4 drives (300 s; kf, dkf; 30 s outages): 2 Dask workers against one by one in-process."""
+    from tools.batch import drive_rows, run_batch
+    from tools.sim.simulate import simulate
+
+    drives = []
+    for seed in range(1, 5):
+        drives.append(tmp / f"b{seed}.mcap")
+        simulate("figure8", 300, seed, drives[-1])
+    t_one, _, _ = timed(lambda: [drive_rows(d, ["kf", "dkf"], [30.0], tmp / "one") for d in drives], 1)
+    t_batch, _, _ = timed(lambda: run_batch(drives, ["kf", "dkf"], [30.0], tmp / "batch", workers=2,
+                                            say=lambda _m: None), 1)
+    print(f"batch 4 drives: one by one {t_one:.1f} s, Dask 2 workers {t_batch:.1f} s (cluster start included) "
+          f"-> speed-up {t_one / t_batch:.2f}x")
+
+
 BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon}
+           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon, "view": bench_view, "batch": bench_batch}
 
 
 def main() -> None:
