@@ -234,10 +234,14 @@ class Server:
                 select.select([], fds, [], 0.002)
             else:
                 time.sleep(0.002)
+        # The reader has drained the ptys once their input queues stay empty for a while: bytes written to
+        # the master reach the slave's queue through the kernel's flip buffer, which can lag on a busy
+        # machine, so one empty reading is not enough before closing.
         deadline = time.monotonic() + 10.0
-        while self.completed and not self.stop.is_set() and time.monotonic() < deadline:
-            if all(p.master < 0 or p.unread() == 0 for p in self.ports.values()):
-                break
+        empty_polls = 0
+        while self.completed and not self.stop.is_set() and time.monotonic() < deadline and empty_polls < 6:
+            empty = all(p.master < 0 or p.unread() == 0 for p in self.ports.values())
+            empty_polls = empty_polls + 1 if empty else 0
             time.sleep(0.05)
 
     def _step(self, p: _Port, t_s: float, log: Callable[[str], None]) -> bool:
