@@ -11,6 +11,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
 from acquire import nmea
 from acquire.config import from_table
@@ -85,8 +86,6 @@ def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Gene
     gm_sigma = np.array([cfg.gm_h_m, cfg.gm_h_m, cfg.gm_v_m])
     drive = rng.standard_normal((n, 3)) * gm_sigma * np.sqrt(1 - phi**2)
     drive[0] = rng.standard_normal(3) * gm_sigma
-    from scipy.signal import lfilter
-
     gm = lfilter([1.0], [1.0, -phi], drive, axis=0)
     white = rng.standard_normal((n, 3)) * np.array([cfg.white_h_m, cfg.white_h_m, cfg.white_v_m])
     err_enu = (gm + white) * factor[:, None]
