@@ -93,6 +93,7 @@ class FusionConfig:
     max_fix_sigma_m: float = 30.0
     outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
+    hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
     predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
 
     def noise_psd(self) -> np.ndarray:
@@ -334,7 +335,7 @@ class Engine:
         if distributed:
             self.filter = DistributedKF(P0, self.q)
         elif self.method == "hinf":
-            self.filter = hinf.HInfinityFilter(P0, self.q, c.hinf_gamma)
+            self.filter = hinf.HInfinityFilter(P0, self.q, c.hinf_gamma, min_ratio=c.hinf_min_ratio)
         elif self.method == "kf-ukf":
             self.filter = ukf.HybridKfUkf(P0, self.q)
         else:

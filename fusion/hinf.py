@@ -21,6 +21,13 @@ H_k = P^-1 - gamma^-2 L^T L > 0, i.e. gamma^2 > lambda_max(S^T L^T L S) with P =
 condition checked here, at every update; a smaller gamma raises :class:`GammaTooSmall` naming the bound.
 It is stricter than the general H-infinity existence condition P^-1 - gamma^-2 L^T L + H^T R^-1 H > 0
 (Simon, Optimal State Estimation, sec. 11.3), which it implies.
+
+The bound grows with P, so during a long GPS outage any fixed gamma is eventually too small (gamma = 30
+fails in a 60 s outage with the Table 2 MEMS IMU). The paper gives no rule for choosing gamma. Two
+policies: ``min_ratio = 0`` keeps gamma fixed and raises; ``min_ratio = c > 1`` (the engine's default,
+``FusionConfig.hinf_min_ratio``) uses gamma_k = max(gamma, c * bound_k) at each update, i.e. the
+filter is never closer to its existence limit than c, and moves towards the KF (gamma -> infinity) when
+the covariance is large. ``raised`` counts the updates where gamma_k > gamma.
 """
 
 from __future__ import annotations
@@ -54,22 +61,33 @@ class HInfinityFilter(KalmanFilter):
     (default :func:`position_velocity_weights`). P0, q, q_scale as :class:`fusion.kf.KalmanFilter`."""
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, gamma: float, L: np.ndarray | None = None,
-                 q_scale: float = 1.0) -> None:
+                 q_scale: float = 1.0, min_ratio: float = 0.0) -> None:
         super().__init__(P0, q, q_scale)
         if not gamma > 0.0:
             raise ValueError(f"gamma must be > 0, got {gamma}")
+        if min_ratio != 0.0 and not min_ratio > 1.0:
+            raise ValueError(f"min_ratio must be 0 (fixed gamma) or > 1, got {min_ratio}")
         self.gamma = float(gamma)
+        self.min_ratio = float(min_ratio)
+        self.raised = 0
         self.L = position_velocity_weights() if L is None else np.asarray(L, dtype=float)
 
     def inflated(self) -> np.ndarray:
-        """Pbar = H_k^-1 = (P^-1 - gamma^-2 L^T L)^-1 (15, 15); raises GammaTooSmall if H_k is not > 0."""
+        """Pbar = H_k^-1 = (P^-1 - gamma_k^-2 L^T L)^-1 (15, 15); raises GammaTooSmall if H_k is not > 0
+        (fixed gamma only)."""
         S = np.linalg.cholesky(self.P)
         LS = self.L @ S
-        M = np.eye(N_STATES) - (LS.T @ LS) / self.gamma ** 2  # S^T H_k S
-        w, V = np.linalg.eigh(M)
+        lt_l = LS.T @ LS  # S^T L^T L S; the bound is sqrt of its largest eigenvalue
+        gamma = self.gamma
+        if self.min_ratio:
+            bound = float(np.sqrt(max(np.linalg.eigvalsh(lt_l)[-1], 0.0)))
+            if self.min_ratio * bound > gamma:
+                gamma = self.min_ratio * bound
+                self.raised += 1
+        w, V = np.linalg.eigh(np.eye(N_STATES) - lt_l / gamma ** 2)  # S^T H_k S
         if w[0] <= 0.0:
-            bound = self.gamma * np.sqrt(1.0 - w[0])
-            raise GammaTooSmall(f"H-infinity gamma={self.gamma:g} is below the existence bound {bound:.4g} at this "
+            bound = gamma * np.sqrt(1.0 - w[0])
+            raise GammaTooSmall(f"H-infinity gamma={gamma:g} is below the existence bound {bound:.4g} at this "
                                 f"step (P^-1 - gamma^-2 L^T L must be positive definite); use a larger gamma")
         SV = S @ V
         Pbar = (SV / w) @ SV.T

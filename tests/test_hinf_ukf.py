@@ -104,6 +104,31 @@ def test_hinf_gamma_below_the_existence_bound_raises():
         hinf.HInfinityFilter(P0, q, 0.0)
 
 
+def test_hinf_relative_gamma_policy_keeps_a_margin_over_the_bound():
+    rng = np.random.default_rng(4)
+    P0, q, _, _, H, R = _system(rng)
+    bound = hinf.existence_bound(P0, hinf.position_velocity_weights())
+    auto = hinf.HInfinityFilter(P0, q, 0.5 * bound, min_ratio=1.5)
+    fixed = hinf.HInfinityFilter(P0, q, 1.5 * bound)
+    auto.update(np.zeros(6), H, R)
+    fixed.update(np.zeros(6), H, R)
+    assert auto.raised == 1 and np.allclose(auto.covariance, fixed.covariance, rtol=1e-12, atol=0)
+    loose = hinf.HInfinityFilter(P0, q, 10.0 * bound, min_ratio=1.5)  # gamma already above: untouched
+    loose.update(np.zeros(6), H, R)
+    assert loose.raised == 0
+    with pytest.raises(ValueError, match="min_ratio"):
+        hinf.HInfinityFilter(P0, q, bound, min_ratio=0.9)
+
+
+def test_hinf_small_gamma_rides_through_an_outage_with_the_relative_policy(drive, tmp_path):
+    with pytest.raises(hinf.GammaTooSmall):
+        fuse(drive, "hinf", tmp_path / "fixed.mcap", FusionConfig(outages=(OUTAGE,), hinf_gamma=3.0,
+                                                                   hinf_min_ratio=0.0))
+    out = fuse(drive, "hinf", tmp_path / "auto.mcap", FusionConfig(outages=(OUTAGE,), hinf_gamma=3.0)).path
+    fix = read_topic(out, "/fusion/hinf/fix")
+    assert np.isfinite(fix["lat_deg"]).all() and fix["log_time_ns"][-1] - fix["log_time_ns"][0] > 100e9
+
+
 def test_hinf_with_huge_gamma_equals_the_kf_end_to_end(drive, tmp_path):
     cfg = FusionConfig(outages=(OUTAGE,), hinf_gamma=1e12)
     a = fuse(drive, "kf", tmp_path / "kf.mcap", cfg).path
