@@ -34,6 +34,7 @@ standard baud rate``.
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -165,19 +166,21 @@ def from_dict(d: dict[str, Any]) -> AcquireConfig:
     return c
 
 
+def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A TOML file as a dict; ConfigError with one line when it is missing or not valid TOML."""
+    try:
+        return tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+
+
 def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:
     """Read the TOML file (None: defaults), apply ``overrides`` (``daq``, ``gps``: port paths; ``out``: output
     directory; ``time_scale``: ``[timesync] host_time_scale``, for simulator playback only) and validate.
     Raises ConfigError with a one-line message naming the key."""
-    d: dict[str, Any] = {}
-    if path is not None:
-        try:
-            d = tomllib.loads(Path(path).read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"config file {path} does not exist") from None
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
-    c = from_dict(d)
+    c = from_dict(read_toml(path) if path is not None else {})
     o = overrides or {}
     if o.get("daq"):
         c.daq.port = o["daq"]

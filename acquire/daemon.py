@@ -36,6 +36,10 @@ derived topics go to the file open when they become final (``/imu`` lags ``/raw/
 time-sync window). Each file carries the ``drive``, ``calibration`` and ``timesync`` metadata, and at close
 the session's cumulative ``acquire.counters``. On start, files in DIR without a summary (a crash or power
 loss) are recovered to ``NAME.recovered.mcap`` next to the untouched original.
+
+Live bus (``[daemon] bus``). Every derived message is published when it is written to the file (final
+stamps), and, while a client is connected, each read's DAQ frames are published at once as a provisional
+``/imu`` batch stamped by ``ProvisionalImu`` (``TimeSync.causal_stamp``): the file never sees those.
 """
 from __future__ import annotations
 
@@ -170,9 +174,10 @@ class RotatingSink:
 
     def __init__(self, out_dir: Path, session_wall_ns: int, rcfg: RecorderConfig,
                  headers: Callable[[int, Path | None], dict[str, dict[str, str]]],
-                 publish: Callable[[str, np.ndarray, messages.Packed], None] | None = None) -> None:
+                 publish: Callable[..., None] | None = None) -> None:
         self.out_dir, self.session_wall_ns, self.rcfg, self.headers = out_dir, session_wall_ns, rcfg, headers
         self.publish = publish
+        self.read_mono_ns = 0       # host mono of the read being processed (sent with what it publishes)
         self.rec: recorder.Recorder | None = None
         self.index = 0
         self.opened_mono = 0.0
@@ -209,7 +214,8 @@ class RotatingSink:
         if topic == "/gps/nmea" and b"GGA," in data:
             self.last_gga = data
         if self.publish is not None and not topic.startswith("/raw"):
-            self.publish(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
+            self.publish(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]),
+                         read_mono_ns=self.read_mono_ns)
 
     def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None:
         self.rec.write_batch(topic, log_time_ns, data)
@@ -217,14 +223,21 @@ class RotatingSink:
         if topic == "/time/sync" and len(p):
             self.last_sync = p[len(p) - 1]
         if self.publish is not None:
-            self.publish(topic, np.asarray(log_time_ns, np.int64), p)
+            self.publish(topic, np.asarray(log_time_ns, np.int64), p, read_mono_ns=self.read_mono_ns)
+
+
+BUS_PROVISIONAL = 1      # bus frame flag: stamps from the causal time fit, not those of the file
+BUS_HOST_CLOCK = 2       # bus frame flag: no GPS time fit yet, stamps from the host clock (with provisional)
+BUS_STATE_FINAL = 255    # per-message state of final messages (their sync state is on /time/sync)
 
 
 class BusServer:
     """The live bus: a Unix domain socket (local only, mode 0600) streaming the derived messages.
 
-    Each ``publish`` (one topic, n messages) is one frame, little-endian: u32 length of the rest, u16 topic
-    length, topic (UTF-8), u32 n, n x i64 log_time_ns, (n + 1) x i64 payload offsets, the CDR payloads
+    Each ``publish`` (one topic, n messages) is one frame, little-endian: u32 length of the rest, u8 flags
+    (``BUS_PROVISIONAL``, ``BUS_HOST_CLOCK``), i64 read_mono_ns (host monotonic time of the serial read whose
+    processing published the frame), u16 topic length, topic (UTF-8), u32 n, n x i64 log_time_ns, n x u8
+    sync state (SyncState, or ``BUS_STATE_FINAL``), (n + 1) x i64 payload offsets, the CDR payloads
     (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the processing thread
     without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
     ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``).
@@ -245,13 +258,20 @@ class BusServer:
         self.clients: dict[socket.socket, bytearray] = {}
         self.dropped_clients = 0
 
-    def publish(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed) -> None:
+    def active(self) -> bool:
+        """Accept waiting clients; True if any is connected (otherwise publishing is a no-op)."""
         self._accept()
-        if not self.clients or len(p) == 0:
+        return bool(self.clients)
+
+    def publish(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed, *, flags: int = 0,
+                state: np.ndarray | None = None, read_mono_ns: int = 0) -> None:
+        """One frame to every client: ``p``, stamped ``log_time_ns`` (UTC ns), ``state`` per message."""
+        if not self.active() or len(p) == 0:
             return
         t = topic.encode()
-        body = b"".join((struct.pack("<H", len(t)), t, struct.pack("<I", len(p)),
-                         np.asarray(log_time_ns, "<i8").tobytes(),
+        st = np.full(len(p), BUS_STATE_FINAL, np.uint8) if state is None else np.asarray(state, np.uint8)
+        body = b"".join((struct.pack("<BqH", flags, read_mono_ns, len(t)), t, struct.pack("<I", len(p)),
+                         np.asarray(log_time_ns, "<i8").tobytes(), st.tobytes(),
                          (p.offsets - p.offsets[0]).astype("<i8").tobytes(),
                          p.buf[p.offsets[0]:p.offsets[-1]].tobytes()))
         frame = struct.pack("<I", len(body)) + body
@@ -305,6 +325,50 @@ class BusServer:
         Path(self.path).unlink(missing_ok=True)
 
 
+class ProvisionalImu:
+    """The pipeline's ``on_frames`` hook: DAQ frames on the bus at once, as provisional ``/imu``.
+
+    Frames are collected per read and published by ``flush``, which the daemon calls as soon as no further
+    DAQ read is waiting (so one batch per read at real speed, fewer larger ones when processing catches up
+    a backlog); a batch carries the host mono time of the read that delivered its last frame. Stamps come
+    from ``TimeSync.causal_stamp`` (the latest causal fit extrapolated; the host clock, flagged
+    ``BUS_HOST_CLOCK``, before the first lock), with the per-sample sync state. They never go backwards
+    (the forward clamp of the final stamps, 1 ns per sample after a backward step) except once, at the first
+    lock, where they step from the host clock to GPS time. Nothing is kept while no client is connected.
+    """
+
+    def __init__(self, pipe: Pipeline, bus: BusServer) -> None:
+        self.pipe, self.bus = pipe, bus
+        self._k: list[np.ndarray] = []
+        self._counts: list[np.ndarray] = []
+        self._mono = 0
+        self._pmax: int | None = None       # max over published samples of stamp - k
+        self._fitted = False
+
+    def __call__(self, mono_ns: int, k: np.ndarray, counts: np.ndarray) -> None:
+        if self.bus.active():
+            self._k.append(k)
+            self._counts.append(counts)
+            self._mono = mono_ns
+
+    def flush(self) -> None:
+        if not self._k:
+            return
+        k = np.concatenate(self._k) if len(self._k) > 1 else self._k[0]
+        counts = np.concatenate(self._counts) if len(self._counts) > 1 else self._counts[0]
+        self._k, self._counts = [], []
+        t, state, fitted = self.pipe.sync.causal_stamp(k)
+        if fitted != self._fitted:
+            self._fitted, self._pmax = fitted, None
+        cm = np.maximum.accumulate(t - k)
+        if self._pmax is not None:
+            cm = np.maximum(cm, self._pmax)
+        self._pmax = int(cm[-1])
+        t = cm + k
+        self.bus.publish("/imu", t, self.pipe.imu_messages(t, counts), state=state, read_mono_ns=self._mono,
+                         flags=BUS_PROVISIONAL | (0 if fitted else BUS_HOST_CLOCK))
+
+
 def is_finished(path: Path) -> bool:
     """A closed MCAP ends with the magic after its footer; a file cut by a crash does not."""
     size = path.stat().st_size
@@ -351,6 +415,7 @@ class Daemon:
         self.sink: RotatingSink | None = None
         self.pipe: Pipeline | None = None
         self.bus = None
+        self.provisional: ProvisionalImu | None = None
         self.events: list[PortEvent] = []
         self.late_reads = 0
         self.merge_timeouts = 0
@@ -385,6 +450,8 @@ class Daemon:
         self.sink = RotatingSink(self.out_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
                                  self.bus.publish if self.bus else None)
         self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg)
+        if self.bus is not None:
+            self.provisional = self.pipe.on_frames = ProvisionalImu(self.pipe, self.bus)
         path = self.sink.open_next()
         self.log(f"recording {self.cfg.daq.port} (daq) and {self.cfg.gps.port} (gps) to {path}")
         dm = self.cfg.daemon
@@ -435,6 +502,8 @@ class Daemon:
                     if self._may_process(h, heads, wait_ns):
                         heads[h.port] = None
                         self._process(h)
+                        if self.provisional is not None and heads["daq"] is None and self.readers["daq"].q.empty():
+                            self.provisional.flush()      # no DAQ read waiting: publish at once
                         if time.monotonic() >= next_tick:
                             next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
                             self._tick()
@@ -442,6 +511,8 @@ class Daemon:
                 elif self.stop.is_set() and not any(r.is_alive() or not r.q.empty()
                                                     for r in self.readers.values()):
                     break
+                if self.provisional is not None:
+                    self.provisional.flush()
                 self.sink.rec.maybe_flush()
                 if self.bus is not None:
                     self.bus.pump()
@@ -449,6 +520,8 @@ class Daemon:
                     next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
                     self._tick()
                 self.wake.wait(0.05)
+            if self.provisional is not None:
+                self.provisional.flush()
             self.pipe.finish()
         except OSError as e:
             if e.errno not in STORAGE_FULL:
@@ -488,6 +561,7 @@ class Daemon:
         if h.mono_ns < self._last_mono:
             self.late_reads += 1
         self._last_mono = max(self._last_mono, h.mono_ns)
+        self.sink.read_mono_ns = h.mono_ns
         self.pipe.feed(h.port, h.mono_ns, h.wall_ns, h.data)
 
     def _tick(self) -> None:

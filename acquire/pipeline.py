@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import datetime as _dt
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
@@ -95,6 +96,9 @@ class Pipeline:
         self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
         self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
         self.counters = Counters(daq=self._daq.stats, nmea=self._nmea.stats)
+        # called with (read mono_ns, k, counts) for each read's decoded frames, once time sync has them (the
+        # daemon's live bus publishes provisional /imu from it); it must not feed back into the pipeline
+        self.on_frames: Callable[[int, np.ndarray, np.ndarray], None] | None = None
 
     # -- input ---------------------------------------------------------------------------------------
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
@@ -146,6 +150,8 @@ class Pipeline:
             return
         self.sync.add_frames(fr.k, fr.pps, fr.latch, fr.latch_valid, mono_ns, wall_ns)
         self._pending.append((fr.k, fr.counts))
+        if self.on_frames is not None:
+            self.on_frames(mono_ns, fr.k, fr.counts)
 
     def _feed_gps(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
         sentences = self._nmea.feed(data)
@@ -251,7 +257,12 @@ class Pipeline:
             return
         k = np.concatenate(ks)
         t_ns, _state = self.sync.stamp(k)
-        omega_ib_b, f_b = calib.apply(self.cal, np.concatenate(cs))
         self.counters.imu_samples += len(k)
-        self.sink.write_batch("/imu", t_ns, messages.encode_imu(
-            t_ns, omega_ib_b, f_b, self._gyro_cov, self._accel_cov, frame_id=self.cfg.imu_frame_id))
+        self.sink.write_batch("/imu", t_ns, self.imu_messages(t_ns, np.concatenate(cs)))
+
+    def imu_messages(self, t_ns: np.ndarray, counts: np.ndarray) -> messages.Packed:
+        """/imu payloads of samples stamped ``t_ns`` (UTC ns) from their ADC ``counts`` (n, 6): calibrated to
+        SI in the body frame, with the configured covariances and frame id."""
+        omega_ib_b, f_b = calib.apply(self.cal, counts)
+        return messages.encode_imu(t_ns, omega_ib_b, f_b, self._gyro_cov, self._accel_cov,
+                                   frame_id=self.cfg.imu_frame_id)

@@ -322,6 +322,33 @@ class TimeSync:
             raw[m] = p + k[m]
         return raw, state
 
+    def causal_stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Provisional UTC (int64 ns) and SyncState (uint8) of samples k from what has been fed so far, and
+        whether a GPS clock fit exists.
+
+        With a fit: the latest causal fit (the one gating new edges, over the window_s before the newest
+        accepted edge) extrapolated to k; LOCKED while the newest accepted edge is at most max_edge_gap_s
+        before k, HOLDOVER up to holdover_s, FREE beyond (still that fit). Before the first lock (False): the
+        host clock, k / fs plus the lower envelope of the host offsets seen so far, FREE. Not clamped (it can
+        step back when the fit changes) and not final: ``stamp`` replaces it about window_s/2 later.
+        """
+        k = np.asarray(k, np.int64)
+        state = np.full(k.size, SyncState.FREE, np.uint8)
+        f = self._fit
+        if f is None:
+            if not self._bins:
+                raise RuntimeError("causal_stamp before any frame")
+            b = k // self._bin
+            ub, inv = np.unique(b, return_inverse=True)
+            off = np.array([self._host_offset(x) for x in ub.tolist()], np.int64)[inv]
+            return np.round(k * self._ns_per_sample).astype(np.int64) + off, state, False
+        s = (k - f.kr - f.c) / (self._fs + f.e)
+        t = np.int64(f.lr) * 1_000_000_000 + np.round(s * 1e9).astype(np.int64)
+        age = k - self._acc_k[-1]
+        state[age <= self._HO] = SyncState.HOLDOVER
+        state[age <= self._G] = SyncState.LOCKED
+        return t, state, True
+
     def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
         """Host monotonic time -> UTC (int64 ns), with the data fed so far.
 

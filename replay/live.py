@@ -1,20 +1,70 @@
 """Live bus client: the derived messages of a running ``fieldlog acquire`` as the blocks the MCAP reader yields.
 
 The daemon serves the bus on a Unix domain socket (``[daemon] bus`` in its config; frame layout in
-``acquire.daemon.BusServer`` and docs/data-model.md). ``iter_blocks`` yields ``replay.reader.Block``s with
-the same per-topic dicts as ``replay.reader.iter_blocks`` (decoded by the same ``reader.decode``), so fusion
-code cannot tell live from recorded.
+``acquire.daemon.BusServer`` and docs/data-model.md). Two streams share it:
+
+* final messages, exactly as written to the MCAP (same log_time and CDR payload): every derived topic.
+  ``/imu`` is final about half a time-sync window (60 s with a sampled PPS) after its bytes were read;
+  fixes are final, and published, when their NMEA epoch is complete;
+* provisional ``/imu``: each serial read's DAQ frames, published at once (a few ms after the read), stamped
+  with the causal time fit (the latest PPS fit extrapolated) and flagged with the per-sample sync state.
+  Before the first PPS lock they carry host-clock stamps and the ``host_clock`` flag.
+
+API (stable; ``fieldlog view --live`` and live fusion use it):
+
+``iter_blocks(path, topics, block_s, max_lag_s=None, final=False, host_clock=False)``
+    yields ``LiveBlock``s: ``replay.reader.Block``s (``t0_ns``, ``t1_ns``, ``data[topic]`` decoded by the
+    same ``replay.reader.decode`` as ``replay.reader.iter_blocks``) so fusion code cannot tell live from
+    recorded, plus ``provisional`` (its ``/imu`` rows carry provisional stamps), ``sync_state`` (the worst
+    SyncState among them, None without provisional rows), ``read_mono_ns`` (host monotonic time of the newest
+    serial read received when the block was yielded) and ``recv_mono_ns`` (when that batch was received). With
+    provisional stamps ``data["/imu"]`` also has ``sync_state`` (uint8 per row). ``final=True`` gives the
+    MCAP's messages instead (``/imu`` ~60 s late); ``host_clock=True`` keeps the pre-lock host-clock rows,
+    which are dropped by default because their time base is not the fixes' UTC.
+``iter_batches(path)``
+    yields every published ``Batch`` (one topic, n messages, both streams) as received.
 """
 from __future__ import annotations
 
 import socket
 import struct
+import time
+from dataclasses import dataclass
 from typing import Iterator, Sequence
 
 import numpy as np
 
 from acquire import messages
 from replay.reader import Block, decode
+
+FLAG_PROVISIONAL = 1     # acquire.daemon.BUS_PROVISIONAL
+FLAG_HOST_CLOCK = 2      # acquire.daemon.BUS_HOST_CLOCK
+STATE_FINAL = 255        # per-message state of final messages (acquire.daemon.BUS_STATE_FINAL)
+_HEAD = struct.Struct("<BqH")
+
+
+@dataclass(frozen=True)
+class Batch:
+    """One bus frame: n messages of one topic."""
+
+    topic: str
+    log_time_ns: np.ndarray       # int64 UTC ns (host-clock ns when ``host_clock``)
+    payloads: messages.Packed     # CDR
+    provisional: bool             # causal stamps, not the file's
+    host_clock: bool              # before the first PPS lock: host-clock stamps
+    state: np.ndarray             # uint8 per message: SyncState (FREE 0, HOLDOVER 1, LOCKED 2) or STATE_FINAL
+    read_mono_ns: int             # host monotonic ns of the serial read whose processing published it
+    recv_mono_ns: int             # host monotonic ns when this client had received it
+
+
+@dataclass(frozen=True)
+class LiveBlock(Block):
+    """A ``replay.reader.Block`` from the bus, with the provisional / sync state of its ``/imu`` rows."""
+
+    provisional: bool = False
+    sync_state: int | None = None
+    read_mono_ns: int = 0
+    recv_mono_ns: int = 0
 
 
 def _read_exact(sock: socket.socket, n: int) -> bytes | None:
@@ -27,8 +77,26 @@ def _read_exact(sock: socket.socket, n: int) -> bytes | None:
     return bytes(buf)
 
 
-def iter_batches(path: str) -> Iterator[tuple[str, np.ndarray, messages.Packed]]:
-    """(topic, log_time_ns, payloads) per published batch until the daemon closes the bus."""
+def parse_frame(body: bytes, recv_mono_ns: int = 0) -> Batch:
+    """A frame body (after its u32 length) as a Batch."""
+    flags, read_mono, tlen = _HEAD.unpack_from(body, 0)
+    pos = _HEAD.size
+    topic = body[pos:pos + tlen].decode()
+    pos += tlen
+    (n,) = struct.unpack_from("<I", body, pos)
+    pos += 4
+    t = np.frombuffer(body, "<i8", n, pos).astype(np.int64)
+    pos += 8 * n
+    state = np.frombuffer(body, np.uint8, n, pos).copy()
+    pos += n
+    offsets = np.frombuffer(body, "<i8", n + 1, pos).astype(np.int64)
+    pos += 8 * (n + 1)
+    return Batch(topic, t, messages.Packed(np.frombuffer(body, np.uint8, offset=pos).copy(), offsets),
+                 bool(flags & FLAG_PROVISIONAL), bool(flags & FLAG_HOST_CLOCK), state, read_mono, recv_mono_ns)
+
+
+def iter_batches(path: str) -> Iterator[Batch]:
+    """Every published batch, as received, until the daemon closes the bus."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.connect(path)
         while True:
@@ -38,58 +106,80 @@ def iter_batches(path: str) -> Iterator[tuple[str, np.ndarray, messages.Packed]]
             body = _read_exact(sock, struct.unpack("<I", head)[0])
             if body is None:
                 return
-            (tlen,) = struct.unpack_from("<H", body, 0)
-            topic = body[2:2 + tlen].decode()
-            pos = 2 + tlen
-            (n,) = struct.unpack_from("<I", body, pos)
-            pos += 4
-            t = np.frombuffer(body, "<i8", n, pos).astype(np.int64)
-            pos += 8 * n
-            offsets = np.frombuffer(body, "<i8", n + 1, pos).astype(np.int64)
-            pos += 8 * (n + 1)
-            yield topic, t, messages.Packed(np.frombuffer(body, np.uint8, offset=pos).copy(), offsets)
+            yield parse_frame(body, time.monotonic_ns())
 
 
-def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: float = 90.0) -> Iterator[Block]:
+def _concat(parts: list[tuple[np.ndarray, messages.Packed, np.ndarray]]
+            ) -> tuple[np.ndarray, messages.Packed, np.ndarray]:
+    if not parts:
+        return np.zeros(0, np.int64), messages.Packed.from_list([]), np.zeros(0, np.uint8)
+    if len(parts) == 1:
+        return parts[0]
+    lens = np.concatenate([p[1].lengths for p in parts])
+    offsets = np.zeros(len(lens) + 1, np.int64)
+    np.cumsum(lens, out=offsets[1:])
+    buf = np.concatenate([p[1].buf[p[1].offsets[0]:p[1].offsets[-1]] for p in parts])
+    return (np.concatenate([p[0] for p in parts]), messages.Packed(buf, offsets),
+            np.concatenate([p[2] for p in parts]))
+
+
+def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: float | None = None,
+                final: bool = False, host_clock: bool = False) -> Iterator[LiveBlock]:
     """Consecutive blocks of ``block_s`` seconds of log time, from the first message of ``topics``.
 
-    Topics arrive with different delays (``/imu`` is final about half a time-sync window after it was read,
-    fixes at once), so a block [t0, t1) is yielded once every topic seen so far has delivered a message at
-    or after t1, or once any topic is ``max_lag_s`` past t1 (a topic that went quiet does not hold the
-    others). A message that arrives after its block was yielded goes into the next block. The last partial
-    block is yielded when the daemon closes the bus.
+    ``final=False`` (default): ``/imu`` from the provisional stream (host-clock rows before the first lock
+    only with ``host_clock``), every other topic as written to the file. ``final=True``: the file's messages.
+    Topics arrive with different delays, so a block [t0, t1) is yielded once every topic seen so far has
+    delivered a message at or after t1, or once any topic is ``max_lag_s`` past t1 (a topic that went quiet
+    does not hold the others; default 2 s live, 90 s with ``final``, where ``/imu`` is ~60 s late). A
+    message that arrives after its block was yielded goes into the next block. When the daemon closes the
+    bus, the blocks holding what is left are yielded.
     """
     step = int(round(block_s * 1e9))
     if step <= 0:
         raise ValueError("block_s must be > 0")
-    lag = int(max_lag_s * 1e9)
+    lag = int((max_lag_s if max_lag_s is not None else 90.0 if final else 2.0) * 1e9)
     wanted = set(topics)
-    pending: dict[str, list[tuple[np.ndarray, messages.Packed]]] = {}
+    pending: dict[str, list[tuple[np.ndarray, messages.Packed, np.ndarray]]] = {}
     newest: dict[str, int] = {}
     t0: int | None = None
+    read_mono = recv_mono = 0
 
-    def block(t1: int | None) -> Block:
+    def block(t1: int) -> LiveBlock:
         data = {}
+        worst: int | None = None
         for topic in topics:
-            parts = pending.get(topic, [])
-            t = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-            msgs = [m for p in parts for m in p[1]]
-            take = np.ones(len(t), bool) if t1 is None else t < t1
-            keep = np.flatnonzero(~take).tolist()
-            data[topic] = decode(messages.topic_type(topic), t[take],
-                                 messages.Packed.from_list([msgs[i] for i in np.flatnonzero(take).tolist()]))
-            pending[topic] = [(t[keep], messages.Packed.from_list([msgs[i] for i in keep]))] if keep else []
-        return Block(t0, t1 if t1 is not None else t0 + step, data)
+            t, p, st = _concat(pending.get(topic, []))
+            take = t < t1
+            idx_in, idx_out = np.flatnonzero(take), np.flatnonzero(~take)
+            d = decode(messages.topic_type(topic), t[idx_in], p.take(idx_in))
+            if topic == "/imu" and not final:
+                # decode sorts rows by log_time (stable); the states follow the same order
+                d["sync_state"] = st[idx_in][np.argsort(t[idx_in], kind="stable")]
+                if len(idx_in):
+                    worst = int(d["sync_state"].min())
+            data[topic] = d
+            pending[topic] = [(t[idx_out], p.take(idx_out), st[idx_out])] if len(idx_out) else []
+        return LiveBlock(t0, t1, data, provisional=worst is not None,
+                         sync_state=worst, read_mono_ns=read_mono, recv_mono_ns=recv_mono)
 
-    for topic, t, p in iter_batches(path):
-        if topic not in wanted or len(t) == 0:
+    for b in iter_batches(path):
+        if b.topic not in wanted or len(b.log_time_ns) == 0:
             continue
-        pending.setdefault(topic, []).append((t, p))
-        newest[topic] = max(newest.get(topic, t.max()), int(t.max()))
+        if b.topic == "/imu" and not final:
+            if not b.provisional or (b.host_clock and not host_clock):
+                continue
+        elif b.provisional:
+            continue
+        t = b.log_time_ns
+        pending.setdefault(b.topic, []).append((t, b.payloads, b.state))
+        newest[b.topic] = max(newest.get(b.topic, int(t.max())), int(t.max()))
+        read_mono, recv_mono = max(read_mono, b.read_mono_ns), b.recv_mono_ns
         if t0 is None:
             t0 = int(t.min())
         while min(newest.values()) >= t0 + step or max(newest.values()) >= t0 + step + lag:
             yield block(t0 + step)
             t0 += step
-    if t0 is not None and any(pending.values()):
-        yield block(None)
+    while t0 is not None and any(pending.values()):
+        yield block(t0 + step)
+        t0 += step

@@ -57,7 +57,8 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
                                "--hold", "--truth", str(truth))
     d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
     blocks: list = []
-    client = threading.Thread(target=lambda: blocks.extend(live.iter_blocks(str(bus), ["/imu", "/gps/fix"], 1.0)))
+    client = threading.Thread(target=lambda: blocks.extend(live.iter_blocks(str(bus), ["/imu", "/gps/fix"], 1.0,
+                                                                            final=True)))
     client.start()
     time.sleep(0.2)                                     # let the client connect
     serve.send_signal(signal.SIGUSR1)

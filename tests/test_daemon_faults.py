@@ -105,11 +105,14 @@ def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame
 
 
 def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_path: Path) -> None:
-    # the DAQ pty disappears 20 s into the drive for 60 simulated s (3 s at x20) and comes back as a new pty.
+    # the DAQ pty disappears 20 s into the drive for 61 simulated s (3.05 s at x20) and comes back as a new pty.
+    # (Not exactly 3 s: the daemon notices the loss at once and retries every 0.5 s, so a whole number of
+    # retry periods would have it retry right when the pty comes back; 3.05 s is just after a retry, close
+    # to the worst case.)
     # (PPS latch: a sampled flag's rate fit over the 40 s around a 60 s hole is too coarse for a few ms.)
     cfg = tmp_path / "acquire.toml"
     cfg.write_text('[timesync]\npps_mode = "latch"\n')
-    f, truth, log = record(tmp_path, "--unplug", "daq:20:60", "--link-dir", str(tmp_path / "ports"),
+    f, truth, log = record(tmp_path, "--unplug", "daq:20:61", "--link-dir", str(tmp_path / "ports"),
                            "--pps", "latch", duration=120, seed=3, daemon_args=("--config", str(cfg)))
     assert "daq port lost" in log and "daq port back" in log
     clean = expected_bytes(truth, "figure8", 120.0, 3)
@@ -130,6 +133,18 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     lost, back = (int(e["mono_ns"]) for e in events[:2])
     assert not np.any((mono > lost) & (mono < back))
     assert np.any(mono < lost) and np.any(mono > back)
+    # it resumes within 2 s of the pty coming back: the reopening (serve's host mono time) to the first read
+    # of the new port (retried every [daemon] reconnect_s = 0.5 s)
+    (replug,) = map(int, meta["daq_replug_mono_ns"].split(";"))
+    first = int(mono[mono > back][0])
+    resume_s = (first - replug) / 1e9
+    print(f"\nDAQ port back {(back - replug) / 1e6:.1f} ms after the pty reopened, first read after "
+          f"{resume_s * 1e3:.1f} ms")
+    assert lost < replug < back < first and resume_s <= 2.0
+    # every byte the port delivered before it was lost was read before the loss, and every byte after the
+    # gap was read after the reopening
+    sizes = np.array([len(m.data) for m in reader.read_topic(f, "/raw/daq")["msgs"]])
+    assert sizes[mono < lost].sum() == a and sizes[mono > back].sum() == len(clean["daq"]) - a - n_gap
     info = run("info", str(f))
     assert info.returncode == 0 and "port=daq, event=lost" in info.stdout and "port=daq, event=back" in info.stdout
     # every whole frame outside the gap is decoded, and time sync carries on across it

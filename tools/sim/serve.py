@@ -26,7 +26,8 @@ streams on, but its bytes are lost until the reader has opened the port (pyseria
 open, so bytes written before would vanish untracked): the master is in packet mode (TIOCPKT), where the
 slave's input flush shows up as TIOCPKT_FLUSHREAD. The bytes lost are recorded as byte ranges of the
 port's full stream (metadata ``daq_gaps`` / ``gps_gaps``, ``START:LENGTH;...``), so the stream actually
-delivered is the simulated one minus those ranges.
+delivered is the simulated one minus those ranges. The host monotonic time (ns) of each reopening is in
+metadata ``daq_replug_mono_ns`` / ``gps_replug_mono_ns`` (``;``-separated).
 
 Corruption: ``corrupt`` > 0 replaces that fraction of the bytes of both streams with other values
 (``corrupt_stream``: deterministic from the seed and the port, so a test can redo it and know every
@@ -106,6 +107,7 @@ class _Port:
     gaps: list[tuple[int, int]] = field(default_factory=list)   # (offset in the full stream, length) lost
     corrupt_bytes: int = 0
     wait_reader: bool = False           # bytes are lost until the reader has opened (flushed) the port
+    replugged_mono_ns: list[int] = field(default_factory=list)   # host monotonic time of each reopening
 
     def open(self, link_dir: Path | None, wait_reader: bool = False) -> None:
         self.master, self.slave = os.openpty()
@@ -253,6 +255,7 @@ class Server:
             p.unplug(self.link_dir)
         elif u is None and p.master < 0:
             p.open(self.link_dir, wait_reader=True)
+            p.replugged_mono_ns.append(time.monotonic_ns())
             log(f"{p.name} back as {p.path}")
         if u is not None or not p.reader_opened():
             p.lose(sum(len(d) for d in p.data[p.next_read:j]))
@@ -285,6 +288,8 @@ class Server:
                 "gps_gaps": ";".join(f"{a}:{n}" for a, n in g.gaps), "corrupt": repr(self.corrupt),
                 "daq_corrupt_bytes": str(d.corrupt_bytes), "gps_corrupt_bytes": str(g.corrupt_bytes),
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
+                "daq_replug_mono_ns": ";".join(map(str, d.replugged_mono_ns)),
+                "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
                 "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode}
 
     def write_truth(self, path: str | Path) -> None:
