@@ -17,11 +17,23 @@ from acquire import nmea
 from acquire.config import from_table
 from acquire.pipeline import RawRead
 from fusion import earth
+from tools.sim.sensors import gauss_markov
+
+NS = 1_000_000_000
+NMEA_TICK_NS = 10_000_000  # NMEA times are written to the centisecond
 
 
 @dataclass
 class GpsConfig:
-    """Receiver model, from a scenario's ``[gps]`` table. Metres, seconds, m/s."""
+    """Receiver model, from a scenario's ``[gps]`` table. Metres, seconds, m/s.
+
+    Position error per axis = (white + Gauss-Markov) x noise factor, velocity error = white x noise factor.
+    ``noise_tau_s`` > 0 turns the "white" position and velocity terms into first-order Gauss-Markov processes of
+    the same standard deviation with that correlation time (coloured noise; exact discretisation at the epochs).
+    Noise factor = the ``degraded`` factor (the receiver knows: HDOP and GST grow with it) times the
+    ``noise_schedule`` scale (it does not: HDOP and GST keep the nominal figures), e.g. the SSR-SCKF paper's
+    changing noise ``[[gps.noise_schedule]] start_s = 200.0, end_s = 400.0, scale = 3.0``.
+    """
 
     rate_hz: float = 1.0
     talker: str = "GN"
@@ -42,6 +54,21 @@ class GpsConfig:
     outages: list = field(default_factory=list)    # [[start_s, len_s], ...]: no fix
     degraded: list = field(default_factory=list)   # [[start_s, len_s, factor], ...]: noise and HDOP x factor
     pps_in_outage: bool = True     # the receiver keeps its time pulse from its own clock through outages
+    noise_tau_s: float = 0.0       # correlation time of the white_* and vel_noise terms (0: white)
+    noise_schedule: list = field(default_factory=list)  # [{start_s, end_s, scale}, ...]: unreported noise scale
+
+    def __post_init__(self) -> None:
+        period_ns = NS / self.rate_hz if self.rate_hz > 0 else 0.0
+        if not (period_ns >= NMEA_TICK_NS and abs(period_ns / NMEA_TICK_NS - round(period_ns / NMEA_TICK_NS)) < 1e-9):
+            raise ValueError(f"[gps] rate_hz: {self.rate_hz!r}: the epoch period must be a whole number of 10 ms "
+                             "(NMEA times have centiseconds)")
+        if not self.noise_tau_s >= 0:
+            raise ValueError(f"[gps] noise_tau_s: must be >= 0 (0: white), got {self.noise_tau_s!r}")
+        for i, w in enumerate(self.noise_schedule):
+            if not isinstance(w, dict) or set(w) != {"start_s", "end_s", "scale"}:
+                raise ValueError(f"[gps] noise_schedule[{i}]: needs exactly start_s, end_s, scale; got {w!r}")
+            if not (w["end_s"] > w["start_s"] and w["scale"] > 0):
+                raise ValueError(f"[gps] noise_schedule[{i}]: needs end_s > start_s and scale > 0; got {w!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GpsConfig":
@@ -56,6 +83,17 @@ class GpsConfig:
         for start, length, k in self.degraded:
             factor[(t_s >= start) & (t_s < start + length)] = k
         return valid, factor
+
+    def schedule(self, t_s: np.ndarray) -> np.ndarray:
+        """Per time: the ``noise_schedule`` scale (1 outside its windows; windows are [start_s, end_s))."""
+        scale = np.ones(np.shape(t_s))
+        for w in self.noise_schedule:
+            scale[(t_s >= w["start_s"]) & (t_s < w["end_s"])] = w["scale"]
+        return scale
+
+    def epoch_period_ns(self) -> int:
+        """The epoch period, ns (a whole number of centiseconds)."""
+        return round(NS / self.rate_hz / NMEA_TICK_NS) * NMEA_TICK_NS
 
 
 @dataclass(frozen=True)
@@ -74,10 +112,9 @@ class HostClock:
 
 
 def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Receiver solutions at the true times ``seconds`` (s since start): truth plus white + GM error.
-
-    Returns lat/lon (deg), h (m, ellipsoidal), v_n (ENU m/s), valid, factor and the receiver's own sigma.
-    """
+    """Receiver solutions at the true times ``seconds`` (s since start, one per epoch): truth plus error
+    (``GpsConfig``). Returns lat/lon (deg), h (m, ellipsoidal), v_n (ENU m/s), valid, factor (the reported
+    degradation), scale (the total noise factor), err_enu (m) and the receiver's own sigma."""
     n = len(seconds)
     ts = truth.evaluate(seconds)
     valid, factor = cfg.windows(seconds)
@@ -87,31 +124,40 @@ def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Gene
     drive = rng.standard_normal((n, 3)) * gm_sigma * np.sqrt(1 - phi**2)
     drive[0] = rng.standard_normal(3) * gm_sigma
     gm = lfilter([1.0], [1.0, -phi], drive, axis=0)
-    white = rng.standard_normal((n, 3)) * np.array([cfg.white_h_m, cfg.white_h_m, cfg.white_v_m])
-    err_enu = (gm + white) * factor[:, None]
+    white = rng.standard_normal((n, 3))
+    vel = rng.standard_normal((n, 3))
+    if cfg.noise_tau_s > 0:
+        white = gauss_markov(seconds, cfg.noise_tau_s, white)
+        vel = gauss_markov(seconds, cfg.noise_tau_s, vel)
+    white = white * np.array([cfg.white_h_m, cfg.white_h_m, cfg.white_v_m])
+    scale = factor * cfg.schedule(seconds)
+    err_enu = (gm + white) * scale[:, None]
     r_m, r_n = earth.principal_radii(ts.lat, ts.h)
     lat = ts.lat + err_enu[:, 1] / r_m
     lon = ts.lon + err_enu[:, 0] / (r_n * np.cos(ts.lat))
     h = ts.h + err_enu[:, 2]
-    v_n = ts.v_n + rng.standard_normal((n, 3)) * cfg.vel_noise_mps * factor[:, None]
+    v_n = ts.v_n + vel * cfg.vel_noise_mps * scale[:, None]
     sigma_h = np.hypot(cfg.white_h_m, cfg.gm_h_m) * factor
     sigma_v = np.hypot(cfg.white_v_m, cfg.gm_v_m) * factor
     return dict(lat_deg=np.degrees(lat), lon_deg=np.degrees(lon), h=h, v_n=v_n, valid=valid, factor=factor,
-                sigma_h=sigma_h, sigma_v=sigma_v)
+                scale=scale, err_enu=err_enu, sigma_h=sigma_h, sigma_v=sigma_v)
 
 
-def nmea_bursts(sol: dict[str, np.ndarray], utc_s: np.ndarray, cfg: GpsConfig,
+def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
                 rng: np.random.Generator) -> tuple[np.ndarray, list[bytes]]:
-    """One burst of sentences per epoch. Returns the true time (s since start) each sentence is complete
-    on the wire, and the sentences (with CRLF). ``utc_s`` is the whole UTC second of each epoch."""
-    n = len(utc_s)
+    """One burst of sentences per epoch. Returns the true time each sentence starts on the wire, s from the
+    first epoch, and the sentences (with CRLF). ``utc_ns`` (int64) is the UTC of each epoch (fractional seconds
+    at rates above 1 Hz, written with centisecond times). A burst never starts before the previous one ended."""
+    n = len(utc_ns)
     base = rng.uniform(cfg.latency_min_s, cfg.latency_max_s - 0.1)
     latency = np.clip(base + rng.standard_normal(n) * cfg.latency_jitter_s, cfg.latency_min_s, cfg.latency_max_s - 0.06)
     sentences: list[bytes] = []
     starts: list[float] = []
+    t_free = -np.inf
     for i in range(n):
-        dt = datetime.fromtimestamp(int(utc_s[i]), tz=timezone.utc)
-        tod = dt.hour * 3600 + dt.minute * 60 + dt.second
+        sec, sub_ns = divmod(int(utc_ns[i]), NS)
+        dt = datetime.fromtimestamp(sec, tz=timezone.utc)
+        tod = dt.hour * 3600 + dt.minute * 60 + dt.second + (sub_ns / NS if sub_ns else 0)
         ok = bool(sol["valid"][i])
         hdop = cfg.hdop * sol["factor"][i]
         vE, vN, _ = sol["v_n"][i]
@@ -127,11 +173,12 @@ def nmea_bursts(sol: dict[str, np.ndarray], utc_s: np.ndarray, cfg: GpsConfig,
                             float(sol["sigma_h"][i]), float(sol["sigma_v"][i]), valid=ok),
             nmea.format_zda(cfg.talker, tod, dt.date()),
         ]
-        t = utc_s[i] - utc_s[0] + latency[i]
+        t = max((int(utc_ns[i]) - int(utc_ns[0])) / NS + latency[i], t_free)
         for s in burst:
             starts.append(t)
             sentences.append(s)
             t += len(s) * 10.0 / cfg.baud
+        t_free = t
     keep = np.ones(len(sentences), bool)
     if cfg.dropped_sentences:
         keep[rng.choice(len(sentences), size=min(cfg.dropped_sentences, len(sentences)), replace=False)] = False

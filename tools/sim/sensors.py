@@ -9,7 +9,12 @@ The measured SI value of each triad is::
 - b_turn_on: constant run-to-run bias; b_flicker: bias instability (1/f noise, see below);
 - w: white noise (angle / velocity random walk) of density N: each sample is the mean of white
   noise over its own sample interval dt_k, so its standard deviation is N / sqrt(dt_k)
-  (convention: Allan deviation at tau = 1 s equals N; ARW [deg/sqrt(h)] = 60 N [deg/s/sqrt(Hz)]).
+  (convention: Allan deviation at tau = 1 s equals N; ARW [deg/sqrt(h)] = 60 N [deg/s/sqrt(Hz)]);
+- c(t): optional coloured noise (the coloured-noise case of the KF-versus-H-infinity paper): a first-order
+  Gauss-Markov process per axis of standard deviation ``gyro_gm_sigma_dps`` / ``accel_gm_sigma_ug`` and
+  correlation time ``gm_tau_s``, discretised exactly on the actual sample times (``gauss_markov``);
+  with ``gm_tau_s`` = 0 it is white with that standard deviation per sample. Off by default (sigmas 0);
+  its draws come after all the others, so enabling it leaves every other error of a seed unchanged.
 The ADC then sees volts from the nominal calibration shifted by an electrical zero-output offset
 (``*_zero_bias_V``), quantised and clipped by ``acquire.calib.to_counts``.
 
@@ -42,6 +47,7 @@ import math
 from dataclasses import dataclass, fields
 
 import numpy as np
+from numba import njit
 from scipy.signal import lfilter
 
 from acquire.calib import G0, Calibration, SensorTriadCal, to_counts
@@ -72,6 +78,9 @@ class ImuErrorConfig:
     accel_zero_bias_V: float = 0.0  # V, electrical zero-g offset not in the calibration file
     bias_corr_time_min_s: float = 0.002  # s, shortest correlation time of the flicker model
     bias_corr_time_max_s: float = 1.0e4  # s, longest
+    gm_tau_s: float = 0.0  # s, correlation time of the coloured noise (0: white)
+    gyro_gm_sigma_dps: float = 0.0  # deg/s, coloured gyro noise (1-sigma per axis; 0: none)
+    accel_gm_sigma_ug: float = 0.0  # ug, coloured accelerometer noise
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -100,6 +109,29 @@ def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, floa
     m = max(int(round(_CORR_PER_DECADE * math.log10(t_max_s / t_min_s))), 1) + 1
     T = np.geomspace(t_min_s, t_max_s, m)
     return T, math.log(T[1] / T[0]) / math.pi
+
+
+@njit(cache=True)
+def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
+    x = np.empty_like(z)
+    x[0] = z[0]
+    for k in range(1, z.shape[0]):
+        x[k] = phi[k - 1] * x[k - 1] + math.sqrt(1.0 - phi[k - 1] * phi[k - 1]) * z[k]
+    return x
+
+
+def gauss_markov(t_s: np.ndarray, tau_s: float, z: np.ndarray) -> np.ndarray:
+    """Unit-variance first-order Gauss-Markov process at times t_s (n,) s from standard normal draws z (n, m).
+
+    Exact discretisation on each interval: x_k = phi_k x_{k-1} + sqrt(1 - phi_k^2) z_k,
+    phi_k = exp(-(t_k - t_{k-1}) / tau_s), started stationary (x_0 = z_0): every x_k is N(0, 1) and
+    E[x(t) x(t + d)] = exp(-|d| / tau_s). tau_s = 0 returns z (white). Scale by sigma for the process.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if tau_s == 0.0 or z.shape[0] < 2:
+        return z
+    phi = np.exp(-np.diff(np.asarray(t_s, dtype=np.float64)) / tau_s)
+    return _gm_recursion(phi, z)
 
 
 def _lerp_uniform(y: np.ndarray, h: float, t: np.ndarray) -> np.ndarray:
@@ -160,6 +192,7 @@ def _si_magnitudes(cfg: ImuErrorConfig) -> dict[str, dict[str, float]]:
             "scale_factor": cfg.gyro_scale_factor_ppm * 1e-6,
             "misalignment": cfg.gyro_misalignment_mrad * 1e-3,
             "zero_bias_V": cfg.gyro_zero_bias_V,
+            "gm_sigma": cfg.gyro_gm_sigma_dps * _DEG,
         },
         "accel": {
             "noise_density": cfg.accel_noise_density_ug_rthz * _UG,
@@ -168,6 +201,7 @@ def _si_magnitudes(cfg: ImuErrorConfig) -> dict[str, dict[str, float]]:
             "scale_factor": cfg.accel_scale_factor_ppm * 1e-6,
             "misalignment": cfg.accel_misalignment_mrad * 1e-3,
             "zero_bias_V": cfg.accel_zero_bias_V,
+            "gm_sigma": cfg.accel_gm_sigma_ug * _UG,
         },
     }
 
@@ -195,7 +229,8 @@ def imu_counts(
     Returns (counts (n,6) int32, realised) where realised holds the drawn errors:
       gyro_turn_on_bias (3,) rad/s, accel_turn_on_bias (3,) m/s^2, *_scale_factor (3,) (fraction),
       *_misalignment (3,3) (E), *_zero_bias_V (3,) V, gyro_bias (n,3) rad/s and accel_bias (n,3) m/s^2
-      (turn-on + flicker + electrical offset, as seen through the nominal calibration), saturated (6,).
+      (turn-on + flicker + electrical offset, as seen through the nominal calibration), saturated (6,);
+      with coloured noise also gyro_coloured (n,3) rad/s and accel_coloured (n,3) m/s^2.
     The draws come from rng in a fixed order: the same seed gives identical counts.
     """
     t_s = np.asarray(t_s, dtype=np.float64)
@@ -219,6 +254,9 @@ def imu_counts(
         realised[f"{name}_zero_bias_V"] = rng.normal(0.0, m["zero_bias_V"], 3)
     flicker = flicker_noise(t_s - t_s[0], 6, cfg.bias_corr_time_min_s, cfg.bias_corr_time_max_s, rng)
     white = rng.standard_normal((n, 6)) / np.sqrt(dt)[:, None]
+    coloured = None
+    if mag["gyro"]["gm_sigma"] > 0.0 or mag["accel"]["gm_sigma"] > 0.0:
+        coloured = gauss_markov(t_s, cfg.gm_tau_s, rng.standard_normal((n, 6)))
 
     measured, true_cal = {}, {}
     for j, (name, m) in enumerate(mag.items()):
@@ -226,6 +264,9 @@ def imu_counts(
         bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * flicker[:, cols]
         gain = (np.eye(3) + np.diag(realised[f"{name}_scale_factor"])) @ (np.eye(3) + realised[f"{name}_misalignment"])
         measured[name] = np.dot(x_true[name], gain.T) + bias + m["noise_density"] * white[:, cols]
+        if coloured is not None:
+            realised[f"{name}_coloured"] = m["gm_sigma"] * coloured[:, cols]
+            measured[name] += realised[f"{name}_coloured"]
         nom = nominal[name]
         bias_V = nom.bias_V + realised[f"{name}_zero_bias_V"]
         true_cal[name] = SensorTriadCal(nom.sensitivity, bias_V, nom.misalignment)

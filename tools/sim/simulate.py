@@ -2,6 +2,12 @@
 
 Truth -> sensor errors -> ADC counts -> DAQ frames and NMEA sentences -> serial reads with host clocks ->
 the real acquisition pipeline -> MCAP, with ``/truth/*`` added from the simulator's side.
+
+Rates: the DAQ runs at ``[clock] fs_hz`` (default: ``[imu] rate_hz``; the two must agree), the receiver at
+``[gps] rate_hz`` (epochs at whole UTC seconds plus multiples of its period). The ``drive`` metadata records
+both (``imu_rate_hz``, ``gps_rate_hz``), the ``timesync`` record the DAQ rate the pipeline used, and a
+scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key each, Python literals), which
+``fieldlog fuse`` and ``evaluate`` use when no ``--config`` is given (``tools.fuse.drive_config``).
 """
 from __future__ import annotations
 
@@ -45,13 +51,15 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it."""
     seeds = np.random.SeedSequence(seed).spawn(6)
     rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads = (np.random.default_rng(s) for s in seeds)
+    imu_cfg = sensors.ImuErrorConfig.from_dict(dict(scenario.imu))
     clock_d = dict(scenario.clock)
     if pps_mode:
         clock_d["pps_mode"] = pps_mode
     clock_d.setdefault("start_utc_ns", drive_start_ns(seed))
+    clock_d.setdefault("fs_hz", imu_cfg.rate_hz)
     ccfg = simclock.ClockConfig.from_dict(clock_d)
-    imu_d = dict(scenario.imu)
-    imu_cfg = sensors.ImuErrorConfig.from_dict(imu_d)
+    if ccfg.fs_hz != imu_cfg.rate_hz:
+        raise ValueError(f"[clock] fs_hz = {ccfg.fs_hz:g} differs from [imu] rate_hz = {imu_cfg.rate_hz:g}")
     gps_cfg = GpsConfig.from_dict(dict(scenario.gps))
     cal = calib.load_calibration(None)
     host = HostClock()
@@ -72,11 +80,14 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
                          t0_ns, rng_daq_reads)
 
-    utc_s = np.arange(ccfg.first_utc_s(), int((t0_ns + duration_s * NS) // NS) + 1, dtype=np.int64)
-    rel_s = utc_s - t0_ns / NS
-    if len(utc_s):
+    period_ns = gps_cfg.epoch_period_ns()
+    first_ns = ccfg.first_utc_s() * NS
+    n_epochs = max(int((t0_ns + duration_s * NS - first_ns) // period_ns) + 1, 0)
+    utc_ns = first_ns + period_ns * np.arange(n_epochs, dtype=np.int64)
+    rel_s = (utc_ns // NS - t0_ns / NS) + (utc_ns % NS) / NS
+    if len(utc_ns):
         sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
-        starts, sentences = nmea_bursts(sol, utc_s, gps_cfg, rng_nmea)
+        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea)
         starts = starts + rel_s[0]
         keep = starts < duration_s
         sentences = [s for s, kk in zip(sentences, keep) if kk]
@@ -84,7 +95,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
             reads += serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
                                   rng_gps_reads)
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
-    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth)
+    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
+                      gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns)
     return reads, truth_data, t0_ns, ccfg, cal
 
 
@@ -105,20 +117,35 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
         tn_ns, nav.q, frame_id="truth"))
 
 
+def fusion_metadata(table: dict) -> dict[str, str]:
+    """A scenario's [fusion] table as the ``fusion.config`` metadata record (checked: a bad key raises
+    ConfigError naming it)."""
+    if not table:
+        return {}
+    from tools.fuse import fusion_config
+
+    fusion_config(table)
+    return {k: repr(v) for k, v in table.items()}
+
+
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None) -> SimResult:
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default."""
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
+    fusion_meta = fusion_metadata(scenario.fusion)
     reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode)
     meta = {"source": "fieldlog sim", "scenario": scenario.name, "seed": str(seed),
             "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
-            "drive_start_utc_ns": str(t0_ns)}
+            "drive_start_utc_ns": str(t0_ns), "imu_rate_hz": repr(float(ccfg.fs_hz)),
+            "gps_rate_hz": repr(float(GpsConfig.from_dict(dict(scenario.gps)).rate_hz))}
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz})
     with recorder.Recorder(out, metadata=meta) as rec:
         pipe = Pipeline(rec, cal, sync_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
+        if fusion_meta:
+            rec.add_metadata("fusion.config", fusion_meta)
         step = max(len(reads) // 100, 1)
         for i, r in enumerate(reads):
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)

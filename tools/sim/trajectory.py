@@ -1,22 +1,31 @@
 """True vehicle kinematics on WGS-84 and the error-free IMU output derived from them.
 
-A scenario (``tools/sim/scenarios/NAME.toml``) describes a drive as data: a static start, then segments of
-(duration, target speed, turn angle, target grade). Speed, yaw rate and grade change with the septic
-"smootherstep" S(x) = 35x^4 - 84x^5 + 70x^6 - 20x^7, which is C3: acceleration, angular rate and angular
-acceleration are continuous. Pitch equals the road grade angle; roll follows the lateral acceleration
-(body rolls out of the turn, ``roll_per_g_deg`` per g); the velocity is along the body forward axis.
+A scenario (``tools/sim/scenarios/NAME.toml``) describes a drive (or a flight) as data: a static start, then
+segments of (duration, target speed, turn angle, target grade or pitch). Speed, yaw rate and grade change with
+the septic "smootherstep" S(x) = 35x^4 - 84x^5 + 70x^6 - 20x^7, which is C3: acceleration, angular rate and
+angular acceleration are continuous. Pitch equals the road grade angle (the flight-path angle: the velocity is
+along the body forward axis). Roll follows the lateral acceleration a_lat = v * yaw rate: a car rolls out of
+the turn, roll = -``roll_per_g_deg`` * a_lat / g; with ``coordinated_turns`` an aircraft banks into it,
+roll = atan(a_lat / g), so the specific force has no lateral component in a level turn.
 
 Scenario file format (TOML):
 
     name, description, duration_s          default drive length, s
+    extends = "NAME"                       optional: start from scenario NAME (or a .toml path) and
+                                           override it table by table (key by key; arrays replace)
     [origin]  lat_deg, lon_deg, h_m        start position (ellipsoidal height)
-    [motion]  initial_heading_deg, static_s, max_accel_mps2, turn_ramp_s, grade_ramp_s, roll_per_g_deg
+    [motion]  initial_heading_deg, static_s, max_accel_mps2, turn_ramp_s, grade_ramp_s, roll_per_g_deg,
+              coordinated_turns (bool, default false)
     [[motion.segments]]                    driven once, in order, after static_s
     [[motion.lap]]                         then repeated until the drive ends (optional)
         each: one of duration_s | distance_m | radius_m (with turn_deg), and optionally
-              speed_mps (target, default: unchanged), turn_deg (+ = right), grade_pct (default: unchanged),
-              accel_mps2 (peak acceleration of this speed change, default max_accel_mps2)
+              speed_mps (target, default: unchanged), turn_deg (+ = right), grade_pct or pitch_deg (target
+              grade or pitch, default: unchanged), accel_mps2 (peak acceleration of this speed change,
+              default max_accel_mps2), ramp_s (duration of this segment's speed and pitch changes instead
+              of accel_mps2 and grade_ramp_s)
     [imu], [clock], [gps]                  passed through as dicts for the sensor and clock models
+    [fusion]                               passed through: the spec-sheet figures of fusion.engine.FusionConfig
+                                           that ``fieldlog sim`` stores in the drive (``tools.fuse.drive_config``)
 
 Kinematics are exact in a fixed local tangent frame t (ENU at the origin, Earth-fixed): speed, heading, grade
 and their derivatives are analytic; position is integrated with 8-point Gauss-Legendre on a grid (<= 0.1 s,
@@ -45,7 +54,7 @@ from fusion import earth
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 GRID_STEP_S = 0.1
 MARGIN_S = 10.0  # the truth is defined this far before 0 and after the drive's duration
-_G_ROLL = 9.80665  # g used only to scale the roll gradient
+_G_ROLL = 9.80665  # g used only to scale the roll: the car's gradient, the aircraft's bank angle
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 
 
@@ -56,6 +65,7 @@ class Segment:
     At the segment start the speed moves smoothly to ``speed_mps`` (peak acceleration ``accel_mps2``) and the
     grade to ``grade_pct`` (over the motion's ``grade_ramp_s``); the heading changes by ``turn_deg`` over the
     whole segment (+ = right, clockwise), yaw rate ramping up and down over ``turn_ramp_s`` at each end.
+    ``ramp_s`` > 0 sets the duration of the speed and grade changes instead.
     """
 
     duration_s: float
@@ -63,6 +73,7 @@ class Segment:
     turn_deg: float = 0.0
     grade_pct: float = 0.0
     accel_mps2: float = 1.5
+    ramp_s: float = 0.0  # > 0: duration of the speed and grade changes (instead of accel_mps2, grade_ramp_s)
 
 
 @dataclass(frozen=True)
@@ -78,6 +89,7 @@ class Motion:
     turn_ramp_s: float = 2.0
     grade_ramp_s: float = 4.0
     roll_per_g_deg: float = 4.0
+    coordinated_turns: bool = False
     segments: tuple[Segment, ...] = ()
     lap: tuple[Segment, ...] = ()
 
@@ -93,7 +105,8 @@ class Origin:
 
 @dataclass(frozen=True)
 class Scenario:
-    """A scenario file. ``imu``, ``clock``, ``gps`` are the raw [imu], [clock], [gps] tables."""
+    """A scenario file. ``imu``, ``clock``, ``gps``, ``fusion`` are the raw [imu], [clock], [gps], [fusion]
+    tables."""
 
     name: str
     description: str
@@ -103,6 +116,7 @@ class Scenario:
     imu: dict = field(default_factory=dict)
     clock: dict = field(default_factory=dict)
     gps: dict = field(default_factory=dict)
+    fusion: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -128,10 +142,11 @@ class TruthSample:
 
 # ---------------------------------------------------------------------------------------------- loading
 
-_SEGMENT_KEYS = {"duration_s", "distance_m", "radius_m", "speed_mps", "turn_deg", "grade_pct", "accel_mps2"}
+_SEGMENT_KEYS = {"duration_s", "distance_m", "radius_m", "speed_mps", "turn_deg", "grade_pct", "pitch_deg",
+                 "accel_mps2", "ramp_s"}
 _MOTION_KEYS = {"initial_heading_deg", "static_s", "max_accel_mps2", "turn_ramp_s", "grade_ramp_s",
-                "roll_per_g_deg", "segments", "lap"}
-_TOP_KEYS = {"name", "description", "duration_s", "origin", "motion", "imu", "clock", "gps"}
+                "roll_per_g_deg", "coordinated_turns", "segments", "lap"}
+_TOP_KEYS = {"name", "description", "duration_s", "extends", "origin", "motion", "imu", "clock", "gps", "fusion"}
 
 
 def _ramp_time(dv: float, accel: float) -> float:
@@ -152,10 +167,15 @@ def _resolve_segments(raw: list[dict], speed: float, grade: float, motion: dict,
         v1 = float(s.get("speed_mps", speed))
         accel = float(s.get("accel_mps2", motion["max_accel_mps2"]))
         turn = float(s.get("turn_deg", 0.0))
+        ramp = float(s.get("ramp_s", 0.0))
         given = [k for k in ("duration_s", "distance_m", "radius_m") if k in s]
         if len(given) != 1:
             raise ValueError(f"{where}[{i}]: give exactly one of duration_s, distance_m, radius_m")
-        t_ramp = _ramp_time(v1 - speed, accel)
+        if "grade_pct" in s and "pitch_deg" in s:
+            raise ValueError(f"{where}[{i}]: give grade_pct or pitch_deg, not both")
+        if ramp < 0.0 or (ramp > 0.0 and "accel_mps2" in s):
+            raise ValueError(f"{where}[{i}]: ramp_s must be > 0 and replaces accel_mps2")
+        t_ramp = (ramp if v1 != speed else 0.0) if ramp else _ramp_time(v1 - speed, accel)
         if "duration_s" in s:
             dur = float(s["duration_s"])
         elif "distance_m" in s:
@@ -170,9 +190,13 @@ def _resolve_segments(raw: list[dict], speed: float, grade: float, motion: dict,
         if dur <= 0.0 or t_ramp > dur + 1e-9:
             raise ValueError(f"{where}[{i}]: duration {dur:.2f} s shorter than its speed change ({t_ramp:.2f} s)")
         g1 = float(s.get("grade_pct", grade))
-        if g1 != grade and motion["grade_ramp_s"] > dur:
-            raise ValueError(f"{where}[{i}]: duration {dur:.2f} s shorter than grade_ramp_s")
-        out.append(Segment(duration_s=dur, speed_mps=v1, turn_deg=turn, grade_pct=g1, accel_mps2=accel))
+        if "pitch_deg" in s:
+            if not abs(float(s["pitch_deg"])) < 80.0:
+                raise ValueError(f"{where}[{i}]: pitch_deg must be within +-80 deg")
+            g1 = 100.0 * float(np.tan(np.radians(float(s["pitch_deg"]))))
+        if g1 != grade and (ramp or motion["grade_ramp_s"]) > dur:
+            raise ValueError(f"{where}[{i}]: duration {dur:.2f} s shorter than its grade ramp")
+        out.append(Segment(duration_s=dur, speed_mps=v1, turn_deg=turn, grade_pct=g1, accel_mps2=accel, ramp_s=ramp))
         speed, grade = v1, g1
     return out, speed, grade
 
@@ -182,24 +206,55 @@ def _parse_motion(raw: dict) -> Motion:
     if bad:
         raise ValueError(f"[motion]: unknown keys {sorted(bad)}")
     defaults = Motion()
-    m = {k: float(raw.get(k, getattr(defaults, k))) for k in _MOTION_KEYS - {"segments", "lap"}}
+    m = {k: float(raw.get(k, getattr(defaults, k))) for k in _MOTION_KEYS - {"segments", "lap", "coordinated_turns"}}
+    coordinated = raw.get("coordinated_turns", False)
+    if not isinstance(coordinated, bool):
+        raise ValueError(f"[motion] coordinated_turns: expected true or false, got {coordinated!r}")
     segs, speed, grade = _resolve_segments(raw.get("segments", []), 0.0, 0.0, m, "motion.segments")
     lap, speed_end, grade_end = _resolve_segments(raw.get("lap", []), speed, grade, m, "motion.lap")
     if lap and (speed_end != speed or grade_end != grade):
         raise ValueError("motion.lap must end at the speed and grade it starts with")
-    return Motion(**m, segments=tuple(segs), lap=tuple(lap))
+    return Motion(**m, coordinated_turns=coordinated, segments=tuple(segs), lap=tuple(lap))
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load a scenario by name (``tools/sim/scenarios/NAME.toml``) or by path to a TOML file."""
+def _scenario_path(name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
-    if path.suffix != ".toml":
-        path = SCENARIO_DIR / f"{name_or_path}.toml"
+    return path if path.suffix == ".toml" else SCENARIO_DIR / f"{name_or_path}.toml"
+
+
+def _merge(base: dict, over: dict) -> dict:
+    """``over`` on top of ``base``: tables merge key by key, anything else (arrays included) replaces."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_raw(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    """The scenario's TOML with its ``extends`` chain resolved (relative paths from the file's folder)."""
+    if path.resolve() in seen:
+        raise ValueError(f"{path}: circular extends")
     with open(path, "rb") as fh:
         raw = tomllib.load(fh)
     bad = set(raw) - _TOP_KEYS
     if bad:
         raise ValueError(f"{path}: unknown top-level keys {sorted(bad)}")
+    parent = raw.pop("extends", None)
+    if parent is None:
+        return raw
+    ppath = _scenario_path(parent)
+    if ppath.suffix == ".toml" and not ppath.is_absolute() and not ppath.exists():
+        ppath = path.parent / ppath
+    base = _read_raw(ppath, seen + (path.resolve(),))
+    base.pop("name", None)
+    base.pop("description", None)
+    return _merge(base, raw)
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a scenario by name (``tools/sim/scenarios/NAME.toml``) or by path to a TOML file."""
+    path = _scenario_path(name_or_path)
+    raw = _read_raw(path)
     o = raw["origin"]
     return Scenario(
         name=str(raw.get("name", path.stem)),
@@ -210,6 +265,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         imu=dict(raw.get("imu", {})),
         clock=dict(raw.get("clock", {})),
         gps=dict(raw.get("gps", {})),
+        fusion=dict(raw.get("fusion", {})),
     )
 
 
@@ -275,6 +331,7 @@ class _Profiles:
     grade: _Profile  # grade angle, rad
     heading0: float
     roll_k: float  # roll = -roll_k * v * yaw_rate
+    coordinated: bool = False  # roll = atan(v * yaw_rate / g) instead
 
     def knots(self) -> np.ndarray:
         return np.concatenate([np.concatenate([p.a, p.b]) for p in (self.speed, self.yaw_rate, self.grade)])
@@ -291,17 +348,18 @@ def _build_profiles(motion: Motion, t_end: float) -> _Profiles:
         if t >= t_end:
             break
         if s.speed_mps != v:
-            speed_r.append((t, t + _ramp_time(s.speed_mps - v, s.accel_mps2), v, s.speed_mps))
+            speed_r.append((t, t + (s.ramp_s or _ramp_time(s.speed_mps - v, s.accel_mps2)), v, s.speed_mps))
         g1 = np.arctan(s.grade_pct / 100.0)
         if g1 != g:
-            grade_r.append((t, t + motion.grade_ramp_s, g, g1))
+            grade_r.append((t, t + (s.ramp_s or motion.grade_ramp_s), g, g1))
         if s.turn_deg != 0.0:
             tau = min(motion.turn_ramp_s, 0.5 * s.duration_s)
             r = np.radians(s.turn_deg) / (s.duration_s - tau)
             yaw_r += [(t, t + tau, 0.0, r), (t + s.duration_s - tau, t + s.duration_s, r, 0.0)]
         t, v, g = t + s.duration_s, s.speed_mps, g1
     return _Profiles(_Profile.build(0.0, speed_r), _Profile.build(0.0, yaw_r), _Profile.build(0.0, grade_r),
-                     np.radians(motion.initial_heading_deg), np.radians(motion.roll_per_g_deg) / _G_ROLL)
+                     np.radians(motion.initial_heading_deg), np.radians(motion.roll_per_g_deg) / _G_ROLL,
+                     motion.coordinated_turns)
 
 
 # ---------------------------------------------------------------------------------------------- truth
@@ -315,8 +373,13 @@ def _kinematics_t(pr: _Profiles, t: np.ndarray) -> dict[str, np.ndarray]:
     sp, cp, sg, cg = np.sin(psi), np.cos(psi), np.sin(gam), np.cos(gam)
     u = np.stack([cg * sp, cg * cp, sg], axis=-1)
     du = np.stack([-sg * dgam * sp + cg * cp * r, -sg * dgam * cp - cg * sp * r, cg * dgam], axis=-1)
-    roll = -pr.roll_k * v * r
-    droll = -pr.roll_k * (dv * r + v * dr)
+    if pr.coordinated:
+        x = v * r / _G_ROLL
+        roll = np.arctan(x)
+        droll = (dv * r + v * dr) / _G_ROLL / (1.0 + x * x)
+    else:
+        roll = -pr.roll_k * v * r
+        droll = -pr.roll_k * (dv * r + v * dr)
     sr, cr = np.sin(roll), np.cos(roll)
     omega_tb_b = np.stack([r * sr * cg + dgam * cr, -r * sg + droll, -r * cr * cg + dgam * sr], axis=-1)
     return {"v_t": v[:, None] * u, "a_t": dv[:, None] * u + v[:, None] * du, "psi": psi, "pitch": gam,
