@@ -71,6 +71,13 @@ class DistributedKF:
             self.kf_pos.update(*pos)
         self.x, self.P = fuse(self.locals)
 
+    def update_aid(self, m: Measurement) -> None:
+        """A vehicle-motion aid (non-holonomic, stationary: velocity-domain constraints) to KF_I only, then
+        fusion. With information sharing a measurement given to exactly one local filter fuses into the
+        centralised update (the information added is H^T R^-1 H once); given to both it would count twice."""
+        self.kf_vel.update(*m)
+        self.x, self.P = fuse(self.locals)
+
     def reset(self) -> None:
         """After feedback: fused and local states to zero, local covariances to P / beta."""
         self.x = np.zeros_like(self.x)

@@ -22,6 +22,16 @@ first epoch where the speed reaches ``align_speed_mps``; position and velocity c
 The static mean gyro output minus the Earth rate gives the initial gyro bias. Without a static start
 roll and pitch start at zero with a large variance, and the gyro bias at zero.
 
+Vehicle aids (``nhc``, ``zupt``; no GPS needed, so in outages too; not for ``ins``): at every GPS epoch time,
+before the GPS update, the non-holonomic constraint of a car (body lateral and vertical velocity 0,
+``kf.nhc_measurement``), or, when the vehicle stood still over the epoch interval (speed and IMU variance
+thresholds), a zero-velocity + zero-angular-rate update (``kf.stationary_measurement``). They go through the
+filter's ``update_aid`` (``fusion.dkf``: to KF_I only) and are fed back like a GPS update.
+
+Clipped gyro: a yaw gyro flat at ``gyro_range_dps`` (the Table 2 gyro clips at 20 deg/s; a 90-degree city
+turn needs 23) is rebuilt from the car's turn kinematics (yaw rate = -lateral acceleration / forward speed)
+and the segment integrated again; the heading process noise grows by the rebuilt rate's uncertainty.
+
 Outages: an epoch is unusable when its status is NO_FIX, its lat/lon are NaN, its horizontal sigma
 is above ``max_fix_sigma_m``, or it falls in a forced window (``outages``, seconds from the first IMU
 sample). Detected windows run from the first unusable epoch to the next usable one. A fix without
@@ -34,10 +44,12 @@ the observation z = INS - GPS (``rbfn``, ``tdln``) or the position and velocity 
 correction fed back (``dkf-rbfn``). At each unusable or withheld epoch after the networks have enough
 training, the predicted correction is fed into the INS; the error state and covariance are untouched.
 
-``hinf`` and ``kf-ukf`` run the ``kf`` path with another filter object: ``fusion.hinf.HInfinityFilter``
-(``hinf_gamma``) and ``fusion.ukf.HybridKfUkf``, which is given the navigation solution at the start, middle
-and end of each covariance cycle (the nodes of its outage RK4) and told of an outage at its first unusable
-epoch.
+``hinf``, ``kf-ukf``, ``sckf`` and ``ssr-sckf`` run the ``kf`` path with another filter object:
+``fusion.hinf.HInfinityFilter`` (``hinf_gamma``), ``fusion.ukf.HybridKfUkf`` and the square-root cubature
+filters of ``fusion.sckf``. The last three are ``fusion.ukf.CycleFilter`` s: they are given the navigation
+solution at the start, middle and end of each covariance cycle (the nodes of their RK4 through the nonlinear
+error model: the hybrid filter's in outages, the cubature filters' at every cycle); the hybrid filter is
+also told of an outage at its first unusable epoch.
 
 Smoothing: given a ``log`` (``fusion.smoother.SmootherLog``) the engine records, per covariance cycle,
 Phi and the predicted covariance, and at each update the correction fed back and the covariance after
@@ -55,14 +67,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion import earth, errmodel, hinf, ins, kf, predictors, ukf
+from fusion import earth, errmodel, hinf, ins, kf, predictors, sckf, ukf
 from fusion.dkf import DistributedKF
-from fusion.errmodel import BA, BG, N_STATES, POS, VEL
+from fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
 
 if TYPE_CHECKING:
     from fusion.smoother import SmootherLog
 
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf")
+METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
 NS = 1_000_000_000
 _DEG = math.pi / 180.0
@@ -92,6 +104,15 @@ class FusionConfig:
     vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
     max_fix_sigma_m: float = 30.0
     outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
+    gyro_range_dps: float = 20.0  # a gyro flat at this rate (or beyond) is clipped (Table 2: +-20 deg/s)
+    clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
+    nhc: bool = True  # non-holonomic constraint of a car (body lateral, vertical velocity 0) at every epoch
+    nhc_sigma_mps: float = 0.1
+    zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
+    zupt_sigma_mps: float = 0.02
+    still_speed_mps: float = 0.5  # standing still: INS speed below this (GPS speed below static_speed_mps) ...
+    still_accel_std_mps2: float = 0.1  # ... and specific force and rate varying less than these over the epoch
+    still_gyro_std_dps: float = 0.5
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
     predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
@@ -167,6 +188,13 @@ class _Static:
     sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
     sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
     n: int = 0
+    sum_ww: np.ndarray = field(default_factory=lambda: np.zeros(3))  # squares: the interval's variances
+    sum_ff: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def std(self, total: np.ndarray, squares: np.ndarray) -> float:
+        """Root of the summed per-axis variances of the samples, e.g. std(sum_f, sum_ff)."""
+        m = total / max(self.n, 1)
+        return math.sqrt(max(float(np.sum(squares / max(self.n, 1) - m * m)), 0.0))
 
 
 class Engine:
@@ -183,7 +211,7 @@ class Engine:
         self.q = self.cfg.noise_psd()
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
-        self.filter: kf.KalmanFilter | DistributedKF | None = None  # hinf, kf-ukf: KalmanFilter subclasses
+        self.filter: kf.KalmanFilter | DistributedKF | None = None  # hinf, kf-ukf, sckf: KalmanFilter subclasses
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
         self.updates = 0
@@ -195,7 +223,8 @@ class Engine:
         self._gps: list[dict] = []  # epochs not yet reached by the IMU
         self._sigma = np.zeros(9)
         self._static = _Static()
-        self._interval = _Static()
+        self._interval = _Static()  # IMU sums since the last GPS epoch
+        self._imu_dt = 0.002  # median IMU sample period, s
         self._last_speed = math.inf
         self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
         self._open: Outage | None = None
@@ -223,6 +252,8 @@ class Engine:
         if self.t_ref_ns is None or len(t_ns) == 0:
             return Solution.concat([]), self._take_outages()
         t = (t_ns - self.t_ref_ns) * 1e-9
+        if len(t) > 1:
+            self._imu_dt = float(np.median(np.diff(t)))
         out: list[Solution] = []
         cursor = 0
         while self._gps and self._gps[0]["t_ns"] <= t_ns[-1]:
@@ -236,12 +267,12 @@ class Engine:
                 cursor = k
                 self._pre_init_epoch(ep, t, t_ns, w, k)
             else:
+                self._accumulate(w, f, cursor, k)
                 out.append(self._advance(t, t_ns, w, f, cursor, k))
                 cursor = k
                 self._epoch(ep, w[k] - self.bg)
-        if self.nav is None:
-            self._accumulate(w, f, cursor, len(t) - 1)
-        else:
+        self._accumulate(w, f, cursor, len(t) - 1)
+        if self.nav is not None:
             out.append(self._advance(t, t_ns, w, f, cursor, len(t) - 1))
         self._carry = (int(t_ns[-1]), w[-1].copy(), f[-1].copy())
         return Solution.concat(out), self._take_outages()
@@ -298,8 +329,11 @@ class Engine:
 
     def _accumulate(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
         """Add samples (i0, i1] to the current GPS interval's sums (static detection before alignment)."""
-        self._interval.sum_w += w[i0 + 1:i1 + 1].sum(axis=0)
-        self._interval.sum_f += f[i0 + 1:i1 + 1].sum(axis=0)
+        ws, fs = w[i0 + 1:i1 + 1], f[i0 + 1:i1 + 1]
+        self._interval.sum_w += ws.sum(axis=0)
+        self._interval.sum_f += fs.sum(axis=0)
+        self._interval.sum_ww += np.einsum("ij,ij->j", ws, ws)
+        self._interval.sum_ff += np.einsum("ij,ij->j", fs, fs)
         self._interval.n += max(i1 - i0, 0)
 
     def _initialise(self, ep: dict, v: np.ndarray, t_k: float, t_k_ns: int) -> None:
@@ -338,6 +372,8 @@ class Engine:
             self.filter = hinf.HInfinityFilter(P0, self.q, c.hinf_gamma, min_ratio=c.hinf_min_ratio)
         elif self.method == "kf-ukf":
             self.filter = ukf.HybridKfUkf(P0, self.q)
+        elif self.method in sckf.FILTERS:
+            self.filter = sckf.FILTERS[self.method](P0, self.q)
         else:
             self.filter = kf.KalmanFilter(P0, self.q)
         self._sigma = _sigmas(np.diag(P0))
@@ -349,8 +385,13 @@ class Engine:
         usable = self._classify(ep)
         if usable:
             self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
+        interval, self._interval = self._interval, _Static()
         if self.method == "ins":
             return
+        aid = self._aid(ep, usable, interval)
+        if aid is not None:
+            self.filter.update_aid(aid)
+            self._feedback(self.filter.state)
         if not usable:
             if isinstance(self.filter, ukf.HybridKfUkf):
                 self.filter.start_outage()
@@ -366,6 +407,11 @@ class Engine:
         if self.predictor is not None:
             y = np.concatenate([x[POS], x[VEL]]) if self.method == "dkf-rbfn" else _observation(pos, vel)
             self.predictor.train(t_g, u, y)
+        self._feedback(x)
+        self.updates += 1
+
+    def _feedback(self, x: np.ndarray) -> None:
+        """Closed loop: the estimate x (15,) corrects the INS and the biases; the filter is reset."""
         if self.log is not None:
             self.log.update(x.copy(), self.filter.covariance.copy())
         self.nav = kf.correct_ins(self.nav, x)
@@ -373,7 +419,23 @@ class Engine:
         self.ba = self.ba + x[BA]
         self.filter.reset()
         self._sigma = _sigmas(np.diag(self.filter.covariance))
-        self.updates += 1
+
+    def _aid(self, ep: dict, usable: bool, interval: _Static) -> kf.Measurement | None:
+        """The vehicle-motion aid of this epoch: stationary (ZUPT + ZARU) when the vehicle stood still over the
+        interval since the last epoch, else the non-holonomic constraint; None when disabled. Needs no GPS: in
+        outages too. Before the GPS update, so a predictor learns the GPS correction on top of the aided INS."""
+        c = self.cfg
+        v = self._velocity(ep) if usable else np.full(3, np.nan)
+        slow = (float(np.hypot(v[0], v[1])) < c.static_speed_mps if np.isfinite(v[:2]).all()
+                else float(np.linalg.norm(self.nav.v_n)) < c.still_speed_mps)
+        still = (slow and interval.n >= 50 and interval.std(interval.sum_f, interval.sum_ff) < c.still_accel_std_mps2
+                 and interval.std(interval.sum_w, interval.sum_ww) < c.still_gyro_std_dps * _DEG)
+        if c.zupt and still:
+            return kf.stationary_measurement(self.nav, interval.sum_w / interval.n - self.bg, interval.n * self._imu_dt,
+                                             c.zupt_sigma_mps, c.gyro_noise_dps_rthz * _DEG)
+        if c.nhc and not slow:
+            return kf.nhc_measurement(self.nav, c.nhc_sigma_mps)
+        return None
 
     def _predictor_input(self) -> np.ndarray:
         """INS position (ENU m from the alignment point) and velocity (ENU m/s), (6,)."""
@@ -389,7 +451,7 @@ class Engine:
         x[POS], x[VEL] = d[:3], d[3:]
         self.nav = kf.correct_ins(self.nav, x)
         if self.log is not None:
-            self.log.update(x, self.filter.covariance.copy())
+            self.log.bridge(x)
         self.predicted += 1
 
     # -- INS and covariance between epochs ------------------------------------------------------------
@@ -401,6 +463,10 @@ class Engine:
             return Solution.concat([])
         wc, fc = w[i0:i1 + 1] - self.bg, f[i0:i1 + 1] - self.ba
         sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
+        clipped = _clipped(w[i0:i1 + 1, 2], self.cfg.gyro_range_dps * _DEG)
+        if clipped.any():  # the yaw gyro saturated in a sharp turn: rebuild its rate, integrate again
+            wc[:, 2] = _turn_rate(wc[:, 2], fc, sol, clipped)
+            sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
         self.nav = sol.state(-1)
         # filter cycles: end at the first sample of each cov_step_s slot after i0, and at i1
         tt = sol.t
@@ -416,7 +482,13 @@ class Engine:
         F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
                                         np.einsum("kij,kj->ki", C, f_mean))
         Phi, Q = errmodel.discretise(F, G, self.q, tt[ends] - tt[starts])
-        if isinstance(self.filter, ukf.HybridKfUkf):  # the nodes of its outage RK4
+        if clipped.any():  # the rebuilt rate scales with the INS forward speed: its error counts too
+            fwd = C[0, :, 1]
+            sd_v = math.sqrt(max(float(fwd @ self.filter.covariance[VEL, VEL] @ fwd), 0.0))
+            rel = sd_v / max(abs(float(fwd @ sol.v_n[0])), 1.0)
+            sigma = math.hypot(self.cfg.clip_rate_sigma_dps * _DEG, rel * float(np.abs(wc[clipped, 2]).max()))
+            Q = Q + _clip_noise(clipped, tt, starts, ends, C, sigma)
+        if isinstance(self.filter, ukf.CycleFilter):  # the nodes of its RK4 through the nonlinear model
             self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, starts, mid, ends, f_mean,
                                                   tt[ends] - tt[starts]))
         if self.log is None:
@@ -445,6 +517,47 @@ class Engine:
     def _take_outages(self) -> list[Outage]:
         out, self._outages = self._outages, []
         return out
+
+
+_CLIP_CORR_S = 3.0  # the rebuilt rate's error is correlated over a turn: white noise of the same variance
+
+
+def _clipped(wz: np.ndarray, limit: float) -> np.ndarray:
+    """Saturated samples of a gyro channel (n,) rad/s: at the range limit (rad/s) and flat (equal to a
+    neighbour: the ADC clips to one value, a live signal with its noise never repeats exactly)."""
+    flat = np.zeros(len(wz), bool)
+    same = wz[1:] == wz[:-1]
+    flat[1:] |= same
+    flat[:-1] |= same
+    return flat & (np.abs(wz) >= limit * (1.0 - 1e-3))
+
+
+def _turn_rate(wz: np.ndarray, f_b: np.ndarray, sol: ins.NavSolution, clipped: np.ndarray) -> np.ndarray:
+    """The yaw rate (rad/s, body up) with its clipped samples rebuilt from the car's turn kinematics: a car
+    moving along its forward axis turns at omega_z = -a_x / v_y (a_b = f_b + C_nb g_n, the lateral
+    acceleration, v_y the forward speed), taken from the INS of the clipped pass (its roll, pitch and speed
+    are unaffected). Only magnitudes above the clipped value and of the same sign are taken."""
+    C = earth.quat_to_dcm(sol.q)
+    a_b = f_b + np.einsum("nji,nj->ni", C, earth.gravity_n(sol.lat, sol.h))
+    v_fwd = np.einsum("nj,nj->n", C[:, :, 1], sol.v_n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = -a_b[:, 0] / v_fwd
+    ok = clipped & (np.abs(v_fwd) > 1.0) & (np.sign(rate) == np.sign(wz))
+    return np.where(ok, np.sign(wz) * np.maximum(np.abs(wz), np.abs(rate)), wz)
+
+
+def _clip_noise(clipped: np.ndarray, t: np.ndarray, starts: np.ndarray, ends: np.ndarray, C: np.ndarray,
+                sigma: float) -> np.ndarray:
+    """Process noise (m, 15, 15) of the rebuilt yaw rates over the filter cycles (starts, ends] of samples at
+    times t: a rate error of sigma rad/s about the body up axis (C (m, 3, 3) C_bn at the cycles), correlated
+    over ``_CLIP_CORR_S``, for the clipped time of each cycle."""
+    dt = np.diff(t, prepend=t[0]) * clipped
+    c = np.cumsum(dt)
+    secs = c[ends] - c[starts]
+    u = C[:, :, 2]
+    out = np.zeros((len(ends), N_STATES, N_STATES))
+    out[:, ATT, ATT] = (sigma * sigma * _CLIP_CORR_S * secs)[:, None, None] * np.einsum("mi,mj->mij", u, u)
+    return out
 
 
 def _sigmas(diag: np.ndarray) -> np.ndarray:

@@ -90,6 +90,11 @@ class KalmanFilter:
         R = _block_diag([m[2] for m in ms])
         self.update(z, H, R)
 
+    def update_aid(self, m: Measurement) -> None:
+        """A vehicle-motion aid (``nhc_measurement``, ``stationary_measurement``): one :meth:`update`. Its own
+        call so that a filter made of local filters (``fusion.dkf``) can route it to the right one."""
+        self.update(*m)
+
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)
@@ -148,6 +153,37 @@ def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omeg
     H[:, ATT] = earth.skew(arm_v)
     H[:, BG] = -C @ earth.skew(lever_b)
     return z[keep], H[keep], cov[np.ix_(keep, keep)]
+
+
+def nhc_measurement(nav: NavState, sigma_mps: float) -> Measurement:
+    """Non-holonomic constraint of a car: the IMU's body lateral (x) and vertical (z) velocity are zero.
+
+    z = (C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
+    dv_b = C_nb dv_n - C_nb [v_n x] phi. sigma_mps: 1-sigma of the constraint (side slip, suspension).
+    Assumes the IMU sits near the rear axle's centre line (no lever arm to the non-holonomic point).
+    """
+    C_nb = nav.C_bn.T[[0, 2]]
+    H = np.zeros((2, N_STATES))
+    H[:, VEL] = C_nb
+    H[:, ATT] = -C_nb @ earth.skew(nav.v_n)
+    return C_nb @ nav.v_n, H, np.eye(2) * sigma_mps ** 2
+
+
+def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, seconds: float, sigma_mps: float,
+                           gyro_noise: float) -> Measurement:
+    """Zero-velocity (ZUPT) and zero-angular-rate (ZARU) update of a vehicle standing still.
+
+    z = [v_n of the INS (m/s); mean bias-corrected gyro output over the still interval minus the Earth
+    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_mps: ZUPT 1-sigma;
+    gyro_noise rad/s/sqrt(Hz) and seconds (interval) give the ZARU 1-sigma, gyro_noise / sqrt(seconds).
+    """
+    C_nb = nav.C_bn.T
+    H = np.zeros((6, N_STATES))
+    H[0:3, VEL] = np.eye(3)
+    H[3:6, BG] = np.eye(3)
+    z = np.concatenate([nav.v_n, mean_omega_b - C_nb @ earth.omega_ie_n(nav.lat)])
+    R = np.diag(np.repeat([sigma_mps ** 2, gyro_noise ** 2 / max(seconds, 1e-3)], 3))
+    return z, H, R
 
 
 def correct_ins(nav: NavState, x: np.ndarray) -> NavState:

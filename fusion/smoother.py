@@ -19,16 +19,30 @@ that linear model is therefore::
     y_k  = C_k (y_{k+1} + dx_{k+1})
     Ps_k = P+_k + C_k (Ps_{k+1} - P-_{k+1}) C_k^T
 
+Predicted corrections (the outage predictors' ``bridge``) are known inputs, not estimates: after one the
+forward mean of the error is -b, not 0; the filter never learns of it (its state stays 0), and at its next
+update fed back K z computed from a zero prior. The backward pass then runs on the forward means
+m-_{k+1} = Phi_{k+1} m+_k, m+_k = P+_k (P-_k)^-1 m-_k - b_k (``_filtered_means``)::
+
+    y_k = m+_k + C_k (y_{k+1} + dx_{k+1} - m-_{k+1})
+
+Treating b as an estimate instead makes the smoother believe a wrong prediction: a predicted velocity
+correction is carried back through the outage as a position error (17 m at the start of a 30 s outage).
+
 and the smoothed state is the forward solution corrected by y_k, as ``correct_ins`` would. A solution
 row between records k-1 and k (stamped before the update at k) has forward error interpolated linearly
 in time between y_{k-1} and y_k + dx_k; the jump of the forward solution at an update disappears.
 
-Memory: four arrays per record, 3 x 15 x 15 + 15 float64 = 5.5 kB; a 1-hour drive at 10 Hz is 36 000
-records, about 200 MB. The forward pass itself stays bounded; the smoother is what grows with the drive.
+Memory: a record is 3 x 15 x 15 + 15 float64 + the time, 5.5 kB; a 1-hour drive at 10 Hz is 36 000
+records, about 200 MB. :class:`SmootherLog` keeps only the last ``chunk`` records in memory and spills the
+rest to an anonymous temporary file; :func:`rts` reads that file backwards a chunk at a time and keeps, per
+record, only y and the diagonal of Ps (240 bytes). Memory then grows by that and by the forward solution
+rows (about 15 MB per hour in all) rather than 200 MB per hour.
 """
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,19 +51,29 @@ from fusion import earth
 from fusion.engine import Solution
 from fusion.errmodel import ATT, N_STATES, POS, VEL
 
+RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
+                   ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES)])
+
 
 class SmootherLog:
-    """What the forward filter hands to the smoother; ``fusion.engine.Engine(..., log=SmootherLog())`` fills it."""
+    """What the forward filter hands to the smoother; ``fusion.engine.Engine(..., log=SmootherLog())`` fills it.
 
-    def __init__(self) -> None:
-        self._t: list[np.ndarray] = []
-        self._phi: list[np.ndarray] = []
-        self._pm: list[np.ndarray] = []
-        self._pp: list[np.ndarray] = []
-        self._dx: list[np.ndarray] = []
+    Records (``RECORD``) beyond the last ``chunk`` are spilled to an anonymous temporary file."""
+
+    def __init__(self, chunk: int = 1024) -> None:
+        self.chunk = int(chunk)
+        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the log; close())
+        self._spilled = 0
+        self._pending: list[np.ndarray] = []  # record arrays not yet spilled, in order
+        self._n_pending = 0
+        self.bridged = False
 
     def __len__(self) -> int:
-        return sum(len(t) for t in self._t)
+        return self._spilled + self._n_pending
+
+    def close(self) -> None:
+        """Delete the spill file."""
+        self._file.close()
 
     def start(self, t_ns: int, P0: np.ndarray) -> None:
         """The filter's initial covariance at t_ns (alignment)."""
@@ -57,45 +81,109 @@ class SmootherLog:
 
     def cycles(self, t_ns: np.ndarray, Phi: np.ndarray, P_pred: np.ndarray) -> None:
         """Covariance cycles ending at t_ns (m,) int64 UTC: Phi (m, 15, 15), predicted P (m, 15, 15)."""
-        self._t.append(np.asarray(t_ns, np.int64))
-        self._phi.append(np.asarray(Phi, float))
-        self._pm.append(np.asarray(P_pred, float))
-        self._pp.append(np.array(P_pred, float))
-        self._dx.append(np.zeros((len(t_ns), N_STATES)))
+        if len(t_ns) == 0:
+            return
+        r = np.zeros(len(t_ns), RECORD)
+        r["t_ns"], r["phi"], r["pm"], r["pp"] = t_ns, Phi, P_pred, P_pred
+        if self._n_pending >= self.chunk:  # spill all but the last array: an update may still come to its end
+            self._file.seek(self._spilled * RECORD.itemsize)
+            for a in self._pending[:-1]:
+                self._file.write(a.tobytes())
+                self._spilled += len(a)
+            self._pending = self._pending[-1:]
+            self._n_pending = len(self._pending[0])
+        self._pending.append(r)
+        self._n_pending += len(r)
 
     def update(self, dx: np.ndarray, P_upd: np.ndarray) -> None:
         """The update at the last recorded cycle end (the engine updates only there): correction dx (15,)
         fed back, covariance after it. A second update at the same instant adds its correction (linear)."""
-        self._dx[-1][-1] += dx
-        self._pp[-1][-1] = P_upd
+        self._pending[-1]["dx"][-1] += dx
+        self._pending[-1]["pp"][-1] = P_upd
+
+    def bridge(self, b: np.ndarray) -> None:
+        """A predicted correction b (15,) fed into the INS at the last recorded cycle end (``rbfn``, ``tdln``,
+        ``dkf-rbfn`` in outages): a known input, not an estimate (module docstring)."""
+        self._pending[-1]["dx"][-1] += b
+        self._pending[-1]["b"][-1] += b
+        self.bridged = True
+
+    def read(self, i0: int, i1: int) -> np.ndarray:
+        """Records [i0, i1) (``RECORD``)."""
+        parts = []
+        if i0 < self._spilled:
+            n = min(i1, self._spilled) - i0
+            self._file.seek(i0 * RECORD.itemsize)
+            parts.append(np.frombuffer(self._file.read(n * RECORD.itemsize), RECORD))
+        if i1 > self._spilled:
+            tail = np.concatenate(self._pending)
+            parts.append(tail[max(i0 - self._spilled, 0):i1 - self._spilled])
+        return np.concatenate(parts)
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """(t_ns (N,), Phi, P-, P+ (N, 15, 15), dx (N, 15))."""
-        return tuple(np.concatenate(x) for x in (self._t, self._phi, self._pm, self._pp, self._dx))
+        """(t_ns (N,), Phi, P-, P+ (N, 15, 15), dx (N, 15)), all in memory (small logs, tests)."""
+        r = self.read(0, len(self))
+        return r["t_ns"], r["phi"], r["pm"], r["pp"], r["dx"]
 
 
 @dataclass
 class Smoothed:
-    """The smoothed error of the forward solution after each record: t_ns (N,), y (N, 15), P (N, 15, 15);
-    dx (N, 15) the forward corrections (for the rows stamped before them)."""
+    """The smoothed error of the forward solution after each record: t_ns (N,), y (N, 15), its covariance
+    diagonal P_diag (N, 15); dx (N, 15) the forward corrections (for the rows stamped before them)."""
 
     t_ns: np.ndarray
     y: np.ndarray
-    P: np.ndarray
+    P_diag: np.ndarray
     dx: np.ndarray
 
 
-def rts(t_ns: np.ndarray, Phi: np.ndarray, P_pred: np.ndarray, P_upd: np.ndarray, dx: np.ndarray) -> Smoothed:
-    """The backward pass (module docstring) over the records of a :class:`SmootherLog`."""
-    n = len(t_ns)
+def rts(log: SmootherLog) -> Smoothed:
+    """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time."""
+    n = len(log)
+    t_ns = np.zeros(n, np.int64)
     y = np.zeros((n, N_STATES))
-    Ps = np.array(P_upd, float)
-    for k in range(n - 2, -1, -1):
-        C = np.linalg.solve(P_pred[k + 1], Phi[k + 1] @ P_upd[k]).T
-        y[k] = C @ (y[k + 1] + dx[k + 1])
-        P = P_upd[k] + C @ (Ps[k + 1] - P_pred[k + 1]) @ C.T
-        Ps[k] = 0.5 * (P + P.T)
-    return Smoothed(np.asarray(t_ns, np.int64), y, Ps, np.asarray(dx, float))
+    d = np.zeros((n, N_STATES))
+    dx = np.zeros((n, N_STATES))
+    m_pred, m_upd = _filtered_means(log) if log.bridged else (None, None)
+    nxt = None  # (record k + 1, Ps_{k+1})
+    for i1 in range(n, 0, -log.chunk):
+        i0 = max(i1 - log.chunk, 0)
+        r = log.read(i0, i1)
+        t_ns[i0:i1], dx[i0:i1] = r["t_ns"], r["dx"]
+        for j in range(len(r) - 1, -1, -1):
+            k = i0 + j
+            if nxt is None:
+                Ps = r["pp"][j]
+                if m_upd is not None:
+                    y[k] = m_upd[k]
+            else:
+                (rn, Ps1) = nxt
+                C = np.linalg.solve(rn["pm"], rn["phi"] @ r["pp"][j]).T
+                if m_upd is None:
+                    y[k] = C @ (y[k + 1] + rn["dx"])
+                else:
+                    y[k] = m_upd[k] + C @ (y[k + 1] + rn["dx"] - m_pred[k + 1])
+                P = r["pp"][j] + C @ (Ps1 - rn["pm"]) @ C.T
+                Ps = 0.5 * (P + P.T)
+            d[k] = np.diag(Ps)
+            nxt = (r[j], Ps)
+    return Smoothed(t_ns, y, d, dx)
+
+
+def _filtered_means(log: SmootherLog) -> tuple[np.ndarray, np.ndarray]:
+    """Forward means of the error before (m-) and after (m+) the corrections of each record, (N, 15) each, when
+    predicted corrections b were fed in: m-_k = Phi_k m+_{k-1}, m+_k = P+_k (P-_k)^-1 m-_k - b_k (the filter's
+    own update, K z, was fed back; (I - K H) m- = P+ (P-)^-1 m- of the input-aware mean remains)."""
+    n = len(log)
+    m_pred, m_upd = np.zeros((n, N_STATES)), np.zeros((n, N_STATES))
+    m = np.zeros(N_STATES)
+    for i0 in range(0, n, log.chunk):
+        r = log.read(i0, min(i0 + log.chunk, n))
+        for j in range(len(r)):
+            mp = r["phi"][j] @ m
+            m = (r["pp"][j] @ np.linalg.solve(r["pm"][j], mp) if mp.any() else mp) - r["b"][j]
+            m_pred[i0 + j], m_upd[i0 + j] = mp, m
+    return m_pred, m_upd
 
 
 def row_errors(sm: Smoothed, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,8 +195,7 @@ def row_errors(sm: Smoothed, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t0, t1 = sm.t_ns[k - 1], sm.t_ns[k]
     a = np.clip((t_ns - t0) / np.maximum(t1 - t0, 1), 0.0, 1.0)[:, None]
     e = (1.0 - a) * sm.y[k - 1] + a * (sm.y[k] + sm.dx[k])
-    d = np.diagonal(sm.P, axis1=1, axis2=2)
-    return e, (1.0 - a) * d[k - 1] + a * d[k]
+    return e, (1.0 - a) * sm.P_diag[k - 1] + a * sm.P_diag[k]
 
 
 def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q: np.ndarray, e: np.ndarray
@@ -127,6 +214,6 @@ def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
     """The forward solution rows of a whole drive, smoothed with the records of the same run."""
     if len(sol.t_ns) == 0 or len(log) < 2:
         return sol
-    e, var = row_errors(rts(*log.arrays()), sol.t_ns)
+    e, var = row_errors(rts(log), sol.t_ns)
     lat, lon, h, v_n, q = correct(sol.lat, sol.lon, sol.h, sol.v_n, sol.q, e)
     return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(np.maximum(var[:, :9], 0.0)))

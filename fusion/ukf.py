@@ -10,6 +10,10 @@ points of (x, P), each integrated over the filter cycle by RK4 through the nonli
 discrete Q (additive noise, linearised at x = 0 as in the KF). The first GPS update after the outage is
 the KF's (eqs. 17-19) and switches the filter back to the linear prediction.
 
+Shared with the cubature filters of ``fusion.sckf``: :class:`CycleFilter` (the queue of navigation nodes the
+engine fills before each ``propagate``) and :func:`propagate_points` (the points x + S xi_j of a rule through
+the nonlinear model by RK4).
+
 Nonlinear model in this project's frames (module ``fusion.errmodel`` for the state): navigation frame ENU
 instead of the paper's NED, so delta-h' = +dv_U (the paper's -dv_D); the attitude states are the paper's
 Euler error angles psi about the E, N, U axes, C_n^n' = C_X(psi_x) C_Y(psi_y) C_Z(psi_z), which is
@@ -108,6 +112,13 @@ def _mv(M: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", M, x)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (broadcast); np.cross costs a third of the sigma-point propagation."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def error_rates(y: np.ndarray, lat: float, h: float, v_n: np.ndarray, C_bn: np.ndarray, f_b: np.ndarray
                 ) -> np.ndarray:
     """Nonlinear SINS error model (paper eqs. 9-11, ENU), noise-free: y' for y (..., 15).
@@ -128,7 +139,7 @@ def error_rates(y: np.ndarray, lat: float, h: float, v_n: np.ndarray, C_bn: np.n
     f_n = C_bn @ f_b
     d2 = 2.0 * d_ie + d_en
     dg_up = earth.gravity(lat_t, h_t) - earth.gravity(lat, h)  # computed minus true of the -g up component
-    dv_dot = (f_n - _mv(Cn_n, f_n) - np.cross(2.0 * w_ie + w_en, dv) - np.cross(d2, v_n) + np.cross(d2, dv)
+    dv_dot = (f_n - _mv(Cn_n, f_n) - _cross(2.0 * w_ie + w_en, dv) - _cross(d2, v_n) + _cross(d2, dv)
               + _mv(Cn_n, _mv(C_bn, y[..., BA])))
     dv_dot[..., 2] += dg_up
     rm, rn = earth.principal_radii(lat, h)  # R + h
@@ -181,37 +192,37 @@ def unscented_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[
     return n + lam, wm, wc
 
 
-def sigma_points(x: np.ndarray, P: np.ndarray, scale: float) -> np.ndarray:
-    """Eq. 24: (2n+1, n): x, x + columns of chol(scale P), x - columns."""
-    S = np.linalg.cholesky(scale * P)
-    return np.concatenate([x[None], x + S.T, x - S.T])
+def unscented_points(n: int, scale: float) -> np.ndarray:
+    """Eq. 24's unit points (2n+1, n): 0, +sqrt(scale) e_i, -sqrt(scale) e_i (sigma point i = x + S xi_i)."""
+    e = np.sqrt(scale) * np.eye(n)
+    return np.concatenate([np.zeros((1, n)), e, -e])
 
 
-class HybridKfUkf(KalmanFilter):
-    """Hybrid KF/UKF. P0, q, q_scale as :class:`fusion.kf.KalmanFilter`; alpha, beta, kappa of the unscented
-    transform (kappa None: 3 - n)."""
+def propagate_points(x: np.ndarray, S: np.ndarray, xi: np.ndarray, c: Cycles) -> np.ndarray:
+    """The points x + S xi_j of a sampling rule (unit points xi (m, n), S (n, n) a square root of P, S S^T = P)
+    integrated through the nonlinear error model over the cycles c (:func:`propagate_samples`): (m, n).
+    The one point propagation of the unscented (here) and cubature (``fusion.sckf``) filters."""
+    return propagate_samples(x + xi @ S.T, c)
 
-    def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0, alpha: float = 1.0, beta: float = 2.0,
-                 kappa: float | None = None) -> None:
+
+class CycleFilter(KalmanFilter):
+    """A :class:`fusion.kf.KalmanFilter` whose prediction needs the navigation solution at the RK4 nodes of each
+    cycle: the engine queues them (:meth:`queue`) before each ``propagate``, which takes them (:meth:`take`)."""
+
+    def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
         super().__init__(P0, q, q_scale)
-        self.scale, self.wm, self.wc = unscented_weights(N_STATES, alpha, beta, 3.0 - N_STATES if kappa is None
-                                                         else kappa)
-        self.outage = False
         self._queue: list[Cycles] = []
-
-    def start_outage(self) -> None:
-        """GPS lost: propagate with the unscented transform until the next update."""
-        self.outage = True
 
     def queue(self, cycles: Cycles) -> None:
         """Navigation nodes of the cycles the next ``propagate`` calls cover, in order."""
         self._queue.append(cycles)
 
-    def _take(self, m: int) -> Cycles:
+    def take(self, m: int) -> Cycles:
+        """The nodes of the next m cycles, removed from the queue."""
         parts, need = [], m
         while need:
             if not self._queue:
-                raise RuntimeError("HybridKfUkf.propagate: no navigation nodes queued for the cycles")
+                raise RuntimeError(f"{type(self).__name__}.propagate: no navigation nodes queued for the cycles")
             c = self._queue[0]
             parts.append(c[:need])
             self._queue[0] = c[need:]
@@ -222,18 +233,35 @@ class HybridKfUkf(KalmanFilter):
                         ("lat", "h", "v_n", "C_bn", "f_b", "dt")))
 
     def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
-        """As :meth:`fusion.kf.KalmanFilter.predict`; in an outage the nonlinear model with the state held."""
+        """As :meth:`fusion.kf.KalmanFilter.predict`; the nonlinear model with the navigation state held."""
         self.queue(cycle_at(ins_state, imu[1], dt))
         super().predict(dt, ins_state, imu)
 
+
+class HybridKfUkf(CycleFilter):
+    """Hybrid KF/UKF. P0, q, q_scale as :class:`fusion.kf.KalmanFilter`; alpha, beta, kappa of the unscented
+    transform (kappa None: 3 - n)."""
+
+    def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0, alpha: float = 1.0, beta: float = 2.0,
+                 kappa: float | None = None) -> None:
+        super().__init__(P0, q, q_scale)
+        scale, self.wm, self.wc = unscented_weights(N_STATES, alpha, beta, 3.0 - N_STATES if kappa is None
+                                                    else kappa)
+        self.xi = unscented_points(N_STATES, scale)
+        self.outage = False
+
+    def start_outage(self) -> None:
+        """GPS lost: propagate with the unscented transform until the next update."""
+        self.outage = True
+
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Phi P Phi^T + Q with GPS; in an outage the unscented transform of the queued cycles (Phi unused)."""
-        cycles = self._take(len(Phi))
+        cycles = self.take(len(Phi))
         if not self.outage:
             return super().propagate(Phi, Q)
         out = np.empty((len(Phi), N_STATES))
         for i in range(len(Phi)):
-            X = propagate_samples(sigma_points(self.x, self.P, self.scale), cycles[i:i + 1])
+            X = propagate_points(self.x, np.linalg.cholesky(self.P), self.xi, cycles[i:i + 1])
             x = self.wm @ X
             d = X - x
             P = (self.wc[:, None] * d).T @ d + self.q_scale * Q[i]

@@ -39,14 +39,19 @@ def test_smoother_shrinks_outage_error_and_does_no_harm_with_gps(drive, tmp_path
     win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
     whole = (t0 + int(60e9), t0 + int(DURATION * 1e9))
     res = {}
-    for label, cfg, w in (("outage", FusionConfig(outages=(OUTAGE,)), win), ("gps", FusionConfig(), whole)):
+    gps_only = dict(nhc=False, zupt=False)  # the car constraints bridge a 30 s outage at GPS-noise level already
+    for label, cfg, w in (("outage", FusionConfig(outages=(OUTAGE,), **gps_only), win),
+                          ("aided", FusionConfig(outages=(OUTAGE,)), win), ("gps", FusionConfig(), whole)):
         for smooth in (False, True):
             out = fuse(drive, "kf", tmp_path / f"{label}{smooth}.mcap", cfg, smooth=smooth)
             res[label, smooth] = _rms(drive, out.path, "kf", w)
-    print(f"30 s outage, 2D RMS inside: forward {res['outage', False][0]:.2f} m, smoothed {res['outage', True][0]:.2f} m;"
-          f" GPS throughout: forward {res['gps', False][0]:.2f} m, smoothed {res['gps', True][0]:.2f} m")
+    print(f"30 s outage, 2D RMS inside, GPS only: forward {res['outage', False][0]:.2f} m, smoothed "
+          f"{res['outage', True][0]:.2f} m; with NHC/ZUPT: forward {res['aided', False][0]:.2f} m, smoothed "
+          f"{res['aided', True][0]:.2f} m; GPS throughout: forward {res['gps', False][0]:.2f} m, smoothed "
+          f"{res['gps', True][0]:.2f} m")
     assert res["outage", True][0] < 0.3 * res["outage", False][0]
     assert res["outage", True][1] < 0.3 * res["outage", False][1]
+    assert res["aided", True][0] <= 1.05 * res["aided", False][0]
     assert res["gps", True][0] <= res["gps", False][0]
     assert res["gps", True][1] <= res["gps", False][1]
     # the smoothed file keeps the topics and the row count of the forward one
@@ -118,3 +123,24 @@ def test_window_curves_put_each_window_on_time_since_its_start():
     np.testing.assert_allclose(c[:2, 0], np.broadcast_to(5 * grid, (2, len(grid))), atol=1e-9)
     np.testing.assert_allclose(c[:2, 1], np.broadcast_to(2 * grid, (2, len(grid))), atol=1e-9)
     assert np.isnan(c[2]).all()
+
+
+def test_smoother_treats_a_predicted_correction_as_an_input_not_an_estimate():
+    """No measurement after a bridge: the smoother must undo the prediction after it (error -b) and leave the
+    records before it alone (0), not carry b back as if it were an estimated error."""
+    from fusion.smoother import SmootherLog, rts
+
+    log = SmootherLog(chunk=3)  # several spilled chunks
+    P = np.eye(15)
+    log.start(0, P)
+    b = np.zeros(15)
+    b[3] = 0.5  # a predicted 0.5 m/s east velocity correction
+    for k in range(1, 10):
+        log.cycles(np.array([k], np.int64), np.eye(15)[None], P[None])
+        if k == 4:
+            log.bridge(b)
+    sm = rts(log)
+    assert np.allclose(sm.y[:4], 0.0)
+    assert np.allclose(sm.y[4:], -b)
+    assert np.allclose(sm.dx[4], b)
+    log.close()
