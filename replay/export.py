@@ -79,9 +79,19 @@ def _pps_sources(path: str | os.PathLike[str], topic: str) -> list[str | None]:
     return out
 
 
+def _binary(p: messages.Packed) -> pl.Series:
+    """A batch of byte strings as a Binary column, built from its buffers (no per-message Python)."""
+    import pyarrow as pa
+
+    buf = p.buf[p.offsets[0]:p.offsets[-1]] if len(p) else np.zeros(0, np.uint8)
+    arr = pa.LargeBinaryArray.from_buffers(pa.large_binary(), len(p), [
+        None, pa.py_buffer(np.ascontiguousarray(p.offsets - p.offsets[0], np.int64)), pa.py_buffer(buf)])
+    return pl.from_arrow(arr).cast(pl.Binary)
+
+
 def topic_frame(path: str | os.PathLike[str], topic: str, type_name: str) -> pl.DataFrame:
     """One topic as a DataFrame (columns: module docstring)."""
-    d = reader.read_topic(path, topic)
+    d = reader.read_raw(path, topic) if type_name == messages.RAWBYTES else reader.read_topic(path, topic)
     cols: dict[str, object] = {"log_time_ns": d["log_time_ns"]}
     if type_name == messages.IMU:
         cols["stamp_ns"] = d["stamp_ns"]
@@ -113,10 +123,10 @@ def topic_frame(path: str | os.PathLike[str], topic: str, type_name: str) -> pl.
     elif type_name == messages.SENTENCE:
         cols.update(_generic(d, {"frame_id": lambda m: m.header.frame_id, "sentence": lambda m: m.sentence}))
     elif type_name == messages.RAWBYTES:
-        cols.update(_generic(d, {"mono_ns": lambda m: int(m.mono_ns), "port": lambda m: m.port,
-                                 "data": lambda m: bytes(m.data)}))
-        cols["mono_ns"] = pl.Series(cols["mono_ns"], dtype=pl.Int64)
-        cols["data"] = pl.Series(cols["data"], dtype=pl.Binary)
+        ok = pl.Series(d["valid"])
+        cols.update(stamp_ns=d["stamp_ns"], mono_ns=d["mono_ns"],
+                    port=pl.Series(d["port"], dtype=pl.String).zip_with(ok, pl.Series([None], dtype=pl.String)),
+                    data=_binary(d["data"]).zip_with(ok, pl.Series([None], dtype=pl.Binary)))
     elif type_name == messages.OUTAGE:
         cols.update(_generic(d, {"start_ns": lambda m: int(m.start_ns), "end_ns": lambda m: int(m.end_ns),
                                  "reason": lambda m: m.reason}))

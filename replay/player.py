@@ -3,7 +3,8 @@
 The drive is read in ``PLAY_BLOCK_S`` blocks (``replay.reader.iter_blocks``), each block goes through the
 incremental ``fusion.engine.Engine`` and what it holds and produced is logged at once on the ``gps_time``
 timeline, paced so that data time runs X times faster than the wall clock. ``play`` takes any iterator of
-``replay.reader.Block`` (the daemon's live bus yields the same, ``replay.live.iter_blocks``).
+``replay.reader.Block``: ``live_view`` (``fieldlog view --live``, ``fieldlog acquire --view``) feeds it the
+daemon's live bus (``replay.live.iter_blocks``), unpaced.
 
 The entities and colours are those of ``replay.view`` (its module docstring), with the blueprint of
 ``replay.view.blueprint`` plus a time panel that follows the newest data. Logged live: ``map/gps``,
@@ -21,7 +22,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import rerun as rr
@@ -83,6 +84,28 @@ class _Source:
                         recording=self.rec)
 
 
+def _rows(t: rv.Track, sel) -> rv.Track:
+    """Rows ``sel`` (mask or slice) of a track."""
+    return rv.Track(*(None if v is None else v[sel] for v in (t.t_ns, t.lat_deg, t.lon_deg, t.alt_m, t.v_n,
+                                                             t.sigma_pos, t.sigma_vel)))
+
+
+def _cat(a: rv.Track | None, b: rv.Track) -> rv.Track:
+    """``a`` then ``b`` (``b``'s optional fields decide; a missing one in ``a`` is NaN)."""
+    if a is None or len(a.t_ns) == 0:
+        return b
+
+    def join(x: np.ndarray | None, y: np.ndarray | None) -> np.ndarray | None:
+        if y is None:
+            return None
+        return np.concatenate([x if x is not None else np.full((len(a.t_ns), *y.shape[1:]), np.nan), y])
+
+    return rv.Track(*(join(x, y) for x, y in zip((a.t_ns, a.lat_deg, a.lon_deg, a.alt_m, a.v_n, a.sigma_pos,
+                                                    a.sigma_vel),
+                                                   (b.t_ns, b.lat_deg, b.lon_deg, b.alt_m, b.v_n, b.sigma_pos,
+                                                    b.sigma_vel))))
+
+
 def _fused_track(s: Solution) -> rv.Track:
     return rv.Track(s.t_ns, np.degrees(s.lat), np.degrees(s.lon), s.h, v_n=s.v_n, sigma_pos=s.sigma[:, 0:3],
                     sigma_vel=s.sigma[:, 3:6])
@@ -99,6 +122,8 @@ class Player:
         self.truth = _Source(rec, "truth", rv.TRUTH_COLOR, 2.0)
         self.fused = _Source(rec, f"fusion/{method}", rv.method_color(method, 0), 2.5)
         self.truth_row = 0  # rows of /truth/fix seen, for the decimation phase
+        self.gps_pending: rv.Track | None = None  # GPS epochs not yet reached by the solutions
+        self.last_sol: rv.Track | None = None  # the newest solution row, to interpolate across blocks
         self.imu_carry = (np.zeros(0, np.int64), np.zeros((0, 6)))
         self.res = ReplayResult("")
         self._styled: set[str] = set()
@@ -179,9 +204,17 @@ class Player:
                 self.truth.log(rv.Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl]),
                                self.origin)
             self.truth_row += len(tf["log_time_ns"])
+        if ref is not None and not ref_is_truth:
+            ref = self.gps_pending = _cat(self.gps_pending, ref)
         if len(sol.t_ns) and self.origin is not None:
             trk = _fused_track(sol)
             self.fused.log(trk, self.origin)
+            if ref is not None and not ref_is_truth:
+                # GPS epochs are scored once solutions reach them (the engine may lag a block), across blocks
+                trk_e = _cat(self.last_sol, trk)
+                self.gps_pending = _rows(ref, ref.t_ns > trk.t_ns[-1])
+                self.last_sol = _rows(trk, slice(-1, None))
+                trk = trk_e
             if ref is not None and len(ref.t_ns):
                 rv._log_errors(self.rec, self.method, rv.errors(trk, ref, ref_is_truth, self.origin),
                                rv.method_color(self.method, 0))
@@ -221,6 +254,40 @@ def play(rec: rr.RecordingStream, blocks: Iterable[reader.Block], method: str, s
     return res
 
 
+def _check_sink(rrd: str | os.PathLike[str] | None, connect: str | None) -> None:
+    if connect is None and rrd is None and not rv.has_display():
+        raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd or --connect URL")
+
+
+def _open(rrd: str | os.PathLike[str] | None, connect: str | None) -> tuple[rr.RecordingStream, str]:
+    """A recording with the live blueprint, sent to ``connect`` (a gRPC URL, e.g.
+    ``rerun+http://127.0.0.1:9876/proxy``), else streamed into the ``rrd`` file, else to a spawned viewer."""
+    rec = rr.RecordingStream("fieldlog")
+    bp = live_blueprint()
+    if connect is not None:
+        rec.connect_grpc(connect, default_blueprint=bp)
+        return rec, connect
+    if rrd is not None:
+        rec.save(rrd, default_blueprint=bp)
+        return rec, str(rrd)
+    rec.spawn(default_blueprint=bp)
+    return rec, "viewer"
+
+
+def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: Iterable[reader.Block],
+               method: str, speed: float, config: FusionConfig | None,
+               progress: Callable[[float], None] | None = None,
+               span_ns: tuple[int, int] | None = None) -> ReplayResult:
+    rec, sink = _open(rrd, connect)
+    try:
+        res = play(rec, blocks, method, speed, config, progress, span_ns)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    res.sink = sink
+    return res
+
+
 def replay(drive: str | os.PathLike[str], method: str, speed: float, rrd: str | os.PathLike[str] | None = None,
            connect: str | None = None, config: FusionConfig | None = None,
            progress: Callable[[float], None] | None = None) -> ReplayResult:
@@ -231,24 +298,68 @@ def replay(drive: str | os.PathLike[str], method: str, speed: float, rrd: str | 
     tops = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
     if not any(t.topic == "/imu" for t in tops):
         raise ValueError(f"{drive}: no /imu messages")
-    if connect is None and rrd is None and not rv.has_display():
-        raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd or --connect URL")
-    rec = rr.RecordingStream("fieldlog")
-    bp = live_blueprint()
-    if connect is not None:
-        rec.connect_grpc(connect, default_blueprint=bp)
-        sink = connect
-    elif rrd is not None:
-        rec.save(rrd, default_blueprint=bp)
-        sink = str(rrd)
-    else:
-        rec.spawn(default_blueprint=bp)
-        sink = "viewer"
+    _check_sink(rrd, connect)
     span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
+    return _play_into(rrd, connect, reader.iter_blocks(drive, TOPICS, PLAY_BLOCK_S), method, speed, config,
+                      progress, span)
+
+
+def _stop_on_sigterm() -> None:
+    """SIGTERM ends a live view like Ctrl-C: the recording is finished and flushed (the main thread only)."""
+    import signal
+    import threading
+
+    def stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
+
+
+def _until_interrupted(blocks: Iterable[reader.Block]) -> Iterator[reader.Block]:
     try:
-        res = play(rec, reader.iter_blocks(drive, TOPICS, PLAY_BLOCK_S), method, speed, config, progress, span)
-    finally:
-        rec.flush()
-        rec.disconnect()
-    res.sink = sink
-    return res
+        yield from blocks
+    except KeyboardInterrupt:
+        return
+
+
+def _drained(blocks: Iterator[reader.Block]) -> Iterator[reader.Block]:
+    """``blocks`` read by a background thread into an unbounded queue, so the bus socket is always drained: the
+    daemon gives a slow client little time when it stops (and drops one that falls 16 MB behind)."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue()
+    done = object()
+
+    def pump() -> None:
+        try:
+            for b in blocks:
+                q.put(b)
+        except Exception as e:  # noqa: BLE001  (re-raised in the consumer)
+            q.put(e)
+        q.put(done)
+
+    threading.Thread(target=pump, name="live-bus", daemon=True).start()
+    while (item := q.get()) is not done:
+        if isinstance(item, Exception):
+            raise item
+        yield item
+
+
+def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = None, connect: str | None = None,
+              config: FusionConfig | None = None, wait_s: float = 30.0) -> ReplayResult:
+    """``fieldlog view --live``: the daemon's live bus at ``address`` (its Unix socket, ``[daemon] bus``) through
+    the same incremental fusion and logging as ``replay`` (``play``, unpaced: data comes at the car's pace).
+    Waits up to ``wait_s`` for the daemon to open the bus; ends when the daemon closes it, on Ctrl-C or SIGTERM."""
+    from replay import live
+
+    _check_sink(rrd, connect)
+    end = time.monotonic() + wait_s
+    while not Path(address).exists():
+        if time.monotonic() > end:
+            raise FileNotFoundError(f"no live bus at {address} (is `fieldlog acquire` running with [daemon] bus?)")
+        time.sleep(0.1)
+    _stop_on_sigterm()
+    blocks = _drained(live.iter_blocks(address, IN_TOPICS, PLAY_BLOCK_S))
+    return _play_into(rrd, connect, _until_interrupted(blocks), method, 0.0, config)

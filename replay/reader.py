@@ -4,8 +4,10 @@ The hot path never decodes one message at a time: chunks are located through the
 chunk indexes, decompressed, their message records parsed with a vectorised walk
 (``acquire.recorder.chunk_messages``), and the payloads of each topic decoded as one batch by
 the vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA
-sentences, raw bytes, outages) are decoded per message with mcap_ros2's decoder; they are low
-rate.
+sentences, outages) are decoded per message with mcap_ros2's decoder; they are low rate.
+``/raw/*`` (``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
+(``decode_raw_batch``: a vectorised walk of its CDR layout); ``read_topic`` keeps the per-message
+objects for it.
 
 Every result dict has ``log_time_ns`` (int64 UTC ns, ascending) plus the decoder's fields;
 generic types carry ``msgs`` (a list of decoded message objects).
@@ -222,6 +224,142 @@ def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
         a, b = p.offsets[idx[0]], p.offsets[idx[-1] + 1]
         return messages.Packed(p.buf[a:b], p.offsets[idx[0] : idx[-1] + 2] - a)
     return p.take(idx)
+
+
+# -- raw reads in batch ---------------------------------------------------------------------------------
+
+
+def _le(buf: np.ndarray, pos: np.ndarray, dtype: str) -> np.ndarray:
+    """Little-endian ``dtype`` values at byte positions ``pos`` (each must leave room for the value)."""
+    k = np.dtype(dtype).itemsize
+    return np.ascontiguousarray(buf[pos[:, None] + np.arange(k)]).view(dtype).ravel()
+
+
+def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
+    """``fieldlog_msgs/msg/RawBytes`` batch (layout: ``acquire.messages.encode_raw``, CDR little-endian) ->
+    ``stamp_ns`` (int64, host wall clock at read), ``mono_ns`` (int64, host monotonic at read), ``port``
+    (str array), ``data`` (``Packed``: the bytes read, message i = read i), ``valid``.
+
+    Vectorised over the batch: header.frame_id and port are strings of any length, so every field offset is
+    computed per row from the lengths before it. A row that is not a whole RawBytes message gets
+    ``valid=False``, zeros, port "" and no data; it never raises.
+    """
+    n = len(payloads)
+    buf, start, lens = payloads.buf, payloads.offsets[:-1], payloads.lengths
+    z = np.zeros(n, np.int64)
+    ok = lens >= 16  # encapsulation + sec + nanosec + frame_id length
+    if len(buf) < 16:
+        ok[:] = False
+        buf = np.zeros(16, np.uint8)
+
+    def at(rel: np.ndarray, dtype: str, size: int) -> np.ndarray:
+        """Values at body offset ``rel`` of the rows still ok (0 elsewhere); rows too short drop out."""
+        nonlocal ok
+        ok &= 4 + rel + size <= lens
+        return np.where(ok, _le(buf, np.where(ok, start + 4 + rel, 0), dtype), 0)
+
+    ok &= (_le(buf, np.where(ok, start, 0), "<u2") == 0x0100)  # CDR_LE representation id, 00 01
+    sec, nsec, flen = at(z, "<i4", 4), at(z + 4, "<u4", 4), at(z + 8, "<u4", 4).astype(np.int64)
+    ok &= flen >= 1  # a CDR string holds its NUL
+    pos = 12 + flen
+    pos += -pos % 8
+    mono = at(pos, "<i8", 8)
+    plen = at(pos + 8, "<u4", 4).astype(np.int64)
+    ok &= plen >= 1
+    ppos = pos + 12
+    pos = ppos + plen
+    pos += -pos % 4
+    dlen = at(pos, "<u4", 4).astype(np.int64)
+    ok &= 4 + pos + 4 + dlen <= lens
+    dlen = np.where(ok, dlen, 0)
+    d0 = start + 4 + pos + 4
+
+    width = int((plen[ok] - 1).max()) if ok.any() else 0
+    port = np.full(n, "", dtype=object)
+    if width:
+        j = np.arange(width)
+        take = ok[:, None] & (j < plen[:, None] - 1)
+        raw = np.where(take, buf[np.where(take, (start + 4 + ppos)[:, None] + j, 0)], 0).astype(np.uint8)
+        uniq, inv = np.unique(np.ascontiguousarray(raw).view(f"S{width}").ravel(), return_inverse=True)
+        names = []
+        for u in uniq:
+            try:
+                names.append(u.decode())
+            except UnicodeDecodeError:
+                names.append(None)
+        bad = np.array([x is None for x in names])[inv]
+        ok &= ~bad
+        dlen = np.where(ok, dlen, 0)
+        port = np.array(["" if x is None else x for x in names], dtype=object)[inv]
+        port[~ok] = ""
+
+    mark = np.zeros(len(buf) + 1, np.int8)  # +1 at each data start, -1 at its end: the cumsum is 1 on data bytes
+    np.add.at(mark, d0[dlen > 0], 1)
+    np.add.at(mark, (d0 + dlen)[dlen > 0], -1)
+    np.cumsum(mark, dtype=np.int8, out=mark)
+    offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(dlen, out=offsets[1:])
+    data = messages.Packed(buf[mark[:-1].view(bool)], offsets)
+    stamp = np.where(ok, sec.astype(np.int64) * 1_000_000_000 + nsec.astype(np.int64), 0)
+    return {"stamp_ns": stamp, "mono_ns": np.where(ok, mono, 0).astype(np.int64), "port": port, "data": data,
+            "valid": ok}
+
+
+def _raw_cid(s: Summary, topic: str) -> int:
+    cids = _channel_ids(s, [topic])
+    if not cids:
+        raise KeyError(f"topic {topic!r} not in the drive")
+    (cid,) = cids
+    if _type_of(s, cid) != messages.RAWBYTES:
+        raise ValueError(f"{topic} is not {messages.RAWBYTES}")
+    return cid
+
+
+def _take_runs(p: messages.Packed, order: np.ndarray) -> messages.Packed:
+    """``p.take(order)`` for an order made of few consecutive runs (a nearly sorted batch): one slice per run
+    instead of a per-byte index (which would be 8 bytes of index per payload byte)."""
+    brk = np.flatnonzero(np.diff(order) != 1) + 1
+    if len(brk) > len(order) // 64:
+        return p.take(order)
+    first = order[np.r_[0, brk]]
+    last = order[np.r_[brk - 1, len(order) - 1]]
+    buf = np.concatenate([p.buf[p.offsets[a]:p.offsets[b + 1]] for a, b in zip(first.tolist(), last.tolist())])
+    offsets = np.zeros(len(order) + 1, np.int64)
+    np.cumsum(p.lengths[order], out=offsets[1:])
+    return messages.Packed(buf, offsets)
+
+
+def _raw_chunks(s: Summary, cid: int) -> list[ChunkIndex]:
+    """The chunks holding ``cid`` in file order, which is the order of the reads (``_chunks_for`` orders by
+    the chunks' first log_time, which the lagging ``/imu`` stamps pull back)."""
+    return sorted(_chunks_for(s, {cid}), key=lambda c: c.chunk_start_offset)
+
+
+def read_raw(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
+    """All reads of a ``/raw/*`` topic in log_time order: ``log_time_ns`` plus the ``decode_raw_batch`` fields."""
+    with open(path, "rb") as f:
+        s = _summary(f)
+        cid = _raw_cid(s, topic)
+        t, p = _concat([_select(_read_chunk(f, ci), cid) for ci in _raw_chunks(s, cid)])
+    if np.any(np.diff(t) < 0):  # the host wall clock stepped back
+        order = np.argsort(t, kind="stable")
+        t, p = t[order], _take_runs(p, order)
+    return {"log_time_ns": t, **decode_raw_batch(p)}
+
+
+def iter_raw_batches(path: str | os.PathLike[str], topic: str) -> Iterator[dict[str, object]]:
+    """The reads of a ``/raw/*`` topic in the order they were recorded (file order, one batch per chunk;
+    not sorted by log_time, which is the host wall clock): ``log_time_ns`` plus the ``decode_raw_batch``
+    fields. A drive without ``topic`` yields nothing (a port that never delivered a byte)."""
+    with open(path, "rb") as f:
+        s = _summary(f)
+        if not _channel_ids(s, [topic]):
+            return
+        cid = _raw_cid(s, topic)
+        for ci in _raw_chunks(s, cid):
+            t, p = _select(_read_chunk(f, ci), cid)
+            if len(t):
+                yield {"log_time_ns": t, **decode_raw_batch(p)}
 
 
 # -- what fusion reads ---------------------------------------------------------------------------------

@@ -138,7 +138,7 @@ def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray,
     m = len(t_ns) // n
     t = t_ns[: m * n].reshape(m, n)
     t_mean = t[:, 0] + np.round((t - t[:, :1]).mean(axis=1)).astype(np.int64)
-    return t_mean, x[: m * n].reshape(m, n, -1).mean(axis=1)
+    return t_mean, x[: m * n].reshape(m, n, x.shape[1]).mean(axis=1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -363,29 +363,36 @@ def _read_drive(rec: rr.RecordingStream, drive: str | os.PathLike[str], names: d
     return whole, rows
 
 
-def blueprint() -> rrb.Blueprint:
-    """Map and 3D trajectory on the left; errors, outages, IMU and time sync on the right."""
+def _plot(origin: str, name: str) -> rrb.TimeSeriesView:
+    """A time series whose time axis spans the whole drive."""
+    whole = rr.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
+    return rrb.TimeSeriesView(origin=origin, name=name, axis_x=rrb.TimeAxis(view_range=whole))
+
+
+def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
+    """Map and 3D trajectory on the left; errors, outages, IMU and time sync on the right.
+    ``map_zoom``: the map's web-mercator zoom level (None: the viewer fits the data)."""
     up_to_cursor = rrb.VisibleTimeRange(TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                         end=rrb.TimeRangeBoundary.cursor_relative())
-    err = [rrb.TimeSeriesView(origin=f"errors/{kind}/{axis}", name=f"{label} error {axis}")
+    err = [_plot(f"errors/{kind}/{axis}", f"{label} error {axis}")
            for kind, label in (("pos", "position"), ("vel", "velocity")) for axis in AXES]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.MapView(origin="map", name="Map"),
+                rrb.MapView(origin="map", name="Map", zoom=map_zoom),
                 rrb.Spatial3DView(origin="enu", name="Local ENU trajectory (m)", time_ranges=up_to_cursor),
             ),
             rrb.Vertical(
                 rrb.Tabs(*err[:3], name="position error"),
                 rrb.Tabs(*err[3:], name="velocity error"),
-                rrb.TimeSeriesView(origin="status", name="GPS outage / no fix (1 = yes)"),
+                _plot("status", "GPS outage / no fix (1 = yes)"),
                 rrb.Tabs(
-                    rrb.TimeSeriesView(origin="imu/gyro", name="gyro (50 Hz means)"),
-                    rrb.TimeSeriesView(origin="imu/accel", name="accel (50 Hz means)"),
+                    _plot("imu/gyro", "gyro (50 Hz means)"),
+                    _plot("imu/accel", "accel (50 Hz means)"),
                     rrb.Vertical(
-                        rrb.TimeSeriesView(origin="timesync/state", name="sync state"),
-                        rrb.TimeSeriesView(origin="timesync/rate_ppm", name="rate error (ppm)"),
-                        rrb.TimeSeriesView(origin="timesync/residual_us", name="fit residual (us)"),
+                        _plot("timesync/state", "sync state"),
+                        _plot("timesync/rate_ppm", "rate error (ppm)"),
+                        _plot("timesync/residual_us", "fit residual (us)"),
                         name="time sync",
                     ),
                 ),
