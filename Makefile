@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 export RERUN_ANALYTICS ?= 0
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench screenshot clean
 
 setup: $(STAMP)
 
@@ -26,6 +26,10 @@ test: setup
 
 bench: setup
 	$(BIN)/python -m tools.bench
+
+# docs/viewer.png; needs `apt-get install -y xvfb xauth mesa-vulkan-drivers` (not part of `make test`)
+screenshot: setup
+	$(BIN)/python -m tools.screenshot
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis

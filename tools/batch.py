@@ -37,7 +37,7 @@ import polars as pl
 from fusion.engine import FusionConfig
 from replay.reader import IN_TOPICS
 from tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
-from tools.fuse import fuse
+from tools.fuse import drive_config, fuse
 from tools.info import drive_info
 
 RESULT_SCHEMA: dict[str, pl.DataType] = {
@@ -78,9 +78,10 @@ def _metrics(err: np.ndarray) -> dict[str, float | int | None]:
 
 def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[float], out: str | Path,
                config: FusionConfig | None = None) -> list[dict]:
-    """All result rows of one drive (raises on a bad drive; ``safe_drive_rows`` turns that into a row)."""
+    """All result rows of one drive (raises on a bad drive; ``safe_drive_rows`` turns that into a row).
+    ``config`` None: the drive's own settings (``tools.fuse.drive_config``)."""
     drive, out = Path(drive), Path(out)
-    cfg = config or FusionConfig()
+    cfg = config or drive_config(drive)
     fused_dir = out / "fused"
     fused_dir.mkdir(parents=True, exist_ok=True)
     info = drive_info(drive)

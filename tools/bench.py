@@ -178,6 +178,51 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
 
 
+_FUSE_CHILD = ("import json, resource, sys, time\n"
+               "from tools.fuse import fuse\n"
+               "t0 = time.perf_counter()\n"
+               "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1')\n"
+               "print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples,\n"
+               "                      rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))\n")
+
+
+def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> dict:
+    """fieldlog fuse in a fresh Python process: seconds, IMU samples and the process's peak RSS (MB)."""
+    import json
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", _FUSE_CHILD, str(drive), method, str(out), "1" if smooth else "0"],
+                         check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
+    """fieldlog fuse of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth), each in a
+    child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
+    from tools.sim.simulate import simulate
+
+    drives = []
+    for h in hours:  # cached in the bench directory; the 1-hour one is bench_view's drive
+        path = tmp / ("hour.mcap" if h == 1.0 else f"hours_{h:g}.mcap")
+        if not path.exists():
+            t0 = time.perf_counter()
+            simulate("figure8", 3600.0 * h, 1, path)
+            print(f"  (simulated {h:g} h figure8 in {time.perf_counter() - t0:.0f} s, {path.stat().st_size / 1e9:.1f} GB)")
+        drives.append(path)
+    warm = tmp / "fuse_warm.mcap"
+    if not warm.exists():
+        simulate("figure8", 30.0, 2, warm)
+    _fuse_child(warm, "kf", tmp / "fused_warm.mcap")  # numba cache filled outside the figures
+    for method, smooth in (("kf", False), ("dkf-rbfn", False), ("kf", True)):
+        name = method + (" --smooth" if smooth else "")
+        r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth) for d in drives]
+        h0 = hours[0]
+        print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
+              f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
+              f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
+
+
 def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog acquire against sim --serve ptys: 10 min at real speed, then x20; loss, timing, CPU."""
     import os
@@ -228,6 +273,109 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     one(20.0, 120.0)
 
 
+def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
+    """The live bus: fieldlog acquire against sim --serve ptys at real speed, one client; provisional /imu latency
+    from the serial read (target median <= 50 ms) and provisional stamps against final and truth."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    from acquire.timesync import SyncState
+    from replay import live, reader
+
+    out, truth, bus, cfg = tmp / "drives_bus", tmp / "truth_bus.mcap", tmp / "bus.sock", tmp / "bus.toml"
+    cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
+    cli = [sys.executable, "-m", "tools.cli"]
+    serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration_s),
+                              "--seed", "1", "--hold", "--truth", str(truth)],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    paths = dict(serve.stdout.readline().split() for _ in range(2))
+    d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
+                          "--quiet", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    while "recording" not in (line := d.stderr.readline()):
+        assert line, "the daemon exited early"
+    batches: list = []
+    client = threading.Thread(target=lambda: batches.extend(live.iter_batches(str(bus))))
+    client.start()
+    time.sleep(0.5)
+    serve.send_signal(signal.SIGUSR1)
+    serve.wait()
+    d.send_signal(signal.SIGTERM)
+    usage = os.wait4(d.pid, 0)[2]
+    client.join(30)
+    cpu = usage.ru_utime + usage.ru_stime
+    prov = [b for b in batches if b.topic == "/imu" and b.provisional]
+    lat = np.array([(b.recv_mono_ns - b.read_mono_ns) / 1e6 for b in prov])
+    print(f"provisional /imu on the bus, x1 {duration_s:g} s: {len(prov)} batches (one per DAQ read), latency serial "
+          f"read -> client median {np.median(lat):.2f} ms, p95 {np.percentile(lat, 95):.2f} ms, max {lat.max():.1f} ms"
+          f"   target median <= 50 ms; daemon CPU {100 * cpu / duration_s:.1f} % of one core")
+    (f,) = sorted(out.glob("*.mcap"))
+    final = reader.read_topic(f, "/imu")["log_time_ns"]
+    tru = reader.read_topic(truth, "/truth/imu")["log_time_ns"]
+    t = np.concatenate([b.log_time_ns for b in prov])
+    state = np.concatenate([b.state for b in prov])
+    fitted = np.concatenate([np.full(len(b.log_time_ns), not b.host_clock) for b in prov])
+    i0 = len(final) - len(t)                # rows read before the client connected
+    sel = fitted & (state == SyncState.LOCKED)
+    d_us = (t - final[i0:])[sel] / 1e3
+    e_us = (t - tru[i0:])[sel] / 1e3
+    ef_us = (final[i0:] - tru[i0:])[sel] / 1e3
+    def rms(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(x ** 2)))
+
+    print(f"  provisional - final stamps (LOCKED, {sel.sum()} samples): RMS {rms(d_us):.0f} us, max "
+          f"{np.abs(d_us).max():.0f} us; vs truth: provisional RMS {rms(e_us):.0f} us, final RMS {rms(ef_us):.0f} us "
+          f"(sampled PPS); before the first lock {np.count_nonzero(~fitted)} samples on the host clock")
+    from acquire.daemon import ProvisionalImu
+    from acquire.pipeline import Pipeline
+    from acquire.timesync import TimeSyncConfig
+    from tools.sim import simulate, trajectory
+
+    class Collect:
+        """The bus side of ProvisionalImu: keeps what it publishes."""
+
+        def __init__(self) -> None:
+            self.t: list[np.ndarray] = []
+            self.state: list[np.ndarray] = []
+
+        def active(self) -> bool:
+            return True
+
+        def publish(self, topic: str, t: np.ndarray, p: object, state: np.ndarray, **_: object) -> None:
+            self.t.append(t)
+            self.state.append(state)
+
+    class Final:
+        def __init__(self) -> None:
+            self.imu: list[np.ndarray] = []
+
+        def write(self, *_: object) -> None:
+            pass
+
+        def write_batch(self, topic: str, t: np.ndarray, _: object) -> None:
+            if topic == "/imu":
+                self.imu.append(np.asarray(t))
+
+    for mode in ("flag", "latch"):
+        reads, tr, *_ = simulate.make_reads(trajectory.load_scenario("figure8"), 300.0, 1, mode)
+        sink, bus = Final(), Collect()
+        pipe = Pipeline(sink, sync_cfg=TimeSyncConfig(pps_mode=mode))
+        prov = pipe.on_frames = ProvisionalImu(pipe, bus)
+        for r in reads:
+            pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+            prov.flush()
+        pipe.finish()
+        t, fin, st = np.concatenate(bus.t), np.concatenate(sink.imu), np.concatenate(bus.state)
+        tru = tr["t0_ns"] + np.round(tr["t_k"] * 1e9).astype(np.int64)
+        late = (st == SyncState.LOCKED) & (np.arange(len(t)) >= 60 * 500)
+        print(f"  same code on a simulated 300 s drive, {mode} PPS, LOCKED after the first minute: provisional - "
+              f"final RMS {rms((t - fin)[late] / 1e3):.2f} us; vs truth provisional {rms((t - tru)[late] / 1e3):.2f} "
+              f"us, final {rms((fin - tru)[late] / 1e3):.2f} us")
+
+
 def bench_view(runs: int, tmp: Path) -> None:
     """A 1-hour 500 Hz drive plus one fused method (kf) to .rrd (target <= 10 s), and the file size."""
     from fusion.engine import FusionConfig
@@ -241,6 +389,31 @@ def bench_view(runs: int, tmp: Path) -> None:
     med, ts, _ = timed(lambda: view(drive, [fused], rrd), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
           f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
+
+
+def bench_export(runs: int, tmp: Path) -> None:
+    """fieldlog export of a 1-hour 500 Hz drive to Parquet, in a child process: time and peak RSS."""
+    import resource
+    import subprocess
+    import sys
+
+    from tools.sim.simulate import simulate
+
+    drive = tmp / "hour.mcap"  # bench_view's drive, cached in the bench directory
+    if not drive.exists():
+        simulate("figure8", 3600, 1, drive)
+
+    def one() -> int:
+        out = tmp / "hour_export"
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "export", str(drive), "--out", str(out)],
+                           capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return sum(f.stat().st_size for f in out.rglob("*.parquet"))
+
+    med, ts, size = timed(one, runs)
+    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e3  # kB -> MB, the largest child so far
+    print(f"export 1 h drive -> Parquet:  median {med:6.2f} s  (runs: {fmt_times(ts)}); peak RSS {rss:.0f} MB; "
+          f"{size / 1e6:.0f} MB of Parquet from a {drive.stat().st_size / 1e6:.0f} MB drive")
 
 
 def bench_batch(runs: int, tmp: Path) -> None:
@@ -259,8 +432,32 @@ def bench_batch(runs: int, tmp: Path) -> None:
           f"-> speed-up {t_one / t_batch:.2f}x")
 
 
+def bench_cycle(runs: int, tmp: Path) -> None:
+    """Per-cycle cost at n = 15 of kf, kf-ukf (outage), sckf, ssr-sckf, hinf: prediction alone and with a GPS update."""
+    from tools.studies import CYCLE_REPS, cycle_costs, cycle_flops
+
+    n = 15
+    med = cycle_costs(runs)
+    flops = cycle_flops(n, 6)
+    kp, kt = med["kf"]["predict_us"], med["kf"]["total_us"]
+    fp, ft = flops["kf"][2], flops["kf"][2] + flops["kf"][3]
+    print(f"n = {n}, m = 6 GPS rows, {CYCLE_REPS} cycles x {runs} runs, medians; kf-ukf in outage mode (UT every cycle)")
+    print(f"{'method':9s} {'predict us':>10s} {'x kf':>6s} {'pred+upd us':>11s} {'x kf':>6s} {'(upd us)':>8s} "
+          f"{'pred kflop':>10s} {'x kf':>6s} {'total kflop':>11s} {'x kf':>6s}")
+    for name, c in med.items():
+        p, t, u = c["predict_us"], c["total_us"], c["update_us"]
+        fl_p, fl_t = flops[name][2], flops[name][2] + flops[name][3]
+        print(f"{name:9s} {p:10.1f} {p / kp:6.1f} {t:11.1f} {t / kt:6.1f} {u:8.1f} "
+              f"{fl_p / 1e3:10.1f} {fl_p / fp:6.1f} {fl_t / 1e3:11.1f} {fl_t / ft:6.1f}")
+    print("flop formulas (n states, m rows, c = 4 c_f + 12 n per point RK4 step, c_f ~ 450):")
+    for name, (fp_s, fu_s, _, _) in flops.items():
+        print(f"  {name:9s} predict: {fp_s};  update: {fu_s}")
+
+
 BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon, "view": bench_view, "batch": bench_batch}
+           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
+           "export": bench_export,
+           "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 # fusion.engine.METHODS, spelled out so that `fieldlog --help` does not import the fusion stack
 # (tests/test_drive.py checks the two agree)
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf")
+METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 
 
 class Progress:
@@ -54,7 +54,30 @@ def cmd_acquire(a: argparse.Namespace) -> int:
     from acquire import config, daemon
 
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
-    return daemon.run_daemon(cfg, quiet=a.quiet)
+    if not (a.view or a.view_rrd):
+        return daemon.run_daemon(cfg, quiet=a.quiet)
+    import os
+    import subprocess
+    import tempfile
+
+    from replay.view import has_display
+
+    if not a.view_rrd and not has_display():
+        raise ValueError("--view: no display to open the viewer on (use --view-rrd FILE)")
+    if not cfg.daemon.bus:  # the view needs the live bus
+        cfg.daemon.bus = str(Path(tempfile.gettempdir()) / f"fieldlog-{os.getpid()}.sock")
+    # the view runs as a child process, so fusion and rendering never take the GIL from the acquisition threads
+    viewer = subprocess.Popen([sys.executable, "-m", "tools.cli", "view", "--live", cfg.daemon.bus, "--method",
+                               a.view_method, *(["--rrd", a.view_rrd] if a.view_rrd else [])])
+    try:
+        rc = daemon.run_daemon(cfg, quiet=a.quiet)
+    finally:
+        try:
+            viewer.wait(timeout=30)  # it ends when the daemon closes the bus
+        except subprocess.TimeoutExpired:
+            viewer.terminate()
+            viewer.wait(timeout=10)
+    return rc
 
 
 def cmd_recover(a: argparse.Namespace) -> int:
@@ -108,10 +131,13 @@ def cmd_allan(a: argparse.Namespace) -> int:
 
 
 def cmd_fuse(a: argparse.Namespace) -> int:
-    from fusion.engine import FusionConfig
-    from tools.fuse import fuse, parse_outage
+    from dataclasses import replace
 
-    cfg = FusionConfig(outages=tuple(parse_outage(o) for o in a.outage or ()))
+    from tools.fuse import drive_config, fuse, load_fusion_config, parse_outage
+
+    cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
+    if a.outage:
+        cfg = replace(cfg, outages=tuple(parse_outage(o) for o in a.outage))
     t0 = time.monotonic()
     res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"), smooth=a.smooth)
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples, {res.updates} GPS updates, "
@@ -145,9 +171,19 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         if not d.is_file():
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
-    evaluate(drives, lengths, methods, report, smooth=a.smooth)
+    from tools.fuse import load_fusion_config
+
+    evaluate(drives, lengths, methods, report, smooth=a.smooth,
+             config=load_fusion_config(a.config) if a.config else None)
     print((report / "table.md").read_text())
     print(f"wrote {report / 'table.md'} and {report / 'table.csv'} in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def cmd_study(a: argparse.Namespace) -> int:
+    from tools.studies import study
+
+    study(a.name, Path(a.out or f"docs/studies/{a.name}"), Path(a.work or f"out/studies/{a.name}"), a.seeds, a.runs)
     return 0
 
 
@@ -175,9 +211,33 @@ def cmd_demo(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view_live(a: argparse.Namespace) -> int:
+    from acquire import config
+    from replay.player import live_view
+
+    address = a.live or config.load(a.config, {"daq": "-", "gps": "--"}).daemon.bus
+    if not address:
+        raise ValueError("no live bus: give its socket path (--live PATH) or a config with [daemon] bus")
+    try:
+        res = live_view(address, a.method, rrd=a.rrd, connect=a.connect)
+    except KeyboardInterrupt:
+        return 130
+    print(f"viewed {res.data_s:.1f} s live from {address}: {res.solutions} {a.method} solutions, {res.gps_fixes} GPS "
+          f"fixes, {res.imu_rows} IMU rows, {res.outages} outages -> {res.sink}")
+    return 0
+
+
 def cmd_view(a: argparse.Namespace) -> int:
     from replay.view import view
 
+    if a.live is not None:
+        if a.drive or a.fused:
+            raise ValueError("--live takes no drive files")
+        return cmd_view_live(a)
+    if a.drive is None:
+        raise ValueError("a drive is required (or --live)")
+    if a.connect:
+        raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
     res = view(a.drive, a.fused, a.rrd, progress=Progress("view"))
     if res.rrd is None:
@@ -233,8 +293,11 @@ def cmd_batch(a: argparse.Namespace) -> int:
 
 def cmd_replay(a: argparse.Namespace) -> int:
     from replay.player import replay
+    from tools.fuse import drive_config, load_fusion_config
 
-    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, progress=Progress(f"replay {a.method}"))
+    cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
+    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=cfg,
+                 progress=Progress(f"replay {a.method}"))
     print(f"played {res.data_s:.1f} s of {a.drive} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
           f"{res.solutions} {a.method} solutions, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, "
           f"{res.outages} outages -> {res.sink}")
@@ -271,6 +334,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--time-scale", type=float, default=None, metavar="X",
                    help="for simulator playback at `sim --serve --speed X` only: the host clock runs X times "
                         "slower than the data ([timesync] host_time_scale)")
+    s.add_argument("--view", action="store_true",
+                   help="also show the car live in rerun (a child `fieldlog view --live` on the live bus)")
+    s.add_argument("--view-rrd", default=None, metavar="FILE", help="--view into this .rrd instead of a viewer")
+    s.add_argument("--view-method", choices=METHODS, default="kf", help="--view: fusion method")
     s.set_defaults(func=cmd_acquire)
 
     s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
@@ -308,6 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="force a GPS outage, seconds from the first IMU sample (repeatable)")
     s.add_argument("--out", required=True, help="output MCAP")
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML with a [fusion] table (FusionConfig keys); default: the drive's fusion.config record")
     s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
@@ -320,12 +389,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
     s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
     s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML with a [fusion] table (FusionConfig keys); default: each drive's fusion.config record")
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("view", help="show a drive and fused solutions in rerun, or write an .rrd")
-    s.add_argument("drive")
+    s.add_argument("drive", nargs="?", default=None)
     s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods)")
     s.add_argument("--rrd", default=None, help="write this .rrd instead of opening the viewer")
+    s.add_argument("--live", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="instead of a drive: the running daemon's live bus (its Unix socket; default: [daemon] bus "
+                        "of --config), fused incrementally as in `fieldlog replay`, until the daemon stops")
+    s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
+    s.add_argument("--connect", default=None, metavar="URL", help="--live: a running viewer, as for `fieldlog replay`")
+    s.add_argument("--config", default=None, help="--live: the daemon's config (for [daemon] bus)")
     s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("export", help="one Parquet or CSV table per topic, through polars")
@@ -353,7 +430,17 @@ def build_parser() -> argparse.ArgumentParser:
     sink.add_argument("--rrd", default=None, help="stream into this .rrd file instead of a viewer")
     sink.add_argument("--connect", default=None, metavar="URL",
                       help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="fusion TOML ([fusion] table; default: the drive's own, else the defaults)")
     s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("study", help="one of the other papers' studies, with its report (tools/studies.py)")
+    s.add_argument("name", choices=["kf-ukf", "cost", "ssr-sckf", "hinf"])
+    s.add_argument("--seeds", type=int, default=3, help="simulated drives per case (seeds 1..N)")
+    s.add_argument("--runs", type=int, default=5, help="cost: timing repetitions")
+    s.add_argument("--out", default=None, help="report directory (default docs/studies/NAME)")
+    s.add_argument("--work", default=None, help="drives and fused solutions (default out/studies/NAME)")
+    s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("demo", help="simulate, fuse, evaluate and view, on the built-in default")
     s.add_argument("--out", default="out/demo")

@@ -35,7 +35,7 @@ import polars as pl
 from fusion import earth
 from fusion.engine import METHODS, FusionConfig
 from replay import reader
-from tools.fuse import fuse
+from tools.fuse import drive_config, fuse
 
 QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
               ("vU", "m/s"), ("roll", "deg"), ("pitch", "deg"), ("heading", "deg"))
@@ -235,11 +235,11 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
-    smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``)."""
+    smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``). config None: each
+    drive's own ``fusion.config`` record (``tools.fuse.drive_config``)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
-    base = config or FusionConfig()
     report = Path(report)
     (report / "fused").mkdir(parents=True, exist_ok=True)
     runs = [(m, sm) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
@@ -248,6 +248,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
+        base = config or drive_config(drive)
         t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m)
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
@@ -284,18 +285,29 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                            max(map(len, by.values()))) for L, by in curves.items()]
     for f in figures:
         say(f"wrote {f}")
-    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures]))
+    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
+                                              aids_note(base)))
     return table
 
 
-def markdown(table: pl.DataFrame, drives: list[str], figures: Sequence[str] = ()) -> str:
+def aids_note(cfg: FusionConfig) -> str:
+    """One line on the vehicle-motion aids the filters used (they need no GPS, so they act in the outages)."""
+    on = [n for n, flag in (("non-holonomic constraint (NHC)", cfg.nhc), ("ZUPT + zero-rate update when stopped",
+                                                                          cfg.zupt)) if flag]
+    if not on:
+        return "Vehicle constraints: none (GPS-only filters, as in the paper)."
+    return (f"Vehicle constraints: {' and '.join(on)} at every GPS epoch time, in the outages too, for every method "
+            "but ins (the free INS); the paper used none. Methods are compared under the same aids.")
+
+
+def markdown(table: pl.DataFrame, drives: list[str], figures: Sequence[str] = (), note: str = "") -> str:
     """The long table laid out like the paper's Table 3: rows = quantity, columns = method x outage length;
     then image links to the figures (file names relative to the report directory)."""
     cols = table.select("method", "outage_s").unique(maintain_order=True).sort("outage_s", maintain_order=True).rows()
     head = "| quantity | unit | " + " | ".join(f"{m} {L:g} s" for m, L in cols) + " |"
     lines = ["# RMS errors during GPS outages", "",
              f"Drives: {', '.join(drives)}. Mean over drives, ± sample standard deviation when more than one.", "",
-             head, "|" + "---|" * (len(cols) + 2)]
+             *((note, "") if note else ()), head, "|" + "---|" * (len(cols) + 2)]
     for q, unit in QUANTITIES:
         cells = []
         for m, L in cols:

@@ -11,26 +11,42 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
-RTS backward pass (``fusion.smoother``) under the same topics; memory then grows with the drive
-(about 200 MB per hour, see ``fusion.smoother``).
+RTS backward pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB per 0.1 s) go to
+a temporary file, so memory grows only by the rows and the smoothed errors (about 15 MB per hour).
+
+Settings (``FusionConfig``): ``--config FILE`` reads the ``[fusion]`` table of a TOML file (other tables are
+ignored, so a scenario file works too), e.g.::
+
+    [fusion]
+    gyro_noise_dps_rthz = 0.0097     # any FusionConfig field; lists for tuples
+    lever_arm_b = [0.0, 0.5, 1.2]
+    [fusion.predictor]               # fusion.predictors.PredictorConfig
+    centres = 12
+
+Without it, the drive's own ``fusion.config`` metadata record (what ``fieldlog sim`` stored from the scenario's
+[fusion] table), else the defaults (``drive_config``). An explicit ``--config`` replaces the drive's record as
+a whole; ``--outage`` replaces the outages of either.
 """
 
 from __future__ import annotations
 
+import ast
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from acquire import messages
+from acquire.config import ConfigError, from_table, read_toml
 from acquire.recorder import Recorder
 from fusion.engine import Engine, FusionConfig, ImuBlock, Solution
 from fusion.smoother import SmootherLog, smooth_solution
 from replay import reader
 from replay.reader import IN_TOPICS, gps_block
+from tools.rebuild import read_metadata
 
 BLOCK_S = 10.0
 
@@ -58,6 +74,80 @@ def parse_outage(text: str) -> tuple[float, float]:
     return start, length
 
 
+def _typed(where: str, key: str, value: Any, like: Any) -> Any:
+    """``value`` of the TOML table ``[where]`` converted to the type of the default ``like``; ConfigError naming
+    the key when it does not fit (int accepted for float, lists for tuples, a table for a dataclass)."""
+    def bad(what: str) -> ConfigError:
+        return ConfigError(f"[{where}] {key}: expected {what}, got {value!r}")
+
+    if is_dataclass(like):
+        if not isinstance(value, dict):
+            raise bad("a table")
+        return _from_table(type(like), f"{where}.{key}", value)
+    if isinstance(like, bool):
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if isinstance(like, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("an integer")
+        return value
+    if isinstance(like, float) or like is None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise bad("a finite number")
+        return float(value)
+    if isinstance(like, tuple):
+        def tup(v: Any) -> Any:
+            if isinstance(v, list):
+                return tuple(tup(x) for x in v)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad("an array of numbers")
+            return float(v)
+
+        out = tup(value) if isinstance(value, list) else None
+        if out is None or (like and len(out) != len(like)):
+            raise bad(f"an array of {len(like)} numbers" if like else "an array")
+        return out
+    if not isinstance(value, type(like)):
+        raise bad(type(like).__name__)
+    return value
+
+
+def _from_table(cls: type, where: str, table: dict[str, Any]) -> Any:
+    defaults = cls()
+    known = {f.name for f in fields(cls)}
+    d = {k: _typed(where, k, v, getattr(defaults, k)) if k in known else v for k, v in table.items()}
+    return from_table(cls, where, d)  # names an unknown key
+
+
+def fusion_config(table: dict[str, Any]) -> FusionConfig:
+    """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.from_table``); a bad key or value raises
+    ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
+    cfg = _from_table(FusionConfig, "fusion", table)
+    for key in ("output_hz", "cov_step_s"):
+        if not getattr(cfg, key) > 0:
+            raise ConfigError(f"[fusion] {key}: must be > 0")
+    for i, o in enumerate(cfg.outages):
+        if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
+            raise ConfigError(f"[fusion] outages[{i}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")
+    return cfg
+
+
+def load_fusion_config(path: str | os.PathLike[str]) -> FusionConfig:
+    """``--config FILE``: the ``[fusion]`` table of a TOML file; ConfigError with one line naming the problem."""
+    d = read_toml(path)
+    if not isinstance(d.get("fusion"), dict):
+        raise ConfigError(f"config file {path}: no [fusion] table")
+    return fusion_config(d["fusion"])
+
+
+def drive_config(drive: str | os.PathLike[str]) -> FusionConfig:
+    """The drive's ``fusion.config`` metadata record (a simulated drive's scenario [fusion] table) as a
+    FusionConfig; the defaults when the drive has none."""
+    meta = read_metadata(drive).get("fusion.config", {})
+    return fusion_config({k: ast.literal_eval(v) for k, v in meta.items()})
+
+
 def _write(rec: Recorder, method: str, s: Solution) -> None:
     if len(s.t_ns) == 0:
         return
@@ -80,8 +170,8 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
          smooth: bool = False) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
-    ``smooth`` (RTS backward pass after the drive)."""
-    cfg = config or FusionConfig()
+    ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``."""
+    cfg = config or drive_config(drive)
     log = SmootherLog() if smooth else None
     engine = Engine(method, cfg, log=log)
     kept: list[Solution] = []
@@ -122,6 +212,7 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
         write_outages(engine.finish())
         if smooth:
             _write(rec, method, smooth_solution(Solution.concat(kept), log))
+            log.close()
     if progress:
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, n_imu, engine.predicted)

@@ -13,7 +13,7 @@ from typing import Callable, Iterator
 
 from mcap.reader import make_reader
 
-from acquire import calib, messages, recorder
+from acquire import calib, recorder
 from replay import reader
 from acquire.pipeline import Counters, Pipeline, RawRead, read_order
 
@@ -38,11 +38,14 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
 
 
 def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
-    """The reads of one port in the order they were recorded (file order, not log-time order)."""
-    with open(path, "rb") as f:
-        for _schema, _channel, msg in make_reader(f).iter_messages(topics=[f"/raw/{port}"], log_time_order=False):
-            wall_ns, mono_ns, _port, data = messages.decode_raw(msg.data)
-            yield RawRead(port, mono_ns, wall_ns, data)
+    """The reads of one port in the order they were recorded (file order, not log-time order), decoded a
+    chunk at a time (``replay.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
+    for b in reader.iter_raw_batches(path, f"/raw/{port}"):
+        raw, o = b["data"].buf.tobytes(), b["data"].offsets.tolist()
+        for i, (ok, mono_ns, wall_ns) in enumerate(zip(b["valid"].tolist(), b["mono_ns"].tolist(),
+                                                       b["stamp_ns"].tolist())):
+            if ok:
+                yield RawRead(port, mono_ns, wall_ns, raw[o[i]:o[i + 1]])
 
 
 def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = None,
