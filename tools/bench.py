@@ -178,12 +178,20 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
 
 
-_FUSE_CHILD = ("import json, resource, sys, time\n"
+# Peak RSS of a child is read from its VmHWM, the high-water mark of its own address space: ru_maxrss (and
+# RUSAGE_CHILDREN) would also carry the parent's RSS at fork time, which Linux keeps across exec: here the
+# bench's own simulated drive, several GB.
+_PEAK_MB = "int(re.search(r'VmHWM:\\s+(\\d+) kB', open('/proc/self/status').read()).group(1)) / 1024"
+_FUSE_CHILD = ("import json, re, sys, time\n"
                "from tools.fuse import fuse\n"
                "t0 = time.perf_counter()\n"
                "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1')\n"
-               "print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples,\n"
-               "                      rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))\n")
+               f"print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples, rss_mb={_PEAK_MB})))\n")
+_CLI_CHILD = ("import re, sys\n"
+              "from tools.cli import main\n"
+              "rc = main(sys.argv[1:])\n"
+              f"print('peak_rss_mb', {_PEAK_MB})\n"
+              "sys.exit(rc)\n")
 
 
 def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> dict:
@@ -393,7 +401,6 @@ def bench_view(runs: int, tmp: Path) -> None:
 
 def bench_export(runs: int, tmp: Path) -> None:
     """fieldlog export of a 1-hour 500 Hz drive to Parquet, in a child process: time and peak RSS."""
-    import resource
     import subprocess
     import sys
 
@@ -403,15 +410,18 @@ def bench_export(runs: int, tmp: Path) -> None:
     if not drive.exists():
         simulate("figure8", 3600, 1, drive)
 
+    peaks = []
+
     def one() -> int:
         out = tmp / "hour_export"
-        r = subprocess.run([sys.executable, "-m", "tools.cli", "export", str(drive), "--out", str(out)],
-                           capture_output=True, text=True)
+        r = subprocess.run([sys.executable, "-c", _CLI_CHILD, "export", str(drive), "--out", str(out)],
+                           capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
         assert r.returncode == 0, r.stderr
+        peaks.append(float(r.stdout.split()[-1]))
         return sum(f.stat().st_size for f in out.rglob("*.parquet"))
 
     med, ts, size = timed(one, runs)
-    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e3  # kB -> MB, the largest child so far
+    rss = max(peaks)
     print(f"export 1 h drive -> Parquet:  median {med:6.2f} s  (runs: {fmt_times(ts)}); peak RSS {rss:.0f} MB; "
           f"{size / 1e6:.0f} MB of Parquet from a {drive.stat().st_size / 1e6:.0f} MB drive")
 
