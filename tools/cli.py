@@ -133,7 +133,7 @@ def cmd_allan(a: argparse.Namespace) -> int:
 def cmd_fuse(a: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from tools.fuse import drive_config, fuse, load_fusion_config, parse_outage
+    from tools.fuse import NO_ALIGNMENT, drive_config, fuse, load_fusion_config, parse_outage
 
     cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
     if a.outage:
@@ -142,6 +142,8 @@ def cmd_fuse(a: argparse.Namespace) -> int:
     res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"), smooth=a.smooth)
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples, {res.updates} GPS updates, "
           f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
+    if res.rows == 0 and a.method != "ins":
+        print(f"fieldlog fuse: warning: {NO_ALIGNMENT}", file=sys.stderr)
     return 0
 
 

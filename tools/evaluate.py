@@ -35,7 +35,7 @@ import polars as pl
 from fusion import earth
 from fusion.engine import METHODS, FusionConfig
 from replay import reader
-from tools.fuse import drive_config, fuse
+from tools.fuse import NO_ALIGNMENT, drive_config, fuse
 
 QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
               ("vU", "m/s"), ("roll", "deg"), ("pitch", "deg"), ("heading", "deg"))
@@ -261,7 +261,10 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             for m, sm in runs:
                 name = m + ("+rts" if sm else "")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
-                fuse(drive, m, out, cfg, smooth=sm)
+                if fuse(drive, m, out, cfg, smooth=sm).rows == 0:
+                    done += 1
+                    say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
+                    continue
                 t_err, err = outage_error_series(drive, out, m, win_ns)
                 rms = rms_columns(err)
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))

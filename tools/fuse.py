@@ -51,6 +51,10 @@ from tools.rebuild import read_metadata
 BLOCK_S = 10.0
 
 
+NO_ALIGNMENT = ("no solution: the filter never aligned, which needs a GPS speed of align_speed_mps ([fusion]) for "
+                "the heading; a drive that never moves cannot be aligned with a MEMS IMU")
+
+
 @dataclass
 class FuseResult:
     path: Path
