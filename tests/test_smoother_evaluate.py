@@ -64,7 +64,7 @@ def test_place_outages_stays_in_good_gps_without_overlap():
     good = np.ones(len(t), bool)
     good[(t >= 130) & (t < 150)] = False  # a real outage the study must avoid
     win = place_outages(t, good, 30.0, StudyConfig())
-    assert win[0][0] == 150.0 and all(n == 30.0 for _, n in win)
+    assert win[0][0] == 180.0 and all(n == 30.0 for _, n in win)  # 30 s of good GPS after the real outage
     for (s0, n0), (s1, _) in zip(win, win[1:]):
         assert s1 >= s0 + n0 + 60.0
     assert win[-1][0] + 30.0 <= 595.0

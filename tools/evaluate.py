@@ -46,6 +46,7 @@ class StudyConfig:
     first_s: float = 120.0  # earliest outage start, s from the first IMU sample
     min_gap_s: float = 60.0  # good GPS between two outages at least max(min_gap_s, L)
     end_margin_s: float = 5.0  # an outage ends this long before the last fix at the latest
+    settle_s: float = 30.0  # good GPS before each outage, so the filter has re-converged after a real one
 
 
 def check_methods(methods: list[str]) -> None:
@@ -60,15 +61,16 @@ def place_outages(t_fix_s: np.ndarray, good: np.ndarray, length_s: float, cfg: S
     """Outage windows (start_s, length_s) of one length in good GPS.
 
     t_fix_s (m,) fix times in s from the first IMU sample; good (m,) bool, usable fix. A window needs
-    every fix inside [start, start + L] good and at least 0.9 L of them; candidates step by 1 s."""
+    every fix inside [start - settle_s, start + L] good and at least 0.9 of them at 1 Hz (a forced outage right
+    after a tunnel would score the tunnel's drift too); candidates step by 1 s."""
     if len(t_fix_s) == 0:
         return []
     out: list[tuple[float, float]] = []
     s = cfg.first_s
     t_end = t_fix_s[-1] - cfg.end_margin_s
     while s + length_s <= t_end:
-        inside = (t_fix_s >= s) & (t_fix_s <= s + length_s)
-        if inside.sum() >= 0.9 * length_s and good[inside].all():
+        inside = (t_fix_s >= s - cfg.settle_s) & (t_fix_s <= s + length_s)
+        if inside.sum() >= 0.9 * (length_s + cfg.settle_s) and good[inside].all():
             out.append((s, length_s))
             s += length_s + max(cfg.min_gap_s, length_s)
         else:
