@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
@@ -92,6 +92,30 @@ def _binary(p: messages.Packed) -> pl.Series:
 def topic_frame(path: str | os.PathLike[str], topic: str, type_name: str) -> pl.DataFrame:
     """One topic as a DataFrame (columns: module docstring)."""
     d = reader.read_raw(path, topic) if type_name == messages.RAWBYTES else reader.read_topic(path, topic)
+    return _frame(d, type_name, path, topic)
+
+
+EXPORT_BLOCK_S = 60.0  # export streams the large topics in blocks of this much log time
+_STREAMED = (messages.IMU, messages.NAVSATFIX, messages.TWIST, messages.QUATERNION, messages.VECTOR3,
+             messages.TIMESYNC)
+
+
+def topic_batches(path: str | os.PathLike[str], topic: str, type_name: str) -> Iterator[pl.DataFrame]:
+    """One topic as consecutive DataFrames, so that memory holds one block: ``/raw/*`` one MCAP chunk at a
+    time in recorded order, the typed sensor topics ``EXPORT_BLOCK_S`` of log time at a time, the small
+    ones (sentences, PPS, outages) whole."""
+    if type_name == messages.RAWBYTES:
+        batches: Iterator[dict] = reader.iter_raw_batches(path, topic)
+    elif type_name in _STREAMED:
+        batches = (b.data[topic] for b in reader.iter_blocks(path, [topic], EXPORT_BLOCK_S))
+    else:
+        batches = iter([reader.read_topic(path, topic)])
+    for d in batches:
+        if len(d["log_time_ns"]):
+            yield _frame(d, type_name, path, topic)
+
+
+def _frame(d: dict, type_name: str, path: str | os.PathLike[str], topic: str) -> pl.DataFrame:
     cols: dict[str, object] = {"log_time_ns": d["log_time_ns"]}
     if type_name == messages.IMU:
         cols["stamp_ns"] = d["stamp_ns"]
@@ -174,7 +198,7 @@ def table_path(out: Path, topic: str, fmt: str) -> Path:
 def export(path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: str = "parquet",
            topics: Sequence[str] | None = None,
            progress: Callable[[float], None] | None = None) -> dict[str, tuple[Path, int]]:
-    """Write one table per topic under ``out``; memory holds one topic at a time. -> {topic: (file, rows)}."""
+    """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}."""
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"format must be parquet or csv, got {fmt!r}")
     if not Path(path).is_file():
@@ -183,14 +207,37 @@ def export(path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: str =
     todo = _topic_types(path, topics)
     written: dict[str, tuple[Path, int]] = {}
     for i, (topic, type_name) in enumerate(todo):
-        df = topic_frame(path, topic, type_name)
         dest = table_path(out, topic, fmt)
         dest.parent.mkdir(parents=True, exist_ok=True)
+        written[topic] = (dest, _write(topic_batches(path, topic, type_name), dest, fmt,
+                                       lambda: topic_frame(path, topic, type_name)))
+        if progress:
+            progress((i + 1) / len(todo))
+    return written
+
+
+def _write(frames: Iterator[pl.DataFrame], dest: Path, fmt: str, empty: Callable[[], pl.DataFrame]) -> int:
+    """Append the frames to one Parquet or CSV file; rows written. ``empty`` gives the (empty) table of a
+    topic without messages, for its schema."""
+    import pyarrow.parquet as pq
+
+    rows, writer = 0, None
+    with open(dest, "wb") as f:
+        for df in frames:
+            if fmt == "csv":
+                csv_ready(df).write_csv(f, include_header=rows == 0)
+            else:
+                tbl = df.to_arrow()
+                if writer is None:
+                    writer = pq.ParquetWriter(f, tbl.schema, compression="zstd")
+                writer.write_table(tbl.cast(writer.schema))
+            rows += df.height
+        if writer is not None:
+            writer.close()
+    if rows == 0:
+        df = empty()
         if fmt == "parquet":
             df.write_parquet(dest, compression="zstd")
         else:
             csv_ready(df).write_csv(dest)
-        written[topic] = (dest, df.height)
-        if progress:
-            progress((i + 1) / len(todo))
-    return written
+    return rows
