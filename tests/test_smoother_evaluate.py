@@ -144,3 +144,20 @@ def test_smoother_treats_a_predicted_correction_as_an_input_not_an_estimate():
     assert np.allclose(sm.y[4:], -b)
     assert np.allclose(sm.dx[4], b)
     log.close()
+
+
+def test_verdict_says_whether_the_hybrid_beats_rbfn_and_the_paper_figure():
+    from tools.evaluate import verdict
+
+    def runs(e_n: list[float]) -> list[np.ndarray]:  # per-drive RMS rows, E = N = e
+        return [np.r_[e, e, np.zeros(7)] for e in e_n]
+
+    per = {("dkf-rbfn", 60.0): runs([2.0, 3.0, 2.5]), ("rbfn", 60.0): runs([5.0, 6.0, 5.5]),
+           ("dkf", 60.0): runs([2.1, 2.9, 2.5]), ("dkf-rbfn", 30.0): runs([8.0, 9.0]), ("tdln", 30.0): runs([7.0, 8.5])}
+    text = "\n".join(verdict(per))
+    line60 = next(x for x in text.splitlines() if x.startswith("- 60 s"))
+    assert "55 % better than rbfn" in line60 and "beyond twice" in line60.split("; ")[1]
+    assert "within twice" in line60.split("; ")[2] and line60.endswith("9.3 m: met.")
+    line30 = next(x for x in text.splitlines() if x.startswith("- 30 s"))
+    assert "worse than tdln" in line30 and "9.3" not in line30
+    assert verdict({("kf", 60.0): runs([1.0])}) == []
