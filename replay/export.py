@@ -1,6 +1,7 @@
 """A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE --out DIR``.
 
-One table per topic, rows in ``log_time`` order (one row per MCAP message). Written as
+One table per topic, one row per MCAP message, in ``log_time`` order; ``fieldlog export`` writes ``/raw/*``
+in recorded order instead (the same unless the host wall clock stepped back), streaming. Written as
 ``DIR/<topic>.parquet`` (or ``.csv``), the topic's path kept: ``/gps/fix`` -> ``DIR/gps/fix.parquet``,
 ``/fusion/kf/std`` -> ``DIR/fusion/kf/std.parquet``.
 
