@@ -403,11 +403,18 @@ _UNIX_ORDINAL = Date(1970, 1, 1).toordinal()
 class EpochAssembler:
     """Group GGA/RMC/VTG/GST/ZDA of the same time of day (to 1 ms) into GnssEpochs.
 
-    An epoch is emitted when a sentence with another time arrives (or on ``flush``). VTG has no time and joins
-    the current epoch; sentences with an empty time, VTG before any epoch, and Other records are ignored.
+    An epoch is emitted when a sentence with another time arrives (or on ``flush``), or at once when it holds
+    one of each of the five types (nothing more can belong to it: the live bus gets the fix a second earlier).
+    VTG has no time and joins the current epoch; sentences with an empty time, VTG before any epoch, and Other
+    records are ignored. A timed sentence of an epoch already emitted complete (a repeat) is counted in
+    ``late`` and not merged (it stays in ``/gps/nmea`` and the raw bytes).
     """
 
+    COMPLETE = frozenset((Gga, Rmc, Vtg, Gst, Zda))
+
     def __init__(self) -> None:
+        self.late = 0
+        self._done: int | None = None  # key of the last epoch emitted complete
         self._key: int | None = None
         self._parts: list[Sentence] = []
         self._mono = 0
@@ -424,11 +431,17 @@ class EpochAssembler:
         if tod is None:
             return []
         key = round(tod * 1000)
+        if key == self._done:
+            self.late += 1
+            return []
         out: list[GnssEpoch] = []
         if key != self._key:
             out = self.flush()
             self._key, self._mono = key, mono_ns
         self._parts.append(s)
+        if {type(p) for p in self._parts} >= self.COMPLETE:
+            self._done = key
+            out += self.flush()
         return out
 
     def flush(self) -> list[GnssEpoch]:

@@ -134,6 +134,7 @@ class Pipeline:
         out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
         out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
                                                     "pps_rejected")})
+        out["nmea.epoch_repeats"] = str(self._epochs.late)
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
         return out
 

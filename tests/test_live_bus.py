@@ -123,3 +123,13 @@ def test_provisional_imu_arrives_at_once_close_to_truth_on_a_local_only_socket(t
     assert blocks[-2].sync_state == SyncState.LOCKED
     fixes = np.concatenate([b.data["/gps/fix"]["log_time_ns"] for b in blocks])
     assert np.array_equal(fixes, reader.read_topic(f, "/gps/fix")["log_time_ns"][-len(fixes):])
+    # a fix is published when its NMEA burst is complete, not when the next second's starts: at its arrival
+    # the IMU stream is less than a second of drive time past the fix's own time
+    lag_s, newest = [], None
+    for b in batches:
+        if b.topic == "/imu" and b.provisional and not b.host_clock:
+            newest = int(b.log_time_ns[-1])
+        elif b.topic == "/gps/fix" and newest is not None:
+            lag_s += [(newest - int(t)) * 1e-9 for t in b.log_time_ns]
+    print(f"fix on the bus: IMU stream ahead of the fix by median {np.median(lag_s):.2f} s, max {max(lag_s):.2f} s")
+    assert len(lag_s) > 30 and np.median(lag_s) < 0.6

@@ -243,8 +243,7 @@ def test_epoch_assembly():
             mono = 10**9 * (i + 1) + j * 10**6
             for s in dec.feed(line):
                 epochs += asm.add(s, mono)
-    assert len(epochs) == 2
-    epochs += asm.flush()
+    assert len(epochs) == 3  # each burst has all five types: emitted at its last sentence, not a second later
     assert asm.flush() == []
     e = epochs[1]
     assert e.time_of_day_s == 101.0 and e.date == date(2024, 5, 6) and e.first_mono_ns == 2 * 10**9
@@ -253,6 +252,19 @@ def test_epoch_assembly():
     assert e.speed_mps == pytest.approx(5.0, abs=1e-3) and e.course_rad == pytest.approx(1.0, abs=1e-4)
     assert (e.sd_east_m, e.sd_north_m, e.sd_up_m) == (0.5, 0.6, 1.5)
     assert e.utc_ns == (date(2024, 5, 6).toordinal() - date(1970, 1, 1).toordinal()) * 86400 * 10**9 + 101 * 10**9
+
+
+def test_epoch_waits_for_the_next_time_when_incomplete_and_counts_repeats():
+    asm = nmea.EpochAssembler()
+    dec = nmea.NmeaDecoder()
+    lines = burst("GN", 100.0, date(2024, 5, 6), with_zda=False)  # four types: complete only at the next time
+    got = [e for line in lines for s in dec.feed(line) for e in asm.add(s, 0)]
+    assert got == []
+    full = burst("GN", 101.0, date(2024, 5, 6))
+    got = [e for line in full for s in dec.feed(line) for e in asm.add(s, 0)]
+    assert [e.time_of_day_s for e in got] == [100.0, 101.0]
+    repeat = [e for s in dec.feed(full[0]) for e in asm.add(s, 0)]  # GGA of 101 again, after 101 was emitted
+    assert repeat == [] and asm.late == 1 and asm.flush() == []
 
 
 def test_epoch_midnight_rollover_uses_last_date():
