@@ -34,9 +34,10 @@ standard baud rate``.
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import os
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -111,20 +112,52 @@ class AcquireConfig:
         return timesync.TimeSyncConfig.from_dict(self.timesync)
 
 
-def _typed(section: str, key: str, value: Any, like: Any) -> Any:
-    """``value`` checked against the type of the default ``like`` (int accepted for float)."""
+def typed_value(where: str, key: str, value: Any, like: Any) -> Any:
+    """``value`` of the TOML table ``[where]`` converted to the type of the default ``like``; ConfigError naming
+    the key when it does not fit (int accepted for float, lists for tuples, a table for a dataclass)."""
+    def bad(what: str) -> ConfigError:
+        return ConfigError(f"[{where}] {key}: expected {what}, got {value!r}")
+
+    if is_dataclass(like):
+        if not isinstance(value, dict):
+            raise bad("a table")
+        return typed_table(type(like), f"{where}.{key}", value)
     if isinstance(like, bool):
-        ok = isinstance(value, bool)
-    elif isinstance(like, int):
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif isinstance(like, float):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
-    else:
-        ok = isinstance(value, type(like))
-    if not ok:
-        raise ConfigError(f"[{section}] {key}: expected {type(like).__name__}, got {value!r}")
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if isinstance(like, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("an integer")
+        return value
+    if isinstance(like, float) or like is None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise bad("a finite number")
+        return float(value)
+    if isinstance(like, tuple):
+        def tup(v: Any) -> Any:
+            if isinstance(v, list):
+                return tuple(tup(x) for x in v)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad("an array of numbers")
+            return float(v)
+
+        out = tup(value) if isinstance(value, list) else None
+        if out is None or (like and len(out) != len(like)):
+            raise bad(f"an array of {len(like)} numbers" if like else "an array")
+        return out
+    if not isinstance(value, type(like)):
+        raise bad(type(like).__name__)
     return value
+
+
+def typed_table(cls: type[T], where: str, table: dict[str, Any]) -> T:
+    """Dataclass ``cls`` from the TOML table ``[where]``, each value converted by ``typed_value`` against the
+    field's default; ConfigError naming an unknown key or a bad value."""
+    defaults = cls()
+    known = {f.name for f in fields(cls)}
+    d = {k: typed_value(where, k, v, getattr(defaults, k)) if k in known else v for k, v in table.items()}
+    return from_table(cls, where, d)  # names an unknown key
 
 
 def _section(d: dict[str, Any], name: str, obj: Any) -> None:
@@ -136,7 +169,7 @@ def _section(d: dict[str, Any], name: str, obj: Any) -> None:
     for key, value in table.items():
         if key not in known:
             raise ConfigError(f"[{name}] {key}: unknown key; known keys: {', '.join(sorted(known))}")
-        setattr(obj, key, _typed(name, key, value, getattr(obj, key)))
+        setattr(obj, key, typed_value(name, key, value, getattr(obj, key)))
 
 
 def from_dict(d: dict[str, Any]) -> AcquireConfig:
@@ -154,11 +187,11 @@ def from_dict(d: dict[str, Any]) -> AcquireConfig:
     cal = d.get("calibration", {})
     if not isinstance(cal, dict) or set(cal) - {"file"}:
         raise ConfigError("[calibration]: only the key 'file' is allowed")
-    c.calibration_file = _typed("calibration", "file", cal.get("file", ""), "")
+    c.calibration_file = typed_value("calibration", "file", cal.get("file", ""), "")
     out = d.get("output", {})
     if not isinstance(out, dict) or set(out) - {"dir"}:
         raise ConfigError("[output]: only the key 'dir' is allowed")
-    c.out_dir = _typed("output", "dir", out.get("dir", c.out_dir), "")
+    c.out_dir = typed_value("output", "dir", out.get("dir", c.out_dir), "")
     ts = d.get("timesync", {})
     if not isinstance(ts, dict):
         raise ConfigError("[timesync]: expected a table")

@@ -60,7 +60,7 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from acquire import calib, messages, nmea, recorder
+from acquire import calib, messages, nmea, recorder, timesync
 from acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
 from acquire.pipeline import Pipeline, RawRead, read_order
 
@@ -360,9 +360,7 @@ class ProvisionalImu:
         t, state, fitted = self.pipe.sync.causal_stamp(k)
         if fitted != self._fitted:
             self._fitted, self._pmax = fitted, None
-        cm = np.maximum.accumulate(t - k)
-        if self._pmax is not None:
-            cm = np.maximum(cm, self._pmax)
+        cm = timesync.forward_clamp(t - k, self._pmax)
         self._pmax = int(cm[-1])
         t = cm + k
         self.bus.publish("/imu", t, self.pipe.imu_messages(t, counts), state=state, read_mono_ns=self._mono,

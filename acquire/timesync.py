@@ -54,6 +54,13 @@ from scipy.stats import theilslopes
 from acquire.config import from_table
 
 
+def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:
+    """Running maximum of r = stamp - k (ns) from ``floor`` (the last one of the previous batch, or None), so
+    that stamps never go backwards: at most 1 ns per sample after a backward step of the fit."""
+    cm = np.maximum.accumulate(r)
+    return cm if floor is None else np.maximum(cm, floor)
+
+
 class SyncState(IntEnum):
     """Per-sample time-sync state (stored as uint8)."""
 
@@ -338,10 +345,7 @@ class TimeSync:
         if f is None:
             if not self._bins:
                 raise RuntimeError("causal_stamp before any frame")
-            b = k // self._bin
-            ub, inv = np.unique(b, return_inverse=True)
-            off = np.array([self._host_offset(x) for x in ub.tolist()], np.int64)[inv]
-            return np.round(k * self._ns_per_sample).astype(np.int64) + off, state, False
+            return self._host_stamps(k), state, False
         s = (k - f.kr - f.c) / (self._fs + f.e)
         t = np.int64(f.lr) * 1_000_000_000 + np.round(s * 1e9).astype(np.int64)
         age = k - self._acc_k[-1]
@@ -586,19 +590,20 @@ class TimeSync:
             state[synced & (age <= self._G)] = SyncState.LOCKED
         host = gov < 0
         if host.any():
-            kh = k[host]
-            bins = kh // self._bin
-            off = np.array([self._host_offset(b) for b in bins.tolist()], np.int64)
-            raw[host] = np.round(kh * self._ns_per_sample).astype(np.int64) + off
+            raw[host] = self._host_stamps(k[host])
         return raw, state, gov
+
+    def _host_stamps(self, k: np.ndarray) -> np.ndarray:
+        """Host-clock UTC ns of samples k: k / fs plus the lower envelope of the host offsets of their bins."""
+        bins, inv = np.unique(k // self._bin, return_inverse=True)
+        off = np.array([self._host_offset(b) for b in bins.tolist()], np.int64)[inv]
+        return np.round(k * self._ns_per_sample).astype(np.int64) + off
 
     def _finalise(self, f0: int, f1: int) -> None:
         k = np.arange(f0, f1, dtype=np.int64)
         raw, state, gov = self._raw(k)
         r = raw - k
-        cm = np.maximum.accumulate(r)
-        if self._pmax is not None:
-            cm = np.maximum(cm, self._pmax)
+        cm = forward_clamp(r, self._pmax)
         clamped = cm > r
         if clamped.any():
             starts = np.flatnonzero(clamped & ~np.concatenate(([False], clamped[:-1])))

@@ -82,13 +82,9 @@ class KalmanFilter:
 
     def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
         """Centralised update with the available GPS measurements stacked, z = [dv; dp]."""
-        ms = [m for m in (vel, pos) if m is not None]
-        if not ms:
-            return
-        z = np.concatenate([m[0] for m in ms])
-        H = np.concatenate([m[1] for m in ms])
-        R = _block_diag([m[2] for m in ms])
-        self.update(z, H, R)
+        m = stack(vel, pos)
+        if m is not None:
+            self.update(*m)
 
     def update_aid(self, m: Measurement) -> None:
         """A vehicle-motion aid (``nhc_measurement``, ``stationary_measurement``): one :meth:`update`. Its own
@@ -98,6 +94,14 @@ class KalmanFilter:
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)
+
+
+def stack(*ms: Measurement | None) -> Measurement | None:
+    """The given measurements as one (z, H, R), R block-diagonal; None when there is none."""
+    ms = tuple(m for m in ms if m is not None)
+    if not ms:
+        return None
+    return np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms]), _block_diag([m[2] for m in ms])
 
 
 def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:

@@ -89,7 +89,6 @@ Slips of the paper, fixed here:
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import block_diag
 
 from fusion import kf, ukf
 from fusion.errmodel import N_STATES
@@ -248,10 +247,9 @@ class CubatureKF(ukf.CycleFilter):
 
     def update_gps(self, vel: kf.Measurement | None, pos: kf.Measurement | None) -> None:
         """GPS update, z = [dv; dp] as :meth:`fusion.kf.KalmanFilter.update_gps`, with the window R if adaptive."""
-        ms = [m for m in (vel, pos) if m is not None]
-        if ms:
-            self._update(np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms]),
-                         block_diag(*[m[2] for m in ms]), self.adaptive is not None)
+        m = kf.stack(vel, pos)
+        if m is not None:
+            self._update(*m, self.adaptive is not None)
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Measurement update with R as given (a non-GPS aid: not part of the GPS window). Returns the change of

@@ -35,7 +35,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from acquire import messages
-from replay.reader import Block, decode
+from replay.reader import Block, concat, decode
 
 FLAG_PROVISIONAL = 1     # acquire.daemon.BUS_PROVISIONAL
 FLAG_HOST_CLOCK = 2      # acquire.daemon.BUS_HOST_CLOCK
@@ -111,16 +111,11 @@ def iter_batches(path: str) -> Iterator[Batch]:
 
 def _concat(parts: list[tuple[np.ndarray, messages.Packed, np.ndarray]]
             ) -> tuple[np.ndarray, messages.Packed, np.ndarray]:
+    """``reader.concat`` of (log_time_ns, payloads, per-message state) batches."""
     if not parts:
         return np.zeros(0, np.int64), messages.Packed.from_list([]), np.zeros(0, np.uint8)
-    if len(parts) == 1:
-        return parts[0]
-    lens = np.concatenate([p[1].lengths for p in parts])
-    offsets = np.zeros(len(lens) + 1, np.int64)
-    np.cumsum(lens, out=offsets[1:])
-    buf = np.concatenate([p[1].buf[p[1].offsets[0]:p[1].offsets[-1]] for p in parts])
-    return (np.concatenate([p[0] for p in parts]), messages.Packed(buf, offsets),
-            np.concatenate([p[2] for p in parts]))
+    t, p = concat([(t, p) for t, p, _ in parts])
+    return t, p, np.concatenate([st for _, _, st in parts])
 
 
 def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: float | None = None,

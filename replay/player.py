@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -84,10 +84,13 @@ class _Source:
                         recording=self.rec)
 
 
+def _columns(t: rv.Track) -> list[np.ndarray | None]:
+    return [getattr(t, f.name) for f in fields(rv.Track)]
+
+
 def _rows(t: rv.Track, sel) -> rv.Track:
     """Rows ``sel`` (mask or slice) of a track."""
-    return rv.Track(*(None if v is None else v[sel] for v in (t.t_ns, t.lat_deg, t.lon_deg, t.alt_m, t.v_n,
-                                                             t.sigma_pos, t.sigma_vel)))
+    return rv.Track(*(None if v is None else v[sel] for v in _columns(t)))
 
 
 def _cat(a: rv.Track | None, b: rv.Track) -> rv.Track:
@@ -100,10 +103,7 @@ def _cat(a: rv.Track | None, b: rv.Track) -> rv.Track:
             return None
         return np.concatenate([x if x is not None else np.full((len(a.t_ns), *y.shape[1:]), np.nan), y])
 
-    return rv.Track(*(join(x, y) for x, y in zip((a.t_ns, a.lat_deg, a.lon_deg, a.alt_m, a.v_n, a.sigma_pos,
-                                                    a.sigma_vel),
-                                                   (b.t_ns, b.lat_deg, b.lon_deg, b.alt_m, b.v_n, b.sigma_pos,
-                                                    b.sigma_vel))))
+    return rv.Track(*(join(x, y) for x, y in zip(_columns(a), _columns(b))))
 
 
 def _fused_track(s: Solution) -> rv.Track:

@@ -105,7 +105,8 @@ def _select(cm: ChunkMessages, cid: int) -> tuple[np.ndarray, messages.Packed]:
     return sel.log_time, sel.packed()
 
 
-def _concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
+def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
+    """Batches (log_time_ns, payloads) joined in order into one."""
     if len(parts) == 1:
         return parts[0]
     t = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
@@ -155,7 +156,7 @@ def read_topic(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
             raise KeyError(f"topic {topic!r} not in {path}")
         (cid,) = cids
         parts = [_select(_read_chunk(f, ci), cid) for ci in _chunks_for(s, {cid})]
-        t, p = _concat(parts)
+        t, p = concat(parts)
         return decode(_type_of(s, cid), t, p)
 
 
@@ -189,7 +190,7 @@ def iter_blocks(
                 data: dict[str, dict[str, object]] = {}
                 left = 0
                 for cid, parts in pending.items():
-                    t, p = _concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
+                    t, p = concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
                     inside = t < t1
                     idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
                     data[cids[cid]] = decode(types[cid], t[idx_in], _take(p, idx_in))
@@ -340,7 +341,7 @@ def read_raw(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
     with open(path, "rb") as f:
         s = _summary(f)
         cid = _raw_cid(s, topic)
-        t, p = _concat([_select(_read_chunk(f, ci), cid) for ci in _raw_chunks(s, cid)])
+        t, p = concat([_select(_read_chunk(f, ci), cid) for ci in _raw_chunks(s, cid)])
     if np.any(np.diff(t) < 0):  # the host wall clock stepped back
         order = np.argsort(t, kind="stable")
         t, p = t[order], _take_runs(p, order)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -197,8 +199,6 @@ _CLI_CHILD = ("import re, sys\n"
 def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> dict:
     """fieldlog fuse in a fresh Python process: seconds, IMU samples and the process's peak RSS (MB)."""
     import json
-    import subprocess
-    import sys
 
     res = subprocess.run([sys.executable, "-c", _FUSE_CHILD, str(drive), method, str(out), "1" if smooth else "0"],
                          check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
@@ -231,12 +231,28 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
 
 
+def _serve_and_acquire(duration_s: float, speed: float, truth: Path, out: Path, *daemon_args: str
+                       ) -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
+    """``sim --serve --hold`` of figure8 (truth to ``truth``) and ``acquire`` on its ptys into ``out``, the daemon
+    recording; the caller releases the stream with SIGUSR1 to the first."""
+    cli = [sys.executable, "-m", "tools.cli"]
+    serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration_s),
+                              "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth)],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    paths = dict(serve.stdout.readline().split() for _ in range(2))
+    scale = ["--time-scale", str(speed)] if speed != 1 else []
+    d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
+                          "--quiet", *scale, *daemon_args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    while "recording" not in (line := d.stderr.readline()):
+        assert line, "the daemon exited early"
+    return serve, d
+
+
 def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog acquire against sim --serve ptys: 10 min at real speed, then x20; loss, timing, CPU."""
     import os
     import signal
-    import subprocess
-    import sys
 
     from acquire.timesync import SyncState
     from replay import reader
@@ -244,16 +260,7 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
-        cli = [sys.executable, "-m", "tools.cli"]
-        serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration),
-                                  "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth)],
-                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        paths = dict(serve.stdout.readline().split() for _ in range(2))
-        extra = ["--time-scale", str(speed)] if speed != 1 else []
-        d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
-                              "--quiet", *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        while "recording" not in (line := d.stderr.readline()):
-            assert line, "the daemon exited early"
+        serve, d = _serve_and_acquire(duration, speed, truth, out)
         serve.send_signal(signal.SIGUSR1)
         serve.wait()
         d.send_signal(signal.SIGTERM)
@@ -286,8 +293,6 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     from the serial read (target median <= 50 ms) and provisional stamps against final and truth."""
     import os
     import signal
-    import subprocess
-    import sys
     import threading
 
     from acquire.timesync import SyncState
@@ -295,16 +300,7 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
 
     out, truth, bus, cfg = tmp / "drives_bus", tmp / "truth_bus.mcap", tmp / "bus.sock", tmp / "bus.toml"
     cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
-    cli = [sys.executable, "-m", "tools.cli"]
-    serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration_s),
-                              "--seed", "1", "--hold", "--truth", str(truth)],
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    paths = dict(serve.stdout.readline().split() for _ in range(2))
-    d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
-                          "--quiet", "--config", str(cfg)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                         text=True)
-    while "recording" not in (line := d.stderr.readline()):
-        assert line, "the daemon exited early"
+    serve, d = _serve_and_acquire(duration_s, 1.0, truth, out, "--config", str(cfg))
     batches: list = []
     client = threading.Thread(target=lambda: batches.extend(live.iter_batches(str(bus))))
     client.start()
@@ -401,8 +397,6 @@ def bench_view(runs: int, tmp: Path) -> None:
 
 def bench_export(runs: int, tmp: Path) -> None:
     """fieldlog export of a 1-hour 500 Hz drive to Parquet, in a child process: time and peak RSS."""
-    import subprocess
-    import sys
 
     from tools.sim.simulate import simulate
 

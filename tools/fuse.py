@@ -33,14 +33,14 @@ from __future__ import annotations
 import ast
 import math
 import os
-from dataclasses import asdict, dataclass, fields, is_dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from acquire import messages
-from acquire.config import ConfigError, from_table, read_toml
+from acquire.config import ConfigError, read_toml, typed_table
 from acquire.recorder import Recorder
 from fusion.engine import Engine, FusionConfig, ImuBlock, Solution
 from fusion.smoother import SmootherLog, smooth_solution
@@ -78,56 +78,10 @@ def parse_outage(text: str) -> tuple[float, float]:
     return start, length
 
 
-def _typed(where: str, key: str, value: Any, like: Any) -> Any:
-    """``value`` of the TOML table ``[where]`` converted to the type of the default ``like``; ConfigError naming
-    the key when it does not fit (int accepted for float, lists for tuples, a table for a dataclass)."""
-    def bad(what: str) -> ConfigError:
-        return ConfigError(f"[{where}] {key}: expected {what}, got {value!r}")
-
-    if is_dataclass(like):
-        if not isinstance(value, dict):
-            raise bad("a table")
-        return _from_table(type(like), f"{where}.{key}", value)
-    if isinstance(like, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(like, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("an integer")
-        return value
-    if isinstance(like, float) or like is None:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise bad("a finite number")
-        return float(value)
-    if isinstance(like, tuple):
-        def tup(v: Any) -> Any:
-            if isinstance(v, list):
-                return tuple(tup(x) for x in v)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise bad("an array of numbers")
-            return float(v)
-
-        out = tup(value) if isinstance(value, list) else None
-        if out is None or (like and len(out) != len(like)):
-            raise bad(f"an array of {len(like)} numbers" if like else "an array")
-        return out
-    if not isinstance(value, type(like)):
-        raise bad(type(like).__name__)
-    return value
-
-
-def _from_table(cls: type, where: str, table: dict[str, Any]) -> Any:
-    defaults = cls()
-    known = {f.name for f in fields(cls)}
-    d = {k: _typed(where, k, v, getattr(defaults, k)) if k in known else v for k, v in table.items()}
-    return from_table(cls, where, d)  # names an unknown key
-
-
 def fusion_config(table: dict[str, Any]) -> FusionConfig:
-    """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.from_table``); a bad key or value raises
+    """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.typed_table``); a bad key or value raises
     ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
-    cfg = _from_table(FusionConfig, "fusion", table)
+    cfg = typed_table(FusionConfig, "fusion", table)
     for key in ("output_hz", "cov_step_s"):
         if not getattr(cfg, key) > 0:
             raise ConfigError(f"[fusion] {key}: must be > 0")

@@ -89,6 +89,11 @@ def run(drive: Path, method: str, label: str, cfg: FusionConfig, folder: Path, w
     return Run(drive.name, label, (t - t0) * 1e-9, err)
 
 
+def _rms3(err: np.ndarray, first: int) -> float:
+    """RMS of the 3D error made of columns first..first+2 (E, N, U position or velocity)."""
+    return float(np.sqrt(np.nanmean(np.sum(err[:, first:first + 3] ** 2, axis=1))))
+
+
 def _cell(values: list[float], digits: int = 3) -> str:
     a = np.asarray(values, float)
     if not np.isfinite(a).any():
@@ -423,15 +428,12 @@ def study_ssr_sckf(out: Path, work: Path, seeds: int, say: Callable[[str], None]
             cfg = drive_config(drive)
             for m in ("sckf", "ssr-sckf"):
                 r = run(drive, m, m, cfg, work / "fused", (0.0, duration))
-                pos = float(np.sqrt(np.nanmean(np.sum(r.err[:, 0:3] ** 2, axis=1))))
-                vel = float(np.sqrt(np.nanmean(np.sum(r.err[:, 3:6] ** 2, axis=1))))
+                pos, vel = _rms3(r.err, E), _rms3(r.err, VE)
                 rows += [dict(study="ssr-sckf", case=scenario, drive=drive.name, method=m, quantity=q, unit=u,
                               value=v) for q, u, v in (("position", "m", pos), ("velocity", "m/s", vel))]
                 for a, b in SSR_SEGMENTS:
-                    e = _window(r, a, b)
                     rows.append(dict(study="ssr-sckf", case=f"{scenario} {a:g}-{b:g} s", drive=drive.name, method=m,
-                                     quantity="position", unit="m",
-                                     value=float(np.sqrt(np.nanmean(np.sum(e[:, 0:3] ** 2, axis=1))))))
+                                     quantity="position", unit="m", value=_rms3(_window(r, a, b), E)))
                 say(f"{drive.name} {m:8s}: position {pos:.3f} m, velocity {vel:.4f} m/s")
                 if scenario == "flight600-noisy":
                     plot_runs.append(r)
@@ -515,8 +517,7 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
                 for q, v in (("min", np.nanmin(e)), ("max", np.nanmax(e)), ("rms", np.sqrt(np.nanmean(e ** 2)))):
                     rows.append(dict(study="hinf", case=name, drive=drive.name, method=label, quantity=q, unit=unit,
                                      value=float(v)))
-            say(f"{drive.name} {label:12s}: RMS vel {np.sqrt(np.nanmean(np.sum(r.err[:, 3:6] ** 2, 1))):.3f} m/s, "
-                f"pos {np.sqrt(np.nanmean(np.sum(r.err[:, 0:3] ** 2, 1))):.2f} m")
+            say(f"{drive.name} {label:12s}: RMS vel {_rms3(r.err, VE):.3f} m/s, pos {_rms3(r.err, E):.2f} m")
             runs.append(r)
     table = _long(rows)
     fig = _plot(runs, ((VE, "vE err (m/s)"), (VN, "vN err (m/s)"), (E, "east err (m)"), (N, "north err (m)")),

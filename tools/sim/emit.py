@@ -11,7 +11,6 @@ from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from acquire import nmea
 from acquire.config import from_table
@@ -118,12 +117,11 @@ def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Gene
     n = len(seconds)
     ts = truth.evaluate(seconds)
     valid, factor = cfg.windows(seconds)
-    dt = 1.0 / cfg.rate_hz
-    phi = np.exp(-dt / cfg.gm_tau_s)
-    gm_sigma = np.array([cfg.gm_h_m, cfg.gm_h_m, cfg.gm_v_m])
-    drive = rng.standard_normal((n, 3)) * gm_sigma * np.sqrt(1 - phi**2)
-    drive[0] = rng.standard_normal(3) * gm_sigma
-    gm = lfilter([1.0], [1.0, -phi], drive, axis=0)
+    z = rng.standard_normal((n, 3))
+    z0 = rng.standard_normal(3)
+    if n:
+        z[0] = z0
+    gm = gauss_markov(seconds, cfg.gm_tau_s, z) * np.array([cfg.gm_h_m, cfg.gm_h_m, cfg.gm_v_m])
     white = rng.standard_normal((n, 3))
     vel = rng.standard_normal((n, 3))
     if cfg.noise_tau_s > 0:
