@@ -25,11 +25,11 @@ test: setup
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
 
 bench: setup
-	$(BIN)/python -m tools.bench
+	$(BIN)/python -m fieldlog.tools.bench
 
 # docs/viewer.png; needs `apt-get install -y xvfb xauth mesa-vulkan-drivers` (not part of `make test`)
 screenshot: setup
-	$(BIN)/python -m tools.screenshot
+	$(BIN)/python -m fieldlog.tools.screenshot
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
-    from acquire import timesync
+    from fieldlog.acquire import timesync
 
 T = TypeVar("T")
 
@@ -107,7 +107,7 @@ class AcquireConfig:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
     def sync_config(self) -> "timesync.TimeSyncConfig":
-        from acquire import timesync
+        from fieldlog.acquire import timesync
 
         return timesync.TimeSyncConfig.from_dict(self.timesync)
 

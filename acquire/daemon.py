@@ -60,9 +60,9 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from acquire import calib, messages, nmea, recorder, timesync
-from acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
-from acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.acquire import calib, messages, nmea, recorder, timesync
+from fieldlog.acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
+from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")

@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from acquire import calib, daq, messages, nmea, timesync
+from fieldlog.acquire import calib, daq, messages, nmea, timesync
 
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read

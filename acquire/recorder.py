@@ -47,7 +47,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER
 
-from acquire import messages
+from fieldlog.acquire import messages
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import theilslopes
 
-from acquire.config import from_table
+from fieldlog.acquire.config import from_table
 
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:

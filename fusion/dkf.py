@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.kf import KalmanFilter, Measurement
+from fieldlog.fusion.kf import KalmanFilter, Measurement
 
 BETA = 0.5  # information share of each local filter
 

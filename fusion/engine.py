@@ -67,12 +67,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion import earth, errmodel, hinf, ins, kf, predictors, sckf, ukf
-from fusion.dkf import DistributedKF
-from fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
+from fieldlog.fusion import earth, errmodel, hinf, ins, kf, predictors, sckf, ukf
+from fieldlog.fusion.dkf import DistributedKF
+from fieldlog.fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
 
 if TYPE_CHECKING:
-    from fusion.smoother import SmootherLog
+    from fieldlog.fusion.smoother import SmootherLog
 
 METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fusion import earth
+from fieldlog.fusion import earth
 
 N_STATES = 15
 N_NOISE = 12

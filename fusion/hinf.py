@@ -34,8 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.errmodel import N_STATES
-from fusion.kf import KalmanFilter
+from fieldlog.fusion.errmodel import N_STATES
+from fieldlog.fusion.kf import KalmanFilter
 
 
 class GammaTooSmall(ValueError):

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from fusion import earth
+from fieldlog.fusion import earth
 
 _gravity = njit(cache=True)(earth.gravity)
 _radii = njit(cache=True)(earth.principal_radii)

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion import earth, errmodel
-from fusion.errmodel import ATT, BG, N_STATES, POS, VEL
-from fusion.ins import NavState
+from fieldlog.fusion import earth, errmodel
+from fieldlog.fusion.errmodel import ATT, BG, N_STATES, POS, VEL
+from fieldlog.fusion.ins import NavState
 
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]  # (z (m,), H (m, 15), R (m, m))
 

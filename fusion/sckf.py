@@ -90,8 +90,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion import kf, ukf
-from fusion.errmodel import N_STATES
+from fieldlog.fusion import kf, ukf
+from fieldlog.fusion.errmodel import N_STATES
 
 Rule = tuple[np.ndarray, np.ndarray]  # unit points xi (m, n) (point j = x + S xi_j), weights w (m,)
 _PINV_RTOL = 1e-12

@@ -47,9 +47,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion import earth
-from fusion.engine import Solution
-from fusion.errmodel import ATT, N_STATES, POS, VEL
+from fieldlog.fusion import earth
+from fieldlog.fusion.engine import Solution
+from fieldlog.fusion.errmodel import ATT, N_STATES, POS, VEL
 
 RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
                    ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES)])

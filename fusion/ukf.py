@@ -47,10 +47,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion import earth
-from fusion.errmodel import BA, BG, N_STATES, VEL
-from fusion.ins import NavState
-from fusion.kf import KalmanFilter
+from fieldlog.fusion import earth
+from fieldlog.fusion.errmodel import BA, BG, N_STATES, VEL
+from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.kf import KalmanFilter
 
 
 @dataclass

@@ -43,8 +43,8 @@ import numpy as np
 import polars as pl
 from mcap.reader import make_reader
 
-from acquire import messages
-from replay import reader
+from fieldlog.acquire import messages
+from fieldlog.replay import reader
 
 
 def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:

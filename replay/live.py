@@ -34,8 +34,8 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from acquire import messages
-from replay.reader import Block, concat, decode
+from fieldlog.acquire import messages
+from fieldlog.replay.reader import Block, concat, decode
 
 FLAG_PROVISIONAL = 1     # acquire.daemon.BUS_PROVISIONAL
 FLAG_HOST_CLOCK = 2      # acquire.daemon.BUS_HOST_CLOCK

@@ -28,10 +28,10 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fusion.engine import Engine, FusionConfig, ImuBlock, Outage, Solution
-from replay import reader
-from replay.reader import IN_TOPICS, gps_block
-from replay import view as rv
+from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock, Outage, Solution
+from fieldlog.replay import reader
+from fieldlog.replay.reader import IN_TOPICS, gps_block
+from fieldlog.replay import view as rv
 
 PLAY_BLOCK_S = 1.0  # data seconds per logged block
 TOPICS = (*IN_TOPICS, "/truth/fix", "/truth/vel")
@@ -352,7 +352,7 @@ def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = No
     """``fieldlog view --live``: the daemon's live bus at ``address`` (its Unix socket, ``[daemon] bus``) through
     the same incremental fusion and logging as ``replay`` (``play``, unpaced: data comes at the car's pace).
     Waits up to ``wait_s`` for the daemon to open the bus; ends when the daemon closes it, on Ctrl-C or SIGTERM."""
-    from replay import live
+    from fieldlog.replay import live
 
     _check_sink(rrd, connect)
     end = time.monotonic() + wait_s

@@ -25,9 +25,9 @@ from mcap.records import Chunk, ChunkIndex
 from mcap.data_stream import ReadDataStream
 from mcap.summary import Summary
 
-from acquire import messages
-from acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
-from fusion.engine import GpsBlock
+from fieldlog.acquire import messages
+from fieldlog.acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
+from fieldlog.fusion.engine import GpsBlock
 
 
 @dataclass(frozen=True)

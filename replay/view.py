@@ -50,8 +50,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fusion import earth
-from replay import reader
+from fieldlog.fusion import earth
+from fieldlog.replay import reader
 
 TIMELINE = "gps_time"
 IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means

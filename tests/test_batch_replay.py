@@ -13,12 +13,12 @@ import polars as pl
 import pytest
 from test_view_export import RERUN, _rerun, _rows
 
-from replay import view as rview
-from replay.reader import read_topic
-from tools.batch import RESULT_SCHEMA, drive_rows, results_table
-from tools.cli import main as cli_main
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.replay import view as rview
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.batch import RESULT_SCHEMA, drive_rows, results_table
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 os.environ["CI"] = "1"  # rerun analytics off
 SEEDS = (1, 2, 3)

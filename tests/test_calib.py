@@ -4,8 +4,8 @@ import re
 import numpy as np
 import pytest
 
-from acquire import calib
-from acquire.calib import Calibration, SensorTriadCal, apply, default_calibration, load_calibration, to_counts
+from fieldlog.acquire import calib
+from fieldlog.acquire.calib import Calibration, SensorTriadCal, apply, default_calibration, load_calibration, to_counts
 
 
 def _skewed_calibration(rng: np.random.Generator) -> Calibration:

@@ -12,17 +12,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from acquire import messages
-from acquire.daemon import is_finished
-from replay import live, reader
+from fieldlog.acquire import messages
+from fieldlog.acquire.daemon import is_finished
+from fieldlog.replay import live, reader
 from test_serve import ROOT, expected_bytes, start_serve
-from tools.rebuild import read_metadata
+from fieldlog.tools.rebuild import read_metadata
 
 
 def start_daemon(out: Path, paths: dict[str, str], *extra: str, **popen: Any) -> tuple[subprocess.Popen, str]:
     """Start the daemon (``popen``: more Popen arguments) and wait until it has opened both ports; returns it
     and its log up to then."""
-    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "acquire", "--daq", paths["daq"], "--gps", paths["gps"],
+    p = subprocess.Popen([sys.executable, "-m", "fieldlog", "acquire", "--daq", paths["daq"], "--gps", paths["gps"],
                           "--out", str(out), "--quiet", *extra], cwd=ROOT, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, **popen)
     lines = []
@@ -44,7 +44,7 @@ def raw_stream(path: Path, port: str) -> tuple[bytes, np.ndarray]:
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tools.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "fieldlog", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=60)
 
 
@@ -157,7 +157,7 @@ def test_bad_config_is_one_clear_line_and_exit_2(tmp_path: Path, config: str, ex
 
 def test_nmea_status_decoding_from_sink_payload() -> None:
     """The status line reads fix and satellites back from the /gps/nmea payload the sink saw."""
-    from acquire import nmea
+    from fieldlog.acquire import nmea
 
     line = nmea.format_gga("GN", 3600.0, 30.5, 104.0, 1, 11, 0.9, 500.0, -35.0).decode().strip()
     data = messages.encode_sentence(1, line)

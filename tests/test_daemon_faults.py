@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire import daq
-from acquire.daemon import is_finished
-from replay import reader
+from fieldlog.acquire import daq
+from fieldlog.acquire.daemon import is_finished
+from fieldlog.replay import reader
 from test_daemon import raw_stream, run, start_daemon
 from test_serve import expected_bytes, start_serve
-from tools.rebuild import read_metadata, read_metadata_records
-from tools.sim.serve import PORTS, corrupt_stream
+from fieldlog.tools.rebuild import read_metadata, read_metadata_records
+from fieldlog.tools.sim.serve import PORTS, corrupt_stream
 
 SPEED = 20
 FRAME_NS = 2_000_000

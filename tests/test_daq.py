@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire import daq
+from fieldlog.acquire import daq
 
 L = daq.FRAME_SIZE
 

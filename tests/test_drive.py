@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from replay import reader
-from tools.cli import main as fieldlog
-from tools.info import drive_info, format_info
-from tools.rebuild import iter_raw, rebuild
-from tools.sim.simulate import simulate
+from fieldlog.replay import reader
+from fieldlog.tools.cli import main as fieldlog
+from fieldlog.tools.info import drive_info, format_info
+from fieldlog.tools.rebuild import iter_raw, rebuild
+from fieldlog.tools.sim.simulate import simulate
 
 BIN = Path(sys.executable).parent
 
@@ -82,7 +82,7 @@ def test_rebuild_is_bit_for_bit(figure8, tmp_path):
 
 def test_rebuild_with_new_calibration_changes_only_imu(figure8, tmp_path):
     cal = tmp_path / "cal.toml"
-    from acquire.calib import default_toml
+    from fieldlog.acquire.calib import default_toml
 
     cal.write_text(default_toml().replace("bias_V = [0.0, 0.0, 0.0]", "bias_V = [0.001, 0.0, 0.0]", 1))
     out = tmp_path / "recal.mcap"
@@ -121,7 +121,7 @@ def test_import_raw_captures_with_noise(figure8, tmp_path):
 
 
 def test_import_gps_only_mixed_talkers(tmp_path):
-    from acquire.nmea import sentence
+    from fieldlog.acquire.nmea import sentence
 
     log = b"".join([
         b"# a u-blox log, mixed talkers\n",
@@ -182,8 +182,8 @@ def test_info_and_allan_commands(figure8, capsys):
 def test_static_drive_allan_arw(tmp_path):
     """A short static drive through the whole chain: ARW and VRW come back (bias instability needs the
     2-hour drive of `make bench`)."""
-    from tools.allan import allan_deviation, noise_parameters
-    from tools.sim.sensors import ImuErrorConfig
+    from fieldlog.tools.allan import allan_deviation, noise_parameters
+    from fieldlog.tools.sim.sensors import ImuErrorConfig
 
     path = tmp_path / "static.mcap"
     simulate("static", 600, 5, path)
@@ -205,8 +205,8 @@ def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
 
 
 def test_cli_method_list_is_the_engines():
-    from fusion.engine import METHODS
-    from tools import cli
+    from fieldlog.fusion.engine import METHODS
+    from fieldlog.tools import cli
 
     assert tuple(cli.METHODS) == tuple(METHODS)
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion import earth
+from fieldlog.fusion import earth
 
 RNG = np.random.default_rng(42)
 

@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from fusion import earth, errmodel, ins, kf
-from fusion.dkf import DistributedKF
-from fusion.engine import Engine, FusionConfig
-from replay.reader import read_topic
-from tools.cli import main as cli_main
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.fusion import earth, errmodel, ins, kf
+from fieldlog.fusion.dkf import DistributedKF
+from fieldlog.fusion.engine import Engine, FusionConfig
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 240.0
 OUTAGE = (170.0, 30.0)
@@ -234,9 +234,9 @@ def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
 
 
 def test_closed_loop_resets_and_keeps_covariance_spd(drive):
-    from replay.reader import iter_blocks
-    from replay.reader import IN_TOPICS, gps_block
-    from fusion.engine import ImuBlock
+    from fieldlog.replay.reader import iter_blocks
+    from fieldlog.replay.reader import IN_TOPICS, gps_block
+    from fieldlog.fusion.engine import ImuBlock
 
     for method in ("kf", "dkf"):
         eng = Engine(method, FusionConfig())
@@ -310,8 +310,8 @@ def test_foreign_drive_without_raw_or_truth_fuses(tmp_path):
     """A drive written by another tool with only the data model's /imu, /gps/fix and /gps/vel fuses."""
     from mcap.reader import make_reader
 
-    from acquire.recorder import Recorder
-    from replay import reader
+    from fieldlog.acquire.recorder import Recorder
+    from fieldlog.replay import reader
 
     src = tmp_path / "sim.mcap"
     simulate("figure8", 150, 8, src)

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from fusion import earth, errmodel, hinf, ins, kf, ukf
-from fusion.engine import FusionConfig
-from replay.reader import read_topic
-from tools.cli import main as cli_main
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.fusion import earth, errmodel, hinf, ins, kf, ukf
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 150.0
 OUTAGE = (95.0, 25.0)

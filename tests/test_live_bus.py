@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.timesync import SyncState
-from replay import live, reader
+from fieldlog.acquire.timesync import SyncState
+from fieldlog.replay import live, reader
 from test_daemon import start_daemon
 from test_serve import start_serve
 

@@ -11,10 +11,10 @@ from test_daemon import start_daemon
 from test_serve import start_serve
 from test_view_export import _rerun, _rows
 
-from replay import reader
-from replay import view as rview
-from tools.cli import main as cli_main
-from tools.fuse import fuse
+from fieldlog.replay import reader
+from fieldlog.replay import view as rview
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.fuse import fuse
 
 os.environ["CI"] = "1"  # rerun analytics off
 DURATION_S, SPEED = 120.0, 10.0

@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pynmeagps import NMEAReader
 
-from acquire import nmea
+from fieldlog.acquire import nmea
 
 # A hand-written u-blox F9P (GN talker, NMEA 4.11) and NovAtel OEM7 (GP talker, RTK fixed) log, with a logger's
 # comment lines, a NovAtel ASCII log line and a blank line. Checksums are checked against pynmeagps below.

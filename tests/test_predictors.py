@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from fusion.engine import FusionConfig
-from fusion.predictors import OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_centres
-from replay.reader import read_topic
-from tools.evaluate import outage_errors
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_centres
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.evaluate import outage_errors
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 300.0
 OUTAGE = (190.0, 30.0)  # alignment at ~40 s: 150 s of training before it

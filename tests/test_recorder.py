@@ -15,9 +15,9 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
-from acquire import messages as m
-from acquire.recorder import Recorder, recover
-from replay import reader
+from fieldlog.acquire import messages as m
+from fieldlog.acquire.recorder import Recorder, recover
+from fieldlog.replay import reader
 
 T0 = 1_700_000_000 * 10**9
 DT = 2_000_000  # 500 Hz

@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.config import ConfigError
-from fusion import earth, ins
-from replay import reader
-from tools.cli import main as fieldlog
-from tools.evaluate import outage_error_series
-from tools.fuse import drive_config, fusion_config
-from tools.info import drive_info, format_info
-from tools.rebuild import read_metadata
-from tools.sim import trajectory as tj
-from tools.sim.emit import GpsConfig, gps_solution
-from tools.sim.sensors import ImuErrorConfig, gauss_markov, imu_counts
-from tools.sim.simulate import simulate
+from fieldlog.acquire.config import ConfigError
+from fieldlog.fusion import earth, ins
+from fieldlog.replay import reader
+from fieldlog.tools.cli import main as fieldlog
+from fieldlog.tools.evaluate import outage_error_series
+from fieldlog.tools.fuse import drive_config, fusion_config
+from fieldlog.tools.info import drive_info, format_info
+from fieldlog.tools.rebuild import read_metadata
+from fieldlog.tools.sim import trajectory as tj
+from fieldlog.tools.sim.emit import GpsConfig, gps_solution
+from fieldlog.tools.sim.sensors import ImuErrorConfig, gauss_markov, imu_counts
+from fieldlog.tools.sim.simulate import simulate
 
 NS = 1_000_000_000
 AIRCRAFT_S = 120.0
@@ -238,7 +238,7 @@ def test_coloured_gps_and_imu_noise():
     icfg = ImuErrorConfig.from_dict({"gm_tau_s": 0.2, "gyro_gm_sigma_dps": 0.02, "accel_gm_sigma_ug": 500.0})
     t = np.arange(120_000) / 500.0
     zero = np.zeros((t.size, 3))
-    from acquire.calib import load_calibration
+    from fieldlog.acquire.calib import load_calibration
 
     _, realised = imu_counts(t, zero, zero, icfg, load_calibration(None), np.random.default_rng(6))
     g, a = realised["gyro_coloured"], realised["accel_coloured"]

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from test_fusion import _errors
 
-from fusion import earth, errmodel, ins, kf, sckf, ukf
-from fusion.engine import FusionConfig
-from tools.cli import main as cli_main
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.fusion import earth, errmodel, ins, kf, sckf, ukf
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 N = 15
 RULES = {"spherical-radial": sckf.spherical_radial_rule(N), "simplex-radial": sckf.simplex_radial_rule(N)}

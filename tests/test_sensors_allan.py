@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from acquire.calib import G0, LSB_V, apply, default_calibration
-from tools import allan
-from tools.sim.sensors import ImuErrorConfig, flicker_noise, imu_counts
+from fieldlog.acquire.calib import G0, LSB_V, apply, default_calibration
+from fieldlog.tools import allan
+from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise, imu_counts
 
 FS = 500.0
 _QUIET = dict(
@@ -202,8 +202,8 @@ def test_two_hour_static_allan_recovers_configured_noise():
 
 
 def test_drive_report_reads_the_imu_topic(tmp_path):
-    from acquire import messages
-    from acquire.recorder import Recorder
+    from fieldlog.acquire import messages
+    from fieldlog.acquire.recorder import Recorder
 
     n = 60 * 500
     t_s, omega_ib_b, f_b = _static(n)

@@ -12,17 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
-from replay import reader
-from tools.rebuild import read_metadata
-from tools.sim import simulate, trajectory
-from tools.sim.serve import corrupt_stream
+from fieldlog.replay import reader
+from fieldlog.tools.rebuild import read_metadata
+from fieldlog.tools.sim import simulate, trajectory
+from fieldlog.tools.sim.serve import corrupt_stream
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def start_serve(*args: str) -> tuple[subprocess.Popen, dict[str, str]]:
     """Start ``fieldlog sim --serve`` and return it with its ``{port: pty path}`` lines."""
-    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "sim", "--serve", *args], cwd=ROOT,
+    p = subprocess.Popen([sys.executable, "-m", "fieldlog", "sim", "--serve", *args], cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     paths = {}
     for _ in range(2):

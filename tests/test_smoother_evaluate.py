@@ -4,10 +4,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fusion.engine import FusionConfig
-from replay.reader import read_topic
-from tools.cli import main as cli_main
-from tools.evaluate import (
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.evaluate import (
     PLOT_DT_S,
     QUANTITIES,
     StudyConfig,
@@ -15,8 +15,8 @@ from tools.evaluate import (
     place_outages,
     window_curves,
 )
-from tools.fuse import fuse
-from tools.sim.simulate import simulate
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 240.0
 OUTAGE = (170.0, 30.0)
@@ -128,7 +128,7 @@ def test_window_curves_put_each_window_on_time_since_its_start():
 def test_smoother_treats_a_predicted_correction_as_an_input_not_an_estimate():
     """No measurement after a bridge: the smoother must undo the prediction after it (error -b) and leave the
     records before it alone (0), not carry b back as if it were an estimated error."""
-    from fusion.smoother import SmootherLog, rts
+    from fieldlog.fusion.smoother import SmootherLog, rts
 
     log = SmootherLog(chunk=3)  # several spilled chunks
     P = np.eye(15)
@@ -147,7 +147,7 @@ def test_smoother_treats_a_predicted_correction_as_an_input_not_an_estimate():
 
 
 def test_verdict_says_whether_the_hybrid_beats_rbfn_and_the_paper_figure():
-    from tools.evaluate import verdict
+    from fieldlog.tools.evaluate import verdict
 
     def runs(e_n: list[float]) -> list[np.ndarray]:  # per-drive RMS rows, E = N = e
         return [np.r_[e, e, np.zeros(7)] for e in e_n]

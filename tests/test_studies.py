@@ -2,8 +2,8 @@
 
 import polars as pl
 
-from tools import studies
-from tools.cli import build_parser, main
+from fieldlog.tools import studies
+from fieldlog.tools.cli import build_parser, main
 
 
 def test_study_choices_match_the_module():

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from acquire.timesync import PpsEdge, SyncState, SyncStatus, TimeSync, TimeSyncConfig
-from tools.sim.clock import ClockConfig, PpsTruth, pps_frames, sample_times
+from fieldlog.acquire.timesync import PpsEdge, SyncState, SyncStatus, TimeSync, TimeSyncConfig
+from fieldlog.tools.sim.clock import ClockConfig, PpsTruth, pps_frames, sample_times
 
 FRAME_S = 38 * 10 / 460800          # a 38-byte frame at 460800 baud
 HOST_BOOT_S, HOST_PPM, WALL_OFFSET_S = 1234.5, 12.0, 0.37

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from fusion import earth, ins
-from tools.sim import trajectory as tj
+from fieldlog.fusion import earth, ins
+from fieldlog.tools.sim import trajectory as tj
 
 
 @pytest.fixture(scope="module")

@@ -12,14 +12,14 @@ import polars as pl
 import pytest
 from mcap.reader import make_reader
 
-from acquire import messages
-from replay import reader
-from replay import view as rview
-from replay.export import drive_frames
-from replay.reader import read_topic
-from tools.cli import main as cli_main
-from tools.sim.simulate import simulate
-from tools.sim.trajectory import SCENARIO_DIR
+from fieldlog.acquire import messages
+from fieldlog.replay import reader
+from fieldlog.replay import view as rview
+from fieldlog.replay.export import drive_frames
+from fieldlog.replay.reader import read_topic
+from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.sim.simulate import simulate
+from fieldlog.tools.sim.trajectory import SCENARIO_DIR
 
 os.environ["CI"] = "1"  # rerun analytics off
 RERUN = Path(sys.executable).parent / "rerun"

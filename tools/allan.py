@@ -204,7 +204,7 @@ def drive_report(path: str, plot_prefix: str | None = None) -> str:
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
     names them at the end of the text."""
-    from replay.reader import read_topic
+    from fieldlog.replay.reader import read_topic
 
     imu = read_topic(path, "/imu")
     stamp_ns = np.asarray(imu["stamp_ns"])

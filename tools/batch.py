@@ -34,11 +34,11 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
-from fusion.engine import FusionConfig
-from replay.reader import IN_TOPICS
-from tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
-from tools.fuse import drive_config, fuse
-from tools.info import drive_info
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.replay.reader import IN_TOPICS
+from fieldlog.tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
+from fieldlog.tools.fuse import drive_config, fuse
+from fieldlog.tools.info import drive_info
 
 RESULT_SCHEMA: dict[str, pl.DataType] = {
     "drive": pl.Utf8,

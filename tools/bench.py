@@ -1,6 +1,6 @@
 """``make bench``: speed and accuracy figures. Medians of several runs; ratios where two things are compared.
 
-    python -m tools.bench [--only NAME ...] [--runs N]
+    python -m fieldlog.tools.bench [--only NAME ...] [--runs N]
 """
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ def fmt_times(ts: list[float]) -> str:
 
 def bench_sim(runs: int, tmp: Path) -> None:
     """fieldlog sim of the 600 s figure8 drive (target <= 30 s), and its time-stamp accuracy (flag <= 100 us)."""
-    from tools.info import drive_info
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.info import drive_info
+    from fieldlog.tools.sim.simulate import simulate
 
     rms = []
 
@@ -57,7 +57,7 @@ def bench_sim(runs: int, tmp: Path) -> None:
 
 def bench_codecs(runs: int, tmp: Path) -> None:
     """DAQ frame decode of a 600 s drive in read-sized chunks; NMEA decode, ours against pynmeagps."""
-    from acquire import daq, nmea
+    from fieldlog.acquire import daq, nmea
 
     rng = np.random.default_rng(0)
     n = 300_000
@@ -108,7 +108,7 @@ def bench_codecs(runs: int, tmp: Path) -> None:
 
 def bench_recorder(runs: int, tmp: Path) -> None:
     """Encoding and writing 600k IMU messages (a 600 s drive's /imu and /truth/imu)."""
-    from acquire import messages, recorder
+    from fieldlog.acquire import messages, recorder
 
     n = 300_000
     t = 1_777_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 2_000_000
@@ -128,8 +128,8 @@ def bench_recorder(runs: int, tmp: Path) -> None:
 
 def bench_ins(runs: int, tmp: Path) -> None:
     """Strapdown INS over 300k samples (numba), and the truth it is fed from."""
-    from fusion import ins
-    from tools.sim import trajectory
+    from fieldlog.fusion import ins
+    from fieldlog.tools.sim import trajectory
 
     truth = trajectory.generate(trajectory.load_scenario("figure8"), 600)
     t = np.arange(300_000) / 500.0
@@ -143,10 +143,10 @@ def bench_ins(runs: int, tmp: Path) -> None:
 
 def bench_allan(runs: int, tmp: Path) -> None:
     """The 2-hour static drive through the whole chain: Allan deviation recovers ARW/VRW and bias instability."""
-    from replay import reader
-    from tools.allan import allan_deviation, noise_parameters
-    from tools.sim.sensors import ImuErrorConfig
-    from tools.sim.simulate import simulate
+    from fieldlog.replay import reader
+    from fieldlog.tools.allan import allan_deviation, noise_parameters
+    from fieldlog.tools.sim.sensors import ImuErrorConfig
+    from fieldlog.tools.sim.simulate import simulate
 
     path = tmp / "static.mcap"
     t0 = time.perf_counter()
@@ -167,8 +167,8 @@ def bench_allan(runs: int, tmp: Path) -> None:
 
 def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog fuse of a 600 s figure8 drive by ins, kf, dkf and dkf-rbfn: seconds and real-time factor."""
-    from tools.fuse import fuse
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.sim.simulate import simulate
 
     path, warm = tmp / "fuse_f8.mcap", tmp / "fuse_warm.mcap"
     simulate("figure8", duration_s, 1, path)
@@ -190,7 +190,7 @@ _FUSE_CHILD = ("import json, re, sys, time\n"
                "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1')\n"
                f"print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples, rss_mb={_PEAK_MB})))\n")
 _CLI_CHILD = ("import re, sys\n"
-              "from tools.cli import main\n"
+              "from fieldlog.tools.cli import main\n"
               "rc = main(sys.argv[1:])\n"
               f"print('peak_rss_mb', {_PEAK_MB})\n"
               "sys.exit(rc)\n")
@@ -208,7 +208,7 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> di
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
     """fieldlog fuse of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth), each in a
     child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.sim.simulate import simulate
 
     drives = []
     for h in hours:  # cached in the bench directory; the 1-hour one is bench_view's drive
@@ -235,7 +235,7 @@ def _serve_and_acquire(duration_s: float, speed: float, truth: Path, out: Path, 
                        ) -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
     """``sim --serve --hold`` of figure8 (truth to ``truth``) and ``acquire`` on its ptys into ``out``, the daemon
     recording; the caller releases the stream with SIGUSR1 to the first."""
-    cli = [sys.executable, "-m", "tools.cli"]
+    cli = [sys.executable, "-m", "fieldlog"]
     serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration_s),
                               "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth)],
                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -254,9 +254,9 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     import os
     import signal
 
-    from acquire.timesync import SyncState
-    from replay import reader
-    from tools.rebuild import read_metadata
+    from fieldlog.acquire.timesync import SyncState
+    from fieldlog.replay import reader
+    from fieldlog.tools.rebuild import read_metadata
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
@@ -295,8 +295,8 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     import signal
     import threading
 
-    from acquire.timesync import SyncState
-    from replay import live, reader
+    from fieldlog.acquire.timesync import SyncState
+    from fieldlog.replay import live, reader
 
     out, truth, bus, cfg = tmp / "drives_bus", tmp / "truth_bus.mcap", tmp / "bus.sock", tmp / "bus.toml"
     cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
@@ -333,10 +333,10 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     print(f"  provisional - final stamps (LOCKED, {sel.sum()} samples): RMS {rms(d_us):.0f} us, max "
           f"{np.abs(d_us).max():.0f} us; vs truth: provisional RMS {rms(e_us):.0f} us, final RMS {rms(ef_us):.0f} us "
           f"(sampled PPS); before the first lock {np.count_nonzero(~fitted)} samples on the host clock")
-    from acquire.daemon import ProvisionalImu
-    from acquire.pipeline import Pipeline
-    from acquire.timesync import TimeSyncConfig
-    from tools.sim import simulate, trajectory
+    from fieldlog.acquire.daemon import ProvisionalImu
+    from fieldlog.acquire.pipeline import Pipeline
+    from fieldlog.acquire.timesync import TimeSyncConfig
+    from fieldlog.tools.sim import simulate, trajectory
 
     class Collect:
         """The bus side of ProvisionalImu: keeps what it publishes."""
@@ -382,10 +382,10 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
 
 def bench_view(runs: int, tmp: Path) -> None:
     """A 1-hour 500 Hz drive plus one fused method (kf) to .rrd (target <= 10 s), and the file size."""
-    from fusion.engine import FusionConfig
-    from replay.view import view
-    from tools.fuse import fuse
-    from tools.sim.simulate import simulate
+    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.replay.view import view
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.sim.simulate import simulate
 
     drive, fused, rrd = tmp / "hour.mcap", tmp / "hour_kf.mcap", tmp / "hour.rrd"
     simulate("figure8", 3600, 1, drive)
@@ -398,7 +398,7 @@ def bench_view(runs: int, tmp: Path) -> None:
 def bench_export(runs: int, tmp: Path) -> None:
     """fieldlog export of a 1-hour 500 Hz drive to Parquet, in a child process: time and peak RSS."""
 
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.sim.simulate import simulate
 
     drive = tmp / "hour.mcap"  # bench_view's drive, cached in the bench directory
     if not drive.exists():
@@ -422,8 +422,8 @@ def bench_export(runs: int, tmp: Path) -> None:
 
 def bench_batch(runs: int, tmp: Path) -> None:
     """fieldlog batch of 4 drives (300 s; kf, dkf; 30 s outages): 2 Dask workers against one by one in-process."""
-    from tools.batch import drive_rows, run_batch
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.batch import drive_rows, run_batch
+    from fieldlog.tools.sim.simulate import simulate
 
     drives = []
     for seed in range(1, 5):
@@ -438,7 +438,7 @@ def bench_batch(runs: int, tmp: Path) -> None:
 
 def bench_cycle(runs: int, tmp: Path) -> None:
     """Per-cycle cost at n = 15 of kf, kf-ukf (outage), sckf, ssr-sckf, hinf: prediction alone and with a GPS update."""
-    from tools.studies import CYCLE_REPS, cycle_costs, cycle_flops
+    from fieldlog.tools.studies import CYCLE_REPS, cycle_costs, cycle_flops
 
     n = 15
     med = cycle_costs(runs)

@@ -33,7 +33,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         return cmd_sim_serve(a)
     if not a.out:
         raise ValueError("--out is required (or --serve)")
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.sim.simulate import simulate
 
     t0 = time.monotonic()
     res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"))
@@ -43,7 +43,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
 
 def cmd_sim_serve(a: argparse.Namespace) -> int:
-    from tools.sim.serve import Unplug, serve
+    from fieldlog.tools.sim.serve import Unplug, serve
 
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
@@ -51,7 +51,7 @@ def cmd_sim_serve(a: argparse.Namespace) -> int:
 
 
 def cmd_acquire(a: argparse.Namespace) -> int:
-    from acquire import config, daemon
+    from fieldlog.acquire import config, daemon
 
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
     if not (a.view or a.view_rrd):
@@ -60,14 +60,14 @@ def cmd_acquire(a: argparse.Namespace) -> int:
     import subprocess
     import tempfile
 
-    from replay.view import has_display
+    from fieldlog.replay.view import has_display
 
     if not a.view_rrd and not has_display():
         raise ValueError("--view: no display to open the viewer on (use --view-rrd FILE)")
     if not cfg.daemon.bus:  # the view needs the live bus
         cfg.daemon.bus = str(Path(tempfile.gettempdir()) / f"fieldlog-{os.getpid()}.sock")
     # the view runs as a child process, so fusion and rendering never take the GIL from the acquisition threads
-    viewer = subprocess.Popen([sys.executable, "-m", "tools.cli", "view", "--live", cfg.daemon.bus, "--method",
+    viewer = subprocess.Popen([sys.executable, "-m", "fieldlog", "view", "--live", cfg.daemon.bus, "--method",
                                a.view_method, *(["--rrd", a.view_rrd] if a.view_rrd else [])])
     try:
         rc = daemon.run_daemon(cfg, quiet=a.quiet)
@@ -81,7 +81,7 @@ def cmd_acquire(a: argparse.Namespace) -> int:
 
 
 def cmd_recover(a: argparse.Namespace) -> int:
-    from acquire.recorder import recover
+    from fieldlog.acquire.recorder import recover
 
     src = Path(a.drive)
     if not src.is_file():
@@ -99,14 +99,14 @@ def cmd_recover(a: argparse.Namespace) -> int:
 
 
 def cmd_info(a: argparse.Namespace) -> int:
-    from tools.info import drive_info, format_info
+    from fieldlog.tools.info import drive_info, format_info
 
     print(format_info(drive_info(a.drive)))
     return 0
 
 
 def cmd_import(a: argparse.Namespace) -> int:
-    from tools.importer import import_captures
+    from fieldlog.tools.importer import import_captures
 
     res = import_captures(a.gps, a.daq, a.out, fs_hz=a.fs, pps_mode=a.pps)
     print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs "
@@ -116,7 +116,7 @@ def cmd_import(a: argparse.Namespace) -> int:
 
 
 def cmd_rebuild(a: argparse.Namespace) -> int:
-    from tools.rebuild import rebuild
+    from fieldlog.tools.rebuild import rebuild
 
     res = rebuild(a.drive, a.out, calibration=a.calib, progress=Progress("rebuild"))
     print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
@@ -124,7 +124,7 @@ def cmd_rebuild(a: argparse.Namespace) -> int:
 
 
 def cmd_allan(a: argparse.Namespace) -> int:
-    from tools.allan import drive_report
+    from fieldlog.tools.allan import drive_report
 
     print(drive_report(a.drive, plot_prefix=a.plot))
     return 0
@@ -133,7 +133,7 @@ def cmd_allan(a: argparse.Namespace) -> int:
 def cmd_fuse(a: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from tools.fuse import NO_ALIGNMENT, drive_config, fuse, load_fusion_config, parse_outage
+    from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse, load_fusion_config, parse_outage
 
     cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
     if a.outage:
@@ -148,7 +148,7 @@ def cmd_fuse(a: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    from tools.evaluate import check_methods, evaluate
+    from fieldlog.tools.evaluate import check_methods, evaluate
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     check_methods(methods)
@@ -161,7 +161,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     report = Path(a.report)
     drives = [Path(d) for d in a.drive]
     if a.seeds:
-        from tools.sim.simulate import simulate
+        from fieldlog.tools.sim.simulate import simulate
 
         (report / "drives").mkdir(parents=True, exist_ok=True)
         for seed in range(1, a.seeds + 1):
@@ -173,7 +173,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         if not d.is_file():
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
-    from tools.fuse import load_fusion_config
+    from fieldlog.tools.fuse import load_fusion_config
 
     evaluate(drives, lengths, methods, report, smooth=a.smooth,
              config=load_fusion_config(a.config) if a.config else None)
@@ -183,7 +183,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def cmd_study(a: argparse.Namespace) -> int:
-    from tools.studies import study
+    from fieldlog.tools.studies import study
 
     study(a.name, Path(a.out or f"docs/studies/{a.name}"), Path(a.work or f"out/studies/{a.name}"), a.seeds, a.runs)
     return 0
@@ -214,8 +214,8 @@ def cmd_demo(a: argparse.Namespace) -> int:
 
 
 def cmd_view_live(a: argparse.Namespace) -> int:
-    from acquire import config
-    from replay.player import live_view
+    from fieldlog.acquire import config
+    from fieldlog.replay.player import live_view
 
     address = a.live or config.load(a.config, {"daq": "-", "gps": "--"}).daemon.bus
     if not address:
@@ -230,7 +230,7 @@ def cmd_view_live(a: argparse.Namespace) -> int:
 
 
 def cmd_view(a: argparse.Namespace) -> int:
-    from replay.view import view
+    from fieldlog.replay.view import view
 
     if a.live is not None:
         if a.drive or a.fused:
@@ -253,7 +253,7 @@ def cmd_view(a: argparse.Namespace) -> int:
 
 
 def cmd_export(a: argparse.Namespace) -> int:
-    from replay.export import export
+    from fieldlog.replay.export import export
 
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
     t0 = time.monotonic()
@@ -269,8 +269,8 @@ def cmd_export(a: argparse.Namespace) -> int:
 def cmd_batch(a: argparse.Namespace) -> int:
     import glob
 
-    from tools.batch import run_batch, summary
-    from tools.evaluate import check_methods
+    from fieldlog.tools.batch import run_batch, summary
+    from fieldlog.tools.evaluate import check_methods
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     check_methods(methods)
@@ -294,8 +294,8 @@ def cmd_batch(a: argparse.Namespace) -> int:
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
-    from replay.player import replay
-    from tools.fuse import drive_config, load_fusion_config
+    from fieldlog.replay.player import replay
+    from fieldlog.tools.fuse import drive_config, load_fusion_config
 
     cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
     res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=cfg,
@@ -307,7 +307,10 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from fieldlog import __version__
+
     p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay")
+    p.add_argument("--version", action="version", version=f"fieldlog {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("sim", help="simulate a drive through the real acquisition code")

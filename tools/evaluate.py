@@ -32,10 +32,10 @@ from typing import Callable, Sequence
 import numpy as np
 import polars as pl
 
-from fusion import earth
-from fusion.engine import METHODS, FusionConfig
-from replay import reader
-from tools.fuse import NO_ALIGNMENT, drive_config, fuse
+from fieldlog.fusion import earth
+from fieldlog.fusion.engine import METHODS, FusionConfig
+from fieldlog.replay import reader
+from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
 
 QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
               ("vU", "m/s"), ("roll", "deg"), ("pitch", "deg"), ("heading", "deg"))

@@ -39,14 +39,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from acquire import messages
-from acquire.config import ConfigError, read_toml, typed_table
-from acquire.recorder import Recorder
-from fusion.engine import Engine, FusionConfig, ImuBlock, Solution
-from fusion.smoother import SmootherLog, smooth_solution
-from replay import reader
-from replay.reader import IN_TOPICS, gps_block
-from tools.rebuild import read_metadata
+from fieldlog.acquire import messages
+from fieldlog.acquire.config import ConfigError, read_toml, typed_table
+from fieldlog.acquire.recorder import Recorder
+from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock, Solution
+from fieldlog.fusion.smoother import SmootherLog, smooth_solution
+from fieldlog.replay import reader
+from fieldlog.replay.reader import IN_TOPICS, gps_block
+from fieldlog.tools.rebuild import read_metadata
 
 BLOCK_S = 10.0
 

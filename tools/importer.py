@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire import daq, nmea, recorder, timesync
-from acquire.pipeline import Pipeline, RawRead, read_order
-from tools.rebuild import RebuildResult
+from fieldlog.acquire import daq, nmea, recorder, timesync
+from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.tools.rebuild import RebuildResult
 
 NS = 1_000_000_000
 NMEA_LATENCY_S = 0.2

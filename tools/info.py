@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire import messages
-from replay import reader
-from tools.rebuild import read_metadata_records
+from fieldlog.acquire import messages
+from fieldlog.replay import reader
+from fieldlog.tools.rebuild import read_metadata_records
 
 NS = 1_000_000_000
 

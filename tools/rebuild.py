@@ -13,9 +13,9 @@ from typing import Callable, Iterator
 
 from mcap.reader import make_reader
 
-from acquire import calib, recorder
-from replay import reader
-from acquire.pipeline import Counters, Pipeline, RawRead, read_order
+from fieldlog.acquire import calib, recorder
+from fieldlog.replay import reader
+from fieldlog.acquire.pipeline import Counters, Pipeline, RawRead, read_order
 
 
 @dataclass

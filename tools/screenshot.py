@@ -1,6 +1,6 @@
 """``make screenshot``: docs/viewer.png, the default rerun layout of ``fieldlog view`` on a simulated drive.
 
-    python -m tools.screenshot [--out docs/viewer.png] [--duration 300] [--size 1600x1000]
+    python -m fieldlog.tools.screenshot [--out docs/viewer.png] [--duration 300] [--size 1600x1000]
 
 A figure8 drive is simulated, fused with ``dkf-rbfn`` through a 30 s GPS outage (the ``fieldlog demo``
 steps), and logged by ``replay.view.build`` with the blueprint of ``replay.view.blueprint`` (side panels
@@ -25,8 +25,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from replay import reader
-from replay import view as rv
+from fieldlog.replay import reader
+from fieldlog.replay import view as rv
 
 ROOT = Path(__file__).resolve().parents[1]
 APT = "xvfb xauth mesa-vulkan-drivers"
@@ -48,9 +48,9 @@ def screenshot_blueprint(zoom: float | None = None) -> rrb.Blueprint:
 
 def demo_recording(work: Path, duration_s: float) -> Path:
     """Simulate, fuse dkf-rbfn with a 30 s outage at 180 s, write ``work/viewer.rrd``."""
-    from fusion.engine import FusionConfig
-    from tools.fuse import fuse, parse_outage
-    from tools.sim.simulate import simulate
+    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.tools.fuse import fuse, parse_outage
+    from fieldlog.tools.sim.simulate import simulate
 
     drive, fused, rrd = work / "figure8.mcap", work / "dkf-rbfn.mcap", work / "viewer.rrd"
     simulate("figure8", duration_s, 1, drive)

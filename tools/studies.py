@@ -36,10 +36,10 @@ from typing import Callable
 import numpy as np
 import polars as pl
 
-from fusion.engine import FusionConfig
-from replay import reader
-from tools.evaluate import outage_error_series, rms_columns
-from tools.fuse import drive_config, fuse
+from fieldlog.fusion.engine import FusionConfig
+from fieldlog.replay import reader
+from fieldlog.tools.evaluate import outage_error_series, rms_columns
+from fieldlog.tools.fuse import drive_config, fuse
 
 # Columns of ``outage_error_series``: position E, N, U (m); velocity E, N, U (m/s); roll, pitch, heading (deg).
 E, N, U, VE, VN, VU, ROLL, PITCH, YAW = range(9)
@@ -59,7 +59,7 @@ class Run:
 def simulate_drives(scenario: str, duration_s: float, seeds: int, folder: Path, say: Callable[[str], None]
                     ) -> list[Path]:
     """Drives seeds 1..N of a scenario in ``folder`` (reused when already there)."""
-    from tools.sim.simulate import simulate
+    from fieldlog.tools.sim.simulate import simulate
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []
@@ -295,7 +295,7 @@ def cycle_costs(runs: int) -> dict[str, dict[str, float]]:
     CYCLE_REPS cycles: method -> predict_us (prediction alone), total_us (prediction + GPS update + reset),
     update_us (the update's part of the total). kf-ukf runs in outage mode (the UT every cycle); the adaptive
     window of ssr-sckf is filled first (its steady state)."""
-    from fusion import earth, errmodel, hinf, ins, kf, sckf, ukf
+    from fieldlog.fusion import earth, errmodel, hinf, ins, kf, sckf, ukf
 
     reps = CYCLE_REPS
     C = earth.euler_to_dcm(0.3, 0.02, -0.01)
@@ -416,7 +416,7 @@ SSR_SEGMENTS = ((0.0, 200.0), (200.0, 400.0), (400.0, 600.0))
 
 
 def study_ssr_sckf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) -> pl.DataFrame:
-    from fusion import sckf
+    from fieldlog.fusion import sckf
 
     # per cycle with a GPS update: sckf's points in the time update and again in the measurement update
     # (eq. 13); ssr-sckf's in the time update only (the SVD update needs none)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from acquire.config import from_table
+from fieldlog.acquire.config import from_table
 
 
 @dataclass

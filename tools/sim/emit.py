@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from acquire import nmea
-from acquire.config import from_table
-from acquire.pipeline import RawRead
-from fusion import earth
-from tools.sim.sensors import gauss_markov
+from fieldlog.acquire import nmea
+from fieldlog.acquire.config import from_table
+from fieldlog.acquire.pipeline import RawRead
+from fieldlog.fusion import earth
+from fieldlog.tools.sim.sensors import gauss_markov
 
 NS = 1_000_000_000
 NMEA_TICK_NS = 10_000_000  # NMEA times are written to the centisecond

@@ -50,8 +50,8 @@ import numpy as np
 from numba import njit
 from scipy.signal import lfilter
 
-from acquire.calib import G0, Calibration, SensorTriadCal, to_counts
-from acquire.config import from_table
+from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
+from fieldlog.acquire.config import from_table
 
 _DEG = math.pi / 180.0
 _UG = 1e-6 * G0

@@ -51,8 +51,8 @@ from typing import Callable, TextIO
 
 import numpy as np
 
-from acquire import daq, recorder
-from tools.sim import simulate, trajectory
+from fieldlog.acquire import daq, recorder
+from fieldlog.tools.sim import simulate, trajectory
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")

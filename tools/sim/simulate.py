@@ -18,11 +18,11 @@ from typing import Callable
 
 import numpy as np
 
-from acquire import calib, daq, messages, recorder, timesync
-from acquire.pipeline import Pipeline, RawRead, read_order
-from tools.sim import clock as simclock
-from tools.sim import sensors, trajectory
-from tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, serial_reads
+from fieldlog.acquire import calib, daq, messages, recorder, timesync
+from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.tools.sim import clock as simclock
+from fieldlog.tools.sim import sensors, trajectory
+from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, serial_reads
 
 NS = 1_000_000_000
 DAQ_BAUD = 921_600
@@ -122,7 +122,7 @@ def fusion_metadata(table: dict) -> dict[str, str]:
     ConfigError naming it)."""
     if not table:
         return {}
-    from tools.fuse import fusion_config
+    from fieldlog.tools.fuse import fusion_config
 
     fusion_config(table)
     return {k: repr(v) for k, v in table.items()}

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion import earth
+from fieldlog.fusion import earth
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 GRID_STEP_S = 0.1

@@ -1,0 +1,54 @@
+"""One distribution, one import name: the wheel holds only `fieldlog`, and both installs import it from outside."""
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(args, cwd, **env):
+    import os
+
+    return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=600, env={**os.environ, **env})
+
+
+def test_wheel_holds_only_fieldlog(tmp_path):
+    r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(ROOT)],
+             tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("fieldlog-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
+    assert top == {"fieldlog"}
+    assert "fieldlog/tools/sim/scenarios/figure8.toml" in names   # scenario data travels with the code
+
+    # the wheel, unpacked on its own path, imported from a directory outside the checkout
+    site = tmp_path / "site"
+    r = _run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    probe = ("import fieldlog, fieldlog.fusion, fieldlog.acquire, fieldlog.replay, fieldlog.tools.cli; "
+             "print(fieldlog.fusion.__file__)")
+    r = _run([sys.executable, "-c", probe], tmp_path, PYTHONPATH=str(site))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().startswith(str(site))
+    r = _run([sys.executable, "-c", "import tools"], tmp_path, PYTHONPATH=str(site))
+    assert r.returncode != 0 and "No module named 'tools'" in r.stderr
+    r = _run([sys.executable, "-m", "fieldlog", "--version"], tmp_path, PYTHONPATH=str(site))
+    import tomllib
+
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert r.returncode == 0 and r.stdout.strip() == f"fieldlog {version}", r.stdout + r.stderr
+
+
+def test_editable_install_imports_fieldlog_only(tmp_path):
+    """The test environment is the editable install (`make setup`): outside the checkout only `fieldlog` imports."""
+    r = _run([sys.executable, "-c", "import fieldlog.fusion; print(fieldlog.fusion.__file__)"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert Path(r.stdout.strip()).resolve() == ROOT / "fusion" / "__init__.py"
+    for name in ("tools", "acquire", "fusion", "replay"):
+        r = _run([sys.executable, "-c", f"import {name}"], tmp_path)
+        assert r.returncode != 0, name
+    exe = Path(sys.executable).parent / "fieldlog"
+    r = _run([str(exe), "--version"], tmp_path)
+    assert r.returncode == 0 and r.stdout.startswith("fieldlog "), r.stderr
