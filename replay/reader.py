@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
 from mcap.reader import make_reader
@@ -27,7 +27,9 @@ from mcap.summary import Summary
 
 from fieldlog.acquire import messages
 from fieldlog.acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
-from fieldlog.fusion.engine import GpsBlock
+
+if TYPE_CHECKING:
+    from fieldlog.fusion.engine import GpsBlock
 
 
 @dataclass(frozen=True)
@@ -368,8 +370,10 @@ def iter_raw_batches(path: str | os.PathLike[str], topic: str) -> Iterator[dict[
 IN_TOPICS = ("/imu", "/gps/fix", "/gps/vel")   # the topics ``fusion.engine`` runs on
 
 
-def gps_block(fix: dict, vel: dict) -> GpsBlock:
+def gps_block(fix: dict, vel: dict) -> "GpsBlock":
     """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs."""
+    from fieldlog.fusion.engine import GpsBlock  # here, so reading a drive never loads the fusion stack
+
     n = len(fix.get("log_time_ns", ()))
     if n == 0:
         return GpsBlock.empty()

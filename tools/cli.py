@@ -11,6 +11,31 @@ from pathlib import Path
 # (tests/test_drive.py checks the two agree)
 METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 
+# Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
+# installed says which extra to install, in one line.
+EXTRAS = {"numba": "fusion", "llvmlite": "fusion", "rerun": "view", "polars": "export", "pyarrow": "export",
+          "matplotlib": "plots", "dask": "batch", "distributed": "batch"}
+
+
+class MissingExtra(ValueError):
+    """An optional dependency of the command is not installed (reported like a bad argument: one line, exit 2)."""
+
+
+def needs_extras(func):
+    """Wrap a command so that an ImportError of an optional dependency becomes ``MissingExtra``."""
+
+    def run(a: argparse.Namespace) -> int:
+        try:
+            return func(a)
+        except ModuleNotFoundError as e:
+            root = (e.name or "").split(".")[0]
+            if root not in EXTRAS:
+                raise
+            raise MissingExtra(f"{root} is not installed: pip install 'fieldlog[{EXTRAS[root]}]' "
+                               f"(or 'fieldlog[all]')") from None
+
+    return run
+
 
 class Progress:
     """A one-line progress display on a terminal; silent otherwise."""
@@ -451,6 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="out/demo")
     s.add_argument("--duration", type=float, default=300.0, help="seconds of drive to simulate (>= 240)")
     s.set_defaults(func=cmd_demo)
+    for s in sub.choices.values():
+        s.set_defaults(func=needs_extras(s.get_default("func")))
     return p
 
 
