@@ -78,6 +78,9 @@ class DistributedKF:
         self.kf_vel.update(*m)
         self.x, self.P = fuse(self.locals)
 
+    def start_outage(self) -> None:
+        """Told at each unusable GPS epoch: nothing to do."""
+
     def reset(self) -> None:
         """After feedback: fused and local states to zero, local covariances to P / beta."""
         self.x = np.zeros_like(self.x)

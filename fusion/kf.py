@@ -91,6 +91,9 @@ class KalmanFilter:
         call so that a filter made of local filters (``fusion.dkf``) can route it to the right one."""
         self.update(*m)
 
+    def start_outage(self) -> None:
+        """Told at each unusable GPS epoch; nothing to do for a linear KF (``fusion.ukf.HybridKfUkf`` acts on it)."""
+
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)

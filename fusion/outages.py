@@ -1,0 +1,115 @@
+"""GPS outages: which epochs are usable, the outage windows, and bridging them with a predictor.
+
+An epoch is unusable when its status is NO_FIX, its lat/lon are NaN, its horizontal sigma is above
+``max_fix_sigma_m``, or it falls in a forced window (``outages``, seconds from the first IMU sample).
+Detected windows run from the first unusable epoch to the next usable one (:class:`OutageTracker`).
+
+Bridging (``rbfn``, ``tdln``, ``dkf-rbfn``; ``fusion.predictors`` for the mapping of the paper onto the closed
+loop): :class:`PredictorBridge` gives the predictor, at each usable epoch, the INS position (ENU m from the
+alignment point) and velocity before the correction and its target: the observation z = INS - GPS (``rbfn``,
+``tdln``) or the position and velocity components of the correction fed back (``dkf-rbfn``). At each unusable
+or withheld epoch it returns the predicted correction, which the engine feeds into the INS.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fieldlog.fusion import kf, predictors
+from fieldlog.fusion.errmodel import N_STATES, POS, VEL
+from fieldlog.fusion.ins import NavState
+
+NS = 1_000_000_000
+PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
+
+
+@dataclass
+class Outage:
+    """A GPS outage window [start_ns, end_ns) UTC; reason "injected", "no_fix" or "low_quality"."""
+
+    start_ns: int
+    end_ns: int
+    reason: str
+
+
+class OutageTracker:
+    """Classifies GPS epochs and collects the outage windows, forced and detected."""
+
+    def __init__(self, max_fix_sigma_m: float) -> None:
+        self.max_fix_sigma_m = max_fix_sigma_m
+        self._open: Outage | None = None
+        self._forced: list[tuple[int, int]] = []
+        self._outages: list[Outage] = []
+
+    def force(self, t_ref_ns: int, windows: tuple[tuple[float, float], ...]) -> None:
+        """Forced windows (start_s, length_s) from t_ref_ns (the first IMU sample)."""
+        self._forced = [(t_ref_ns + int(s * NS), t_ref_ns + int((s + n) * NS)) for s, n in windows]
+        self._outages += [Outage(a, b, "injected") for a, b in self._forced]
+
+    def classify(self, ep: dict) -> bool:
+        """Whether an epoch's fix is usable; opens and closes the detected outage windows."""
+        t = ep["t_ns"]
+        good_fix = ep["status"] >= 0 and math.isfinite(ep["lat"]) and math.isfinite(ep["lon"])  # h may be NaN
+        low = good_fix and not math.sqrt(max(ep["pos_cov"][0, 0], ep["pos_cov"][1, 1])) <= self.max_fix_sigma_m
+        usable = good_fix and not low
+        if not usable and self._open is None:
+            self._open = Outage(t, t, "low_quality" if low else "no_fix")
+        elif usable and self._open is not None:
+            self._open.end_ns = t
+            self._outages.append(self._open)
+            self._open = None
+        forced = any(a <= t < b for a, b in self._forced)
+        return usable and not forced
+
+    def finish(self, end_ns: int | None) -> None:
+        """Close an outage still open at end_ns (the last IMU sample; None: at its start)."""
+        if self._open is not None:
+            self._open.end_ns = end_ns if end_ns is not None else self._open.start_ns
+            self._outages.append(self._open)
+            self._open = None
+
+    def take(self) -> list[Outage]:
+        """The windows not yet returned."""
+        out, self._outages = self._outages, []
+        return out
+
+
+class PredictorBridge:
+    """The outage predictor of a method of ``PREDICTOR_NETWORK``, fed and asked by the engine at GPS epochs."""
+
+    def __init__(self, method: str, config: predictors.PredictorConfig) -> None:
+        self.hybrid = method == "dkf-rbfn"
+        self.predictor = predictors.OutagePredictor(PREDICTOR_NETWORK[method], config)
+        self.origin: tuple[float, float, float] | None = None  # lat, lon, h of the alignment point
+
+    def input(self, nav: NavState) -> np.ndarray:
+        """INS position (ENU m from the alignment point) and velocity (ENU m/s), (6,)."""
+        r = kf.enu_offset(nav.lat, nav.lon, nav.h, *self.origin)
+        return np.concatenate([r, nav.v_n])
+
+    def train(self, t_s: float, u: np.ndarray, x: np.ndarray, pos: kf.Measurement, vel: kf.Measurement | None
+              ) -> None:
+        """A usable epoch at t_s: input u (6,) before the update, the estimate x (15,) fed back after it."""
+        y = np.concatenate([x[POS], x[VEL]]) if self.hybrid else _observation(pos, vel)
+        self.predictor.train(t_s, u, y)
+
+    def correction(self, nav: NavState) -> np.ndarray | None:
+        """An outage epoch: the predicted correction as an error state (15,), None when there is none."""
+        d = np.nan_to_num(self.predictor.predict(self.input(nav)))  # a channel without a model: none
+        if not d.any():
+            return None
+        x = np.zeros(N_STATES)
+        x[POS], x[VEL] = d[:3], d[3:]
+        return x
+
+
+def _observation(pos: kf.Measurement, vel: kf.Measurement | None) -> np.ndarray:
+    """z = INS - GPS as (6,): position E, N, U (m), velocity E, N, U (m/s); NaN for a component not measured."""
+    out = np.full(6, np.nan)
+    for m, cols, at in ((pos, POS, 0), (vel, VEL, 3)):
+        if m is not None and len(m[0]):
+            out[at + np.argmax(np.abs(m[1][:, cols]), axis=1)] = m[0]
+    return out
