@@ -76,7 +76,7 @@ class Alignment:
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
-        self.lever = np.asarray(cfg.lever_arm_b, dtype=float)
+        self.lever = cfg.lever_rfu()
         self._static = ImuSums()
         self._last_speed = math.inf
 
@@ -117,7 +117,7 @@ class Alignment:
                            ep["h"] + d_enu[2], v0, earth.dcm_to_quat(C))
         speed = math.hypot(v[0], v[1])
         sd_level = (c.init_level_sigma_deg if static else 5.0) * _DEG
-        sd_head = math.hypot(c.init_heading_sigma_deg * _DEG, math.sqrt(max(ep["vel_cov"][0, 0], 0.01)) / speed)
+        sd_head = math.hypot(c.init_heading_sigma_deg * _DEG, math.sqrt(max(_course_var(ep), 0.01)) / speed)
         sd_bg = (c.init_gyro_bias_sigma_dps if static else 0.1) * _DEG
         pos_var = np.diag(ep["pos_cov"]).copy()
         pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
@@ -125,3 +125,13 @@ class Alignment:
                                      [sd_level ** 2, sd_level ** 2, sd_head ** 2], np.full(3, sd_bg ** 2),
                                      np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
         return Aligned(nav, bg, P0)
+
+
+def _course_var(ep: dict) -> float:
+    """Variance (m/s)^2 of a horizontal GPS velocity component at an epoch: the receiver's, else that of the
+    difference of two fixes taken 1 s apart (twice the fix's horizontal variance; 25 m^2 when it has none)."""
+    var = float(ep["vel_cov"][0, 0])
+    if math.isfinite(var):
+        return var
+    pos = np.diag(ep["pos_cov"])[:2]
+    return 2.0 * float(np.nanmax(pos)) if np.isfinite(pos).any() else 50.0

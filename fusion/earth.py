@@ -238,3 +238,20 @@ def rotvec_to_dcm(rv: ArrayLike) -> np.ndarray:
 def dcm_to_rotvec(C: ArrayLike) -> np.ndarray:
     """Rotation vector(s) of DCM(s) C, angle in [0, pi]."""
     return quat_to_rotvec(dcm_to_quat(C))
+
+
+# Body frames of other loggers: C_rfu_x maps a vector in frame x to the body RFU frame (right, forward, up).
+# REP-103's vehicle body is FLU (forward, left, up); aerospace IMUs are often FRD (forward, right, down).
+BODY_FRAMES: dict[str, np.ndarray] = {
+    "rfu": np.eye(3),
+    "flu": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+    "frd": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+}
+
+
+def C_rfu_from(frame: str) -> np.ndarray:
+    """The rotation (3, 3) from a named body frame (``BODY_FRAMES``: rfu, flu, frd) to body RFU."""
+    try:
+        return BODY_FRAMES[frame.lower()]
+    except KeyError:
+        raise ValueError(f"unknown body frame {frame!r}; one of {', '.join(BODY_FRAMES)}") from None

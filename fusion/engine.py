@@ -54,8 +54,8 @@ import numpy as np
 
 from fieldlog.fusion import aids, align, clipgyro, earth, errmodel, hinf, ins, kf, output, predictors, sckf, ukf
 from fieldlog.fusion.dkf import DistributedKF
-from fieldlog.fusion.errmodel import BA, BG, VEL
-from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge
+from fieldlog.fusion.errmodel import BA, BG, POS, VEL
+from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge, Silence
 from fieldlog.fusion.output import Solution
 
 if TYPE_CHECKING:
@@ -72,7 +72,8 @@ class FusionConfig:
     IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), inflated to absorb
     the scale-factor and misalignment errors the 15-state model does not carry."""
 
-    lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, body RFU, m
+    lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, m, in lever_arm_frame
+    lever_arm_frame: str = "rfu"  # body frame of lever_arm_b: rfu, flu (REP-103) or frd (earth.BODY_FRAMES)
     output_hz: float = 10.0
     cov_step_s: float = 0.1  # covariance propagation cycle, s
     gyro_noise_dps_rthz: float = 0.03
@@ -98,9 +99,14 @@ class FusionConfig:
     still_speed_mps: float = 0.5  # standing still: INS speed below this (GPS speed below static_speed_mps) ...
     still_accel_std_mps2: float = 0.1  # ... and specific force and rate varying less than these over the epoch
     still_gyro_std_dps: float = 0.5
+    gps_error_tau_s: float = 300.0  # correlation time of the GPS position error (multipath, atmosphere); 0: white
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
     predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
+
+    def lever_rfu(self) -> np.ndarray:
+        """The lever arm IMU -> antenna (3,) in body RFU, m."""
+        return earth.C_rfu_from(self.lever_arm_frame) @ np.asarray(self.lever_arm_b, dtype=float)
 
     def noise_psd(self) -> np.ndarray:
         return errmodel.noise_psd(self.gyro_noise_dps_rthz * _DEG, self.accel_noise_ug_rthz * _UG,
@@ -147,7 +153,7 @@ class Engine:
         self.method = method
         self.log = log
         self.cfg = config or FusionConfig()
-        self.lever = np.asarray(self.cfg.lever_arm_b, dtype=float)
+        self.lever = self.cfg.lever_rfu()
         self.q = self.cfg.noise_psd()
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
@@ -159,6 +165,8 @@ class Engine:
         self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.max_fix_sigma_m)
+        self.silence = Silence()
+        self._gps_var = np.zeros(3)  # variance (m^2, E N U) of the correlated GPS error the filter cannot see
         self._carry: tuple[int, np.ndarray, np.ndarray] | None = None  # last sample: t_ns, omega, f (raw)
         self._gps: list[dict] = []  # epochs not yet reached by the IMU
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
@@ -180,7 +188,7 @@ class Engine:
         if self.t_ref_ns is None and len(t_ns):
             self.t_ref_ns = int(t_ns[0])
             self.outages.force(self.t_ref_ns, self.cfg.outages)
-        self._gps += _epochs(gps)
+        self.silence.add(self._gps, _epochs(gps), int(t_ns[-1]) if len(t_ns) else None)
         if self.t_ref_ns is None or len(t_ns) == 0:
             return Solution.concat([]), self.outages.take()
         t = (t_ns - self.t_ref_ns) * 1e-9
@@ -270,6 +278,9 @@ class Engine:
         vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
         u = self.bridge.input(self.nav) if self.bridge is not None else None
         self.filter.update_gps(vel, pos)
+        period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
+        self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
+                                                   period, self.cfg.gps_error_tau_s)
         x = self.filter.state
         if self.bridge is not None:
             self.bridge.train(t_g, u, x, pos, vel)
@@ -336,7 +347,7 @@ class Engine:
             diag = self.filter.propagate(Phi, Q)
         else:
             diag = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag)
+        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, self._gps_var)
 
     def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray) -> np.ndarray:
         """``filter.propagate`` one cycle at a time, recording Phi and each predicted P; returns diag(P)."""

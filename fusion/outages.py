@@ -2,7 +2,10 @@
 
 An epoch is unusable when its status is NO_FIX, its lat/lon are NaN, its horizontal sigma is above
 ``max_fix_sigma_m``, or it falls in a forced window (``outages``, seconds from the first IMU sample).
-Detected windows run from the first unusable epoch to the next usable one (:class:`OutageTracker`).
+Detected windows run from the first unusable epoch to the next usable one (:class:`OutageTracker`). A GPS
+silence (no epoch for longer than 1.5 nominal intervals: a receiver that stops talking, a bag with no messages
+there) becomes no-fix epochs at the nominal interval (:class:`Silence`), so it opens a window (reason
+``silent``) like NO_FIX epochs, and the aids and predictors run inside it at the epoch rate.
 
 Bridging (``rbfn``, ``tdln``, ``dkf-rbfn``; ``fusion.predictors`` for the mapping of the paper onto the closed
 loop): :class:`PredictorBridge` gives the predictor, at each usable epoch, the INS position (ENU m from the
@@ -28,7 +31,7 @@ PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
 
 @dataclass
 class Outage:
-    """A GPS outage window [start_ns, end_ns) UTC; reason "injected", "no_fix" or "low_quality"."""
+    """A GPS outage window [start_ns, end_ns) UTC; reason "injected", "no_fix", "low_quality" or "silent"."""
 
     start_ns: int
     end_ns: int
@@ -56,7 +59,7 @@ class OutageTracker:
         low = good_fix and not math.sqrt(max(ep["pos_cov"][0, 0], ep["pos_cov"][1, 1])) <= self.max_fix_sigma_m
         usable = good_fix and not low
         if not usable and self._open is None:
-            self._open = Outage(t, t, "low_quality" if low else "no_fix")
+            self._open = Outage(t, t, "silent" if ep.get("silent") else "low_quality" if low else "no_fix")
         elif usable and self._open is not None:
             self._open.end_ns = t
             self._outages.append(self._open)
@@ -75,6 +78,45 @@ class OutageTracker:
         """The windows not yet returned."""
         out, self._outages = self._outages, []
         return out
+
+
+class Silence:
+    """Turns a GPS silence into no-fix epochs (``silent``) at the nominal fix interval: the median of the first
+    ``SPACINGS`` intervals."""
+
+    SPACINGS = 10
+
+    def __init__(self) -> None:
+        self.real_ns: int | None = None  # the last real epoch
+        self.last_ns: int | None = None  # the last epoch queued, real or silent
+        self.spacings: list[int] = []
+        self.period_ns: float | None = None
+
+    def add(self, queue: list[dict], epochs: list[dict], horizon_ns: int | None) -> None:
+        """Append ``epochs`` (real, time order) to ``queue``. In a silence (more than 1.5 intervals since the last
+        real epoch) a silent epoch goes in at every nominal interval up to the next real epoch (not within half an
+        interval of it) and up to ``horizon_ns`` (the IMU's last sample: a fix before it would be in this block)."""
+        for ep in epochs:
+            t = ep["t_ns"]
+            if self.real_ns is not None and t > self.real_ns:
+                if not self._fill(queue, t, t - 0.5 * (self.period_ns or 0.0)) and len(self.spacings) < self.SPACINGS:
+                    self.spacings.append(t - self.real_ns)
+                    self.period_ns = float(np.median(self.spacings))
+            queue.append(ep)
+            self.real_ns = max(t, self.real_ns or t)
+            self.last_ns = max(t, self.last_ns or t)
+        if horizon_ns is not None:
+            self._fill(queue, horizon_ns, horizon_ns)
+
+    def _fill(self, queue: list[dict], until_ns: int, last_ns: float) -> bool:
+        """Silent epochs up to ``last_ns`` when the silence lasts until ``until_ns``; whether there were any."""
+        if self.period_ns is None or self.real_ns is None or until_ns - self.real_ns <= 1.5 * self.period_ns:
+            return False
+        while self.last_ns + self.period_ns < last_ns:
+            self.last_ns += int(round(self.period_ns))
+            queue.append(dict(t_ns=self.last_ns, lat=math.nan, lon=math.nan, h=math.nan, pos_cov=np.full((3, 3), np.nan),
+                              status=-1, v_n=np.full(3, np.nan), vel_cov=np.full((3, 3), np.nan), silent=True))
+        return True
 
 
 class PredictorBridge:

@@ -1,5 +1,6 @@
 """The solution rows the engine produces: the (closed-loop) INS state at the first IMU sample of each
-1/output_hz slot of UTC (10 Hz by default), stamped with that sample's time, with the filter's sigmas."""
+1/output_hz slot of UTC (10 Hz by default), stamped with that sample's time, with the filter's sigmas; the
+position's with the time-correlated GPS error the filters do not model added (:func:`correlated_variance`)."""
 
 from __future__ import annotations
 
@@ -43,9 +44,31 @@ def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
     return np.flatnonzero(np.diff(bucket) != 0) + 1
 
 
-def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray) -> Solution:
+def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray,
+         gps_var: np.ndarray | None = None) -> Solution:
     """Solution rows of an INS segment: sol a ``fusion.ins.NavSolution`` over samples t_ns (n,); the covariance
-    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,)."""
+    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); gps_var (3,) m^2 added to the
+    position variances (``correlated_variance``)."""
     r = output_rows(t_ns, output_hz)
     sig = sigmas(diag)[np.searchsorted(ends, r)]
+    if gps_var is not None:
+        sig[:, :3] = np.sqrt(sig[:, :3] ** 2 + gps_var)
     return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig)
+
+
+def correlated_variance(r: np.ndarray, p: np.ndarray, period_s: float, tau_s: float) -> np.ndarray:
+    """Variance (m^2, per axis) of the time-correlated GPS position error left in the filter's position: a
+    Schmidt "consider" term for the error the 15-state filters do not model (every filter gets it, none changes).
+
+    The filters treat each fix's error (variance r, the receiver's figure) as white: after the update the
+    position variance p ~ r / N says the solution averages N = r / p fixes, over T = N x period_s. A first-order
+    Gauss-Markov error of correlation time tau_s averaged over T keeps the variance r f(T / tau_s),
+    f(x) = 2 (x - 1 + exp(-x)) / x^2 (1 at x = 0: fully correlated; 2 / x for x >> 1: as white). It is added to
+    the printed position variance; in an outage it stays, as the error taken in from the last fixes does.
+    tau_s = 0: white errors, nothing added. Axes without a figure (NaN) get 0."""
+    r = np.where(np.isfinite(r), r, 0.0)
+    if tau_s <= 0.0:
+        return np.zeros_like(r)
+    x = np.maximum(r / np.maximum(p, 1e-12), 1.0) * period_s / tau_s
+    f = np.where(x < 1e-4, 1.0 - x / 3.0, 2.0 * (x - 1.0 + np.exp(-x)) / np.maximum(x, 1e-4) ** 2)
+    return r * f

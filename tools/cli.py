@@ -155,18 +155,42 @@ def cmd_allan(a: argparse.Namespace) -> int:
     return 0
 
 
+def input_spec(a: argparse.Namespace):
+    """``replay.inputs.InputSpec`` of --imu-topic, --fix-topic, --vel-topic, --imu-frame."""
+    from fieldlog.replay.inputs import InputSpec
+
+    return InputSpec(a.imu_topic, a.fix_topic, a.vel_topic, a.imu_frame)
+
+
+def add_input_args(s: argparse.ArgumentParser) -> None:
+    """The input mapping of a drive from another logger (replay/inputs.py; also a config's [input] table)."""
+    s.add_argument("--imu-topic", default=None, metavar="T", help="sensor_msgs/msg/Imu topic (default: /imu, else "
+                   "the drive's only Imu topic)")
+    s.add_argument("--fix-topic", default=None, metavar="T", help="sensor_msgs/msg/NavSatFix topic (default: "
+                   "/gps/fix, else the only NavSatFix topic)")
+    s.add_argument("--vel-topic", default=None, metavar="T", help="TwistWithCovarianceStamped ENU velocity topic "
+                   "(default: /gps/vel if present; 'none': position-only updates)")
+    s.add_argument("--imu-frame", choices=["rfu", "flu", "frd"], default=None,
+                   help="IMU body frame (default: from /tf_static, else rfu for fieldlog drives, flu (REP-103) else)")
+
+
 def cmd_fuse(a: argparse.Namespace) -> int:
-    from dataclasses import replace
+    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 
-    from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse, load_fusion_config, parse_outage
-
-    cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
-    if a.outage:
-        cfg = replace(cfg, outages=tuple(parse_outage(o) for o in a.outage))
+    st = settings(a.drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    for line in st.lines(a.drive):
+        if line.startswith("warning"):
+            print(f"fieldlog fuse: {line}", file=sys.stderr)
+        else:
+            print(line)
     t0 = time.monotonic()
-    res = fuse(a.drive, a.method, a.out, cfg, progress=Progress(f"fuse {a.method}"), smooth=a.smooth)
-    print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples, {res.updates} GPS updates, "
+    res = fuse(a.drive, a.method, a.out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+               inputs=st.inputs)
+    print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples ({res.imu_rate_hz:.0f} Hz, "
+          f"{res.imu_gaps} gaps bridged, {res.imu_missing} samples missing), {res.updates} GPS updates, "
           f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
+    if not 100.0 <= res.imu_rate_hz <= 1000.0:
+        print(f"fieldlog fuse: warning: IMU rate {res.imu_rate_hz:.0f} Hz is outside 100-1000 Hz", file=sys.stderr)
     if res.rows == 0 and a.method != "ins":
         print(f"fieldlog fuse: warning: {NO_ALIGNMENT}", file=sys.stderr)
     return 0
@@ -200,8 +224,12 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     from fieldlog.tools.fuse import load_fusion_config
 
+    from fieldlog.acquire.config import read_toml
+    from fieldlog.tools.fuse import load_input_spec
+
     evaluate(drives, lengths, methods, report, smooth=a.smooth,
-             config=load_fusion_config(a.config) if a.config else None)
+             config=load_fusion_config(a.config) if a.config and "fusion" in read_toml(a.config) else None,
+             spec=load_input_spec(a.config).merged(input_spec(a)))
     print((report / "table.md").read_text())
     print(f"wrote {report / 'table.md'} and {report / 'table.csv'} in {time.monotonic() - t0:.1f} s")
     return 0
@@ -405,6 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="force a GPS outage, seconds from the first IMU sample (repeatable)")
     s.add_argument("--out", required=True, help="output MCAP")
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
+    add_input_args(s)
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys); default: the drive's fusion.config record")
     s.set_defaults(func=cmd_fuse)
@@ -419,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
     s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
     s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
+    add_input_args(s)
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys); default: each drive's fusion.config record")
     s.set_defaults(func=cmd_evaluate)

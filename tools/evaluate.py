@@ -35,6 +35,8 @@ import polars as pl
 from fieldlog.fusion import earth
 from fieldlog.fusion.engine import METHODS, FusionConfig
 from fieldlog.replay import reader
+from fieldlog.replay.inputs import InputSpec
+from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
 
 QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
@@ -78,10 +80,11 @@ def place_outages(t_fix_s: np.ndarray, good: np.ndarray, length_s: float, cfg: S
     return out
 
 
-def fix_quality(drive: Path, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+def fix_quality(drive: Path, max_sigma_m: float, imu_topic: str = "/imu", fix_topic: str = "/gps/fix"
+                ) -> tuple[np.ndarray, np.ndarray, int]:
     """GPS fix times (s from the first IMU sample), usable flags, first IMU time ns."""
-    t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
-    g = reader.read_topic(drive, "/gps/fix")
+    t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == imu_topic)
+    g = reader.read_topic(drive, fix_topic)
     cov = g["position_covariance"].reshape(-1, 3, 3)
     sig = np.sqrt(np.maximum(cov[:, 0, 0], cov[:, 1, 1]))
     good = g["valid"] & (g["status"] >= 0) & np.isfinite(g["lat_deg"]) & np.isfinite(g["lon_deg"]) & \
@@ -160,6 +163,46 @@ def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[
     return t, np.hstack([dpos, dv, datt])
 
 
+def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | None:
+    """How honest the printed sigma is, over every solution row of the drive against ``/truth/fix`` (None
+    without truth): ``nees`` the mean normalised estimation error squared of the position (E, N, U with their
+    sigmas; 3 when honest), and per axis e, n, u the shares of rows within 1 sigma (0.683 when honest) and
+    3 sigma (0.997): keys ``in1_e``, ``in3_e``, ... ."""
+    if not any(t.topic == "/truth/fix" and t.count for t in reader.topics(drive)):
+        return None
+    s = reader.read_topic(fused, f"/fusion/{method}/fix")
+    sd = reader.read_topic(fused, f"/fusion/{method}/std")
+    ref = reader.read_topic(drive, "/truth/fix")
+    t, tr = s["log_time_ns"], ref["log_time_ns"]
+    m = (t >= tr[0]) & (t <= tr[-1])
+    llh = _interp(t[m], tr, np.stack([ref["lat_deg"], ref["lon_deg"], ref["alt_m"]], axis=1))
+    lat = np.radians(llh[:, 0])
+    rm, rn = earth.principal_radii(lat, llh[:, 2])
+    e = np.stack([np.radians(s["lon_deg"][m] - llh[:, 1]) * rn * np.cos(lat),
+                  np.radians(s["lat_deg"][m] - llh[:, 0]) * rm, s["alt_m"][m] - llh[:, 2]], axis=1)
+    z = e / np.maximum(sd["xyz"][m], 1e-9)
+    out = {"nees": float(np.mean(np.sum(z * z, axis=1))), "rows": int(m.sum())}
+    for i, ax in enumerate("enu"):
+        out[f"in1_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 1.0))
+        out[f"in3_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 3.0))
+    return out
+
+
+def pooled(cs: list[dict[str, float]]) -> dict[str, float]:
+    """``consistency`` results of several drives as one, weighted by their rows."""
+    n = np.array([c["rows"] for c in cs], float)
+    out = {k: float(np.sum([c[k] for c in cs] * n) / max(n.sum(), 1)) for k in cs[0] if k != "rows"}
+    out["rows"] = int(n.sum())
+    return out
+
+
+def consistency_line(method: str, c: dict[str, float]) -> str:
+    """One line of ``consistency``: NEES and the per-axis shares within 1 and 3 sigma."""
+    return (f"{method}: position NEES {c['nees']:.2f} (3 if honest); within 1 sigma E {c['in1_e']:.0%} "
+            f"N {c['in1_n']:.0%} U {c['in1_u']:.0%} (68 %), within 3 sigma E {c['in3_e']:.0%} N {c['in3_n']:.0%} "
+            f"U {c['in3_u']:.0%} (99.7 %), over {c['rows']} rows")
+
+
 PLOT_DT_S = 0.5  # time step of the error curves, s
 
 
@@ -233,12 +276,13 @@ def rms_columns(e: np.ndarray) -> np.ndarray:
 
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
-             say: Callable[[str], None] = print) -> pl.DataFrame:
+             say: Callable[[str], None] = print, spec: InputSpec | None = None) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
     smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``). config None: each
-    drive's own ``fusion.config`` record (``tools.fuse.drive_config``)."""
+    drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
+    another logger (``replay.inputs``); the scoring needs ``/truth`` or fieldlog's /gps/fix there."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
@@ -248,10 +292,12 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
+    honesty: dict[tuple[str, float], list[dict[str, float]]] = {}
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
         base = config or drive_config(drive)
-        t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m)
+        imap = resolve_inputs(drive, spec)
+        t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
             if not win:
@@ -263,12 +309,15 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             for m, sm in runs:
                 name = m + ("+rts" if sm else "")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
-                if fuse(drive, m, out, cfg, smooth=sm).rows == 0:
+                if fuse(drive, m, out, cfg, smooth=sm, inputs=imap).rows == 0:
                     done += 1
                     say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
                     continue
                 t_err, err = outage_error_series(drive, out, m, win_ns)
                 rms = rms_columns(err)
+                c = consistency(drive, out, m)
+                if c is not None:
+                    honesty.setdefault((name, L), []).append(c)
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
                 per.setdefault((name, L), []).append(rms)
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
@@ -293,6 +342,13 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     conclusions = verdict(per)
     for line in conclusions[2:-1]:
         say(line)
+    sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in honesty.items()]
+    for line in sigma_lines:
+        say(line[2:])
+    if sigma_lines:
+        conclusions = [*conclusions, "## Is the printed sigma honest?", "",
+                       "Position error over every solution row (outages included) against the truth, in units of "
+                       "the sigma the method printed:", "", *sigma_lines, ""]
     (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
                                               aids_note(base), conclusions))
     return table

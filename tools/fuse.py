@@ -33,19 +33,20 @@ from __future__ import annotations
 import ast
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from fieldlog.acquire import messages
-from fieldlog.acquire.config import ConfigError, read_toml, typed_table
+from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_table
 from fieldlog.acquire.recorder import Recorder
-from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock, Solution
+from fieldlog.fusion.engine import Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
-from fieldlog.replay import reader
-from fieldlog.replay.reader import IN_TOPICS, gps_block
+from fieldlog.replay import inputs as inputs_mod
+from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
+from fieldlog.replay.reader import topics as reader_topics
 from fieldlog.tools.rebuild import read_metadata
 
 BLOCK_S = 10.0
@@ -64,6 +65,13 @@ class FuseResult:
     outages: int
     imu_samples: int
     predicted: int = 0  # outage epochs bridged by a predictor (rbfn, tdln, dkf-rbfn)
+    imu_rate_hz: float = float("nan")
+    imu_gaps: int = 0  # IMU steps longer than 1.5 sample periods, bridged by the INS
+    imu_missing: int = 0  # samples those gaps lack
+
+
+class Diverged(ValueError):
+    """The solution became NaN or inf: nothing from that row on is written."""
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -82,6 +90,8 @@ def fusion_config(table: dict[str, Any]) -> FusionConfig:
     """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.typed_table``); a bad key or value raises
     ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
     cfg = typed_table(FusionConfig, "fusion", table)
+    if cfg.lever_arm_frame.lower() not in ("rfu", "flu", "frd"):
+        raise ConfigError(f"[fusion] lever_arm_frame: one of rfu, flu, frd, got {cfg.lever_arm_frame!r}")
     for key in ("output_hz", "cov_step_s"):
         if not getattr(cfg, key) > 0:
             raise ConfigError(f"[fusion] {key}: must be > 0")
@@ -99,6 +109,84 @@ def load_fusion_config(path: str | os.PathLike[str]) -> FusionConfig:
     return fusion_config(d["fusion"])
 
 
+def load_input_spec(path: str | os.PathLike[str] | None) -> InputSpec:
+    """The ``[input]`` table of a config file (``replay.inputs.InputSpec``: imu_topic, fix_topic, vel_topic,
+    imu_frame); an empty spec without a file or table."""
+    if path is None:
+        return InputSpec()
+    table = read_toml(path).get("input", {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"config file {path}: [input] must be a table")
+    for k, v in table.items():
+        if not isinstance(v, str):
+            raise ConfigError(f"[input] {k}: expected a string, got {v!r}")
+    spec = from_table(InputSpec, "input", table)
+    if spec.imu_frame is not None and spec.imu_frame.lower() not in ("rfu", "flu", "frd"):
+        raise ConfigError(f"[input] imu_frame: one of rfu, flu, frd, got {spec.imu_frame!r}")
+    return spec
+
+
+@dataclass
+class Settings:
+    """What a fusion run uses: the FusionConfig, the input map, and where each setting came from."""
+
+    config: FusionConfig
+    inputs: InputMap
+    sources: dict[str, str]  # FusionConfig field -> "--config FILE", "the drive's record", "/tf_static", "default"
+
+    def lines(self, drive: str | os.PathLike[str]) -> list[str]:
+        """The settings grouped by where they came from; a warning when another logger's drive runs on the
+        default sensor figures or lever arm."""
+        out = [self.inputs.describe()]
+        groups: dict[str, list[str]] = {}
+        for k, src in self.sources.items():
+            groups.setdefault(src, []).append(f"{k}={_show(getattr(self.config, k))}")
+        for src in sorted(groups, key=lambda x: x == "default"):
+            out.append(f"fusion settings ({src}): " + ", ".join(groups[src]))
+        defaulted = [k for k in SENSOR_KEYS if self.sources[k] == "default"]
+        if not self.inputs.native and defaulted:
+            out.append(f"warning: {drive} is from another logger and runs on default {', '.join(defaulted)}: "
+                       "give its own figures in the [fusion] table of --config")
+        return out
+
+
+SENSOR_KEYS = ("lever_arm_b", "gyro_noise_dps_rthz", "accel_noise_ug_rthz", "gyro_bias_rw_dps_rts",
+               "accel_bias_rw_ug_rts")  # the figures of a particular car and IMU: a default is a guess
+
+
+def _show(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, tuple):
+        return "(" + ", ".join(_show(x) for x in v) + ")"
+    return str(v)
+
+
+def settings(drive: str | os.PathLike[str], config_path: str | os.PathLike[str] | None = None,
+             spec: InputSpec | None = None, outages: tuple[tuple[float, float], ...] | None = None) -> Settings:
+    """The settings of a fusion run and their sources: the input map (``replay.inputs.resolve`` of the config's
+    [input] table overridden by ``spec``), the FusionConfig from ``--config``'s [fusion] table (replacing the
+    drive's record as a whole), else the drive's ``fusion.config`` record, else the defaults; the lever arm from
+    the drive's /tf_static when neither gives it; ``outages`` (``--outage``) replace the config's."""
+    imap = inputs_mod.resolve(drive, load_input_spec(config_path).merged(spec or InputSpec()))
+    table = read_toml(config_path).get("fusion") if config_path else None
+    if table is not None:
+        cfg, given, where = fusion_config(table), set(table), f"--config {config_path}"
+    else:
+        meta = read_metadata(drive).get("fusion.config", {})
+        cfg, given, where = fusion_config({k: ast.literal_eval(v) for k, v in meta.items()}), set(meta), \
+            "the drive's record"
+    sources = {f: (where if f in given else "default") for f in asdict(FusionConfig()) if f != "predictor"}
+    sources["predictor"] = where if "predictor" in given else "default"
+    if "lever_arm_b" not in given and imap.lever_arm_b is not None:
+        cfg = replace(cfg, lever_arm_b=tuple(float(x) for x in imap.lever_arm_b), lever_arm_frame="rfu")
+        sources["lever_arm_b"] = sources["lever_arm_frame"] = inputs_mod.TF_STATIC
+    if outages:
+        cfg = replace(cfg, outages=tuple(outages))
+        sources["outages"] = "--outage"
+    return Settings(cfg, imap, sources)
+
+
 def drive_config(drive: str | os.PathLike[str]) -> FusionConfig:
     """The drive's ``fusion.config`` metadata record (a simulated drive's scenario [fusion] table) as a
     FusionConfig; the defaults when the drive has none."""
@@ -109,6 +197,11 @@ def drive_config(drive: str | os.PathLike[str]) -> FusionConfig:
 def _write(rec: Recorder, method: str, s: Solution) -> None:
     if len(s.t_ns) == 0:
         return
+    bad = ~(np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
+            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1))
+    if bad.any():
+        raise Diverged(f"the {method} solution diverged (NaN or inf) at UTC {int(s.t_ns[np.argmax(bad)]) * 1e-9:.3f} s; "
+                       "nothing from there on was written: check the IMU frame (--imu-frame) and units")
     t = s.t_ns
     var = s.sigma ** 2
     pos_cov = np.zeros((len(t), 9))
@@ -126,20 +219,24 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
 
 def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         smooth: bool = False) -> FuseResult:
+         smooth: bool = False, inputs: InputMap | None = None) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
-    ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``."""
+    ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
+    ``replay.inputs.resolve(drive)``. Raises ``Diverged`` (nothing past the first bad row written) when the
+    solution turns NaN or inf."""
     cfg = config or drive_config(drive)
+    imap = inputs or inputs_mod.resolve(drive)
     log = SmootherLog() if smooth else None
     engine = Engine(method, cfg, log=log)
     kept: list[Solution] = []
-    span = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
-    if not any(t.topic == "/imu" for t in span):
-        raise ValueError(f"{drive}: no /imu messages")
+    span = [t for t in reader_topics(drive) if t.topic in imap.topics and t.count]
     t_first = min(t.first_ns for t in span)
     t_last = max(t.last_ns for t in span)
-    rows = outages = n_imu = 0
-    meta = {"source": str(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no"}
+    rows = outages = 0
+    stream = InputStream(drive, imap, BLOCK_S)
+    meta = {"source": str(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no",
+            "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
+                                                                      "imu_frame"))}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:
         rec.add_metadata("fusion", meta)
 
@@ -150,15 +247,8 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
                     o.start_ns, o.start_ns, o.end_ns, o.reason))
                 outages += 1
 
-        for block in reader.iter_blocks(drive, IN_TOPICS, BLOCK_S):
-            imu = block.data.get("/imu", {})
-            if len(imu.get("log_time_ns", ())):
-                ok = imu["valid"]
-                ib = ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
-            else:
-                ib = ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-            n_imu += len(ib.t_ns)
-            sol, done = engine.process(ib, gps_block(block.data.get("/gps/fix", {}), block.data.get("/gps/vel", {})))
+        for block in stream:
+            sol, done = engine.process(block.imu, block.gps)
             if smooth:
                 kept.append(sol)
             else:
@@ -173,4 +263,5 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
             log.close()
     if progress:
         progress(1.0)
-    return FuseResult(Path(out), method, rows, engine.updates, outages, n_imu, engine.predicted)
+    return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
+                      stream.rate_hz, stream.gaps, stream.missing)

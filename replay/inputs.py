@@ -1,0 +1,265 @@
+"""Which topics of a drive feed fusion, in which body frame: fieldlog's own drives and other loggers' bags.
+
+A drive from another logger names its topics its own way (``/imu/data``, ``/ublox/fix``, ``/sensors/imu``) and
+writes its IMU in REP-103 FLU (forward, left, up) or FRD; fusion runs on the body RFU frame (right, forward,
+up). :func:`resolve` picks the topics and the IMU frame:
+
+- topics: the ones given (``--imu-topic``/``--fix-topic``/``--vel-topic`` or the ``[input]`` config table),
+  else fieldlog's own (``/imu``, ``/gps/fix``, ``/gps/vel``), else the drive's only ``sensor_msgs/msg/Imu``
+  and only ``sensor_msgs/msg/NavSatFix`` topics (auto-detection by message type; several of a type: an error
+  asking for the option). A velocity topic is only taken when named or fieldlog's own: without one, fusion
+  updates position only (``fusion.engine``);
+- IMU frame: the one given (``--imu-frame rfu|flu|frd``), else the rotation of the Imu messages' frame_id in
+  ``/tf_static`` (``tf2_msgs/msg/TFMessage``; the chain of static transforms up to its root, taken as the
+  REP-103 FLU vehicle body), else RFU for fieldlog's own topics and FLU (REP-103) for any other;
+- lever arm: from ``/tf_static`` too when it holds both the IMU and the NavSatFix frame_id.
+
+:class:`InputStream` streams the drive in blocks as the engine's ``ImuBlock`` and ``GpsBlock``, on the messages'
+header stamps (the sensor's time; a bag's log time is when the logger received the message): IMU samples are
+rotated to RFU, sorted, repeated stamps dropped, gaps (dropped samples: a step above 1.5 sample periods) counted
+and bridged by the INS over the longer step; the samples of the last ``HOLD_S`` of each block wait for the next,
+so a fix logged late (its stamp in the previous block) still arrives before the INS passes it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from fieldlog.acquire import messages
+from fieldlog.fusion import earth
+from fieldlog.fusion.engine import GpsBlock, ImuBlock
+from fieldlog.replay import reader
+
+NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
+TF_STATIC = "/tf_static"
+HOLD_S = 1.0  # IMU held back per block: longer than a fix's logging latency
+RATE_HZ = (100.0, 1000.0)  # the IMU rates fusion is built for
+
+
+@dataclass
+class InputSpec:
+    """What to read, from ``--imu-topic`` etc. or a config's ``[input]`` table; None: resolved from the drive."""
+
+    imu_topic: str | None = None
+    fix_topic: str | None = None
+    vel_topic: str | None = None  # "" or "none": no velocity topic even when the drive has /gps/vel
+    imu_frame: str | None = None  # rfu, flu or frd
+
+    def merged(self, over: "InputSpec") -> "InputSpec":
+        """This spec with the fields ``over`` sets replacing its own."""
+        return InputSpec(*(getattr(over, k) if getattr(over, k) is not None else getattr(self, k)
+                           for k in ("imu_topic", "fix_topic", "vel_topic", "imu_frame")))
+
+
+@dataclass
+class InputMap:
+    """The resolved input: topics, C_rfu_imu (3, 3) (IMU frame -> body RFU), its name, the lever arm IMU ->
+    antenna in body RFU from /tf_static (None without), and where each came from (``sources``)."""
+
+    imu_topic: str
+    fix_topic: str
+    vel_topic: str | None
+    C_rfu_imu: np.ndarray
+    imu_frame: str
+    lever_arm_b: np.ndarray | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def native(self) -> bool:
+        """fieldlog's own topics (a drive our daemon or simulator wrote)."""
+        return (self.imu_topic, self.fix_topic) == NATIVE[:2]
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        return (self.imu_topic, self.fix_topic) + ((self.vel_topic,) if self.vel_topic else ())
+
+    def describe(self) -> str:
+        """One line: each input and where it came from."""
+        s = self.sources
+        vel = f"{self.vel_topic} ({s['vel_topic']})" if self.vel_topic else f"none ({s['vel_topic']})"
+        return (f"input: IMU {self.imu_topic} ({s['imu_topic']}) in {self.imu_frame} ({s['imu_frame']}), "
+                f"fixes {self.fix_topic} ({s['fix_topic']}), velocity {vel}")
+
+
+def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, native: str, option: str,
+          path: str | os.PathLike[str]) -> tuple[str, str]:
+    """(topic, source) of one input."""
+    of_type = [t.topic for t in infos if t.type == type_name]
+    if spec:
+        found = [t for t in infos if t.topic == spec]
+        if not found:
+            raise ValueError(f"{path}: no topic {spec} ({option}); its {type_name} topics: "
+                             f"{', '.join(of_type) or 'none'}")
+        if found[0].type != type_name:
+            raise ValueError(f"{path}: {spec} is {found[0].type}, not {type_name} ({option})")
+        return spec, option
+    if native in of_type:
+        return native, "fieldlog's own"
+    if len(of_type) == 1:
+        return of_type[0], f"the only {type_name.rsplit('/', 1)[-1]} topic"
+    if not of_type:
+        raise ValueError(f"{path}: no {type_name} topic; name one with {option}")
+    raise ValueError(f"{path}: several {type_name} topics ({', '.join(of_type)}): choose one with {option}")
+
+
+def _first_frame_id(path: str | os.PathLike[str], topic: str) -> str:
+    with open(path, "rb") as f:
+        for _, _, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=[topic]):
+            return str(msg.header.frame_id)
+    return ""
+
+
+def tf_static(path: str | os.PathLike[str]) -> dict[str, tuple[str, np.ndarray, np.ndarray]]:
+    """The drive's static transforms: child frame -> (parent frame, translation (3,) m, C_parent_child (3, 3))."""
+    out: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+    with open(path, "rb") as f:
+        for _, _, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                topics=[TF_STATIC]):
+            for tr in msg.transforms:
+                t, r = tr.transform.translation, tr.transform.rotation
+                out[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), np.array([t.x, t.y, t.z]),
+                                                      earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w])))
+    return out
+
+
+def _to_root(tf: dict[str, tuple[str, np.ndarray, np.ndarray]], frame: str) -> tuple[str, np.ndarray, np.ndarray]:
+    """(root frame, position (3,) of ``frame``'s origin in the root, C_root_frame) along the static chain."""
+    C, r, seen = np.eye(3), np.zeros(3), set()
+    while frame in tf and frame not in seen:
+        seen.add(frame)
+        parent, t, C_pc = tf[frame]
+        C, r = C_pc @ C, C_pc @ r + t
+        frame = parent
+    return frame, r, C
+
+
+def _frame_name(C: np.ndarray) -> str:
+    for name, M in earth.BODY_FRAMES.items():
+        if np.allclose(C, M, atol=1e-6):
+            return name
+    return "rotated " + ", ".join(f"{x:.3f}" for x in C.ravel())
+
+
+def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None) -> InputMap:
+    """The input of a drive (module docstring); ValueError with one line naming the problem."""
+    spec = spec or InputSpec()
+    infos = [t for t in reader.topics(path) if t.count]
+    imu, s_imu = _pick(spec.imu_topic, infos, messages.IMU, NATIVE[0], "--imu-topic", path)
+    fix, s_fix = _pick(spec.fix_topic, infos, messages.NAVSATFIX, NATIVE[1], "--fix-topic", path)
+    if spec.vel_topic is not None and spec.vel_topic.lower() in ("", "none"):
+        vel, s_vel = None, "--vel-topic none"
+    elif spec.vel_topic:
+        vel, s_vel = _pick(spec.vel_topic, infos, messages.TWIST, NATIVE[2], "--vel-topic", path)
+    elif any(t.topic == NATIVE[2] and t.type == messages.TWIST for t in infos):
+        vel, s_vel = NATIVE[2], "fieldlog's own"
+    else:
+        vel, s_vel = None, "no velocity topic: position-only GPS updates"
+    tf = tf_static(path) if any(t.topic == TF_STATIC for t in infos) else {}
+    lever = None
+    if spec.imu_frame:
+        C, frame, s_frame = earth.C_rfu_from(spec.imu_frame), spec.imu_frame.lower(), "--imu-frame"
+    else:
+        imu_id = _first_frame_id(path, imu).lstrip("/") if tf else ""
+        if imu_id in tf:
+            root, r_imu, C_root_imu = _to_root(tf, imu_id)
+            C = earth.BODY_FRAMES["flu"] @ C_root_imu  # the root is the REP-103 vehicle body, FLU
+            frame, s_frame = _frame_name(C), f"{TF_STATIC}: {imu_id} in {root} (REP-103 FLU)"
+            gps_id = _first_frame_id(path, fix).lstrip("/")
+            if gps_id in tf and _to_root(tf, gps_id)[0] == root:
+                lever = C @ C_root_imu.T @ (_to_root(tf, gps_id)[1] - r_imu)
+        elif (imu, fix) == NATIVE[:2]:
+            C, frame, s_frame = np.eye(3), "rfu", "fieldlog's own"
+        else:
+            C, frame, s_frame = earth.BODY_FRAMES["flu"], "flu", "REP-103 default for another logger's drive"
+    return InputMap(imu, fix, vel, C, frame, lever,
+                    dict(imu_topic=s_imu, fix_topic=s_fix, vel_topic=s_vel, imu_frame=s_frame))
+
+
+def _stamps(d: dict) -> np.ndarray:
+    """Header stamps (ns), the log time where a message has none (zero)."""
+    st = np.asarray(d.get("stamp_ns", d["log_time_ns"]), np.int64)
+    return np.where(st > 0, st, d["log_time_ns"])
+
+
+def _by_stamp(d: dict) -> dict:
+    """A decoded block re-timed on its header stamps, valid rows only, sorted."""
+    if not len(d.get("log_time_ns", ())):
+        return {}
+    ok = np.asarray(d["valid"], bool)
+    t = _stamps(d)[ok]
+    order = np.argsort(t, kind="stable")
+    out = {k: np.asarray(v)[ok][order] for k, v in d.items() if isinstance(v, np.ndarray) and len(v) == len(ok)}
+    out["log_time_ns"] = t[order]
+    return out
+
+
+@dataclass
+class InputBlock:
+    t0_ns: int  # the block's log-time span
+    t1_ns: int
+    imu: ImuBlock
+    gps: GpsBlock
+
+
+class InputStream:
+    """A drive's fusion input in blocks (module docstring); counts IMU gaps as it goes."""
+
+    def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float) -> None:
+        self.path, self.imap, self.block_s = path, imap, block_s
+        self.samples = 0
+        self.gaps = 0  # steps longer than 1.5 sample periods
+        self.missing = 0  # samples those steps lack, at the median period
+        self.repeated = 0  # samples dropped for a stamp not after the previous one
+        self._last_t: int | None = None
+        self._period_ns: float | None = None  # median step of the first block with 100 samples
+
+    @property
+    def rate_hz(self) -> float:
+        """The IMU's sample rate, Hz (median step; NaN before it is known)."""
+        return 1e9 / self._period_ns if self._period_ns else float("nan")
+
+    def __iter__(self) -> Iterator[InputBlock]:
+        im = self.imap
+        hold_ns = int(HOLD_S * 1e9)
+        held = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        last_t1 = None
+        for b in reader.iter_blocks(self.path, im.topics, self.block_s):
+            d = _by_stamp(b.data.get(im.imu_topic, {}))
+            new = (d["log_time_ns"], d["omega_ib_b"] @ im.C_rfu_imu.T, d["f_b"] @ im.C_rfu_imu.T) if d else held[:0]
+            t, w, f = (np.concatenate([h, n]) for h, n in zip(held, new)) if d else held
+            if d:
+                order = np.argsort(t, kind="stable")
+                t, w, f = t[order], w[order], f[order]
+            cut = np.searchsorted(t, b.t1_ns - hold_ns)
+            held = (t[cut:], w[cut:], f[cut:])
+            last_t1 = b.t1_ns
+            fix, vel = _by_stamp(b.data.get(im.fix_topic, {})), _by_stamp(b.data.get(im.vel_topic, {}))
+            yield InputBlock(b.t0_ns, b.t1_ns, self._imu_block(t[:cut], w[:cut], f[:cut]), reader.gps_block(fix, vel))
+        if last_t1 is not None and len(held[0]):
+            yield InputBlock(last_t1, last_t1, self._imu_block(*held), GpsBlock.empty())
+
+    def _imu_block(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> ImuBlock:
+        """Drop repeated stamps, count the gaps; the samples as an ImuBlock (body RFU)."""
+        keep = np.ones(len(t), bool)
+        keep[1:] = t[1:] > t[:-1]
+        if self._last_t is not None:
+            keep &= t > self._last_t
+        self.repeated += int((~keep).sum())
+        t, w, f = t[keep], w[keep], f[keep]
+        steps = np.diff(t if self._last_t is None else np.concatenate([[self._last_t], t]))
+        if self._period_ns is None and len(steps) >= 100:
+            self._period_ns = float(np.median(steps))
+        if self._period_ns is not None:
+            long = steps > 1.5 * self._period_ns
+            self.gaps += int(long.sum())
+            self.missing += int(np.round(steps[long] / self._period_ns).sum()) - int(long.sum())
+        if len(t):
+            self._last_t = int(t[-1])
+        self.samples += len(t)
+        return ImuBlock(t, w, f)
