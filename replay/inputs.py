@@ -25,16 +25,18 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from fieldlog.acquire import messages
-from fieldlog.fusion import earth
-from fieldlog.fusion.engine import GpsBlock, ImuBlock
+from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
 from fieldlog.replay import reader
+
+if TYPE_CHECKING:
+    from fieldlog.fusion.engine import GpsBlock, ImuBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
 TF_STATIC = "/tf_static"
@@ -242,10 +244,11 @@ class InputStream:
             fix, vel = _by_stamp(b.data.get(im.fix_topic, {})), _by_stamp(b.data.get(im.vel_topic, {}))
             yield InputBlock(b.t0_ns, b.t1_ns, self._imu_block(t[:cut], w[:cut], f[:cut]), reader.gps_block(fix, vel))
         if last_t1 is not None and len(held[0]):
-            yield InputBlock(last_t1, last_t1, self._imu_block(*held), GpsBlock.empty())
+            yield InputBlock(last_t1, last_t1, self._imu_block(*held), reader.gps_block({}, {}))
 
     def _imu_block(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> ImuBlock:
         """Drop repeated stamps, count the gaps; the samples as an ImuBlock (body RFU)."""
+        from fieldlog.fusion.engine import ImuBlock
         keep = np.ones(len(t), bool)
         keep[1:] = t[1:] > t[:-1]
         if self._last_t is not None:
@@ -263,3 +266,22 @@ class InputStream:
             self._last_t = int(t[-1])
         self.samples += len(t)
         return ImuBlock(t, w, f)
+
+
+def canonical_blocks(path: str | os.PathLike[str], imap: InputMap, block_s: float, extra: tuple[str, ...] = ()
+                     ) -> Iterator[reader.Block]:
+    """``reader.iter_blocks`` of the mapped inputs under fieldlog's own names (``/imu`` in body RFU, ``/gps/fix``,
+    ``/gps/vel``), each re-timed on its header stamps, plus the ``extra`` topics as they are: for the viewer and
+    the player, which read fieldlog's names. (No hold-back as in :class:`InputStream`: a fix logged after the
+    next block started may reach the player's engine after its IMU passed it, and is then not used.)"""
+    names = dict(zip(imap.topics, NATIVE))
+    for b in reader.iter_blocks(path, (*imap.topics, *(t for t in extra if t not in imap.topics)), block_s):
+        data = {k: v for k, v in b.data.items() if k not in names}
+        for k, n in names.items():
+            d = _by_stamp(b.data.get(k, {}))
+            if d:
+                data[n] = d
+        imu = data.get(NATIVE[0])
+        if imu:
+            imu["omega_ib_b"], imu["f_b"] = imu["omega_ib_b"] @ imap.C_rfu_imu.T, imu["f_b"] @ imap.C_rfu_imu.T
+        yield reader.Block(b.t0_ns, b.t1_ns, data)

@@ -51,7 +51,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from fieldlog.fusion import earth
-from fieldlog.replay import reader
+from fieldlog.replay import inputs, reader
+from fieldlog.replay.inputs import InputMap
 
 TIMELINE = "gps_time"
 IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
@@ -321,9 +322,11 @@ LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass a
 
 
 def _read_drive(rec: rr.RecordingStream, drive: str | os.PathLike[str], names: dict[str, int],
-                progress: Callable[[float], None] | None = None) -> tuple[dict[str, dict[str, np.ndarray]], int]:
+                progress: Callable[[float], None] | None = None, imap: InputMap | None = None
+                ) -> tuple[dict[str, dict[str, np.ndarray]], int]:
     """One streaming pass (each chunk decompressed once): /imu is logged block by block, decimated by means of
-    IMU_DECIMATION valid samples (carried across blocks); the LOW_RATE topics are returned whole.
+    IMU_DECIMATION valid samples (carried across blocks); the LOW_RATE topics are returned whole. ``imap``: the
+    inputs of another logger's drive (``replay.inputs``), read as /imu (body RFU), /gps/fix and /gps/vel.
     -> ({topic: {field: array}}, IMU rows logged)."""
     wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
     span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
@@ -333,7 +336,9 @@ def _read_drive(rec: rr.RecordingStream, drive: str | os.PathLike[str], names: d
     rows = 0
     carry_t = np.zeros(0, np.int64)
     carry_x = np.zeros((0, 6))
-    for block in reader.iter_blocks(drive, wanted, IMU_BLOCK_S):
+    blocks = (reader.iter_blocks(drive, wanted, IMU_BLOCK_S) if imap is None or imap.native else
+              inputs.canonical_blocks(drive, imap, IMU_BLOCK_S, tuple(wanted)))
+    for block in blocks:
         if progress:
             progress(0.8 * min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
         for topic, keep in LOW_RATE.items():
@@ -405,12 +410,15 @@ def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
 
 
 def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
-          progress: Callable[[float], None] | None = None) -> ViewResult:
-    """Log a drive and its fused files into ``rec`` (which must already have its sink)."""
+          progress: Callable[[float], None] | None = None, inputs: InputMap | None = None) -> ViewResult:
+    """Log a drive and its fused files into ``rec`` (which must already have its sink); ``inputs``: the topics
+    and IMU frame of another logger's drive (``replay.inputs.resolve``)."""
     names = _topic_names(drive)
+    if inputs is not None and not inputs.native:  # another logger's topics, under fieldlog's names
+        names = {**names, **{n: names.get(t, 0) for t, n in zip(inputs.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
     files = [drive, *fused]
     methods = discover_methods(files)
-    low, imu_rows = _read_drive(rec, drive, names, progress)
+    low, imu_rows = _read_drive(rec, drive, names, progress, inputs)
     gps, epochs_t, no_fix = None, np.zeros(0, np.int64), np.zeros(0, bool)
     if "/gps/fix" in low:
         gps, epochs_t, no_fix = gps_track(low["/gps/fix"])
@@ -486,7 +494,8 @@ def has_display() -> bool:
 
 
 def view(drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
-         rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None) -> ViewResult:
+         rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None,
+         inputs: InputMap | None = None) -> ViewResult:
     """Write ``rrd`` (streamed to the file as it is logged), or spawn the rerun viewer when ``rrd`` is None."""
     for p in (drive, *fused):
         if not Path(p).is_file():
@@ -500,7 +509,7 @@ def view(drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] 
     else:
         rec.spawn(default_blueprint=bp)
     try:
-        res = build(rec, drive, fused, progress)
+        res = build(rec, drive, fused, progress, inputs)
     finally:
         rec.flush()
         if rrd is not None:

@@ -64,6 +64,9 @@ class Foreign:
     log_lag_ns: int = 2_000_000  # log time = stamp + this (+ jitter on the GPS: 0.05-0.3 s)
     tf_static: bool = False  # write /tf_static with the IMU frame (and then no frame option is needed)
     imu_frame_id: str = "imu_link"
+    imu_at: tuple[float, float, float] = (0.0, 0.0, 0.0)  # /tf_static: IMU and antenna ("gnss") origins in
+    antenna_at: tuple[float, float, float] | None = None  # base_link (FLU), m; None: no antenna transform
+    max_s: float | None = None  # only the first max_s seconds
     seed: int = 0
 
 
@@ -77,6 +80,10 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
     imu = reader.read_topic(native, "/imu")
     fix = reader.read_topic(native, "/gps/fix")
     t, w, f = imu["log_time_ns"], imu["omega_ib_b"], imu["f_b"]
+    if spec.max_s:
+        n = int(np.searchsorted(t, t[0] + int(spec.max_s * 1e9)))
+        t, w, f = t[:n], w[:n], f[:n]
+        fix = {k: v[fix["log_time_ns"] < t[-1]] for k, v in fix.items() if isinstance(v, np.ndarray)}
     if spec.imu_rate_hz:
         tn = np.arange(t[0], t[-1], int(1e9 / spec.imu_rate_hz), dtype=np.int64)
         w = np.stack([np.interp(tn, t, w[:, i]) for i in range(3)], axis=1)
@@ -96,10 +103,14 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
         if spec.tf_static:
             s_tf = wr.register_msgdef("tf2_msgs/msg/TFMessage", TF_DEF)
             x, y, z, qw = TF_QUAT[spec.frame]
-            tr = {"header": {"stamp": _stamp(t0), "frame_id": "base_link"}, "child_frame_id": spec.imu_frame_id,
-                  "transform": {"translation": {"x": 0.0, "y": 0.0, "z": 0.0},
-                                "rotation": {"x": x, "y": y, "z": z, "w": qw}}}
-            wr.write_message("/tf_static", s_tf, {"transforms": [tr]}, log_time=t0, publish_time=t0)
+            trs = [(spec.imu_frame_id, spec.imu_at, (x, y, z, qw))]
+            if spec.antenna_at is not None:
+                trs.append(("gnss", spec.antenna_at, (0.0, 0.0, 0.0, 1.0)))
+            msg = {"transforms": [{"header": {"stamp": _stamp(t0), "frame_id": "base_link"}, "child_frame_id": c,
+                                   "transform": {"translation": dict(zip("xyz", map(float, at))),
+                                                 "rotation": dict(zip("xyzw", map(float, q)))}}
+                                  for c, at, q in trs]}
+            wr.write_message("/tf_static", s_tf, msg, log_time=t0, publish_time=t0)
         events = [(int(st[i]) + spec.log_lag_ns, 0, i) for i in np.flatnonzero(keep)]
         quiet = [(t0 + int(a * 1e9), t0 + int((a + n) * 1e9)) for a, n in spec.silent]
         for j in range(len(fix["log_time_ns"])):

@@ -108,6 +108,34 @@ def test_frd_imu_from_tf_static_auto_detected_topics(native, native_gap, tmp_pat
     assert _rms(native, tmp_path / "wrong.mcap", "kf", None) > 3.0 * _rms(native, out, "kf", None)
 
 
+def test_lever_arm_from_tf_static(native, tmp_path):
+    """/tf_static with the IMU (FRD) and the antenna frames gives the lever arm in body RFU, with its source."""
+    spec = Foreign(frame="frd", tf_static=True, imu_at=(1.0, 0.0, 0.5), antenna_at=(0.2, 0.3, 1.5), max_s=5.0)
+    drive = write_foreign(native, tmp_path / "tf.mcap", spec)
+    imap = inputs.resolve(drive)
+    assert imap.imu_frame == "frd"
+    # antenna 0.8 m behind, 0.3 m left and 1.0 m above the IMU: RFU (-0.3, -0.8, 1.0)
+    np.testing.assert_allclose(imap.lever_arm_b, [-0.3, -0.8, 1.0], atol=1e-12)
+    from fieldlog.tools.fuse import settings
+
+    st = settings(drive)
+    assert st.sources["lever_arm_b"] == "/tf_static" and st.config.lever_arm_b == pytest.approx((-0.3, -0.8, 1.0))
+
+
+def test_view_and_replay_read_the_mapped_inputs(ros_drive, tmp_path, capsys):
+    """`view` and `replay` take the same input options: the IMU and the fixes of another logger's drive show."""
+    cfg = tmp_path / "in.toml"
+    cfg.write_text('[input]\nimu_frame = "flu"\n')
+    assert cli_main(["replay", str(ros_drive), "--speed", "0", "--config", str(cfg), "--rrd",
+                     str(tmp_path / "r.rrd")]) == 0
+    n_fix = next(t.count for t in reader.topics(ros_drive) if t.topic == "/sensors/gnss/fix")
+    out = capsys.readouterr().out
+    assert f" {n_fix} GPS fixes" in out and "1 outages" in out and " 0 kf solutions" not in out
+    assert cli_main(["view", str(ros_drive), "--imu-frame", "flu", "--rrd", str(tmp_path / "v.rrd")]) == 0
+    out = capsys.readouterr().out
+    assert f"{n_fix} GPS fixes" in out and " 0 IMU rows" not in out
+
+
 def test_200hz_imu_with_dropped_samples_and_jitter(native, native_gap, tmp_path):
     """A 200 Hz IMU that drops every 97th sample, with stamp jitter: bridged, reported, and as accurate."""
     drive = write_foreign(native, tmp_path / "r200.mcap", Foreign(imu_rate_hz=200.0, drop_every=97,

@@ -294,7 +294,11 @@ def cmd_view(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
-    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"))
+    from fieldlog.replay.inputs import resolve
+    from fieldlog.tools.fuse import load_input_spec
+
+    spec = load_input_spec(a.config).merged(input_spec(a))
+    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"), inputs=resolve(a.drive, spec))
     if res.rrd is None:
         print(f"sent {a.drive} to the rerun viewer")
         return 0
@@ -348,11 +352,12 @@ def cmd_batch(a: argparse.Namespace) -> int:
 
 def cmd_replay(a: argparse.Namespace) -> int:
     from fieldlog.replay.player import replay
-    from fieldlog.tools.fuse import drive_config, load_fusion_config
 
-    cfg = load_fusion_config(a.config) if a.config else drive_config(a.drive)
-    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=cfg,
-                 progress=Progress(f"replay {a.method}"))
+    from fieldlog.tools.fuse import settings
+
+    st = settings(a.drive, a.config, input_spec(a))
+    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
+                 progress=Progress(f"replay {a.method}"), imap=st.inputs)
     print(f"played {res.data_s:.1f} s of {a.drive} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
           f"{res.solutions} {a.method} solutions, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, "
           f"{res.outages} outages -> {res.sink}")
@@ -462,7 +467,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "of --config), fused incrementally as in `fieldlog replay`, until the daemon stops")
     s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
     s.add_argument("--connect", default=None, metavar="URL", help="--live: a running viewer, as for `fieldlog replay`")
-    s.add_argument("--config", default=None, help="--live: the daemon's config (for [daemon] bus)")
+    s.add_argument("--config", default=None, help="--live: the daemon's config (for [daemon] bus); else its [input]")
+    add_input_args(s)
     s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("export", help="one Parquet or CSV table per topic, through polars")
@@ -492,6 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="fusion TOML ([fusion] table; default: the drive's own, else the defaults)")
+    add_input_args(s)
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("study", help="one of the other papers' studies, with its report (tools/studies.py)")
