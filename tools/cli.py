@@ -294,11 +294,17 @@ def cmd_view(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
-    from fieldlog.replay.inputs import resolve
+    from fieldlog.replay.inputs import InputSpec, resolve
     from fieldlog.tools.fuse import load_input_spec
 
     spec = load_input_spec(a.config).merged(input_spec(a))
-    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"), inputs=resolve(a.drive, spec))
+    try:
+        imap = resolve(a.drive, spec)
+    except ValueError:
+        if spec != InputSpec():
+            raise
+        imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
+    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"), inputs=imap)
     if res.rrd is None:
         print(f"sent {a.drive} to the rerun viewer")
         return 0
