@@ -174,11 +174,12 @@ FUSION_SUBTOPICS: dict[str, str] = {
     "attitude": QUATERNION,
     "std": VECTOR3,
 }
-_FUSION_RE = re.compile(r"^/fusion/([A-Za-z0-9_-]+)/(fix|vel|attitude|std)$")
+_FUSION_RE = re.compile(r"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|(fix|vel|attitude|std))$")
 
 
 def topic_type(topic: str) -> str:
-    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std}``.
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std}`` and the distributed
+    filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
     """
@@ -187,7 +188,7 @@ def topic_type(topic: str) -> str:
     m = _FUSION_RE.match(topic)
     if m is None:
         raise KeyError(f"not a fieldlog topic: {topic!r}")
-    return FUSION_SUBTOPICS[m.group(2)]
+    return FUSION_SUBTOPICS[m.group(2) or m.group(3)]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,92 +1,197 @@
-"""The distributed filter of the distributed-KF paper, section 2.1.
+"""The distributed filter of the distributed-KF paper, section 2.1 (Fig. 1), on the shared filter interface.
 
-KF_I is fed by GPS velocity, KF_II by GPS position; both are :class:`fusion.kf.KalmanFilter` instances
-over the same 15 states, differing only in H and R. Their estimates are fused by inverse-covariance
-weighting (paper eqs. 3-4)::
+KF_I is fed by the GPS velocity only (H1, R1), KF_II by the GPS position only (H2, R2); both are
+:class:`fusion.kf.KalmanFilter` instances over the same 15 states, each with its own P0, Q and P. Their
+estimates are fused by inverse-covariance weighting (paper eqs. 3-4)::
 
     P = (P_I^-1 + P_II^-1)^-1,    x = P (P_I^-1 x_I + P_II^-1 x_II)
 
-and the fused x corrects the INS (closed loop).
+and the fused x corrects the INS (closed loop). Each local estimate is then shifted by the correction applied,
+x_i <- x_i - x (it now estimates the error of the corrected INS), not replaced: a local filter keeps what it
+knows that the fused estimate did not take, and its covariance (the error of x_i is unchanged by the shift).
 
-The two local filters share the same process and prior, so eqs. 3-4 alone would count that common
-information twice. We use the federated filter's information sharing with full reset (Carlson): each
-local filter runs with P_i = P / beta and Q_i = Q / beta, beta = 1/2, and after each fusion both are
-reset to x_i = 0, P_i = P / beta. With linear models and both updates at the same epoch this makes
-eqs. 3-4 give exactly the centralised estimate, which is the paper's "global optimal fusion" claim.
+What eqs. 3-4 ignore
+--------------------
+Eqs. 3-4 are the fusion of two *independent* estimates. Ours are not: both local errors e_i = x_i - dx (dx the
+true INS error) carry the same prior (both start at P0 from the one alignment) and the same process noise w,
+the one INS error both model. Their cross-covariance P_12 = E[e_I e_II^T] follows::
+
+    start:       P_12 = P0
+    prediction:  P_12 <- Phi P_12 Phi^T + Q          (the common w)
+    update:      P_12 <- (I - K_I H_I) P_12 (I - K_II H_II)^T   (independent velocity and position noise)
+    aid to KF_I: P_12 <- (I - K_a H_a) P_12
+    feedback:    unchanged (the shift moves both estimate and truth)
+
+The optimal combination of two correlated estimates (Bar-Shalom and Campo) would use P_12; eqs. 3-4 set it to
+zero, i.e. count the common prior and process noise twice. The fused estimate therefore loses information
+against the centralised KF (as the paper's section 2.1 says of distributed fusion), and the eq. 4 covariance
+is optimistic. We keep the paper's estimate (eq. 3) and report, as ``covariance``, the actual covariance of
+that estimate's error, W_I P_I W_I^T + W_I P_12 W_II^T + W_II P_12^T W_I^T + W_II P_II W_II^T with
+W_i = P P_i^-1 (honest sigmas); ``fused_covariance`` is eq. 4's. P_12 is tracked for that (a third 15x15
+recursion). Measured loss against ``kf``: see the README's Table 3 section and tests/test_dkf.py.
+
+The federated variant (``fusion="federated"``, ``[fusion] dkf_fusion = "federated"``): information sharing
+with full reset (Carlson): each local filter runs with P_i = P / beta and Q_i = Q / beta, beta = 1/2, and after
+each fusion both are reset to x_i = 0, P_i = P / beta. With linear models and both updates at the same epoch
+eqs. 3-4 then give exactly the centralised estimate: it equals ``kf`` (to rounding), and is not the paper's
+filter.
+
+Vehicle aids (NHC, ZUPT: velocity-domain constraints) go to KF_I only: given to both, eqs. 3-4 would count
+them twice.
+
+The hybrid predictor (``fusion.predictors``) needs, per epoch, each local filter's innovation component
+K_i nu_i (:attr:`DistributedKF.innovations`) and, in an outage, its state prediction plus a predicted
+innovation (:meth:`DistributedKF.predicted_update`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from fieldlog.fusion.kf import KalmanFilter, Measurement
+from fieldlog.fusion.errmodel import N_STATES
+from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.kf import KalmanFilter, Measurement, cycle_matrices
 
-BETA = 0.5  # information share of each local filter
+BETA = 0.5  # information share of each local filter (federated)
+FUSIONS = ("paper", "federated")
 
 
 class DistributedKF:
-    """KF_I (velocity) + KF_II (position) with eqs. 3-4 fusion; same interface as KalmanFilter."""
+    """KF_I (velocity) + KF_II (position) with eqs. 3-4 fusion; the interface of :class:`fusion.kf.KalmanFilter`.
 
-    def __init__(self, P0: np.ndarray, q: np.ndarray) -> None:
-        self.kf_vel = KalmanFilter(P0 / BETA, q, q_scale=1.0 / BETA)
-        self.kf_pos = KalmanFilter(P0 / BETA, q, q_scale=1.0 / BETA)
-        self.x, self.P = fuse([self.kf_vel, self.kf_pos])
+    P0 (15, 15), q (12, 12) as KalmanFilter; fusion "paper" (default) or "federated"."""
+
+    def __init__(self, P0: np.ndarray, q: np.ndarray, fusion: str = "paper") -> None:
+        if fusion not in FUSIONS:
+            raise ValueError(f"dkf_fusion must be one of {FUSIONS}, got {fusion!r}")
+        self.federated = fusion == "federated"
+        scale = 1.0 / BETA if self.federated else 1.0
+        self.kf_vel = KalmanFilter(P0 * scale, q, q_scale=scale)
+        self.kf_pos = KalmanFilter(P0 * scale, q, q_scale=scale)
+        self.P12 = None if self.federated else np.array(P0, dtype=float)
+        self.innovations = (np.zeros(N_STATES), np.zeros(N_STATES))  # K_i nu_i of the last GPS update
+        self._fuse()
 
     @property
     def state(self) -> np.ndarray:
-        """Fused error-state estimate (15,)."""
+        """Fused error-state estimate (15,), eq. 3."""
         return self.x
 
     @property
     def covariance(self) -> np.ndarray:
-        """Fused covariance (15, 15)."""
+        """Covariance of the fused estimate's error (15, 15): with the cross-covariance (paper), eq. 4 (federated,
+        where it is exact)."""
         return self.P
+
+    @property
+    def fused_covariance(self) -> np.ndarray:
+        """Eq. 4's P (15, 15)."""
+        return self.P4
 
     @property
     def locals(self) -> tuple[KalmanFilter, KalmanFilter]:
         """(KF_I, KF_II)."""
         return self.kf_vel, self.kf_pos
 
-    def predict(self, dt, ins_state, imu) -> None:
-        """Both local filters, then fusion (``KalmanFilter.predict`` for the arguments)."""
-        for f in self.locals:
-            f.predict(dt, ins_state, imu)
-        self.x, self.P = fuse(self.locals)
+    def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
+        """One filter cycle (``KalmanFilter.predict`` for the arguments)."""
+        self.propagate(*cycle_matrices(dt, ins_state, imu, self.kf_vel.q))
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Both local filters over a sequence of cycles; returns diag of the fused P after each (m, 15).
+        """Both local filters over a sequence of cycles Phi, Q (m, 15, 15); returns the diagonal of the fused
+        error covariance after each (m, 15). ``local_states`` (m, 2, 15) and ``local_diag`` (m, 2, 15) hold the
+        local estimates and variances after each cycle."""
+        m = len(Phi)
+        if self.federated:  # between fusions P_i = P / beta each, so the fused P is beta * P_i
+            d1 = self.kf_vel.propagate(Phi, Q)
+            self.kf_pos.propagate(Phi, Q)
+            self._fuse()
+            self.local_states = np.zeros((m, 2, N_STATES))
+            self.local_diag = np.stack([d1, d1], axis=1)
+            return BETA * d1
+        out = np.empty((m, N_STATES))
+        xs = np.empty((m, 2, N_STATES))
+        ds = np.empty((m, 2, N_STATES))
+        x1, x2 = self.kf_vel.x, self.kf_pos.x
+        P1, P2, P12 = self.kf_vel.P, self.kf_pos.P, self.P12
+        for i in range(m):
+            x1, x2 = Phi[i] @ x1, Phi[i] @ x2
+            P1 = _sym(Phi[i] @ P1 @ Phi[i].T + Q[i])
+            P2 = _sym(Phi[i] @ P2 @ Phi[i].T + Q[i])
+            P12 = Phi[i] @ P12 @ Phi[i].T + Q[i]
+            out[i] = np.diag(_fused_error_cov(P1, P2, P12)[1])
+            xs[i] = x1, x2
+            ds[i] = np.diag(P1), np.diag(P2)
+        self.kf_vel.x, self.kf_vel.P, self.kf_pos.x, self.kf_pos.P, self.P12 = x1, P1, x2, P2, P12
+        self._fuse()
+        self.local_states, self.local_diag = xs, ds
+        return out
 
-        Between fusions the local covariances are P_i = P / beta each, so the fused P is beta * P_i.
-        """
-        d = self.kf_vel.propagate(Phi, Q)
-        self.kf_pos.propagate(Phi, Q)
-        self.x, self.P = fuse(self.locals)
-        return BETA * d
+    def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """A measurement of the shared interface: to KF_II when it observes position, else to KF_I; then fusion.
+        Returns the change of the fused estimate (15,)."""
+        before = self.x.copy()
+        if np.any(H[:, 0:3]):
+            self._update_local(1, (z, H, R))
+        else:
+            self._update_local(0, (z, H, R))
+        self._fuse()
+        return self.x - before
 
     def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        """KF_I with the velocity, KF_II with the position, then fusion by eqs. 3-4."""
-        if vel is not None:
-            self.kf_vel.update(*vel)
-        if pos is not None:
-            self.kf_pos.update(*pos)
-        self.x, self.P = fuse(self.locals)
+        """KF_I with the velocity, KF_II with the position, then fusion by eqs. 3-4. The innovation components
+        K_i nu_i are kept in ``innovations``."""
+        dx1 = self._update_local(0, vel) if vel is not None else np.zeros(N_STATES)
+        dx2 = self._update_local(1, pos) if pos is not None else np.zeros(N_STATES)
+        self.innovations = (dx1, dx2)
+        self._fuse()
 
     def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (non-holonomic, stationary: velocity-domain constraints) to KF_I only, then
-        fusion. With information sharing a measurement given to exactly one local filter fuses into the
-        centralised update (the information added is H^T R^-1 H once); given to both it would count twice."""
-        self.kf_vel.update(*m)
-        self.x, self.P = fuse(self.locals)
+        """A vehicle-motion aid (velocity-domain constraint) to KF_I only, then fusion."""
+        self._update_local(0, m)
+        self._fuse()
+
+    def predicted_update(self, dx_vel: np.ndarray, dx_pos: np.ndarray) -> None:
+        """Paper eq. 7 in an outage: X_i(n) = X_i(n|n-1) + predicted innovation dx_i (15,) (KF_I: dx_vel,
+        KF_II: dx_pos); the covariances are untouched (a prediction is not a measurement); then fusion."""
+        self.kf_vel.x = self.kf_vel.x + dx_vel
+        self.kf_pos.x = self.kf_pos.x + dx_pos
+        self._fuse()
+
+    def shift(self, b: np.ndarray) -> None:
+        """A known correction b (15,) was applied to the INS (an outage predictor's): the local estimates, of the
+        INS error, move by it (paper); the federated filter's are zero and stay so."""
+        if not self.federated:
+            for f in self.locals:
+                f.x = f.x - b
+            self._fuse()
 
     def start_outage(self) -> None:
         """Told at each unusable GPS epoch: nothing to do."""
 
     def reset(self) -> None:
-        """After feedback: fused and local states to zero, local covariances to P / beta."""
-        self.x = np.zeros_like(self.x)
+        """After the fused estimate has been fed back: paper, each local estimate shifted by it, covariances
+        kept; federated, local states to zero and local covariances to P / beta."""
         for f in self.locals:
-            f.x = np.zeros_like(self.x)
-            f.P = self.P / BETA
+            f.x = f.x - self.x if not self.federated else np.zeros(N_STATES)
+            if self.federated:
+                f.P = self.P / BETA
+        self.x = np.zeros(N_STATES)
+
+    def _update_local(self, i: int, m: Measurement) -> np.ndarray:
+        f = self.locals[i]
+        dx = f.update(*m)
+        if self.P12 is not None:
+            A = np.eye(N_STATES) - f.gain @ m[1]
+            self.P12 = A @ self.P12 if i == 0 else self.P12 @ A.T
+        return dx
+
+    def _fuse(self) -> None:
+        self.x, self.P4 = fuse(self.locals)
+        if self.P12 is None:
+            self.P = self.P4
+        else:
+            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12)[1]
 
 
 def fuse(filters) -> tuple[np.ndarray, np.ndarray]:
@@ -99,6 +204,19 @@ def fuse(filters) -> tuple[np.ndarray, np.ndarray]:
         vec += Pi @ f.state
     P = _inv_spd(info)
     return P @ vec, P
+
+
+def _fused_error_cov(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(eq. 4's P, the covariance of the eqs. 3-4 estimate's error given the cross-covariance P12)."""
+    I1, I2 = _inv_spd(P1), _inv_spd(P2)
+    P = _inv_spd(I1 + I2)
+    W1, W2 = P @ I1, P @ I2
+    C = W1 @ P12 @ W2.T
+    return P, _sym(W1 @ P1 @ W1.T + W2 @ P2 @ W2.T + C + C.T)
+
+
+def _sym(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + P.T)
 
 
 def _inv_spd(P: np.ndarray) -> np.ndarray:

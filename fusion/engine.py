@@ -54,7 +54,7 @@ import numpy as np
 
 from fieldlog.fusion import aids, align, clipgyro, earth, errmodel, hinf, ins, kf, output, predictors, sckf, ukf
 from fieldlog.fusion.dkf import DistributedKF
-from fieldlog.fusion.errmodel import BA, BG, POS, VEL
+from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge, Silence
 from fieldlog.fusion.output import Solution
 
@@ -100,6 +100,7 @@ class FusionConfig:
     still_accel_std_mps2: float = 0.1  # ... and specific force and rate varying less than these over the epoch
     still_gyro_std_dps: float = 0.5
     gps_error_tau_s: float = 300.0  # correlation time of the GPS position error (multipath, atmosphere); 0: white
+    dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
     predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
@@ -162,6 +163,8 @@ class Engine:
         self.ba = np.zeros(3)
         self.updates = 0
         self.predicted = 0  # outage epochs bridged by a predicted correction
+        self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []  # dkf-rbfn outage epochs: t (s), the
+        # fused state prediction and the change the predicted innovations made, position and velocity (6,) each
         self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.max_fix_sigma_m)
@@ -272,6 +275,8 @@ class Engine:
             self.filter.start_outage()
             if self.bridge is not None:
                 self._bridge()
+            elif self._distributed and self.filter.state.any():
+                self._feedback(self.filter.state)  # the fused state prediction X(n|n-1) of the local filters
             return
         t_g = (ep["t_ns"] - self.t_ref_ns) * 1e-9
         pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
@@ -283,7 +288,7 @@ class Engine:
                                                    period, self.cfg.gps_error_tau_s)
         x = self.filter.state
         if self.bridge is not None:
-            self.bridge.train(t_g, u, x, pos, vel)
+            self.bridge.train(t_g, u, self.filter.innovations, pos, vel)
         self._feedback(x)
         self.updates += 1
 
@@ -297,11 +302,26 @@ class Engine:
         self.filter.reset()
 
     def _bridge(self) -> None:
-        """Outage epoch: feed the predicted position and velocity correction into the INS."""
-        x = self.bridge.correction(self.nav)
-        if x is None:
+        """Outage epoch of a predictor method. Hybrid (eq. 7): the local filters' state prediction X_i(n|n-1) plus
+        the predicted innovation components, fused by eqs. 3-4 and fed back. Predictor alone: the predicted
+        correction into the INS, the local estimates shifted by it (a known input, not an estimate)."""
+        d = self.bridge.prediction(self.nav)
+        if self.bridge.hybrid:
+            x_pred = self.filter.state.copy()
+            if d is not None:
+                dx_vel, dx_pos = np.zeros(N_STATES), np.zeros(N_STATES)
+                dx_vel[VEL], dx_pos[POS] = d[3:], d[:3]
+                self.filter.predicted_update(dx_vel, dx_pos)
+                self.predicted += 1
+            self.hybrid_parts.append((self.nav.t, x_pred[:6], self.filter.state[:6] - x_pred[:6]))
+            if self.filter.state.any():
+                self._feedback(self.filter.state)
             return
+        if d is None:
+            return
+        x = self.bridge.as_state(d)
         self.nav = kf.correct_ins(self.nav, x)
+        self.filter.shift(x)
         if self.log is not None:
             self.log.bridge(x)
         self.predicted += 1
@@ -345,24 +365,34 @@ class Engine:
                                                   tt[ends] - tt[starts]))
         if self.log is None:
             diag = self.filter.propagate(Phi, Q)
+            local = (self.filter.local_states, self.filter.local_diag) if self._distributed else None
         else:
-            diag = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, self._gps_var)
+            diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
+        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, self._gps_var, local)
 
-    def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray) -> np.ndarray:
-        """``filter.propagate`` one cycle at a time, recording Phi and each predicted P; returns diag(P)."""
+    def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray
+                          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """``filter.propagate`` one cycle at a time, recording Phi and each predicted P; returns diag(P) and, for
+        the distributed filter, the local states and variances after each cycle."""
         P = np.empty_like(Phi)
+        local = np.empty((2, len(Phi), 2, N_STATES))
         for i in range(len(Phi)):
             self.filter.propagate(Phi[i:i + 1], Q[i:i + 1])
             P[i] = self.filter.covariance
+            if self._distributed:
+                local[:, i] = self.filter.local_states[-1], self.filter.local_diag[-1]
         self.log.cycles(t_end_ns, Phi, P)
-        return np.diagonal(P, axis1=1, axis2=2).copy()
+        return np.diagonal(P, axis1=1, axis2=2).copy(), (tuple(local) if self._distributed else None)
+
+    @property
+    def _distributed(self) -> bool:
+        return isinstance(self.filter, DistributedKF)
 
 
 def make_filter(method: str, P0: np.ndarray, q: np.ndarray, cfg: FusionConfig) -> kf.KalmanFilter | DistributedKF:
     """The filter object of a method, started at P0 (15, 15) with noise PSD q (12, 12)."""
     if method == "dkf" or method in PREDICTOR_NETWORK:
-        return DistributedKF(P0, q)
+        return DistributedKF(P0, q, cfg.dkf_fusion)
     if method == "hinf":
         return hinf.HInfinityFilter(P0, q, cfg.hinf_gamma, min_ratio=cfg.hinf_min_ratio)
     if method == "kf-ukf":

@@ -27,7 +27,8 @@ fails in a 60 s outage with the Table 2 MEMS IMU). The paper gives no rule for c
 policies: ``min_ratio = 0`` keeps gamma fixed and raises; ``min_ratio = c > 1`` (the engine's default,
 ``FusionConfig.hinf_min_ratio``) uses gamma_k = max(gamma, c * bound_k) at each update, i.e. the
 filter is never closer to its existence limit than c, and moves towards the KF (gamma -> infinity) when
-the covariance is large. ``raised`` counts the updates where gamma_k > gamma.
+the covariance is large. ``raised`` counts the epochs where gamma_k > gamma. The inflation is applied once per
+epoch (the first update after a propagation), not again for each measurement of the epoch.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class HInfinityFilter(KalmanFilter):
         self.gamma = float(gamma)
         self.min_ratio = float(min_ratio)
         self.raised = 0
+        self._inflate = True
         self.L = position_velocity_weights() if L is None else np.asarray(L, dtype=float)
 
     def inflated(self) -> np.ndarray:
@@ -93,7 +95,17 @@ class HInfinityFilter(KalmanFilter):
         Pbar = (SV / w) @ SV.T
         return 0.5 * (Pbar + Pbar.T)
 
+    def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """``KalmanFilter.propagate``; the next update inflates P again (a new epoch)."""
+        self._inflate = True
+        return super().propagate(Phi, Q)
+
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """H-infinity measurement update: the KF update (Joseph form) of Pbar. Returns K (z - H x) (15,)."""
-        self.P = self.inflated()
+        """H-infinity measurement update: the KF update (Joseph form) of Pbar. Returns K (z - H x) (15,).
+
+        P is inflated to Pbar once per epoch, at its first update (the vehicle aid or the GPS): eq. 26 has one
+        H_k per step, and the updates of one epoch are the parts of that step's measurement."""
+        if self._inflate:
+            self.P = self.inflated()
+            self._inflate = False
         return super().update(z, H, R)

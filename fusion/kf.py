@@ -49,9 +49,7 @@ class KalmanFilter:
         ins_state: the INS state in the middle of the cycle; imu = (omega_ib_b, f_b), the mean
         bias-corrected rate (rad/s) and specific force (m/s^2) over the cycle, body RFU.
         """
-        C = ins_state.C_bn
-        F, G = errmodel.system_matrices(ins_state.lat, ins_state.h, ins_state.v_n, C, C @ np.asarray(imu[1]))
-        self.propagate(*errmodel.discretise(F[None], G[None], self.q, np.array([dt])))
+        self.propagate(*cycle_matrices(dt, ins_state, imu, self.q))
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Apply a sequence of discrete cycles: Phi, Q (m, 15, 15). Returns diag(P) after each, (m, 15)."""
@@ -73,6 +71,7 @@ class KalmanFilter:
         """
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
+        self.gain = K
         dx = K @ (z - H @ self.x)
         self.x = self.x + dx
         A = np.eye(N_STATES) - K @ H
@@ -97,6 +96,14 @@ class KalmanFilter:
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)
+
+
+def cycle_matrices(dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray], q: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Phi, Q (1, 15, 15) of one filter cycle (``KalmanFilter.predict`` for the arguments; q the noise PSD)."""
+    C = ins_state.C_bn
+    F, G = errmodel.system_matrices(ins_state.lat, ins_state.h, ins_state.v_n, C, C @ np.asarray(imu[1]))
+    return errmodel.discretise(F[None], G[None], q, np.array([dt]))
 
 
 def stack(*ms: Measurement | None) -> Measurement | None:

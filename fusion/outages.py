@@ -10,8 +10,9 @@ there) becomes no-fix epochs at the nominal interval (:class:`Silence`), so it o
 Bridging (``rbfn``, ``tdln``, ``dkf-rbfn``; ``fusion.predictors`` for the mapping of the paper onto the closed
 loop): :class:`PredictorBridge` gives the predictor, at each usable epoch, the INS position (ENU m from the
 alignment point) and velocity before the correction and its target: the observation z = INS - GPS (``rbfn``,
-``tdln``) or the position and velocity components of the correction fed back (``dkf-rbfn``). At each unusable
-or withheld epoch it returns the predicted correction, which the engine feeds into the INS.
+``tdln``) or the local filters' innovation components (``dkf-rbfn``). At each unusable or withheld epoch it
+returns the prediction: the correction of the INS (``rbfn``, ``tdln``) or the predicted innovation components
+(``dkf-rbfn``, added to the local filters' state prediction, eq. 7).
 """
 
 from __future__ import annotations
@@ -120,7 +121,12 @@ class Silence:
 
 
 class PredictorBridge:
-    """The outage predictor of a method of ``PREDICTOR_NETWORK``, fed and asked by the engine at GPS epochs."""
+    """The outage predictor of a method of ``PREDICTOR_NETWORK``, fed and asked by the engine at GPS epochs.
+
+    ``rbfn``, ``tdln``: the predictor alone (section 2.2); targets z = INS - GPS, the prediction is the correction.
+    ``dkf-rbfn``: the hybrid (section 2.3, eq. 7); targets the local filters' innovation components, velocity from
+    KF_I and position from KF_II; the prediction is added to the local filters' state prediction
+    (``DistributedKF.predicted_update``)."""
 
     def __init__(self, method: str, config: predictors.PredictorConfig) -> None:
         self.hybrid = method == "dkf-rbfn"
@@ -132,17 +138,27 @@ class PredictorBridge:
         r = kf.enu_offset(nav.lat, nav.lon, nav.h, *self.origin)
         return np.concatenate([r, nav.v_n])
 
-    def train(self, t_s: float, u: np.ndarray, x: np.ndarray, pos: kf.Measurement, vel: kf.Measurement | None
-              ) -> None:
-        """A usable epoch at t_s: input u (6,) before the update, the estimate x (15,) fed back after it."""
-        y = np.concatenate([x[POS], x[VEL]]) if self.hybrid else _observation(pos, vel)
+    def train(self, t_s: float, u: np.ndarray, innovations: tuple[np.ndarray, np.ndarray], pos: kf.Measurement,
+              vel: kf.Measurement | None) -> None:
+        """A usable epoch at t_s: input u (6,) before the update; the local filters' innovation components
+        (KF_I, KF_II) (15,) each of this update; the GPS measurements."""
+        if self.hybrid:
+            dx_vel, dx_pos = innovations
+            y = np.concatenate([dx_pos[POS], dx_vel[VEL]])
+            if vel is None:
+                y[3:] = np.nan
+        else:
+            y = _observation(pos, vel)
         self.predictor.train(t_s, u, y)
 
-    def correction(self, nav: NavState) -> np.ndarray | None:
-        """An outage epoch: the predicted correction as an error state (15,), None when there is none."""
+    def prediction(self, nav: NavState) -> np.ndarray | None:
+        """An outage epoch: the predicted target (6,) (position E, N, U m; velocity m/s), NaN-free; None if none."""
         d = np.nan_to_num(self.predictor.predict(self.input(nav)))  # a channel without a model: none
-        if not d.any():
-            return None
+        return d if d.any() else None
+
+    @staticmethod
+    def as_state(d: np.ndarray) -> np.ndarray:
+        """A predicted (6,) position and velocity as an error state (15,)."""
         x = np.zeros(N_STATES)
         x[POS], x[VEL] = d[:3], d[3:]
         return x

@@ -8,13 +8,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fieldlog.fusion import earth
+
 NS = 1_000_000_000
 
 
 @dataclass
 class Solution:
     """Output rows: t_ns (n,), lat, lon (rad), h (m), v_n (n, 3), q (n, 4) [x, y, z, w] of C_bn,
-    sigma (n, 9): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad."""
+    sigma (n, 9): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad.
+
+    local (n, 2, 12) or None: the distributed filter's local solutions (KF_I, KF_II), the INS corrected by that
+    local estimate alone: lat, lon (rad), h (m), v_n (3) ENU m/s, sigma position ENU (3) m, velocity (3) m/s."""
 
     t_ns: np.ndarray
     lat: np.ndarray
@@ -23,14 +28,17 @@ class Solution:
     v_n: np.ndarray
     q: np.ndarray
     sigma: np.ndarray
+    local: np.ndarray | None = None
 
     @staticmethod
     def concat(parts: list["Solution"]) -> "Solution":
         if not parts:
             return Solution(np.zeros(0, np.int64), *(np.zeros(0),) * 3, np.zeros((0, 3)), np.zeros((0, 4)),
                             np.zeros((0, 9)))
+        local = [p.local for p in parts if len(p.t_ns)]
         return Solution(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma")))
+                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma")),
+                        np.concatenate(local) if local and all(x is not None for x in local) else None)
 
 
 def sigmas(diag: np.ndarray) -> np.ndarray:
@@ -45,15 +53,32 @@ def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
 
 
 def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray,
-         gps_var: np.ndarray | None = None) -> Solution:
+         gps_var: np.ndarray | None = None, local: tuple[np.ndarray, np.ndarray] | None = None
+         ) -> Solution:
     """Solution rows of an INS segment: sol a ``fusion.ins.NavSolution`` over samples t_ns (n,); the covariance
-    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); gps_var (3,) m^2 added to the
-    position variances (``correlated_variance``)."""
+    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); local: the distributed filter's
+    local estimates and variances after each cycle, (m, 2, 15) each, or None; gps_var (3,) m^2
+    added to the position variances (``correlated_variance``)."""
     r = output_rows(t_ns, output_hz)
-    sig = sigmas(diag)[np.searchsorted(ends, r)]
+    cyc = np.searchsorted(ends, r)
+    sig = sigmas(diag)[cyc]
     if gps_var is not None:
         sig[:, :3] = np.sqrt(sig[:, :3] ** 2 + gps_var)
-    return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig)
+    loc = None
+    if local is not None:
+        x, d = local[0][cyc], local[1][cyc]  # (n, 2, 15)
+        loc = np.empty((len(r), 2, 12))
+        for i in range(2):
+            loc[:, i, 0:6] = corrected(sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], x[:, i])
+            loc[:, i, 6:12] = np.sqrt(np.maximum(d[:, i, 0:6], 0.0))
+    return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig, loc)
+
+
+def corrected(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Position and velocity (n,) rad, rad, m and (n, 3) ENU m/s corrected by error states x (n, 15) as
+    ``kf.correct_ins`` does: (n, 6) lat, lon, h, v_n."""
+    rm, rn = earth.principal_radii(lat, h)
+    return np.column_stack([lat - x[:, 1] / rm, lon - x[:, 0] / (rn * np.cos(lat)), h - x[:, 2], v_n - x[:, 3:6]])
 
 
 def correlated_variance(r: np.ndarray, p: np.ndarray, period_s: float, tau_s: float) -> np.ndarray:

@@ -1,75 +1,78 @@
 """Outage predictors of the distributed-KF paper (sections 2.2-2.3): six SISO RBF networks, the TDLN, and
 the training history that feeds them from the fusion loop.
 
-Networks (pure numpy, one per channel, fitted in batch on a window of GPS epochs):
+Networks (pure numpy, one per channel):
 
-- :class:`Rbfn`, eq. 6: y = sum_i w_i exp(-((x - c_i) / s_i)^2 / 2), no bias term. The input is
-  normalised within the window (mean, std); centres by k-means on it (``scipy.cluster.vq.kmeans2``,
-  k-means++ start, fixed seed); width s_i = the distance from c_i to its nearest other centre times
-  ``width_scale`` (2); output weights by batch least squares with a ridge chosen by generalised
-  cross-validation (:func:`ridge_solve`). Without a bias term
-  (as eq. 6) the output decays to zero for inputs far outside the training window: the correction
-  then falls back to none, i.e. to the plain KF.
-- :class:`Tdln`: a linear network with a tapped delay line on its input,
-  y_n = b + sum_{j<taps} w_j x_{n-j}, taps = 200 as in the paper, least squares on the window with a
-  ridge chosen by generalised cross-validation: with 200 taps the window often holds fewer epochs than
-  weights, and an unregularised (minimum-norm) fit extrapolates wildly as soon as the INS input leaves
-  the training range.
-  Before the line is full it is padded with the oldest input.
+- RBFN, eq. 6: y = sum_i w_i exp(-((x - c_i) / s_i)^2 / 2), no bias term. The input is normalised within the
+  training window (mean, std); centres by k-means on it (``scipy.cluster.vq.kmeans2``, k-means++ start, fixed
+  seed); width s_i = the distance from c_i to its nearest other centre times ``width_scale`` (2). Without a
+  bias term (as eq. 6) the output decays to zero for inputs far outside the training data: the correction
+  then falls back to none, i.e. to the plain filter.
+- TDLN: a linear network with a tapped delay line on its input, y_n = b + sum_{j<taps} w_j x_{n-j},
+  taps = 200 as in the paper. Before the line is full it is padded with the oldest input.
+
+Training (``PredictorConfig.training``):
+
+- ``"online"`` (default, the paper's section 2.2: trained in real time while GPS is good):
+  :class:`OnlineChannel`. Output weights by recursive least squares with forgetting (:class:`Rls`, memory
+  about ``window`` epochs, start P = I / ``rls_delta``), updated at every good epoch; k-means centres and the
+  input normaliser refreshed every ``refresh`` trained epochs and whenever an input leaves the centres' span
+  (the RLS is then rerun over the window, since its features changed). RLS rather than LMS: see
+  :class:`OnlineChannel`.
+- ``"batch"`` (measured beside it): :class:`Rbfn` / :class:`Tdln` fitted once, at the first epoch of an outage,
+  on the window, with a ridge chosen by generalised cross-validation (:func:`ridge_solve`); with 200 taps the
+  window often holds fewer epochs than weights, and an unregularised fit extrapolates wildly.
 
 Channels: inputs INS east, north, up position and vE, vN, vU; each network maps one input to the target
 of the same component. The positions are given in metres from a fixed origin: an affine map of the
-paper's longitude, latitude, altitude, which the window normalisation removes anyway.
+paper's longitude, latitude, altitude, which the normalisation removes anyway.
 
-How the paper maps onto our closed-loop filter
-----------------------------------------------
-The paper (eq. 7) splits a KF's estimate into the state prediction X(n|n-1) and the innovation
-component dX(n) = K(n) nu(n). Our filters (``fusion.kf``, ``fusion.dkf``) are closed loop: after every
-GPS epoch the estimate is fed into the INS and the biases and the error state is reset, so
-X(n|n-1) = Phi X(n-1|n-1) is identically zero. Its role, carrying the estimated attitude and bias errors
-forward through the dynamics of F, is played by the corrected INS itself (the fed-back estimate makes
-the INS evolve as the open-loop estimate Phi X would predict, to first order). Hence:
+Eq. 7 in our closed loop (``dkf-rbfn``)
+---------------------------------------
+The paper splits each local filter's estimate into the state prediction X_i(n|n-1) = Phi X_i(n-1) and the
+innovation component dX_i(n) = K_i(n) nu_i(n): X_i(n) = X_i(n|n-1) + dX_i(n) (eq. 7). Our filters are closed
+loop: the fused estimate corrects the INS at every epoch. With the paper's distributed filter (``fusion.dkf``)
+that does not make X_i(n|n-1) zero: the fused correction x is subtracted from each local estimate
+(x_i <- x_i - x, the local filter now estimates the error of the corrected INS), and since the two local
+estimates differ from their fusion, each keeps a non-zero remainder that Phi carries to the next epoch. So:
 
-- the KF prediction alone is ``dkf`` during the outage (the free INS with the fed-back biases);
-- eq. 7 in closed loop: the correction actually applied at a GPS epoch is dX(n) = x(n|n), the
-  innovation component. ``dkf-rbfn`` trains its six networks on the position and velocity components of
-  that applied correction, and during an outage applies the predicted components at each GPS epoch
-  time (each epoch that is unusable or withheld) as a correction of the INS (``fusion.kf.correct_ins``);
-  the error state stays zero and the covariance is untouched (a prediction is not a measurement).
-  0 + predicted dX is exactly eq. 7's "state prediction plus predicted innovation".
-- ``rbfn`` and ``tdln``, the predictors alone (section 2.2): their targets are "the errors between INS
-  positions & velocities and GPS positions & velocities", i.e. the observations z = INS - GPS of KF_II
-  (position) and KF_I (velocity) at the epoch, before correction. During an outage the predicted z is
-  subtracted from the INS in full at each epoch (gain 1), with no KF involved.
+- while GPS is good, every epoch: KF_I's update gives dX_I (velocity, from the GPS velocity), KF_II's gives
+  dX_II (position); the networks train on the INS position/velocity before the update (input) and the
+  velocity components of dX_I and the position components of dX_II (targets), as Fig. 3(a);
+- in an outage, every epoch: X_i(n|n-1) is the local filter's propagated estimate (the remainder above plus
+  what the dynamics add); the networks predict dX_I's velocity and dX_II's position components from the
+  current INS; their sum is X_i(n) (eq. 7); eqs. 3-4 fuse X_I(n), X_II(n) with the predicted covariances
+  (a prediction is not a measurement: P_i is not reduced), and the fused X corrects the INS, as Fig. 3(b);
+  the local estimates are shifted by it as at a GPS epoch. ``Engine.hybrid_parts`` records both parts.
+- ``dkf`` alone does the same without the networks: in an outage its fused state prediction is fed back at
+  every epoch, so ``dkf-rbfn`` differs from ``dkf`` only by the predicted innovations.
+
+With the federated variant (``dkf_fusion = "federated"``) the local filters are reset to the fused estimate
+at every epoch, X_i(n|n-1) is identically zero, and the hybrid reduces to "0 + predicted innovation".
+
+``rbfn`` and ``tdln``, the predictors alone (section 2.2): their targets are "the errors between INS
+positions & velocities and GPS positions & velocities", i.e. the observations z = INS - GPS of KF_II
+(position) and KF_I (velocity) at the epoch, before correction. During an outage the predicted z is
+subtracted from the INS in full at each epoch (gain 1), with no KF involved (the local estimates are shifted
+by it, a known input).
 
 Consequence, worth knowing when reading the results: in a closed loop, z is the error grown since the
 last correction plus GPS noise. In steady state a systematic drift d per epoch gives E[z] = d / K and
 E[K z] = d, so the full-gain ``rbfn``/``tdln`` correction over-corrects a systematic drift by a factor
-1/K, and carries the GPS noise of z at full weight; the hybrid's target already has the gain (the KF's
-dynamics) in it. In the paper, the predictors alone seem to correct a free-running INS (Table 3:
-altitude errors of kilometres), where z is the whole INS error; we do not reproduce that set-up, since
-the free INS is our ``ins`` method.
+1/K, and carries the GPS noise of z at full weight; the hybrid's target already has the gain in it. In the
+paper, the predictors alone seem to correct a free-running INS (Table 3: altitude errors of kilometres),
+where z is the whole INS error; we do not reproduce that set-up, since the free INS is our ``ins`` method.
 
 Where the paper is ambiguous
 ----------------------------
-- The six networks predict 6 numbers: the velocity components of KF_I's innovation component and the
-  position components of KF_II's. Eqs. 3-4 then need whole 15-state local estimates and the covariances
-  an update would have produced; neither exists during an outage. With our information sharing
-  (``fusion.dkf``) the fused correction equals the centralised K nu, so we learn the position and
-  velocity components of the fused (applied) correction directly; attitude and biases get no predicted
-  correction (the paper predicts none either: "particularly referred to the position errors and velocity
-  errors").
 - The rate: targets exist at the GPS epochs (1 Hz); the paper holds GPS values between epochs ("the GPS
   signals maintained the latest receiving values"), which suggests networks run at the IMU rate on
   zero-order-held targets. We train and predict at the GPS epochs only: held targets add no information.
   A 200-step delay is then 200 s of input history (0.4 s at 500 Hz in the paper's reading).
 - Window length, number of centres, widths and regularisation are not given; ours are in
   :class:`PredictorConfig`.
-- Training "in real time while GPS is good": batch least squares has no memory, so refitting on the
-  sliding window at every epoch and using the last fit equals fitting once, on the window, at the
-  first epoch of an outage. We do the latter (6 k-means and solves per outage, not per second). The
-  epochs within ``settle_s`` after the filter starts or GPS returns are left out of training: their
-  corrections are the reconvergence from the previous outage, not a function of the INS state.
+- The epochs within ``settle_s`` after the filter starts or GPS returns are left out of training: their
+  innovations are the reconvergence from the previous outage, not a function of the INS state.
 """
 
 from __future__ import annotations
@@ -96,8 +99,16 @@ class PredictorConfig:
     centres: int = 10  # Gaussian units per RBFN
     width_scale: float = 2.0  # Gaussian width / nearest-centre spacing (1 leaves a ripple of a few %)
     taps: int = 200  # TDLN delay line
-    ridge: float | None = None  # relative to the mean diagonal of the normal matrix; None: by GCV
+    ridge: float | None = None  # batch: relative to the mean diagonal of the normal matrix; None: by GCV
     seed: int = 0  # k-means++ start
+    training: str = "online"  # "online": RLS weights at every good epoch (the paper); "batch": ridge fit per outage
+    refresh: int = 60  # online: k-means centres and input normaliser recomputed every this many trained epochs
+    rls_delta: float = 1e-2  # online: RLS start P = I / delta, a ridge of delta on the normalised features
+
+    @property
+    def forget(self) -> float:
+        """RLS forgetting factor: a memory of about ``window`` epochs."""
+        return 1.0 - 1.0 / self.window
 
 
 def _normaliser(x: np.ndarray) -> tuple[float, float]:
@@ -215,6 +226,95 @@ class Tdln:
         return self._rows(np.asarray(x, float)) @ self.w
 
 
+class Rls:
+    """Recursive least squares with exponential forgetting: w minimises sum_k forget^(n-k) (y_k - phi_k w)^2 +
+    forget^n delta |w|^2. One O(n^2) update per sample (no matrix inverse), stable in the Joseph-free form with
+    symmetrisation."""
+
+    def __init__(self, n: int, forget: float, delta: float) -> None:
+        self.w = np.zeros(n)
+        self.P = np.eye(n) / delta
+        self.forget = forget
+        self.updates = 0
+
+    def update(self, phi: np.ndarray, y: float) -> None:
+        Pphi = self.P @ phi
+        k = Pphi / (self.forget + phi @ Pphi)
+        self.w = self.w + k * (y - phi @ self.w)
+        P = (self.P - np.outer(k, Pphi)) / self.forget
+        self.P = 0.5 * (P + P.T)
+        self.updates += 1
+
+
+class OnlineChannel:
+    """One channel of a network trained in real time (section 2.2 of the paper).
+
+    RBFN: centres by k-means (``kmeans_centres``) on the window's inputs, normalised by the window's mean and
+    std, widths from the centre spacing as :class:`Rbfn`; TDLN: the window's normaliser and the tapped delay line
+    of :class:`Tdln`. The output weights are recursive least squares (:class:`Rls`), updated at every epoch with a
+    target. RLS rather than the paper's LMS gradient descent: the Gaussian units overlap (width 2x the spacing),
+    so the features are strongly correlated and LMS converges at the rate of the smallest eigenvalue of their
+    correlation, hundreds of epochs at 1 Hz for a step size that stays stable; RLS converges in about as many
+    epochs as there are weights, needs no step size, and forgets at a known rate (``PredictorConfig.forget``).
+
+    Every ``refresh`` trained epochs, first after ``min_train``, and whenever an RBFN input leaves the centres'
+    span by more than a width, the centres and normaliser are recomputed on the window; the features then change, so the RLS restarts and is run over the window's samples once (a
+    refresh costs what one batch fit does; between refreshes an epoch costs one RLS step)."""
+
+    def __init__(self, kind: str, cfg: PredictorConfig) -> None:
+        self.kind, self.cfg = kind, cfg
+        self.rls: Rls | None = None
+        self.c = self.s = None
+        self.mean, self.std = 0.0, 1.0
+        self.since = 0
+
+    def features(self, x: np.ndarray) -> np.ndarray:
+        """Feature rows (n, l) for inputs: RBFN the current inputs x (n,); TDLN a series x (n,), one row per step."""
+        xn = (np.asarray(x, float) - self.mean) / self.std
+        if self.kind == "rbfn":
+            return rbf_design(xn, self.c, self.s)
+        d = delay_rows(xn, self.cfg.taps)
+        return np.hstack([np.ones((len(d), 1)), d])
+
+    def refresh(self, U: np.ndarray, Y: np.ndarray) -> None:
+        """New centres and normaliser from the window's inputs U (n,) and targets Y (n,) (NaN: none); RLS rerun."""
+        ok = np.isfinite(Y)
+        self.mean, self.std = _normaliser(U[ok])
+        if self.kind == "rbfn":
+            c = kmeans_centres((U[ok] - self.mean) / self.std, self.cfg.centres, self.cfg.seed)
+            if len(c) > 1:
+                gap = np.diff(c)
+                s = np.minimum(np.concatenate([[np.inf], gap]), np.concatenate([gap, [np.inf]]))
+            else:
+                s = np.ones(1)
+            self.c, self.s = c, self.cfg.width_scale * np.maximum(s, 1e-3)
+            A = self.features(U[ok])
+        else:
+            A = self.features(U)[ok]
+        self.rls = Rls(A.shape[1], self.cfg.forget, self.cfg.rls_delta)
+        for phi, y in zip(A, Y[ok]):
+            self.rls.update(phi, y)
+        self.since = 0
+
+    def stale(self, x: float) -> bool:
+        """RBFN: an input beyond the outer centres by more than their width (the vehicle left the trained
+        region), so the centres are due now."""
+        if self.kind != "rbfn":
+            return False
+        xn = (x - self.mean) / self.std
+        return bool(xn < self.c[0] - self.s[0] or xn > self.c[-1] + self.s[-1])
+
+    def step(self, U: np.ndarray, y: float) -> None:
+        """One RLS update with the newest sample: U the input series (the last one is current), y its target."""
+        phi = self.features(U[-1:] if self.kind == "rbfn" else U[-self.cfg.taps:])[-1]
+        self.rls.update(phi, y)
+        self.since += 1
+
+    def predict(self, U: np.ndarray) -> float:
+        phi = self.features(U[-1:] if self.kind == "rbfn" else U[-self.cfg.taps:])[-1]
+        return float(phi @ self.rls.w)
+
+
 class OutagePredictor:
     """The six channels of one method (``"rbfn"`` or ``"tdln"`` networks) and their training history.
 
@@ -241,6 +341,10 @@ class OutagePredictor:
         self._in_outage = True  # the filter starts unaided
         self._lo, self._hi = np.full(N_CHANNELS, -np.inf), np.full(N_CHANNELS, np.inf)
         self.fits = 0
+        if self.cfg.training not in ("online", "batch"):
+            raise ValueError(f"[fusion.predictor] training: {self.cfg.training!r}; one of online, batch")
+        self.online = ([OnlineChannel(kind, self.cfg) for _ in range(N_CHANNELS)]
+                       if self.cfg.training == "online" else None)
 
     def train(self, t_s: float, u: np.ndarray, y: np.ndarray) -> None:
         """A usable epoch at t_s (s): input u (6,), target y (6,) (NaN for a component not observed)."""
@@ -249,15 +353,40 @@ class OutagePredictor:
             self._in_outage = False
         self._push(u, y if t_s >= self._settle_until else np.full(N_CHANNELS, np.nan))
         self._models = None
+        if self.online is not None:
+            self._train_online()
+
+    def _train_online(self) -> None:
+        """Real-time training at this epoch: an RLS step per channel with a target, a refresh when due."""
+        c = self.cfg
+        U, Y = np.array(self._u), np.array(self._y)
+        Y[:-c.window] = np.nan
+        for i, ch in enumerate(self.online):
+            if not np.isfinite(Y[-1, i]) or not np.isfinite(U[-1, i]):
+                continue
+            ok = np.isfinite(Y[:, i]) & np.isfinite(U[:, i])
+            self._lo[i], self._hi[i] = np.nanmin(Y[ok, i]), np.nanmax(Y[ok, i])
+            if ch.rls is None and ok.sum() < c.min_train:
+                continue
+            if ch.rls is None or ch.since >= c.refresh or ch.stale(U[-1, i]):
+                ch.refresh(U[:, i], np.where(ok, Y[:, i], np.nan))
+                self.fits += 1
+            else:
+                ch.step(U[:, i], Y[-1, i])
 
     def predict(self, u: np.ndarray) -> np.ndarray:
         """An outage epoch with input u (6,): the predicted target (6,), NaN for a channel without a model."""
         self._in_outage = True
         self._push(u, np.full(N_CHANNELS, np.nan))
-        if self._models is None:
-            self._models = self._fit()
         out = np.full(N_CHANNELS, np.nan)
         U = np.array(self._u)
+        if self.online is not None:
+            for i, ch in enumerate(self.online):
+                if ch.rls is not None:
+                    out[i] = ch.predict(U[:, i])
+            return np.clip(out, self._lo, self._hi)
+        if self._models is None:
+            self._models = self._fit()
         for i, m in enumerate(self._models):
             if m is None:
                 continue

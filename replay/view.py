@@ -10,6 +10,8 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
 ``map/gps``                           GeoPoints, one row per ``/gps/fix`` epoch with a fix (finite lat/lon)
 ``map/truth``                         GeoPoints at 10 Hz (every ``TRUTH_DECIMATION``-th ``/truth/fix`` row)
 ``map/fusion/<method>``               GeoPoints, one row per ``/fusion/<method>/fix`` message (10 Hz)
+``map/fusion/<method>/kf1``, ``/kf2``   the distributed methods' local solutions (``/fusion/<method>/kf{1,2}/fix``:
+                                      the INS corrected by KF_I's or KF_II's estimate alone, the paper's Fig. 5)
 ``map/<src>/track``                   static GeoLineStrings: the whole track, so the map shows it at any time
 ``map/no_fix``                        GeoPoints, one row per GPS epoch without a fix, at the last fix position
 ``map/outage``                        static GeoLineStrings: the reference track (truth, else GPS) inside each
@@ -455,6 +457,13 @@ def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequenc
     for i, (m, trk) in enumerate(fused_trk):
         color = method_color(m.split("@")[0], i)
         _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
+        path = dict(methods)[m]
+        for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
+            if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/{k}/fix"):
+                f = reader.read_topic(path, f"/fusion/{m.split('@')[0]}/{k}/fix")
+                ok = f["valid"]
+                local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
+                _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
 

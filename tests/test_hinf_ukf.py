@@ -276,3 +276,23 @@ def test_kf_ukf_through_fieldlog_fuse_with_an_outage(drive, tmp_path):
         dn = (np.radians(s["lat_deg"][m]) - lat) * rm
         errs.append(float(np.sqrt(np.mean(de ** 2 + dn ** 2))))
     assert errs[0] < 10.0 and errs[0] < 1.2 * errs[1] + 0.5, errs  # reconverges like the kf after the outage
+
+
+def test_hinf_inflates_once_per_epoch_not_at_each_update():
+    rng = np.random.default_rng(6)
+    P0, q, Phi, Q, H, R = _system(rng)
+    gamma = 2.0 * hinf.existence_bound(P0, hinf.position_velocity_weights())
+    h = hinf.HInfinityFilter(P0, q, gamma)
+    k = kf.KalmanFilter(h.inflated(), q)  # the epoch's Pbar, then plain KF updates
+    z1, z2 = rng.standard_normal(6) * 0.1, rng.standard_normal(6) * 0.1
+    for f in (h, k):
+        f.update(z1[:3], H[3:], R[3:, 3:])  # e.g. a velocity aid, then the GPS, at one epoch
+        f.update(z2, H, R)
+    assert np.allclose(h.covariance, k.covariance, rtol=1e-10, atol=1e-14)
+    h.propagate(Phi, Q)  # the next epoch inflates again
+    plain = kf.KalmanFilter(h.covariance.copy(), q)
+    inflated = kf.KalmanFilter(h.inflated(), q)
+    for f in (h, plain, inflated):
+        f.update(z1, H, R)
+    assert np.allclose(h.covariance, inflated.covariance, rtol=1e-10, atol=1e-14)
+    assert not np.allclose(h.covariance, plain.covariance, rtol=1e-6, atol=0)

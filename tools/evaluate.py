@@ -17,6 +17,10 @@ DIR/table.csv (long form: quantity, unit, method, outage_s, mean, std, drives, w
 solutions in DIR/fused/ and, per outage length L, DIR/errors_<L>s.png: horizontal position error (m) and
 velocity error magnitude (m/s) against time since the outage start, each window thin, the mean thick.
 
+``--paper`` runs the paper's own set-up (:func:`paper_config`: GPS only, its distributed filter, networks
+trained in real time; methods ``PAPER_METHODS``, 30 and 60 s outages, 5 simulated figure8 drives when none is
+given) and adds to the report its Table 3 beside ours and a verdict on each of its claims (:func:`paper_report`).
+
 Methods: ``fusion.engine.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
 distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
 """
@@ -276,13 +280,16 @@ def rms_columns(e: np.ndarray) -> np.ndarray:
 
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
-             say: Callable[[str], None] = print, spec: InputSpec | None = None) -> pl.DataFrame:
+             say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False
+             ) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
     smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``). config None: each
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
-    another logger (``replay.inputs``); the scoring needs ``/truth`` or fieldlog's /gps/fix there."""
+    another logger (``replay.inputs``); the scoring needs ``/truth`` or fieldlog's /gps/fix there. paper: the
+    distributed-KF paper's set-up (:func:`paper_config` on each drive's config) and, in the report, its Table 3
+    beside ours and a verdict on each of its claims (:func:`paper_report`)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
@@ -296,6 +303,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
         base = config or drive_config(drive)
+        if paper:
+            base = paper_config(base)
         imap = resolve_inputs(drive, spec)
         t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
         for L in lengths:
@@ -339,8 +348,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                            max(map(len, by.values()))) for L, by in curves.items()]
     for f in figures:
         say(f"wrote {f}")
-    conclusions = verdict(per)
-    for line in conclusions[2:-1]:
+    conclusions = paper_report(per) if paper else verdict(per)
+    for line in (conclusions if paper else conclusions[2:-1]):
         say(line)
     sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in honesty.items()]
     for line in sigma_lines:
@@ -396,6 +405,70 @@ def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
                      + ("met." if h.mean() <= PAPER_HYBRID_60S_2D_M else "not met."))
         lines.append(line)
     return ["## Does the hybrid beat RBFN-only and TDLN, as the paper claims?", "", *lines, ""] if lines else []
+
+
+PAPER_METHODS = ("kf", "dkf", "rbfn", "tdln", "dkf-rbfn")
+PAPER_LENGTHS = (30.0, 60.0)
+PAPER_SEEDS = 5
+# the paper's Table 3: RMS longitude, latitude, altitude (m), east, north, up velocity (m/s) in its outages
+PAPER_TABLE3 = {
+    ("tdln", 30.0): (48.8457, 4.8964, 2.837e3, 0.5132, 0.2328, 133.4138),
+    ("tdln", 60.0): (368.5379, 2.7340, 2.2941e4, 2.7722, 0.1926, 248.3301),
+    ("rbfn", 30.0): (6.7454, 4.7034, 6.8774e3, 0.1886, 0.1615, 30.4365),
+    ("rbfn", 60.0): (12.0465, 3.3548, 3.2891e4, 1.5799, 0.2314, 158.1367),
+    ("dkf-rbfn", 30.0): (2.9495, 4.9846, 0.3719, 0.1162, 0.5534, 0.0190),
+    ("dkf-rbfn", 60.0): (8.8609, 3.0110, 2.5718, 0.2351, 0.4023, 0.0500),
+}
+# the paper's claims: (better, worse, words); "dkf >= kf" is section 2.1's information loss of distributed fusion
+PAPER_CLAIMS = (("dkf-rbfn", "rbfn", "hybrid < RBFN"), ("dkf-rbfn", "tdln", "hybrid < TDLN"),
+                ("dkf-rbfn", "dkf", "hybrid < dkf"), ("kf", "dkf", "dkf >= centralised kf"))
+
+
+def paper_config(cfg: FusionConfig) -> FusionConfig:
+    """The paper's set-up on a drive's config: GPS only (no vehicle aids), its distributed filter (eqs. 3-4), the
+    networks trained in real time."""
+    return replace(cfg, nhc=False, zupt=False, dkf_fusion="paper",
+                   predictor=replace(cfg.predictor, training="online"))
+
+
+def paper_report(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
+    """Markdown lines: the paper's Table 3 beside ours (mean over drives), then a verdict on each claim by the
+    per-drive 2D position RMS: the mean difference and twice its standard error over the drives."""
+    lines = ["## The paper's Table 3 beside ours (GPS only, paper's dkf, online networks)", "",
+             "| quantity | unit | " + " | ".join(f"{m} {L:g} s ours | paper" for m in ("tdln", "rbfn", "dkf-rbfn")
+                                                for L in PAPER_LENGTHS) + " |",
+             "|---|---|" + "---|---|" * 3 * len(PAPER_LENGTHS)]
+    for i, (q, unit) in enumerate(QUANTITIES[:6]):
+        cells = []
+        for m in ("tdln", "rbfn", "dkf-rbfn"):
+            for L in PAPER_LENGTHS:
+                ours = np.nanmean(np.array(per[(m, L)])[:, i]) if (m, L) in per else math.nan
+                cells.append(f"{ours:.3f} | {PAPER_TABLE3[(m, L)][i]:.4g}")
+        lines.append(f"| {q} | {unit} | " + " | ".join(cells) + " |")
+    lines += ["", "## Verdicts on the paper's claims (2D position RMS per drive; difference ± 2 standard errors)",
+              ""]
+    for L in sorted({L for _, L in per}):
+        d2 = {m: np.hypot(np.array(v)[:, 0], np.array(v)[:, 1]) for (m, L2), v in per.items() if L2 == L}
+        for better, worse, words in PAPER_CLAIMS:
+            if better not in d2 or worse not in d2 or len(d2[better]) != len(d2[worse]):
+                continue
+            diff = d2[worse] - d2[better]  # > 0: the claim's direction
+            n = len(diff)
+            se2 = 2.0 * diff.std(ddof=1) / math.sqrt(n) if n > 1 else math.nan
+            if not n > 1:
+                word = "not resolved (one drive)"
+            elif diff.mean() > se2:
+                word = "confirmed"
+            elif diff.mean() < -se2:
+                word = "contradicted"
+            else:
+                word = "not resolved (within 2 standard errors)" if better != "kf" else \
+                    "consistent (equal within 2 standard errors)"
+            lines.append(f"- {L:g} s, {words}: {better} {d2[better].mean():.2f} m, {worse} {d2[worse].mean():.2f} m; "
+                         f"{worse} - {better} = {diff.mean():+.2f} ± {se2:.2f} m over {n} drives: **{word}**.")
+    if len({len(v) for v in per.values()}) == 1 and len(next(iter(per.values()), [])) < PAPER_SEEDS:
+        lines.append(f"- Fewer than {PAPER_SEEDS} drives: the paper's set-up asks for at least {PAPER_SEEDS}.")
+    return lines + [""]
 
 
 def markdown(table: pl.DataFrame, drives: list[str], figures: Sequence[str] = (), note: str = "",

@@ -8,6 +8,9 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/<method>/vel`` TwistWithCovarianceStamped: ENU velocity, its variances in the covariance;
 - ``/fusion/<method>/attitude`` QuaternionStamped: C_bn (body RFU -> ENU), x, y, z, w;
 - ``/fusion/<method>/std`` Vector3Stamped: position sigma E, N, U in m;
+- ``/fusion/<method>/kf1/{fix,vel}``, ``/fusion/<method>/kf2/{fix,vel}`` (``dkf``, ``rbfn``, ``tdln``, ``dkf-rbfn``):
+  the local solutions, the INS corrected by KF_I's (velocity) or KF_II's (position) estimate alone, with
+  that local filter's variances (the paper's Fig. 5);
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
@@ -42,6 +45,7 @@ import numpy as np
 from fieldlog.acquire import messages
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_table
 from fieldlog.acquire.recorder import Recorder
+from fieldlog.fusion.dkf import FUSIONS
 from fieldlog.fusion.engine import Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
@@ -68,6 +72,7 @@ class FuseResult:
     imu_rate_hz: float = float("nan")
     imu_gaps: int = 0  # IMU steps longer than 1.5 sample periods, bridged by the INS
     imu_missing: int = 0  # samples those gaps lack
+    gamma_raised: int = 0  # hinf: epochs where the existence bound raised gamma
 
 
 class Diverged(ValueError):
@@ -95,6 +100,8 @@ def fusion_config(table: dict[str, Any]) -> FusionConfig:
     for key in ("output_hz", "cov_step_s"):
         if not getattr(cfg, key) > 0:
             raise ConfigError(f"[fusion] {key}: must be > 0")
+    if cfg.dkf_fusion not in FUSIONS:
+        raise ConfigError(f"[fusion] dkf_fusion: {cfg.dkf_fusion!r}; one of {', '.join(FUSIONS)}")
     for i, o in enumerate(cfg.outages):
         if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
             raise ConfigError(f"[fusion] outages[{i}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")
@@ -215,6 +222,20 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     rec.write_batch(f"{base}/vel", t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id="enu"))
     rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id="enu"))
     rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id="enu"))
+    if s.local is None:
+        return
+    for i, name in enumerate(("kf1", "kf2")):
+        loc = s.local[:, i]
+        pos_cov = np.zeros((len(t), 9))
+        pos_cov[:, [0, 4, 8]] = loc[:, 6:9] ** 2
+        vel_cov = np.zeros((len(t), 36))
+        vel_cov[:, [0, 7, 14]] = loc[:, 9:12] ** 2
+        vel_cov[:, [21, 28, 35]] = -1.0
+        rec.write_batch(f"{base}/{name}/fix", t, messages.encode_navsatfix(
+            t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov, covariance_type=2,
+            frame_id=f"{method}/{name}"))
+        rec.write_batch(f"{base}/{name}/vel", t, messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov,
+                                                                       frame_id="enu"))
 
 
 def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str],
@@ -264,4 +285,5 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
     if progress:
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
-                      stream.rate_hz, stream.gaps, stream.missing)
+                      stream.rate_hz, stream.gaps, stream.missing,
+                      getattr(engine.filter, "raised", 0))
