@@ -143,11 +143,10 @@ def test_local_solutions_exist_and_differ(runs):
     d12 = np.abs(np.radians(loc["kf1"]["lat_deg"] - loc["kf2"]["lat_deg"])) * rm
     d1f = np.abs(np.radians(loc["kf1"]["lat_deg"] - fused["lat_deg"])) * rm
     assert d12.max() > 0.1 and d1f.max() > 0.1
-    # KF_I sees no position: its position sigma grows past KF_II's, which the fused one is below
+    # KF_I sees no position: its position sigma grows past KF_II's
     s1 = np.sqrt(loc["kf1"]["position_covariance"][-1, 0])
     s2 = np.sqrt(loc["kf2"]["position_covariance"][-1, 0])
-    sf = np.sqrt(fused["position_covariance"][-1, 0])
-    assert s1 > s2 > 0.0 and sf <= s2 * 1.001
+    assert s1 > 2.0 * s2 > 0.0
 
 
 def test_hybrid_differs_from_dkf_in_the_outage_only(runs):
