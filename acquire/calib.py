@@ -26,6 +26,12 @@ TOML layout (all six keys required, nothing else allowed; ``default_toml()`` pri
     sensitivity = [0.20394324259558566, 0.20394324259558566, 0.20394324259558566]  # V/(m/s^2)
     bias_V = [0.0, 0.0, 0.0]
     misalignment = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+    [mounting]                   # optional, every key optional (zeros); the drive's /tf_static (acquire/frames.py)
+    imu_position_m = [0.0, 0.0, 0.0]   # IMU origin in base_link (REP-103 forward-left-up), m
+    imu_rpy_deg = [0.0, 0.0, 0.0]      # IMU triad vs the vehicle's right-forward-up axes: roll, pitch, yaw about
+                                       # fixed right, forward, up axes (x, y, z), deg
+    antenna_m = [0.0, 0.0, 0.0]        # GPS antenna from the IMU, IMU axes (RFU), m (as [fusion] lever_arm_b)
 """
 
 from __future__ import annotations
@@ -96,19 +102,37 @@ class SensorTriadCal:
         return np.dot(np.asarray(x_si, np.float64), np.linalg.inv(self.misalignment).T) * self.sensitivity + self.bias_V
 
 
+_MOUNTING_KEYS = ("imu_position_m", "imu_rpy_deg", "antenna_m")
+
+
+@dataclass(frozen=True, eq=False)
+class Mounting:
+    """Where the IMU and the GPS antenna sit on the vehicle (the ``[mounting]`` table; units in the key names)."""
+
+    imu_position_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    imu_rpy_deg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    antenna_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        for key in _MOUNTING_KEYS:
+            object.__setattr__(self, key, _as_array(getattr(self, key), (3,), f"mounting.{key}"))
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
-    """Gyro and accelerometer triad calibrations."""
+    """Gyro and accelerometer triad calibrations, and the mounting of the IMU and the antenna."""
 
     gyro: SensorTriadCal
     accel: SensorTriadCal
+    mounting: Mounting = field(default_factory=Mounting)
 
     @classmethod
     def from_dict(cls, d: dict) -> Calibration:
         """Build from the parsed TOML mapping; raises ValueError naming the first bad key."""
-        unknown = set(d) - set(_TRIADS)
+        unknown = set(d) - set(_TRIADS) - {"mounting"}
         if unknown:
-            raise ValueError(f"calibration: unknown table(s) {sorted(unknown)}; expected {list(_TRIADS)}")
+            raise ValueError(f"calibration: unknown table(s) {sorted(unknown)}; expected {list(_TRIADS)} "
+                             f"and optionally [mounting]")
         triads = {}
         for name in _TRIADS:
             table = d.get(name)
@@ -124,7 +148,13 @@ class Calibration:
                 triads[name] = SensorTriadCal(**{k: table[k] for k in _KEYS})
             except ValueError as exc:
                 raise ValueError(f"[{name}] {exc}") from None
-        return cls(**triads)
+        mounting = d.get("mounting", {})
+        if not isinstance(mounting, dict):
+            raise ValueError("calibration: [mounting] must be a table")
+        extra = set(mounting) - set(_MOUNTING_KEYS)
+        if extra:
+            raise ValueError(f"calibration: unknown key(s) {sorted(extra)} in [mounting]; known: {list(_MOUNTING_KEYS)}")
+        return cls(**triads, mounting=Mounting(**mounting))
 
     @classmethod
     def from_toml(cls, text: str) -> Calibration:
@@ -153,6 +183,7 @@ class Calibration:
                 f"bias_V = {fmt(t.bias_V)}  # V",
                 f"misalignment = {fmt(t.misalignment)}",
             ]
+        lines += ["", "[mounting]"] + [f"{k} = {fmt(getattr(self.mounting, k))}" for k in _MOUNTING_KEYS]
         return "\n".join(lines) + "\n"
 
 

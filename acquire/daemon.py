@@ -44,6 +44,7 @@ stamps), and, while a client is connected, each read's DAQ frames are published 
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import queue
 import select
@@ -67,6 +68,23 @@ from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
 STORAGE_FULL = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file size limit"}
+
+
+log = logging.getLogger("fieldlog.acquire")
+LOG_FORMAT = "%(asctime)s.%(msecs)03dZ %(levelname)s %(name)s: %(message)s"
+
+
+def setup_logging(verbosity: int = 0, stream: TextIO = sys.stderr) -> None:
+    """The daemon's log: one timestamped line (UTC) per event on ``stream`` (under systemd: the journal).
+    verbosity: -2 warnings and errors only, -1 and 0 info (events: start, files, port lost/back, stop), 1 debug."""
+    handler = logging.StreamHandler(stream)
+    fmt = logging.Formatter(LOG_FORMAT, datefmt="%Y-%m-%dT%H:%M:%S")
+    fmt.converter = time.gmtime
+    handler.setFormatter(fmt)
+    root = logging.getLogger("fieldlog")
+    root.handlers[:] = [handler]
+    root.setLevel(logging.DEBUG if verbosity > 0 else logging.WARNING if verbosity < -1 else logging.INFO)
+    root.propagate = False
 
 
 class PortError(ValueError):
@@ -421,11 +439,12 @@ class Daemon:
         self._last_mono = 0
         self._status_prev: tuple[float, int, int, int, int] | None = None
 
-    def log(self, msg: str) -> None:
-        if self.tty and not self.quiet:
+    def log(self, msg: str, level: int = logging.INFO) -> None:
+        """One event through ``logging`` (``setup_logging``), clearing the status line first on a terminal."""
+        if self.tty and not self.quiet and log.isEnabledFor(level):
             self.err.write("\r\033[K")
-        self.err.write(f"fieldlog acquire: {msg}\n")
-        self.err.flush()
+            self.err.flush()
+        log.log(level, msg)
 
     # -- start -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -554,7 +573,7 @@ class Daemon:
                                                               "mono_ns": str(h.mono_ns), "wall_ns": str(h.wall_ns),
                                                               "detail": h.detail})
             self.log(f"{h.port} port {'lost' if h.kind == 'lost' else 'back'}: {h.detail}"
-                     + ("; retrying" if h.kind == "lost" else ""))
+                     + ("; retrying" if h.kind == "lost" else ""), logging.WARNING if h.kind == "lost" else logging.INFO)
             return
         if h.mono_ns < self._last_mono:
             self.late_reads += 1
@@ -571,13 +590,11 @@ class Daemon:
             path = self.sink.open_next({"acquire.counters": self.counters()})
             self.log(f"rotated to {path}")
             size = 0
-        if not self.quiet:
-            line = self.status_line(size)
-            if self.tty:
-                self.err.write("\r\033[K" + line)
-            else:
-                self.err.write(line + "\n")
+        if self.tty and not self.quiet:
+            self.err.write("\r\033[K" + self.status_line(size))
             self.err.flush()
+        elif log.isEnabledFor(logging.DEBUG if self.quiet else logging.INFO):   # a log line (journal) per tick
+            log.log(logging.DEBUG if self.quiet else logging.INFO, self.status_line(size))
 
     def status_line(self, size: int) -> str:
         c = self.pipe.counters
@@ -623,7 +640,7 @@ class Daemon:
         if self.tty and not self.quiet:
             self.err.write("\n")
         if self.error:
-            self.log(f"error: {self.error}")
+            self.log(f"error: {self.error}", logging.ERROR)
         else:
             files = ", ".join(str(p) for p in self.sink.files)
             self.log(f"stopped; finished {files}")

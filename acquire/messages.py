@@ -37,7 +37,10 @@ MSG_DEFS: dict[str, str] = {
     "builtin_interfaces/msg/Time": "int32 sec\nuint32 nanosec\n",
     "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/msg/Point": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/msg/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n",
+    "geometry_msgs/msg/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+    "geometry_msgs/msg/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance\n",
     "geometry_msgs/msg/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n",
     "geometry_msgs/msg/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance\n",
     "geometry_msgs/msg/TwistWithCovarianceStamped": (
@@ -47,6 +50,17 @@ MSG_DEFS: dict[str, str] = {
         "std_msgs/Header header\ngeometry_msgs/Quaternion quaternion\n"
     ),
     "geometry_msgs/msg/Vector3Stamped": "std_msgs/Header header\ngeometry_msgs/Vector3 vector\n",
+    "geometry_msgs/msg/Transform": "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n",
+    "geometry_msgs/msg/TransformStamped": (
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n"
+    ),
+    "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
+    "nav_msgs/msg/Odometry": (
+        "std_msgs/Header header\n"
+        "string child_frame_id\n"
+        "geometry_msgs/PoseWithCovariance pose\n"
+        "geometry_msgs/TwistWithCovariance twist\n"
+    ),
     "sensor_msgs/msg/Imu": (
         "std_msgs/Header header\n"
         "geometry_msgs/Quaternion orientation\n"
@@ -57,22 +71,24 @@ MSG_DEFS: dict[str, str] = {
         "float64[9] linear_acceleration_covariance\n"
     ),
     "sensor_msgs/msg/NavSatStatus": (
-        "int8 STATUS_NO_FIX = -1\n"
-        "int8 STATUS_FIX = 0\n"
-        "int8 STATUS_SBAS_FIX = 1\n"
-        "int8 STATUS_GBAS_FIX = 2\n"
+        "int8 STATUS_UNKNOWN=-2\n"
+        "int8 STATUS_NO_FIX=-1\n"
+        "int8 STATUS_FIX=0\n"
+        "int8 STATUS_SBAS_FIX=1\n"
+        "int8 STATUS_GBAS_FIX=2\n"
+        "uint16 SERVICE_UNKNOWN=0\n"
+        "uint16 SERVICE_GPS=1\n"
+        "uint16 SERVICE_GLONASS=2\n"
+        "uint16 SERVICE_COMPASS=4\n"
+        "uint16 SERVICE_GALILEO=8\n"
         "int8 status\n"
-        "uint16 SERVICE_GPS = 1\n"
-        "uint16 SERVICE_GLONASS = 2\n"
-        "uint16 SERVICE_COMPASS = 4\n"
-        "uint16 SERVICE_GALILEO = 8\n"
         "uint16 service\n"
     ),
     "sensor_msgs/msg/NavSatFix": (
-        "uint8 COVARIANCE_TYPE_UNKNOWN = 0\n"
-        "uint8 COVARIANCE_TYPE_APPROXIMATED = 1\n"
-        "uint8 COVARIANCE_TYPE_DIAGONAL_KNOWN = 2\n"
-        "uint8 COVARIANCE_TYPE_KNOWN = 3\n"
+        "uint8 COVARIANCE_TYPE_UNKNOWN=0\n"
+        "uint8 COVARIANCE_TYPE_APPROXIMATED=1\n"
+        "uint8 COVARIANCE_TYPE_DIAGONAL_KNOWN=2\n"
+        "uint8 COVARIANCE_TYPE_KNOWN=3\n"
         "std_msgs/Header header\n"
         "sensor_msgs/NavSatStatus status\n"
         "float64 latitude\n"
@@ -85,10 +101,11 @@ MSG_DEFS: dict[str, str] = {
         "std_msgs/Header header\nbuiltin_interfaces/Time time_ref\nstring source\n"
     ),
     "nmea_msgs/msg/Sentence": "std_msgs/Header header\nstring sentence\n",
+    # fieldlog's own types: the same text as fieldlog_msgs/msg/*.msg without comments (tests/test_ros_profile.py)
     "fieldlog_msgs/msg/TimeSyncState": (
-        "uint8 FREE = 0\n"
-        "uint8 HOLDOVER = 1\n"
-        "uint8 LOCKED = 2\n"
+        "uint8 FREE=0\n"
+        "uint8 HOLDOVER=1\n"
+        "uint8 LOCKED=2\n"
         "std_msgs/Header header\n"
         "uint8 state\n"
         "float64 rate_ppm\n"
@@ -152,6 +169,8 @@ TIMEREF = "sensor_msgs/msg/TimeReference"
 TIMESYNC = "fieldlog_msgs/msg/TimeSyncState"
 RAWBYTES = "fieldlog_msgs/msg/RawBytes"
 OUTAGE = "fieldlog_msgs/msg/Outage"
+TFMESSAGE = "tf2_msgs/msg/TFMessage"
+ODOMETRY = "nav_msgs/msg/Odometry"
 
 TOPICS: dict[str, str] = {
     "/raw/daq": RAWBYTES,
@@ -167,19 +186,22 @@ TOPICS: dict[str, str] = {
     "/truth/vel": TWIST,
     "/truth/attitude": QUATERNION,
     "/fusion/outage": OUTAGE,
+    "/tf_static": TFMESSAGE,
+    "/tf": TFMESSAGE,
 }
 FUSION_SUBTOPICS: dict[str, str] = {
     "fix": NAVSATFIX,
     "vel": TWIST,
     "attitude": QUATERNION,
     "std": VECTOR3,
+    "odom": ODOMETRY,
 }
-_FUSION_RE = re.compile(r"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|(fix|vel|attitude|std))$")
+_FUSION_RE = re.compile(rf"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|({'|'.join(FUSION_SUBTOPICS)}))$")
 
 
 def topic_type(topic: str) -> str:
-    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std}`` and the distributed
-    filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,odom}`` and the
+    distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
     """
@@ -189,6 +211,22 @@ def topic_type(topic: str) -> str:
     if m is None:
         raise KeyError(f"not a fieldlog topic: {topic!r}")
     return FUSION_SUBTOPICS[m.group(2) or m.group(3)]
+
+
+# QoS offered by the "publisher" of each topic, as rosbag2 (Jazzy, metadata version 9) records it in the
+# channel's ``offered_qos_profiles``: what `ros2 bag play` offers again. /tf_static is latched (transient local),
+# so a node that starts after the first message still gets the frames.
+_INFINITE = "\n    sec: 9223372036\n    nsec: 854775807"
+
+
+@lru_cache(maxsize=None)
+def offered_qos_profiles(topic: str) -> str:
+    """The YAML text rosbag2 writes for one publisher of ``topic`` (reliable; volatile except /tf_static)."""
+    durability = "transient_local" if topic == "/tf_static" else "volatile"
+    history, depth = ("keep_last", 1) if topic == "/tf_static" else ("unknown", 0)
+    return (f"- history: {history}\n  depth: {depth}\n  reliability: reliable\n  durability: {durability}\n"
+            f"  deadline:{_INFINITE}\n  lifespan:{_INFINITE}\n  liveliness: automatic\n"
+            f"  liveliness_lease_duration:{_INFINITE}\n  avoid_ros_namespace_conventions: false")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -295,6 +333,16 @@ _FIELDS: dict[str, list[_Field]] = {
     TWIST: _HEADER
     + [("linear", "<f8", (3,)), ("angular", "<f8", (3,)), ("covariance", "<f8", (36,))],
     QUATERNION: _HEADER + [("quaternion", "<f8", (4,))],
+    ODOMETRY: _HEADER
+    + [
+        ("child_frame_id", "string", None),
+        ("position", "<f8", (3,)),
+        ("orientation", "<f8", (4,)),
+        ("pose_covariance", "<f8", (36,)),
+        ("linear", "<f8", (3,)),
+        ("angular", "<f8", (3,)),
+        ("twist_covariance", "<f8", (36,)),
+    ],
     VECTOR3: _HEADER + [("vector", "<f8", (3,))],
     TIMEREF: _HEADER
     + [("ref_sec", "<i4", ()), ("ref_nanosec", "<u4", ()), ("source", "string", None)],
@@ -469,6 +517,30 @@ def encode_vector3(stamp_ns: np.ndarray, xyz: np.ndarray, frame_id: str = "enu")
     return _pack(arr)
 
 
+def encode_odometry(
+    stamp_ns: np.ndarray,
+    position: np.ndarray,
+    orientation_xyzw: np.ndarray,
+    pose_covariance: np.ndarray,
+    linear: np.ndarray,
+    angular: np.ndarray,
+    twist_covariance: np.ndarray,
+    frame_id: str = "map",
+    child_frame_id: str = "base_link",
+) -> Packed:
+    """``nav_msgs/msg/Odometry`` batch (REP-105): pose of ``child_frame_id`` in ``frame_id`` (position (n,3) m,
+    orientation (n,4) x, y, z, w of child -> frame), twist in ``child_frame_id`` (linear (n,3) m/s, angular (n,3)
+    rad/s); covariances (36,) or (n,36), row-major 6x6 over (x, y, z, rotation about x, y, z), m^2, rad^2."""
+    stamp_ns = np.asarray(stamp_ns)
+    n = len(stamp_ns)
+    arr = _new(ODOMETRY, n, {"frame_id": frame_id, "child_frame_id": child_frame_id}, stamp_ns)
+    arr["position"], arr["orientation"] = position, orientation_xyzw
+    arr["linear"], arr["angular"] = linear, angular
+    arr["pose_covariance"] = _cov(pose_covariance, n, 36)
+    arr["twist_covariance"] = _cov(twist_covariance, n, 36)
+    return _pack(arr)
+
+
 def encode_time_reference(
     stamp_ns: np.ndarray, time_ref_ns: np.ndarray, source: str = "pps", frame_id: str = "daq"
 ) -> Packed:
@@ -500,7 +572,7 @@ def encode_time_sync(
 
 TIMESYNC_FREE, TIMESYNC_HOLDOVER, TIMESYNC_LOCKED = 0, 1, 2
 COVARIANCE_TYPE_UNKNOWN, COVARIANCE_TYPE_APPROXIMATED, COVARIANCE_TYPE_DIAGONAL_KNOWN = 0, 1, 2
-STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -1, 0, 1, 2
+STATUS_UNKNOWN, STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -2, -1, 0, 1, 2
 
 
 def fix_status(gga_quality: int) -> int:
@@ -577,6 +649,15 @@ def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:
     pos += -pos % 4
     (dlen,) = struct.unpack_from("<I", data, 4 + pos)
     return sec * 1_000_000_000 + nsec, mono_ns, port, data[4 + pos + 4: 4 + pos + 4 + dlen]
+
+
+def encode_tf(stamp_ns: int, transforms: Sequence[tuple[str, str, Sequence[float], Sequence[float]]]) -> bytes:
+    """``tf2_msgs/msg/TFMessage``: transforms (parent frame, child frame, translation x, y, z in m in the parent
+    frame, rotation x, y, z, w of child -> parent), all stamped ``stamp_ns`` (UTC ns)."""
+    w = _Cdr().put("I", len(transforms))
+    for parent, child, xyz, q_xyzw in transforms:
+        w.header(stamp_ns, parent).string(child).put("ddd", *map(float, xyz)).put("dddd", *map(float, q_xyzw))
+    return w.bytes()
 
 
 def encode_outage(stamp_ns: int, start_ns: int, end_ns: int, reason: str, frame_id: str = "") -> bytes:

@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, messages, nmea, timesync
+from fieldlog.acquire import calib, daq, frames, messages, nmea, timesync
 
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
@@ -99,9 +99,18 @@ class Pipeline:
         # called with (read mono_ns, k, counts) for each read's decoded frames, once time sync has them (the
         # daemon's live bus publishes provisional /imu from it); it must not feed back into the pipeline
         self.on_frames: Callable[[int, np.ndarray, np.ndarray], None] | None = None
+        self._tf_file: object = None     # the file /tf_static was last written to (a rotating sink changes files)
+
+    def _write_tf_static(self, wall_ns: int) -> None:
+        """/tf_static (acquire/frames.py) at the start of every file, stamped with the host clock of its first read."""
+        target = getattr(self.sink, "rec", self.sink)
+        if target is not self._tf_file:
+            self._tf_file = target
+            self.sink.write("/tf_static", wall_ns, frames.tf_static_message(self.cal.mounting, wall_ns))
 
     # -- input ---------------------------------------------------------------------------------------
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        self._write_tf_static(wall_ns)
         self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
         self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
         if port == "daq":

@@ -47,6 +47,8 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER
 
 from fieldlog.acquire import messages
+from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
+from fieldlog.acquire.drivestats import DriveStats
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
@@ -97,6 +99,8 @@ class Recorder:
     compression: "zstd", "lz4" or "" (none); compression_level: zstd level (1 is about twice as
     fast as 3 on IMU data for ~5 % larger files). metadata: written as an MCAP Metadata record named
     "drive" (string values; e.g. scenario, seed, config, calibration TOML, software version).
+    stats: gather what ``fieldlog info`` shows while writing and store it at close as the ``fieldlog.info``
+    record (``acquire.drivestats``); off for files whose chunks are copied as they are (``recover``).
     """
 
     def __init__(
@@ -108,6 +112,7 @@ class Recorder:
         metadata: dict[str, str] | None = None,
         fsync: bool = True,
         compression_level: int = 1,
+        stats: bool = True,
     ) -> None:
         if compression not in ("zstd", "lz4", ""):
             raise ValueError(f"unknown compression {compression!r}")
@@ -130,6 +135,7 @@ class Recorder:
         self._msg_end = 0
         self._last_flush = time.monotonic()
         self.flush_seconds = 0.0  # host time spent in flush (compress + write + fsync)
+        self.stats = DriveStats() if stats else None
         self.closed = False
         self._f.write(MAGIC)
         self._write_record(Header(PROFILE, LIBRARY))
@@ -190,7 +196,7 @@ class Recorder:
                 topic=topic,
                 message_encoding=messages.MESSAGE_ENCODING,
                 schema_id=sid,
-                metadata={},
+                metadata={"offered_qos_profiles": messages.offered_qos_profiles(topic)},
             )
         )
 
@@ -201,6 +207,8 @@ class Recorder:
         if log_time_ns <= 0:
             raise ValueError("log_time must be > 0")
         cid = self.channel_id(topic)
+        if self.stats is not None:
+            self.stats.observe_message(topic, log_time_ns, data)
         pub = log_time_ns if publish_time_ns is None else publish_time_ns
         hdr = _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns, pub)
         c = self._chunk
@@ -219,6 +227,18 @@ class Recorder:
         Equal-length messages (fixed-layout types) are laid out as one byte matrix; a batch
         larger than the chunk size is split over several chunks.
         """
+        if len(msgs) == 0:   # no channel for a topic without messages
+            return
+        self.write_channel(self.channel_id(topic), log_time_ns, msgs, publish_time_ns)
+
+    def write_channel(
+        self,
+        channel_id: int,
+        log_time_ns: np.ndarray,
+        msgs: "messages.Packed | Sequence[bytes]",
+        publish_time_ns: np.ndarray | None = None,
+    ) -> None:
+        """``write_batch`` to a channel already registered (``add_channel``), for any topic and type."""
         log_time_ns = np.asarray(log_time_ns, dtype=np.int64)
         p = messages.as_packed(msgs)
         n = len(p)
@@ -229,7 +249,9 @@ class Recorder:
         if log_time_ns.min() <= 0:
             raise ValueError("log_time must be > 0")
         pub = log_time_ns if publish_time_ns is None else np.asarray(publish_time_ns, np.int64)
-        cid = self.channel_id(topic)
+        cid = channel_id
+        if self.stats is not None:
+            self.stats.observe(self._channels[cid].topic, log_time_ns, p)
         lens = p.lengths
         rec_lens = lens + 31
         ends = np.cumsum(rec_lens)
@@ -365,6 +387,8 @@ class Recorder:
         if self.closed:
             return
         self.flush()
+        if self.stats is not None:   # after the last chunk: a file cut short keeps it only if all chunks are whole
+            self.add_metadata(INFO_RECORD, self.stats.record())
         self._write_record(DataEnd(0))
         summary_start = self._f.tell()
         sb = RecordBuilder()
@@ -612,7 +636,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
     last_t = 0
     good_end = 0
     had_summary = False
-    rec = Recorder(dst, flush_interval_s=None, fsync=False)
+    rec = Recorder(dst, flush_interval_s=None, fsync=False, stats=False)
     try:
         with open(src, "rb") as f:
             reader = StreamReader(f, emit_chunks=True, record_size_limit=size)

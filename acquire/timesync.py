@@ -49,6 +49,7 @@ from enum import IntEnum
 from typing import Any
 
 import numpy as np
+from scipy.stats import theilslopes
 
 from fieldlog.acquire.config import from_table
 
@@ -204,8 +205,6 @@ def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: floa
     y = k_edge - kr - fs * x
     if len(x) < min_inliers or np.ptp(x) == 0:
         return None
-    from scipy.stats import theilslopes  # here: scipy.stats takes 0.6 s to import, `acquire --help` none
-
     res = theilslopes(y, x)
     inl = np.abs(y - res.intercept - res.slope * x) <= tol
     if inl.sum() < min_inliers or np.ptp(x[inl]) == 0:

@@ -27,6 +27,11 @@ type                            further columns
 ``nmea_msgs/Sentence``          ``frame_id``, ``sentence``
 ``RawBytes``                    ``mono_ns`` (host monotonic at read), ``port``, ``data`` (binary)
 ``Outage``                      ``start_ns``, ``end_ns`` (UTC), ``reason``
+``nav_msgs/Odometry``           ``frame_id``, ``child_frame_id``, ``x``, ``y``, ``z`` m and ``q_x/y/z/w`` (pose in
+                                ``map``), ``v_x/y/z`` m/s and ``omega_x/y/z`` rad/s (twist in ``base_link``),
+                                ``pose_covariance``, ``twist_covariance`` (36 each)
+``tf2_msgs/TFMessage``          one row per transform (so several per message in ``/tf_static``): ``frame_id``
+                                (parent), ``child_frame_id``, ``x``, ``y``, ``z`` m, ``q_x/y/z/w``
 ==============================  ====================================================================================
 
 Covariances are fixed-size list columns (``pl.Array``) in Parquet. CSV cannot hold lists or bytes, so there
@@ -157,6 +162,30 @@ def _frame(d: dict, type_name: str, path: str | os.PathLike[str], topic: str) ->
                                  "reason": lambda m: m.reason}))
         cols["start_ns"] = pl.Series(cols["start_ns"], dtype=pl.Int64)
         cols["end_ns"] = pl.Series(cols["end_ns"], dtype=pl.Int64)
+    elif type_name == messages.ODOMETRY:
+        pose, twist = (lambda m: m.pose.pose), (lambda m: m.twist.twist)
+        fields = {"frame_id": lambda m: m.header.frame_id, "child_frame_id": lambda m: m.child_frame_id}
+        fields.update({c: (lambda m, c=c: getattr(pose(m).position, c)) for c in "xyz"})
+        fields.update({f"q_{c}": (lambda m, c=c: getattr(pose(m).orientation, c)) for c in "xyzw"})
+        fields.update({f"v_{c}": (lambda m, c=c: getattr(twist(m).linear, c)) for c in "xyz"})
+        fields.update({f"omega_{c}": (lambda m, c=c: getattr(twist(m).angular, c)) for c in "xyz"})
+        cols.update(_generic(d, fields))
+        zeros = [0.0] * 36
+        for name in ("pose", "twist"):
+            cov = [list(getattr(m, name).covariance) if m is not None else zeros for m in d["msgs"]]
+            cols[f"{name}_covariance"] = _array(np.array(cov, dtype=np.float64).reshape(-1, 36))
+    elif type_name == messages.TFMESSAGE:
+        rows = [(t_log, tf) for t_log, m in zip(d["log_time_ns"].tolist(), d["msgs"]) if m is not None
+                for tf in m.transforms]
+        tr = [tf.transform for _, tf in rows]
+        return pl.DataFrame({
+            "log_time_ns": pl.Series([t for t, _ in rows], dtype=pl.Int64),
+            "stamp_ns": pl.Series([_stamp(tf) for _, tf in rows], dtype=pl.Int64),
+            "frame_id": pl.Series([tf.header.frame_id for _, tf in rows], dtype=pl.String),
+            "child_frame_id": pl.Series([tf.child_frame_id for _, tf in rows], dtype=pl.String),
+            **{c: pl.Series([getattr(x.translation, c) for x in tr], dtype=pl.Float64) for c in "xyz"},
+            **{f"q_{c}": pl.Series([getattr(x.rotation, c) for x in tr], dtype=pl.Float64) for c in "xyzw"},
+            "valid": pl.Series([True] * len(rows), dtype=pl.Boolean)})
     else:
         raise KeyError(f"{topic}: no table layout for type {type_name!r}")
     cols["valid"] = d["valid"]

@@ -164,7 +164,7 @@ def test_time_sync():
     assert [(d.state, d.rate_ppm, d.residual_us, d.edges_used, d.edges_rejected) for d in dec] == list(
         zip(state.tolist(), rate.tolist(), res.tolist(), used.tolist(), rej.tolist())
     )
-    assert "uint8 LOCKED = 2" in m.schema_text(m.TIMESYNC) and m.TIMESYNC_LOCKED == 2
+    assert "uint8 LOCKED=2" in m.schema_text(m.TIMESYNC) and m.TIMESYNC_LOCKED == 2
     ours = m.decode_time_sync(p)
     np.testing.assert_array_equal(ours["state"], state)
     np.testing.assert_array_equal(ours["rate_ppm"], rate)

@@ -60,7 +60,9 @@ def test_roundtrip_with_mcap_reader_and_ros2_decoder(tmp_path):
         s = r.get_summary()
         assert s.statistics.message_count == len(msgs)
         assert len(s.chunk_indexes) == 12  # one chunk per flush
-        assert {md.name: md.metadata for md in r.iter_metadata()} == {"drive": {"scenario": "unit", "seed": "3"}}
+        meta = {md.name: md.metadata for md in r.iter_metadata()}
+        assert meta.pop("fieldlog.info")["span./imu"] == repr((int(d["t"][0]), int(d["t"][-1])))   # written at close
+        assert meta == {"drive": {"scenario": "unit", "seed": "3"}}
         decoded = [x.decoded_message for x in r.iter_decoded_messages(topics=["/imu"])]
     assert decoded[7].angular_velocity.y == d["w"][7, 1]
     assert decoded[-1].header.stamp.sec * 10**9 + decoded[-1].header.stamp.nanosec == d["t"][-1]
@@ -111,6 +113,8 @@ def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
         summary = make_reader(fh).get_summary()
     chunks = summary.chunk_indexes
     md_end = summary.metadata_indexes[0].offset + summary.metadata_indexes[0].length
+    info = summary.metadata_indexes[1]     # fieldlog.info, written at close after the last chunk
+    assert info.name == "fieldlog.info" and info.offset > chunks[-1].chunk_start_offset
     by_time = {(tp, lt): dat for tp, lt, dat in full}
     rng = np.random.default_rng(11)
     cuts = sorted(set(rng.integers(1, len(raw), 40).tolist()) | {8, md_end - 1, md_end, chunks[0].chunk_start_offset + chunks[0].chunk_length, len(raw) - 1})
@@ -127,7 +131,8 @@ def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
         assert rep.chunks == len(complete)
         with open(dst, "rb") as fh:
             names = [md.name for md in make_reader(fh).iter_metadata()]
-        assert names == (["drive"] if cut >= md_end else [])
+        assert names == (["drive"] if cut >= md_end else []) + (["fieldlog.info"] if cut >= info.offset + info.length
+                                                                  else [])
 
 
 def test_recover_file_from_mcap_writer(tmp_path):

@@ -212,7 +212,7 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
 
     drives = []
     for h in hours:  # cached in the bench directory; the 1-hour one is bench_view's drive
-        path = tmp / ("hour.mcap" if h == 1.0 else f"hours_{h:g}.mcap")
+        path = _hour_drive(tmp) if h == 1.0 else tmp / f"hours_{h:g}.mcap"
         if not path.exists():
             t0 = time.perf_counter()
             simulate("figure8", 3600.0 * h, 1, path)
@@ -385,10 +385,8 @@ def bench_view(runs: int, tmp: Path) -> None:
     from fieldlog.fusion.engine import FusionConfig
     from fieldlog.replay.view import view
     from fieldlog.tools.fuse import fuse
-    from fieldlog.tools.sim.simulate import simulate
 
-    drive, fused, rrd = tmp / "hour.mcap", tmp / "hour_kf.mcap", tmp / "hour.rrd"
-    simulate("figure8", 3600, 1, drive)
+    drive, fused, rrd = _hour_drive(tmp), tmp / "hour_kf.mcap", tmp / "hour.rrd"
     fuse(drive, "kf", fused, FusionConfig())
     med, ts, _ = timed(lambda: view(drive, [fused], rrd), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
@@ -458,7 +456,39 @@ def bench_cycle(runs: int, tmp: Path) -> None:
         print(f"  {name:9s} predict: {fp_s};  update: {fu_s}")
 
 
-BENCHES = {"codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
+def _hour_drive(tmp: Path) -> Path:
+    """The 1-hour 500 Hz figure8 drive, simulated once per bench directory (shared with fuse-long and view)."""
+    from fieldlog.tools.sim.simulate import simulate
+
+    path = tmp / "hour.mcap"
+    if not path.exists():
+        t0 = time.perf_counter()
+        simulate("figure8", 3600.0, 1, path)
+        print(f"  (simulated 1 h figure8 in {time.perf_counter() - t0:.0f} s, {path.stat().st_size / 1e9:.1f} GB)")
+    return path
+
+
+def bench_cli(runs: int, tmp: Path) -> None:
+    """`fieldlog --help` start-up time, and `fieldlog info` on a 1-hour drive (target <= 2 s), as a user types them."""
+    exe = [sys.executable, "-m", "fieldlog"]
+
+    def run(*args: str) -> None:
+        r = subprocess.run([*exe, *args], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+
+    for args in (["--help"], ["acquire", "--help"], ["info", "--help"]):
+        med, ts, _ = timed(lambda: run(*args), max(runs, 5))
+        print(f"fieldlog {' '.join(args):<16}  median {med:6.3f} s  (runs: {fmt_times(ts)})")
+    hour = _hour_drive(tmp)
+    size = hour.stat().st_size / 1e9
+    med, ts, _ = timed(lambda: run("info", str(hour)), runs)
+    print(f"fieldlog info, 1 h drive:     median {med:6.2f} s  (runs: {fmt_times(ts)}; {size:.1f} GB; the "
+          f"fieldlog.info record)   target <= 2 s")
+    med, ts, _ = timed(lambda: run("info", "--scan", str(hour)), 1)
+    print(f"fieldlog info --scan, 1 h:    {med:6.2f} s  (reading every /imu, /gps/fix, /time/sync, /truth/imu message)")
+
+
+BENCHES = {"cli": bench_cli, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
            "export": bench_export,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}

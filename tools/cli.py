@@ -78,9 +78,10 @@ def cmd_sim_serve(a: argparse.Namespace) -> int:
 def cmd_acquire(a: argparse.Namespace) -> int:
     from fieldlog.acquire import config, daemon
 
+    daemon.setup_logging(a.verbose - a.quiet)
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
     if not (a.view or a.view_rrd):
-        return daemon.run_daemon(cfg, quiet=a.quiet)
+        return daemon.run_daemon(cfg, quiet=a.quiet > 0)
     import os
     import subprocess
     import tempfile
@@ -95,7 +96,7 @@ def cmd_acquire(a: argparse.Namespace) -> int:
     viewer = subprocess.Popen([sys.executable, "-m", "fieldlog", "view", "--live", cfg.daemon.bus, "--method",
                                a.view_method, *(["--rrd", a.view_rrd] if a.view_rrd else [])])
     try:
-        rc = daemon.run_daemon(cfg, quiet=a.quiet)
+        rc = daemon.run_daemon(cfg, quiet=a.quiet > 0)
     finally:
         try:
             viewer.wait(timeout=30)  # it ends when the daemon closes the bus
@@ -126,7 +127,19 @@ def cmd_recover(a: argparse.Namespace) -> int:
 def cmd_info(a: argparse.Namespace) -> int:
     from fieldlog.tools.info import drive_info, format_info
 
-    print(format_info(drive_info(a.drive)))
+    info = drive_info(a.drive, scan=a.scan, progress=None if a.json else Progress("info: reading the messages"))
+    print(info.to_json() if a.json else format_info(info))
+    return 0
+
+
+def cmd_filter(a: argparse.Namespace) -> int:
+    from fieldlog.tools.filter import filter_drive
+
+    topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
+    res = filter_drive(a.drive, a.out, a.start, a.end, topics, progress=Progress("filter"))
+    print(f"wrote {res.path.resolve()}: {sum(res.messages.values())} messages from {res.start_ns} to {res.end_ns} ns")
+    for topic, n in res.messages.items():
+        print(f"  {topic:<24} {n}")
     return 0
 
 
@@ -268,7 +281,8 @@ def cmd_demo(a: argparse.Namespace) -> int:
         rc = main(argv)
         if rc:
             return rc
-    print(f"\nreport:  {report / 'table.md'}\nrerun:   .venv/bin/rerun {rrd}   (or: .venv/bin/rerun {drive})")
+    print(f"\nreport:  {report.resolve() / 'table.md'}\nrerun:   {_rerun()} {rrd.resolve()}   "
+          f"(or: {_rerun()} {drive.resolve()})")
     return 0
 
 
@@ -317,8 +331,15 @@ def cmd_view(a: argparse.Namespace) -> int:
     size = res.rrd.stat().st_size
     print(f"wrote {res.rrd} ({size / 1e6:.1f} MB) in {time.monotonic() - t0:.1f} s: {res.gps_fixes} GPS fixes "
           f"({res.no_fix} epochs without fix), {res.imu_rows} IMU rows (decimated), methods: "
-          f"{', '.join(res.methods) or 'none'}, {res.outages} outage windows\nOpen it with:  .venv/bin/rerun {res.rrd}")
+          f"{', '.join(res.methods) or 'none'}, {res.outages} outage windows\n"
+          f"Open it with:  {_rerun()} {Path(res.rrd).resolve()}")
     return 0
+
+
+def _rerun() -> str:
+    """The rerun viewer of this installation, as an absolute path (the venv's, next to this Python)."""
+    exe = Path(sys.executable).parent / "rerun"
+    return str(exe) if exe.exists() else "rerun"
 
 
 def cmd_export(a: argparse.Namespace) -> int:
@@ -376,78 +397,146 @@ def cmd_replay(a: argparse.Namespace) -> int:
     return 0
 
 
+EXAMPLES = """\
+examples:
+  fieldlog acquire --daq /dev/fieldlog-daq --gps /dev/fieldlog-gps --out drives/   # record in the car
+  fieldlog info drives/20260504T093000Z_0001.mcap            # topics, rates, sync quality, gaps (--json)
+  fieldlog recover drives/20260504T093000Z_0001.mcap         # after a power cut
+  fieldlog filter drive.mcap --start 120 --end 300 --topics '/imu,/gps/*' --out slice.mcap
+  fieldlog sim --scenario figure8 --duration 600 --out drive.mcap
+  fieldlog fuse drive.mcap --method dkf-rbfn --outage 300:60 --out fused.mcap
+  fieldlog evaluate --seeds 3 --outages 30,60 --methods ins,kf,dkf --report report/
+  fieldlog view drive.mcap fused.mcap --rrd drive.rrd
+
+`fieldlog COMMAND --help` for the options of one command. Commands marked [extra] need
+`pip install 'fieldlog[extra]'`; `make setup` installs them all.
+"""
+
+
+# the extras (pyproject.toml) each command needs beyond the core install
+NEEDS = {"sim": "fusion", "fuse": "fusion", "evaluate": "fusion,export,plots", "view": "view", "replay": "view",
+         "export": "export", "batch": "batch", "study": "all", "demo": "all"}
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the examples' layout, and shows every option's default (those without one say so in words)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        if "default" in text or d in (None, False, argparse.SUPPRESS) or d == [] or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from fieldlog import __version__
 
-    p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay")
+    p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay",
+                                epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"fieldlog {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser = sub.add_parser
+
+    def add_parser(name: str, **kw) -> argparse.ArgumentParser:
+        if name in NEEDS:
+            kw["help"] += f" [{NEEDS[name]}]"
+        return parser(name, formatter_class=HelpFormatter, description=kw.get("help"), **kw)
+
+    sub.add_parser = add_parser
 
     s = sub.add_parser("sim", help="simulate a drive through the real acquisition code")
     s.add_argument("--scenario", default="figure8", help="scenario name (tools/sim/scenarios) or a TOML path")
     s.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
-    s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--pps", choices=["flag", "latch"], default=None, help="PPS as a sampled flag or a latch")
+    s.add_argument("--seed", type=int, default=1, help="random seed of the sensor errors and clocks")
+    s.add_argument("--pps", choices=["flag", "latch"], default=None,
+                   help="PPS as a sampled flag or a latch (default: the scenario's, else flag)")
     s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
     s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
     s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")
-    s.add_argument("--truth", default=None, help="--serve: write /truth/* and what was sent to this MCAP at the end")
+    s.add_argument("--truth", default=None, metavar="FILE",
+                   help="--serve: write /truth/* and what was sent to this MCAP at the end (default: none)")
     s.add_argument("--unplug", action="append", default=[], metavar="PORT:START:LEN",
-                   help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable)")
-    s.add_argument("--link-dir", default=None, help="--serve: keep symlinks DIR/daq and DIR/gps to the current ptys")
+                   help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable; default: never)")
+    s.add_argument("--link-dir", default=None, metavar="DIR",
+                   help="--serve: keep symlinks DIR/daq and DIR/gps to the current ptys (default: none)")
     s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
     s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
                    help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")
-    s.add_argument("--daq", default=None, help="DAQ serial port (overrides the config)")
-    s.add_argument("--gps", default=None, help="GPS serial port (overrides the config)")
-    s.add_argument("--out", default=None, help="output directory (overrides the config)")
-    s.add_argument("--config", default=None, help="TOML config (acquire/config.py documents the keys)")
-    s.add_argument("--quiet", action="store_true", help="no status line (logs still go to stderr)")
+    s.add_argument("--daq", default=None, metavar="PORT", help="DAQ serial port (default: [daq] port of --config)")
+    s.add_argument("--gps", default=None, metavar="PORT", help="GPS serial port (default: [gps] port of --config)")
+    s.add_argument("--out", default=None, metavar="DIR",
+                   help="output directory (default: [output] dir of --config, else drives/)")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML config; acquire/config.py documents the keys (default: none, all defaults)")
+    s.add_argument("-q", "--quiet", action="count", default=0,
+                   help="no status line (a service's journal gets the events only); twice: warnings and errors only")
+    s.add_argument("-v", "--verbose", action="count", default=0,
+                   help="debug lines too (with -q: the status line once per status interval) (default: info: start, "
+                        "files, port events, stop)")
     s.add_argument("--time-scale", type=float, default=None, metavar="X",
                    help="for simulator playback at `sim --serve --speed X` only: the host clock runs X times "
-                        "slower than the data ([timesync] host_time_scale)")
+                        "slower than the data ([timesync] host_time_scale; default: 1, real time)")
     s.add_argument("--view", action="store_true",
                    help="also show the car live in rerun (a child `fieldlog view --live` on the live bus)")
-    s.add_argument("--view-rrd", default=None, metavar="FILE", help="--view into this .rrd instead of a viewer")
+    s.add_argument("--view-rrd", default=None, metavar="FILE",
+                   help="--view into this .rrd instead of a viewer (default: a viewer)")
     s.add_argument("--view-method", choices=METHODS, default="kf", help="--view: fusion method")
     s.set_defaults(func=cmd_acquire)
 
     s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
-    s.add_argument("drive")
+    s.add_argument("drive", help="the damaged MCAP (kept as it is)")
     s.add_argument("--out", default=None, help="output MCAP (default: DRIVE.recovered.mcap next to it)")
     s.set_defaults(func=cmd_recover)
 
     s = sub.add_parser("info", help="topics, rates, duration, time-sync quality, gaps, counters")
-    s.add_argument("drive")
+    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("--json", action="store_true", help="print JSON (machine-readable) instead of the table")
+    s.add_argument("--scan", action="store_true",
+                   help="read the messages even if the drive has its fieldlog.info record (default: the record)")
     s.set_defaults(func=cmd_info)
 
+    s = sub.add_parser("filter", help="a slice of a drive by time and topic, as `mcap filter`")
+    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("--start", default=None, metavar="TIME",
+                   help="first log time kept: seconds from the drive's first message (negative: from its end), "
+                        "an ISO UTC time (2026-05-04T09:32:00Z) or UTC ns (default: the drive's start)")
+    s.add_argument("--end", default=None, metavar="TIME",
+                   help="log time where the slice ends (excluded), as --start (default: the drive's end)")
+    s.add_argument("--topics", default=None, metavar="T,...",
+                   help="comma separated topics or shell patterns, e.g. '/imu,/gps/*' (default: all; /tf_static is "
+                        "always kept)")
+    s.add_argument("--out", required=True, help="output MCAP")
+    s.set_defaults(func=cmd_filter)
+
     s = sub.add_parser("import", help="build a drive from raw captures made elsewhere")
-    s.add_argument("--gps", required=True, help="NMEA log from any receiver or logger")
-    s.add_argument("--daq", default=None, help="DAQ byte capture")
+    s.add_argument("--gps", required=True, metavar="FILE", help="NMEA log from any receiver or logger")
+    s.add_argument("--daq", default=None, metavar="FILE", help="DAQ byte capture (default: none, GPS only)")
     s.add_argument("--fs", type=float, default=500.0, help="DAQ sample rate, Hz")
-    s.add_argument("--pps", choices=["flag", "latch"], default="flag")
-    s.add_argument("--out", required=True)
+    s.add_argument("--pps", choices=["flag", "latch"], default="flag", help="how the DAQ frames carry the PPS")
+    s.add_argument("--out", required=True, help="output MCAP")
     s.set_defaults(func=cmd_import)
 
     s = sub.add_parser("rebuild", help="re-derive every topic from /raw/*")
-    s.add_argument("drive")
-    s.add_argument("--out", required=True)
+    s.add_argument("drive", help="a drive with /raw/daq and /raw/gps")
+    s.add_argument("--out", required=True, help="output MCAP")
     s.add_argument("--calib", default=None, help="calibration TOML (default: the one stored in the drive)")
     s.set_defaults(func=cmd_rebuild)
 
     s = sub.add_parser("allan", help="Allan deviation and noise parameters of a static drive")
-    s.add_argument("drive")
-    s.add_argument("--plot", default=None, metavar="PREFIX", help="also write PREFIX_gyro.png and PREFIX_accel.png")
+    s.add_argument("drive", help="a static drive (MCAP)")
+    s.add_argument("--plot", default=None, metavar="PREFIX",
+                   help="also write PREFIX_gyro.png and PREFIX_accel.png (needs fieldlog[plots]; default: none)")
     s.set_defaults(func=cmd_allan)
 
     s = sub.add_parser("fuse", help="run one fusion method over a drive and write its solution")
-    s.add_argument("drive")
-    s.add_argument("--method", choices=METHODS, default="kf")
+    s.add_argument("drive", help="a drive (MCAP) with /imu, /gps/fix, /gps/vel")
+    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
     s.add_argument("--outage", action="append", metavar="START:LEN",
-                   help="force a GPS outage, seconds from the first IMU sample (repeatable)")
+                   help="force a GPS outage, seconds from the first IMU sample (repeatable; default: none)")
     s.add_argument("--out", required=True, help="output MCAP")
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
@@ -475,22 +564,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("view", help="show a drive and fused solutions in rerun, or write an .rrd")
-    s.add_argument("drive", nargs="?", default=None)
+    s.add_argument("drive", nargs="?", default=None, help="a drive (MCAP); none with --live")
     s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods)")
-    s.add_argument("--rrd", default=None, help="write this .rrd instead of opening the viewer")
+    s.add_argument("--rrd", default=None, metavar="FILE",
+                   help="write this .rrd instead of opening the viewer (default: open the viewer)")
     s.add_argument("--live", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="instead of a drive: the running daemon's live bus (its Unix socket; default: [daemon] bus "
                         "of --config), fused incrementally as in `fieldlog replay`, until the daemon stops")
     s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
-    s.add_argument("--connect", default=None, metavar="URL", help="--live: a running viewer, as for `fieldlog replay`")
-    s.add_argument("--config", default=None, help="--live: the daemon's config (for [daemon] bus); else its [input]")
+    s.add_argument("--connect", default=None, metavar="URL",
+                   help="--live: a running viewer, as for `fieldlog replay` (default: spawn one)")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="--live: the daemon's config, for [daemon] bus; else its [input] (default: none)")
     add_input_args(s)
     s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("export", help="one Parquet or CSV table per topic, through polars")
-    s.add_argument("drive")
+    s.add_argument("drive", help="a drive (MCAP)")
     s.add_argument("--out", required=True, help="output directory (DIR/<topic>.parquet)")
-    s.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    s.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="table format")
     s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
     s.set_defaults(func=cmd_export)
 
@@ -505,20 +597,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_batch)
 
     s = sub.add_parser("replay", help="play a drive through live fusion into rerun at X times real time")
-    s.add_argument("drive")
+    s.add_argument("drive", help="a drive (MCAP)")
     s.add_argument("--speed", type=float, default=1.0, help="times real time (0: as fast as possible)")
-    s.add_argument("--method", choices=METHODS, default="kf")
+    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
     sink = s.add_mutually_exclusive_group()
-    sink.add_argument("--rrd", default=None, help="stream into this .rrd file instead of a viewer")
+    sink.add_argument("--rrd", default=None, metavar="FILE",
+                      help="stream into this .rrd file instead of a viewer (default: spawn a viewer)")
     sink.add_argument("--connect", default=None, metavar="URL",
-                      help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy")
+                      help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy "
+                           "(default: spawn a viewer)")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="fusion TOML ([fusion] table; default: the drive's own, else the defaults)")
     add_input_args(s)
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("study", help="one of the other papers' studies, with its report (tools/studies.py)")
-    s.add_argument("name", choices=["kf-ukf", "cost", "ssr-sckf", "hinf"])
+    s.add_argument("name", choices=["kf-ukf", "cost", "ssr-sckf", "hinf"], help="which study")
     s.add_argument("--seeds", type=int, default=3, help="simulated drives per case (seeds 1..N)")
     s.add_argument("--runs", type=int, default=5, help="cost: timing repetitions")
     s.add_argument("--out", default=None, help="report directory (default docs/studies/NAME)")
@@ -526,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("demo", help="simulate, fuse, evaluate and view, on the built-in default")
-    s.add_argument("--out", default="out/demo")
+    s.add_argument("--out", default="out/demo", help="output directory")
     s.add_argument("--duration", type=float, default=300.0, help="seconds of drive to simulate (>= 240)")
     s.set_defaults(func=cmd_demo)
     for s in sub.choices.values():

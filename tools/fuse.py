@@ -11,6 +11,8 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/<method>/kf1/{fix,vel}``, ``/fusion/<method>/kf2/{fix,vel}`` (``dkf``, ``rbfn``, ``tdln``, ``dkf-rbfn``):
   the local solutions, the INS corrected by KF_I's (velocity) or KF_II's (position) estimate alone, with
   that local filter's variances (the paper's Fig. 5);
+- ``/fusion/<method>/odom`` nav_msgs/Odometry and ``/tf`` ``map -> base_link`` (REP-105, ``Odometry`` below):
+  the same rows for ROS tools, with the vehicle frame of the drive's ``/tf_static``;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
@@ -42,9 +44,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import calib, frames, messages
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_table
 from fieldlog.acquire.recorder import Recorder
+from fieldlog.fusion import earth
 from fieldlog.fusion.dkf import FUSIONS
 from fieldlog.fusion.engine import Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
@@ -238,6 +241,67 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
                                                                        frame_id="enu"))
 
 
+UNKNOWN_VAR = 1e6   # variance of what the filter does not estimate (the odometry's angular rate), rad^2/s^2
+
+
+class Odometry:
+    """``/fusion/<method>/odom`` (nav_msgs/Odometry) and ``/tf`` map -> base_link from solution rows.
+
+    ``map`` is a local ENU frame whose origin is the first solution row (the alignment point, in geodetic
+    coordinates of the IMU). The filter's state is the IMU (RFU axes, ``C_bn``); base_link follows from the
+    calibration's mounting (``acquire.frames``): C_base_n = C_bn C_imu_base^T, origin = IMU - C_base_n
+    imu_position_m. Pose covariance: position ENU and attitude error (phi E, N, U), both in map axes, diagonal.
+    Twist in base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the
+    lever-arm term w x r is left out); the angular rate from consecutive attitudes (rows of one block), with the
+    variance UNKNOWN_VAR because the filter does not estimate it.
+    """
+
+    def __init__(self, method: str, mounting: calib.Mounting) -> None:
+        self.topic = f"/fusion/{method}/odom"
+        self.C_imu_base = frames.C_imu_base(mounting)
+        self.imu_position_m = np.asarray(mounting.imu_position_m, float)
+        self.origin: tuple[float, float, float] | None = None
+
+    def write(self, rec: Recorder, s: Solution) -> None:
+        n = len(s.t_ns)
+        if n == 0:
+            return
+        if self.origin is None:
+            self.origin = (float(s.lat[0]), float(s.lon[0]), float(s.h[0]))
+        lat0, lon0, h0 = self.origin
+        dr_e = earth.lla_to_ecef(s.lat, s.lon, s.h) - earth.lla_to_ecef(lat0, lon0, h0)
+        p_imu = dr_e @ earth.C_en(lat0, lon0).T
+        C_base_n = earth.quat_to_dcm(s.q) @ self.C_imu_base.T
+        p_base = p_imu - C_base_n @ self.imu_position_m
+        q_base = earth.dcm_to_quat(C_base_n)
+        C_n_base = np.swapaxes(C_base_n, 1, 2)
+        v_base = np.einsum("nij,nj->ni", C_n_base, s.v_n)
+        if n > 1:
+            dt = np.diff(s.t_ns) / 1e9
+            w = earth.dcm_to_rotvec(C_n_base[:-1] @ C_base_n[1:]) / dt[:, None]
+            omega = np.vstack([w, w[-1:]])
+        else:
+            omega = np.zeros((1, 3))
+        var = s.sigma ** 2
+        pose_cov = np.zeros((n, 6, 6))
+        pose_cov[:, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 4, 5]] = var[:, [0, 1, 2, 6, 7, 8]]
+        twist_cov = np.zeros((n, 6, 6))
+        twist_cov[:, :3, :3] = C_n_base @ (var[:, 3:6, None] * C_base_n)
+        twist_cov[:, [3, 4, 5], [3, 4, 5]] = UNKNOWN_VAR
+        t = s.t_ns
+        rec.write_batch(self.topic, t, messages.encode_odometry(
+            t, p_base, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
+            frame_id=frames.MAP, child_frame_id=frames.BASE_LINK))
+        rec.write_batch("/tf", t, [messages.encode_tf(int(ti), [(frames.MAP, frames.BASE_LINK, pi, qi)])
+                                   for ti, pi, qi in zip(t.tolist(), p_base, q_base)])
+
+
+def drive_mounting(drive: str | os.PathLike[str]) -> calib.Mounting:
+    """The mounting in the drive's calibration record (zeros when the drive has none, e.g. a foreign bag)."""
+    toml = read_metadata(drive).get("calibration", {}).get("toml")
+    return calib.Calibration.from_toml(toml).mounting if toml else calib.Mounting()
+
+
 def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
          smooth: bool = False, inputs: InputMap | None = None) -> FuseResult:
@@ -249,6 +313,7 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
     imap = inputs or inputs_mod.resolve(drive)
     log = SmootherLog() if smooth else None
     engine = Engine(method, cfg, log=log)
+    odom = Odometry(method, drive_mounting(drive))
     kept: list[Solution] = []
     span = [t for t in reader_topics(drive) if t.topic in imap.topics and t.count]
     t_first = min(t.first_ns for t in span)
@@ -274,13 +339,16 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
                 kept.append(sol)
             else:
                 _write(rec, method, sol)
+                odom.write(rec, sol)
             write_outages(done)
             rows += len(sol.t_ns)
             if progress:
                 progress(min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
         write_outages(engine.finish())
         if smooth:
-            _write(rec, method, smooth_solution(Solution.concat(kept), log))
+            smoothed = smooth_solution(Solution.concat(kept), log)
+            _write(rec, method, smoothed)
+            odom.write(rec, smoothed)
             log.close()
     if progress:
         progress(1.0)

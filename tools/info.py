@@ -1,111 +1,121 @@
-"""``fieldlog info``: what a drive holds and how good its timing is."""
+"""``fieldlog info``: what a drive holds and how good its timing is.
+
+Fast path: the summary (channels, statistics) and the metadata records, among them ``fieldlog.info``, which the
+recorder writes at close (``acquire.drivestats``): no message is read, so an hour-long drive answers in about
+a second. A file without that record (recovered, or written by another tool) is scanned: the topics' message
+indexes and the /imu, /gps/fix, /time/sync and /truth/imu messages, through the same functions.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import ast
+import json
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
+from mcap.reader import make_reader
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import drivestats
+from fieldlog.acquire.drivestats import Quality, timing_error
 from fieldlog.replay import reader
-from fieldlog.tools.rebuild import read_metadata_records
 
 NS = 1_000_000_000
 
 
 @dataclass
-class TimingError:
-    """IMU time-stamp error against ``/truth/imu`` (simulated drives), after the first lock. Microseconds."""
-
-    samples: int
-    rms_us: float
-    max_abs_us: float
-    mean_us: float
-
-
-@dataclass
-class DriveInfo:
-    path: Path
-    duration_s: float
-    topics: list[reader.TopicInfo]
-    sync_states: dict[str, float] = field(default_factory=dict)   # fraction of /time/sync records per state
-    rate_ppm: float = float("nan")
-    residual_us: float = float("nan")
-    first_lock_ns: int | None = None
-    timing: TimingError | None = None
-    imu_gaps: int = 0
-    imu_longest_gap_s: float = 0.0
-    gps_missing_epochs: int = 0
-    gps_no_fix: int = 0
+class DriveInfo(Quality):
+    path: Path = Path()
+    duration_s: float = 0.0
+    topics: list[reader.TopicInfo] = field(default_factory=list)
     counters: dict[str, str] = field(default_factory=dict)
     drive: dict[str, str] = field(default_factory=dict)
     port_events: list[dict[str, str]] = field(default_factory=list)   # the daemon's lost/back port records
+    scanned: bool = False       # figures from reading the messages (no fieldlog.info record)
+
+    def to_json(self) -> str:
+        d = asdict(self)
+        d["path"] = str(self.path.resolve())
+        d["topics"] = [dict(asdict(t), rate_hz=_rate(t)) for t in self.topics]
+        return json.dumps(_nan_to_none(d), indent=2)
 
 
-def timing_error(imu_ns: np.ndarray, truth_ns: np.ndarray, first_lock_ns: int | None) -> TimingError | None:
-    """Pair each /imu stamp with its true sample time: one to one when both hold every sample (the simulator
-    writes one truth record per DAQ frame, in order), otherwise with the nearest truth time."""
-    if len(imu_ns) == 0 or len(truth_ns) == 0:
-        return None
-    if len(imu_ns) == len(truth_ns):
-        err = (imu_ns - truth_ns).astype(np.float64)
-    else:
-        i = np.clip(np.searchsorted(truth_ns, imu_ns), 1, len(truth_ns) - 1)
-        j = np.where(np.abs(truth_ns[i - 1] - imu_ns) < np.abs(truth_ns[i] - imu_ns), i - 1, i)
-        err = (imu_ns - truth_ns[j]).astype(np.float64)
-    if first_lock_ns is not None:
-        err = err[imu_ns >= first_lock_ns]
-    if len(err) == 0:
-        return None
-    err_us = err / 1e3
-    return TimingError(len(err_us), float(np.sqrt(np.mean(err_us**2))), float(np.max(np.abs(err_us))),
-                       float(np.mean(err_us)))
+def _nan_to_none(d):
+    """NaN (a figure the drive cannot give) as JSON null."""
+    if isinstance(d, float):
+        return d if np.isfinite(d) else None
+    if isinstance(d, dict):
+        return {k: _nan_to_none(v) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_nan_to_none(v) for v in d]
+    return d
 
 
-def drive_info(path: str | Path) -> DriveInfo:
+def _rate(t: reader.TopicInfo) -> float:
+    span = (t.last_ns - t.first_ns) / NS
+    return (t.count - 1) / span if t.count > 1 and span > 0 else 0.0
+
+
+def _summary_topics(path: Path, spans: dict[str, tuple[int, int]]) -> list[reader.TopicInfo] | None:
+    """Topics from the summary and the record's per-topic spans; None when a topic has no span."""
+    with open(path, "rb") as f:
+        s = reader._summary(f)
+    out = []
+    for cid, ch in sorted(s.channels.items()):
+        n = s.statistics.channel_message_counts.get(cid, 0)
+        span = spans.get(ch.topic)
+        if span is None and n:
+            return None
+        out.append(reader.TopicInfo(ch.topic, s.schemas[ch.schema_id].name, n, *(span or (0, 0))))
+    return out
+
+
+def scan_quality(path: Path, topics: list[reader.TopicInfo],
+                 progress: Callable[[float], None] | None = None) -> Quality:
+    """The figures of ``Quality`` from reading the messages (a file without a ``fieldlog.info`` record)."""
+    by = {t.topic: t for t in topics if t.count}
+    q = Quality()
+    todo = [t for t in ("/time/sync", "/imu", "/gps/fix", "/truth/imu") if t in by]
+    data = {}
+    for i, topic in enumerate(todo):
+        data[topic] = reader.read_topic(path, topic)
+        if progress:
+            progress((i + 1) / len(todo))
+    if "/time/sync" in data:
+        ts = data["/time/sync"]
+        drivestats.sync_quality(q, *(np.asarray(ts[k]) for k in ("stamp_ns", "state", "rate_ppm", "residual_us")))
+    if "/imu" in data:
+        drivestats.imu_gaps(q, np.asarray(data["/imu"]["stamp_ns"]))
+    if "/gps/fix" in data:
+        drivestats.gps_gaps(q, np.asarray(data["/gps/fix"]["stamp_ns"]), np.asarray(data["/gps/fix"]["status"]))
+    if "/imu" in data and "/truth/imu" in data:
+        q.timing = timing_error(np.asarray(data["/imu"]["stamp_ns"]), np.asarray(data["/truth/imu"]["stamp_ns"]),
+                                q.first_lock_ns)
+    return q
+
+
+def drive_info(path: str | Path, scan: bool = False, progress: Callable[[float], None] | None = None) -> DriveInfo:
+    """What ``fieldlog info`` prints. ``scan``: read the messages even when the ``fieldlog.info`` record is there."""
     path = Path(path)
-    tops = reader.topics(path)
-    by = {t.topic: t for t in tops}
+    with open(path, "rb") as f:
+        records = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+    meta = dict(records)
+    rec = meta.get(drivestats.RECORD)
+    quality = tops = None
+    if rec is not None and not scan:
+        spans = {k[len("span."):]: ast.literal_eval(v) for k, v in rec.items() if k.startswith("span.")}
+        quality = drivestats.quality_from_record(rec)
+        tops = _summary_topics(path, spans)
+    scanned = quality is None or tops is None
+    if tops is None:
+        tops = reader.topics(path)
+    if quality is None:
+        quality = scan_quality(path, tops, progress)
     first = min((t.first_ns for t in tops if t.count), default=0)
     last = max((t.last_ns for t in tops if t.count), default=0)
-    records = read_metadata_records(path)
-    meta = dict(records)
-    info = DriveInfo(path, (last - first) / NS, tops, counters=meta.get("acquire.counters", {}),
-                     drive=meta.get("drive", {}),
-                     port_events=[d for name, d in records if name == "acquire.port_event"])
-
-    if "/time/sync" in by and by["/time/sync"].count:
-        ts = reader.read_topic(path, "/time/sync")
-        states = np.asarray(ts["state"])
-        names = {messages.TIMESYNC_FREE: "free", messages.TIMESYNC_HOLDOVER: "holdover",
-                 messages.TIMESYNC_LOCKED: "locked"}
-        info.sync_states = {names.get(int(s), str(s)): float(np.mean(states == s)) for s in np.unique(states)}
-        locked = states == messages.TIMESYNC_LOCKED
-        if locked.any():
-            info.first_lock_ns = int(np.asarray(ts["stamp_ns"])[locked][0])
-            info.rate_ppm = float(np.median(np.asarray(ts["rate_ppm"])[locked]))
-            info.residual_us = float(np.median(np.asarray(ts["residual_us"])[locked]))
-
-    imu_ns = None
-    if "/imu" in by and by["/imu"].count:
-        imu_ns = np.asarray(reader.read_topic(path, "/imu")["stamp_ns"])
-        fs_nominal = 1.0 / np.median(np.diff(imu_ns) / NS) if len(imu_ns) > 1 else 0.0
-        if fs_nominal:
-            gaps = np.diff(imu_ns) / NS > 1.5 / fs_nominal
-            info.imu_gaps = int(gaps.sum())
-            info.imu_longest_gap_s = float(np.max(np.diff(imu_ns)) / NS) if gaps.any() else 0.0
-    if "/gps/fix" in by and by["/gps/fix"].count:
-        fix = reader.read_topic(path, "/gps/fix")
-        st = np.asarray(fix["stamp_ns"])
-        info.gps_no_fix = int(np.count_nonzero(np.asarray(fix["status"]) < 0))
-        if len(st) > 2:
-            dt = np.diff(st) / NS
-            period = np.median(dt)
-            info.gps_missing_epochs = int(np.sum(np.round(dt / period) - 1))
-    if imu_ns is not None and "/truth/imu" in by:
-        truth_ns = np.asarray(reader.read_topic(path, "/truth/imu")["stamp_ns"])
-        info.timing = timing_error(imu_ns, truth_ns, info.first_lock_ns)
-    return info
+    return DriveInfo(**asdict(quality) | {"timing": quality.timing}, path=path, duration_s=(last - first) / NS,
+                     topics=tops, counters=meta.get("acquire.counters", {}), drive=meta.get("drive", {}),
+                     port_events=[d for name, d in records if name == "acquire.port_event"], scanned=scanned)
 
 
 def format_info(info: DriveInfo) -> str:
@@ -115,9 +125,7 @@ def format_info(info: DriveInfo) -> str:
     lines.append("")
     lines.append(f"{'topic':<22} {'type':<46} {'count':>9} {'rate Hz':>9}")
     for t in info.topics:
-        span = (t.last_ns - t.first_ns) / NS
-        rate = (t.count - 1) / span if t.count > 1 and span > 0 else 0.0
-        lines.append(f"{t.topic:<22} {t.type:<46} {t.count:>9} {rate:>9.2f}")
+        lines.append(f"{t.topic:<22} {t.type:<46} {t.count:>9} {_rate(t):>9.2f}")
     lines.append("")
     if info.sync_states:
         states = ", ".join(f"{k} {v * 100:.1f} %" for k, v in info.sync_states.items())

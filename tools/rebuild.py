@@ -58,7 +58,7 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
     n = 0
     with recorder.Recorder(dst) as rec:
         for name, d in records:
-            if name not in ("calibration", "timesync", "acquire.counters"):
+            if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
                 rec.add_metadata(name, d)
         rec.add_metadata("rebuild", {"source": str(src)})
         pipe = Pipeline(rec, cal, sync_cfg)

@@ -1,0 +1,49 @@
+"""The drive's coordinate frames at the ROS boundary (REP-103, REP-105), from the calibration's mounting.
+
+Internally everything stays in the papers' frames: body right-forward-up (RFU, the IMU triad), navigation ENU.
+ROS tools place the data through these frames, written as ``/tf_static`` (``tf2_msgs/msg/TFMessage``) in every
+drive:
+
+- ``base_link``: the vehicle, REP-103 forward-left-up (FLU);
+- ``base_link -> imu``: the IMU's RFU triad (``/imu`` ``frame_id``), at ``[mounting] imu_position_m`` (FLU, m),
+  rotated by -90 deg about up (RFU -> FLU) and by ``imu_rpy_deg`` (the triad vs the vehicle's RFU axes);
+- ``imu -> gps_antenna``: the lever arm ``[mounting] antenna_m`` (IMU axes, m), no rotation.
+
+``fieldlog fuse`` adds ``map -> base_link`` (``/tf``, ``/fusion/<method>/odom``): ``map`` is a local ENU frame
+at the alignment point.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fieldlog.acquire import calib, messages
+
+BASE_LINK, IMU, GPS_ANTENNA, MAP = "base_link", "imu", "gps_antenna", "map"
+
+# C_rfu_flu: a vector in RFU axes -> the same vector in FLU axes (forward = y_rfu, left = -x_rfu, up = z_rfu)
+C_RFU_FLU = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def C_imu_base(mounting: calib.Mounting) -> np.ndarray:
+    """DCM IMU axes -> base_link axes (v_base = C @ v_imu): RFU -> FLU after the triad's mounting rotation
+    (fixed-axis roll, then pitch, then yaw, as REP-103 RPY)."""
+    return C_RFU_FLU @ Rotation.from_euler("xyz", mounting.imu_rpy_deg, degrees=True).as_matrix()
+
+
+def quat_xyzw(C: np.ndarray) -> np.ndarray:
+    """Unit quaternion x, y, z, w (w >= 0) of rotation matrices (..., 3, 3)."""
+    C = np.asarray(C, dtype=float)
+    q = Rotation.from_matrix(C.reshape(-1, 3, 3)).as_quat().reshape(C.shape[:-2] + (4,))
+    return q * np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
+
+
+def static_transforms(mounting: calib.Mounting) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """(parent, child, translation m in the parent's axes, rotation x, y, z, w child -> parent) of /tf_static."""
+    return [(BASE_LINK, IMU, np.asarray(mounting.imu_position_m, float), quat_xyzw(C_imu_base(mounting))),
+            (IMU, GPS_ANTENNA, np.asarray(mounting.antenna_m, float), np.array([0.0, 0.0, 0.0, 1.0]))]
+
+
+def tf_static_message(mounting: calib.Mounting, stamp_ns: int) -> bytes:
+    """The drive's ``/tf_static`` message, stamped ``stamp_ns`` (UTC ns)."""
+    return messages.encode_tf(stamp_ns, static_transforms(mounting))
