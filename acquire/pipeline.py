@@ -55,8 +55,8 @@ class PipelineConfig:
     gps_vel_sigma_mps: float = 0.1                  # NMEA carries no velocity accuracy
     uere_m: float = 4.0                             # sigma_h = HDOP * UERE when no GST
     vertical_over_horizontal: float = 2.0
-    imu_frame_id: str = "imu"
-    gps_frame_id: str = "gps"
+    imu_frame_id: str = frames.IMU                  # frames of /tf_static (acquire/frames.py)
+    gps_frame_id: str = frames.GPS_ANTENNA
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
 
 
