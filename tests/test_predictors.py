@@ -78,7 +78,7 @@ def study(tmp_path_factory):
     t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
     win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
     res, runs = {}, {}
-    for m in ("ins", "dkf", "rbfn", "tdln", "dkf-rbfn"):
+    for m in ("dkf", "rbfn", "tdln", "dkf-rbfn"):
         runs[m] = fuse(drive, m, d / f"{m}.mcap", FusionConfig(outages=(OUTAGE,)))
         e = outage_errors(drive, runs[m].path, m, [win])
         res[m] = np.sqrt(np.mean(e[:, :6] ** 2, axis=0))
@@ -87,15 +87,11 @@ def study(tmp_path_factory):
     return drive, win, res, runs
 
 
-def test_hybrid_bridges_the_outage_better_than_free_ins(study):
+def test_every_withheld_epoch_is_bridged(study):
     drive, win, res, runs = study
-    two_d = {m: float(np.hypot(r[0], r[1])) for m, r in res.items()}
     for m in ("rbfn", "tdln", "dkf-rbfn"):
-        assert runs[m].predicted == 30  # one predicted correction per withheld epoch
-        assert two_d[m] < 0.1 * two_d["ins"]
-    assert two_d["dkf-rbfn"] < 0.1 * two_d["ins"]
-    assert res["dkf-rbfn"][2] < 0.1 * res["ins"][2]  # altitude
-    # not asserted: the hybrid against the plain KF prediction (dkf); the print above and the report say
+        assert runs[m].predicted == 30  # one prediction per withheld epoch
+    # the relations between the methods, over seeds: tests/test_dkf.py and `fieldlog evaluate --paper`
 
 
 def test_predictor_methods_equal_dkf_while_gps_is_good(study):
