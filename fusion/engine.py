@@ -286,6 +286,8 @@ class Engine:
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
                                                    period, self.cfg.gps_error_tau_s)
+        if self.log is not None:
+            self.log.gps_var.append((ep["t_ns"], self._gps_var.copy()))
         x = self.filter.state
         if self.bridge is not None:
             self.bridge.train(t_g, u, self.filter.innovations, pos, vel)

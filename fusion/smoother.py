@@ -67,6 +67,7 @@ class SmootherLog:
         self._pending: list[np.ndarray] = []  # record arrays not yet spilled, in order
         self._n_pending = 0
         self.bridged = False
+        self.gps_var: list[tuple[int, np.ndarray]] = []  # (t_ns, m^2 E N U) from each GPS update on: output.correlated_variance
 
     def __len__(self) -> int:
         return self._spilled + self._n_pending
@@ -216,4 +217,9 @@ def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
         return sol
     e, var = row_errors(rts(log), sol.t_ns)
     lat, lon, h, v_n, q = correct(sol.lat, sol.lon, sol.h, sol.v_n, sol.q, e)
-    return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(np.maximum(var[:, :9], 0.0)))
+    var = np.maximum(var[:, :9], 0.0)
+    if log.gps_var:  # the correlated GPS error no smoothing removes either
+        t = np.array([g[0] for g in log.gps_var])
+        k = np.searchsorted(t, sol.t_ns, side="right") - 1
+        var[:, :3] += np.where((k >= 0)[:, None], np.array([g[1] for g in log.gps_var])[np.maximum(k, 0)], 0.0)
+    return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(var))

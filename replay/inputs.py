@@ -189,7 +189,7 @@ def _stamps(d: dict) -> np.ndarray:
     return np.where(st > 0, st, d["log_time_ns"])
 
 
-def _by_stamp(d: dict) -> dict:
+def by_stamp(d: dict) -> dict:
     """A decoded block re-timed on its header stamps, valid rows only, sorted."""
     if not len(d.get("log_time_ns", ())):
         return {}
@@ -232,7 +232,7 @@ class InputStream:
         held = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
         last_t1 = None
         for b in reader.iter_blocks(self.path, im.topics, self.block_s):
-            d = _by_stamp(b.data.get(im.imu_topic, {}))
+            d = by_stamp(b.data.get(im.imu_topic, {}))
             new = (d["log_time_ns"], d["omega_ib_b"] @ im.C_rfu_imu.T, d["f_b"] @ im.C_rfu_imu.T) if d else held[:0]
             t, w, f = (np.concatenate([h, n]) for h, n in zip(held, new)) if d else held
             if d:
@@ -241,7 +241,7 @@ class InputStream:
             cut = np.searchsorted(t, b.t1_ns - hold_ns)
             held = (t[cut:], w[cut:], f[cut:])
             last_t1 = b.t1_ns
-            fix, vel = _by_stamp(b.data.get(im.fix_topic, {})), _by_stamp(b.data.get(im.vel_topic, {}))
+            fix, vel = by_stamp(b.data.get(im.fix_topic, {})), by_stamp(b.data.get(im.vel_topic, {}))
             yield InputBlock(b.t0_ns, b.t1_ns, self._imu_block(t[:cut], w[:cut], f[:cut]), reader.gps_block(fix, vel))
         if last_t1 is not None and len(held[0]):
             yield InputBlock(last_t1, last_t1, self._imu_block(*held), reader.gps_block({}, {}))
@@ -278,7 +278,7 @@ def canonical_blocks(path: str | os.PathLike[str], imap: InputMap, block_s: floa
     for b in reader.iter_blocks(path, (*imap.topics, *(t for t in extra if t not in imap.topics)), block_s):
         data = {k: v for k, v in b.data.items() if k not in names}
         for k, n in names.items():
-            d = _by_stamp(b.data.get(k, {}))
+            d = by_stamp(b.data.get(k, {}))
             if d:
                 data[n] = d
         imu = data.get(NATIVE[0])

@@ -39,7 +39,7 @@ import polars as pl
 from fieldlog.fusion import earth
 from fieldlog.fusion.engine import METHODS, FusionConfig
 from fieldlog.replay import reader
-from fieldlog.replay.inputs import InputSpec
+from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
 
@@ -116,16 +116,18 @@ def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[
     return outage_error_series(drive, fused, method, windows_ns)[1]
 
 
-def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
+def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]],
+                        fix_topic: str = "/gps/fix", vel_topic: str | None = "/gps/vel"
                         ) -> tuple[np.ndarray, np.ndarray]:
-    """``outage_errors`` with the times of its rows: (t_ns (n,), errors (n, 9))."""
+    """``outage_errors`` with the times of its rows: (t_ns (n,), errors (n, 9)). Without truth the reference is
+    ``fix_topic`` and ``vel_topic`` (None: no velocity errors), timed by their header stamps."""
     s = reader.read_topic(fused, f"/fusion/{method}/fix")
     v = reader.read_topic(fused, f"/fusion/{method}/vel")
     a = reader.read_topic(fused, f"/fusion/{method}/attitude")
     ts = s["log_time_ns"]
     names = {t.topic for t in reader.topics(drive) if t.count}
     truth = "/truth/fix" in names
-    ref = reader.read_topic(drive, "/truth/fix" if truth else "/gps/fix")
+    ref = reader.read_topic(drive, "/truth/fix") if truth else by_stamp(reader.read_topic(drive, fix_topic))
     tr = ref["log_time_ns"]
     if truth:
         t = ts
@@ -153,11 +155,12 @@ def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[
         t = t[inside]
         llh = np.stack([ref["lat_deg"][ok][inside], ref["lon_deg"][ok][inside], ref["alt_m"][ok][inside]], axis=1)
         sol = _interp(t, ts, np.stack([s["lat_deg"], s["lon_deg"], s["alt_m"]], axis=1))
-        gv = reader.read_topic(drive, "/gps/vel")
         vg = np.full((len(t), 3), np.nan)
-        j = np.searchsorted(gv["log_time_ns"], t).clip(0, max(len(gv["log_time_ns"]) - 1, 0))
-        hit = gv["log_time_ns"][j] == t if len(gv["log_time_ns"]) else np.zeros(len(t), bool)
-        vg[hit] = gv["v_n"][j[hit]]
+        if vel_topic in names:
+            gv = by_stamp(reader.read_topic(drive, vel_topic))
+            j = np.searchsorted(gv["log_time_ns"], t).clip(0, max(len(gv["log_time_ns"]) - 1, 0))
+            hit = gv["log_time_ns"][j] == t if len(gv["log_time_ns"]) else np.zeros(len(t), bool)
+            vg[hit] = gv["v_n"][j[hit]]
         dv = _interp(t, ts, v["v_n"]) - vg
         datt = np.full((len(t), 3), np.nan)
     lat = np.radians(llh[:, 0])
@@ -257,7 +260,9 @@ def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, driv
                 mean = np.nanmean(c[:, k], axis=0)
             ax.plot(grid, mean, color=colour, ls=style, lw=3.4 - 1.8 * i / max(len(base) - 1, 1), label=name)
     for ax, label in zip(axes, ("horizontal position error (m)", "velocity error magnitude (m/s)")):
-        ax.set_yscale("log")
+        if any(np.nanmax(np.where(ln.get_ydata() > 0, ln.get_ydata(), np.nan), initial=-1.0) > 0
+               for ln in ax.get_lines()):  # a drive without GPS velocity has no velocity errors
+            ax.set_yscale("log")
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.4)
         ax.grid(True, which="minor", alpha=0.12)
@@ -287,9 +292,9 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
 
     smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``). config None: each
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
-    another logger (``replay.inputs``); the scoring needs ``/truth`` or fieldlog's /gps/fix there. paper: the
-    distributed-KF paper's set-up (:func:`paper_config` on each drive's config) and, in the report, its Table 3
-    beside ours and a verdict on each of its claims (:func:`paper_report`)."""
+    another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
+    drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
+    (:func:`paper_report`)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
@@ -322,7 +327,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                     done += 1
                     say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
                     continue
-                t_err, err = outage_error_series(drive, out, m, win_ns)
+                t_err, err = outage_error_series(drive, out, m, win_ns, imap.fix_topic, imap.vel_topic)
                 rms = rms_columns(err)
                 c = consistency(drive, out, m)
                 if c is not None:
