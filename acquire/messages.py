@@ -189,6 +189,9 @@ TOPICS: dict[str, str] = {
     "/tf_static": TFMESSAGE,
     "/tf": TFMESSAGE,
 }
+# Receiver messages other than NMEA (UBX, NovAtel OEM ASCII/binary): one checked frame per message, as read;
+# RawBytes with port = "<protocol>:<message>", e.g. "ubx:NAV-PVT", "novatel:BESTPOS" (docs/data-model.md).
+TOPICS["/gps/receiver"] = RAWBYTES
 FUSION_SUBTOPICS: dict[str, str] = {
     "fix": NAVSATFIX,
     "vel": TWIST,

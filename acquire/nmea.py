@@ -345,22 +345,25 @@ class NmeaDecoder:
 
     def feed(self, data: bytes) -> list[Sentence]:
         """Sentences completed by ``data``, in order."""
-        out: list[Sentence] = []
+        out = [s for s in map(self.decode_line, self.framer.feed(data)) if s is not None]
         st = self.stats
-        for line in self.framer.feed(data):
-            body, ok = split_checksum(line)
-            if ok is None:
-                st.no_checksum += 1
-                if not self.accept_no_checksum:
-                    continue
-            elif not ok:
-                st.bad_checksum += 1
-                continue
-            out.append(decode_body(body, line, st))
         st.lines = self.framer.lines
         st.bytes_discarded = self.framer.bytes_discarded
         st.overlong = self.framer.overlong
         return out
+
+    def decode_line(self, line: bytes) -> Sentence | None:
+        """One framed line ('$' or '!' up to before CR/LF): the sentence, or None when its checksum fails."""
+        st = self.stats
+        body, ok = split_checksum(line)
+        if ok is None:
+            st.no_checksum += 1
+            if not self.accept_no_checksum:
+                return None
+        elif not ok:
+            st.bad_checksum += 1
+            return None
+        return decode_body(body, line, st)
 
 
 # ---------------------------------------------------------------------------------------------- epochs

@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, frames, messages, nmea, timesync
+from fieldlog.acquire import calib, daq, frames, gpsport, messages, nmea, novatel, timesync, ubx
 
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
@@ -52,7 +52,8 @@ class PipelineConfig:
 
     gyro_noise_density: float = np.radians(0.01)   # rad/s/sqrt(Hz), for the /imu covariance
     accel_noise_density: float = 5e-6 * 9.80665    # m/s^2/sqrt(Hz) (Table 2: 5 ug/sqrt(Hz))
-    gps_vel_sigma_mps: float = 0.1                  # NMEA carries no velocity accuracy
+    gps_vel_sigma_mps: float = 0.1                  # NMEA and NovAtel BESTVEL carry no velocity accuracy
+    gps_vvel_sigma_mps: float = 0.2                 # vertical, when the receiver gives a vertical speed only
     uere_m: float = 4.0                             # sigma_h = HDOP * UERE when no GST
     vertical_over_horizontal: float = 2.0
     imu_frame_id: str = frames.IMU                  # frames of /tf_static (acquire/frames.py)
@@ -72,6 +73,7 @@ class Counters:
     pps_edges: int = 0
     pps_rejected: int = 0
     reads: dict = field(default_factory=dict)
+    nmea_superseded: int = 0        # NMEA epochs not used: the port also sends UBX/NovAtel solutions
 
 
 class Pipeline:
@@ -86,6 +88,10 @@ class Pipeline:
         self.fs = self.sync.cfg.fs_hz
         self._daq = daq.DaqDecoder()
         self._nmea = nmea.NmeaDecoder()
+        self._port = gpsport.Framer()
+        self._ubx = ubx.UbxDecoder()
+        self._oem = novatel.NovatelDecoder()
+        self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
         self._epochs = nmea.EpochAssembler()
         self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
         self._last_fix_key: tuple | None = None
@@ -142,7 +148,13 @@ class Pipeline:
         out = {f"daq.{k}": str(v) for k, v in asdict(c.daq).items()}
         out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
         out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
-                                                    "pps_rejected")})
+                                                    "pps_rejected", "nmea_superseded")})
+        fs = self._port.stats
+        out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
+        out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
+        for name, st in (("ubx", self._ubx.stats), ("novatel", self._oem.stats)):
+            out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
+            out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
         out["nmea.epoch_repeats"] = str(self._epochs.late)
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
         return out
@@ -150,6 +162,8 @@ class Pipeline:
     def finish(self) -> None:
         for ep in self._epochs.flush():
             self._emit_epoch(ep)
+        for sol in self._oem.flush():
+            self._emit_solution(sol)
         self.sync.finish()
         self._emit_sync()
         self._emit_imu(final=True)
@@ -164,17 +178,47 @@ class Pipeline:
             self.on_frames(mono_ns, fr.k, fr.counts)
 
     def _feed_gps(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
-        sentences = self._nmea.feed(data)
-        if not sentences:
+        frames = self._port.feed(data)
+        st, fs = self._nmea.stats, self._port.stats
+        st.lines, st.bytes_discarded, st.overlong = fs.frames.get("nmea", 0), fs.bytes_discarded, fs.overlong
+        if not frames:
             return
         self.sync.add_host_time(mono_ns, wall_ns)
         stamp = int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0])
-        for s in sentences:
-            self.sink.write("/gps/nmea", stamp, messages.encode_sentence(
-                stamp, s.raw.decode("ascii", "replace"), self.cfg.gps_frame_id))
-            self._note_time(s, mono_ns, wall_ns)
-            for ep in self._epochs.add(s, mono_ns):
-                self._emit_epoch(ep)
+        for kind, frame in frames:
+            if kind == "nmea":
+                s = self._nmea.decode_line(frame)
+                if s is None:
+                    continue
+                self.sink.write("/gps/nmea", stamp, messages.encode_sentence(
+                    stamp, s.raw.decode("ascii", "replace"), self.cfg.gps_frame_id))
+                if not self._binary_solutions:
+                    self._note_time(s, mono_ns, wall_ns)
+                for ep in self._epochs.add(s, mono_ns):
+                    self._emit_epoch(ep)
+                continue
+            if kind == "ubx":
+                name, records = self._ubx.decode(frame, mono_ns)
+            else:
+                name, records = self._oem.decode(kind, frame, mono_ns)
+            self.sink.write("/gps/receiver", stamp, messages.encode_raw(
+                stamp, mono_ns, f"{kind}:{name}", frame, self.cfg.gps_frame_id))
+            for r in records:
+                if isinstance(r, ubx.Pulse):
+                    self.sync.add_pulse_error(r.utc_s, r.qerr_s)
+                else:
+                    self._binary_solutions = True
+                    self._note_solution_time(r, mono_ns, wall_ns)
+                    self._emit_solution(r)
+
+    def _note_solution_time(self, sol: gpsport.Solution, mono_ns: int, wall_ns: int) -> None:
+        """As ``_note_time`` for a UBX/NovAtel solution; it also dates later NMEA sentences without a date."""
+        self._date = _dt.datetime.fromtimestamp(sol.utc_ns // NS, _dt.timezone.utc).date()
+        self._last_tod = (sol.utc_ns // NS) % 86400
+        utc_s = sol.whole_second
+        if utc_s is not None and self._last_fix_key != utc_s:
+            self._last_fix_key = utc_s
+            self.sync.add_fix(utc_s, mono_ns, wall_ns)
 
     def _note_time(self, s, mono_ns: int, wall_ns: int) -> None:
         """Tell time sync about the first sentence of each new whole UTC second (gpsd-style labelling)."""
@@ -198,34 +242,49 @@ class Pipeline:
 
     # -- output --------------------------------------------------------------------------------------
     def _emit_epoch(self, ep: nmea.GnssEpoch) -> None:
+        """An NMEA epoch as a solution (unless the receiver also sends UBX/NovAtel ones)."""
+        if self._binary_solutions:
+            self.counters.nmea_superseded += 1
+            return
         utc_ns = ep.utc_ns
         if utc_ns is None:
             if self._date is None:
                 return
             utc_ns = replace(ep, date=self._date).utc_ns
-        t_ns = np.array([utc_ns], np.int64)
         fix = bool(ep.quality) and ep.quality > 0 and np.isfinite(ep.lat_deg)
-        self.counters.gps_epochs += 1
-        self.counters.gps_no_fix += not fix
-        if np.isfinite(ep.sd_east_m) and np.isfinite(ep.sd_north_m):
-            var = np.array([ep.sd_east_m**2, ep.sd_north_m**2, ep.sd_up_m**2])
-            cov_type = messages.COVARIANCE_TYPE_DIAGONAL_KNOWN
+        known = np.isfinite(ep.sd_east_m) and np.isfinite(ep.sd_north_m)
+        if known:
+            var = (ep.sd_east_m**2, ep.sd_north_m**2, ep.sd_up_m**2)
         else:
             sh = (ep.hdop if np.isfinite(ep.hdop or np.nan) else 99.0) * self.cfg.uere_m
-            var = np.array([sh**2, sh**2, (self.cfg.vertical_over_horizontal * sh) ** 2])
-            cov_type = messages.COVARIANCE_TYPE_APPROXIMATED
-        status = messages.fix_status(ep.quality if fix else 0)
+            var = (sh**2, sh**2, (self.cfg.vertical_over_horizontal * sh) ** 2)
+        vel = None
+        if ep.speed_mps is not None and np.isfinite(ep.speed_mps):
+            course = ep.course_rad if ep.course_rad is not None and np.isfinite(ep.course_rad) else 0.0
+            vel = (ep.speed_mps * np.sin(course), ep.speed_mps * np.cos(course), 0.0)
+        s2 = self.cfg.gps_vel_sigma_mps**2
+        self._emit_solution(gpsport.Solution(
+            utc_ns, fix, ep.quality, ep.num_sats, ep.lat_deg, ep.lon_deg, ep.alt_ellipsoid_m, var, known, vel,
+            (s2, s2, 1e4), ep.first_mono_ns, "nmea"))   # NMEA has no vertical velocity: unobserved
+
+    def _emit_solution(self, sol: gpsport.Solution) -> None:
+        """/gps/fix and /gps/vel of one receiver epoch."""
+        t_ns = np.array([sol.utc_ns], np.int64)
+        fix = sol.fix
+        self.counters.gps_epochs += 1
+        self.counters.gps_no_fix += not fix
+        cov_type = messages.COVARIANCE_TYPE_DIAGONAL_KNOWN if sol.pos_var_known else \
+            messages.COVARIANCE_TYPE_APPROXIMATED
+        status = messages.fix_status(sol.quality if fix else 0)
         nan = np.nan
         self.sink.write_batch("/gps/fix", t_ns, messages.encode_navsatfix(
-            t_ns, [ep.lat_deg if fix else nan], [ep.lon_deg if fix else nan], [ep.alt_ellipsoid_m if fix else nan],
-            np.diag(var).ravel(), cov_type, status, self.cfg.gps_service, frame_id=self.cfg.gps_frame_id))
-        if fix and ep.speed_mps is not None and np.isfinite(ep.speed_mps):
-            course = ep.course_rad if ep.course_rad is not None and np.isfinite(ep.course_rad) else 0.0
-            lin = np.array([[ep.speed_mps * np.sin(course), ep.speed_mps * np.cos(course), 0.0]])
+            t_ns, [sol.lat_deg if fix else nan], [sol.lon_deg if fix else nan], [sol.h_m if fix else nan],
+            np.diag(sol.pos_var).ravel(), cov_type, status, self.cfg.gps_service, frame_id=self.cfg.gps_frame_id))
+        if fix and sol.vel_enu is not None and np.all(np.isfinite(sol.vel_enu)):
+            lin = np.array([sol.vel_enu])
+            default = (self.cfg.gps_vel_sigma_mps**2,) * 2 + (self.cfg.gps_vvel_sigma_mps**2,)
             cov = np.zeros((1, 36))
-            s2 = self.cfg.gps_vel_sigma_mps**2
-            cov[0, [0, 7]] = s2
-            cov[0, 14] = 1e4          # NMEA has no vertical velocity: unobserved
+            cov[0, [0, 7, 14]] = np.where(np.isfinite(sol.vel_var), sol.vel_var, default)
             cov[0, [21, 28, 35]] = -1.0  # no angular velocity
             self.sink.write_batch("/gps/vel", t_ns, messages.encode_twist(
                 t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))

@@ -233,6 +233,7 @@ class TimeSync:
         self._bin_half = max(1, math.ceil(c.host_window_s / 2))
         # inputs
         self._fix: tuple[int, int] | None = None                 # (utc_s, mono_ns) of the last fix
+        self._pulse_late: dict[int, float] = {}                  # utc_s -> receiver's pulse error (s)
         self._k_first: int | None = None
         self._k_max = -1
         self._wall_minus_mono: int | None = None
@@ -269,6 +270,13 @@ class TimeSync:
         self._fix = (int(utc_s), int(mono_ns))
         if wall_ns is not None:
             self.add_host_time(mono_ns, wall_ns)
+
+    def add_pulse_error(self, utc_s: int, late_s: float) -> None:
+        """The receiver's own figure for the time pulse of UTC second ``utc_s``: it comes ``late_s`` late (u-blox
+        TIM-TP qErr); the edge labelled ``utc_s`` is moved back by that much before it is used."""
+        self._pulse_late[int(utc_s)] = float(late_s)
+        while len(self._pulse_late) > 16:
+            del self._pulse_late[next(iter(self._pulse_late))]
 
     def add_host_time(self, mono_ns: int, wall_ns: int) -> None:
         """A read's host clocks: what ``mono_to_utc`` falls back on before the first lock."""
@@ -404,6 +412,7 @@ class TimeSync:
         if int(self._scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
             return self._reject(e, "stale_fix")
         e.label = fix_utc + 1
+        e.k_edge -= self._pulse_late.pop(e.label, 0.0) * self._fs
         off = e.label * 1_000_000_000 - int(self._scaled(e.mono_ns))
         ref = float(np.median(self._offsets)) if self._offsets else off
         self._offsets.append(off)

@@ -3,10 +3,12 @@
 The bytes are kept exactly (``/raw/*``) and go through the normal pipeline. Host read times have to be
 invented, and the rule is stated here because time sync depends on it:
 
-* NMEA: a line is read 0.2 s after the UTC second of the last time-bearing sentence at or before it (the
-  typical receiver latency); lines before the first time-bearing sentence take the first one's time.
-  Reads are the lines of one such second. Lines before the first RMC/ZDA take its date; logs without any
-  date (GGA only) take the file's modification date.
+* GPS (NMEA, u-blox UBX, NovAtel OEM ASCII/binary, mixed; auto-detected by ``acquire.gpsport``): a message is
+  read 0.2 s after the UTC second of the last time-bearing message at or before it (the typical receiver
+  latency; time-bearing: NMEA GGA/RMC/GST/ZDA, UBX NAV-PVT, NovAtel BESTPOS/BESTVEL); messages before the first
+  one take its time. Reads are the bytes of one such second, cut at message ends. NMEA lines before the first
+  date (RMC, ZDA, or a UBX/NovAtel solution) take that date; logs without any date (GGA only) take the
+  file's modification date.
 * DAQ: both captures are taken to have started together, at T. The log's first epoch E is then the first
   burst that began after T, so T lies in (E - 1 + L, E + L) for a receiver latency L, and the first PPS edge,
   k_pps / fs after T, marks E when k_pps / fs < 1 - L and E + 1 otherwise (L = NMEA_LATENCY_S). Frame k is
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import daq, nmea, recorder, timesync
+from fieldlog.acquire import daq, gpsport, nmea, novatel, recorder, timesync, ubx
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
@@ -30,53 +32,82 @@ NMEA_LATENCY_S = 0.2
 DAQ_READ_BYTES = 512
 
 
-def nmea_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
-    """Cut an NMEA log into reads, one per UTC second of content, timed by the rule above."""
+def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
+    """Cut a GPS log (NMEA, u-blox UBX, NovAtel OEM, or a mix: auto-detected) into reads, one per UTC second
+    of content, timed by the rule above."""
+    framer = gpsport.Framer()
+    frames: list[tuple[str, bytes]] = []
+    ends: list[int] = []
+    for off in range(0, len(data), 65536):
+        frames += framer.feed(data[off:off + 65536])
+        ends += framer.ends
+    date = _first_date(frames) or fallback_date
     dec = nmea.NmeaDecoder()
-    date = _first_date(data) or fallback_date
     times: list[float | None] = []
-    lines = data.splitlines(keepends=True)
     last_tod = None
-    for line in lines:
+    for kind, frame in frames:
         t = None
-        for s in dec.feed(line):
-            date = getattr(s, "date", None) or date
+        if kind == "nmea":
+            s = dec.decode_line(frame)
             tod = getattr(s, "time_of_day_s", None)
+            date = getattr(s, "date", None) or date
             if tod is not None and np.isfinite(tod):
-                d = date
                 if last_tod is not None and tod < last_tod - 43200 and getattr(s, "date", None) is None:
-                    date = d = d + _dt.timedelta(days=1)
+                    date = date + _dt.timedelta(days=1)
                 last_tod = tod
-                t = _dt.datetime.combine(d, _dt.time(), _dt.timezone.utc).timestamp() + np.floor(tod)
+                t = _dt.datetime.combine(date, _dt.time(), _dt.timezone.utc).timestamp() + np.floor(tod)
+        else:
+            ns = _binary_time_ns(kind, frame)
+            if ns is not None:
+                t = float(ns // NS)
+                date = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).date()
+                last_tod = t % 86400
         times.append(t)
     known = [t for t in times if t is not None]
     if not known:
-        raise ValueError("the NMEA log has no sentence with a UTC time (GGA, RMC, GST or ZDA)")
+        raise ValueError("the GPS log has no message with a UTC time (NMEA GGA/RMC/GST/ZDA, UBX NAV-PVT, "
+                         "NovAtel BESTPOS/BESTVEL)")
     cur = known[0]
-    groups: dict[float, list[bytes]] = {}
+    groups: dict[float, int] = {}            # second -> stream offset where its read ends
     order: list[float] = []
-    for line, t in zip(lines, times):
+    for end, t in zip(ends, times):
         cur = t if t is not None else cur
         if cur not in groups:
-            groups[cur] = []
             order.append(cur)
-        groups[cur].append(line)
+        groups[cur] = end
+    groups[order[-1]] = len(data)            # trailing bytes of no frame go with the last read
     reads = []
     last_ns = 0
+    start = 0
     for t in order:
         ns = max(int(round((t + NMEA_LATENCY_S) * NS)), last_ns + 1)
         last_ns = ns
-        reads.append(RawRead("gps", ns, ns, b"".join(groups[t])))
+        end = max(groups[t], start)
+        reads.append(RawRead("gps", ns, ns, data[start:end]))
+        start = end
     return reads
 
 
-def _first_date(data: bytes) -> _dt.date | None:
-    """The first date an RMC or ZDA sentence gives, for the lines before it."""
+def _binary_time_ns(kind: str, frame: bytes) -> int | None:
+    """UTC of a UBX NAV-PVT or NovAtel BESTPOS/BESTVEL frame, else None."""
+    if kind == "ubx":
+        _, recs = ubx.UbxDecoder().decode(frame, 0)
+        return next((r.utc_ns for r in recs if isinstance(r, gpsport.Solution)), None)
+    return novatel.log_time_ns(kind, frame)
+
+
+def _first_date(frames: list[tuple[str, bytes]]) -> _dt.date | None:
+    """The first date an RMC or ZDA sentence or a UBX/NovAtel solution gives, for the lines before it."""
     dec = nmea.NmeaDecoder()
-    for off in range(0, len(data), 65536):
-        for s in dec.feed(data[off:off + 65536]):
-            if getattr(s, "date", None) is not None:
-                return s.date
+    for kind, frame in frames:
+        if kind == "nmea":
+            d = getattr(dec.decode_line(frame), "date", None)
+            if d is not None:
+                return d
+        else:
+            ns = _binary_time_ns(kind, frame)
+            if ns is not None:
+                return _dt.datetime.fromtimestamp(ns // NS, _dt.timezone.utc).date()
     return None
 
 
@@ -113,7 +144,7 @@ def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Pat
                     pps_mode: str = "flag") -> RebuildResult:
     gps_bytes = Path(gps).read_bytes()
     mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
-    reads = nmea_reads(gps_bytes, mdate)
+    reads = gps_reads(gps_bytes, mdate)
     if daq_path is not None:
         first_epoch = round(reads[0].mono_ns / NS - NMEA_LATENCY_S)
         reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)

@@ -1,0 +1,247 @@
+"""The GPS port's byte stream: NMEA 0183, u-blox UBX and NovAtel OEM (ASCII and binary) mixed on one port,
+split into checked frames by protocol, and the receiver-independent solution record the decoders produce.
+
+A u-blox receiver sends UBX and NMEA on the same port, a NovAtel one its logs and NMEA; the framer finds every
+protocol's sync pattern wherever it lies, so no configuration is needed ("auto"). Frames:
+
+* ``nmea``: '$' or '!' up to CR/LF (terminator stripped), at most ``nmea.MAX_LINE`` bytes; checked later;
+* ``novatel``: OEM ASCII '#' up to CR/LF, at most MAX_ASCII bytes; CRC-32 checked here;
+* ``ubx``: 0xB5 0x62, class, id, u16 length, payload, Fletcher-8 checksum; checked here;
+* ``novatel_bin``: 0xAA 0x44 0x12, header length, ..., u16 message length at 8, CRC-32; checked here.
+
+A frame candidate that fails its check (or is too long) is skipped by one byte, so a real frame hidden behind a
+false sync is found again (resynchronisation). Memory is bounded by MAX_FRAME whatever arrives, and nothing
+raises. CR, LF and bytes of no frame are counted in ``bytes_discarded``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import zlib
+from dataclasses import dataclass, field
+
+from fieldlog.acquire import nmea
+
+MAX_ASCII = 1024           # NovAtel ASCII logs (BESTPOSA ~ 230 bytes)
+MAX_UBX_PAYLOAD = 2048     # NAV-PVT 92, TIM-TP 16; NAV-SAT with many satellites ~ 1 kB
+MAX_BIN = 2048
+MAX_FRAME = max(MAX_ASCII, MAX_UBX_PAYLOAD + 8, MAX_BIN)
+
+UBX_SYNC = b"\xb5\x62"
+OEM_SYNC = b"\xaa\x44\x12"
+_STARTS = frozenset(b"$!#\xb5\xaa")
+_EOL = frozenset(b"\r\n")
+PROTOCOLS = ("auto", "nmea", "ubx", "novatel")
+
+
+def ubx_checksum(body: bytes) -> bytes:
+    """UBX 8-bit Fletcher checksum (CK_A, CK_B) over class, id, length and payload."""
+    a = b = 0
+    for x in body:
+        a = (a + x) & 0xFF
+        b = (b + a) & 0xFF
+    return bytes((a, b))
+
+
+def crc32(data: bytes) -> int:
+    """NovAtel's CRC-32 (polynomial 0xEDB88320, reflected, initial value 0, no final XOR)."""
+    return zlib.crc32(data, 0xFFFFFFFF) ^ 0xFFFFFFFF
+
+
+@dataclass
+class FrameStats:
+    """Framer counters; ``frames`` by protocol."""
+
+    frames: dict[str, int] = field(default_factory=dict)
+    bad_checksum: dict[str, int] = field(default_factory=dict)
+    overlong: int = 0
+    bytes_discarded: int = 0
+
+
+class Framer:
+    """Bytes in, (protocol, frame) out, in stream order; see the module docstring."""
+
+    def __init__(self) -> None:
+        self.stats = FrameStats()
+        self._buf = bytearray()
+        self.consumed = 0                  # stream offset of the first byte held
+        self.ends: list[int] = []          # stream offset just after each frame the last feed returned
+
+    @property
+    def pending(self) -> int:
+        """Bytes held for the next feed (<= MAX_FRAME)."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[tuple[str, bytes]]:
+        buf = self._buf
+        buf += data
+        out: list[tuple[str, bytes]] = []
+        st = self.stats
+        pos = 0
+        n = len(buf)
+        self.ends = []
+        while pos < n:
+            c = buf[pos]
+            if c not in _STARTS:
+                nxt = _next_start(buf, pos + 1)
+                st.bytes_discarded += sum(1 for x in buf[pos:nxt] if x not in _EOL)
+                pos = nxt
+                continue
+            kind, length = self._frame_at(buf, pos, n)
+            if kind == "wait":
+                break
+            if kind == "skip":
+                st.bytes_discarded += length
+                pos += length
+                continue
+            frame = bytes(buf[pos:pos + length])
+            st.frames[kind] = st.frames.get(kind, 0) + 1
+            out.append((kind, frame.rstrip(b"\r\n") if kind in ("nmea", "novatel") else frame))
+            pos += length
+            self.ends.append(self.consumed + pos)
+        del buf[:pos]
+        self.consumed += pos
+        return out
+
+    def _frame_at(self, buf: bytearray, pos: int, n: int) -> tuple[str, int]:
+        """('wait', 0) for more bytes, ('skip', n) to drop n bytes (a false sync), else (protocol, length)."""
+        c = buf[pos]
+        st = self.stats
+        if c == 0xB5:
+            if n - pos < 2:
+                return "wait", 0
+            if buf[pos + 1] != 0x62:
+                return "skip", 1
+            if n - pos < 6:
+                return "wait", 0
+            ln = int.from_bytes(buf[pos + 4:pos + 6], "little")
+            if ln > MAX_UBX_PAYLOAD:
+                st.overlong += 1
+                return "skip", 1
+            if n - pos < ln + 8:
+                return "wait", 0
+            if ubx_checksum(buf[pos + 2:pos + 6 + ln]) != buf[pos + 6 + ln:pos + 8 + ln]:
+                st.bad_checksum["ubx"] = st.bad_checksum.get("ubx", 0) + 1
+                return "skip", 1
+            return "ubx", ln + 8
+        if c == 0xAA:
+            if n - pos < 3:
+                return "wait", 0
+            if buf[pos + 1:pos + 3] != b"\x44\x12":
+                return "skip", 1
+            if n - pos < 10:
+                return "wait", 0
+            hl, ml = buf[pos + 3], int.from_bytes(buf[pos + 8:pos + 10], "little")
+            total = hl + ml + 4
+            if hl < 28 or total > MAX_BIN:
+                st.overlong += total > MAX_BIN
+                return "skip", 1
+            if n - pos < total:
+                return "wait", 0
+            if crc32(bytes(buf[pos:pos + total - 4])) != int.from_bytes(buf[pos + total - 4:pos + total], "little"):
+                st.bad_checksum["novatel_bin"] = st.bad_checksum.get("novatel_bin", 0) + 1
+                return "skip", 1
+            return "novatel_bin", total
+        # ASCII: up to the first CR/LF; another frame start inside means this one was cut off
+        limit = nmea.MAX_LINE if c != 0x23 else MAX_ASCII
+        end = pos + 1
+        stop = min(n, pos + limit + 1)
+        while end < stop and buf[end] not in _EOL:
+            if buf[end] in _STARTS:       # another frame starts: this line was cut off (the last '$' wins)
+                return "skip", end - pos
+            end += 1
+        if end - pos > limit:
+            st.overlong += 1
+            return "skip", end - pos
+        if end >= n:
+            return "wait", 0
+        if c == 0x23:
+            if not _novatel_ascii_ok(bytes(buf[pos:end])):
+                st.bad_checksum["novatel"] = st.bad_checksum.get("novatel", 0) + 1
+                return "skip", 1
+            return "novatel", end + 1 - pos
+        return "nmea", end + 1 - pos
+
+
+def _next_start(buf: bytearray, i: int) -> int:
+    n = len(buf)
+    while i < n and buf[i] not in _STARTS:
+        i += 1
+    return i
+
+
+def _novatel_ascii_ok(line: bytes) -> bool:
+    """'#...*hhhhhhhh': the CRC-32 of the bytes between '#' and '*' matches."""
+    star = line.rfind(b"*")
+    if star < 0 or len(line) - star != 9:
+        return False
+    try:
+        return crc32(line[1:star]) == int(line[star + 1:], 16)
+    except ValueError:
+        return False
+
+
+# ---------------------------------------------------------------------------------------------- solutions
+
+@dataclass(frozen=True)
+class Solution:
+    """One receiver epoch, whatever the protocol. SI; ENU; NaN where the receiver gave nothing.
+
+    utc_ns: the epoch's UTC (ns since the Unix epoch); fix: the receiver has a position fix (gpsd's rules);
+    quality: GGA-like quality (0 none, 1 autonomous, 2 differential, 4 RTK fixed, 5 RTK float);
+    lat/lon in degrees, h ellipsoidal metres; pos_var (3,) ENU m^2 and whether it is the receiver's own
+    (``pos_var_known``) or approximated; vel_enu (3,) m/s and vel_var (3,) (m/s)^2 (1e4: not observed);
+    first_mono_ns: host time of the epoch's first message.
+    """
+
+    utc_ns: int
+    fix: bool
+    quality: int
+    num_sats: int
+    lat_deg: float
+    lon_deg: float
+    h_m: float
+    pos_var: tuple[float, float, float]
+    pos_var_known: bool
+    vel_enu: tuple[float, float, float] | None
+    vel_var: tuple[float, float, float]
+    first_mono_ns: int = 0
+    source: str = ""
+
+    @property
+    def whole_second(self) -> int | None:
+        """The UTC second when the epoch is on one, else None (the epochs that label PPS edges)."""
+        s, r = divmod(self.utc_ns, 1_000_000_000)
+        return s if r == 0 else None
+
+
+NAN3 = (math.nan, math.nan, math.nan)
+
+
+# ---------------------------------------------------------------------------------------------- GPS time
+
+GPS_EPOCH_S = 315_964_800         # 1980-01-06T00:00:00Z, s since the Unix epoch
+WEEK_S = 604_800
+
+
+def gps_to_utc_s(week: int, tow_s: float, leap_s: int) -> float:
+    """GPS week and seconds of week -> UTC seconds since the Unix epoch (``leap_s`` = GPS - UTC)."""
+    return GPS_EPOCH_S + week * WEEK_S + tow_s - leap_s
+
+
+# GPS - UTC leap seconds from each date on (the IERS table since GPS time began)
+_LEAPS = [(_dt.date(1981, 7, 1), 1), (_dt.date(1982, 7, 1), 2), (_dt.date(1983, 7, 1), 3),
+          (_dt.date(1985, 7, 1), 4), (_dt.date(1988, 1, 1), 5), (_dt.date(1990, 1, 1), 6),
+          (_dt.date(1991, 1, 1), 7), (_dt.date(1992, 7, 1), 8), (_dt.date(1993, 7, 1), 9),
+          (_dt.date(1994, 7, 1), 10), (_dt.date(1996, 1, 1), 11), (_dt.date(1997, 7, 1), 12),
+          (_dt.date(1999, 1, 1), 13), (_dt.date(2006, 1, 1), 14), (_dt.date(2009, 1, 1), 15),
+          (_dt.date(2012, 7, 1), 16), (_dt.date(2015, 7, 1), 17), (_dt.date(2017, 1, 1), 18)]
+
+
+def leap_seconds(day: _dt.date) -> int:
+    """GPS - UTC on ``day`` from the table (a receiver's own figure, when it sends one, is preferred)."""
+    n = 0
+    for d, s in _LEAPS:
+        if day >= d:
+            n = s
+    return n

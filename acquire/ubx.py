@@ -1,0 +1,111 @@
+"""u-blox UBX: checked frames (``gpsport.Framer``) decoded with pyubx2 into solutions and time-pulse records.
+
+Decoded: NAV-PVT (UTC, fix type, satellites, lat/lon/ellipsoidal height, hAcc/vAcc, velN/E/D, sAcc) -> one
+``gpsport.Solution`` per epoch; TIM-TP (time of the next pulse, qErr) -> ``Pulse``. Every other message is
+counted by name and kept in the raw bytes and ``/gps/receiver``. Accuracies follow the ROS ublox driver:
+per-axis horizontal variance hAcc^2, vertical vAcc^2, velocity sAcc^2 on each ENU axis.
+
+pyubx2 (maintained, covers every u-blox generation) does the payload decoding; the framing is ours, because
+UBX shares the port with NMEA and NovAtel and must resynchronise byte by byte (``gpsport``).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+
+from pyubx2 import UBXReader
+from pyubx2.ubxtypes_core import UBX_MSGIDS
+
+from fieldlog.acquire import gpsport
+
+NS = 1_000_000_000
+# UBX NAV-PVT fixType -> GGA-like quality: 0 no fix, 1 dead reckoning only, 2 2-D, 3 3-D, 4 GNSS + dead
+# reckoning, 5 time only
+_FIX_QUALITY = {0: 0, 1: 6, 2: 1, 3: 1, 4: 1, 5: 0}
+
+
+@dataclass(frozen=True)
+class Pulse:
+    """TIM-TP: the next time pulse is at UTC second ``utc_s``; it comes ``qerr_s`` late (u-blox's quantisation
+    error, from the receiver's clock grid), so the true second is at (edge time - qerr_s)."""
+
+    utc_s: int
+    qerr_s: float
+
+
+@dataclass
+class UbxStats:
+    by_type: dict[str, int] = field(default_factory=dict)
+    undecodable: int = 0
+    no_time: int = 0
+
+
+class UbxDecoder:
+    """UBX frames in, ``gpsport.Solution`` and ``Pulse`` records out. Never raises."""
+
+    def __init__(self) -> None:
+        self.stats = UbxStats()
+        self.leap_s: int | None = None   # GPS - UTC, learnt from NAV-PVT (iTOW against its UTC)
+
+    def decode(self, frame: bytes, mono_ns: int) -> tuple[str, list]:
+        """(message name, records) of one checked frame."""
+        try:
+            msg = UBXReader.parse(frame, validate=0)
+            name = msg.identity if frame[2:4] in UBX_MSGIDS else "unknown"     # the counters stay bounded
+        except Exception:        # pyubx2 raises its own and builtin errors on payloads it cannot read
+            self.stats.undecodable += 1
+            return "?", []
+        self.stats.by_type[name] = self.stats.by_type.get(name, 0) + 1
+        try:
+            if name == "NAV-PVT":
+                return name, self._pvt(msg, mono_ns)
+            if name == "TIM-TP":
+                return name, self._tp(msg)
+        except (AttributeError, TypeError, ValueError, OverflowError):
+            self.stats.undecodable += 1
+        return name, []
+
+    def _pvt(self, m, mono_ns: int) -> list:
+        if not (m.validDate and m.validTime):
+            self.stats.no_time += 1
+            return []
+        try:
+            base = _dt.datetime(m.year, m.month, m.day, m.hour, m.min, m.second, tzinfo=_dt.timezone.utc)
+        except ValueError:
+            self.stats.no_time += 1
+            return []
+        if not 1980 <= m.year <= 2200:
+            self.stats.no_time += 1
+            return []
+        utc_ns = int(base.timestamp()) * NS + int(m.nano)
+        utc_ns = round(utc_ns / 1e6) * 1_000_000     # the epoch, to the ms (nano holds the clock bias)
+        tow_utc = (utc_ns / NS - gpsport.GPS_EPOCH_S) % gpsport.WEEK_S
+        self.leap_s = round((m.iTOW / 1000.0 - tow_utc) % gpsport.WEEK_S) % gpsport.WEEK_S
+        quality = _FIX_QUALITY.get(int(m.fixType), 0)
+        if quality == 1 and int(m.diffSoln):
+            quality = 2
+        if quality and int(m.carrSoln):
+            quality = 4 if int(m.carrSoln) == 2 else 5
+        fix = quality not in (0, 6) and bool(m.gnssFixOk) and int(m.numSV) > 0 and not int(m.invalidLlh)
+        h_var = (m.hAcc / 1000.0) ** 2
+        v_var = (m.vAcc / 1000.0) ** 2
+        s_var = (m.sAcc / 1000.0) ** 2
+        vel = (m.velE / 1000.0, m.velN / 1000.0, -m.velD / 1000.0)
+        return [gpsport.Solution(
+            utc_ns=utc_ns, fix=fix, quality=quality if fix else 0, num_sats=int(m.numSV),
+            lat_deg=float(m.lat), lon_deg=float(m.lon), h_m=m.height / 1000.0, pos_var=(h_var, h_var, v_var),
+            pos_var_known=True, vel_enu=vel if fix else None, vel_var=(s_var, s_var, s_var),
+            first_mono_ns=mono_ns, source="ubx")]
+
+    def _tp(self, m) -> list:
+        if getattr(m, "qErrInvalid", 0):
+            return []
+        tow_s = m.towMS / 1000.0 + m.towSubMS / 1000.0
+        if int(m.timeBase) == 1:             # the pulse is on UTC: tow is UTC already
+            leap = 0
+        elif self.leap_s is not None:
+            leap = self.leap_s
+        else:
+            return []
+        utc_s = round(gpsport.gps_to_utc_s(int(m.week), tow_s, leap))
+        return [Pulse(int(utc_s), m.qErr * 1e-12)]
