@@ -7,9 +7,11 @@ standard baud rate``.
     [daq]                       # the DAQ board
     port = "/dev/ttyUSB0"
     baud = 921600
-    [gps]                       # the GPS receiver (NMEA)
+    [gps]                       # the GPS receiver
     port = "/dev/ttyUSB1"
     baud = 115200
+    protocol = "auto"           # NMEA, u-blox UBX and NovAtel OEM, mixed, found by themselves; or one of
+                                # "nmea", "ubx", "novatel" (with NMEA) to ignore the others
     [calibration]
     file = "cal.toml"           # acquire/calib.py layout; omitted: the built-in defaults
     [timesync]                  # acquire/timesync.py TimeSyncConfig keys, e.g. pps_mode = "latch"
@@ -52,6 +54,9 @@ STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 4
 NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
 
 
+GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel")   # acquire.gpsport.PROTOCOLS (config imports nothing of ours)
+
+
 class ConfigError(ValueError):
     """A bad configuration; the message names the key."""
 
@@ -70,6 +75,11 @@ def from_table(cls: type[T], table: str, d: dict[str, Any]) -> T:
 class PortConfig:
     port: str = ""
     baud: int = 115200
+
+
+@dataclass
+class GpsPortConfig(PortConfig):
+    protocol: str = "auto"      # 'auto' (every protocol, mixed), 'nmea', 'ubx' (+ NMEA), 'novatel' (+ NMEA)
 
 
 @dataclass
@@ -98,7 +108,7 @@ class DaemonConfig:
 @dataclass
 class AcquireConfig:
     daq: PortConfig = field(default_factory=lambda: PortConfig(baud=921600))
-    gps: PortConfig = field(default_factory=lambda: PortConfig(baud=115200))
+    gps: GpsPortConfig = field(default_factory=lambda: GpsPortConfig(baud=115200))
     calibration_file: str = ""
     timesync: dict[str, Any] = field(default_factory=dict)
     out_dir: str = "drives"
@@ -234,6 +244,8 @@ def validate(c: AcquireConfig) -> None:
             raise ConfigError(f"[{name}] port: no {name} port given (--{name} PORT or [{name}] port in the config)")
         if p.baud not in STANDARD_BAUDS:
             raise ConfigError(f"[{name}] baud: {p.baud} is not a standard baud rate")
+    if c.gps.protocol not in GPS_PROTOCOLS:
+        raise ConfigError(f"[gps] protocol: {c.gps.protocol!r} is not one of {', '.join(GPS_PROTOCOLS)}")
     if c.daq.port == c.gps.port:
         raise ConfigError(f"[gps] port: same device as [daq] port ({c.gps.port})")
     if c.calibration_file and not Path(c.calibration_file).is_file():

@@ -63,7 +63,7 @@ import serial
 
 from fieldlog.acquire import calib, messages, nmea, recorder, timesync
 from fieldlog.acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
-from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
@@ -466,7 +466,7 @@ class Daemon:
             self.bus = BusServer(self.cfg.daemon.bus)
         self.sink = RotatingSink(self.out_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
                                  self.bus.publish if self.bus else None)
-        self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg)
+        self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol))
         if self.bus is not None:
             self.provisional = self.pipe.on_frames = ProvisionalImu(self.pipe, self.bus)
         path = self.sink.open_next()

@@ -32,6 +32,9 @@ OEM_SYNC = b"\xaa\x44\x12"
 _STARTS = frozenset(b"$!#\xb5\xaa")
 _EOL = frozenset(b"\r\n")
 PROTOCOLS = ("auto", "nmea", "ubx", "novatel")
+# what each [gps] protocol setting decodes (NMEA always: u-blox and NovAtel ports send it too)
+ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
+           "novatel": {"nmea", "novatel", "novatel_bin"}}
 
 
 def ubx_checksum(body: bytes) -> bytes:
@@ -156,8 +159,10 @@ class Framer:
         if end >= n:
             return "wait", 0
         if c == 0x23:
-            if not _novatel_ascii_ok(bytes(buf[pos:end])):
-                st.bad_checksum["novatel"] = st.bad_checksum.get("novatel", 0) + 1
+            line = bytes(buf[pos:end])
+            if not _novatel_ascii_ok(line):
+                if b";" in line and b"*" in line:   # a NovAtel log; other '#' lines are comments (discarded)
+                    st.bad_checksum["novatel"] = st.bad_checksum.get("novatel", 0) + 1
                 return "skip", 1
             return "novatel", end + 1 - pos
         return "nmea", end + 1 - pos
@@ -208,14 +213,13 @@ class Solution:
     first_mono_ns: int = 0
     source: str = ""
 
-    @property
-    def whole_second(self) -> int | None:
-        """The UTC second when the epoch is on one, else None (the epochs that label PPS edges)."""
-        s, r = divmod(self.utc_ns, 1_000_000_000)
-        return s if r == 0 else None
 
+@dataclass(frozen=True)
+class EpochTime:
+    """The first message of a receiver epoch at ``utc_ns`` arrived (its solution may complete later): what labels
+    the next PPS edge."""
 
-NAN3 = (math.nan, math.nan, math.nan)
+    utc_ns: int
 
 
 # ---------------------------------------------------------------------------------------------- GPS time

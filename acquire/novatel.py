@@ -69,7 +69,8 @@ class NovatelDecoder:
         self._mono = 0
 
     def decode(self, kind: str, frame: bytes, mono_ns: int) -> tuple[str, list]:
-        """(log name, solutions completed) of one frame; ``kind`` is 'novatel' (ASCII) or 'novatel_bin'."""
+        """(log name, records) of one frame: the solutions it completes, and an ``EpochTime`` when it starts an
+        epoch; ``kind`` is 'novatel' (ASCII) or 'novatel_bin'."""
         try:
             parsed = _ascii(frame) if kind == "novatel" else _binary(frame)
         except (ValueError, IndexError, struct.error, UnicodeDecodeError):
@@ -89,11 +90,12 @@ class NovatelDecoder:
         if status == UNKNOWN_TIME or not (0 < week < 10_000 and 0 <= ms < gpsport.WEEK_S * 1000):
             self.stats.no_time += 1
             return name, []
-        out = []
+        out: list = []
         key = (week, ms)
         if key != self._key:
             out = self.flush()
             self._key, self._mono = key, mono_ns
+            out.append(gpsport.EpochTime(utc_ns_of(week, ms, self.leap_s)))
         if name == "BESTPOS":
             self._pos = body
         else:

@@ -59,6 +59,7 @@ class PipelineConfig:
     imu_frame_id: str = frames.IMU                  # frames of /tf_static (acquire/frames.py)
     gps_frame_id: str = frames.GPS_ANTENNA
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
+    gps_protocol: str = "auto"                      # [gps] protocol: which frames are decoded (gpsport.ACCEPTS)
 
 
 @dataclass
@@ -74,6 +75,7 @@ class Counters:
     pps_rejected: int = 0
     reads: dict = field(default_factory=dict)
     nmea_superseded: int = 0        # NMEA epochs not used: the port also sends UBX/NovAtel solutions
+    gps_ignored: int = 0            # checked frames of a protocol the [gps] protocol setting excludes
 
 
 class Pipeline:
@@ -91,6 +93,7 @@ class Pipeline:
         self._port = gpsport.Framer()
         self._ubx = ubx.UbxDecoder()
         self._oem = novatel.NovatelDecoder()
+        self._accepts = gpsport.ACCEPTS[self.cfg.gps_protocol]
         self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
         self._epochs = nmea.EpochAssembler()
         self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
@@ -131,16 +134,19 @@ class Pipeline:
     def metadata(self) -> dict[str, dict[str, str]]:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
         return {"calibration": {"toml": self.cal.to_toml()},
-                "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()}}
+                "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()},
+                "gps": {"protocol": self.cfg.gps_protocol}}
 
     @staticmethod
     def settings_from_metadata(meta: dict[str, dict[str, str]]) -> tuple[calib.Calibration,
-                                                                        timesync.TimeSyncConfig]:
+                                                                        timesync.TimeSyncConfig, PipelineConfig]:
         """The inverse of ``metadata``; defaults for what a drive does not record."""
         cal = calib.Calibration.from_toml(meta["calibration"]["toml"]) if "calibration" in meta else \
             calib.load_calibration(None)
         sync = {k: ast.literal_eval(v) for k, v in meta.get("timesync", {}).items()}
-        return cal, timesync.TimeSyncConfig.from_dict(sync)
+        protocol = meta.get("gps", {}).get("protocol", "auto")
+        return cal, timesync.TimeSyncConfig.from_dict(sync), PipelineConfig(
+            gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto")
 
     def counters_metadata(self) -> dict[str, str]:
         """The counters, flattened for an MCAP metadata record."""
@@ -148,7 +154,7 @@ class Pipeline:
         out = {f"daq.{k}": str(v) for k, v in asdict(c.daq).items()}
         out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
         out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
-                                                    "pps_rejected", "nmea_superseded")})
+                                                    "pps_rejected", "nmea_superseded", "gps_ignored")})
         fs = self._port.stats
         out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
         out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
@@ -186,6 +192,9 @@ class Pipeline:
         self.sync.add_host_time(mono_ns, wall_ns)
         stamp = int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0])
         for kind, frame in frames:
+            if kind not in self._accepts:
+                self.counters.gps_ignored += 1
+                continue
             if kind == "nmea":
                 s = self._nmea.decode_line(frame)
                 if s is None:
@@ -206,17 +215,18 @@ class Pipeline:
             for r in records:
                 if isinstance(r, ubx.Pulse):
                     self.sync.add_pulse_error(r.utc_s, r.qerr_s)
-                else:
-                    self._binary_solutions = True
-                    self._note_solution_time(r, mono_ns, wall_ns)
+                    continue
+                self._binary_solutions = True
+                self._note_binary_time(r.utc_ns, mono_ns, wall_ns)
+                if isinstance(r, gpsport.Solution):
                     self._emit_solution(r)
 
-    def _note_solution_time(self, sol: gpsport.Solution, mono_ns: int, wall_ns: int) -> None:
-        """As ``_note_time`` for a UBX/NovAtel solution; it also dates later NMEA sentences without a date."""
-        self._date = _dt.datetime.fromtimestamp(sol.utc_ns // NS, _dt.timezone.utc).date()
-        self._last_tod = (sol.utc_ns // NS) % 86400
-        utc_s = sol.whole_second
-        if utc_s is not None and self._last_fix_key != utc_s:
+    def _note_binary_time(self, utc_ns: int, mono_ns: int, wall_ns: int) -> None:
+        """As ``_note_time`` for a UBX/NovAtel epoch; it also dates later NMEA sentences without a date."""
+        utc_s, frac = divmod(utc_ns, NS)
+        self._date = _dt.datetime.fromtimestamp(utc_s, _dt.timezone.utc).date()
+        self._last_tod = utc_s % 86400
+        if frac == 0 and self._last_fix_key != utc_s:
             self._last_fix_key = utc_s
             self.sync.add_fix(utc_s, mono_ns, wall_ns)
 

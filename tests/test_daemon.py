@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import gpsport, messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import live, reader
 from test_serve import ROOT, expected_bytes, start_serve
@@ -48,13 +48,23 @@ def run(*args: str) -> subprocess.CompletedProcess:
                           timeout=60)
 
 
-def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(tmp_path: Path) -> None:
+def gps_frames(data: bytes) -> dict[str, int]:
+    """Checked frames per protocol in a GPS byte stream (what the daemon's counters should show)."""
+    out: dict[str, int] = {}
+    for kind, _ in gpsport.Framer().feed(data):
+        out[kind] = out.get(kind, 0) + 1
+    return out
+
+
+@pytest.mark.parametrize("receiver", ["nmea", "ublox"])
+def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(tmp_path: Path,
+                                                                                  receiver: str) -> None:
     truth = tmp_path / "truth.mcap"
     bus = tmp_path / "bus.sock"
     cfg = tmp_path / "acquire.toml"
     cfg.write_text(f'[rotation]\nmax_duration_s = 1.0\n[daemon]\nbus = "{bus}"\n')
     serve, paths = start_serve("--scenario", "figure8", "--duration", "40", "--seed", "5", "--speed", "20",
-                               "--hold", "--truth", str(truth))
+                               "--hold", "--truth", str(truth), "--receiver", receiver)
     d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
     blocks: list = []
     client = threading.Thread(target=lambda: blocks.extend(live.iter_blocks(str(bus), ["/imu", "/gps/fix"], 1.0,
@@ -75,12 +85,14 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     got_gps = b"".join(raw_stream(f, "gps")[0] for f in files)
     mono = np.concatenate([raw_stream(f, "daq")[1] for f in files])
     assert got_daq == want["daq"]                       # every byte, in order: 0 lost DAQ frames
-    assert got_gps == want["gps"]                       # 0 lost NMEA lines
+    assert got_gps == want["gps"]                       # 0 lost NMEA lines or UBX messages
     assert np.all(np.diff(mono) >= 0)                   # files follow each other seamlessly
     c = metas[-1]["acquire.counters"]                   # cumulative over the session
     assert int(c["daq.frames"]) == 20000 == int(read_metadata(truth)["serve"]["daq_frames"])
     assert int(c["daq.lost_frames"]) == 0 and int(c["daq.bad_crc"]) == 0
-    assert int(c["nmea.lines"]) == want["gps"].count(b"\n")
+    frames = gps_frames(want["gps"])
+    assert {k: int(c.get(f"gps.frames.{k}", 0)) for k in frames} == frames
+    assert (receiver == "ublox") == (frames.get("ubx", 0) > 0) and int(c.get("ubx.undecodable", 0)) == 0
     assert int(c["port.daq.dropped_reads"]) == 0 and int(c["daemon.late_reads"]) == 0
     # /imu: one message per frame, increasing stamps, and frame k carries truth sample k (scored by index:
     # at x20 the stamps are host-clock based, see tools/sim/serve.py)
@@ -101,7 +113,9 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     assert np.array_equal(live_t[order], imu["log_time_ns"]) and np.array_equal(live_f[order], f)
     fixes = sum(reader.read_topic(f, "/gps/fix")["log_time_ns"].size for f in files
                 if "/gps/fix" in {t.topic for t in reader.topics(f)})
-    assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == fixes >= 38
+    assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == fixes >= 37
+    if receiver == "ublox":     # one fix per NAV-PVT sent (the simulator drops 5 messages at random)
+        assert fixes == sum(1 for k, fr in gpsport.Framer().feed(want["gps"]) if k == "ubx" and fr[2:4] == b"\x01\x07")
 
 
 def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:

@@ -7,11 +7,12 @@ import signal
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fieldlog.acquire import daq
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import reader
-from test_daemon import raw_stream, run, start_daemon
+from test_daemon import gps_frames, raw_stream, run, start_daemon
 from test_serve import expected_bytes, start_serve
 from fieldlog.tools.rebuild import read_metadata, read_metadata_records
 from fieldlog.tools.sim.serve import PORTS, corrupt_stream
@@ -104,7 +105,8 @@ def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame
     assert 0 < int(c["nmea.bad_checksum"]) <= ok.count(False)
 
 
-def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_path: Path) -> None:
+@pytest.mark.parametrize("receiver", ["nmea", "ublox"])
+def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_path: Path, receiver: str) -> None:
     # the DAQ pty disappears 20 s into the drive for 61 simulated s (3.05 s at x20) and comes back as a new pty.
     # (Not exactly 3 s: the daemon notices the loss at once and retries every 0.5 s, so a whole number of
     # retry periods would have it retry right when the pty comes back; 3.05 s is just after a retry, close
@@ -113,7 +115,8 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     cfg = tmp_path / "acquire.toml"
     cfg.write_text('[timesync]\npps_mode = "latch"\n')
     f, truth, log = record(tmp_path, "--unplug", "daq:20:61", "--link-dir", str(tmp_path / "ports"),
-                           "--pps", "latch", duration=120, seed=3, daemon_args=("--config", str(cfg)))
+                           "--pps", "latch", "--receiver", receiver, duration=120, seed=3,
+                           daemon_args=("--config", str(cfg)))
     assert "daq port lost" in log and "daq port back" in log
     clean = expected_bytes(truth, "figure8", 120.0, 3)
     meta = read_metadata(truth)["serve"]
@@ -154,7 +157,9 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     c = read_metadata(f)["acquire.counters"]
     assert int(c["port.daq.disconnects"]) == 2 and int(c["port.gps.disconnects"]) == 1
     assert int(c["daq.frames"]) == whole.sum() and int(c["daq.lost_frames"]) == n - whole.sum()
-    assert int(c["nmea.lines"]) == clean["gps"].count(b"\n") and int(c["nmea.bad_checksum"]) == 0
+    frames = gps_frames(clean["gps"])
+    assert {k: int(c.get(f"gps.frames.{k}", 0)) for k in frames} == frames and int(c["nmea.bad_checksum"]) == 0
+    assert int(c["gps_epochs"]) >= 110 and (receiver == "ublox") == (int(c.get("ubx.NAV-PVT", 0)) > 0)
     imu = reader.read_topic(f, "/imu")
     tru = reader.read_topic(truth, "/truth/imu")
     assert len(imu["log_time_ns"]) == whole.sum()

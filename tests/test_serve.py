@@ -36,7 +36,7 @@ def expected_bytes(truth_path: Path, scenario: str, duration_s: float, seed: int
     meta = read_metadata(truth_path)["serve"]
     sc = trajectory.load_scenario(scenario)
     sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])})
-    reads = simulate.make_reads(sc, duration_s, seed, meta["pps_mode"])[0]
+    reads = simulate.make_reads(sc, duration_s, seed, meta["pps_mode"], meta.get("receiver"))[0]
     return {port: b"".join(r.data for r in reads if r.port == port) for port in ("daq", "gps")}
 
 

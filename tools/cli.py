@@ -61,7 +61,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
     from fieldlog.tools.sim.simulate import simulate
 
     t0 = time.monotonic()
-    res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"))
+    res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"),
+                   receiver=a.receiver)
     print(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial reads "
           f"in {time.monotonic() - t0:.1f} s")
     return 0
@@ -70,7 +71,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 def cmd_sim_serve(a: argparse.Namespace) -> int:
     from fieldlog.tools.sim.serve import Unplug, serve
 
-    return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, truth=a.truth,
+    return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
                  corrupt=a.corrupt)
 
@@ -451,6 +452,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1, help="random seed of the sensor errors and clocks")
     s.add_argument("--pps", choices=["flag", "latch"], default=None,
                    help="PPS as a sampled flag or a latch (default: the scenario's, else flag)")
+    s.add_argument("--receiver", choices=["nmea", "ublox", "novatel"], default=None,
+                   help="the GPS port's protocol (default: the scenario's, NMEA): u-blox sends GGA + UBX NAV-PVT "
+                        "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA")
     s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
     s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
     s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")

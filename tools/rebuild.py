@@ -51,7 +51,7 @@ def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
 def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = None,
             progress: Callable[[float], None] | None = None) -> RebuildResult:
     records = read_metadata_records(src)
-    cal, sync_cfg = Pipeline.settings_from_metadata(dict(records))
+    cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
     if calibration is not None:
         cal = calib.load_calibration(calibration)
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
@@ -61,7 +61,7 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
                 rec.add_metadata(name, d)
         rec.add_metadata("rebuild", {"source": str(src)})
-        pipe = Pipeline(rec, cal, sync_cfg)
+        pipe = Pipeline(rec, cal, sync_cfg, pipe_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
         merged = heapq.merge(iter_raw(src, "daq"), iter_raw(src, "gps"), key=lambda r: read_order(r.port, r.mono_ns))

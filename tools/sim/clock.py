@@ -76,16 +76,19 @@ def sample_times(n: int, cfg: ClockConfig, rng: np.random.Generator) -> np.ndarr
     return t
 
 
-def pps_frames(t_s: np.ndarray, cfg: ClockConfig, rng: np.random.Generator,
-               first_second: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, PpsTruth]:
+def pps_frames(t_s: np.ndarray, cfg: ClockConfig, rng: np.random.Generator, first_second: float | None = None,
+               pulse_late_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, PpsTruth]:
     """PPS flag, latch (uint16) and latch-valid per sample for sample times ``t_s``, and the true edges.
 
-    Edges come at ``first_second`` + j (default ``cfg.first_second()``), UTC second ``cfg.first_utc_s()`` + j.
+    Edges come at ``first_second`` + j (default ``cfg.first_second()``), UTC second ``cfg.first_utc_s()`` + j,
+    plus jitter, plus ``pulse_late_s[j]`` when given (the receiver's own quantisation, which it reports).
     """
     n = len(t_s)
     t1 = cfg.first_second() if first_second is None else first_second
     m = int(np.floor(t_s[-1] - t1)) + 1 if n and t_s[-1] >= t1 else 0
     edges = t1 + np.arange(m) + rng.standard_normal(m) * cfg.pps_jitter_ns * 1e-9
+    if pulse_late_s is not None:
+        edges = edges + pulse_late_s[:m]
     k = np.searchsorted(t_s, edges, "left")
     k[(k == 0) | (k >= n)] = -1
     for start, length in cfg.pps_gaps:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire import nmea
+from fieldlog.acquire import gpsport, nmea, novatel
 from fieldlog.acquire.config import from_table
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.fusion import earth
@@ -20,6 +20,9 @@ from fieldlog.tools.sim.sensors import gauss_markov
 
 NS = 1_000_000_000
 NMEA_TICK_NS = 10_000_000  # NMEA times are written to the centisecond
+RECEIVERS = ("nmea", "ublox", "novatel")
+LEAP_S = 18                # GPS - UTC of the simulated drives (2017 on)
+NOVATEL_UNDULATION_M = 47.0
 
 
 @dataclass
@@ -55,12 +58,16 @@ class GpsConfig:
     pps_in_outage: bool = True     # the receiver keeps its time pulse from its own clock through outages
     noise_tau_s: float = 0.0       # correlation time of the white_* and vel_noise terms (0: white)
     noise_schedule: list = field(default_factory=list)  # [{start_s, end_s, scale}, ...]: unreported noise scale
+    receiver: str = "nmea"         # what the port sends: 'nmea', 'ublox' (GGA + UBX NAV-PVT + TIM-TP), 'novatel'
+    qerr_step_ns: float = 1e9 / 48e6   # u-blox: the time pulse is put out on this clock grid (TIM-TP qErr)
 
     def __post_init__(self) -> None:
         period_ns = NS / self.rate_hz if self.rate_hz > 0 else 0.0
         if not (period_ns >= NMEA_TICK_NS and abs(period_ns / NMEA_TICK_NS - round(period_ns / NMEA_TICK_NS)) < 1e-9):
             raise ValueError(f"[gps] rate_hz: {self.rate_hz!r}: the epoch period must be a whole number of 10 ms "
                              "(NMEA times have centiseconds)")
+        if self.receiver not in RECEIVERS:
+            raise ValueError(f"[gps] receiver: {self.receiver!r} is not one of {', '.join(RECEIVERS)}")
         if not self.noise_tau_s >= 0:
             raise ValueError(f"[gps] noise_tau_s: must be >= 0 (0: white), got {self.noise_tau_s!r}")
         for i, w in enumerate(self.noise_schedule):
@@ -141,11 +148,21 @@ def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Gene
                 scale=scale, err_enu=err_enu, sigma_h=sigma_h, sigma_v=sigma_v)
 
 
+def pulse_errors(n: int, cfg: GpsConfig, rng: np.random.Generator) -> np.ndarray | None:
+    """u-blox: how late each time pulse comes (s), the quantisation of its clock grid (uniform over one step);
+    TIM-TP reports it as qErr. None for the other receivers (their pulse error is the clock model's jitter)."""
+    if cfg.receiver != "ublox":
+        return None
+    return rng.uniform(-0.5, 0.5, n) * cfg.qerr_step_ns * 1e-9
+
+
 def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
-                rng: np.random.Generator) -> tuple[np.ndarray, list[bytes]]:
-    """One burst of sentences per epoch. Returns the true time each sentence starts on the wire, s from the
-    first epoch, and the sentences (with CRLF). ``utc_ns`` (int64) is the UTC of each epoch (fractional seconds
-    at rates above 1 Hz, written with centisecond times). A burst never starts before the previous one ended."""
+                rng: np.random.Generator, qerr_s: np.ndarray | None = None) -> tuple[np.ndarray, list[bytes]]:
+    """One burst of messages per epoch in the receiver's protocol (``cfg.receiver``). Returns the true time each
+    message starts on the wire, s from the first epoch, and the messages (NMEA with CRLF). ``utc_ns`` (int64) is
+    the UTC of each epoch (fractional seconds at rates above 1 Hz, written with centisecond times in NMEA).
+    ``qerr_s[j]``: the error of the pulse of the j-th UTC second after the first epoch's (u-blox sends it in
+    TIM-TP before that pulse). A burst never starts before the previous one ended."""
     n = len(utc_ns)
     base = rng.uniform(cfg.latency_min_s, cfg.latency_max_s - 0.1)
     latency = np.clip(base + rng.standard_normal(n) * cfg.latency_jitter_s, cfg.latency_min_s, cfg.latency_max_s - 0.06)
@@ -162,15 +179,20 @@ def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
         speed = float(np.hypot(vE, vN))
         course = float(np.arctan2(vE, vN) % (2 * np.pi))
         lat, lon, h = float(sol["lat_deg"][i]), float(sol["lon_deg"][i]), float(sol["h"][i])
-        burst = [
-            nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,
-                            valid=ok),
-            nmea.format_rmc(cfg.talker, tod, dt.date(), lat, lon, speed, course, valid=ok),
-            nmea.format_vtg(cfg.talker, course, speed, valid=ok),
-            nmea.format_gst(cfg.talker, tod, float(sol["sigma_h"][i]), float(sol["sigma_h"][i]),
-                            float(sol["sigma_h"][i]), float(sol["sigma_v"][i]), valid=ok),
-            nmea.format_zda(cfg.talker, tod, dt.date()),
-        ]
+        if cfg.receiver == "ublox":
+            burst = _ublox_burst(sol, i, int(utc_ns[i]), tod, lat, lon, h, hdop, ok, cfg, qerr_s, int(utc_ns[0]))
+        elif cfg.receiver == "novatel":
+            burst = _novatel_burst(sol, i, int(utc_ns[i]), lat, lon, h, ok, cfg)
+        else:
+            burst = [
+                nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,
+                                valid=ok),
+                nmea.format_rmc(cfg.talker, tod, dt.date(), lat, lon, speed, course, valid=ok),
+                nmea.format_vtg(cfg.talker, course, speed, valid=ok),
+                nmea.format_gst(cfg.talker, tod, float(sol["sigma_h"][i]), float(sol["sigma_h"][i]),
+                                float(sol["sigma_h"][i]), float(sol["sigma_v"][i]), valid=ok),
+                nmea.format_zda(cfg.talker, tod, dt.date()),
+            ]
         t = max((int(utc_ns[i]) - int(utc_ns[0])) / NS + latency[i], t_free)
         for s in burst:
             starts.append(t)
@@ -182,6 +204,56 @@ def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
         keep[rng.choice(len(sentences), size=min(cfg.dropped_sentences, len(sentences)), replace=False)] = False
     starts_a = np.asarray(starts)
     return starts_a[keep], [s for s, k in zip(sentences, keep) if k]
+
+
+def _gps_week_ms(utc_ns: int) -> tuple[int, int]:
+    """GPS week and milliseconds of week of a UTC time (GPS - UTC = LEAP_S)."""
+    gps_ms = (utc_ns // 1_000_000) + (LEAP_S - gpsport.GPS_EPOCH_S) * 1000
+    week, ms = divmod(gps_ms, gpsport.WEEK_S * 1000)
+    return int(week), int(ms)
+
+
+def _ublox_burst(sol: dict[str, np.ndarray], i: int, utc_ns: int, tod: float, lat: float, lon: float, h: float,
+                 hdop: float, ok: bool, cfg: GpsConfig, qerr_s: np.ndarray | None, first_ns: int) -> list[bytes]:
+    """What a u-blox port sends for an epoch: GGA, NAV-PVT, and on whole seconds TIM-TP for the next pulse."""
+    from pyubx2 import UBXMessage
+
+    dt = datetime.fromtimestamp(utc_ns // NS, tz=timezone.utc)
+    week, ms = _gps_week_ms(utc_ns)
+    vE, vN, vU = (float(v) for v in sol["v_n"][i])
+    sacc = cfg.vel_noise_mps * float(sol["factor"][i])
+    pvt = UBXMessage("NAV", "NAV-PVT", 0, iTOW=ms, year=dt.year, month=dt.month, day=dt.day, hour=dt.hour,
+                     min=dt.minute, second=dt.second, validDate=1, validTime=1, fullyResolved=1,
+                     nano=int(utc_ns % NS), fixType=3 if ok else 0, gnssFixOk=int(ok),
+                     numSV=cfg.num_sats if ok else 0, lat=lat, lon=lon, height=round(h * 1000),
+                     hMSL=round(h * 1000), hAcc=round(float(sol["sigma_h"][i]) * 1000),
+                     vAcc=round(float(sol["sigma_v"][i]) * 1000), velN=round(vN * 1000), velE=round(vE * 1000),
+                     velD=round(-vU * 1000), gSpeed=round(np.hypot(vE, vN) * 1000), sAcc=round(sacc * 1000),
+                     pDOP=hdop * 1.5)
+    out = [nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,
+                           valid=ok), pvt.serialize()]
+    if utc_ns % NS == 0 and qerr_s is not None:
+        j = (utc_ns - first_ns) // NS + 1
+        if 0 <= j < len(qerr_s):
+            w, ms_next = _gps_week_ms(utc_ns + NS)
+            out.append(UBXMessage("TIM", "TIM-TP", 0, towMS=ms_next, towSubMS=0, qErr=round(qerr_s[j] * 1e12),
+                                  week=w, timeBase=0, utc=1).serialize())
+    return out
+
+
+def _novatel_burst(sol: dict[str, np.ndarray], i: int, utc_ns: int, lat: float, lon: float, h: float, ok: bool,
+                   cfg: GpsConfig) -> list[bytes]:
+    """What a NovAtel port logging BESTPOSA and BESTVELA ontime (and TIMEA every 10 s) sends for an epoch."""
+    week, ms = _gps_week_ms(utc_ns)
+    sd_h, sd_v = float(sol["sigma_h"][i]), float(sol["sigma_v"][i])
+    out = [novatel.format_bestposa(week, ms / 1000, lat, lon, h, NOVATEL_UNDULATION_M, (sd_h, sd_h, sd_v),
+                                   cfg.num_sats if ok else 0, valid=ok),
+           novatel.format_bestvela(week, ms / 1000, tuple(float(v) for v in sol["v_n"][i]), valid=ok)]
+    if utc_ns % (10 * NS) == 0:
+        dt = datetime.fromtimestamp(utc_ns // NS, tz=timezone.utc)
+        out.append(novatel.format_timea(week, ms / 1000, LEAP_S, (dt.year, dt.month, dt.day, dt.hour, dt.minute,
+                                                                  dt.second * 1000)))
+    return out
 
 
 def serial_reads(port: str, byte_start_s: np.ndarray, chunks: list[bytes] | bytes, chunk_len: int | None,

@@ -173,7 +173,7 @@ class Server:
 
     def __init__(self, scenario: str, duration_s: float | None, seed: int, speed: float = 1.0,
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
-                 link_dir: str | Path | None = None, corrupt: float = 0.0) -> None:
+                 link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
@@ -182,10 +182,12 @@ class Server:
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
         sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()})
         self.scenario = sc.name
+        self.receiver = receiver or sc.gps.get("receiver", "nmea")
         self.duration_s = float(duration_s or sc.duration_s)
         self.seed = seed
         self.speed = speed
-        reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode)
+        reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode,
+                                                                             receiver)
         m0 = reads[0].mono_ns
         self.ports = {}
         for name in PORTS:
@@ -290,7 +292,7 @@ class Server:
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
                 "daq_replug_mono_ns": ";".join(map(str, d.replugged_mono_ns)),
                 "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
-                "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode}
+                "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode, "receiver": self.receiver}
 
     def write_truth(self, path: str | Path) -> None:
         """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path``."""
@@ -306,11 +308,12 @@ class Server:
 
 
 def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_mode: str | None = None,
-          truth: str | None = None, unplug: list[Unplug] | None = None, link_dir: str | None = None,
+          receiver: str | None = None, truth: str | None = None, unplug: list[Unplug] | None = None,
+          link_dir: str | None = None,
           hold: bool = False, corrupt: float = 0.0) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first)."""
-    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt)
+    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver)
     go = threading.Event()
     if not hold:
         go.set()

@@ -22,7 +22,7 @@ from fieldlog.acquire import calib, daq, messages, recorder, timesync
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory
-from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, serial_reads
+from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, pulse_errors, serial_reads
 
 NS = 1_000_000_000
 DAQ_BAUD = 921_600
@@ -47,10 +47,13 @@ def drive_start_ns(seed: int) -> int:
 
 
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
-               ) -> tuple[list[RawRead], dict, int, simclock.ClockConfig, calib.Calibration]:
-    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it."""
-    seeds = np.random.SeedSequence(seed).spawn(6)
-    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads = (np.random.default_rng(s) for s in seeds)
+               receiver: str | None = None) -> tuple[list[RawRead], dict, int, simclock.ClockConfig,
+                                                      calib.Calibration]:
+    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it.
+    ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``."""
+    seeds = np.random.SeedSequence(seed).spawn(7)
+    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads, rng_pulse = (
+        np.random.default_rng(s) for s in seeds)
     imu_cfg = sensors.ImuErrorConfig.from_dict(dict(scenario.imu))
     clock_d = dict(scenario.clock)
     if pps_mode:
@@ -60,7 +63,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     ccfg = simclock.ClockConfig.from_dict(clock_d)
     if ccfg.fs_hz != imu_cfg.rate_hz:
         raise ValueError(f"[clock] fs_hz = {ccfg.fs_hz:g} differs from [imu] rate_hz = {imu_cfg.rate_hz:g}")
-    gps_cfg = GpsConfig.from_dict(dict(scenario.gps))
+    gps_cfg = GpsConfig.from_dict({**scenario.gps, **({"receiver": receiver} if receiver else {})})
     cal = calib.load_calibration(None)
     host = HostClock()
     t0_ns = ccfg.start_utc_ns
@@ -70,7 +73,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     t_k = simclock.sample_times(n, ccfg, rng_clock)
     ts = truth.evaluate(t_k)
     counts, realised = sensors.imu_counts(t_k, ts.omega_ib_b, ts.f_b, imu_cfg, cal, rng_imu)
-    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock)
+    qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
+    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
     if not gps_cfg.pps_in_outage:
         valid, _ = gps_cfg.windows(t_k)
         pps &= valid
@@ -87,7 +91,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     rel_s = (utc_ns // NS - t0_ns / NS) + (utc_ns % NS) / NS
     if len(utc_ns):
         sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
-        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea)
+        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s)
         starts = starts + rel_s[0]
         keep = starts < duration_s
         sentences = [s for s, kk in zip(sentences, keep) if kk]
@@ -129,16 +133,18 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 
 
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
-             pps_mode: str | None = None, progress: Callable[[float], None] | None = None) -> SimResult:
+             pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
+             receiver: str | None = None) -> SimResult:
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default."""
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
     fusion_meta = fusion_metadata(scenario.fusion)
-    reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode)
+    reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver)
+    gps_cfg = GpsConfig.from_dict({**scenario.gps, **({"receiver": receiver} if receiver else {})})
     meta = {"source": "fieldlog sim", "scenario": scenario.name, "seed": str(seed),
             "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
             "drive_start_utc_ns": str(t0_ns), "imu_rate_hz": repr(float(ccfg.fs_hz)),
-            "gps_rate_hz": repr(float(GpsConfig.from_dict(dict(scenario.gps)).rate_hz))}
+            "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz})
     with recorder.Recorder(out, metadata=meta) as rec:
         pipe = Pipeline(rec, cal, sync_cfg)
