@@ -517,7 +517,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_filter)
 
     s = sub.add_parser("import", help="build a drive from raw captures made elsewhere")
-    s.add_argument("--gps", required=True, metavar="FILE", help="NMEA log from any receiver or logger")
+    s.add_argument("--gps", required=True, metavar="FILE",
+                   help="GPS log from any receiver or logger: NMEA, u-blox UBX, NovAtel OEM (auto-detected, mixed)")
     s.add_argument("--daq", default=None, metavar="FILE", help="DAQ byte capture (default: none, GPS only)")
     s.add_argument("--fs", type=float, default=500.0, help="DAQ sample rate, Hz")
     s.add_argument("--pps", choices=["flag", "latch"], default="flag", help="how the DAQ frames carry the PPS")
