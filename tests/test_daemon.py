@@ -179,3 +179,27 @@ def test_nmea_status_decoding_from_sink_payload() -> None:
     body, ok = nmea.split_checksum(text.encode())
     g = nmea.decode_body(body)
     assert ok and g.num_sats == 11 and g.quality == 1
+
+
+def test_log_lines_are_timestamped_and_levelled() -> None:
+    """`acquire -q/-qq/-v`: one line per event with its UTC time and level, through `logging`."""
+    import io
+    import logging
+    import re
+
+    from fieldlog.acquire import daemon
+
+    log = logging.getLogger("fieldlog.acquire")
+    try:
+        for verbosity, shown in ((-2, ["WARNING"]), (-1, ["INFO", "WARNING"]), (1, ["DEBUG", "INFO", "WARNING"])):
+            buf = io.StringIO()
+            daemon.setup_logging(verbosity, buf)
+            log.debug("status line")
+            log.info("recording x")
+            log.warning("daq port lost: unplugged")
+            lines = buf.getvalue().splitlines()
+            assert [line.split()[1] for line in lines] == shown
+            for line in lines:
+                assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z [A-Z]+ fieldlog\.acquire: .+", line), line
+    finally:
+        logging.getLogger("fieldlog").handlers.clear()
