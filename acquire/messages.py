@@ -198,12 +198,13 @@ FUSION_SUBTOPICS: dict[str, str] = {
     "attitude": QUATERNION,
     "std": VECTOR3,
     "odom": ODOMETRY,
+    "attitude_std": VECTOR3,
 }
 _FUSION_RE = re.compile(rf"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|({'|'.join(FUSION_SUBTOPICS)}))$")
 
 
 def topic_type(topic: str) -> str:
-    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,odom}`` and the
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom}`` and the
     distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.

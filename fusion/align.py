@@ -1,15 +1,51 @@
 """Initial alignment of the INS from a standing start and the first GPS epochs, and the still detector.
 
-Alignment: levelling from the accelerometers while the vehicle stands still (GPS speed below
-``static_speed_mps`` at both ends of a GPS interval), plus heading from the GPS course at the first epoch
-where the speed reaches ``align_speed_mps``; position and velocity come from that epoch. The static mean
-gyro output minus the Earth rate gives the initial gyro bias. Without a static start roll and pitch start at
-zero with a large variance, and the gyro bias at zero.
+Still detection (:func:`still`, shared by the alignment and the ZUPT aid of ``fusion.aids``): the vehicle stood
+still over a GPS interval when
 
-Still detection (:func:`still`): the vehicle stood still over a GPS interval when it was slow and the specific
-force and rate varied little; the ZUPT aid (``fusion.aids``) uses it.
+- the GPS speed is below ``still_gps_speed_mps``: the mean of the velocities at the interval's two ends
+  (skipped when the drive has no velocity);
+- the specific force and rate vary less than ``still_accel_std_mps2`` and ``still_gyro_std_dps`` over it;
+- the mean rate and the mean specific force are where standing still puts them, within 4 sigma plus the
+  floors ``still_rate_tol_dps`` and ``still_accel_tol_mps2``: before the alignment the means of the still
+  interval so far (and a rate within the Earth rate plus the bias prior), after it the Earth rate plus the
+  estimated gyro bias and gravity through the estimated attitude. A steady turn or a creep has a small spread
+  but a mean rate or force that is off.
 
-Frames: navigation ENU, body RFU; IMU sums in rad/s and m/s^2.
+Alignment (:class:`Alignment`):
+
+- **Static interval**: the last run of still intervals before the alignment epoch, trimmed by
+  ``still_trim_s`` at each end where the vehicle moved (the start of a creep hides in the last second).
+- **Levelling** from its mean specific force; sigma from the accelerometer noise over the static duration,
+  the accelerometer bias prior (a horizontal bias tilts the levelling by b / g) and ``init_level_sigma_deg``
+  (mounting, residual motion), added in quadrature.
+- **Heading** by gyrocompassing when the gyros see the Earth rate: the horizontal rate in the levelled frame
+  points north; sigma = (horizontal bias prior, the mean's noise, the tilt's share of the vertical Earth rate)
+  / (Omega_ie cos(lat)). Used when that sigma is below the GPS course's and below ``gyrocompass_max_deg``
+  (:attr:`Alignment.note` says which). Otherwise the **GPS course** at the first epoch at ``align_speed_mps``,
+  sigma = hypot(velocity noise / speed, ``align_sideslip_deg``), the velocity noise from the epoch's covariance
+  (or from the fix's when the drive has no velocity). The heading of the static interval is carried to the
+  alignment epoch by the yaw gyro (a car that turns as it pulls away).
+- **Initial gyro bias**: the static mean minus the Earth rate through the aligned attitude; sigma per axis, in
+  quadrature: the mean's standard error from the spread of its intervals (noise and residual motion), the bias
+  instability ``init_gyro_bias_sigma_dps`` (the floor: never the static estimate alone), and the Earth-rate
+  projection error (Omega_ie cos(lat) x heading sigma on the horizontal axes; a gyrocompass cannot separate the
+  horizontal bias from its heading, so there the horizontal sigma is the prior ``gyro_bias_prior_sigma_dps``).
+  Without a static interval: bias 0 with the prior sigma, roll and pitch 0 with 5 deg.
+- **Optional initial attitude** ``init_attitude_deg = [roll, pitch, heading]`` at the drive's start (with
+  ``init_level_sigma_deg``, ``init_heading_sigma_deg``): replaces levelling and heading, carried to the
+  alignment epoch by the yaw gyro; position and velocity always come from the alignment epoch's fix.
+
+**Re-alignment** (:class:`HeadingCheck`): over the first ``realign_window_s`` after the alignment, the GPS
+velocity innovations' normalised squares (NIS; a heading error shows in the velocity as soon as the vehicle
+accelerates or turns, and the position's slow receiver error is not in the filter's model) are summed over the
+last ``realign_epochs`` epochs; above the chi-square quantile of probability 1 - 1e-4 for their degrees of freedom, the heading is far off its sigma: the heading is
+taken again from the GPS course (at ``align_speed_mps`` or more) with the course's sigma, the gyro bias sigma
+reopened to the prior, the other states kept. Once per drive; not with the RTS smoother (its log has no
+record of a jump).
+
+Position and velocity come from the alignment epoch. Frames: navigation ENU, body RFU; IMU sums in rad/s and
+m/s^2.
 """
 
 from __future__ import annotations
@@ -27,6 +63,8 @@ if TYPE_CHECKING:
 
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
+_G = 9.80665
+_GATE = 4.0  # sigmas: a bias's flicker gives the interval means heavier tails than white noise
 
 
 @dataclass
@@ -53,13 +91,131 @@ class ImuSums:
         self.sum_ff += np.einsum("ij,ij->j", fs, fs)
         self.n += max(i1 - i0, 0)
 
+    def merge(self, other: ImuSums) -> None:
+        self.sum_w += other.sum_w
+        self.sum_f += other.sum_f
+        self.sum_ww += other.sum_ww
+        self.sum_ff += other.sum_ff
+        self.n += other.n
 
-def still(cfg: FusionConfig, interval: ImuSums, slow: bool) -> bool:
-    """Whether the vehicle stood still over a GPS interval: slow (GPS or INS speed, the caller's test), at
-    least 50 samples, and specific force and rate varying less than ``still_accel_std_mps2`` and
-    ``still_gyro_std_dps``."""
-    return (slow and interval.n >= 50 and interval.std(interval.sum_f, interval.sum_ff) < cfg.still_accel_std_mps2
-            and interval.std(interval.sum_w, interval.sum_ww) < cfg.still_gyro_std_dps * _DEG)
+
+def gps_speed(v_prev: np.ndarray, v_now: np.ndarray) -> float:
+    """Horizontal speed (m/s) of the mean of the GPS velocities (3,) ENU at an interval's two ends; NaN when
+    either is missing."""
+    v = 0.5 * (np.asarray(v_prev, float)[:2] + np.asarray(v_now, float)[:2])
+    return float(np.hypot(v[0], v[1])) if np.isfinite(v).all() else math.nan
+
+
+def still(cfg: FusionConfig, interval: ImuSums, speed: float, w_ref: np.ndarray | None, w_sigma: float,
+          f_ref: np.ndarray | None, f_sigma: float) -> bool:
+    """Whether the vehicle stood still over a GPS interval (module docstring).
+
+    speed: ``gps_speed`` of the interval, m/s (NaN: no GPS velocity, not tested); w_ref (3,) rad/s and f_ref (3,)
+    m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
+    sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added."""
+    if interval.n < 50 or (math.isfinite(speed) and not speed < cfg.still_gps_speed_mps):
+        return False
+    sd_f = interval.std(interval.sum_f, interval.sum_ff)
+    sd_w = interval.std(interval.sum_w, interval.sum_ww)
+    if not (sd_f < cfg.still_accel_std_mps2 and sd_w < cfg.still_gyro_std_dps * _DEG):
+        return False
+    rn = math.sqrt(interval.n)
+    if w_ref is not None and np.linalg.norm(interval.sum_w / interval.n - w_ref) > (
+            _GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still_rate_tol_dps * _DEG):
+        return False
+    if f_ref is not None and np.linalg.norm(interval.sum_f / interval.n - f_ref) > (
+            _GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still_accel_tol_mps2):
+        return False
+    return True
+
+
+def _verdict(cfg: FusionConfig, interval: ImuSums, speed: float, refs: list[tuple]) -> str:
+    """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma);
+    "unsure" when it fails only on a GPS speed below twice ``still_gps_speed_mps`` (a noisy velocity: the
+    interval is left out, the still run goes on); else "moving"."""
+    if all(still(cfg, interval, speed, *r) for r in refs):
+        return "still"
+    if math.isfinite(speed) and all(still(cfg, interval, 0.5 * speed, *r) for r in refs):
+        return "unsure"
+    return "moving"
+
+
+class StillRun:
+    """The current run of still intervals (a stop), for the ZUPT aid: an interval is still when it passes
+    :func:`still` against the absolute references and, within a run, against the run's own mean rate and
+    specific force (a creep starting from a stop shows against the stop itself). The first still interval of
+    a stop only starts the run (``trimmed``: it may hold the last of the braking)."""
+
+    def __init__(self, cfg: FusionConfig) -> None:
+        self.cfg = cfg
+        self.run = ImuSums()
+        self.count = 0
+
+    def reset(self) -> None:
+        self.run, self.count = ImuSums(), 0
+
+    def update(self, interval: ImuSums, speed: float, w_ref: np.ndarray, w_sigma: float, f_ref: np.ndarray,
+               f_sigma: float) -> bool:
+        """Test the interval (arguments of :func:`still`); True when the vehicle stood still over it and over
+        the interval before it."""
+        c = self.cfg
+        refs = [(w_ref, w_sigma, f_ref, f_sigma)]
+        if self.count:
+            refs.append((self.run.sum_w / self.run.n, c.init_gyro_bias_sigma_dps * _DEG, self.run.sum_f / self.run.n,
+                         0.0))
+        verdict = _verdict(c, interval, speed, refs)
+        if verdict == "moving":
+            self.reset()
+        if verdict != "still":
+            return False
+        self.run.merge(interval)
+        self.count += 1
+        return self.count > 1
+
+
+def level(f_b: np.ndarray) -> tuple[float, float]:
+    """Pitch and roll (rad) of a vehicle at rest from its mean specific force f_b (3,) body RFU, m/s^2."""
+    return math.atan2(f_b[1], math.hypot(f_b[0], f_b[2])), math.atan2(-f_b[0], f_b[2])
+
+
+def gyrocompass(w_b: np.ndarray, pitch: float, roll: float) -> float:
+    """Heading (rad, clockwise from north) from the mean rate w_b (3,) rad/s body RFU of a vehicle at rest with
+    the given pitch and roll: the horizontal Earth rate, levelled, points north."""
+    w_l = earth.euler_to_dcm(0.0, pitch, roll) @ w_b
+    return math.atan2(-w_l[0], w_l[1])
+
+
+def _total(intervals) -> ImuSums:
+    out = ImuSums()
+    for s in intervals:
+        out.merge(s)
+    return out
+
+
+def _standard_errors(intervals: list[ImuSums]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis standard errors of the mean rate (rad/s) and specific force (m/s^2) of still intervals: the
+    spread of the interval means over their number (noise and residual motion), at least the samples' own."""
+    n = np.array([s.n for s in intervals], float)
+    w = np.array([s.sum_w / s.n for s in intervals])
+    f = np.array([s.sum_f / s.n for s in intervals])
+    tot = _total(intervals)
+    out = []
+    for means, total, squares in ((w, tot.sum_w, tot.sum_ww), (f, tot.sum_f, tot.sum_ff)):
+        m = total / tot.n
+        within = np.sqrt(np.maximum(squares / tot.n - m * m, 0.0) / tot.n)
+        between = means.std(axis=0, ddof=1) / math.sqrt(len(n)) if len(n) > 1 else within
+        out.append(np.maximum(within, between))
+    return out[0], out[1]
+
+
+def _vel_sigma(ep: dict) -> float:
+    """1-sigma of a horizontal GPS velocity component at the epoch, m/s: from its covariance, else (a drive
+    without velocity: differenced fixes 1 s apart) sqrt(2) x the fix's horizontal sigma, else 1 m/s."""
+    for cov, k in ((ep["vel_cov"], 1.0), (ep["pos_cov"], math.sqrt(2.0))):
+        var = 0.5 * (float(cov[0, 0]) + float(cov[1, 1]))
+        if math.isfinite(var) and var > 0:
+            return k * math.sqrt(var)
+    return 1.0
 
 
 @dataclass
@@ -71,67 +227,180 @@ class Aligned:
     P0: np.ndarray
 
 
+def chi2_quantile(dof: int, z: float = 3.719) -> float:
+    """Upper quantile of the chi-square distribution with dof degrees of freedom at the standard-normal
+    quantile z (3.719: probability 1e-4), Wilson-Hilferty (within 1 % from 6 degrees of freedom)."""
+    a = 2.0 / (9.0 * dof)
+    return dof * (1.0 - a + z * math.sqrt(a)) ** 3
+
+
+class HeadingCheck:
+    """The chi-square test on the GPS innovations of the first minutes after the alignment (module docstring)."""
+
+    def __init__(self, cfg: FusionConfig, t_align: float) -> None:
+        self.cfg = cfg
+        self.t_end = t_align + cfg.realign_window_s
+        self.recent: list[tuple[float, int]] = []
+        self.done = not cfg.realign_window_s > 0
+
+    def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray) -> bool:
+        """Add an epoch's innovation z (m,), H (m, 15), R (m, m) with the predicted covariance P (15, 15) at time t
+        (s); True when the heading should be taken again."""
+        if self.done or t > self.t_end or len(z) == 0:
+            return False
+        S = H @ P @ H.T + R
+        self.recent = (self.recent + [(float(z @ np.linalg.solve(S, z)), len(z))])[-self.cfg.realign_epochs:]
+        if len(self.recent) < self.cfg.realign_epochs:
+            return False
+        nis, dof = sum(x for x, _ in self.recent), sum(d for _, d in self.recent)
+        return nis > chi2_quantile(dof)
+
+    def realign(self, nav: ins.NavState, ep: dict, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
+        """The INS state with the heading from the epoch's GPS course and the covariance with its heading sigma
+        and the gyro bias prior; None while the GPS speed is below ``align_speed_mps`` (try again later)."""
+        c = self.cfg
+        v = ep["v_n"]
+        speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else 0.0
+        if speed < c.align_speed_mps:
+            return None
+        self.done = True
+        _, pitch, roll = (float(x) for x in earth.dcm_to_euler(nav.C_bn))
+        C = earth.euler_to_dcm(math.atan2(v[0], v[1]), pitch, roll)
+        sd = math.hypot(_vel_sigma(ep) / speed, c.align_sideslip_deg * _DEG)
+        P = P.copy()
+        P[8, :] = P[:, 8] = 0.0
+        P[8, 8] = sd * sd
+        for i in range(9, 12):
+            P[i, i] = max(P[i, i], (c.gyro_bias_prior_sigma_dps * _DEG) ** 2)
+        return ins.NavState(nav.t, nav.lat, nav.lon, nav.h, nav.v_n, earth.dcm_to_quat(C)), P
+
+
 class Alignment:
-    """Accumulates the static IMU data before the alignment epoch and builds the initial state there."""
+    """Collects the still intervals before the alignment epoch and builds the initial state there.
+    ``note`` says how the heading was found (after the alignment)."""
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
         self.lever = cfg.lever_rfu()
-        self._static = ImuSums()
-        self._last_speed = math.inf
+        self.note = ""
+        self._run: list[tuple[ImuSums, float]] = []  # the current run of still intervals, with their seconds
+        self._run_first = True  # the run started with the drive (its start needs no trimming)
+        self._static: list[tuple[ImuSums, float]] = []  # the last finished run, trimmed at the alignment
+        self._static_first = True
+        self._after: list[tuple[ImuSums, float]] = []  # the intervals since that run
+        self._v_prev = np.full(3, np.nan)
+        self._t_prev: float | None = None
 
     def epoch(self, ep: dict, usable: bool, v: np.ndarray, interval: ImuSums, t_k: float, t_ref_ns: int
               ) -> Aligned | None:
         """A GPS epoch before the alignment: ep (``engine`` epoch dict), usable fix, its velocity v (3,) ENU m/s
         (NaN when unknown), the IMU sums of the interval that ends here, the current sample's time t_k (s from
         t_ref_ns). Returns the initial state when this epoch aligns the INS, else None."""
+        v_gps = ep["v_n"] if usable else np.full(3, np.nan)
+        dt = t_k - self._t_prev if self._t_prev is not None else 0.0
+        self._t_prev = t_k
+        verdict = self._verdict(interval, gps_speed(self._v_prev, v_gps))
+        if verdict == "still":
+            self._run.append((interval, dt))
+        elif verdict == "unsure":
+            self._after.append((interval, dt))
+        elif interval.n:
+            if self._run:
+                self._static, self._static_first, self._after = self._run, self._run_first, []
+                self._run = []
+            self._run_first = False
+            self._after.append((interval, dt))
+        self._v_prev = v_gps
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
-        if speed < self.cfg.static_speed_mps and self._last_speed < self.cfg.static_speed_mps:
-            self._static.sum_w += interval.sum_w
-            self._static.sum_f += interval.sum_f
-            self._static.n += interval.n
-        self._last_speed = speed
         if usable and math.isfinite(ep["h"]) and math.isfinite(speed) and speed >= self.cfg.align_speed_mps:
             return self._initialise(ep, v, t_k, t_ref_ns)
         return None
 
+    def _verdict(self, interval: ImuSums, speed: float) -> str:
+        c = self.cfg
+        if not self._run:
+            prior = math.hypot(c.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
+            return _verdict(c, interval, speed, [(np.zeros(3), prior, None, 0.0)])
+        run = _total(s for s, _ in self._run)  # the bias instability moves the rate between intervals too
+        return _verdict(c, interval, speed, [(run.sum_w / run.n, c.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
+                                              0.0)])
+
+    def _static_interval(self) -> tuple[list[tuple[ImuSums, float]], list[tuple[ImuSums, float]]]:
+        """The still intervals of the static start, trimmed by ``still_trim_s`` where the vehicle moved next to
+        them, and the intervals after them (the trimmed end included)."""
+        run, first, after = ((self._run, self._run_first, []) if self._run else
+                             (self._static, self._static_first, self._after))
+        k, secs = 0, 0.0
+        while k < len(run) and secs < self.cfg.still_trim_s:
+            secs += run[len(run) - 1 - k][1]
+            k += 1
+        j, secs = 0, 0.0
+        while not first and j < len(run) - k and secs < self.cfg.still_trim_s:
+            secs += run[j][1]
+            j += 1
+        return run[j:len(run) - k], run[len(run) - k:] + after
+
     def _initialise(self, ep: dict, v: np.ndarray, t_k: float, t_ref_ns: int) -> Aligned:
         c = self.cfg
-        heading = math.atan2(v[0], v[1])
-        static = self._static.n >= 200
+        lat = ep["lat"]
+        intervals, after = self._static_interval()
+        tot = _total(s for s, _ in intervals)
+        static = tot.n >= 200
+        speed = math.hypot(v[0], v[1])
+        w_h = earth.OMEGA_IE * math.cos(lat)  # horizontal Earth rate, rad/s
+        sd_course = math.hypot(_vel_sigma(ep) / speed, c.align_sideslip_deg * _DEG)
         if static:
-            fm = self._static.sum_f / self._static.n
-            pitch, roll = math.atan2(fm[1], math.hypot(fm[0], fm[2])), math.atan2(-fm[0], fm[2])
+            fm, wm = tot.sum_f / tot.n, tot.sum_w / tot.n
+            pitch, roll = level(fm)
+            se_w, se_f = _standard_errors([s for s, _ in intervals])
+            seconds = sum(dt for _, dt in intervals)
+            sd_f = math.hypot(c.accel_noise_ug_rthz * _UG / math.sqrt(seconds), c.init_accel_bias_sigma_ug * _UG)
+            sd_level = math.hypot(math.hypot(sd_f, float(np.max(se_f))) / _G, c.init_level_sigma_deg * _DEG)
+            sd_gc = math.sqrt((c.gyro_bias_prior_sigma_dps * _DEG) ** 2 + float(np.max(se_w)) ** 2
+                              + (earth.OMEGA_IE * math.sin(lat) * sd_level) ** 2) / w_h
         else:
             pitch = roll = 0.0
+            sd_level = 5.0 * _DEG
+            sd_gc = math.inf
+        # heading change since the static interval (level vehicle: yaw rate = -body up rate, less its rest value)
+        rest_z = wm[2] if static else earth.OMEGA_IE * math.sin(lat)
+        turned = -sum((s.sum_w[2] / s.n - rest_z) * dt for s, dt in after if s.n)
+        gyrocompassed = False
+        if c.init_attitude_deg:
+            roll, pitch = c.init_attitude_deg[0] * _DEG, c.init_attitude_deg[1] * _DEG
+            sd_level = c.init_level_sigma_deg * _DEG
+            heading, sd_head = c.init_attitude_deg[2] * _DEG + turned, c.init_heading_sigma_deg * _DEG
+            self.note = "heading from the config's init_attitude_deg"
+        elif static and sd_gc < min(sd_course, c.gyrocompass_max_deg * _DEG):
+            heading, sd_head = gyrocompass(wm, pitch, roll) + turned, sd_gc
+            gyrocompassed = True
+            self.note = f"heading by gyrocompassing, sigma {math.degrees(sd_gc):.2f} deg"
+        else:
+            heading, sd_head = math.atan2(v[0], v[1]), sd_course
+            self.note = (f"heading from the GPS course, sigma {math.degrees(sd_course):.2f} deg (gyrocompassing: "
+                         + (f"sigma {math.degrees(sd_gc):.1f} deg, the gyros cannot see the Earth rate well enough)"
+                            if static else "no static start)"))
         C = earth.euler_to_dcm(heading, pitch, roll)
         bg = np.zeros(3)
+        sd_bg = np.full(3, c.gyro_bias_prior_sigma_dps * _DEG)
         if static:
-            bg = self._static.sum_w / self._static.n - C.T @ earth.omega_ie_n(ep["lat"])
+            bg = wm - C.T @ earth.omega_ie_n(lat)
+            horiz = w_h * sd_head  # Earth-rate projection error through the heading sigma
+            sd_bg = np.sqrt(se_w ** 2 + (c.init_gyro_bias_sigma_dps * _DEG) ** 2
+                            + np.array([horiz, horiz, earth.OMEGA_IE * sd_level]) ** 2)
+            if gyrocompassed:
+                sd_bg[:2] = np.maximum(sd_bg[:2], c.gyro_bias_prior_sigma_dps * _DEG)
         arm = C @ self.lever
-        rm, rn = earth.principal_radii(ep["lat"], ep["h"])
+        rm, rn = earth.principal_radii(lat, ep["h"])
         dt = t_k - (ep["t_ns"] - t_ref_ns) * 1e-9
         d_enu = v * dt - arm
         v0 = np.array([v[0], v[1], 0.0])
-        nav = ins.NavState(t_k, ep["lat"] + d_enu[1] / rm, ep["lon"] + d_enu[0] / (rn * math.cos(ep["lat"])),
+        nav = ins.NavState(t_k, lat + d_enu[1] / rm, ep["lon"] + d_enu[0] / (rn * math.cos(lat)),
                            ep["h"] + d_enu[2], v0, earth.dcm_to_quat(C))
-        speed = math.hypot(v[0], v[1])
-        sd_level = (c.init_level_sigma_deg if static else 5.0) * _DEG
-        sd_head = math.hypot(c.init_heading_sigma_deg * _DEG, math.sqrt(max(_course_var(ep), 0.01)) / speed)
-        sd_bg = (c.init_gyro_bias_sigma_dps if static else 0.1) * _DEG
         pos_var = np.diag(ep["pos_cov"]).copy()
         pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
         P0 = np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
-                                     [sd_level ** 2, sd_level ** 2, sd_head ** 2], np.full(3, sd_bg ** 2),
+                                     [sd_level ** 2, sd_level ** 2, sd_head ** 2], sd_bg ** 2,
                                      np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
         return Aligned(nav, bg, P0)
 
-
-def _course_var(ep: dict) -> float:
-    """Variance (m/s)^2 of a horizontal GPS velocity component at an epoch: the receiver's, else that of the
-    difference of two fixes taken 1 s apart (twice the fix's horizontal variance; 25 m^2 when it has none)."""
-    var = float(ep["vel_cov"][0, 0])
-    if math.isfinite(var):
-        return var
-    pos = np.diag(ep["pos_cov"])[:2]
-    return 2.0 * float(np.nanmax(pos)) if np.isfinite(pos).any() else 50.0

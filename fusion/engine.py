@@ -72,6 +72,7 @@ class FusionConfig:
     IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), inflated to absorb
     the scale-factor and misalignment errors the 15-state model does not carry."""
 
+    imu: str = ""  # the IMU grade whose figures were taken (fusion.imugrade); "" = the figures below as given
     lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, m, in lever_arm_frame
     lever_arm_frame: str = "rfu"  # body frame of lever_arm_b: rfu, flu (REP-103) or frd (earth.BODY_FRAMES)
     output_hz: float = 10.0
@@ -81,12 +82,18 @@ class FusionConfig:
     gyro_bias_rw_dps_rts: float = 2e-4  # deg/s/sqrt(s)
     accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
     init_vel_sigma_mps: float = 0.2
-    init_level_sigma_deg: float = 0.5  # roll/pitch after levelling (5 deg without a static start)
-    init_heading_sigma_deg: float = 3.0
-    init_gyro_bias_sigma_dps: float = 0.02  # after the static gyro mean (0.1 deg/s without)
+    init_level_sigma_deg: float = 0.5  # roll/pitch allowance added to the levelling's own sigma (fusion.align)
+    init_heading_sigma_deg: float = 3.0  # sigma of init_attitude_deg's heading
+    init_attitude_deg: tuple[float, ...] = ()  # optional [roll, pitch, heading] at the drive's start, deg
+    init_gyro_bias_sigma_dps: float = 0.02  # floor after the static gyro mean: the bias instability
+    gyro_bias_prior_sigma_dps: float = 0.1  # before any static mean: turn-on and instability
     init_accel_bias_sigma_ug: float = 2000.0
-    static_speed_mps: float = 0.3
-    align_speed_mps: float = 3.0
+    static_speed_mps: float = 0.3  # below this GPS speed the car is slow: no non-holonomic constraint
+    align_speed_mps: float = 3.0  # the GPS course gives the heading from this speed
+    align_sideslip_deg: float = 2.0  # course - heading allowance (sideslip, IMU mounting yaw)
+    gyrocompass_max_deg: float = 5.0  # gyrocompass only when its heading sigma is below this (and the course's)
+    realign_window_s: float = 120.0  # chi-square test of the heading on the GPS innovations this long (0: off)
+    realign_epochs: int = 10  # ... summed over this many epochs
     vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
     max_fix_sigma_m: float = 30.0
     outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
@@ -96,9 +103,13 @@ class FusionConfig:
     nhc_sigma_mps: float = 0.1
     zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
     zupt_sigma_mps: float = 0.02
-    still_speed_mps: float = 0.5  # standing still: INS speed below this (GPS speed below static_speed_mps) ...
-    still_accel_std_mps2: float = 0.1  # ... and specific force and rate varying less than these over the epoch
+    still_speed_mps: float = 0.5  # still (fusion.align.still): INS speed below this without GPS velocity, ...
+    still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity over the interval below this, ...
+    still_accel_std_mps2: float = 0.1  # ... specific force and rate varying less than these over the interval,
     still_gyro_std_dps: float = 0.5
+    still_rate_tol_dps: float = 0.01  # ... and their means within 3 sigma plus these of standing still
+    still_accel_tol_mps2: float = 0.02
+    still_trim_s: float = 2.0  # the static start loses this much at an end where the vehicle moved
     gps_error_tau_s: float = 300.0  # correlation time of the GPS position error (multipath, atmosphere); 0: white
     dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
@@ -175,6 +186,10 @@ class Engine:
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
         self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
+        self._v_prev = np.full(3, np.nan)  # GPS velocity of the previous epoch (still detection)
+        self.stills: list[int] = []  # epoch times (UTC ns) with a stationary update
+        self._stop = align.StillRun(self.cfg)
+        self._check: align.HeadingCheck | None = None
 
     # -- public ---------------------------------------------------------------------------------
 
@@ -255,6 +270,7 @@ class Engine:
             return
         self.nav, self.bg = a.nav, a.bg
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
+        self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
         if self.bridge is not None:
             self.bridge.origin = (self.nav.lat, self.nav.lon, self.nav.h)
         if self.log is not None:
@@ -267,7 +283,12 @@ class Engine:
         if self.method == "ins":
             return
         v = self._velocity(ep) if usable else np.full(3, np.nan)
-        aid = aids.vehicle_aid(self.cfg, self.nav, v, interval, self.bg, self._imu_dt)
+        v_gps = ep["v_n"] if usable else np.full(3, np.nan)
+        v_prev, self._v_prev = self._v_prev, v_gps
+        aid = aids.vehicle_aid(self.cfg, self.nav, v_gps if np.isfinite(v_gps[:2]).all() else v, v_prev, interval,
+                               self._stop, self.bg, self.ba, self.filter.covariance, self._imu_dt)
+        if aid is not None and len(aid[0]) == 6:
+            self.stills.append(ep["t_ns"])
         if aid is not None:
             self.filter.update_aid(aid)
             self._feedback(self.filter.state)
@@ -282,6 +303,11 @@ class Engine:
         pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
         vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
         u = self.bridge.input(self.nav) if self.bridge is not None else None
+        if self._check is not None and vel is not None and self._check.far_off(t_g, *vel, self.filter.covariance) \
+                and self._realign(ep):
+            pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
+            vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever,
+                                          self.cfg.vel_var_max)
         self.filter.update_gps(vel, pos)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
@@ -293,6 +319,18 @@ class Engine:
             self.bridge.train(t_g, u, self.filter.innovations, pos, vel)
         self._feedback(x)
         self.updates += 1
+
+    def _realign(self, ep: dict) -> bool:
+        """The heading is far off its sigma (``fusion.align.HeadingCheck``): take it again from the GPS course and
+        restart the filter with the covariance so far, the heading's and the gyro bias's reopened. False while
+        the vehicle is too slow for the course."""
+        r = self._check.realign(self.nav, ep, self.filter.covariance)
+        if r is None:
+            return False
+        self.nav, P = r
+        self.filter = make_filter(self.method, P, self.q, self.cfg)
+        self.alignment.note += "; re-aligned from the GPS course (chi-square test on the GPS velocity innovations)"
+        return True
 
     def _feedback(self, x: np.ndarray) -> None:
         """Closed loop: the estimate x (15,) corrects the INS and the biases; the filter is reset."""

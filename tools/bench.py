@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import subprocess
 import sys
@@ -178,6 +179,38 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
         med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap"), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
+
+
+def bench_grades(runs: int, tmp: Path) -> None:
+    """Outage drift per IMU grade: figure8-tactical (780 s, 200 Hz, creeping pull-away) with the grade in the
+    simulator and the filter, kf with aids off, two 60 s outages after 10 minutes of driving; standalone GPS for
+    the MEMS grades, RTK for the others."""
+    from dataclasses import replace
+
+    from fieldlog.fusion import imugrade
+    from fieldlog.replay import reader
+    from fieldlog.tools.evaluate import heading_at_starts, outage_error_series
+    from fieldlog.tools.fuse import drive_config, fuse
+    from fieldlog.tools.sim.simulate import simulate
+
+    outages = ((630.0, 60.0), (720.0, 60.0))
+    for grade in imugrade.GRADES:
+        gps = "standalone" if grade.endswith("mems") else "rtk"
+        sc = tmp / f"grade_{grade}.toml"
+        sc.write_text(f'extends = "figure8-tactical"\nname = "{grade}"\n[imu]\ngrade = "{grade}"\n'
+                      f'[gps]\nquality = "{gps}"\n[fusion]\nimu = "{grade}"\n')
+        drive, out = tmp / f"grade_{grade}.mcap", tmp / f"grade_{grade}_kf.mcap"
+        simulate(str(sc), None, 1, drive)
+        fuse(drive, "kf", out, replace(drive_config(drive), outages=outages))
+        t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
+        win = [(t0 + int(a * 1e9), t0 + int((a + n) * 1e9)) for a, n in outages]
+        t, e = outage_error_series(drive, out, "kf", win)
+        h = np.hypot(e[:, 0], e[:, 1])
+        drift = [h[(t >= a) & (t < b)].max() for a, b in win]
+        err, sig = heading_at_starts(drive, out, "kf", win)
+        print(f"{grade:12s} {gps:10s} 2D RMS {math.sqrt(np.mean(h ** 2)):8.3f} m, max drift per outage "
+              + ", ".join(f"{d:.3f}" for d in drift) + " m; heading at the starts "
+              + ", ".join(f"{x:+.3f}±{y:.3f}°" for x, y in zip(err, sig)))
 
 
 # Peak RSS of a child is read from its VmHWM, the high-water mark of its own address space: ru_maxrss (and
@@ -489,7 +522,7 @@ def bench_cli(runs: int, tmp: Path) -> None:
 
 
 BENCHES = {"cli": bench_cli, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan, "fusion": bench_fusion, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
+           "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
            "export": bench_export,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}
 

@@ -12,8 +12,10 @@ heading (deg). The reference is ``/truth`` when the drive has it; otherwise the 
 paper does), the solution interpolated to their times, and no attitude. Over several drives the table gives
 the mean and the spread (sample standard deviation) of the per-drive RMS.
 
-Writes DIR/table.md (rows = quantities, columns = method x outage length, like the paper's Table 3),
-DIR/table.csv (long form: quantity, unit, method, outage_s, mean, std, drives, windows), the fused
+Writes DIR/table.md (rows = quantities, columns = method x outage length, like the paper's Table 3; then the
+heading error and the filter's heading sigma at each outage start), DIR/table.csv (long form: quantity, unit,
+method, outage_s, mean, std, drives, windows), DIR/heading.csv (drive, method, outage_s, start_s,
+heading_err_deg, heading_sigma_deg: NaN error without /truth), the fused
 solutions in DIR/fused/ and, per outage length L, DIR/errors_<L>s.png: horizontal position error (m) and
 velocity error magnitude (m/s) against time since the outage start, each window thin, the mean thick.
 
@@ -209,6 +211,31 @@ def consistency_line(method: str, c: dict[str, float]) -> str:
             f"N {c['in1_n']:.0%} U {c['in1_u']:.0%} (68 %), within 3 sigma E {c['in3_e']:.0%} N {c['in3_n']:.0%} "
             f"U {c['in3_u']:.0%} (99.7 %), over {c['rows']} rows")
 
+def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Heading error (solution - truth, deg, wrapped to +-180) and the filter's heading sigma (deg, from
+    ``/fusion/<method>/attitude_std``: phi up) at the first solution row of each window, (w,) each; NaN where
+    the drive has no ``/truth/attitude`` or the window no row."""
+    err, sig = np.full(len(windows_ns), np.nan), np.full(len(windows_ns), np.nan)
+    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    names = {t.topic for t in reader.topics(fused) if t.count}
+    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std") if f"/fusion/{method}/attitude_std" in names \
+        else None
+    truth = "/truth/attitude" in {t.topic for t in reader.topics(drive) if t.count}
+    ta = reader.read_topic(drive, "/truth/attitude") if truth else None
+    ts = a["log_time_ns"]
+    for i, (w0, w1) in enumerate(windows_ns):
+        j = int(np.searchsorted(ts, w0))
+        if j >= len(ts) or ts[j] >= w1:
+            continue
+        if sd is not None:
+            sig[i] = math.degrees(float(sd["xyz"][j, 2]))
+        if ta is not None and ta["log_time_ns"][0] <= ts[j] <= ta["log_time_ns"][-1]:
+            h_s = earth.dcm_to_euler(earth.quat_to_dcm(a["q_xyzw"][j:j + 1]))[0]
+            h_t = earth.dcm_to_euler(earth.quat_to_dcm(_quat_interp(ts[j:j + 1], ta["log_time_ns"], ta["q_xyzw"])))[0]
+            err[i] = math.degrees((float(h_s[0] - h_t[0]) + math.pi) % (2 * math.pi) - math.pi)
+    return err, sig
+
 
 PLOT_DT_S = 0.5  # time step of the error curves, s
 
@@ -305,6 +332,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     windows: dict[tuple[str, float], int] = {}
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
     honesty: dict[tuple[str, float], list[dict[str, float]]] = {}
+    headings: list[dict] = []
     total, done = len(drives) * len(lengths) * len(runs), 0
     for drive in map(Path, drives):
         base = config or drive_config(drive)
@@ -332,12 +360,16 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 c = consistency(drive, out, m)
                 if c is not None:
                     honesty.setdefault((name, L), []).append(c)
+                h_err, h_sig = heading_at_starts(drive, out, m, win_ns)
+                headings += [dict(drive=drive.name, method=name, outage_s=float(L), start_s=s0, heading_err_deg=e,
+                                  heading_sigma_deg=sg) for (s0, _), e, sg in zip(win, h_err, h_sig)]
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
                 per.setdefault((name, L), []).append(rms)
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
                 done += 1
                 say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s x {len(win)}: "
-                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {np.linalg.norm(rms[3:6]):.3f} m/s")
+                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {np.linalg.norm(rms[3:6]):.3f} m/s; heading "
+                    "at the starts " + ", ".join(f"{e:+.2f}±{sg:.2f}°" for e, sg in zip(h_err, h_sig)))
     rows = []
     for (name, L), vals in per.items():
         arr = np.array(vals)
@@ -349,6 +381,10 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     table = pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
                                        "mean": pl.Float64, "std": pl.Float64, "drives": pl.Int64, "windows": pl.Int64})
     table.write_csv(report / "table.csv")
+    heading = pl.DataFrame(headings, schema={"drive": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
+                                             "start_s": pl.Float64, "heading_err_deg": pl.Float64,
+                                             "heading_sigma_deg": pl.Float64})
+    heading.write_csv(report / "heading.csv")
     figures = [plot_errors({m: np.concatenate(c) for m, c in by.items()}, L, report / f"errors_{L:g}s.png",
                            max(map(len, by.values()))) for L, by in curves.items()]
     for f in figures:
@@ -364,8 +400,21 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                        "Position error over every solution row (outages included) against the truth, in units of "
                        "the sigma the method printed:", "", *sigma_lines, ""]
     (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
-                                              aids_note(base), conclusions))
+                                              aids_note(base), conclusions) + heading_markdown(heading))
     return table
+
+
+def heading_markdown(heading: pl.DataFrame) -> str:
+    """The heading error and sigma at each outage start, per method and length (a slow convergence shows)."""
+    if heading.height == 0:
+        return ""
+    lines = ["", "## Heading error ± the filter's σ at each outage start (deg)", "",
+             "| method | outage | " + "drive @ start: error ± σ |", "|---|---|---|"]
+    for (m, L), g in heading.group_by(["method", "outage_s"], maintain_order=True):
+        cells = ", ".join(f"{r['drive']} @ {r['start_s']:g} s: {r['heading_err_deg']:+.3f} ± "
+                          f"{r['heading_sigma_deg']:.3f}" for r in g.iter_rows(named=True))
+        lines.append(f"| {m} | {L:g} s | {cells} |")
+    return "\n".join(lines) + "\n"
 
 
 def aids_note(cfg: FusionConfig) -> str:

@@ -11,6 +11,7 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/<method>/kf1/{fix,vel}``, ``/fusion/<method>/kf2/{fix,vel}`` (``dkf``, ``rbfn``, ``tdln``, ``dkf-rbfn``):
   the local solutions, the INS corrected by KF_I's (velocity) or KF_II's (position) estimate alone, with
   that local filter's variances (the paper's Fig. 5);
+- ``/fusion/<method>/attitude_std`` Vector3Stamped: attitude sigma (phi E, N, U: ~pitch, roll, heading), rad;
 - ``/fusion/<method>/odom`` nav_msgs/Odometry and ``/tf`` ``map -> base_link`` (REP-105, ``Odometry`` below):
   the same rows for ROS tools, with the vehicle frame of the drive's ``/tf_static``;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
@@ -25,6 +26,8 @@ ignored, so a scenario file works too), e.g.::
     [fusion]
     gyro_noise_dps_rthz = 0.0097     # any FusionConfig field; lists for tuples
     lever_arm_b = [0.0, 0.5, 1.2]
+    imu = "tactical"                 # an IMU grade of fusion.imugrade, and/or its datasheet keys:
+    gyro_arw_deg_rth = 0.003         # deg/sqrt(h), gyro_bias_instability_dph with gyro_bias_corr_time_s, ...
     [fusion.predictor]               # fusion.predictors.PredictorConfig
     centres = 12
 
@@ -48,6 +51,7 @@ from fieldlog.acquire import calib, frames, messages
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_table
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
+from fieldlog.fusion import imugrade
 from fieldlog.fusion.dkf import FUSIONS
 from fieldlog.fusion.engine import Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
@@ -76,6 +80,8 @@ class FuseResult:
     imu_gaps: int = 0  # IMU steps longer than 1.5 sample periods, bridged by the INS
     imu_missing: int = 0  # samples those gaps lack
     gamma_raised: int = 0  # hinf: epochs where the existence bound raised gamma
+    still_ns: tuple[int, ...] = ()  # GPS epoch times (UTC ns) with a stationary (ZUPT + ZARU) update
+    alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
 
 
 class Diverged(ValueError):
@@ -97,6 +103,10 @@ def parse_outage(text: str) -> tuple[float, float]:
 def fusion_config(table: dict[str, Any]) -> FusionConfig:
     """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.typed_table``); a bad key or value raises
     ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
+    try:
+        table = imugrade.settings(table)
+    except ValueError as e:
+        raise ConfigError(f"[fusion] {e}") from None
     cfg = typed_table(FusionConfig, "fusion", table)
     if cfg.lever_arm_frame.lower() not in ("rfu", "flu", "frd"):
         raise ConfigError(f"[fusion] lever_arm_frame: one of rfu, flu, frd, got {cfg.lever_arm_frame!r}")
@@ -180,12 +190,13 @@ def settings(drive: str | os.PathLike[str], config_path: str | os.PathLike[str] 
     the drive's /tf_static when neither gives it; ``outages`` (``--outage``) replace the config's."""
     imap = inputs_mod.resolve(drive, load_input_spec(config_path).merged(spec or InputSpec()))
     table = read_toml(config_path).get("fusion") if config_path else None
-    if table is not None:
-        cfg, given, where = fusion_config(table), set(table), f"--config {config_path}"
+    if table is None:
+        table = {k: ast.literal_eval(v) for k, v in read_metadata(drive).get("fusion.config", {}).items()}
+        where = "the drive's record"
     else:
-        meta = read_metadata(drive).get("fusion.config", {})
-        cfg, given, where = fusion_config({k: ast.literal_eval(v) for k, v in meta.items()}), set(meta), \
-            "the drive's record"
+        where = f"--config {config_path}"
+    cfg = fusion_config(table)
+    given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
     sources = {f: (where if f in given else "default") for f in asdict(FusionConfig()) if f != "predictor"}
     sources["predictor"] = where if "predictor" in given else "default"
     if "lever_arm_b" not in given and imap.lever_arm_b is not None:
@@ -225,6 +236,7 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     rec.write_batch(f"{base}/vel", t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id="enu"))
     rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id="enu"))
     rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id="enu"))
+    rec.write_batch(f"{base}/attitude_std", t, messages.encode_vector3(t, s.sigma[:, 6:9], frame_id="enu"))
     if s.local is None:
         return
     for i, name in enumerate(("kf1", "kf2")):
@@ -354,4 +366,4 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
-                      getattr(engine.filter, "raised", 0))
+                      getattr(engine.filter, "raised", 0), tuple(engine.stills), engine.alignment.note)

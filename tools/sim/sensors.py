@@ -39,6 +39,10 @@ gyro bias stability 0.02 deg/s. Our choices where it does not:
 - electrical zero-output offsets 0 V: set ``gyro_zero_bias_V`` = 0.25 and ``accel_zero_bias_V`` = 0.2
   (Table 2's zero-bias spreads) to simulate a unit running on the nominal, uncalibrated, file.
 All error magnitudes are 1-sigma of zero-mean Gaussian draws, per axis.
+
+Grades. ``[imu] grade = "table2-mems" | "s000-mems" | "tactical" | "navigation"`` takes the error figures of
+that datasheet (``fusion.imugrade``, the same figures the filter takes as ``[fusion] imu = NAME``);
+``table2-mems`` equals the defaults above.
 """
 
 from __future__ import annotations
@@ -51,7 +55,8 @@ from numba import njit
 from scipy.signal import lfilter
 
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
-from fieldlog.acquire.config import from_table
+from fieldlog.acquire.config import ConfigError, from_table
+from fieldlog.fusion import imugrade
 
 _DEG = math.pi / 180.0
 _UG = 1e-6 * G0
@@ -97,7 +102,15 @@ class ImuErrorConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ImuErrorConfig:
-        """Build from a scenario's [imu] TOML table; unknown keys raise ValueError naming them."""
+        """Build from a scenario's [imu] TOML table; unknown keys raise ValueError naming them. ``grade = NAME``
+        (``fusion.imugrade.GRADES``) sets the error figures of that datasheet; the table's other keys override."""
+        d = dict(d)
+        name = d.pop("grade", None)
+        if name is not None:
+            try:
+                d = {**imugrade.grade(name).simulator(), **d}
+            except ValueError as e:
+                raise ConfigError(f"[imu] grade: {e}") from None
         return from_table(cls, "imu", d)
 
 
