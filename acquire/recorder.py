@@ -450,7 +450,7 @@ class Recorder:
 def _walk_records(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Records in an uncompressed chunk: opcode, start of the record body, body length; and the
     number of bytes that form complete records. Compiled by numba when it is installed (fieldlog[fusion]);
-    plain Python otherwise (about 30x slower, still well under a second per 4 MB chunk)."""
+    plain Python otherwise (about 6x slower: 65 ms against 11 ms for 7.7 MB of chunks)."""
     n = len(buf)
     cap = max(n // 31 + 1, 16)
     ops = np.empty(cap, np.uint8)
@@ -499,8 +499,8 @@ def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 
 
 def _walk_python(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """``_walk_records`` without numba: the same walk over the bytes with ``struct`` (numpy scalars would make
-    the interpreted loop another 10x slower)."""
+    """``_walk_records`` without numba: the same walk over the bytes with ``struct`` (indexing numpy scalars in
+    an interpreted loop is much slower than unpacking from ``bytes``)."""
     data = buf.tobytes()
     n = len(data)
     ops: list[int] = []
