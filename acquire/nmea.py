@@ -1,4 +1,5 @@
-"""NMEA 0183: line framing, checksum, typed decoding of GGA/RMC/VTG/GST/ZDA, epoch grouping, generators.
+"""NMEA 0183: line framing, checksum, typed decoding of GGA/RMC/VTG/GST/ZDA/GNS/GSA/GSV/HDT, epoch grouping,
+generators. GNS is a Gga subclass, so it gives an epoch's position when the receiver sends no GGA.
 
 Decoded values are SI: degrees for latitude/longitude (WGS-84, north/east positive), metres, m/s, seconds of
 the UTC day, radians for courses (clockwise from true north). Empty fields decode to NaN (floats) or None
@@ -173,7 +174,51 @@ class Other:
     raw: bytes = field(default=b"", repr=False)
 
 
-Sentence = Gga | Rmc | Vtg | Gst | Zda | Other
+@dataclass(frozen=True)
+class Gns(Gga):
+    """GNS fix (multi-constellation GGA): a Gga whose quality comes from the mode indicator, kept as ``mode``
+    (one letter per constellation: N none, A autonomous, D differential, P precise, R RTK fixed, F RTK float,
+    E dead reckoning, M manual, S simulator)."""
+
+    mode: str = ""
+
+
+@dataclass(frozen=True)
+class Gsa:
+    """GSA DOP and active satellites. fix_type: 1 none, 2 2-D, 3 3-D; system_id (NMEA 4.1) or None."""
+
+    talker: str
+    fix_type: int | None
+    prns: tuple[int, ...]
+    pdop: float
+    hdop: float
+    vdop: float
+    system_id: int | None
+    raw: bytes = field(default=b"", repr=False)
+
+
+@dataclass(frozen=True)
+class Gsv:
+    """GSV satellites in view, one sentence of ``total``: (prn, elevation deg, azimuth deg, SNR dB-Hz or None)."""
+
+    talker: str
+    total: int | None
+    number: int | None
+    in_view: int | None
+    sats: tuple[tuple[int | None, float, float, int | None], ...]
+    raw: bytes = field(default=b"", repr=False)
+
+
+@dataclass(frozen=True)
+class Hdt:
+    """HDT true heading, radians clockwise from true north (None when empty)."""
+
+    talker: str
+    heading_rad: float | None
+    raw: bytes = field(default=b"", repr=False)
+
+
+Sentence = Gga | Rmc | Vtg | Gst | Zda | Gsa | Gsv | Hdt | Other
 
 
 # ---------------------------------------------------------------------------------------------- decoding
@@ -294,7 +339,34 @@ def _zda(t: str, f: _Fields, raw: bytes) -> Zda:
     return Zda(t, f.time(1), f.date(f.s(2), f.s(3), f.s(4)), raw)
 
 
-_DECODERS = {"GGA": (_gga, 12), "RMC": (_rmc, 10), "VTG": (_vtg, 9), "GST": (_gst, 9), "ZDA": (_zda, 5)}
+_GNS_QUALITY = {"A": 1, "D": 2, "P": 3, "R": 4, "F": 5, "E": 6, "M": 7, "S": 8}
+
+
+def _gns(t: str, f: _Fields, raw: bytes) -> Gns:
+    mode = f.s(6)
+    best = [_GNS_QUALITY[c] for c in mode if c in _GNS_QUALITY]
+    quality = min(best, key=lambda q: (q in (6, 7, 8), -q)) if best else (0 if mode else None)
+    return Gns(t, f.time(1), f.angle(2, 3, "S", "N"), f.angle(4, 5, "W", "E"), quality, f.int(7), f.num(8),
+               f.num(9), f.num(10), raw, mode)
+
+
+def _gsa(t: str, f: _Fields, raw: bytes) -> Gsa:
+    prns = tuple(p for p in (f.int(i) for i in range(3, 15)) if p is not None)
+    return Gsa(t, f.int(2), prns, f.num(15), f.num(16), f.num(17), f.int(18), raw)
+
+
+def _gsv(t: str, f: _Fields, raw: bytes) -> Gsv:
+    n_sat = (len(f.f) - 4) // 4
+    sats = tuple((f.int(4 + 4 * i), f.num(5 + 4 * i), f.num(6 + 4 * i), f.int(7 + 4 * i)) for i in range(n_sat))
+    return Gsv(t, f.int(1), f.int(2), f.int(3), sats, raw)
+
+
+def _hdt(t: str, f: _Fields, raw: bytes) -> Hdt:
+    return Hdt(t, f.course(1), raw)
+
+
+_DECODERS = {"GGA": (_gga, 12), "RMC": (_rmc, 10), "VTG": (_vtg, 9), "GST": (_gst, 9), "ZDA": (_zda, 5),
+             "GNS": (_gns, 13), "GSA": (_gsa, 18), "GSV": (_gsv, 4), "HDT": (_hdt, 3)}
 
 
 @dataclass

@@ -91,6 +91,7 @@ class TimeSyncConfig:
     # clock, so host durations are multiplied by X before the fix-age and disagreement gates and in the
     # locked ``mono_to_utc``. Never set it for real hardware.
     host_time_scale: float = 1.0
+    pulse_error: bool = True            # apply the receiver's own time-pulse error (u-blox TIM-TP qErr)
 
     def __post_init__(self) -> None:
         if self.pps_mode not in ("flag", "latch"):
@@ -274,6 +275,8 @@ class TimeSync:
     def add_pulse_error(self, utc_s: int, late_s: float) -> None:
         """The receiver's own figure for the time pulse of UTC second ``utc_s``: it comes ``late_s`` late (u-blox
         TIM-TP qErr); the edge labelled ``utc_s`` is moved back by that much before it is used."""
+        if not self.cfg.pulse_error:
+            return
         self._pulse_late[int(utc_s)] = float(late_s)
         while len(self._pulse_late) > 16:
             del self._pulse_late[next(iter(self._pulse_late))]

@@ -65,7 +65,7 @@ def test_log_snippet_checksums_agree_with_pynmeagps():
 def test_log_snippet_decodes():
     out, dec = decode(UBLOX_NOVATEL_LOG)
     kinds = [type(s).__name__ for s in out]
-    assert kinds == ["Rmc", "Vtg", "Gga", "Other", "Other", "Other", "Gst", "Zda", "Other",
+    assert kinds == ["Rmc", "Vtg", "Gga", "Gsa", "Gsv", "Gsv", "Gst", "Zda", "Other",
                      "Gga", "Rmc", "Gst", "Zda"]
     rmc, vtg, gga = out[0], out[1], out[2]
     assert rmc.talker == "GN" and rmc.valid and rmc.date == date(2024, 6, 15)
@@ -81,7 +81,10 @@ def test_log_snippet_decodes():
     assert (gst.rms_m, gst.sd_lat_m, gst.sd_lon_m, gst.sd_alt_m) == (0.0115, 0.0085, 0.0095, 0.0161)
     assert out[12].date == date(2024, 6, 15)
     s = dec.stats
-    assert (s.lines, s.bad_checksum, s.no_checksum, s.proprietary, s.unknown, s.bad_fields) == (13, 0, 0, 1, 3, 0)
+    assert (s.lines, s.bad_checksum, s.no_checksum, s.proprietary, s.unknown, s.bad_fields) == (13, 0, 0, 1, 0, 0)
+    gsa, gsv = out[3], out[5]
+    assert gsa.fix_type == 3 and gsa.prns == (5, 13, 15, 18, 20, 23, 24, 29) and gsa.system_id == 1
+    assert gsv.talker == "GL" and gsv.in_view == 6 and gsv.sats[1] == (66, 72.0, 339.0, 41)
     assert s.by_type["GNGGA"] == 1 and s.by_type["GPGGA"] == 1 and s.by_type["PUBX"] == 1
     assert out[8] == nmea.Other("P", "UBX", UBLOX_NOVATEL_LOG.split(b"\r\n")[9])
     assert s.bytes_discarded > 200          # the comment and the #BESTPOSA line
@@ -216,8 +219,8 @@ def test_malformed_fields_are_counted_not_raised(body):
 
 def test_unknown_and_ais_are_kept_raw():
     ais = b"!AIVDM,1,1,,B,15M67FC000G?ufbE`FepT@3n00Sa,0*5C\r\n"
-    out, dec = decode(nmea.sentence("GPGSV,1,1,01,05,45,286,44") + ais + nmea.sentence("PGRME,15.0,M,45.0,M,25.0,M"))
-    assert [(o.talker, o.type) for o in out] == [("GP", "GSV"), ("AI", "VDM"), ("P", "GRME")]
+    out, dec = decode(nmea.sentence("GPGRS,101530.00,1,0.5,-0.2") + ais + nmea.sentence("PGRME,15.0,M,45.0,M,25.0,M"))
+    assert [(o.talker, o.type) for o in out] == [("GP", "GRS"), ("AI", "VDM"), ("P", "GRME")]
     assert out[1].raw == ais.rstrip()
     assert (dec.stats.unknown, dec.stats.proprietary) == (2, 1)
 

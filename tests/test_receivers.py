@@ -281,3 +281,46 @@ def test_novatel_binary_logs_match_ascii():
     np.testing.assert_allclose(s.pos_var, (1.25 ** 2, 1.5 ** 2, 9.0))
     np.testing.assert_allclose(s.vel_enu, (5.0, 0.0, -0.25), atol=1e-12)
     assert s.utc_ns == (gpsport.GPS_EPOCH_S + week * 604800 - 18) * NS + ms * 1_000_000
+
+
+def test_nmea_gns_gsa_gsv_hdt_gst_of_any_talker(tmp_path):
+    """A multi-constellation receiver without GGA: GNS gives the fix, GST (talker GA) the sigmas; GSA, GSV and
+    HDT are decoded and kept."""
+    s = nmea.sentence
+    log = b"".join([
+        s("GNGNS,092750.00,5321.6802,N,00630.3372,W,AAN,14,0.9,61.7,55.2,,,V"),
+        s("GNRMC,092750.00,A,5321.6802,N,00630.3372,W,0.02,31.66,280511,,,A"),
+        s("GAGST,092750.00,1.2,1.0,0.8,12.0,0.9,0.7,1.6"),
+        s("GNGSA,A,3,05,12,15,19,24,,,,,,,,1.6,0.9,1.3,1"),
+        s("GPGSV,2,1,07,05,60,120,45,12,35,045,41,15,20,300,38,19,10,200,"),
+        s("HEHDT,123.40,T"),
+        s("GNGNS,092751.00,5321.6803,N,00630.3370,W,DDN,14,0.9,61.8,55.2,,,V"),
+        s("GNRMC,092751.00,A,5321.6803,N,00630.3370,W,0.06,31.66,280511,,,A"),
+        s("GBGST,092751.00,1.2,1.0,0.8,12.0,1.1,0.6,1.9"),
+    ])
+    (tmp_path / "gns.nmea").write_bytes(log)
+    out = tmp_path / "gns.mcap"
+    assert fieldlog(["import", "--gps", str(tmp_path / "gns.nmea"), "--out", str(out)]) == 0
+    fix = reader.read_topic(out, "/gps/fix")
+    assert len(fix["log_time_ns"]) == 2 and np.all(fix["status"] >= 0)
+    np.testing.assert_allclose(fix["lat_deg"], [53 + 21.6802 / 60, 53 + 21.6803 / 60], atol=1e-9)
+    np.testing.assert_allclose(fix["alt_m"], [61.7 + 55.2, 61.8 + 55.2], atol=1e-6)
+    cov = fix["position_covariance"].reshape(-1, 3, 3)
+    np.testing.assert_allclose(cov[:, [0, 1, 2], [0, 1, 2]], [[0.7 ** 2, 0.9 ** 2, 1.6 ** 2],
+                                                               [0.6 ** 2, 1.1 ** 2, 1.9 ** 2]])
+    assert fix["status"][1] == 1                     # GNS mode D: differential (SBAS)
+    dec = nmea.NmeaDecoder()
+    kinds = [type(x).__name__ for x in dec.feed(log)]
+    assert kinds == ["Gns", "Rmc", "Gst", "Gsa", "Gsv", "Hdt", "Gns", "Rmc", "Gst"]
+    assert dec.stats.unknown == 0 and dec.stats.bad_fields == 0
+
+
+def test_new_nmea_decoders_never_raise_on_garbage_fields():
+    rng = np.random.default_rng(11)
+    alphabet = np.frombuffer(b"0123456789.,-+ENSWTAVDRFM*$_x\xff", np.uint8)
+    dec = nmea.NmeaDecoder()
+    for i in range(3000):
+        kind = ["GNS", "GSA", "GSV", "HDT", "GST"][i % 5]
+        body = b"GN" + kind.encode() + b"," + rng.choice(alphabet, int(rng.integers(0, 90))).tobytes()
+        dec.decode_line(b"$" + body + b"*%02X" % nmea.checksum(body))
+    assert sum(dec.stats.by_type.values()) == 3000

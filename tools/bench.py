@@ -413,6 +413,42 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
               f"us, final {rms((fin - tru)[late] / 1e3):.2f} us")
 
 
+def bench_qerr(runs: int, tmp: Path) -> None:
+    """u-blox TIM-TP qErr: IMU time-stamp RMS vs truth with and without it (300 s figure8, seeds 1..runs)."""
+    from fieldlog.acquire.pipeline import Pipeline
+    from fieldlog.acquire.timesync import TimeSyncConfig
+    from fieldlog.tools.sim import simulate, trajectory
+
+    class Stamps:
+        def __init__(self) -> None:
+            self.imu: list[np.ndarray] = []
+
+        def write(self, *_: object) -> None:
+            pass
+
+        def write_batch(self, topic: str, t: np.ndarray, _: object) -> None:
+            if topic == "/imu":
+                self.imu.append(np.asarray(t))
+
+    for mode in ("flag", "latch"):
+        res: dict[bool, list[float]] = {True: [], False: []}
+        for seed in range(1, runs + 1):
+            reads, tr, *_ = simulate.make_reads(trajectory.load_scenario("figure8"), 300.0, seed, mode, "ublox")
+            tru = tr["t0_ns"] + np.round(tr["t_k"] * 1e9).astype(np.int64)
+            for use in (True, False):
+                sink = Stamps()
+                pipe = Pipeline(sink, sync_cfg=TimeSyncConfig(pps_mode=mode, pulse_error=use))
+                for r in reads:
+                    pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+                pipe.finish()
+                err = (np.concatenate(sink.imu) - tru)[60 * 500:]     # after the first minute
+                res[use].append(float(np.sqrt(np.mean((err / 1e3) ** 2))))
+        unit = "us"
+        print(f"  {mode} PPS, u-blox: IMU stamp RMS vs truth with qErr {statistics.mean(res[True]):.4f} {unit}, "
+              f"without {statistics.mean(res[False]):.4f} {unit} (per seed with: "
+              f"{', '.join(f'{x:.4f}' for x in res[True])}; without: {', '.join(f'{x:.4f}' for x in res[False])})")
+
+
 def bench_view(runs: int, tmp: Path) -> None:
     """A 1-hour 500 Hz drive plus one fused method (kf) to .rrd (target <= 10 s), and the file size."""
     from fieldlog.fusion.engine import FusionConfig
@@ -523,7 +559,7 @@ def bench_cli(runs: int, tmp: Path) -> None:
 
 BENCHES = {"cli": bench_cli, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
-           "export": bench_export,
+           "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}
 
 
