@@ -134,8 +134,8 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
-             receiver: str | None = None, timesync: dict | None = None) -> SimResult:
-    """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``timesync``:
+             receiver: str | None = None, sync_settings: dict | None = None) -> SimResult:
+    """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
     more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``)."""
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
@@ -146,7 +146,8 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
             "drive_start_utc_ns": str(t0_ns), "imu_rate_hz": repr(float(ccfg.fs_hz)),
             "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
-    sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz, **(timesync or {})})
+    sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
+                                                  **(sync_settings or {})})
     with recorder.Recorder(out, metadata=meta) as rec:
         pipe = Pipeline(rec, cal, sync_cfg)
         for name, d in pipe.metadata().items():
