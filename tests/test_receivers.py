@@ -366,3 +366,25 @@ def test_every_scenario_plays_in_every_receiver_protocol(receiver):
                 assert sent >= 19 * rate - 6, name
                 assert (c.nmea_superseded >= 19 * rate - 6) if receiver == "ublox" else c.nmea_superseded == 0
         assert accepted[receiver] >= accepted["nmea"] - 2, (name, accepted)
+
+
+@pytest.mark.parametrize("name", ["ublox", "novatel"])
+def test_fusion_takes_the_receivers_accuracy_and_the_vertical_velocity(imported, name):
+    """The engine's GPS epochs carry the receiver's per-epoch covariances, and the velocity update keeps the
+    vertical row (NMEA's unobserved vertical is left out)."""
+    from fieldlog.fusion import kf
+    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.fusion.ins import NavState
+
+    path, tr = imported[name]
+    g = reader.gps_block(reader.read_topic(path, "/gps/fix"), reader.read_topic(path, "/gps/vel"))
+    np.testing.assert_allclose(g.pos_cov[:, 2, 2], (np.round(tr["vacc"], 3) if name == "ublox" else tr["sd"][:, 2]) ** 2,
+                               rtol=1e-3)
+    nav = NavState(0.0, math.radians(tr["lat"][0]), math.radians(tr["lon"][0]), tr["h"][0], tr["v"][0],
+                   np.array([0.0, 0.0, 0.0, 1.0]))
+    z, H, R = kf.velocity_measurement(nav, g.v_n[0], g.vel_cov[0], np.zeros(3), np.zeros(3),
+                                      FusionConfig().vel_var_max)
+    assert len(z) == 3 and abs(z[2]) < 1e-3
+    np.testing.assert_allclose(np.diag(R), np.diag(g.vel_cov[0]))
+    z_p, _, R_p = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, g.pos_cov[0], np.zeros(3))
+    np.testing.assert_allclose(R_p, g.pos_cov[0])
