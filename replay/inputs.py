@@ -172,6 +172,7 @@ def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None) -> Inpu
             root, r_imu, C_root_imu = _to_root(tf, imu_id)
             C = earth.BODY_FRAMES["flu"] @ C_root_imu  # the root is the REP-103 vehicle body, FLU
             frame, s_frame = _frame_name(C), f"{TF_STATIC}: {imu_id} in {root} (REP-103 FLU)"
+            C = earth.BODY_FRAMES.get(frame, C)  # a named frame exactly, without the quaternion's rounding
             gps_id = _first_frame_id(path, fix).lstrip("/")
             if gps_id in tf and _to_root(tf, gps_id)[0] == root:
                 lever = C @ C_root_imu.T @ (_to_root(tf, gps_id)[1] - r_imu)
