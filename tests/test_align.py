@@ -253,3 +253,12 @@ def test_realignment_by_chi_square(mems, tmp_path):
         first = (t > t[0] + 10.0) & (t < t[0] + 120.0)
         cover[window] = float(np.mean(np.abs(e[first]) <= 3.0 * s[first]))
     assert cover[120.0] > 0.95 and cover[0.0] < cover[120.0], cover
+
+
+def test_fuse_says_how_it_aligned(creep, tmp_path, capsys):
+    """`fieldlog fuse` prints how the heading was found, and why not by gyrocompassing (a MEMS gyro)."""
+    from fieldlog.tools.cli import main as fieldlog
+
+    assert fieldlog(["fuse", str(creep), "--method", "kf", "--out", str(tmp_path / "kf.mcap")]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("alignment: ")]
+    assert len(line) == 1 and "heading from the GPS course" in line[0] and "cannot see the Earth rate" in line[0], line

@@ -203,6 +203,8 @@ def cmd_fuse(a: argparse.Namespace) -> int:
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples ({res.imu_rate_hz:.0f} Hz, "
           f"{res.imu_gaps} gaps bridged, {res.imu_missing} samples missing), {res.updates} GPS updates, "
           f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
+    if res.alignment:
+        print(f"alignment: {res.alignment}")
     if not 100.0 <= res.imu_rate_hz <= 1000.0:
         print(f"fieldlog fuse: warning: IMU rate {res.imu_rate_hz:.0f} Hz is outside 100-1000 Hz", file=sys.stderr)
     if res.rows == 0 and a.method != "ins":
