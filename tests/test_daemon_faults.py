@@ -193,3 +193,27 @@ def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -
     got, _ = raw_stream(tmp_path / "rescued.mcap", "daq")
     assert len(got) > 100 * daq.FRAME_SIZE
     assert got == expected_bytes(truth, "figure8", 120.0, 2)["daq"][:len(got)]    # what it kept is intact
+
+
+def test_one_percent_corruption_in_ublox_mode_keeps_every_intact_ubx_message(tmp_path: Path) -> None:
+    """u-blox port (GGA + NAV-PVT + TIM-TP) with 1 % of the bytes corrupted: every byte is recorded as sent,
+    every UBX message without a corrupt byte is decoded into /gps/receiver, nothing else is (checksums)."""
+    from fieldlog.acquire import gpsport
+
+    f, truth, _ = record(tmp_path, "--corrupt", "0.01", "--receiver", "ublox", duration=20, seed=7)
+    clean = expected_bytes(truth, "figure8", 20.0, 7)
+    sent, pos = corrupt_stream(clean["gps"], 0.01, 7, "gps")
+    assert raw_stream(f, "gps")[0] == sent
+    framer = gpsport.Framer()
+    frames = framer.feed(clean["gps"])
+    hit = np.zeros(len(clean["gps"]), bool)
+    hit[pos] = True
+    intact = {fr for (k, fr), end in zip(frames, framer.ends) if k == "ubx" and not hit[end - len(fr):end].any()}
+    got = [bytes(m.data) for m in reader.read_topic(f, "/gps/receiver")["msgs"]]
+    assert intact <= set(got) <= {fr for k, fr in frames if k == "ubx"}
+    assert len(intact) >= 10               # (a 100-byte NAV-PVT survives 1 % corruption 37 % of the time)
+    c = read_metadata(f)["acquire.counters"]
+    assert int(c.get("gps.bad_checksum.ubx", 0)) > 0 and int(c.get("ubx.undecodable", 0)) == 0
+    # one fix per NAV-PVT, plus the GGA epochs before the first intact NAV-PVT; never two for one second
+    stamps = reader.read_topic(f, "/gps/fix")["log_time_ns"]
+    assert int(c["gps_epochs"]) >= sum(1 for fr in got if fr[2:4] == b"\x01\x07") and len(set(stamps)) == len(stamps)
