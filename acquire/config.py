@@ -54,7 +54,7 @@ STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 4
 NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
 
 
-GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel")   # acquire.gpsport.PROTOCOLS (config imports nothing of ours)
+GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel")   # the keys of acquire.gpsport.ACCEPTS (kept equal by a test)
 
 
 class ConfigError(ValueError):

@@ -31,7 +31,6 @@ UBX_SYNC = b"\xb5\x62"
 OEM_SYNC = b"\xaa\x44\x12"
 _STARTS = frozenset(b"$!#\xb5\xaa")
 _EOL = frozenset(b"\r\n")
-PROTOCOLS = ("auto", "nmea", "ubx", "novatel")
 # what each [gps] protocol setting decodes (NMEA always: u-blox and NovAtel ports send it too)
 ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
            "novatel": {"nmea", "novatel", "novatel_bin"}}

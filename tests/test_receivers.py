@@ -388,3 +388,28 @@ def test_fusion_takes_the_receivers_accuracy_and_the_vertical_velocity(imported,
     np.testing.assert_allclose(np.diag(R), np.diag(g.vel_cov[0]))
     z_p, _, R_p = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, g.pos_cov[0], np.zeros(3))
     np.testing.assert_allclose(R_p, g.pos_cov[0])
+
+
+def test_config_protocols_are_the_pipelines():
+    from fieldlog.acquire.config import GPS_PROTOCOLS
+
+    assert GPS_PROTOCOLS == tuple(gpsport.ACCEPTS)
+
+
+@pytest.mark.parametrize("protocol, fixes_from", [("auto", "ubx"), ("ubx", "ubx"), ("nmea", "nmea"),
+                                                  ("novatel", "nmea")])
+def test_gps_protocol_setting_selects_what_is_decoded(protocol, fixes_from):
+    from fieldlog.acquire.pipeline import Pipeline, PipelineConfig
+
+    data = _ublox_log(_truth(1))
+    sink = _Count()
+    pipe = Pipeline(sink, cfg=PipelineConfig(gps_protocol=protocol))
+    t = int(T0.timestamp()) * NS
+    for i in range(0, len(data), 500):
+        pipe.feed("gps", t + i * 1000, t + i * 1000, data[i:i + 500])
+    pipe.finish()
+    c = pipe.counters
+    assert c.gps_epochs == N_EPOCHS and sink.n["/gps/nmea"] == N_EPOCHS
+    assert sink.n.get("/gps/receiver", 0) == (2 * N_EPOCHS if fixes_from == "ubx" else 0)
+    assert c.gps_ignored == (0 if fixes_from == "ubx" else 2 * N_EPOCHS)
+    assert c.nmea_superseded == (N_EPOCHS if fixes_from == "ubx" else 0)
