@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import struct
+import threading
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -447,17 +448,17 @@ class Recorder:
 # Chunk content
 
 
-def _walk_records(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Records in an uncompressed chunk: opcode, start of the record body, body length; and the
-    number of bytes that form complete records. Compiled by numba when it is installed (fieldlog[fusion]);
+def _walk_records(buf: np.ndarray, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Records in ``buf`` from byte ``pos`` on (a chunk's content, or a whole file after its magic): opcode,
+    start of the record body, body length; and the end of the last complete record. ``cap``: the number of
+    records expected (the arrays grow past it). Compiled by numba when it is installed (fieldlog[fusion]);
     plain Python otherwise (about 6x slower: 65 ms against 11 ms for 7.7 MB of chunks)."""
     n = len(buf)
-    cap = max(n // 31 + 1, 16)
+    cap = max(cap, 16)
     ops = np.empty(cap, np.uint8)
     starts = np.empty(cap, np.int64)
     lengths = np.empty(cap, np.int64)
     k = 0
-    pos = 0
     while pos + 9 <= n:
         length = 0
         for b in range(8):
@@ -485,9 +486,18 @@ _walk_impl = None
 
 
 def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The records of an uncompressed chunk (``walk_records`` from its start)."""
+    return walk_records(buf, 0, len(buf) // 31 + 1)
+
+
+def walk_records(buf: np.ndarray, pos: int, cap: int, jit: bool = True, limit: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``_walk_records``, numba-compiled on first use when numba is installed (so importing the recorder, as
-    ``fieldlog acquire`` and ``info`` do, never loads numba)."""
+    ``fieldlog acquire`` and ``info`` do, never loads numba); ``jit`` False: the plain walk, stopping after
+    ``limit`` records (a file's top level: a few records, where compiling would cost more than it saves)."""
     global _walk_impl
+    if not jit:
+        return _walk_python(buf, pos, cap, limit)
     if _walk_impl is None:
         try:
             import numba
@@ -495,20 +505,20 @@ def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
             _walk_impl = _walk_python
         else:
             _walk_impl = numba.njit(cache=True)(_walk_records)
-    return _walk_impl(buf)
+    return _walk_impl(buf, pos, cap)
 
 
-def _walk_python(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _walk_python(buf: np.ndarray, pos: int, cap: int, limit: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``_walk_records`` without numba: the same walk over the bytes with ``struct`` (indexing numpy scalars in
-    an interpreted loop is much slower than unpacking from ``bytes``)."""
-    data = buf.tobytes()
+    an interpreted loop is much slower than unpacking from a buffer)."""
+    data = buf if isinstance(buf, (bytes, memoryview)) else memoryview(buf)
     n = len(data)
     ops: list[int] = []
     starts: list[int] = []
     lengths: list[int] = []
     unpack = struct.Struct("<BQ").unpack_from
-    pos = 0
-    while pos + 9 <= n:
+    while pos + 9 <= n and (limit is None or len(ops) < limit):
         op, length = unpack(data, pos)
         if length >= 1 << 63 or pos + 9 + length > n:
             break
@@ -562,19 +572,34 @@ class ChunkMessages:
 
 def decompress_chunk(chunk: Chunk) -> bytes:
     """Uncompressed chunk bytes; raises ValueError if the size or CRC does not match."""
-    if chunk.compression == "zstd":
-        data = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
-    elif chunk.compression == "lz4":
+    return decompress(chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc)
+
+
+_ZSTD = threading.local()
+
+
+def _zstd() -> "zstandard.ZstdDecompressor":
+    """This thread's zstd decompressor (making one costs more than decompressing a 4 KiB chunk)."""
+    d = getattr(_ZSTD, "d", None)
+    if d is None:
+        d = _ZSTD.d = zstandard.ZstdDecompressor()
+    return d
+
+
+def decompress(compression: str, data, size: int, crc: int):
+    """A chunk's records, uncompressed (``data``: bytes or a buffer; returned as it is when not compressed);
+    raises ValueError if the size or the CRC (0: none) does not match."""
+    if compression == "zstd":
+        data = _zstd().decompress(data, max_output_size=size)
+    elif compression == "lz4":
         import lz4.frame
 
-        data = lz4.frame.decompress(chunk.data)
-    elif chunk.compression == "":
-        data = chunk.data
-    else:
-        raise ValueError(f"unknown compression {chunk.compression!r}")
-    if len(data) != chunk.uncompressed_size:
+        data = lz4.frame.decompress(data)
+    elif compression != "":
+        raise ValueError(f"unknown compression {compression!r}")
+    if len(data) != size:
         raise ValueError("chunk size mismatch")
-    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+    if crc != 0 and zlib.crc32(data) != crc:
         raise ValueError("chunk CRC mismatch")
     return data
 
@@ -582,7 +607,11 @@ def decompress_chunk(chunk: Chunk) -> bytes:
 def chunk_messages(data: bytes) -> ChunkMessages:
     """Parse the Message records of an uncompressed chunk, vectorised (numba record walk)."""
     buf = np.frombuffer(data, dtype=np.uint8)
-    ops, starts, lengths, _ = _walk(buf)
+    return messages_of(buf, *_walk(buf)[:3])
+
+
+def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> ChunkMessages:
+    """The Message records among walked records (``walk_records``) of ``buf``, as arrays."""
     is_msg = (ops == Opcode.MESSAGE) & (lengths >= 22)
     s, ln = starts[is_msg], lengths[is_msg]
     hdr = buf[s[:, None] + np.arange(22)]

@@ -1,4 +1,6 @@
-"""A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE --out DIR``.
+"""A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE... --out DIR``.
+
+A drive of several files (a rotated session, a rosbag2 directory: ``replay.drive``) gives one table per topic.
 
 One table per topic, one row per MCAP message, in ``log_time`` order; ``fieldlog export`` writes ``/raw/*``
 in recorded order instead (the same unless the host wall clock stepped back), streaming. Written as
@@ -46,10 +48,10 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
-from mcap.reader import make_reader
 
 from fieldlog.acquire import messages
 from fieldlog.replay import reader
+from fieldlog.replay.drive import DriveSpec, drive_files
 
 
 def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:
@@ -73,15 +75,14 @@ def _generic(d: dict, fields: dict[str, Callable]) -> dict[str, object]:
     return cols
 
 
-def _pps_sources(path: str | os.PathLike[str], topic: str) -> list[str | None]:
+def _pps_sources(path: DriveSpec, topic: str) -> list[str | None]:
     dec = messages.decoder_for(messages.TIMEREF)
     out = []
-    with open(path, "rb") as f:
-        for _, _, msg in make_reader(f).iter_messages(topics=[topic], log_time_order=True):
-            try:
-                out.append(dec(msg.data).source)
-            except Exception:  # bad payload: it is already marked invalid by the batch decoder
-                out.append(None)
+    for data in reader.read_payloads(path, topic)[2]:
+        try:
+            out.append(dec(data).source)
+        except Exception:  # bad payload: it is already marked invalid by the batch decoder
+            out.append(None)
     return out
 
 
@@ -95,7 +96,7 @@ def _binary(p: messages.Packed) -> pl.Series:
     return pl.from_arrow(arr).cast(pl.Binary)
 
 
-def topic_frame(path: str | os.PathLike[str], topic: str, type_name: str) -> pl.DataFrame:
+def topic_frame(path: DriveSpec, topic: str, type_name: str) -> pl.DataFrame:
     """One topic as a DataFrame (columns: module docstring)."""
     d = reader.read_raw(path, topic) if type_name == messages.RAWBYTES else reader.read_topic(path, topic)
     return _frame(d, type_name, path, topic)
@@ -106,7 +107,7 @@ _STREAMED = (messages.IMU, messages.NAVSATFIX, messages.TWIST, messages.QUATERNI
              messages.TIMESYNC)
 
 
-def topic_batches(path: str | os.PathLike[str], topic: str, type_name: str) -> Iterator[pl.DataFrame]:
+def topic_batches(path: DriveSpec, topic: str, type_name: str) -> Iterator[pl.DataFrame]:
     """One topic as consecutive DataFrames, so that memory holds one block: ``/raw/*`` one MCAP chunk at a
     time in recorded order, the typed sensor topics ``EXPORT_BLOCK_S`` of log time at a time, the small
     ones (sentences, PPS, outages) whole."""
@@ -121,7 +122,7 @@ def topic_batches(path: str | os.PathLike[str], topic: str, type_name: str) -> I
             yield _frame(d, type_name, path, topic)
 
 
-def _frame(d: dict, type_name: str, path: str | os.PathLike[str], topic: str) -> pl.DataFrame:
+def _frame(d: dict, type_name: str, path: DriveSpec, topic: str) -> pl.DataFrame:
     cols: dict[str, object] = {"log_time_ns": d["log_time_ns"]}
     if type_name == messages.IMU:
         cols["stamp_ns"] = d["stamp_ns"]
@@ -192,7 +193,7 @@ def _frame(d: dict, type_name: str, path: str | os.PathLike[str], topic: str) ->
     return pl.DataFrame(cols)
 
 
-def _topic_types(path: str | os.PathLike[str], topics: Sequence[str] | None) -> list[tuple[str, str]]:
+def _topic_types(path: DriveSpec, topics: Sequence[str] | None) -> list[tuple[str, str]]:
     infos = reader.topics(path)
     if topics is not None:
         known = {t.topic for t in infos}
@@ -203,7 +204,7 @@ def _topic_types(path: str | os.PathLike[str], topics: Sequence[str] | None) -> 
     return [(t.topic, t.type) for t in infos]
 
 
-def drive_frames(path: str | os.PathLike[str], topics: Sequence[str] | None = None) -> dict[str, pl.DataFrame]:
+def drive_frames(path: DriveSpec, topics: Sequence[str] | None = None) -> dict[str, pl.DataFrame]:
     """A drive as ``{topic: DataFrame}`` (all topics, or ``topics``); columns in the module docstring."""
     return {topic: topic_frame(path, topic, type_name) for topic, type_name in _topic_types(path, topics)}
 
@@ -225,14 +226,13 @@ def table_path(out: Path, topic: str, fmt: str) -> Path:
     return out.joinpath(*topic.strip("/").split("/")).with_suffix(f".{fmt}")
 
 
-def export(path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: str = "parquet",
+def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            topics: Sequence[str] | None = None,
            progress: Callable[[float], None] | None = None) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}."""
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"format must be parquet or csv, got {fmt!r}")
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path} does not exist")
+    drive_files(path)  # FileNotFoundError naming a missing file
     out = Path(out)
     todo = _topic_types(path, topics)
     written: dict[str, tuple[Path, int]] = {}

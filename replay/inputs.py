@@ -28,8 +28,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
-from mcap.reader import make_reader
-from mcap_ros2.decoder import DecoderFactory
 
 from fieldlog.acquire import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
@@ -111,22 +109,19 @@ def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, nativ
 
 
 def _first_frame_id(path: str | os.PathLike[str], topic: str) -> str:
-    with open(path, "rb") as f:
-        for _, _, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=[topic]):
-            return str(msg.header.frame_id)
+    for msg in reader.iter_decoded(path, topic):
+        return str(msg.header.frame_id)
     return ""
 
 
 def tf_static(path: str | os.PathLike[str]) -> dict[str, tuple[str, np.ndarray, np.ndarray]]:
     """The drive's static transforms: child frame -> (parent frame, translation (3,) m, C_parent_child (3, 3))."""
     out: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
-    with open(path, "rb") as f:
-        for _, _, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
-                topics=[TF_STATIC]):
-            for tr in msg.transforms:
-                t, r = tr.transform.translation, tr.transform.rotation
-                out[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), np.array([t.x, t.y, t.z]),
-                                                      earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w])))
+    for msg in reader.iter_decoded(path, TF_STATIC):
+        for tr in msg.transforms:
+            t, r = tr.transform.translation, tr.transform.rotation
+            out[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), np.array([t.x, t.y, t.z]),
+                                                  earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w])))
     return out
 
 

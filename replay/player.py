@@ -31,6 +31,7 @@ import rerun.blueprint as rrb
 from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock, Outage, Solution
 from fieldlog.replay import reader
 from fieldlog.replay import inputs
+from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.reader import IN_TOPICS, gps_block
 from fieldlog.replay import view as rv
 
@@ -289,21 +290,19 @@ def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: 
     return res
 
 
-def replay(drive: str | os.PathLike[str], method: str, speed: float, rrd: str | os.PathLike[str] | None = None,
+def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[str] | None = None,
            connect: str | None = None, config: FusionConfig | None = None,
            progress: Callable[[float], None] | None = None, imap: inputs.InputMap | None = None) -> ReplayResult:
     """Play ``drive`` into a rerun viewer: ``connect`` (a gRPC URL, e.g. ``rerun+http://127.0.0.1:9876/proxy``),
     else the ``rrd`` file, else a spawned viewer. ``imap``: the topics and IMU frame of another logger's drive
     (``replay.inputs.resolve``; None: fieldlog's own)."""
-    if not Path(drive).is_file():
-        raise FileNotFoundError(f"{drive} does not exist")
     if imap is not None and not imap.native:
         tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
         blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])
     else:
         tops = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
         if not any(t.topic == "/imu" for t in tops):
-            raise ValueError(f"{drive}: no /imu messages")
+            raise ValueError(f"{label(drive)}: no /imu messages")
         blocks = reader.iter_blocks(drive, TOPICS, PLAY_BLOCK_S)
     _check_sink(rrd, connect)
     span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))

@@ -1,11 +1,15 @@
 """Read a drive (MCAP) back as numpy arrays, whole topics or streaming blocks.
 
-The hot path never decodes one message at a time: chunks are located through the summary's
-chunk indexes, decompressed, their message records parsed with a vectorised walk
-(``acquire.recorder.chunk_messages``), and the payloads of each topic decoded as one batch by
-the vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA
-sentences, outages) are decoded per message with mcap_ros2's decoder; they are low rate.
-``/raw/*`` (``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
+A drive is one MCAP file, several, a rotated session directory or a rosbag2 directory
+(``replay.drive``); its files are walked once each (``replay.mcapfile``: any valid layout, with or
+without summary and indexes, messages in or outside chunks) into *pieces* (chunks, runs of messages
+outside chunks), which are read in one log-time order across the files. The hot path never decodes
+one message at a time: consecutive pieces are decompressed and joined (``READ_BYTES`` at a time, so
+small chunks cost little more than large ones), their message records parsed with a vectorised walk
+(``acquire.recorder.walk_records``), and the payloads of each topic decoded as one batch by the
+vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA sentences,
+outages) are decoded per message with mcap_ros2's decoder; they are low rate. ``/raw/*``
+(``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
 (``decode_raw_batch``: a vectorised walk of its CDR layout); ``read_topic`` keeps the per-message
 objects for it.
 
@@ -17,16 +21,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator, Sequence
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import numpy as np
-from mcap.reader import make_reader
-from mcap.records import Chunk, ChunkIndex
-from mcap.data_stream import ReadDataStream
-from mcap.summary import Summary
 
 from fieldlog.acquire import messages
-from fieldlog.acquire.recorder import ChunkMessages, chunk_messages, decompress_chunk
+from fieldlog.acquire.recorder import ChunkMessages
+from fieldlog.replay.drive import DriveSpec, label, open_drive
+from fieldlog.replay.mcapfile import McapFile, Piece
 
 if TYPE_CHECKING:
     from fieldlog.fusion.engine import GpsBlock
@@ -48,35 +50,6 @@ class Block:
     t0_ns: int
     t1_ns: int
     data: dict[str, dict[str, object]]
-
-
-def _summary(f) -> Summary:
-    summary = make_reader(f).get_summary()
-    if summary is None or summary.statistics is None:
-        raise ValueError("MCAP file has no summary (cut short?): run `fieldlog recover` first")
-    return summary
-
-
-def _channel_ids(summary: Summary, topics: Sequence[str]) -> dict[int, str]:
-    return {cid: ch.topic for cid, ch in summary.channels.items() if ch.topic in topics}
-
-
-def _type_of(summary: Summary, cid: int) -> str:
-    return summary.schemas[summary.channels[cid].schema_id].name
-
-
-def _read_chunk(f, ci: ChunkIndex) -> ChunkMessages:
-    f.seek(ci.chunk_start_offset + 9)
-    return chunk_messages(decompress_chunk(Chunk.read(ReadDataStream(f))))
-
-
-def _chunks_for(summary: Summary, cids: set[int]) -> list[ChunkIndex]:
-    out = [
-        ci
-        for ci in summary.chunk_indexes
-        if not ci.message_index_offsets or cids & set(ci.message_index_offsets)
-    ]
-    return sorted(out, key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
 
 
 def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -> dict[str, object]:
@@ -102,11 +75,6 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
     return {"log_time_ns": log_time_ns, "msgs": msgs, "valid": np.array(ok, dtype=bool)}
 
 
-def _select(cm: ChunkMessages, cid: int) -> tuple[np.ndarray, messages.Packed]:
-    sel = cm.select(cm.channel_id == cid)
-    return sel.log_time, sel.packed()
-
-
 def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
     """Batches (log_time_ns, payloads) joined in order into one."""
     if len(parts) == 1:
@@ -120,102 +88,180 @@ def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray,
     return t, messages.Packed(buf, offsets)
 
 
-def topics(path: str | os.PathLike[str]) -> list[TopicInfo]:
-    """Topics in a drive from its summary: type, message count, first/last log_time (exact,
-    from the message indexes; chunk bounds when a chunk has none)."""
-    with open(path, "rb") as f:
-        s = _summary(f)
-        first: dict[int, int] = {}
-        last: dict[int, int] = {}
-        for ci in s.chunk_indexes:
-            items = ci.message_index_offsets.items()
-            for cid, off in items:
-                f.seek(off + 1)
-                length = int.from_bytes(f.read(8), "little")
-                body = f.read(length)
-                entries = np.frombuffer(body, dtype="<u8", offset=6).reshape(-1, 2)
-                if len(entries):
-                    lo, hi = int(entries[:, 0].min()), int(entries[:, 0].max())
-                    first[cid] = min(first.get(cid, lo), lo)
-                    last[cid] = max(last.get(cid, hi), hi)
-            if not items:
-                for cid in s.channels:
-                    first[cid] = min(first.get(cid, ci.message_start_time), ci.message_start_time)
-                    last[cid] = max(last.get(cid, ci.message_end_time), ci.message_end_time)
-        counts = s.statistics.channel_message_counts
-        return [
-            TopicInfo(ch.topic, _type_of(s, cid), counts.get(cid, 0), first.get(cid, 0), last.get(cid, 0))
-            for cid, ch in sorted(s.channels.items())
-        ]
+# -- the file layer: a drive's pieces, read in groups ----------------------------------------------------
+
+READ_BYTES = 4 << 20  # consecutive small chunks (or loose runs) are read together up to this many bytes
 
 
-def read_topic(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
+def _may_hold(p: Piece, wanted: dict[McapFile, tuple[set[int], set[int]]]) -> bool:
+    """Whether piece ``p`` may hold messages of the topics whose channels are ``wanted[file][0]`` (a channel
+    not among the file's known ones ``wanted[file][1]``: yes)."""
+    if p.channels is None:
+        return True
+    cids, known = wanted[p.file]
+    return bool(p.channels & cids) or not p.channels <= known
+
+
+def piece_groups(files: list[McapFile], topics: Sequence[str], file_order: bool = False,
+                 keep: Callable[[Piece], bool] | None = None) -> Iterator[list[Piece]]:
+    """The pieces that may hold ``topics`` (and pass ``keep``), in log-time order (by first log_time;
+    ``file_order``: file by file, in file order), grouped so that consecutive pieces of one file are read
+    together (``McapFile.read``) up to READ_BYTES."""
+    wanted = {f: ({c for c, ch in f.channels.items() if ch.topic in topics}, set(f.channels)) for f in files}
+    pieces = [(k, p) for k, f in enumerate(files) for p in f.pieces
+              if _may_hold(p, wanted) and (keep is None or keep(p))]
+    pieces.sort(key=(lambda kp: (kp[0], kp[1].offset)) if file_order else
+                (lambda kp: (kp[1].start_ns, kp[0], kp[1].offset)))
+    group: list[Piece] = []
+    size = 0
+    for _, p in pieces:
+        if group and (p.file is not group[0].file or size + p.size > READ_BYTES):
+            yield group
+            group, size = [], 0
+        group.append(p)
+        size += p.size
+    if group:
+        yield group
+
+
+def _cids(f: McapFile, topic: str) -> list[int]:
+    return [cid for cid, ch in f.channels.items() if ch.topic == topic]
+
+
+def _select(cm: ChunkMessages, cids: list[int]) -> tuple[np.ndarray, np.ndarray, messages.Packed]:
+    """(log_time, publish_time, payloads) of the messages on ``cids``."""
+    if len(cids) == 1:
+        sel = cm.select(cm.channel_id == cids[0])
+    else:
+        sel = cm.select(np.isin(cm.channel_id, cids))
+    return sel.log_time, sel.publish_time, sel.packed()
+
+
+def _type(files: list[McapFile], topic: str) -> str | None:
+    for f in files:
+        for cid in _cids(f, topic):
+            return f.type_of(cid)
+    return None
+
+
+def topics(path: DriveSpec) -> list[TopicInfo]:
+    """Topics in a drive: type, message count, first/last log_time (exact: from the message indexes, the
+    headers of messages outside chunks, or the messages of chunks without indexes). Several files: summed
+    per topic."""
+    out: dict[str, list] = {}
+    for f in open_drive(path):
+        stats = f.channel_stats()
+        for cid, ch in sorted(f.channels.items()):
+            n, lo, hi = stats.get(cid, (0, 0, 0))
+            cur = out.setdefault(ch.topic, [f.type_of(cid), 0, 0, 0])
+            if n:
+                cur[2] = lo if not cur[1] else min(cur[2], lo)
+                cur[3] = hi if not cur[1] else max(cur[3], hi)
+                cur[1] += n
+    return [TopicInfo(t, typ, n, lo, hi) for t, (typ, n, lo, hi) in out.items()]
+
+
+def read_payloads(path: DriveSpec, topic: str, file_order: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, messages.Packed]:
+    """All messages of one topic, undecoded: (log_time_ns, publish_time_ns, payloads), sorted by log_time
+    (stable), or as recorded (``file_order``). KeyError when no file of the drive has the topic."""
+    files = open_drive(path)
+    parts = []
+    for group in piece_groups(files, [topic], file_order):
+        f = group[0].file
+        cm = f.read(group)
+        t, pub, p = _select(cm, _cids(f, topic))
+        if len(t):
+            parts.append((t, pub, p))
+    if not any(_cids(f, topic) for f in files):
+        raise KeyError(f"topic {topic!r} not in {label(path)}")
+    t, p = concat([(a, c) for a, _, c in parts])
+    pub = np.concatenate([b for _, b, _ in parts]) if parts else np.zeros(0, np.int64)
+    if not file_order and len(t) and np.any(np.diff(t) < 0):
+        order = np.argsort(t, kind="stable")
+        t, pub, p = t[order], pub[order], _take_runs(p, order)
+    return t, pub, p
+
+
+def read_topic(path: DriveSpec, topic: str) -> dict[str, object]:
     """All messages of one topic, decoded into arrays, sorted by log_time."""
-    with open(path, "rb") as f:
-        s = _summary(f)
-        cids = _channel_ids(s, [topic])
+    t, _, p = read_payloads(path, topic)
+    return decode(_type(open_drive(path), topic) or "", t, p)
+
+
+def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
+    """The messages of one topic decoded one by one with mcap_ros2 from the file's own schema (any type; slow:
+    for low-rate topics such as /tf_static), in log-time order."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    factory = DecoderFactory()
+    for group in piece_groups(open_drive(path), [topic]):
+        f = group[0].file
+        cids = _cids(f, topic)
         if not cids:
-            raise KeyError(f"topic {topic!r} not in {path}")
-        (cid,) = cids
-        parts = [_select(_read_chunk(f, ci), cid) for ci in _chunks_for(s, {cid})]
-        t, p = concat(parts)
-        return decode(_type_of(s, cid), t, p)
+            continue
+        t, _, p = _select(f.read(group), cids)
+        ch = f.channels[cids[0]]
+        dec = factory.decoder_for(ch.message_encoding, f.schemas.get(ch.schema_id))
+        for i in np.argsort(t, kind="stable").tolist():
+            yield dec(p[i])
 
 
-def iter_blocks(
-    path: str | os.PathLike[str], topics: Sequence[str], block_s: float
-) -> Iterator[Block]:
+def metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
+    """Every metadata record of the drive: file by file (in log-time order), in file order."""
+    return [(m.name, dict(m.metadata)) for f in open_drive(path) for m in f.metadata()]
+
+
+def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Iterator[Block]:
     """Stream a drive in consecutive blocks of ``block_s`` seconds of log_time.
 
     Blocks start at the first message of the selected topics and follow each other without
-    gaps (a block may be empty for some topics). Memory holds only the chunks that overlap the
-    block being built.
+    gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
+    messages outside chunks) that overlap the block being built. Several files are one drive: their
+    pieces are read in one log-time order, across the file boundaries.
     """
     step = int(round(block_s * 1e9))
     if step <= 0:
         raise ValueError("block_s must be > 0")
-    with open(path, "rb") as f:
-        s = _summary(f)
-        cids = _channel_ids(s, topics)
-        chunks = _chunks_for(s, set(cids))
-        if not chunks:
-            return
-        types = {cid: _type_of(s, cid) for cid in cids}
-        pending: dict[int, list[tuple[np.ndarray, messages.Packed]]] = {cid: [] for cid in cids}
-        t0: int | None = None
-        k = 0
+    files = open_drive(path)
+    types: dict[str, str] = {}
+    pending: dict[str, list[tuple[np.ndarray, messages.Packed]]] = {}
+    t0: int | None = None
 
-        def emit(t_end: int | None) -> Iterator[Block]:
-            nonlocal t0
-            while t0 is not None and (t_end is None or t0 + step <= t_end):
-                t1 = t0 + step
-                data: dict[str, dict[str, object]] = {}
-                left = 0
-                for cid, parts in pending.items():
-                    t, p = concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
-                    inside = t < t1
-                    idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
-                    data[cids[cid]] = decode(types[cid], t[idx_in], _take(p, idx_in))
-                    pending[cid] = [(t[idx_out], _take(p, idx_out))] if len(idx_out) else []
-                    left += len(idx_out)
-                yield Block(t0, t1, data)
-                t0 = t1
-                if t_end is None and left == 0:
-                    t0 = None
+    def emit(t_end: int | None) -> Iterator[Block]:
+        nonlocal t0
+        while t0 is not None and (t_end is None or t0 + step <= t_end):
+            t1 = t0 + step
+            data: dict[str, dict[str, object]] = {}
+            left = 0
+            for topic, parts in pending.items():
+                t, p = concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
+                inside = t < t1
+                idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
+                data[topic] = decode(types[topic], t[idx_in], _take(p, idx_in))
+                pending[topic] = [(t[idx_out], _take(p, idx_out))] if len(idx_out) else []
+                left += len(idx_out)
+            yield Block(t0, t1, data)
+            t0 = t1
+            if t_end is None and left == 0:
+                t0 = None
 
-        while k < len(chunks):
-            ci = chunks[k]
-            yield from emit(ci.message_start_time)
-            cm = _read_chunk(f, ci)
-            for cid in cids:
-                t, p = _select(cm, cid)
-                if len(t):
-                    pending[cid].append((t, p))
-                    if t0 is None:
-                        t0 = int(t.min())
-                    t0 = min(t0, int(t.min()))
-            k += 1
-        yield from emit(None)
+    for group in piece_groups(files, topics):
+        yield from emit(group[0].start_ns)
+        f = group[0].file
+        cm = f.read(group)
+        for topic in topics:
+            cids = _cids(f, topic)
+            if not cids:
+                continue
+            if topic not in types:
+                types[topic] = f.type_of(cids[0])
+                pending[topic] = []
+            t, _, p = _select(cm, cids)
+            if len(t):
+                pending[topic].append((t, p))
+                t0 = int(t.min()) if t0 is None else min(t0, int(t.min()))
+    yield from emit(None)
 
 
 def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
@@ -308,16 +354,6 @@ def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
             "valid": ok}
 
 
-def _raw_cid(s: Summary, topic: str) -> int:
-    cids = _channel_ids(s, [topic])
-    if not cids:
-        raise KeyError(f"topic {topic!r} not in the drive")
-    (cid,) = cids
-    if _type_of(s, cid) != messages.RAWBYTES:
-        raise ValueError(f"{topic} is not {messages.RAWBYTES}")
-    return cid
-
-
 def _take_runs(p: messages.Packed, order: np.ndarray) -> messages.Packed:
     """``p.take(order)`` for an order made of few consecutive runs (a nearly sorted batch): one slice per run
     instead of a per-byte index (which would be 8 bytes of index per payload byte)."""
@@ -332,37 +368,34 @@ def _take_runs(p: messages.Packed, order: np.ndarray) -> messages.Packed:
     return messages.Packed(buf, offsets)
 
 
-def _raw_chunks(s: Summary, cid: int) -> list[ChunkIndex]:
-    """The chunks holding ``cid`` in file order, which is the order of the reads (``_chunks_for`` orders by
-    the chunks' first log_time, which the lagging ``/imu`` stamps pull back)."""
-    return sorted(_chunks_for(s, {cid}), key=lambda c: c.chunk_start_offset)
+def _raw_type(path: DriveSpec, topic: str) -> None:
+    typ = _type(open_drive(path), topic)
+    if typ is not None and typ != messages.RAWBYTES:
+        raise ValueError(f"{topic} is not {messages.RAWBYTES}")
 
 
-def read_raw(path: str | os.PathLike[str], topic: str) -> dict[str, object]:
+def read_raw(path: DriveSpec, topic: str) -> dict[str, object]:
     """All reads of a ``/raw/*`` topic in log_time order: ``log_time_ns`` plus the ``decode_raw_batch`` fields."""
-    with open(path, "rb") as f:
-        s = _summary(f)
-        cid = _raw_cid(s, topic)
-        t, p = concat([_select(_read_chunk(f, ci), cid) for ci in _raw_chunks(s, cid)])
-    if np.any(np.diff(t) < 0):  # the host wall clock stepped back
-        order = np.argsort(t, kind="stable")
-        t, p = t[order], _take_runs(p, order)
+    t, _, p = read_payloads(path, topic)  # KeyError without the topic
+    _raw_type(path, topic)
     return {"log_time_ns": t, **decode_raw_batch(p)}
 
 
-def iter_raw_batches(path: str | os.PathLike[str], topic: str) -> Iterator[dict[str, object]]:
-    """The reads of a ``/raw/*`` topic in the order they were recorded (file order, one batch per chunk;
-    not sorted by log_time, which is the host wall clock): ``log_time_ns`` plus the ``decode_raw_batch``
-    fields. A drive without ``topic`` yields nothing (a port that never delivered a byte)."""
-    with open(path, "rb") as f:
-        s = _summary(f)
-        if not _channel_ids(s, [topic]):
-            return
-        cid = _raw_cid(s, topic)
-        for ci in _raw_chunks(s, cid):
-            t, p = _select(_read_chunk(f, ci), cid)
-            if len(t):
-                yield {"log_time_ns": t, **decode_raw_batch(p)}
+def iter_raw_batches(path: DriveSpec, topic: str) -> Iterator[dict[str, object]]:
+    """The reads of a ``/raw/*`` topic in the order they were recorded (file by file, in file order; one batch
+    per group of chunks; not sorted by log_time, which is the host wall clock): ``log_time_ns`` plus the
+    ``decode_raw_batch`` fields. A drive without ``topic`` yields nothing (a port that never delivered a byte)."""
+    files = open_drive(path)
+    for group in piece_groups(files, [topic], file_order=True):
+        f = group[0].file
+        cids = _cids(f, topic)
+        if not cids:
+            continue
+        if f.type_of(cids[0]) != messages.RAWBYTES:
+            raise ValueError(f"{topic} is not {messages.RAWBYTES}")
+        t, _, p = _select(f.read(group), cids)
+        if len(t):
+            yield {"log_time_ns": t, **decode_raw_batch(p)}
 
 
 # -- what fusion reads ---------------------------------------------------------------------------------

@@ -1,5 +1,8 @@
 """``fieldlog view DRIVE.mcap [FUSED.mcap ...] [--rrd OUT.rrd]``: a drive and its fused solutions in rerun.
 
+The drive may be several files (a rotated session's directory, a rosbag2 directory, or more files before the
+fused ones: ``split_fused``); they are shown as one drive.
+
 Everything is logged on one timeline, ``gps_time`` (UTC timestamps: the MCAP ``log_time`` of the derived
 topics), with ``rr.send_columns`` in blocks; the IMU is streamed in ``IMU_BLOCK_S`` blocks, so memory does not
 grow with the 500 Hz data. A default blueprint is sent with the recording (``blueprint()``).
@@ -54,6 +57,7 @@ import rerun.blueprint as rrb
 
 from fieldlog.fusion import earth
 from fieldlog.replay import inputs, reader
+from fieldlog.replay.drive import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 
 TIMELINE = "gps_time"
@@ -148,7 +152,7 @@ def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray,
 # Reading
 
 
-def _topic_names(path: str | os.PathLike[str]) -> dict[str, int]:
+def _topic_names(path: DriveSpec) -> dict[str, int]:
     return {t.topic: t.count for t in reader.topics(path)}
 
 
@@ -207,6 +211,16 @@ def _outages(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[int, int]]:
             d = reader.read_topic(p, "/fusion/outage")
             windows += [(int(m.start_ns), int(m.end_ns)) for m in d["msgs"] if m is not None]
     return merge_windows(windows)
+
+
+def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
+    """``fieldlog view A B C ...``: the first path and every later one without ``/fusion/*/fix`` topics are the
+    drive's files (a directory is one of them); files with fused solutions are the fused ones."""
+    drive, fused = [paths[0]], []
+    for p in paths[1:]:
+        is_fused = Path(p).is_file() and any(t.startswith("/fusion/") and t.endswith("/fix") for t in _topic_names(p))
+        (fused if is_fused else drive).append(p)
+    return drive, fused
 
 
 def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str, Path]]:
@@ -323,7 +337,7 @@ LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass a
 }
 
 
-def _read_drive(rec: rr.RecordingStream, drive: str | os.PathLike[str], names: dict[str, int],
+def _read_drive(rec: rr.RecordingStream, drive: DriveSpec, names: dict[str, int],
                 progress: Callable[[float], None] | None = None, imap: InputMap | None = None
                 ) -> tuple[dict[str, dict[str, np.ndarray]], int]:
     """One streaming pass (each chunk decompressed once): /imu is logged block by block, decimated by means of
@@ -411,7 +425,7 @@ def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
     )
 
 
-def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
+def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
           progress: Callable[[float], None] | None = None, inputs: InputMap | None = None) -> ViewResult:
     """Log a drive and its fused files into ``rec`` (which must already have its sink); ``inputs``: the topics
     and IMU frame of another logger's drive (``replay.inputs.resolve``)."""
@@ -419,7 +433,7 @@ def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequenc
     if inputs is not None and not inputs.native:  # another logger's topics, under fieldlog's names
         names = {**names, **{n: names.get(t, 0) for t, n in zip(inputs.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
     files = [drive, *fused]
-    methods = discover_methods(files)
+    methods = discover_methods(files if isinstance(drive, (str, os.PathLike)) else fused)
     low, imu_rows = _read_drive(rec, drive, names, progress, inputs)
     gps, epochs_t, no_fix = None, np.zeros(0, np.int64), np.zeros(0, bool)
     if "/gps/fix" in low:
@@ -428,7 +442,7 @@ def build(rec: rr.RecordingStream, drive: str | os.PathLike[str], fused: Sequenc
     fused_trk = [(m, _fused(p, m.split("@")[0])) for m, p in methods]
     candidates = [t for t in [gps, truth, *(f for _, f in fused_trk)] if t is not None and len(t.t_ns)]
     if not candidates:
-        raise ValueError(f"{drive}: no /gps/fix, /truth/fix or /fusion/*/fix positions to show")
+        raise ValueError(f"{label(drive)}: no /gps/fix, /truth/fix or /fusion/*/fix positions to show")
     o = candidates[0]
     ok_alt = np.isfinite(o.alt_m)
     origin = (float(o.lat_deg[0]), float(o.lon_deg[0]), float(o.alt_m[ok_alt][0]) if ok_alt.any() else 0.0)
@@ -502,11 +516,12 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def view(drive: str | os.PathLike[str], fused: Sequence[str | os.PathLike[str]] = (),
+def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
          rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None,
          inputs: InputMap | None = None) -> ViewResult:
     """Write ``rrd`` (streamed to the file as it is logged), or spawn the rerun viewer when ``rrd`` is None."""
-    for p in (drive, *fused):
+    drive_files(drive)  # FileNotFoundError naming a missing file
+    for p in fused:
         if not Path(p).is_file():
             raise FileNotFoundError(f"{p} does not exist")
     if rrd is None and not has_display():

@@ -557,7 +557,31 @@ def bench_cli(runs: int, tmp: Path) -> None:
     print(f"fieldlog info --scan, 1 h:    {med:6.2f} s  (reading every /imu, /gps/fix, /time/sync, /truth/imu message)")
 
 
-BENCHES = {"cli": bench_cli, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
+def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
+    """Reading what fuse reads (/imu, /gps/fix, /gps/vel in 10 s blocks) of a 300 s drive in every MCAP layout."""
+    from fieldlog.replay import drive, reader
+    from fieldlog.tools.layouts import LAYOUTS, rewrite
+    from fieldlog.tools.sim.simulate import simulate
+
+    own = tmp / "reader_own.mcap"
+    simulate("figure8", duration_s, 1, own)
+    files = {"own (recorder)": own, **{k: rewrite(own, tmp / f"reader_{k}.mcap", k) for k in LAYOUTS}}
+
+    def read(path: Path) -> int:
+        drive._OPEN.clear()  # the file walk is part of the cost
+        return sum(len(b.data["/imu"]["log_time_ns"]) for b in reader.iter_blocks(path, reader.IN_TOPICS, 10.0)
+                   if "/imu" in b.data)
+
+    read(own)  # numba compile / cache load outside the timing
+    base = None
+    for name, path in files.items():
+        med, ts, n = timed(lambda p=path: read(p), runs)
+        base = base or med
+        print(f"read {name:15s} {path.stat().st_size / 1e6:6.1f} MB: median {med:5.2f} s  (runs: {fmt_times(ts)})  "
+              f"{n} IMU samples, x{med / base:.2f} of the own file   target <= x2")
+
+
+BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}

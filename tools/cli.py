@@ -37,6 +37,15 @@ def needs_extras(func):
     return run
 
 
+DRIVE_HELP = ("the drive: an MCAP file, several files, a rotated session's directory or a rosbag2 directory (read "
+              "as one drive, in log-time order)")
+
+
+def drive_arg(paths: list[str]) -> str | list[str]:
+    """The drive positional(s) as ``replay.drive`` takes them: one path, or the list."""
+    return paths[0] if len(paths) == 1 else paths
+
+
 class Progress:
     """A one-line progress display on a terminal; silent otherwise."""
 
@@ -128,7 +137,8 @@ def cmd_recover(a: argparse.Namespace) -> int:
 def cmd_info(a: argparse.Namespace) -> int:
     from fieldlog.tools.info import drive_info, format_info
 
-    info = drive_info(a.drive, scan=a.scan, progress=None if a.json else Progress("info: reading the messages"))
+    info = drive_info(drive_arg(a.drive), scan=a.scan,
+                      progress=None if a.json else Progress("info: reading the messages"))
     print(info.to_json() if a.json else format_info(info))
     return 0
 
@@ -157,7 +167,7 @@ def cmd_import(a: argparse.Namespace) -> int:
 def cmd_rebuild(a: argparse.Namespace) -> int:
     from fieldlog.tools.rebuild import rebuild
 
-    res = rebuild(a.drive, a.out, calibration=a.calib, progress=Progress("rebuild"))
+    res = rebuild(drive_arg(a.drive), a.out, calibration=a.calib, progress=Progress("rebuild"))
     print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
     return 0
 
@@ -191,14 +201,15 @@ def add_input_args(s: argparse.ArgumentParser) -> None:
 def cmd_fuse(a: argparse.Namespace) -> int:
     from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 
-    st = settings(a.drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
-    for line in st.lines(a.drive):
+    drive = drive_arg(a.drive)
+    st = settings(drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    for line in st.lines(drive):
         if line.startswith("warning"):
             print(f"fieldlog fuse: {line}", file=sys.stderr)
         else:
             print(line)
     t0 = time.monotonic()
-    res = fuse(a.drive, a.method, a.out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+    res = fuse(drive, a.method, a.out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                inputs=st.inputs)
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples ({res.imu_rate_hz:.0f} Hz, "
           f"{res.imu_gaps} gaps bridged, {res.imu_missing} samples missing), {res.updates} GPS updates, "
@@ -241,7 +252,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             simulate(a.scenario, a.duration, seed, path, progress=Progress(f"sim {a.scenario} seed {seed}"))
             drives.append(path)
     for d in drives:
-        if not d.is_file():
+        if not d.exists():
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
     from fieldlog.tools.fuse import load_fusion_config
@@ -306,7 +317,7 @@ def cmd_view_live(a: argparse.Namespace) -> int:
 
 
 def cmd_view(a: argparse.Namespace) -> int:
-    from fieldlog.replay.view import view
+    from fieldlog.replay.view import split_fused, view
 
     if a.live is not None:
         if a.drive or a.fused:
@@ -321,15 +332,17 @@ def cmd_view(a: argparse.Namespace) -> int:
     from fieldlog.tools.fuse import load_input_spec
 
     spec = load_input_spec(a.config).merged(input_spec(a))
+    files, fused = split_fused([a.drive, *a.fused])
+    drive = drive_arg(files)
     try:
-        imap = resolve(a.drive, spec)
+        imap = resolve(drive, spec)
     except ValueError:
         if spec != InputSpec():
             raise
         imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
-    res = view(a.drive, a.fused, a.rrd, progress=Progress("view"), inputs=imap)
+    res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap)
     if res.rrd is None:
-        print(f"sent {a.drive} to the rerun viewer")
+        print(f"sent {' '.join(files)} to the rerun viewer")
         return 0
     size = res.rrd.stat().st_size
     print(f"wrote {res.rrd} ({size / 1e6:.1f} MB) in {time.monotonic() - t0:.1f} s: {res.gps_fixes} GPS fixes "
@@ -351,7 +364,7 @@ def cmd_export(a: argparse.Namespace) -> int:
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
     t0 = time.monotonic()
     try:
-        written = export(a.drive, a.out, a.format, topics, progress=Progress("export"))
+        written = export(drive_arg(a.drive), a.out, a.format, topics, progress=Progress("export"))
     except KeyError as e:
         raise ValueError(e.args[0]) from None
     for topic, (path, rows) in written.items():
@@ -391,10 +404,11 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     from fieldlog.tools.fuse import settings
 
-    st = settings(a.drive, a.config, input_spec(a))
-    res = replay(a.drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
+    drive = drive_arg(a.drive)
+    st = settings(drive, a.config, input_spec(a))
+    res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
                  progress=Progress(f"replay {a.method}"), imap=st.inputs)
-    print(f"played {res.data_s:.1f} s of {a.drive} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
+    print(f"played {res.data_s:.1f} s of {' '.join(a.drive)} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
           f"{res.solutions} {a.method} solutions, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, "
           f"{res.outages} outages -> {res.sink}")
     return 0
@@ -499,7 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_recover)
 
     s = sub.add_parser("info", help="topics, rates, duration, time-sync quality, gaps, counters")
-    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--json", action="store_true", help="print JSON (machine-readable) instead of the table")
     s.add_argument("--scan", action="store_true",
                    help="read the messages even if the drive has its fieldlog.info record (default: the record)")
@@ -528,7 +542,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_import)
 
     s = sub.add_parser("rebuild", help="re-derive every topic from /raw/*")
-    s.add_argument("drive", help="a drive with /raw/daq and /raw/gps")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--out", required=True, help="output MCAP")
     s.add_argument("--calib", default=None, help="calibration TOML (default: the one stored in the drive)")
     s.set_defaults(func=cmd_rebuild)
@@ -540,7 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_allan)
 
     s = sub.add_parser("fuse", help="run one fusion method over a drive and write its solution")
-    s.add_argument("drive", help="a drive (MCAP) with /imu, /gps/fix, /gps/vel")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help="force a GPS outage, seconds from the first IMU sample (repeatable; default: none)")
@@ -552,7 +566,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
-    s.add_argument("drive", nargs="*", help="drives (MCAP); none with --seeds")
+    s.add_argument("drive", nargs="*", help="drives (MCAP files, session or rosbag2 directories; each one drive); "
+                                           "none with --seeds")
     s.add_argument("--outages", default="30,60", help="outage lengths, s, comma separated")
     s.add_argument("--methods", default="ins,kf,dkf",
                    help=f"comma separated: {', '.join(METHODS)}")
@@ -571,8 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("view", help="show a drive and fused solutions in rerun, or write an .rrd")
-    s.add_argument("drive", nargs="?", default=None, help="a drive (MCAP); none with --live")
-    s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods)")
+    s.add_argument("drive", nargs="?", default=None, help=DRIVE_HELP + "; none with --live")
+    s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods); other files "
+                                            "given here are more files of the drive")
     s.add_argument("--rrd", default=None, metavar="FILE",
                    help="write this .rrd instead of opening the viewer (default: open the viewer)")
     s.add_argument("--live", nargs="?", const="", default=None, metavar="ADDRESS",
@@ -587,14 +603,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("export", help="one Parquet or CSV table per topic, through polars")
-    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--out", required=True, help="output directory (DIR/<topic>.parquet)")
     s.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="table format")
     s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
     s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("batch", help="reprocess many drives on Dask distributed into one Parquet table")
-    s.add_argument("drives", nargs="+", help="drives or glob patterns (quote them), e.g. 'drives/*.mcap'")
+    s.add_argument("drives", nargs="+", help="drives or glob patterns (quote them), e.g. 'drives/*.mcap'; a session "
+                                            "or rosbag2 directory is one drive")
     s.add_argument("--methods", default="kf,dkf", help=f"comma separated: {', '.join(METHODS)}")
     s.add_argument("--outages", default="", help="also forced outages of these lengths, s, comma separated")
     s.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
@@ -604,7 +621,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_batch)
 
     s = sub.add_parser("replay", help="play a drive through live fusion into rerun at X times real time")
-    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--speed", type=float, default=1.0, help="times real time (0: as fast as possible)")
     s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
     sink = s.add_mutually_exclusive_group()

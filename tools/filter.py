@@ -19,11 +19,12 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from mcap.reader import make_reader
 
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.replay import reader
+from fieldlog.replay.drive import open_drive
+from fieldlog.replay.mcapfile import Piece
 
 NS = 1_000_000_000
 
@@ -71,38 +72,40 @@ def filter_drive(src: str | os.PathLike[str], out: str | os.PathLike[str], start
     src, out = Path(src), Path(out)
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from the drive")
-    with open(src, "rb") as f:
-        s = reader._summary(f)
-        metadata = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
-    first = s.statistics.message_start_time
-    last = s.statistics.message_end_time
+    (f,) = files = open_drive(src)
+    stats = f.channel_stats()  # also defines the channels written only inside chunks
+    metadata = reader.metadata_records(src)
+    first = min((lo for _, lo, _ in stats.values()), default=0)
+    last = max((hi for _, _, hi in stats.values()), default=0)
     t0 = parse_time(start, first, last) if start else first
     t1 = parse_time(end, first, last) if end else last + 1
     if t1 <= t0:
         raise ValueError(f"--end ({t1} ns) must be after --start ({t0} ns)")
-    by_topic = {ch.topic: cid for cid, ch in s.channels.items()}
+    by_topic = {ch.topic: cid for cid, ch in f.channels.items()}
     chosen = select_topics(sorted(by_topic, key=lambda t: by_topic[t]), topics)
     if "/tf_static" in by_topic and "/tf_static" not in chosen:
         chosen.insert(0, "/tf_static")
     cids = {by_topic[t] for t in chosen}
     latched = {by_topic[t] for t in chosen if t == "/tf_static"}
     counts: dict[int, int] = {}
-    with Recorder(out, flush_interval_s=None, fsync=False) as rec, open(src, "rb") as f:
+    with Recorder(out, flush_interval_s=None, fsync=False) as rec:
         for name, d in metadata:
             if name != INFO_RECORD:
                 rec.add_metadata(name, d)
         rec.add_metadata("filter", {"source": str(src.resolve()), "start_ns": str(t0), "end_ns": str(t1),
                                     "topics": ",".join(chosen)})
         for cid in sorted(cids):
-            ch = s.channels[cid]
-            rec.add_schema(s.schemas[ch.schema_id])
+            ch = f.channels[cid]
+            rec.add_schema(f.schemas[ch.schema_id])
             rec.add_channel(ch)
-        with_latched = {ci.chunk_start_offset for ci in reader._chunks_for(s, latched)} if latched else set()
-        chunks = [ci for ci in reader._chunks_for(s, cids)
-                  if (ci.message_end_time >= t0 and ci.message_start_time < t1)
-                  or ci.chunk_start_offset in with_latched]
-        for i, ci in enumerate(chunks):
-            cm = reader._read_chunk(f, ci)
+
+        def wanted(p: Piece) -> bool:
+            return (p.end_ns >= t0 and p.start_ns < t1) or bool(latched) and (p.channels is None or
+                                                                             bool(p.channels & latched))
+
+        groups = list(reader.piece_groups(files, chosen, file_order=True, keep=wanted))
+        for i, group in enumerate(groups):
+            cm = f.read(group)
             keep = np.isin(cm.channel_id, list(cids)) & (cm.log_time >= t0) & (cm.log_time < t1)
             keep |= np.isin(cm.channel_id, list(latched))
             sel = cm.select(keep)
@@ -111,5 +114,5 @@ def filter_drive(src: str | os.PathLike[str], out: str | os.PathLike[str], start
                 rec.write_channel(cid, part.log_time, part.packed(), part.publish_time)
                 counts[cid] = counts.get(cid, 0) + len(part.log_time)
             if progress:
-                progress((i + 1) / len(chunks))
-    return FilterResult(out, {s.channels[c].topic: n for c, n in sorted(counts.items())}, t0, t1)
+                progress((i + 1) / len(groups))
+    return FilterResult(out, {f.channels[c].topic: n for c, n in sorted(counts.items())}, t0, t1)

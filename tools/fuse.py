@@ -56,6 +56,7 @@ from fieldlog.fusion.dkf import FUSIONS
 from fieldlog.fusion.engine import Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
+from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
 from fieldlog.replay.reader import topics as reader_topics
 from fieldlog.tools.rebuild import read_metadata
@@ -154,7 +155,7 @@ class Settings:
     inputs: InputMap
     sources: dict[str, str]  # FusionConfig field -> "--config FILE", "the drive's record", "/tf_static", "default"
 
-    def lines(self, drive: str | os.PathLike[str]) -> list[str]:
+    def lines(self, drive: DriveSpec) -> list[str]:
         """The settings grouped by where they came from; a warning when another logger's drive runs on the
         default sensor figures or lever arm."""
         out = [self.inputs.describe()]
@@ -165,7 +166,7 @@ class Settings:
             out.append(f"fusion settings ({src}): " + ", ".join(groups[src]))
         defaulted = [k for k in SENSOR_KEYS if self.sources[k] == "default"]
         if not self.inputs.native and defaulted:
-            out.append(f"warning: {drive} is from another logger and runs on default {', '.join(defaulted)}: "
+            out.append(f"warning: {label(drive)} is from another logger and runs on default {', '.join(defaulted)}: "
                        "give its own figures in the [fusion] table of --config")
         return out
 
@@ -182,7 +183,7 @@ def _show(v: Any) -> str:
     return str(v)
 
 
-def settings(drive: str | os.PathLike[str], config_path: str | os.PathLike[str] | None = None,
+def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None,
              spec: InputSpec | None = None, outages: tuple[tuple[float, float], ...] | None = None) -> Settings:
     """The settings of a fusion run and their sources: the input map (``replay.inputs.resolve`` of the config's
     [input] table overridden by ``spec``), the FusionConfig from ``--config``'s [fusion] table (replacing the
@@ -208,7 +209,7 @@ def settings(drive: str | os.PathLike[str], config_path: str | os.PathLike[str] 
     return Settings(cfg, imap, sources)
 
 
-def drive_config(drive: str | os.PathLike[str]) -> FusionConfig:
+def drive_config(drive: DriveSpec) -> FusionConfig:
     """The drive's ``fusion.config`` metadata record (a simulated drive's scenario [fusion] table) as a
     FusionConfig; the defaults when the drive has none."""
     meta = read_metadata(drive).get("fusion.config", {})
@@ -308,18 +309,19 @@ class Odometry:
                                    for ti, pi, qi in zip(t.tolist(), p_base, q_base)])
 
 
-def drive_mounting(drive: str | os.PathLike[str]) -> calib.Mounting:
+def drive_mounting(drive: DriveSpec) -> calib.Mounting:
     """The mounting in the drive's calibration record (zeros when the drive has none, e.g. a foreign bag)."""
     toml = read_metadata(drive).get("calibration", {}).get("toml")
     return calib.Calibration.from_toml(toml).mounting if toml else calib.Mounting()
 
 
-def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str],
+def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
          smooth: bool = False, inputs: InputMap | None = None) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
-    ``replay.inputs.resolve(drive)``. Raises ``Diverged`` (nothing past the first bad row written) when the
+    ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
+    boundaries. Raises ``Diverged`` (nothing past the first bad row written) when the
     solution turns NaN or inf."""
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
@@ -332,7 +334,7 @@ def fuse(drive: str | os.PathLike[str], method: str, out: str | os.PathLike[str]
     t_last = max(t.last_ns for t in span)
     rows = outages = 0
     stream = InputStream(drive, imap, BLOCK_S)
-    meta = {"source": str(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no",
+    meta = {"source": label(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
                                                                       "imu_frame"))}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:

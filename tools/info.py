@@ -3,22 +3,24 @@
 Fast path: the summary (channels, statistics) and the metadata records, among them ``fieldlog.info``, which the
 recorder writes at close (``acquire.drivestats``): no message is read, so an hour-long drive answers in about
 a second. A file without that record (recovered, or written by another tool) is scanned: the topics' message
-indexes and the /imu, /gps/fix, /time/sync and /truth/imu messages, through the same functions.
+indexes and the /imu, /gps/fix, /time/sync and /truth/imu messages, through the same functions. A drive of
+several files (a rotated session, a rosbag2 directory: ``replay.drive``) is scanned as one drive.
 """
 from __future__ import annotations
 
 import ast
 import json
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from mcap.reader import make_reader
 
 from fieldlog.acquire import drivestats
 from fieldlog.acquire.drivestats import Quality, timing_error
 from fieldlog.replay import reader
+from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
 
 NS = 1_000_000_000
 
@@ -32,10 +34,12 @@ class DriveInfo(Quality):
     drive: dict[str, str] = field(default_factory=dict)
     port_events: list[dict[str, str]] = field(default_factory=list)   # the daemon's lost/back port records
     scanned: bool = False       # figures from reading the messages (no fieldlog.info record)
+    files: list[Path] = field(default_factory=list)   # the drive's files (replay.drive)
 
     def to_json(self) -> str:
         d = asdict(self)
         d["path"] = str(self.path.resolve())
+        d["files"] = [str(f.resolve()) for f in self.files]
         d["topics"] = [dict(asdict(t), rate_hz=_rate(t)) for t in self.topics]
         return json.dumps(_nan_to_none(d), indent=2)
 
@@ -57,20 +61,23 @@ def _rate(t: reader.TopicInfo) -> float:
 
 
 def _summary_topics(path: Path, spans: dict[str, tuple[int, int]]) -> list[reader.TopicInfo] | None:
-    """Topics from the summary and the record's per-topic spans; None when a topic has no span."""
-    with open(path, "rb") as f:
-        s = reader._summary(f)
+    """Topics from the message indexes' counts and the record's per-topic spans; None when a topic has no span
+    or a chunk no message index."""
+    (f,) = open_drive(path)
+    counts = f.message_counts()
+    if counts is None:
+        return None
     out = []
-    for cid, ch in sorted(s.channels.items()):
-        n = s.statistics.channel_message_counts.get(cid, 0)
+    for cid, ch in sorted(f.channels.items()):
+        n = counts.get(cid, 0)
         span = spans.get(ch.topic)
         if span is None and n:
             return None
-        out.append(reader.TopicInfo(ch.topic, s.schemas[ch.schema_id].name, n, *(span or (0, 0))))
+        out.append(reader.TopicInfo(ch.topic, f.type_of(cid), n, *(span or (0, 0))))
     return out
 
 
-def scan_quality(path: Path, topics: list[reader.TopicInfo],
+def scan_quality(path: DriveSpec, topics: list[reader.TopicInfo],
                  progress: Callable[[float], None] | None = None) -> Quality:
     """The figures of ``Quality`` from reading the messages (a file without a ``fieldlog.info`` record)."""
     by = {t.topic: t for t in topics if t.count}
@@ -94,18 +101,18 @@ def scan_quality(path: Path, topics: list[reader.TopicInfo],
     return q
 
 
-def drive_info(path: str | Path, scan: bool = False, progress: Callable[[float], None] | None = None) -> DriveInfo:
-    """What ``fieldlog info`` prints. ``scan``: read the messages even when the ``fieldlog.info`` record is there."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        records = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], None] | None = None) -> DriveInfo:
+    """What ``fieldlog info`` prints. ``scan``: read the messages even when the ``fieldlog.info`` record is there.
+    ``path``: one MCAP, several files, a session or rosbag2 directory (``replay.drive``)."""
+    files = drive_files(path)
+    records = reader.metadata_records(path)
     meta = dict(records)
-    rec = meta.get(drivestats.RECORD)
+    rec = meta.get(drivestats.RECORD) if len(files) == 1 else None  # its figures are per file: a session is scanned
     quality = tops = None
     if rec is not None and not scan:
         spans = {k[len("span."):]: ast.literal_eval(v) for k, v in rec.items() if k.startswith("span.")}
         quality = drivestats.quality_from_record(rec)
-        tops = _summary_topics(path, spans)
+        tops = _summary_topics(files[0], spans)
     scanned = quality is None or tops is None
     if tops is None:
         tops = reader.topics(path)
@@ -113,13 +120,17 @@ def drive_info(path: str | Path, scan: bool = False, progress: Callable[[float],
         quality = scan_quality(path, tops, progress)
     first = min((t.first_ns for t in tops if t.count), default=0)
     last = max((t.last_ns for t in tops if t.count), default=0)
-    return DriveInfo(**asdict(quality) | {"timing": quality.timing}, path=path, duration_s=(last - first) / NS,
+    given = Path(path) if isinstance(path, (str, os.PathLike)) else Path(path[0])
+    return DriveInfo(**asdict(quality) | {"timing": quality.timing}, path=given, duration_s=(last - first) / NS,
                      topics=tops, counters=meta.get("acquire.counters", {}), drive=meta.get("drive", {}),
-                     port_events=[d for name, d in records if name == "acquire.port_event"], scanned=scanned)
+                     port_events=[d for name, d in records if name == "acquire.port_event"], scanned=scanned,
+                     files=[f.path for f in open_drive(path)])
 
 
 def format_info(info: DriveInfo) -> str:
     lines = [f"drive     {info.path}", f"duration  {info.duration_s:.1f} s"]
+    if len(info.files) > 1:
+        lines.insert(1, f"files     {len(info.files)}: " + ", ".join(f.name for f in info.files))
     if info.drive:
         lines.append("source    " + ", ".join(f"{k}={v}" for k, v in info.drive.items()))
     lines.append("")

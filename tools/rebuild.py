@@ -1,4 +1,5 @@
-"""``fieldlog rebuild``: re-derive every topic of a drive from its ``/raw/*`` reads.
+"""``fieldlog rebuild``: re-derive every topic of a drive from its ``/raw/*`` reads (a drive of several files,
+e.g. a rotated session, is rebuilt into one file).
 
 The reads go through the same pipeline, in the same order (``acquire.pipeline.read_order``), so with the same
 calibration and time-sync settings the derived topics come out bit for bit identical; with new ones they
@@ -11,10 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-from mcap.reader import make_reader
-
 from fieldlog.acquire import calib, recorder
 from fieldlog.replay import reader
+from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.acquire.pipeline import Counters, Pipeline, RawRead, read_order
 
 
@@ -26,18 +26,18 @@ class RebuildResult:
     counters: Counters
 
 
-def read_metadata_records(path: str | Path) -> list[tuple[str, dict[str, str]]]:
-    """Every metadata record, in file order (names may repeat, e.g. ``acquire.port_event``)."""
-    with open(path, "rb") as f:
-        return [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
+    """Every metadata record, in file order (names may repeat, e.g. ``acquire.port_event``); a drive of several
+    files: file by file (``replay.reader.metadata_records``)."""
+    return reader.metadata_records(path)
 
 
-def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
     """Metadata by name; for a repeated name, the last record."""
     return dict(read_metadata_records(path))
 
 
-def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
+def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
     """The reads of one port in the order they were recorded (file order, not log-time order), decoded a
     chunk at a time (``replay.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
     for b in reader.iter_raw_batches(path, f"/raw/{port}"):
@@ -48,7 +48,7 @@ def iter_raw(path: str | Path, port: str) -> Iterator[RawRead]:
                 yield RawRead(port, mono_ns, wall_ns, raw[o[i]:o[i + 1]])
 
 
-def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = None,
+def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = None,
             progress: Callable[[float], None] | None = None) -> RebuildResult:
     records = read_metadata_records(src)
     cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
@@ -60,7 +60,7 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
         for name, d in records:
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
                 rec.add_metadata(name, d)
-        rec.add_metadata("rebuild", {"source": str(src)})
+        rec.add_metadata("rebuild", {"source": label(src)})
         pipe = Pipeline(rec, cal, sync_cfg, pipe_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
@@ -71,10 +71,9 @@ def rebuild(src: str | Path, dst: str | Path, calibration: str | Path | None = N
             if progress and n % 2000 == 0:
                 progress(n / total)
         pipe.finish()
-        with open(src, "rb") as f:
-            for _s, channel, msg in make_reader(f).iter_messages(log_time_order=False):
-                if channel.topic.startswith("/truth/"):
-                    rec.write(channel.topic, msg.log_time, msg.data, msg.publish_time)
+        for topic in (t.topic for t in reader.topics(src) if t.topic.startswith("/truth/") and t.count):
+            t, pub, p = reader.read_payloads(src, topic, file_order=True)
+            rec.write_batch(topic, t, p, pub)
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     if progress:
         progress(1.0)

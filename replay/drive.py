@@ -1,0 +1,95 @@
+"""Which files make a drive, opened and in order.
+
+A drive is given as one MCAP file, several files, a directory of a rotated ``fieldlog acquire`` session
+(``<session start>_0001.mcap``, ``_0002.mcap``, ...), or a rosbag2 directory (``metadata.yaml`` lists its
+files in ``relative_file_paths``). ``drive_files`` resolves any of these (or a list mixing them) to the
+files; ``open_drive`` opens them (``replay.mcapfile.McapFile``) ordered by their first log time, so they
+read as one drive. In a session directory, ``NAME.recovered.mcap`` (``fieldlog recover``, or the daemon on
+restart) stands in for the cut-short ``NAME.mcap`` next to it.
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Sequence, Union
+
+from fieldlog.replay.mcapfile import McapFile
+
+DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
+RECOVERED = ".recovered.mcap"
+_OPEN: "OrderedDict[tuple, McapFile]" = OrderedDict()  # recently opened files, by path and version
+_OPEN_MAX = 64
+
+
+def _rosbag2_files(d: Path) -> list[Path]:
+    import yaml
+
+    try:
+        meta = yaml.safe_load((d / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as e:
+        raise ValueError(f"{d / 'metadata.yaml'}: not a rosbag2 metadata file ({e})") from None
+    storage = meta.get("storage_identifier", "mcap")
+    if storage != "mcap":
+        raise ValueError(f"{d}: rosbag2 storage {storage!r}; only mcap is read (ros2 bag convert it to mcap)")
+    names = meta.get("relative_file_paths") or [f["path"] for f in meta.get("files", [])]
+    return [d / n for n in names]
+
+
+def _dir_files(d: Path) -> list[Path]:
+    if (d / "metadata.yaml").is_file():
+        return _rosbag2_files(d)
+    files = sorted(d.glob("*.mcap"))
+    recovered = {f.name[: -len(RECOVERED)] + ".mcap" for f in files if f.name.endswith(RECOVERED)}
+    files = [f for f in files if f.name not in recovered]
+    if not files:
+        raise FileNotFoundError(f"{d}: no .mcap files in the directory")
+    return files
+
+
+def drive_files(spec: DriveSpec) -> list[Path]:
+    """The files of a drive (module docstring), in the order given; FileNotFoundError naming what is missing."""
+    if isinstance(spec, (str, os.PathLike)):
+        spec = [spec]
+    out: list[Path] = []
+    for s in spec:
+        p = Path(s)
+        if p.is_dir():
+            out += _dir_files(p)
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise FileNotFoundError(f"{p} does not exist")
+    for p in out:
+        if not p.is_file():
+            raise FileNotFoundError(f"{p} does not exist")
+    if not out:
+        raise FileNotFoundError("no drive file given")
+    return out
+
+
+def label(spec: DriveSpec) -> str:
+    """A drive as text: its path, or its paths joined by spaces."""
+    if isinstance(spec, (str, os.PathLike)):
+        return str(spec)
+    return " ".join(str(s) for s in spec)
+
+
+def open_file(path: Path) -> McapFile:
+    """``McapFile(path)``, reused while the file is unchanged (a command reads a drive several times)."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    f = _OPEN.get(key)
+    if f is None:
+        f = _OPEN[key] = McapFile(path)
+        if len(_OPEN) > _OPEN_MAX:
+            _OPEN.popitem(last=False)
+    _OPEN.move_to_end(key)
+    return f
+
+
+def open_drive(spec: DriveSpec) -> list[McapFile]:
+    """The drive's files, opened, ordered by their first log time (then as given)."""
+    files = [open_file(p) for p in drive_files(spec)]
+    first = [min((p.start_ns for p in f.pieces), default=0) for f in files]
+    return [f for _, _, f in sorted(zip(first, range(len(files)), files), key=lambda x: x[:2])]

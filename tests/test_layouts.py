@@ -1,0 +1,211 @@
+"""Every valid MCAP layout and every multi-file drive reads as the same drive (issue 17).
+
+The corpus is written here by third-party writers from one simulated drive: the mcap library's ``Writer``
+(``tools.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
+attachment and the metadata records) and rosbags (a rosbag2 directory). Each must give the original's ``info`` counts and its
+``kf`` solution (2D RMS against the truth within 1 mm). A rotated session (the daemon's ``RotatingSink``
+fed by the real Pipeline, three files) must fuse to exactly the single file's solution.
+"""
+from __future__ import annotations
+
+import heapq
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fieldlog.acquire.config import RecorderConfig
+from fieldlog.acquire.daemon import RotatingSink
+from fieldlog.acquire.pipeline import Pipeline, read_order
+from fieldlog.replay import reader
+from fieldlog.replay.drive import drive_files, open_drive
+from fieldlog.replay.mcapfile import TruncatedError
+from fieldlog.tools.cli import main as fieldlog
+from fieldlog.tools.evaluate import outage_error_series
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.info import drive_info
+from fieldlog.tools.layouts import LAYOUTS, merged, rewrite, schema_of
+from fieldlog.tools.rebuild import iter_raw, read_metadata_records
+from fieldlog.tools.sim.simulate import simulate
+
+DURATION_S = 150.0
+
+
+def corpus_topics(path: Path) -> list[str]:
+    """What the third-party copies hold: everything but the raw bytes and the truth (scored from the original)."""
+    return [t.topic for t in reader.topics(path) if not t.topic.startswith(("/raw/", "/truth/"))]
+
+
+def write_with_rosbags(src: Path, dst: Path) -> Path:
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as BagWriter
+
+    topics = corpus_topics(src)
+    with BagWriter(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = []
+        for topic in topics:
+            s = schema_of(src, topic)
+            conns.append(w.add_connection(topic, s.name, msgdef=s.data.decode(), rihs01="RIHS01_" + "0" * 64))
+        k, t, _, data = merged(src, topics)
+        for i, ti, d in zip(k.tolist(), t.tolist(), data):
+            w.write(conns[i], ti, d)
+    return dst
+
+
+def rotated_session(src: Path, out_dir: Path, files: int = 3) -> list[Path]:
+    """``src``'s raw reads through the daemon's Pipeline and RotatingSink, rotating at ``files - 1`` read
+    boundaries (as the daemon does by host time), into ``out_dir``."""
+    records = read_metadata_records(src)
+    cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
+    pipe: Pipeline | None = None
+
+    def headers(index: int, prev: Path | None) -> dict[str, dict[str, str]]:
+        return {"drive": {"source": "test session", "file_index": str(index),
+                          "previous_file": prev.name if prev else ""}, **pipe.metadata()}
+
+    out_dir.mkdir()
+    sink = RotatingSink(out_dir, 1_800_000_000_000_000_000, RecorderConfig(fsync=False), headers)
+    pipe = Pipeline(sink, cal, sync_cfg, pipe_cfg)
+    sink.open_next()
+    reads = list(heapq.merge(iter_raw(src, "daq"), iter_raw(src, "gps"), key=lambda r: read_order(r.port, r.mono_ns)))
+    cuts = {len(reads) * i // files for i in range(1, files)}
+    for i, r in enumerate(reads):
+        if i in cuts:
+            sink.open_next({"acquire.counters": pipe.counters_metadata()})
+        pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+    pipe.finish()
+    sink.close({"acquire.counters": pipe.counters_metadata()})
+    return sink.files
+
+
+@pytest.fixture(scope="module")
+def original(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("layouts") / "figure8.mcap"
+    simulate("figure8", DURATION_S, 3, path, pps_mode="latch")   # latch: a 30 s time-sync window, so /imu is in every file
+    return path
+
+
+@pytest.fixture(scope="module")
+def corpus(original) -> dict[str, Path]:
+    d = original.parent
+    out = {name: rewrite(original, d / f"{name}.mcap", name, corpus_topics(original)) for name in LAYOUTS}
+    out["rosbag2"] = write_with_rosbags(original, d / "rosbag2")
+    return out
+
+
+def rms_2d(drive: Path, fused: Path) -> float:
+    t = [(x.first_ns, x.last_ns + 1) for x in reader.topics(drive) if x.topic == "/imu"]
+    _, err = outage_error_series(drive, fused, "kf", t)
+    return float(np.hypot(np.sqrt(np.mean(err[:, 0] ** 2)), np.sqrt(np.mean(err[:, 1] ** 2))))
+
+
+@pytest.fixture(scope="module")
+def kf_original(original) -> tuple[Path, float]:
+    out = original.parent / "kf_original.mcap"
+    assert fuse(original, "kf", out).rows > 0
+    return out, rms_2d(original, out)
+
+
+def test_the_corpus_has_the_layouts_it_claims(corpus):
+    files = {name: open_drive(p) for name, p in corpus.items()}
+    assert not any(p.chunk for p in files["unchunked"][0].pieces)           # every message outside chunks
+    assert all(p.chunk and p.channels is None for p in files["no-summary"][0].pieces)  # no message indexes
+    raw = corpus["no-summary"].read_bytes()
+    assert raw[-37] == 0x02 and int.from_bytes(raw[-28:-20], "little") == 0    # a footer, and no summary section
+    assert len(files["chunks-4k"][0].pieces) > 100 * len(files["lz4"][0].pieces)
+    assert {p.file.path.suffix for p in files["rosbag2"][0].pieces} == {".mcap"}
+    assert (corpus["rosbag2"] / "metadata.yaml").is_file()
+
+
+@pytest.mark.parametrize("layout", [*LAYOUTS, "rosbag2"])
+def test_every_layout_has_the_original_counts_and_kf_solution(layout, original, corpus, kf_original, tmp_path):
+    path = corpus[layout]
+    want = {t.topic: (t.type, t.count, t.first_ns, t.last_ns) for t in reader.topics(original)}
+    got = {t.topic: (t.type, t.count, t.first_ns, t.last_ns) for t in reader.topics(path)}
+    assert got == {k: want[k] for k in corpus_topics(original)}
+    a, b = drive_info(original), drive_info(path)
+    assert (b.imu_gaps, b.gps_missing_epochs, b.gps_no_fix, b.sync_states) == \
+        (a.imu_gaps, a.gps_missing_epochs, a.gps_no_fix, a.sync_states)
+    assert b.drive == a.drive and b.counters == a.counters or layout == "rosbag2"   # rosbags writes no metadata
+    out = tmp_path / "kf.mcap"
+    assert fuse(path, "kf", out).rows > 0
+    ref_path, ref_rms = kf_original
+    assert abs(rms_2d(original, out) - ref_rms) < 1e-3
+    x, y = reader.read_topic(ref_path, "/fusion/kf/fix"), reader.read_topic(out, "/fusion/kf/fix")
+    assert np.array_equal(x["log_time_ns"], y["log_time_ns"]) and np.allclose(x["lat_deg"], y["lat_deg"], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def session(original) -> Path:
+    """``original`` as a rotated session of three files."""
+    out = original.parent / "session"
+    rotated_session(original, out)
+    return out
+
+
+def test_a_rotated_session_fuses_as_one_drive(original, kf_original, session, tmp_path):
+    files = sorted(session.glob("*.mcap"))
+    assert len(files) == 3 and drive_files(session) == files
+    spans = [(min(p.start_ns for p in f.pieces), max(p.end_ns for p in f.pieces)) for f in open_drive(files)]
+    assert spans[0][1] > spans[1][0]            # /imu lags /raw: the files overlap in log time
+    assert reader.read_topic(session, "/imu")["log_time_ns"].tolist() == \
+        reader.read_topic(original, "/imu")["log_time_ns"].tolist()
+    info = drive_info(session)
+    want = {t.topic: t.count for t in reader.topics(original) if not t.topic.startswith("/truth/")}
+    got = {t.topic: t.count for t in info.topics}
+    assert got.pop("/tf_static", 0) == 3 * want.pop("/tf_static", 0)     # latched: once in every file
+    assert len(info.files) == 3 and got == want
+    out = tmp_path / "kf.mcap"
+    assert fieldlog(["fuse", *map(str, files), "--method", "kf", "--out", str(out)]) == 0
+    ref = reader.read_topic(kf_original[0], "/fusion/kf/fix")
+    got = reader.read_topic(out, "/fusion/kf/fix")
+    assert np.array_equal(ref["log_time_ns"], got["log_time_ns"])          # no re-alignment at the boundaries
+    for k in ("lat_deg", "lon_deg", "alt_m"):
+        assert np.array_equal(ref[k], got[k])
+    # the second file alone starts over: it aligns again, so it has fewer solutions over its own span
+    alone = tmp_path / "second.mcap"
+    n_alone = fuse(files[1], "kf", alone).rows
+    imu = reader.read_topic(files[1], "/imu")["log_time_ns"]
+    t = got["log_time_ns"]
+    assert n_alone < np.count_nonzero((t >= imu[0]) & (t <= imu[-1]))
+
+
+def test_every_command_takes_the_session(original, session, tmp_path):
+    """rebuild, export, view, replay, evaluate and batch read the three files as the one drive."""
+    files = [str(f) for f in sorted(session.glob("*.mcap"))]
+    imu = reader.read_topic(original, "/imu")
+    assert fieldlog(["rebuild", str(session), "--out", str(tmp_path / "rebuilt.mcap")]) == 0
+    rebuilt = reader.read_topic(tmp_path / "rebuilt.mcap", "/imu")          # the same reads through the pipeline
+    assert np.array_equal(rebuilt["log_time_ns"], imu["log_time_ns"]) and np.array_equal(rebuilt["f_b"], imu["f_b"])
+    assert fieldlog(["export", *files, "--out", str(tmp_path / "tables"), "--topics", "/imu,/raw/gps"]) == 0
+    import polars as pl
+
+    assert pl.read_parquet(tmp_path / "tables" / "imu.parquet")["log_time_ns"].to_list() == \
+        imu["log_time_ns"].tolist()
+    kf = tmp_path / "kf.mcap"
+    assert fuse(session, "kf", kf).rows > 0
+    assert fieldlog(["view", *files, str(kf), "--rrd", str(tmp_path / "v.rrd")]) == 0      # files, then fused
+    assert fieldlog(["replay", str(session), "--speed", "0", "--rrd", str(tmp_path / "r.rrd")]) == 0
+    assert fieldlog(["evaluate", str(session), "--outages", "10", "--methods", "kf",
+                     "--report", str(tmp_path / "report")]) == 0
+    assert fieldlog(["batch", str(session), "--methods", "kf", "--workers", "1", "--out", str(tmp_path / "b")]) == 0
+    table = pl.read_parquet(tmp_path / "b" / "results.parquet")
+    assert table["status"].to_list() == ["ok"] and table["solutions"][0] == fuse(original, "kf", tmp_path / "o.mcap").rows
+
+
+def test_truncated_is_told_apart_from_unindexed(corpus, tmp_path, capsys):
+    raw = corpus["no-summary"].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(TruncatedError):
+        reader.topics(cut)
+    assert fieldlog(["info", str(cut)]) == 2
+    err = capsys.readouterr().err
+    assert "fieldlog recover" in err and len(err.strip().splitlines()) == 1
+    # a session directory: the recovered copy stands in for the cut-short original next to it
+    d = tmp_path / "session"
+    d.mkdir()
+    shutil.copy(cut, d / "s_0001.mcap")
+    shutil.copy(corpus["lz4"], d / "s_0001.recovered.mcap")
+    assert drive_files(d) == [d / "s_0001.recovered.mcap"]
