@@ -562,7 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
     s.add_argument("--config", default=None, metavar="FILE",
-                   help="TOML with a [fusion] table (FusionConfig keys); default: the drive's fusion.config record")
+                   help="TOML with a [fusion] table (FusionConfig keys; default: the drive's fusion.config record) "
+                        "and/or an [input] table (imu_topic, fix_topic, vel_topic, imu_frame)")
     s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("evaluate", help="the outage study (the distributed-KF paper's Table 3)")
@@ -582,7 +583,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "kf,dkf,rbfn,tdln,dkf-rbfn, 30 and 60 s outages, 5 simulated drives without DRIVE or "
                         "--seeds; its Table 3 beside ours and a verdict on each of its claims")
     s.add_argument("--config", default=None, metavar="FILE",
-                   help="TOML with a [fusion] table (FusionConfig keys); default: each drive's fusion.config record")
+                   help="TOML with a [fusion] table (FusionConfig keys; default: each drive's fusion.config record) "
+                        "and/or an [input] table")
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("view", help="show a drive and fused solutions in rerun, or write an .rrd")
