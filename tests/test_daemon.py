@@ -113,7 +113,8 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     assert np.array_equal(live_t[order], imu["log_time_ns"]) and np.array_equal(live_f[order], f)
     fixes = sum(reader.read_topic(f, "/gps/fix")["log_time_ns"].size for f in files
                 if "/gps/fix" in {t.topic for t in reader.topics(f)})
-    assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == fixes >= 37
+    # (u-blox: 3 messages an epoch, so the 5 the simulator drops cost up to 5 NAV-PVT)
+    assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == fixes >= (38 if receiver == "nmea" else 33)
     if receiver == "ublox":     # one fix per NAV-PVT sent (the simulator drops 5 messages at random)
         assert fixes == sum(1 for k, fr in gpsport.Framer().feed(want["gps"]) if k == "ubx" and fr[2:4] == b"\x01\x07")
 
