@@ -217,6 +217,10 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ConfigError(f"config file {path} does not exist") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file {path} is not text (not UTF-8): give a TOML file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config file {path} is a directory: give a TOML file") from None
 
 
 def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:

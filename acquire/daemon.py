@@ -50,6 +50,7 @@ import queue
 import select
 import signal
 import socket
+import stat
 import struct
 import sys
 import threading
@@ -224,6 +225,11 @@ class RotatingSink:
         rec.close()
         return rec.path
 
+    @property
+    def path(self) -> Path:
+        """The file being written."""
+        return self.rec.path
+
     def size(self) -> int:
         return os.path.getsize(self.rec.path)
 
@@ -249,6 +255,33 @@ BUS_HOST_CLOCK = 2       # bus frame flag: no GPS time fit yet, stamps from the 
 BUS_STATE_FINAL = 255    # per-message state of final messages (their sync state is on /time/sync)
 
 
+class BusError(ValueError):
+    """``[daemon] bus`` names a path the bus must not take (a config problem: exit code 2)."""
+
+
+def remove_stale_socket(path: str) -> None:
+    """Make room for the bus socket at ``path``: nothing there is fine; a Unix socket of this user that nobody
+    listens on (a daemon that was killed) is removed; anything else raises BusError and is left alone."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(st.st_mode) or st.st_uid != os.getuid():
+        kind = "a socket of another user" if stat.S_ISSOCK(st.st_mode) else "not a socket"
+        raise BusError(f"[daemon] bus: {path} exists and is {kind}; it is left alone: choose another path")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.connect(path)
+    except ConnectionRefusedError:
+        Path(path).unlink()
+        return
+    except OSError:
+        pass
+    finally:
+        probe.close()
+    raise BusError(f"[daemon] bus: {path} is in use (another daemon is running): stop it or choose another path")
+
+
 class BusServer:
     """The live bus: a Unix domain socket (local only, mode 0600) streaming the derived messages.
 
@@ -263,7 +296,7 @@ class BusServer:
 
     def __init__(self, path: str, max_buffer: int = 16 << 20) -> None:
         self.path = path
-        Path(path).unlink(missing_ok=True)
+        remove_stale_socket(path)
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)
         try:
@@ -649,15 +682,16 @@ class Daemon:
 def run_daemon(cfg: AcquireConfig, quiet: bool = False) -> int:
     """The ``fieldlog acquire`` command: SIGINT/SIGTERM stop it cleanly. Returns the exit code."""
     d = Daemon(cfg, quiet)
-    d.start()
 
     def on_signal(signum: int, frame: object) -> None:
         d.stop.set()
         d.wake.set()
 
+    # before start: a signal while it starts stops the daemon after its first file is open, cleanly
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    d.start()
     result: list[int] = []
     worker = threading.Thread(target=lambda: result.append(d.run()), name="process")
     worker.start()

@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from datetime import date as Date
-from datetime import timedelta
+
+from fieldlog.acquire import gnss
 
 KNOT_MPS = 1852.0 / 3600.0
 MAX_LINE = 256          # NMEA allows 82 characters; proprietary lines run longer
@@ -300,11 +301,9 @@ class _Fields:
     def date(self, day: str, month: str, year: str) -> Date | None:
         if not (day or month or year):
             return None
-        try:
-            return Date(int(year), int(month), int(day))
-        except ValueError:
-            self.bad += 1
-            return None
+        d = gnss.make_date(year, month, day)
+        self.bad += d is None
+        return d
 
 
 def _gga(t: str, f: _Fields, raw: bytes) -> Gga:
@@ -446,7 +445,8 @@ class GnssEpoch:
 
     Position from GGA (RMC when there is no GGA, then altitude is NaN); quality from GGA, else 1/0 from RMC
     validity; speed and course from RMC, else VTG; standard deviations from GST; date from RMC/ZDA or carried
-    over from the last one (with midnight roll-over). first_mono_ns: host monotonic time of its first sentence.
+    over from the last one (with midnight roll-over, ``gnss.roll_over``). first_mono_ns: host monotonic time of its
+    first sentence. no_fix: why it is not a fix (``gnss.no_fix_reason``; "" for a fix).
     """
 
     time_of_day_s: float
@@ -463,16 +463,12 @@ class GnssEpoch:
     sd_north_m: float
     sd_up_m: float
     first_mono_ns: int
+    no_fix: str = ""
 
     @property
     def utc_ns(self) -> int | None:
         """UTC of the epoch, ns since the Unix epoch (None without a date)."""
-        if self.date is None:
-            return None
-        return (self.date.toordinal() - _UNIX_ORDINAL) * 86_400_000_000_000 + round(self.time_of_day_s * 1e9)
-
-
-_UNIX_ORDINAL = Date(1970, 1, 1).toordinal()
+        return None if self.date is None else gnss.utc_ns(self.date, self.time_of_day_s)
 
 
 class EpochAssembler:
@@ -533,8 +529,8 @@ class EpochAssembler:
         vtg = next((p for p in parts if isinstance(p, Vtg)), None)
         gst = next((p for p in parts if isinstance(p, Gst)), None)
         day = next((p.date for p in parts if isinstance(p, (Rmc, Zda)) and p.date is not None), None)
-        if day is None and self._last_date is not None:
-            day = self._last_date + timedelta(days=1) if tod < self._last_tod - 43200 else self._last_date
+        if day is None:
+            day = gnss.roll_over(self._last_date, tod, self._last_tod)
         if day is not None:
             self._last_date, self._last_tod = day, tod
         nan = math.nan
@@ -554,7 +550,9 @@ class EpochAssembler:
             speed_mps=vel.speed_mps if vel is not None else nan,
             course_rad=vel.course_rad if vel is not None else None,
             sd_east_m=gst.sd_lon_m if gst else nan, sd_north_m=gst.sd_lat_m if gst else nan,
-            sd_up_m=gst.sd_alt_m if gst else nan, first_mono_ns=mono_ns)
+            sd_up_m=gst.sd_alt_m if gst else nan, first_mono_ns=mono_ns,
+            no_fix=gnss.no_fix_reason(quality if gga is not None else None, gga.num_sats if gga is not None else None,
+                                      rmc.valid if rmc is not None else None))
 
 
 # ---------------------------------------------------------------------------------------------- generators

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import datetime as _dt
+import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -15,10 +16,14 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, frames, gpsport, messages, nmea, novatel, timesync, ubx
+from fieldlog.acquire import calib, daq, frames, gnss, gpsport, messages, nmea, novatel, timesync, ubx
+
+log = logging.getLogger(__name__)
 
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
+MAX_HDOP = 99.0             # NMEA's largest HDOP; a larger, missing or non-positive one is taken as this
+MAX_SIGMA_M = 1e6           # a GST standard deviation beyond this (or NaN) falls back on HDOP
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,7 @@ class PipelineConfig:
     gps_frame_id: str = frames.GPS_ANTENNA
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
     gps_protocol: str = "auto"                      # [gps] protocol: which frames are decoded (gpsport.ACCEPTS)
+    receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (see _emit_solution)
 
 
 @dataclass
@@ -73,7 +79,9 @@ class Counters:
     gps_no_fix: int = 0
     pps_edges: int = 0
     pps_rejected: int = 0
+    processing_errors: int = 0                  # reads whose processing raised (their bytes are in /raw)
     reads: dict = field(default_factory=dict)
+    no_fix: dict = field(default_factory=dict)  # epochs that are not fixes, by reason (gnss.no_fix_reason, ...)
     nmea_superseded: int = 0        # NMEA epochs not used: the port also sends UBX/NovAtel solutions
     gps_ignored: int = 0            # checked frames of a protocol the [gps] protocol setting excludes
 
@@ -101,6 +109,7 @@ class Pipeline:
         self._date: _dt.date | None = None
         self._last_tod = -1.0
         self._last_emit_ns = -(2**62)
+        self._errors_logged: set[tuple[str, str]] = set()
         bw = self.fs / 2
         self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
         self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
@@ -119,17 +128,42 @@ class Pipeline:
 
     # -- input ---------------------------------------------------------------------------------------
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        """Record one read in ``/raw/<port>`` and process it. Processing never raises for any data: an
+        exception (a decoder bug a byte sequence reaches) is counted in ``processing_errors``, logged once per
+        kind with where the read is, and the next read is processed as usual. Sink errors (OSError: a full
+        disk) are raised."""
         self._write_tf_static(wall_ns)
         self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
         self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
-        if port == "daq":
-            self._feed_daq(mono_ns, wall_ns, data)
-        elif port == "gps":
-            self._feed_gps(mono_ns, wall_ns, data)
-        if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
-            self._last_emit_ns = mono_ns
-            self._emit_sync()
-            self._emit_imu(final=False)
+        try:
+            if port == "daq":
+                self._feed_daq(mono_ns, wall_ns, data)
+            elif port == "gps":
+                self._feed_gps(mono_ns, wall_ns, data)
+            if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
+                self._last_emit_ns = mono_ns
+                self._emit_sync()
+                self._emit_imu(final=False)
+        except OSError:
+            raise
+        except Exception as e:  # noqa: BLE001 - the contract: no byte stops the recording
+            self._processing_error(e, port, mono_ns, wall_ns)
+
+    def _processing_error(self, e: Exception, port: str, mono_ns: int, wall_ns: int) -> None:
+        self.counters.processing_errors += 1
+        tb = e.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        where = f"{tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}" if tb is not None else "?"
+        kind = (type(e).__name__, where)
+        if kind in self._errors_logged:
+            return
+        self._errors_logged.add(kind)
+        path = getattr(self.sink, "path", None)
+        log.error("processing a %s read failed (%s: %s at %s); the read is kept in /raw/%s (mono_ns %d, wall_ns "
+                  "%d%s) and recording goes on; further errors of this kind are only counted "
+                  "(acquire.counters processing_errors)", port, type(e).__name__, e, where, port, mono_ns, wall_ns,
+                  f", {path}" if path else "")
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
@@ -154,7 +188,9 @@ class Pipeline:
         out = {f"daq.{k}": str(v) for k, v in asdict(c.daq).items()}
         out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
         out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
-                                                    "pps_rejected", "nmea_superseded", "gps_ignored")})
+                                                    "pps_rejected", "nmea_superseded", "gps_ignored",
+                                                    "processing_errors")})
+        out.update({f"gps_no_fix.{k}": str(v) for k, v in c.no_fix.items()})
         fs = self._port.stats
         out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
         out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
@@ -239,11 +275,11 @@ class Pipeline:
         if tod is None or not np.isfinite(tod):
             return
         if self._date is None:
-            self._date = _dt.datetime.fromtimestamp(wall_ns / NS, _dt.timezone.utc).date()
-        elif tod < self._last_tod - 43200 and date is None:
-            self._date = self._date + _dt.timedelta(days=1)
+            self._date = gnss.in_range(_dt.datetime.fromtimestamp(wall_ns / NS, _dt.timezone.utc).date())
+        elif date is None:
+            self._date = gnss.roll_over(self._date, tod, self._last_tod)
         self._last_tod = tod
-        if tod != np.floor(tod):
+        if tod != np.floor(tod) or self._date is None:
             return
         utc_s = int(_dt.datetime.combine(self._date, _dt.time(), _dt.timezone.utc).timestamp()) + int(tod)
         if self._last_fix_key != utc_s:
@@ -261,12 +297,14 @@ class Pipeline:
             if self._date is None:
                 return
             utc_ns = replace(ep, date=self._date).utc_ns
-        fix = bool(ep.quality) and ep.quality > 0 and np.isfinite(ep.lat_deg)
-        known = np.isfinite(ep.sd_east_m) and np.isfinite(ep.sd_north_m)
+        why = ep.no_fix or ("" if np.isfinite(ep.lat_deg) else "no_position")
+        sd = (ep.sd_east_m, ep.sd_north_m, ep.sd_up_m)
+        known = all(np.isfinite(sd[:2])) and all(abs(x) < MAX_SIGMA_M for x in sd if np.isfinite(x))
         if known:
-            var = (ep.sd_east_m**2, ep.sd_north_m**2, ep.sd_up_m**2)
+            var = tuple(x**2 for x in sd)
         else:
-            sh = (ep.hdop if np.isfinite(ep.hdop or np.nan) else 99.0) * self.cfg.uere_m
+            hdop = ep.hdop if ep.hdop is not None and 0 < ep.hdop <= MAX_HDOP else MAX_HDOP
+            sh = hdop * self.cfg.uere_m
             var = (sh**2, sh**2, (self.cfg.vertical_over_horizontal * sh) ** 2)
         vel = None
         if ep.speed_mps is not None and np.isfinite(ep.speed_mps):
@@ -274,15 +312,29 @@ class Pipeline:
             vel = (ep.speed_mps * np.sin(course), ep.speed_mps * np.cos(course), 0.0)
         s2 = self.cfg.gps_vel_sigma_mps**2
         self._emit_solution(gpsport.Solution(
-            utc_ns, fix, ep.quality, ep.num_sats, ep.lat_deg, ep.lon_deg, ep.alt_ellipsoid_m, var, known, vel,
-            (s2, s2, 1e4), ep.first_mono_ns, "nmea"))   # NMEA has no vertical velocity: unobserved
+            utc_ns, not why, ep.quality, ep.num_sats, ep.lat_deg, ep.lon_deg, ep.alt_ellipsoid_m, var, known, vel,
+            (s2, s2, 1e4), ep.first_mono_ns, "nmea"), why)   # NMEA has no vertical velocity: unobserved
 
-    def _emit_solution(self, sol: gpsport.Solution) -> None:
-        """/gps/fix and /gps/vel of one receiver epoch."""
-        t_ns = np.array([sol.utc_ns], np.int64)
-        fix = sol.fix
-        self.counters.gps_epochs += 1
-        self.counters.gps_no_fix += not fix
+    def _emit_solution(self, sol: gpsport.Solution, why: str = "") -> None:
+        """/gps/fix and /gps/vel of one receiver epoch; ``why`` it is not a fix (counted by reason).
+
+        Once time sync has a GPS clock fit, the epoch must lie in the second before its first message was read;
+        a receiver time further off than ``receiver_time_tolerance_s`` (a receiver clock jump) is NO_FIX
+        ``receiver_time`` and stamped with the fit's time of that read, not the receiver's."""
+        why = why or ("" if sol.fix else "receiver")
+        utc_ns = sol.utc_ns
+        if self.sync.gps_clock and sol.first_mono_ns:
+            arrival = int(self.sync.mono_to_utc(np.array([sol.first_mono_ns], np.int64))[0])
+            tol = int(self.cfg.receiver_time_tolerance_s * NS)
+            if not arrival - NS - tol <= utc_ns <= arrival + tol:
+                why, utc_ns = "receiver_time", arrival
+        t_ns = np.array([utc_ns], np.int64)
+        fix = not why
+        c = self.counters
+        c.gps_epochs += 1
+        c.gps_no_fix += not fix
+        if why:
+            c.no_fix[why] = c.no_fix.get(why, 0) + 1
         cov_type = messages.COVARIANCE_TYPE_DIAGONAL_KNOWN if sol.pos_var_known else \
             messages.COVARIANCE_TYPE_APPROXIMATED
         status = messages.fix_status(sol.quality if fix else 0)

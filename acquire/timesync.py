@@ -364,6 +364,11 @@ class TimeSync:
         state[age <= self._G] = SyncState.LOCKED
         return t, state, True
 
+    @property
+    def gps_clock(self) -> bool:
+        """True once a PPS edge has been accepted: ``mono_to_utc`` then follows GPS time, not the host clock."""
+        return bool(self._host_offsets)
+
     def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
         """Host monotonic time -> UTC (int64 ns), with the data fed so far.
 

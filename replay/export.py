@@ -43,6 +43,7 @@ each covariance becomes ``<name>_0`` ... ``<name>_8`` (or ``_35``) and ``data`` 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -223,7 +224,12 @@ def csv_ready(df: pl.DataFrame) -> pl.DataFrame:
 
 
 def table_path(out: Path, topic: str, fmt: str) -> Path:
-    return out.joinpath(*topic.strip("/").split("/")).with_suffix(f".{fmt}")
+    """``out/<topic>.<fmt>``, the topic's '/' levels kept as directories. A topic name comes from the drive, so
+    it is cleaned: characters other than letters, digits, '_', '-' and '.' become '_', empty levels are dropped
+    and a level of dots ('.', '..') becomes underscores; the path always stays under ``out``."""
+    parts = [re.sub(r"[^A-Za-z0-9_.-]", "_", p) for p in topic.split("/") if p]
+    parts = [p if p.strip(".") else "_" * len(p) for p in parts] or ["_"]
+    return out.joinpath(*parts[:-1], f"{parts[-1]}.{fmt}")
 
 
 def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
@@ -236,8 +242,14 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
     out = Path(out)
     todo = _topic_types(path, topics)
     written: dict[str, tuple[Path, int]] = {}
+    taken: set[Path] = set()
     for i, (topic, type_name) in enumerate(todo):
         dest = table_path(out, topic, fmt)
+        n = 1
+        while dest in taken:                  # two topics cleaned to the same name: number the later ones
+            n += 1
+            dest = table_path(out, f"{topic}~{n}", fmt)
+        taken.add(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         written[topic] = (dest, _write(topic_batches(path, topic, type_name), dest, fmt,
                                        lambda: topic_frame(path, topic, type_name)))

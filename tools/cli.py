@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
 import time
 from pathlib import Path
@@ -62,6 +64,13 @@ class Progress:
             sys.stderr.flush()
 
 
+def output_parent(path: str | None) -> None:
+    """Create the directory an output file goes to (an OSError naming it when that is impossible, before any
+    work is done)."""
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+
+
 def cmd_sim(a: argparse.Namespace) -> int:
     if a.serve:
         return cmd_sim_serve(a)
@@ -92,7 +101,6 @@ def cmd_acquire(a: argparse.Namespace) -> int:
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
     if not (a.view or a.view_rrd):
         return daemon.run_daemon(cfg, quiet=a.quiet > 0)
-    import os
     import subprocess
     import tempfile
 
@@ -120,8 +128,6 @@ def cmd_recover(a: argparse.Namespace) -> int:
     from fieldlog.acquire.recorder import recover
 
     src = Path(a.drive)
-    if not src.is_file():
-        raise FileNotFoundError(f"{src} does not exist")
     out = Path(a.out) if a.out else src.with_name(src.stem + ".recovered.mcap")
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from the damaged file (it is kept as it is)")
@@ -307,6 +313,7 @@ def cmd_view_live(a: argparse.Namespace) -> int:
     address = a.live or config.load(a.config, {"daq": "-", "gps": "--"}).daemon.bus
     if not address:
         raise ValueError("no live bus: give its socket path (--live PATH) or a config with [daemon] bus")
+    output_parent(a.rrd)
     try:
         res = live_view(address, a.method, rrd=a.rrd, connect=a.connect)
     except KeyboardInterrupt:
@@ -340,6 +347,7 @@ def cmd_view(a: argparse.Namespace) -> int:
         if spec != InputSpec():
             raise
         imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
+    output_parent(a.rrd)
     res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap)
     if res.rrd is None:
         print(f"sent {' '.join(files)} to the rerun viewer")
@@ -406,6 +414,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     drive = drive_arg(a.drive)
     st = settings(drive, a.config, input_spec(a))
+    output_parent(a.rrd)
     res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
                  progress=Progress(f"replay {a.method}"), imap=st.inputs)
     print(f"played {res.data_s:.1f} s of {' '.join(a.drive)} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
@@ -655,15 +664,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command. The error contract: bad input (a path, file, byte or config) is one line on stderr that
+    names it and says what to do, exit code 2; anything else is an internal error, one line, exit code 1
+    (FIELDLOG_TRACEBACK=1 shows its traceback). Never a traceback for bad input."""
     args = build_parser().parse_args(argv)
+    prefix = f"fieldlog {args.command}: error:"
     try:
         return args.func(args)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"fieldlog {args.command}: error: {e}", file=sys.stderr)
-        return 2
     except BrokenPipeError:  # e.g. `fieldlog info X | head`
         sys.stderr.close()
         return 0
+    except OSError as e:
+        name = e.filename if e.filename is not None else ""
+        what = f"{name}: {e.strerror}" if name and e.strerror else str(e)
+        hint = {errno.EACCES: "check its permissions", errno.ENOENT: "check the path",
+                errno.EISDIR: "give a file, not a directory", errno.ENOTDIR: "check the path",
+                errno.ENOSPC: "free some space", errno.EROFS: "choose a writable place"}.get(e.errno, "")
+        print(f"{prefix} {what}{'; ' + hint if hint and hint not in what else ''}", file=sys.stderr)
+        return 2
+    except (ValueError, KeyError) as e:
+        print(f"{prefix} {e.args[0] if isinstance(e, KeyError) and e.args else e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:  # noqa: BLE001 - the contract: one line, exit 1
+        if os.environ.get("FIELDLOG_TRACEBACK"):
+            raise
+        print(f"{prefix} internal error: {type(e).__name__}: {e} (please report it; FIELDLOG_TRACEBACK=1 shows "
+              f"where)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import daq, gpsport, nmea, novatel, recorder, timesync, ubx
+from fieldlog.acquire import daq, gnss, gpsport, nmea, novatel, recorder, timesync, ubx
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
@@ -41,7 +41,7 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
     for off in range(0, len(data), 65536):
         frames += framer.feed(data[off:off + 65536])
         ends += framer.ends
-    date = _first_date(frames) or fallback_date
+    date = gnss.in_range(_first_date(frames) or fallback_date)
     dec = nmea.NmeaDecoder()
     times: list[float | None] = []
     last_tod = None
@@ -49,18 +49,21 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
         t = None
         if kind == "nmea":
             s = dec.decode_line(frame)
+            own = getattr(s, "date", None)
             tod = getattr(s, "time_of_day_s", None)
-            date = getattr(s, "date", None) or date
+            date = own or date
             if tod is not None and np.isfinite(tod):
-                if last_tod is not None and tod < last_tod - 43200 and getattr(s, "date", None) is None:
-                    date = date + _dt.timedelta(days=1)
+                if own is None:
+                    date = gnss.roll_over(date, tod, last_tod)
                 last_tod = tod
-                t = _dt.datetime.combine(date, _dt.time(), _dt.timezone.utc).timestamp() + np.floor(tod)
+                if date is not None:
+                    t = gnss.utc_ns(date, np.floor(tod)) / NS
         else:
             ns = _binary_time_ns(kind, frame)
-            if ns is not None:
+            d = gnss.date_of_utc_ns(ns) if ns is not None else None
+            if d is not None:
                 t = float(ns // NS)
-                date = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).date()
+                date = d
                 last_tod = t % 86400
         times.append(t)
     known = [t for t in times if t is not None]
@@ -144,10 +147,16 @@ def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Pat
                     pps_mode: str = "flag") -> RebuildResult:
     gps_bytes = Path(gps).read_bytes()
     mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
-    reads = gps_reads(gps_bytes, mdate)
+    try:
+        reads = gps_reads(gps_bytes, mdate)
+    except ValueError as e:
+        raise ValueError(f"{gps}: {e}: give a GPS log") from None
     if daq_path is not None:
         first_epoch = round(reads[0].mono_ns / NS - NMEA_LATENCY_S)
-        reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)
+        try:
+            reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)
+        except ValueError as e:
+            raise ValueError(f"{daq_path}: {e}: give a byte capture of the DAQ board") from None
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
     meta = {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}
