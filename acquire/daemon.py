@@ -62,7 +62,7 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import calib, messages, nmea, recorder, timesync
+from fieldlog.acquire import calib, messages, nmea, recorder, recovery, timesync
 from fieldlog.acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 
@@ -430,7 +430,9 @@ def is_finished(path: Path) -> bool:
 
 def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[Path, Path]]:
     """Recover every unfinished ``*.mcap`` in ``out_dir`` (no summary) into ``NAME.recovered.mcap`` next to
-    it, once; the original is left as it is. Returns (original, recovered) pairs."""
+    it, once (``recovery.recover_drive``: the complete chunks and the re-derived tail); the original is left as
+    it is. A recovery that fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next
+    start tries again. Returns (original, recovered) pairs."""
     done = []
     for p in sorted(out_dir.glob("*.mcap")):
         if p.name.endswith(".recovered.mcap") or is_finished(p):
@@ -438,10 +440,17 @@ def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[
         dst = p.with_name(p.stem + ".recovered.mcap")
         if dst.exists():
             continue
-        rep = recorder.recover(p, dst)
+        try:
+            rep = recovery.recover_drive(p, dst)
+        except (OSError, ValueError) as e:
+            log(f"could not recover unfinished {p.name}: {getattr(e, 'strerror', None) or e}; it is left as it is "
+                f"(the next start tries again, or run `fieldlog recover {p}`)")
+            continue
         n = sum(rep.messages.values())
+        tail = sum(rep.rederived.values())
         log(f"recovered unfinished {p.name} -> {dst.name}: {n} messages in {rep.chunks} chunks, "
-            f"{rep.bytes_discarded} bytes after the last complete chunk discarded")
+            f"{rep.bytes_discarded} bytes after the last complete chunk discarded, {tail} tail messages "
+            f"re-derived from the raw reads")
         done.append((p, dst))
     return done
 

@@ -25,7 +25,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Sequence
+from typing import BinaryIO, Protocol, Sequence
 
 import numpy as np
 import zstandard
@@ -651,17 +651,46 @@ class RecoverReport:
     bytes_discarded: int
     last_log_time_ns: int
     had_summary: bool
+    rederived: dict[str, int] = field(default_factory=dict)   # tail messages re-derived per topic
 
 
-def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> RecoverReport:
+class Extend(Protocol):
+    """What ``recover`` can add to the kept chunks (``acquire.recovery.TailDeriver``)."""
+
+    def chunk(self, rec: "Recorder", cm: "ChunkMessages", metadata: dict[str, dict[str, str]]) -> None: ...
+
+    def finish(self, rec: "Recorder") -> dict[str, int]: ...
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Extend | None = None) -> RecoverReport:
     """Rebuild a valid MCAP from ``src`` (cut short by a kill or power loss) into ``dst``.
 
     Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
     metadata record and every complete chunk whose CRC checks, up to the first truncated or
-    invalid record; writes them to ``dst`` with fresh message indexes and a summary.
+    invalid record; writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
+    kept chunk and adds its messages before the summary. ``src`` must start with the MCAP magic (ValueError).
+    ``dst`` appears only complete: it is written as ``dst`` + ``.partial`` and renamed at the end; on any
+    error (a full disk) the partial file is removed and the error raised, so a later attempt starts afresh.
     """
     size = os.path.getsize(src)
+    with open(src, "rb") as f:
+        if f.read(len(MAGIC)) != MAGIC:
+            raise ValueError(f"{src} is not an MCAP file (no MCAP magic at its start): nothing to recover")
+    dst = Path(dst)
+    tmp = dst.with_name(dst.name + ".partial")
+    try:
+        report = _recover(src, tmp, size, extend)
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return report
+
+
+def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend | None) -> RecoverReport:
     kept: dict[int, int] = {}
+    meta: dict[str, dict[str, str]] = {}
+    rederived: dict[str, int] = {}
     last_t = 0
     good_end = 0
     had_summary = False
@@ -688,12 +717,15 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
                     rec.add_channel(record)
                 elif isinstance(record, Metadata):
                     rec.add_metadata(record.name, record.metadata)
+                    meta[record.name] = dict(record.metadata)
                 elif isinstance(record, Chunk):
                     for r in inner:
                         (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
                     if not set(np.unique(cm.channel_id).tolist()) <= set(rec._channels):
                         break
                     _copy_chunk(rec, cm)
+                    if extend is not None:
+                        extend.chunk(rec, cm, meta)
                     for cid, cnt in zip(*np.unique(cm.channel_id, return_counts=True)):
                         kept[int(cid)] = kept.get(int(cid), 0) + int(cnt)
                     if len(cm.log_time):
@@ -703,6 +735,11 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
                     had_summary = True
                     break
                 good_end = f.tell()
+        if extend is not None and not had_summary:
+            rederived = extend.finish(rec)
+            if rederived:
+                rec.add_metadata("recover", {"source": str(src), **{f"rederived.{k}": str(v)
+                                                                     for k, v in rederived.items()}})
     finally:
         rec.close()
     topics = {rec._channels[cid].topic: n for cid, n in kept.items()}
@@ -712,6 +749,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
         bytes_discarded=size - good_end if not had_summary else 0,
         last_log_time_ns=last_t,
         had_summary=had_summary,
+        rederived=rederived,
     )
 
 

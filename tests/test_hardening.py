@@ -6,6 +6,7 @@ import io
 import re
 import signal
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,9 @@ def test_daemon_records_on_through_hostile_sentences_over_a_pty(tmp_path: Path) 
             t.join(0.25)
             files = list((tmp_path / "drives").glob("*.mcap"))
             sizes.append(files[0].stat().st_size if files else 0)
+        while d.poll() is None and (len(sizes) < 8 or sizes[-1] != sizes[-8]):   # until it has caught up (2 s)
+            time.sleep(0.25)
+            sizes.append(files[0].stat().st_size)
         assert d.poll() is None, d.stderr.read()             # still running after every hostile sentence
     finally:
         srv.stop.set()
@@ -330,3 +334,87 @@ def test_the_bus_replaces_only_a_stale_socket_of_its_own(tmp_path: Path) -> None
         for m, s, _ in ptys:
             os.close(m)
             os.close(s)
+
+
+# ------------------------------------------------------------------------------------------- recover
+
+def test_recover_after_kill9_gives_imu_to_the_cut_and_a_full_disk_leaves_the_original(tmp_path: Path) -> None:
+    """A run at x10 killed after 9 s (90 s of data): the kept chunks hold /imu only up to about a minute
+    before the kill (the centred time fit); recover re-derives the tail from /raw, as the daemon's start does,
+    and a recovery that hits a file size limit (a full disk) fails in one line and leaves nothing behind."""
+    import resource
+    import subprocess
+    import sys
+
+    from fieldlog.acquire import daq
+    from fieldlog.acquire.daemon import is_finished
+    from test_daemon import raw_stream
+    from test_serve import ROOT, start_serve
+
+    out = tmp_path / "drives"
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "170", "--speed", "10", "--hold")
+    try:
+        d, _ = start_daemon(out, paths, "--time-scale", "10")
+        serve.send_signal(signal.SIGUSR1)
+        time.sleep(9.0)
+        kill_mono = time.monotonic_ns()
+        d.send_signal(signal.SIGKILL)
+        d.wait(10)
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        serve.wait(10)
+    (cut,) = sorted(out.glob("*.mcap"))
+    before = cut.read_bytes()
+    plain = tmp_path / "plain.mcap"
+    recorder.recover(cut, plain)                                     # the chunks alone
+    n_plain = next((t.count for t in reader.topics(plain) if t.topic == "/imu"), 0)
+    # a full disk (here: a file size limit) during recovery: one line, nothing left behind, original intact
+    limit = len(before) // 2
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    full = tmp_path / "full.mcap"
+    r = subprocess.run([sys.executable, "-m", "fieldlog", "recover", str(cut), "--out", str(full)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120, preexec_fn=small_files)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert not full.exists() and not list(tmp_path.glob("*.partial")) and cut.read_bytes() == before
+    # recover, complete
+    r = run("recover", str(cut), "--out", str(full))
+    assert r.returncode == 0, r.stderr
+    _, mono = raw_stream(full, "daq")
+    assert (kill_mono - mono[-1]) / 1e9 <= 1.5                       # raw: at most 1.5 s (host) lost
+    frames = daq.DaqDecoder().feed(raw_stream(full, "daq")[0]).k
+    imu = reader.read_topic(full, "/imu")["log_time_ns"]
+    print(f"\n/imu after recover: {len(imu)} samples (chunks alone: {n_plain}), raw frames {len(frames)}")
+    assert len(frames) - 500 <= len(imu) <= len(frames)               # /imu to within 1 s of data of the cut
+    assert len(imu) > n_plain + 40 * 500 and np.all(np.diff(imu) > 0)
+    assert "rederived./imu" in read_metadata(full)["recover"]
+    assert is_finished(full) and cut.read_bytes() == before
+    # the daemon's recovery on start: on a full disk it logs, records on and leaves nothing; the next start
+    # recovers the same complete drive
+    import os
+    import tty
+
+    ptys = []
+    for _ in range(2):
+        m, s = os.openpty()
+        tty.setraw(s)
+        ptys.append((m, s))
+    names = {"daq": os.ttyname(ptys[0][1]), "gps": os.ttyname(ptys[1][1])}
+    logs = []
+    try:
+        for pre in (small_files, None):
+            d, log = start_daemon(out, names, preexec_fn=pre)
+            d.send_signal(signal.SIGTERM)
+            assert d.wait(30) == 0
+            logs.append(log + d.stderr.read())
+    finally:
+        for m, s in ptys:
+            os.close(m)
+            os.close(s)
+    rec = cut.with_name(cut.stem + ".recovered.mcap")
+    assert f"could not recover unfinished {cut.name}" in logs[0] and "Traceback" not in logs[0], logs[0]
+    assert f"recovered unfinished {cut.name}" in logs[1] and is_finished(rec)
+    assert np.array_equal(reader.read_topic(rec, "/imu")["log_time_ns"], imu)

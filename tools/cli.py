@@ -125,18 +125,20 @@ def cmd_acquire(a: argparse.Namespace) -> int:
 
 
 def cmd_recover(a: argparse.Namespace) -> int:
-    from fieldlog.acquire.recorder import recover
+    from fieldlog.acquire.recovery import recover_drive
 
     src = Path(a.drive)
     out = Path(a.out) if a.out else src.with_name(src.stem + ".recovered.mcap")
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from the damaged file (it is kept as it is)")
-    rep = recover(src, out)
+    rep = recover_drive(src, out)
     state = "was already complete" if rep.had_summary else f"{rep.bytes_discarded} bytes after the last complete " \
                                                             f"chunk discarded"
-    print(f"wrote {out}: {sum(rep.messages.values())} messages in {rep.chunks} chunks ({state})")
-    for topic, n in sorted(rep.messages.items()):
-        print(f"  {topic:<20} {n}")
+    print(f"wrote {out}: {sum(rep.messages.values())} messages in {rep.chunks} chunks ({state}), "
+          f"{sum(rep.rederived.values())} tail messages re-derived from the raw reads")
+    for topic in sorted(set(rep.messages) | set(rep.rederived)):
+        print(f"  {topic:<20} {rep.messages.get(topic, 0)}" + (f" + {rep.rederived[topic]} re-derived"
+                                                                 if rep.rederived.get(topic) else ""))
     return 0
 
 
