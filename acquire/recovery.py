@@ -42,8 +42,8 @@ class TailDeriver:
         raw = np.array([topics.get(int(c), "").startswith("/raw/") for c in cm.channel_id], bool)
         if raw.any():
             if self.pipe is None:
-                cal, sync = Pipeline.settings_from_metadata(metadata)
-                self.pipe = Pipeline(self, cal, sync)
+                cal, sync, cfg = Pipeline.settings_from_metadata(metadata)
+                self.pipe = Pipeline(self, cal, sync, cfg)
             for payload in cm.select(raw).packed():
                 _stamp, mono_ns, port, data = messages.decode_raw(payload)
                 self.pipe.feed(port, mono_ns, _stamp, data)
