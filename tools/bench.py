@@ -264,15 +264,18 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
 
 
-def _serve_and_acquire(duration_s: float, speed: float, truth: Path, out: Path, *daemon_args: str
-                       ) -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
+def _serve_and_acquire(duration_s: float, speed: float, truth: Path, out: Path, *daemon_args: str,
+                       serve_args: tuple[str, ...] = ()) -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
     """``sim --serve --hold`` of figure8 (truth to ``truth``) and ``acquire`` on its ptys into ``out``, the daemon
     recording; the caller releases the stream with SIGUSR1 to the first."""
     cli = [sys.executable, "-m", "fieldlog"]
     serve = subprocess.Popen([*cli, "sim", "--serve", "--scenario", "figure8", "--duration", str(duration_s),
-                              "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth)],
+                              "--seed", "1", "--speed", str(speed), "--hold", "--truth", str(truth), *serve_args],
                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     paths = dict(serve.stdout.readline().split() for _ in range(2))
+    if "--link-dir" in serve_args:
+        link = Path(serve_args[serve_args.index("--link-dir") + 1])
+        paths = {name: str(link / name) for name in paths}
     scale = ["--time-scale", str(speed)] if speed != 1 else []
     d = subprocess.Popen([*cli, "acquire", "--daq", paths["daq"], "--gps", paths["gps"], "--out", str(out),
                           "--quiet", *scale, *daemon_args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -319,6 +322,53 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
     one(1.0, duration_s)
     one(20.0, 120.0)
+
+
+def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 20.0) -> None:
+    """soak: acquire at x20 for 30 min of data, 1 % corrupt bytes, the DAQ unplugged 5 s every 2 min: loss, RSS, CPU."""
+    import os
+    import signal
+
+    from fieldlog.tools.rebuild import read_metadata
+
+    out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"
+    unplug = [a for t in range(120, int(duration_s) - 10, 120) for a in ("--unplug", f"daq:{t}:5")]
+    serve, d = _serve_and_acquire(duration_s, speed, truth, out, serve_args=("--corrupt", "0.01", "--link-dir", str(links), *unplug))
+    rss: list[float] = []
+
+    def sample() -> None:
+        try:
+            text = Path(f"/proc/{d.pid}/status").read_text()
+            rss.append(int(text.split("VmRSS:")[1].split()[0]) / 1024)
+        except (OSError, IndexError):
+            pass
+
+    t0 = time.monotonic()
+    serve.send_signal(signal.SIGUSR1)
+    while serve.poll() is None:
+        sample()
+        time.sleep(2.0)
+    d.send_signal(signal.SIGTERM)
+    _, status, usage = os.wait4(d.pid, 0)
+    wall = time.monotonic() - t0
+    sent = read_metadata(truth)["serve"]
+    files = sorted(out.glob("*.mcap"))
+    c = read_metadata(files[-1])["acquire.counters"]
+    daq_sent, gps_sent = int(sent["daq_bytes"]), int(sent["gps_bytes"])
+    daq_got = int(c["port.daq.bytes"])
+    gps_got = int(c["port.gps.bytes"])
+    n = max(len(rss) // 10, 1)
+    print(f"soak {duration_s / 60:.0f} min of data at x{speed:g} in {wall:.0f} s: exit {os.waitstatus_to_exitcode(status)}, "
+          f"{len(files)} file(s); DAQ bytes sent {daq_sent}, read {daq_got} (lost outside the unplugged intervals: "
+          f"{daq_sent - daq_got}), {sent['daq_lost_bytes']} bytes lost while unplugged, "
+          f"{c['port.daq.disconnects']} disconnects; frames {c['daq.frames']}, lost {c['daq.lost_frames']} "
+          f"(corrupt or unplugged), bad CRC {c['daq.bad_crc']}; GPS bytes sent {gps_sent}, read {gps_got} "
+          f"(lost {gps_sent - gps_got}), NMEA lines {c['nmea.lines']} of {sent['nmea_lines']} sent, bad checksum "
+          f"{c['nmea.bad_checksum']}; processing errors {c['processing_errors']}, dropped reads "
+          f"{c['port.daq.dropped_reads']}/{c['port.gps.dropped_reads']}")
+    print(f"soak RSS: first tenth {statistics.mean(rss[:n]):.0f} MB, last tenth {statistics.mean(rss[-n:]):.0f} MB, max {max(rss):.0f} MB;"
+          f" CPU {usage.ru_utime + usage.ru_stime:.0f} s ({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of "
+          f"one core)")
 
 
 def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
@@ -582,7 +632,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 
 
 BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
-           "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "bus": bench_bus, "view": bench_view,
+           "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "soak": bench_soak, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long}
 
