@@ -609,6 +609,11 @@ def bench_cli(runs: int, tmp: Path) -> None:
 
 def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """Reading what fuse reads (/imu, /gps/fix, /gps/vel in 10 s blocks) of a 300 s drive in every MCAP layout."""
+    # Measured 2026-11-30 (shared 2-core VM, load 4-6), medians of 3: own 0.34 s; unchunked 0.63 (x1.84), lz4 0.45
+    # (x1.30), uncompressed 0.37 (x1.07), no summary 0.53 (x1.53), 4 KiB chunks 1.60 (x4.7). The reader before
+    # (summary chunk indexes, one chunk at a time), best of 3 on the same files: own 0.20 (now 0.25; 7 alternating
+    # runs: medians 0.41 before, 0.33 now), 4 KiB chunks of every topic 4.60 s (now 1.22), 4 KiB chunks of the
+    # fusion/info topics only 2.65 s (now 0.67); unchunked and no-summary files read nothing / were refused.
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
