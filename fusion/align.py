@@ -40,7 +40,9 @@ Alignment (:class:`Alignment`):
 velocity innovations' normalised squares (NIS; a heading error shows in the velocity as soon as the vehicle
 accelerates or turns, and the position's slow receiver error is not in the filter's model) are summed over the
 last ``realign_epochs`` epochs; above the chi-square quantile of probability 1 - 1e-4 for their degrees of freedom, the heading is far off its sigma: the heading is
-taken again from the GPS course (at ``align_speed_mps`` or more) with the course's sigma, the gyro bias sigma
+taken again from the GPS course (at ``align_speed_mps`` or more, and only where the course is more than 3 of its
+sigmas from the INS heading: in turns the innovations of a well-aligned MEMS filter can pass the quantile too,
+from the scale-factor errors the 15 states do not carry) with the course's sigma, the gyro bias sigma
 reopened to the prior, the other states kept. Once per drive; not with the RTS smoother (its log has no
 record of a jump).
 
@@ -243,13 +245,15 @@ class HeadingCheck:
         self.recent: list[tuple[float, int]] = []
         self.done = not cfg.realign_window_s > 0
 
-    def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray) -> bool:
-        """Add an epoch's innovation z (m,), H (m, 15), R (m, m) with the predicted covariance P (15, 15) at time t
-        (s); True when the heading should be taken again."""
+    def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, x: np.ndarray, P: np.ndarray) -> bool:
+        """Add an epoch's measurement z (m,), H (m, 15), R (m, m) with the filter's predicted error state x (15,)
+        and covariance P (15, 15) at time t (s); True when the heading should be taken again. x is zero in the
+        closed-loop filters; the paper's distributed filter carries a fused prediction between epochs."""
         if self.done or t > self.t_end or len(z) == 0:
             return False
+        nu = z - H @ x
         S = H @ P @ H.T + R
-        self.recent = (self.recent + [(float(z @ np.linalg.solve(S, z)), len(z))])[-self.cfg.realign_epochs:]
+        self.recent = (self.recent + [(float(nu @ np.linalg.solve(S, nu)), len(z))])[-self.cfg.realign_epochs:]
         if len(self.recent) < self.cfg.realign_epochs:
             return False
         nis, dof = sum(x for x, _ in self.recent), sum(d for _, d in self.recent)
@@ -257,16 +261,20 @@ class HeadingCheck:
 
     def realign(self, nav: ins.NavState, ep: dict, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
         """The INS state with the heading from the epoch's GPS course and the covariance with its heading sigma
-        and the gyro bias prior; None while the GPS speed is below ``align_speed_mps`` (try again later)."""
+        and the gyro bias prior; None while the GPS speed is below ``align_speed_mps``, or while the course agrees
+        with the INS heading within 3 sigma of the course (try again later)."""
         c = self.cfg
         v = ep["v_n"]
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else 0.0
         if speed < c.align_speed_mps:
             return None
-        self.done = True
-        _, pitch, roll = (float(x) for x in earth.dcm_to_euler(nav.C_bn))
-        C = earth.euler_to_dcm(math.atan2(v[0], v[1]), pitch, roll)
+        heading, pitch, roll = (float(x) for x in earth.dcm_to_euler(nav.C_bn))
+        course = math.atan2(v[0], v[1])
         sd = math.hypot(_vel_sigma(ep) / speed, c.align_sideslip_deg * _DEG)
+        if abs(math.remainder(course - heading, 2.0 * math.pi)) <= 3.0 * sd:
+            return None  # the course agrees with the heading: the innovations are large for another reason
+        self.done = True
+        C = earth.euler_to_dcm(course, pitch, roll)
         P = P.copy()
         P[8, :] = P[:, 8] = 0.0
         P[8, 8] = sd * sd

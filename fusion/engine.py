@@ -303,8 +303,8 @@ class Engine:
         pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
         vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
         u = self.bridge.input(self.nav) if self.bridge is not None else None
-        if self._check is not None and vel is not None and self._check.far_off(t_g, *vel, self.filter.covariance) \
-                and self._realign(ep):
+        if (self._check is not None and vel is not None
+                and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
             pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
             vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever,
                                           self.cfg.vel_var_max)
