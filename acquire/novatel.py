@@ -21,7 +21,7 @@ import math
 import struct
 from dataclasses import dataclass, field
 
-from fieldlog.acquire import gpsport
+from fieldlog.acquire import gnss, gpsport
 
 NS = 1_000_000_000
 BESTPOS_ID, BESTVEL_ID, TIME_ID = 42, 99, 101
@@ -113,7 +113,7 @@ class NovatelDecoder:
         week, ms = key
         leap = self.leap_s
         utc_ns = utc_ns_of(week, ms, self.leap_s)
-        fix = pos.quality not in (0, 6, 7) and math.isfinite(pos.lat)
+        fix = not gnss.no_fix_reason(pos.quality, pos.sats, None) and math.isfinite(pos.lat)
         nan = math.nan
         return [gpsport.Solution(
             utc_ns=utc_ns, fix=fix, quality=pos.quality if fix else 0, num_sats=pos.sats, lat_deg=pos.lat,

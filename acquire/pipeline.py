@@ -260,7 +260,7 @@ class Pipeline:
     def _note_binary_time(self, utc_ns: int, mono_ns: int, wall_ns: int) -> None:
         """As ``_note_time`` for a UBX/NovAtel epoch; it also dates later NMEA sentences without a date."""
         utc_s, frac = divmod(utc_ns, NS)
-        self._date = _dt.datetime.fromtimestamp(utc_s, _dt.timezone.utc).date()
+        self._date = gnss.date_of_utc_ns(utc_ns)
         self._last_tod = utc_s % 86400
         if frac == 0 and self._last_fix_key != utc_s:
             self._last_fix_key = utc_s

@@ -10,13 +10,12 @@ UBX shares the port with NMEA and NovAtel and must resynchronise byte by byte (`
 """
 from __future__ import annotations
 
-import datetime as _dt
 from dataclasses import dataclass, field
 
 from pyubx2 import UBXReader
 from pyubx2.ubxtypes_core import UBX_MSGIDS
 
-from fieldlog.acquire import gpsport
+from fieldlog.acquire import gnss, gpsport
 
 NS = 1_000_000_000
 # UBX NAV-PVT fixType -> GGA-like quality: 0 no fix, 1 dead reckoning only, 2 2-D, 3 3-D, 4 GNSS + dead
@@ -69,15 +68,11 @@ class UbxDecoder:
         if not (m.validDate and m.validTime):
             self.stats.no_time += 1
             return []
-        try:
-            base = _dt.datetime(m.year, m.month, m.day, m.hour, m.min, m.second, tzinfo=_dt.timezone.utc)
-        except ValueError:
+        day = gnss.make_date(m.year, m.month, m.day)
+        if day is None or not (m.hour < 24 and m.min < 60 and m.second < 61):
             self.stats.no_time += 1
             return []
-        if not 1980 <= m.year <= 2200:
-            self.stats.no_time += 1
-            return []
-        utc_ns = int(base.timestamp()) * NS + int(m.nano)
+        utc_ns = gnss.utc_ns(day, m.hour * 3600 + m.min * 60 + m.second) + int(m.nano)
         utc_ns = round(utc_ns / 1e6) * 1_000_000     # the epoch, to the ms (nano holds the clock bias)
         tow_utc = (utc_ns / NS - gpsport.GPS_EPOCH_S) % gpsport.WEEK_S
         self.leap_s = round((m.iTOW / 1000.0 - tow_utc) % gpsport.WEEK_S) % gpsport.WEEK_S
@@ -86,7 +81,7 @@ class UbxDecoder:
             quality = 2
         if quality and int(m.carrSoln):
             quality = 4 if int(m.carrSoln) == 2 else 5
-        fix = quality not in (0, 6) and bool(m.gnssFixOk) and int(m.numSV) > 0 and not int(m.invalidLlh)
+        fix = not gnss.no_fix_reason(quality, int(m.numSV), None) and bool(m.gnssFixOk) and not int(m.invalidLlh)
         h_var = (m.hAcc / 1000.0) ** 2
         v_var = (m.vAcc / 1000.0) ** 2
         s_var = (m.sAcc / 1000.0) ** 2
