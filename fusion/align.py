@@ -108,6 +108,10 @@ def gps_speed(v_prev: np.ndarray, v_now: np.ndarray) -> float:
     return float(np.hypot(v[0], v[1])) if np.isfinite(v).all() else math.nan
 
 
+_MIN_STATIC_S = 1.0  # a still run shorter than this after its trimmed ends does not replace an earlier one
+_MIN_SAMPLES = 10  # per GPS interval, for its spread: 20 at 200 Hz with a 10 Hz receiver (aircraft)
+
+
 def still(cfg: FusionConfig, interval: ImuSums, speed: float, w_ref: np.ndarray | None, w_sigma: float,
           f_ref: np.ndarray | None, f_sigma: float) -> bool:
     """Whether the vehicle stood still over a GPS interval (module docstring).
@@ -115,7 +119,7 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: float, w_ref: np.ndarray 
     speed: ``gps_speed`` of the interval, m/s (NaN: no GPS velocity, not tested); w_ref (3,) rad/s and f_ref (3,)
     m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
     sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added."""
-    if interval.n < 50 or (math.isfinite(speed) and not speed < cfg.still_gps_speed_mps):
+    if interval.n < _MIN_SAMPLES or (math.isfinite(speed) and not speed < cfg.still_gps_speed_mps):
         return False
     sd_f = interval.std(interval.sum_f, interval.sum_ff)
     sd_w = interval.std(interval.sum_w, interval.sum_ww)
@@ -314,7 +318,10 @@ class Alignment:
             self._after.append((interval, dt))
         elif interval.n:
             if self._run:
-                self._static, self._static_first, self._after = self._run, self._run_first, []
+                if not self._static or sum(dt for _, dt in self._run) >= 2.0 * self.cfg.still_trim_s + _MIN_STATIC_S:
+                    self._static, self._static_first, self._after = self._run, self._run_first, []
+                else:  # a lull too short to level from (an aircraft's first metres): the stop before it stays
+                    self._after += self._run
                 self._run = []
             self._run_first = False
             self._after.append((interval, dt))
