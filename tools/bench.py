@@ -435,20 +435,9 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
             self.t.append(t)
             self.state.append(state)
 
-    class Final:
-        def __init__(self) -> None:
-            self.imu: list[np.ndarray] = []
-
-        def write(self, *_: object) -> None:
-            pass
-
-        def write_batch(self, topic: str, t: np.ndarray, _: object) -> None:
-            if topic == "/imu":
-                self.imu.append(np.asarray(t))
-
     for mode in ("flag", "latch"):
         reads, tr, *_ = simulate.make_reads(trajectory.load_scenario("figure8"), 300.0, 1, mode)
-        sink, bus = Final(), Collect()
+        sink, bus = _ImuStamps(), Collect()
         pipe = Pipeline(sink, sync_cfg=TimeSyncConfig(pps_mode=mode))
         prov = pipe.on_frames = ProvisionalImu(pipe, bus)
         for r in reads:
@@ -463,22 +452,25 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
               f"us, final {rms((fin - tru)[late] / 1e3):.2f} us")
 
 
+class _ImuStamps:
+    """A pipeline sink that keeps only the ``/imu`` time stamps (ns), one array per batch."""
+
+    def __init__(self) -> None:
+        self.imu: list[np.ndarray] = []
+
+    def write(self, *_: object) -> None:
+        pass
+
+    def write_batch(self, topic: str, t: np.ndarray, _: object) -> None:
+        if topic == "/imu":
+            self.imu.append(np.asarray(t))
+
+
 def bench_qerr(runs: int, tmp: Path) -> None:
     """u-blox TIM-TP qErr: IMU time-stamp RMS vs truth with and without it (300 s figure8, seeds 1..runs)."""
     from fieldlog.acquire.pipeline import Pipeline
     from fieldlog.acquire.timesync import TimeSyncConfig
     from fieldlog.tools.sim import simulate, trajectory
-
-    class Stamps:
-        def __init__(self) -> None:
-            self.imu: list[np.ndarray] = []
-
-        def write(self, *_: object) -> None:
-            pass
-
-        def write_batch(self, topic: str, t: np.ndarray, _: object) -> None:
-            if topic == "/imu":
-                self.imu.append(np.asarray(t))
 
     for mode in ("flag", "latch"):
         res: dict[bool, list[float]] = {True: [], False: []}
@@ -486,7 +478,7 @@ def bench_qerr(runs: int, tmp: Path) -> None:
             reads, tr, *_ = simulate.make_reads(trajectory.load_scenario("figure8"), 300.0, seed, mode, "ublox")
             tru = tr["t0_ns"] + np.round(tr["t_k"] * 1e9).astype(np.int64)
             for use in (True, False):
-                sink = Stamps()
+                sink = _ImuStamps()
                 pipe = Pipeline(sink, sync_cfg=TimeSyncConfig(pps_mode=mode, pulse_error=use))
                 for r in reads:
                     pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
