@@ -553,21 +553,17 @@ class ChunkMessages:
         )
 
     def packed(self) -> "messages.Packed":
-        """Payloads as a Packed batch (zero-copy when they are evenly spaced)."""
+        """Payloads as a Packed batch: one vectorised gather (of whole rows when they have one length)."""
         n = len(self.start)
-        if n and np.all(self.length == self.length[0]) and (
-            n == 1 or np.all(np.diff(self.start) == self.length[0] + 31)
-        ):
+        if n and np.all(self.length == self.length[0]):
             w = int(self.length[0])
-            s0 = int(self.start[0])
-            strided = np.lib.stride_tricks.as_strided(
-                self.data[s0:], shape=(n, w), strides=(w + 31, 1), writeable=False
-            )
-            return messages.Packed.from_matrix(strided)
-        raw = self.data.tobytes()
-        return messages.Packed.from_list(
-            [raw[s : s + ln] for s, ln in zip(self.start.tolist(), self.length.tolist())]
-        )
+            windows = np.lib.stride_tricks.as_strided(self.data, shape=(len(self.data) - w + 1, w), strides=(1, 1),
+                                                      writeable=False)  # row i: the w bytes from byte i
+            return messages.Packed.from_matrix(windows[self.start])
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(self.length, out=offsets[1:])
+        src = np.repeat(self.start - offsets[:-1], self.length) + np.arange(offsets[-1], dtype=np.int64)
+        return messages.Packed(self.data[src], offsets)
 
 
 def decompress_chunk(chunk: Chunk) -> bytes:
@@ -589,19 +585,29 @@ def _zstd() -> "zstandard.ZstdDecompressor":
 def decompress(compression: str, data, size: int, crc: int):
     """A chunk's records, uncompressed (``data``: bytes or a buffer; returned as it is when not compressed);
     raises ValueError if the size or the CRC (0: none) does not match."""
-    if compression == "zstd":
-        data = _zstd().decompress(data, max_output_size=size)
-    elif compression == "lz4":
-        import lz4.frame
+    return decompress_many([compression], [data], [size], [crc])[0]
 
-        data = lz4.frame.decompress(data)
-    elif compression != "":
-        raise ValueError(f"unknown compression {compression!r}")
-    if len(data) != size:
-        raise ValueError("chunk size mismatch")
-    if crc != 0 and zlib.crc32(data) != crc:
-        raise ValueError("chunk CRC mismatch")
-    return data
+
+def decompress_many(compression: Sequence[str], data: Sequence, size: Sequence[int], crc: Sequence[int]) -> list:
+    """``decompress`` over many chunks (``compression[i]``, ``data[i]``, ...) in one call: small chunks are
+    many, and the per-chunk work outside the codec is most of their cost."""
+    zstd = _zstd().decompress
+    out = []
+    for comp, d, n, c in zip(compression, data, size, crc):
+        if comp == "zstd":
+            d = zstd(d, max_output_size=n)
+        elif comp == "lz4":
+            import lz4.frame
+
+            d = lz4.frame.decompress(d)
+        elif comp != "":
+            raise ValueError(f"unknown compression {comp!r}")
+        if len(d) != n:
+            raise ValueError("chunk size mismatch")
+        if c != 0 and zlib.crc32(d) != c:
+            raise ValueError("chunk CRC mismatch")
+        out.append(d)
+    return out
 
 
 def chunk_messages(data: bytes) -> ChunkMessages:
@@ -610,11 +616,18 @@ def chunk_messages(data: bytes) -> ChunkMessages:
     return messages_of(buf, *_walk(buf)[:3])
 
 
-def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> ChunkMessages:
-    """The Message records among walked records (``walk_records``) of ``buf``, as arrays."""
+def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
+                channels: Sequence[int] | None = None) -> ChunkMessages:
+    """The Message records among walked records (``walk_records``) of ``buf``, as arrays (only those on
+    ``channels``, when given)."""
     is_msg = (ops == Opcode.MESSAGE) & (lengths >= 22)
     s, ln = starts[is_msg], lengths[is_msg]
-    hdr = buf[s[:, None] + np.arange(22)]
+    windows = np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - 21, 0), 22), strides=(1, 1),
+                                              writeable=False)  # row i: the 22 bytes from byte i
+    if channels is not None:
+        on = np.isin(windows[s, :2].copy().view("<u2").ravel(), list(channels))
+        s, ln = s[on], ln[on]
+    hdr = windows[s]
     fields = hdr.reshape(-1).view(
         np.dtype(
             {

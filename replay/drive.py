@@ -91,5 +91,5 @@ def open_file(path: Path) -> McapFile:
 def open_drive(spec: DriveSpec) -> list[McapFile]:
     """The drive's files, opened, ordered by their first log time (then as given)."""
     files = [open_file(p) for p in drive_files(spec)]
-    first = [min((p.start_ns for p in f.pieces), default=0) for f in files]
+    first = [int(f.pieces.start_ns.min()) if len(f.pieces) else 0 for f in files]
     return [f for _, _, f in sorted(zip(first, range(len(files)), files), key=lambda x: x[:2])]

@@ -14,20 +14,24 @@ loads it). That one walk finds everything, whatever the writer chose to write:
 The summary section (chunk indexes, statistics, summary offsets) is not needed: the walk gives the same
 facts, so a file with or without a summary, indexes, statistics or summary offsets reads the same. A *piece*
 is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
-or the headers of loose messages), the channels inside it.
+or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
+per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
+walk, the choice of pieces for some topics and the reading of a group of them are all vectorised; only the
+decompression is a call per chunk.
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
-"cut short, run ``fieldlog recover``". A file that is not MCAP at all is ``NotMcapError``. Both are
-ValueErrors, so every command reports them in one line.
+"cut short, run ``fieldlog recover``". A file that is not MCAP at all is ``NotMcapError``; a chunk whose
+fields overrun its record is ``ValueError`` naming its byte offset. All are ValueErrors, so every command
+reports them in one line.
 """
 from __future__ import annotations
 
 import io
 import mmap
 import os
-import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Collection
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +39,12 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
-from fieldlog.acquire.recorder import ChunkMessages, decompress, messages_of, walk_records
+from fieldlog.acquire.recorder import ChunkMessages, decompress_many, messages_of, walk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
-_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
+READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
 
 
 class NotMcapError(ValueError):
@@ -51,19 +55,34 @@ class TruncatedError(ValueError):
     """The file is MCAP but cut short (no footer and closing magic)."""
 
 
-@dataclass(eq=False, slots=True)
-class Piece:
-    """A chunk, or a run of messages outside chunks: bytes [offset, end) of the file."""
+def le(buf: np.ndarray, pos: np.ndarray, dtype: str) -> np.ndarray:
+    """Little-endian ``dtype`` values at byte positions ``pos`` (each must leave room for the value)."""
+    k = np.dtype(dtype).itemsize
+    windows = np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - k + 1, 0), k), strides=(1, 1),
+                                              writeable=False)  # row i: the k bytes from byte i
+    return windows[np.asarray(pos, np.int64)].view(dtype).ravel()
 
-    file: "McapFile" = field(repr=False)
-    offset: int  # chunk: start of the Chunk record; loose: start of the first record of the run
-    end: int
-    start_ns: int  # first / last log_time of its messages
-    end_ns: int
-    size: int  # uncompressed bytes
-    chunk: bool
-    channels: frozenset[int] | None  # channel ids inside, None when the file does not say (chunk without indexes)
-    index: tuple[tuple[int, int, int], ...] = ()  # (channel, file offset of the entries, n) per message index
+
+@dataclass(eq=False)
+class Pieces:
+    """A file's pieces, row i = piece i: its chunks in file order, then its runs of messages outside chunks."""
+
+    offset: np.ndarray  # int64: chunk: start of the Chunk record; loose run: start of its first record
+    end: np.ndarray  # int64: end of the piece's bytes in the file
+    start_ns: np.ndarray  # int64: first / last log_time of its messages
+    end_ns: np.ndarray
+    size: np.ndarray  # int64: uncompressed bytes
+    chunk: np.ndarray  # bool
+    indexed: np.ndarray  # bool: the file says which channels are inside (message indexes; loose headers)
+    cids: np.ndarray  # int64: the channel ids named by the indexes and loose headers (the columns of ``has``)
+    has: np.ndarray  # bool (piece, column of ``cids``): messages of that channel inside (indexed pieces)
+    body: np.ndarray  # int64: file offset of the (compressed) records: a chunk's records field, a loose run's start
+    body_len: np.ndarray  # int64: their length in the file
+    comp: np.ndarray  # int64 (chunk pieces): index into ``McapFile.compressions``
+    crc: np.ndarray  # int64 (chunk pieces): CRC-32 of the uncompressed records (0: none)
+
+    def __len__(self) -> int:
+        return len(self.offset)
 
 
 class McapFile:
@@ -96,7 +115,8 @@ class McapFile:
         n_data = int(data_end[0]) if len(data_end) else len(ops) - 1
         ops, starts, lengths = ops[:n_data], starts[:n_data], lengths[:n_data]
         self._metadata = [(int(starts[i]), int(lengths[i])) for i in np.flatnonzero(ops == Opcode.METADATA)]
-        self.pieces = self._chunks(ops, starts, lengths) + self._loose(ops, starts, lengths)
+        self.compressions: list[str] = []
+        self.pieces = self._pieces(ops, starts, lengths)
         self._topics: dict[int, tuple[int, int, int]] | None = None
 
     # -- records -----------------------------------------------------------------------------
@@ -118,66 +138,110 @@ class McapFile:
 
     # -- pieces ------------------------------------------------------------------------------
 
-    def _chunks(self, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> list[Piece]:
+    def _pieces(self, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> Pieces:
+        """The chunks and the loose runs, as one table; the message index entries kept per piece."""
         ci = np.flatnonzero(ops == Opcode.CHUNK)
         mi = np.flatnonzero(ops == Opcode.MESSAGE_INDEX)
         owner = np.searchsorted(ci, mi) - 1  # a message index belongs to the chunk before it (nondecreasing)
+        mi, owner = mi[owner >= 0], owner[owner >= 0]
         s = starts[mi]
-        cid = (self.buf[s].astype(np.int64) | self.buf[s + 1].astype(np.int64) << 8).tolist()
-        n = ((lengths[mi] - 6) // 16).tolist()
-        off = (s + 6).tolist()
-        bounds = np.searchsorted(owner, np.arange(len(ci) + 1)).tolist()
-        cs = starts[ci]
-        head = np.ascontiguousarray(self.buf[cs[:, None] + np.arange(24)]).view("<u8").reshape(-1, 3).tolist()
-        out = []
-        for k, (s0, ln, (t0, t1, usize)) in enumerate(zip(cs.tolist(), lengths[ci].tolist(), head)):
-            a, b = bounds[k], bounds[k + 1]
-            idx = tuple(zip(cid[a:b], off[a:b], n[a:b]))
-            chans = frozenset(cid[a:b]) if idx else None  # writers index only channels with messages
-            out.append(Piece(self, s0 - 9, s0 + ln, t0, t1, usize, True, chans, idx))
-        return out
+        ix_cid = le(self.buf, s, "<u2").astype(np.int64)
+        self._index = (owner, ix_cid, s + 6, (lengths[mi] - 6) // 16)  # piece, channel, entries' offset, count
+        cs, clen_rec = starts[ci], lengths[ci]
+        bad = clen_rec < 40
+        if bad.any():
+            raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
+        t0, t1, usize = (le(self.buf, cs + k, "<u8").astype(np.int64) for k in (0, 8, 16))
+        crc = le(self.buf, cs + 24, "<u4").astype(np.int64)
+        clen = le(self.buf, cs + 28, "<u4").astype(np.int64)
+        bad = clen > clen_rec - 40
+        rlen = le(self.buf, np.where(bad, cs, cs + 32 + clen), "<u8")
+        bad |= rlen > (clen_rec - 40 - clen).clip(0).astype(np.uint64)
+        if bad.any():
+            raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
+        comp = self._compressions(cs + 32, clen)
+        lo_rows = self._loose(ops, starts, lengths)
+        cids = np.unique(np.concatenate([ix_cid, *[r[4] for r in lo_rows]]))
+        n_c, n = len(ci), len(ci) + len(lo_rows)
+        has = np.zeros((n, len(cids)), bool)
+        has[owner, np.searchsorted(cids, ix_cid)] = True
+        for k, r in enumerate(lo_rows):
+            has[n_c + k, np.searchsorted(cids, r[4])] = True
+        indexed = np.ones(n, bool)
+        indexed[:n_c] = np.bincount(owner, minlength=n_c) > 0  # writers index only channels with messages
+        z = np.zeros(len(lo_rows), np.int64)
+        lo = np.array([r[:4] for r in lo_rows], np.int64).reshape(-1, 4).T  # offset, end, start_ns, end_ns
+        return Pieces(offset=np.r_[cs - 9, lo[0]], end=np.r_[cs + clen_rec, lo[1]], start_ns=np.r_[t0, lo[2]],
+                      end_ns=np.r_[t1, lo[3]], size=np.r_[usize, lo[1] - lo[0]],
+                      chunk=np.r_[np.ones(n_c, bool), np.zeros(len(lo_rows), bool)], indexed=indexed, cids=cids,
+                      has=has, body=np.r_[cs + 40 + clen, lo[0]], body_len=np.r_[rlen.astype(np.int64), lo[1] - lo[0]],
+                      comp=np.r_[comp, z], crc=np.r_[crc, z])
 
-    def _loose(self, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> list[Piece]:
+    def _compressions(self, at: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """The compression name of each chunk (``n`` bytes at ``at``), as indexes into ``self.compressions``."""
+        w = int(n.max()) if len(n) else 0
+        if w > 16:
+            raise ValueError(f"{self.path}: unknown chunk compression at byte {int(at[np.argmax(n)]) - 41}")
+        j = np.arange(max(w, 1))
+        take = j < n[:, None]
+        raw = np.where(take, self.buf[np.where(take, at[:, None] + j, 0)], 0).astype(np.uint8)
+        names, inv = np.unique(np.ascontiguousarray(raw).view(f"S{max(w, 1)}").ravel(), return_inverse=True)
+        self.compressions = [x.decode("latin-1") for x in names.tolist()]
+        return inv.astype(np.int64).ravel()
+
+    def _loose(self, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray
+               ) -> list[tuple[int, int, int, int, np.ndarray]]:
         """Runs of consecutive message records outside chunks (other records between them are kept in the
-        run: chunk_messages skips them)."""
+        run: ``read`` skips them): (offset, end, first and last log_time, channel ids) per run."""
         msg = np.flatnonzero((ops == Opcode.MESSAGE) & (lengths >= 22))
         if not len(msg):
             return []
-        barrier = np.flatnonzero(ops == Opcode.CHUNK)
-        run_of = np.searchsorted(barrier, msg)  # messages between the same two chunks
+        run_of = np.searchsorted(np.flatnonzero(ops == Opcode.CHUNK), msg)  # messages between the same two chunks
         s = starts[msg]
-        pos = (s[:, None] + np.arange(8)).astype(np.int64)
-        cid = self.buf[s].astype(np.int64) | self.buf[s + 1].astype(np.int64) << 8
-        t = np.ascontiguousarray(self.buf[pos + 6]).view("<i8").ravel()
-        rec_start = s - 9
-        rec_end = s + lengths[msg]
+        cid = le(self.buf, s, "<u2").astype(np.int64)
+        t = le(self.buf, s + 6, "<i8")
+        rec_start, rec_end = s - 9, s + lengths[msg]
         brk = np.flatnonzero(np.diff(run_of) != 0) + 1
         out = []
         for a, b in zip(np.r_[0, brk].tolist(), np.r_[brk, len(msg)].tolist()):
             while a < b:  # split a long run into pieces of about LOOSE_RUN_BYTES
                 j = min(int(np.searchsorted(rec_end[a:b], rec_start[a] + LOOSE_RUN_BYTES, side="right")) + a, b)
                 j = max(j, a + 1)
-                o0, o1 = int(rec_start[a]), int(rec_end[j - 1])
-                out.append(Piece(self, o0, o1, int(t[a:j].min()), int(t[a:j].max()), o1 - o0, False,
-                                 frozenset(np.unique(cid[a:j]).tolist())))
+                out.append((int(rec_start[a]), int(rec_end[j - 1]), int(t[a:j].min()), int(t[a:j].max()),
+                            np.unique(cid[a:j])))
                 a = j
         return out
 
-    def records(self, piece: Piece) -> bytes | memoryview:
-        """The uncompressed records of a piece (a chunk's content, or the run's bytes in place)."""
-        if not piece.chunk:
-            return memoryview(self._mm)[piece.offset:piece.end]
-        s = piece.offset + 9
-        t0, t1, usize, crc, clen = _CHUNK_HEAD.unpack_from(self._mm, s)
-        comp = self._mm[s + 32:s + 32 + clen].decode()
-        p = s + 32 + clen
-        (rlen,) = struct.unpack_from("<Q", self._mm, p)
-        return decompress(comp, memoryview(self._mm)[p + 8:p + 8 + rlen], usize, crc)
+    def may_hold(self, cids: set[int] | list[int]) -> np.ndarray:
+        """Per piece: whether it may hold messages of channels ``cids`` (it does not say which channels it
+        holds, or it holds one of them, or one not defined yet: defined inside a chunk)."""
+        p = self.pieces
+        cols = np.isin(p.cids, list(cids)) | ~np.isin(p.cids, list(self.channels))
+        return ~p.indexed | p.has[:, cols].any(axis=1)
 
-    def read(self, pieces: list[Piece]) -> ChunkMessages:
-        """The messages of ``pieces`` (of this file) as one batch: their records joined and walked once; schema
-        and channel records found inside are added to the file's tables."""
-        parts = [self.records(p) for p in pieces]
+    @staticmethod
+    def groups(idx: np.ndarray, size: np.ndarray) -> list[np.ndarray]:
+        """``idx`` (pieces to read in this order, with uncompressed ``size``) cut into consecutive groups of
+        about ``READ_BYTES``."""
+        c = np.cumsum(size) // READ_BYTES
+        return np.split(idx, np.flatnonzero(np.diff(c)) + 1) if len(idx) else []
+
+    def records(self, i: int) -> bytes | memoryview:
+        """The uncompressed records of piece ``i`` (a chunk's content, or the run's bytes in place)."""
+        return self._bodies(np.array([i]))[0]
+
+    def _bodies(self, idx: np.ndarray) -> list[bytes | memoryview]:
+        p, mv = self.pieces, memoryview(self._mm)
+        names = [self.compressions[k] if c else "" for c, k in zip(p.chunk[idx].tolist(), p.comp[idx].tolist())]
+        size = np.where(p.chunk[idx], p.size[idx], p.body_len[idx]).tolist()
+        return decompress_many(names, [mv[b:b + n] for b, n in zip(p.body[idx].tolist(), p.body_len[idx].tolist())],
+                               size, p.crc[idx].tolist())
+
+    def read(self, idx: np.ndarray | list[int], topics: Collection[str] | None = None) -> ChunkMessages:
+        """The messages of pieces ``idx`` (of this file) as one batch (only those on ``topics``, when given):
+        their records joined and walked once; schema and channel records found inside are added to the file's
+        tables first."""
+        parts = self._bodies(np.asarray(idx, np.int64))
         data = parts[0] if len(parts) == 1 else b"".join(parts)
         buf = np.frombuffer(data, np.uint8)
         ops, starts, lengths, _ = walk_records(buf, 0, len(buf) // 31 + 1)
@@ -185,40 +249,43 @@ class McapFile:
             for i in np.flatnonzero(ops == op).tolist():
                 stream = ReadDataStream(io.BytesIO(buf[starts[i]:starts[i] + lengths[i]].tobytes()))
                 self._define((Schema if op == Opcode.SCHEMA else Channel).read(stream))
-        return messages_of(buf, ops, starts, lengths)
+        cids = None if topics is None else [c for c, ch in self.channels.items() if ch.topic in topics]
+        return messages_of(buf, ops, starts, lengths, cids)
 
     # -- per channel -------------------------------------------------------------------------
 
     def message_counts(self) -> dict[int, int] | None:
         """channel id -> message count from the message indexes alone (no read); None when a chunk has none or
         messages are outside chunks (``channel_stats`` counts those)."""
-        if any(not p.chunk or p.channels is None for p in self.pieces):
+        p = self.pieces
+        if not (p.chunk.all() and p.indexed.all()):
             return None
-        out: dict[int, int] = {}
-        for p in self.pieces:
-            for cid, _, n in p.index:
-                out[cid] = out.get(cid, 0) + n
-        return out
+        _, cid, _, n = self._index
+        u, inv = np.unique(cid, return_inverse=True)
+        return dict(zip(u.tolist(), np.bincount(inv.ravel(), weights=n, minlength=len(u)).astype(int).tolist()))
 
     def channel_stats(self) -> dict[int, tuple[int, int, int]]:
         """channel id -> (message count, first log_time, last log_time): from the message indexes and the
-        loose messages' headers; a chunk without message indexes is read (once per file object)."""
+        loose messages' headers; chunks without message indexes are read (once per file object)."""
         if self._topics is not None:
             return self._topics
-        stats: dict[int, tuple[int, int, int]] = {}
-
-        def add(cid: int, t: np.ndarray) -> None:
-            if len(t):
-                n, lo, hi = stats.get(cid, (0, int(t.min()), int(t.max())))
-                stats[cid] = (n + len(t), min(lo, int(t.min())), max(hi, int(t.max())))
-
-        for p in self.pieces:
-            if p.chunk and p.channels is not None:
-                for cid, off, n in p.index:
-                    add(cid, np.frombuffer(self._mm, "<u8", count=2 * n, offset=off)[0::2].astype(np.int64))
-            else:
-                cm = self.read([p])
-                for cid in np.unique(cm.channel_id).tolist():
-                    add(int(cid), cm.log_time[cm.channel_id == cid])
-        self._topics = stats
-        return stats
+        owner, cid, off, n = self._index
+        keep = n > 0
+        cid, off, n = cid[keep], off[keep], n[keep]
+        first = np.cumsum(n) - n
+        pos = np.repeat(off - 16 * first, n) + 16 * np.arange(int(n.sum()), dtype=np.int64)
+        cids, times = [np.repeat(cid, n)], [le(self.buf, pos, "<i8")]
+        p = self.pieces
+        todo = np.flatnonzero(~p.chunk | ~p.indexed)
+        for g in self.groups(todo, p.size[todo]):
+            cm = self.read(g)
+            cids.append(cm.channel_id.astype(np.int64))
+            times.append(cm.log_time)
+        c, t = np.concatenate(cids), np.concatenate(times)
+        order = np.lexsort((t, c))
+        c, t = c[order], t[order]
+        cut = np.flatnonzero(np.diff(c)) + 1
+        a, b = np.r_[0, cut], np.r_[cut, len(c)]
+        self._topics = {k: (m, lo, hi) for k, m, lo, hi in
+                        zip(c[a].tolist(), (b - a).tolist(), t[a].tolist(), t[b - 1].tolist())} if len(c) else {}
+        return self._topics

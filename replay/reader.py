@@ -28,7 +28,7 @@ import numpy as np
 from fieldlog.acquire import messages
 from fieldlog.acquire.recorder import ChunkMessages
 from fieldlog.replay.drive import DriveSpec, label, open_drive
-from fieldlog.replay.mcapfile import McapFile, Piece
+from fieldlog.replay.mcapfile import McapFile, le
 
 if TYPE_CHECKING:
     from fieldlog.fusion.engine import GpsBlock
@@ -90,38 +90,29 @@ def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray,
 
 # -- the file layer: a drive's pieces, read in groups ----------------------------------------------------
 
-READ_BYTES = 4 << 20  # consecutive small chunks (or loose runs) are read together up to this many bytes
-
-
-def _may_hold(p: Piece, wanted: dict[McapFile, tuple[set[int], set[int]]]) -> bool:
-    """Whether piece ``p`` may hold messages of the topics whose channels are ``wanted[file][0]`` (a channel
-    not among the file's known ones ``wanted[file][1]``: yes)."""
-    if p.channels is None:
-        return True
-    cids, known = wanted[p.file]
-    return bool(p.channels & cids) or not p.channels <= known
+Group = tuple[McapFile, np.ndarray]  # pieces of one file (row indexes into ``file.pieces``), read together
 
 
 def piece_groups(files: list[McapFile], topics: Sequence[str], file_order: bool = False,
-                 keep: Callable[[Piece], bool] | None = None) -> Iterator[list[Piece]]:
-    """The pieces that may hold ``topics`` (and pass ``keep``), in log-time order (by first log_time;
-    ``file_order``: file by file, in file order), grouped so that consecutive pieces of one file are read
-    together (``McapFile.read``) up to READ_BYTES."""
-    wanted = {f: ({c for c, ch in f.channels.items() if ch.topic in topics}, set(f.channels)) for f in files}
-    pieces = [(k, p) for k, f in enumerate(files) for p in f.pieces
-              if _may_hold(p, wanted) and (keep is None or keep(p))]
-    pieces.sort(key=(lambda kp: (kp[0], kp[1].offset)) if file_order else
-                (lambda kp: (kp[1].start_ns, kp[0], kp[1].offset)))
-    group: list[Piece] = []
-    size = 0
-    for _, p in pieces:
-        if group and (p.file is not group[0].file or size + p.size > READ_BYTES):
-            yield group
-            group, size = [], 0
-        group.append(p)
-        size += p.size
-    if group:
-        yield group
+                 keep: Callable[[McapFile], np.ndarray] | None = None) -> Iterator[Group]:
+    """The pieces that may hold ``topics`` (and pass ``keep``: a mask over a file's pieces), in log-time order
+    (by first log_time; ``file_order``: file by file, in file order), grouped so that consecutive pieces of one
+    file are read together (``McapFile.read``) up to about ``READ_BYTES``. Vectorised over the pieces."""
+    rows = []
+    for k, f in enumerate(files):
+        mask = f.may_hold({c for c, ch in f.channels.items() if ch.topic in topics})
+        if keep is not None:
+            mask &= keep(f)
+        i = np.flatnonzero(mask)
+        rows.append((np.full(len(i), k), i, f.pieces.offset[i], f.pieces.start_ns[i]))
+    fk, idx, off, t = (np.concatenate(x) for x in zip(*rows)) if rows else [np.zeros(0, np.int64)] * 4
+    order = np.lexsort((off, fk) if file_order else (off, fk, t))
+    fk, idx = fk[order], idx[order]
+    cut = np.flatnonzero(np.diff(fk)) + 1
+    for a, b in zip(np.r_[0, cut].tolist(), np.r_[cut, len(fk)].tolist()):
+        f = files[int(fk[a])]
+        for g in f.groups(idx[a:b], f.pieces.size[idx[a:b]]):
+            yield f, g
 
 
 def _cids(f: McapFile, topic: str) -> list[int]:
@@ -167,9 +158,8 @@ def read_payloads(path: DriveSpec, topic: str, file_order: bool = False
     (stable), or as recorded (``file_order``). KeyError when no file of the drive has the topic."""
     files = open_drive(path)
     parts = []
-    for group in piece_groups(files, [topic], file_order):
-        f = group[0].file
-        cm = f.read(group)
+    for f, group in piece_groups(files, [topic], file_order):
+        cm = f.read(group, [topic])
         t, pub, p = _select(cm, _cids(f, topic))
         if len(t):
             parts.append((t, pub, p))
@@ -195,12 +185,12 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
     from mcap_ros2.decoder import DecoderFactory
 
     factory = DecoderFactory()
-    for group in piece_groups(open_drive(path), [topic]):
-        f = group[0].file
+    for f, group in piece_groups(open_drive(path), [topic]):
+        cm = f.read(group, [topic])  # first: it defines the channels written only inside chunks
         cids = _cids(f, topic)
         if not cids:
             continue
-        t, _, p = _select(f.read(group), cids)
+        t, _, p = _select(cm, cids)
         ch = f.channels[cids[0]]
         dec = factory.decoder_for(ch.message_encoding, f.schemas.get(ch.schema_id))
         for i in np.argsort(t, kind="stable").tolist():
@@ -246,10 +236,9 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Itera
             if t_end is None and left == 0:
                 t0 = None
 
-    for group in piece_groups(files, topics):
-        yield from emit(group[0].start_ns)
-        f = group[0].file
-        cm = f.read(group)
+    for f, group in piece_groups(files, topics):
+        yield from emit(int(f.pieces.start_ns[group].min()))
+        cm = f.read(group, topics)
         for topic in topics:
             cids = _cids(f, topic)
             if not cids:
@@ -278,12 +267,6 @@ def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
 # -- raw reads in batch ---------------------------------------------------------------------------------
 
 
-def _le(buf: np.ndarray, pos: np.ndarray, dtype: str) -> np.ndarray:
-    """Little-endian ``dtype`` values at byte positions ``pos`` (each must leave room for the value)."""
-    k = np.dtype(dtype).itemsize
-    return np.ascontiguousarray(buf[pos[:, None] + np.arange(k)]).view(dtype).ravel()
-
-
 def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
     """``fieldlog_msgs/msg/RawBytes`` batch (layout: ``acquire.messages.encode_raw``, CDR little-endian) ->
     ``stamp_ns`` (int64, host wall clock at read), ``mono_ns`` (int64, host monotonic at read), ``port``
@@ -305,9 +288,9 @@ def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
         """Values at body offset ``rel`` of the rows still ok (0 elsewhere); rows too short drop out."""
         nonlocal ok
         ok &= 4 + rel + size <= lens
-        return np.where(ok, _le(buf, np.where(ok, start + 4 + rel, 0), dtype), 0)
+        return np.where(ok, le(buf, np.where(ok, start + 4 + rel, 0), dtype), 0)
 
-    ok &= (_le(buf, np.where(ok, start, 0), "<u2") == 0x0100)  # CDR_LE representation id, 00 01
+    ok &= (le(buf, np.where(ok, start, 0), "<u2") == 0x0100)  # CDR_LE representation id, 00 01
     sec, nsec, flen = at(z, "<i4", 4), at(z + 4, "<u4", 4), at(z + 8, "<u4", 4).astype(np.int64)
     ok &= flen >= 1  # a CDR string holds its NUL
     pos = 12 + flen
@@ -386,14 +369,14 @@ def iter_raw_batches(path: DriveSpec, topic: str) -> Iterator[dict[str, object]]
     per group of chunks; not sorted by log_time, which is the host wall clock): ``log_time_ns`` plus the
     ``decode_raw_batch`` fields. A drive without ``topic`` yields nothing (a port that never delivered a byte)."""
     files = open_drive(path)
-    for group in piece_groups(files, [topic], file_order=True):
-        f = group[0].file
+    for f, group in piece_groups(files, [topic], file_order=True):
+        cm = f.read(group, [topic])
         cids = _cids(f, topic)
         if not cids:
             continue
         if f.type_of(cids[0]) != messages.RAWBYTES:
             raise ValueError(f"{topic} is not {messages.RAWBYTES}")
-        t, _, p = _select(f.read(group), cids)
+        t, _, p = _select(cm, cids)
         if len(t):
             yield {"log_time_ns": t, **decode_raw_batch(p)}
 

@@ -105,7 +105,7 @@ def test_core_install_names_the_missing_extra(core, drive, tmp_path):
 def test_walk_without_numba_matches_numba(drive):
     """The plain-Python chunk walk (core installs) finds the same records as the numba one."""
     (f,) = open_drive(drive)
-    for piece in [p for p in f.pieces if p.chunk][:3]:
+    for piece in np.flatnonzero(f.pieces.chunk)[:3].tolist():
         buf = np.frombuffer(f.records(piece), np.uint8)
         a, b = recorder._walk(buf), recorder._walk_python(buf, 0, 16)
         for x, y in zip(a[:3], b[:3]):

@@ -606,6 +606,10 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # (summary chunk indexes, one chunk at a time), best of 3 on the same files: own 0.20 (now 0.25; 7 alternating
     # runs: medians 0.41 before, 0.33 now), 4 KiB chunks of every topic 4.60 s (now 1.22), 4 KiB chunks of the
     # fusion/info topics only 2.65 s (now 0.67); unchunked and no-summary files read nothing / were refused.
+    # Session 5 (pieces as arrays, batch decompression, rows gathered through a strided window, messages filtered
+    # by channel before their headers are parsed), load 1.5-3.4, medians of 7, back to back with the session-4
+    # code (medians of 5): own 0.18 -> 0.14 s; 4 KiB chunks 0.88 -> 0.41 s (x4.96 -> x2.93; runs 0.33-0.65);
+    # unchunked 0.54 -> 0.27; lz4 0.28 -> 0.17; uncompressed 0.25 -> 0.16; no summary 0.30 -> 0.23.
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate

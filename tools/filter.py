@@ -24,7 +24,7 @@ from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
-from fieldlog.replay.mcapfile import Piece
+from fieldlog.replay.mcapfile import McapFile
 
 NS = 1_000_000_000
 
@@ -99,13 +99,13 @@ def filter_drive(src: str | os.PathLike[str], out: str | os.PathLike[str], start
             rec.add_schema(f.schemas[ch.schema_id])
             rec.add_channel(ch)
 
-        def wanted(p: Piece) -> bool:
-            return (p.end_ns >= t0 and p.start_ns < t1) or bool(latched) and (p.channels is None or
-                                                                             bool(p.channels & latched))
+        def wanted(f: McapFile) -> np.ndarray:
+            p = f.pieces
+            return (p.end_ns >= t0) & (p.start_ns < t1) | (f.may_hold(latched) if latched else False)
 
         groups = list(reader.piece_groups(files, chosen, file_order=True, keep=wanted))
-        for i, group in enumerate(groups):
-            cm = f.read(group)
+        for i, (f, group) in enumerate(groups):
+            cm = f.read(group, chosen)
             keep = np.isin(cm.channel_id, list(cids)) & (cm.log_time >= t0) & (cm.log_time < t1)
             keep |= np.isin(cm.channel_id, list(latched))
             sel = cm.select(keep)
