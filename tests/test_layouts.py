@@ -2,7 +2,8 @@
 
 The corpus is written here by third-party writers from one simulated drive: the mcap library's ``Writer``
 (``tools.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
-attachment and the metadata records) and rosbags (a rosbag2 directory). Each must give the original's ``info`` counts and its
+attachment and the metadata records) and rosbags (a rosbag2 directory, and one split into two files under one
+metadata.yaml). Each must give the original's ``info`` counts and its
 ``kf`` solution (2D RMS against the truth within 1 mm). A rotated session (the daemon's ``RotatingSink``
 fed by the real Pipeline, three files) must fuse to exactly the single file's solution.
 """
@@ -37,19 +38,45 @@ def corpus_topics(path: Path) -> list[str]:
     return [t.topic for t in reader.topics(path) if not t.topic.startswith(("/raw/", "/truth/"))]
 
 
-def write_with_rosbags(src: Path, dst: Path) -> Path:
+def write_with_rosbags(src: Path, dst: Path, parts: int = 1) -> Path:
+    """``src`` as a rosbag2 directory written by rosbags. ``parts`` > 1: split as ``ros2 bag record
+    --max-bag-size`` leaves it: rosbags writes each part (the messages cut into equal counts in log-time order),
+    and the parts' files go into ``dst`` under one metadata.yaml listing them (``relative_file_paths``,
+    ``files``, counts summed), rosbag2's format."""
+    import yaml
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as BagWriter
 
     topics = corpus_topics(src)
-    with BagWriter(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        conns = []
-        for topic in topics:
-            s = schema_of(src, topic)
-            conns.append(w.add_connection(topic, s.name, msgdef=s.data.decode(), rihs01="RIHS01_" + "0" * 64))
-        k, t, _, data = merged(src, topics)
-        for i, ti, d in zip(k.tolist(), t.tolist(), data):
-            w.write(conns[i], ti, d)
+    k, t, _, data = merged(src, topics)
+    cuts = np.linspace(0, len(t), parts + 1).astype(int).tolist()
+    bags = [dst] if parts == 1 else [dst.parent / f"{dst.name}.part{j}" for j in range(parts)]
+    for bag, a, b in zip(bags, cuts, cuts[1:]):
+        with BagWriter(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conns = []
+            for topic in topics:
+                s = schema_of(src, topic)
+                conns.append(w.add_connection(topic, s.name, msgdef=s.data.decode(), rihs01="RIHS01_" + "0" * 64))
+            for i, ti, d in zip(k[a:b].tolist(), t[a:b].tolist(), data[a:b]):
+                w.write(conns[i], ti, d)
+    if parts == 1:
+        return dst
+    dst.mkdir()
+    infos = []
+    for j, bag in enumerate(bags):
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        (bag / info["relative_file_paths"][0]).rename(dst / f"{dst.name}_{j}.mcap")
+        info["files"][0]["path"] = f"{dst.name}_{j}.mcap"
+        infos.append(info)
+    out = infos[0]
+    start = min(i["starting_time"]["nanoseconds_since_epoch"] for i in infos)
+    end = max(i["starting_time"]["nanoseconds_since_epoch"] + i["duration"]["nanoseconds"] for i in infos)
+    out.update(relative_file_paths=[f["path"] for i in infos for f in i["files"]],
+               files=[f for i in infos for f in i["files"]], message_count=sum(i["message_count"] for i in infos),
+               starting_time={"nanoseconds_since_epoch": start}, duration={"nanoseconds": end - start})
+    for j, topic in enumerate(out["topics_with_message_count"]):
+        topic["message_count"] = sum(i["topics_with_message_count"][j]["message_count"] for i in infos)
+    (dst / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": out}))
     return dst
 
 
@@ -91,6 +118,7 @@ def corpus(original) -> dict[str, Path]:
     d = original.parent
     out = {name: rewrite(original, d / f"{name}.mcap", name, corpus_topics(original)) for name in LAYOUTS}
     out["rosbag2"] = write_with_rosbags(original, d / "rosbag2")
+    out["rosbag2-split"] = write_with_rosbags(original, d / "rosbag2-split", parts=2)
     return out
 
 
@@ -117,9 +145,26 @@ def test_the_corpus_has_the_layouts_it_claims(corpus):
     assert len(files["chunks-4k"][0].pieces) > 100 * len(files["lz4"][0].pieces)
     assert [f.path.suffix for f in files["rosbag2"]] == [".mcap"]
     assert (corpus["rosbag2"] / "metadata.yaml").is_file()
+    split = files["rosbag2-split"]
+    assert len(split) == 2 and split[0].channel_stats() and split[1].channel_stats()   # messages in both files
+    assert split[0].pieces.end_ns.max() < split[1].pieces.start_ns.min()
 
 
-@pytest.mark.parametrize("layout", [*LAYOUTS, "rosbag2"])
+def test_the_split_rosbag2_directory_is_one_bag_to_rosbags(corpus):
+    """rosbags' own Reader takes the combined directory as one bag of two files and all the messages (so its
+    metadata.yaml is rosbag2's format), with fieldlog's counts per topic."""
+    from rosbags.rosbag2 import Reader
+
+    with Reader(corpus["rosbag2-split"]) as bag:
+        assert len(bag.storage.storages) == 2
+        got: dict[str, int] = {}
+        for c, _, _ in bag.messages():
+            got[c.topic] = got.get(c.topic, 0) + 1
+        assert sum(got.values()) == bag.message_count
+    assert got == {t.topic: t.count for t in reader.topics(corpus["rosbag2-split"])}
+
+
+@pytest.mark.parametrize("layout", [*LAYOUTS, "rosbag2", "rosbag2-split"])
 def test_every_layout_has_the_original_counts_and_kf_solution(layout, original, corpus, kf_original, tmp_path):
     path = corpus[layout]
     want = {t.topic: (t.type, t.count, t.first_ns, t.last_ns) for t in reader.topics(original)}
@@ -128,7 +173,7 @@ def test_every_layout_has_the_original_counts_and_kf_solution(layout, original, 
     a, b = drive_info(original), drive_info(path)
     assert (b.imu_gaps, b.gps_missing_epochs, b.gps_no_fix, b.sync_states) == \
         (a.imu_gaps, a.gps_missing_epochs, a.gps_no_fix, a.sync_states)
-    assert b.drive == a.drive and b.counters == a.counters or layout == "rosbag2"   # rosbags writes no metadata
+    assert b.drive == a.drive and b.counters == a.counters or layout.startswith("rosbag2")  # rosbags: no metadata
     out = tmp_path / "kf.mcap"
     assert fuse(path, "kf", out).rows > 0
     ref_path, ref_rms = kf_original
