@@ -144,6 +144,7 @@ class PortReader(threading.Thread):
     def run(self) -> None:
         while not self.stop.is_set():
             if self.ser is None:
+                device = os.path.realpath(self.cfg.port)
                 try:
                     self.ser = open_port(self.cfg)
                 except (serial.SerialException, OSError):
@@ -151,7 +152,7 @@ class PortReader(threading.Thread):
                     continue
                 self.busy = True
                 self.stats.connected = True
-                self._event("back", self.cfg.port)
+                self._event("back", self.cfg.port if device == self.cfg.port else f"{self.cfg.port} -> {device}")
                 self.busy = False
             self._read_until_lost()
         if self.ser is not None:

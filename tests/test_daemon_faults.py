@@ -123,7 +123,7 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     (gap,) = meta["daq_gaps"].split(";")
     a, n_gap = map(int, gap.split(":"))
     assert 59 * 500 * daq.FRAME_SIZE < n_gap < 80 * 500 * daq.FRAME_SIZE      # + until the daemon reopened
-    assert meta["gps_gaps"] == "" and meta["completed"] == "True"
+    assert meta["gps_gaps"] == "" and meta["completed"] == "True" and meta["daq_undrained_unplugs"] == "0"
     # everything the port delivered before and after the gap is recorded, in order; the GPS lost nothing
     got, mono = raw_stream(f, "daq")
     assert got == clean["daq"][:a] + clean["daq"][a + n_gap:]

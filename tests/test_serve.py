@@ -35,7 +35,9 @@ def expected_bytes(truth_path: Path, scenario: str, duration_s: float, seed: int
     """The simulator's byte streams per port, for the drive start the serve process used."""
     meta = read_metadata(truth_path)["serve"]
     sc = trajectory.load_scenario(scenario)
-    sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])})
+    jumps = [[float(x) for x in j.split(":")] for j in meta.get("gps_clock_jumps", "").split(";") if j]
+    sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])},
+                 gps={**sc.gps, "clock_jumps": jumps})
     reads = simulate.make_reads(sc, duration_s, seed, meta["pps_mode"], meta.get("receiver"))[0]
     return {port: b"".join(r.data for r in reads if r.port == port) for port in ("daq", "gps")}
 

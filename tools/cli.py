@@ -87,11 +87,11 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
 
 def cmd_sim_serve(a: argparse.Namespace) -> int:
-    from fieldlog.tools.sim.serve import Unplug, serve
+    from fieldlog.tools.sim.serve import Unplug, parse_clock_jump, serve
 
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
-                 corrupt=a.corrupt)
+                 corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump])
 
 
 def cmd_acquire(a: argparse.Namespace) -> int:
@@ -494,6 +494,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
     s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
                    help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
+    s.add_argument("--clock-jump", action="append", default=[], metavar="START:LEN:OFFSET",
+                   help="--serve: the receiver writes its time OFFSET s off for LEN s from START s of the drive, "
+                        "e.g. 900:30:3600 (repeatable; default: never)")
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")

@@ -60,6 +60,7 @@ class GpsConfig:
     noise_schedule: list = field(default_factory=list)  # [{start_s, end_s, scale}, ...]: unreported noise scale
     receiver: str = "nmea"         # what the port sends: 'nmea', 'ublox' (GGA + UBX NAV-PVT + TIM-TP), 'novatel'
     qerr_step_ns: float = 1e9 / 48e6   # u-blox: the time pulse is put out on this clock grid (TIM-TP qErr)
+    clock_jumps: list = field(default_factory=list)  # [[start_s, len_s, offset_s], ...]: reported time off
 
     def __post_init__(self) -> None:
         period_ns = NS / self.rate_hz if self.rate_hz > 0 else 0.0
@@ -104,6 +105,15 @@ class GpsConfig:
         for w in self.noise_schedule:
             scale[(t_s >= w["start_s"]) & (t_s < w["end_s"])] = w["scale"]
         return scale
+
+    def clock_offset_ns(self, t_s: np.ndarray) -> np.ndarray:
+        """Per epoch time (s from the start): how far the time the receiver writes in its messages is off
+        (``clock_jumps`` windows, [start_s, start_s + len_s)), int64 ns. Its time pulse and when it sends are
+        not affected: a receiver clock jump, as issue 14 measured it."""
+        off = np.zeros(np.shape(t_s), np.int64)
+        for start, length, offset_s in self.clock_jumps:
+            off[(t_s >= start) & (t_s < start + length)] = round(offset_s * NS)
+        return off
 
     def epoch_period_ns(self) -> int:
         """The epoch period, ns (a whole number of centiseconds)."""
@@ -173,20 +183,23 @@ def pulse_errors(n: int, cfg: GpsConfig, rng: np.random.Generator) -> np.ndarray
 
 
 def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
-                rng: np.random.Generator, qerr_s: np.ndarray | None = None) -> tuple[np.ndarray, list[bytes]]:
+                rng: np.random.Generator, qerr_s: np.ndarray | None = None,
+                shown_ns: np.ndarray | None = None) -> tuple[np.ndarray, list[bytes]]:
     """One burst of messages per epoch in the receiver's protocol (``cfg.receiver``). Returns the true time each
     message starts on the wire, s from the first epoch, and the messages (NMEA with CRLF). ``utc_ns`` (int64) is
     the UTC of each epoch (fractional seconds at rates above 1 Hz, written with centisecond times in NMEA).
     ``qerr_s[j]``: the error of the pulse of the j-th UTC second after the first epoch's (u-blox sends it in
-    TIM-TP before that pulse). A burst never starts before the previous one ended."""
+    TIM-TP before that pulse). A burst never starts before the previous one ended. ``shown_ns``: the time the
+    receiver writes in each epoch's messages, when its clock is off (default ``utc_ns``)."""
     n = len(utc_ns)
+    shown = utc_ns if shown_ns is None else shown_ns
     base = rng.uniform(cfg.latency_min_s, cfg.latency_max_s - 0.1)
     latency = np.clip(base + rng.standard_normal(n) * cfg.latency_jitter_s, cfg.latency_min_s, cfg.latency_max_s - 0.06)
     sentences: list[bytes] = []
     starts: list[float] = []
     t_free = -np.inf
     for i in range(n):
-        sec, sub_ns = divmod(int(utc_ns[i]), NS)
+        sec, sub_ns = divmod(int(shown[i]), NS)
         dt = datetime.fromtimestamp(sec, tz=timezone.utc)
         tod = dt.hour * 3600 + dt.minute * 60 + dt.second + (sub_ns / NS if sub_ns else 0)
         ok = bool(sol["valid"][i])
@@ -196,9 +209,11 @@ def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
         course = float(np.arctan2(vE, vN) % (2 * np.pi))
         lat, lon, h = float(sol["lat_deg"][i]), float(sol["lon_deg"][i]), float(sol["h"][i])
         if cfg.receiver == "ublox":
-            burst = _ublox_burst(sol, i, int(utc_ns[i]), tod, lat, lon, h, hdop, ok, cfg, qerr_s, int(utc_ns[0]))
+            # (the first epoch moved by the same offset: TIM-TP still describes this epoch's next pulse)
+            burst = _ublox_burst(sol, i, int(shown[i]), tod, lat, lon, h, hdop, ok, cfg, qerr_s,
+                                 int(utc_ns[0] + shown[i] - utc_ns[i]))
         elif cfg.receiver == "novatel":
-            burst = _novatel_burst(sol, i, int(utc_ns[i]), lat, lon, h, ok, cfg)
+            burst = _novatel_burst(sol, i, int(shown[i]), lat, lon, h, ok, cfg)
         else:
             burst = [
                 nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,

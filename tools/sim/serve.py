@@ -17,17 +17,28 @@ simulated UTC and compare directly with ``/truth/imu``. At other speeds the host
 ``--time-scale X`` (X = ``speed``; ``[timesync] host_time_scale``), which rescales them; then the stamps
 compare with truth as at speed 1.
 
-Unplugging: ``unplug`` windows (port, start, length in simulated seconds) close the port's pty and open a
-new one after the gap; the bytes due meanwhile are lost, as on a pulled adapter, and so are the bytes
-written before the close that the reader had not read yet. Because a new pty has a new path, ``link_dir``
-keeps stable symlinks ``link_dir/daq`` and ``link_dir/gps`` pointing at the current ones (removed while
-unplugged, as the device node of a pulled adapter); point the daemon at those. After a replug the device
-streams on, but its bytes are lost until the reader has opened the port (pyserial flushes the input on
-open, so bytes written before would vanish untracked): the master is in packet mode (TIOCPKT), where the
-slave's input flush shows up as TIOCPKT_FLUSHREAD. The bytes lost are recorded as byte ranges of the
-port's full stream (metadata ``daq_gaps`` / ``gps_gaps``, ``START:LENGTH;...``), so the stream actually
-delivered is the simulated one minus those ranges. The host monotonic time (ns) of each reopening is in
-metadata ``daq_replug_mono_ns`` / ``gps_replug_mono_ns`` (``;``-separated).
+Unplugging: ``unplug`` windows (port, start, length in simulated seconds) close the port's pty and open a new
+one after the gap; the bytes due meanwhile are lost, as on a pulled adapter. At the start of a window the
+device stops sending (what waits in the serve process is lost too) and the pty is closed once the reader has
+taken every byte already written (its input queue stayed empty for ``DRAIN_QUIET_S``): the serve process
+cannot count what a close would discard, because ``FIONREAD`` sees only the line discipline's queue (at most 4
+KiB) and not the kernel's flip buffer behind it, which holds up to about 10 KiB more and reaches the queue
+asynchronously. (Counting ``FIONREAD`` at the close, as before, booked up to a few KiB per unplug as delivered
+that the reader never got.) Should the reader not drain within ``DRAIN_MAX_S``, the pty is closed anyway, what
+``FIONREAD`` still shows is booked as lost, and ``daq_undrained_unplugs`` / ``gps_undrained_unplugs`` count
+it: the gap is then exact only to within the flip buffer. Because a new pty has a new path, ``link_dir`` keeps
+stable symlinks ``link_dir/daq`` and ``link_dir/gps`` pointing at the current ones (removed while unplugged,
+as the device node of a pulled adapter); point the daemon at those. After a replug the device streams on, but
+its bytes are lost until the reader has opened the port (pyserial flushes the input on open, so bytes written
+before would vanish untracked): the master is in packet mode (TIOCPKT), where the slave's input flush shows up
+as TIOCPKT_FLUSHREAD. The bytes lost are recorded as byte ranges of the port's full stream (metadata
+``daq_gaps`` / ``gps_gaps``, ``START:LENGTH;...``), so the stream actually delivered is the simulated one
+minus those ranges. The host monotonic time (ns) of each reopening is in metadata ``daq_replug_mono_ns`` /
+``gps_replug_mono_ns`` (``;``-separated).
+
+Receiver clock jumps: ``clock_jumps`` rows (start, length, offset in simulated seconds; added to the scenario's
+``[gps] clock_jumps``) make the receiver write a time that far off in its messages, while its pulse and its
+sending keep true time; metadata ``gps_clock_jumps`` (``START:LEN:OFFSET;...``) has them all.
 
 Corruption: ``corrupt`` > 0 replaces that fraction of the bytes of both streams with other values
 (``corrupt_stream``: deterministic from the seed and the port, so a test can redo it and know every
@@ -58,6 +69,8 @@ NS = 1_000_000_000
 PORTS = ("daq", "gps")
 TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
 TIOCPKT_FLUSHREAD = 0x01
+DRAIN_QUIET_S = 0.2     # the reader has drained a pty once its input queue stays empty this long (wall s)
+DRAIN_MAX_S = 5.0       # an unplug closes the pty after this long (wall s) even if the reader did not drain it
 
 
 def corrupt_stream(data: bytes, fraction: float, seed: int, port: str) -> tuple[bytes, np.ndarray]:
@@ -90,6 +103,18 @@ class Unplug:
         return u
 
 
+def parse_clock_jump(text: str) -> list[float]:
+    """``START:LEN:OFFSET`` in simulated seconds, e.g. ``900:30:3600`` (the receiver's clock +1 h for 30 s at
+    15 min), as a ``[gps] clock_jumps`` row."""
+    try:
+        start, length, offset = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"--clock-jump {text!r}: expected START_S:LEN_S:OFFSET_S") from None
+    if start < 0 or length <= 0:
+        raise ValueError(f"--clock-jump {text!r}: START_S >= 0, LEN_S > 0")
+    return [start, length, offset]
+
+
 @dataclass
 class _Port:
     """One simulated serial device: pty pair, the reads scheduled on it, and what was written."""
@@ -108,6 +133,10 @@ class _Port:
     corrupt_bytes: int = 0
     wait_reader: bool = False           # bytes are lost until the reader has opened (flushed) the port
     replugged_mono_ns: list[int] = field(default_factory=list)   # host monotonic time of each reopening
+    draining_since: float | None = None     # an unplug has stopped the writes (wall monotonic s)
+    stopped_at: int = 0                     # offset in the full stream of the first byte not written then
+    empty_since: float | None = None        # the input queue has been empty since (wall monotonic s)
+    undrained_unplugs: int = 0
 
     def open(self, link_dir: Path | None, wait_reader: bool = False) -> None:
         self.master, self.slave = os.openpty()
@@ -122,21 +151,46 @@ class _Port:
             tmp.symlink_to(self.path)
             tmp.replace(link_dir / self.name)
 
-    def close(self) -> None:
+    def close(self, link_dir: Path | None) -> None:
+        """Remove the link, then close the pty (in that order: a reader retrying through a link to a closed pty
+        could open another process's new pty of the same number)."""
+        if link_dir is not None:
+            (link_dir / self.name).unlink(missing_ok=True)
         for fd in (self.master, self.slave):
             if fd >= 0:
                 os.close(fd)
         self.master = self.slave = -1
 
-    def unplug(self, link_dir: Path | None) -> None:
-        """Close the pty: what the reader has not read yet and what waits here is lost."""
-        unread = self.unread()
-        del self.sent[len(self.sent) - unread:]
-        self.lose(unread + len(self.pending))
+    def stop_sending(self) -> None:
+        """An unplug begins: nothing more is written; what waits here is lost."""
+        self.draining_since, self.empty_since = time.monotonic(), None
+        self.stopped_at = len(self.sent) + self.lost_bytes
+        self.lose(len(self.pending))
         self.pending.clear()
-        self.close()
-        if link_dir is not None:
-            (link_dir / self.name).unlink(missing_ok=True)
+
+    def unplug(self, link_dir: Path | None) -> None:
+        """Close the pty (normally drained by then); what the reader still had not read is lost."""
+        unread = self.unread()
+        if unread:
+            self.undrained_unplugs += 1
+            del self.sent[len(self.sent) - unread:]
+            self.lost_bytes += unread
+            if self.gaps and self.gaps[-1][0] == self.stopped_at:
+                self.gaps[-1] = (self.stopped_at - unread, self.gaps[-1][1] + unread)
+            else:
+                self.gaps.append((self.stopped_at - unread, unread))
+        self.draining_since = self.empty_since = None
+        self.close(link_dir)
+
+    def drained(self) -> bool:
+        """True once the reader has had the pty's input queue empty for DRAIN_QUIET_S (see the module doc)."""
+        now = time.monotonic()
+        if self.unread():
+            self.empty_since = None
+            return False
+        if self.empty_since is None:
+            self.empty_since = now
+        return now - self.empty_since >= DRAIN_QUIET_S
 
     def lose(self, n: int) -> None:
         """The next ``n`` bytes of the stream (after those sent) are lost."""
@@ -173,14 +227,17 @@ class Server:
 
     def __init__(self, scenario: str, duration_s: float | None, seed: int, speed: float = 1.0,
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
-                 link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None) -> None:
+                 link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None,
+                 clock_jumps: list[list[float]] | None = None) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
             raise ValueError(f"--corrupt {corrupt}: must be in [0, 1)")
         sc = trajectory.load_scenario(scenario)
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
-        sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()})
+        sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()},
+                     gps={**sc.gps, "clock_jumps": [*sc.gps.get("clock_jumps", []), *(clock_jumps or [])]})
+        self.clock_jumps = sc.gps["clock_jumps"]
         self.scenario = sc.name
         self.receiver = receiver or sc.gps.get("receiver", "nmea")
         self.duration_s = float(duration_s or sc.duration_s)
@@ -238,28 +295,27 @@ class Server:
                 select.select([], fds, [], 0.002)
             else:
                 time.sleep(0.002)
-        # The reader has drained the ptys once their input queues stay empty for a while: bytes written to
-        # the master reach the slave's queue through the kernel's flip buffer, which can lag on a busy
-        # machine, so one empty reading is not enough before closing.
+        # wait (at most 10 s) for the reader to drain the ptys (one empty reading is not enough: module doc)
         deadline = time.monotonic() + 10.0
-        empty_polls = 0
-        while self.completed and not self.stop.is_set() and time.monotonic() < deadline and empty_polls < 6:
-            empty = all(p.master < 0 or p.unread() == 0 for p in self.ports.values())
-            empty_polls = empty_polls + 1 if empty else 0
-            time.sleep(0.05)
+        while self.completed and not self.stop.is_set() and time.monotonic() < deadline:
+            if all([p.master < 0 or p.drained() for p in self.ports.values()]):
+                break
+            time.sleep(0.02)
 
     def _step(self, p: _Port, t_s: float, log: Callable[[str], None]) -> bool:
         """Queue the reads due by ``t_s`` and write what the pty takes; False once the port has nothing left."""
         j = int(np.searchsorted(p.t_s, t_s, side="right"))
         u = self._unplugged(p.name, t_s)
-        if u is not None and p.master >= 0:
+        if u is not None and p.master >= 0 and p.draining_since is None:
             log(f"{p.name} unplugged for {u.length_s:g} s")
+            p.stop_sending()
+        if p.draining_since is not None and (p.drained() or time.monotonic() - p.draining_since > DRAIN_MAX_S):
             p.unplug(self.link_dir)
-        elif u is None and p.master < 0:
+        if u is None and p.master < 0:
             p.open(self.link_dir, wait_reader=True)
             p.replugged_mono_ns.append(time.monotonic_ns())
             log(f"{p.name} back as {p.path}")
-        if u is not None or not p.reader_opened():
+        if u is not None or p.draining_since is not None or not p.reader_opened():
             p.lose(sum(len(d) for d in p.data[p.next_read:j]))
             p.next_read = j
             return p.next_read < len(p.data)
@@ -292,6 +348,8 @@ class Server:
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
                 "daq_replug_mono_ns": ";".join(map(str, d.replugged_mono_ns)),
                 "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
+                "daq_undrained_unplugs": str(d.undrained_unplugs), "gps_undrained_unplugs": str(g.undrained_unplugs),
+                "gps_clock_jumps": ";".join(":".join(f"{x:g}" for x in j) for j in self.clock_jumps),
                 "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode, "receiver": self.receiver}
 
     def write_truth(self, path: str | Path) -> None:
@@ -304,16 +362,16 @@ class Server:
 
     def close(self) -> None:
         for p in self.ports.values():
-            p.close()
+            p.close(self.link_dir)
 
 
 def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_mode: str | None = None,
           receiver: str | None = None, truth: str | None = None, unplug: list[Unplug] | None = None,
           link_dir: str | None = None,
-          hold: bool = False, corrupt: float = 0.0) -> int:
+          hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first)."""
-    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver)
+    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps)
     go = threading.Event()
     if not hold:
         go.set()

@@ -91,7 +91,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     rel_s = (utc_ns // NS - t0_ns / NS) + (utc_ns % NS) / NS
     if len(utc_ns):
         sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
-        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s)
+        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s,
+                                        utc_ns + gps_cfg.clock_offset_ns(rel_s))
         starts = starts + rel_s[0]
         keep = starts < duration_s
         sentences = [s for s, kk in zip(sentences, keep) if kk]
