@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import daq
+from fieldlog.acquire import daq, messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import reader
 from test_daemon import gps_frames, raw_stream, run, start_daemon
@@ -19,6 +19,7 @@ from fieldlog.tools.sim.serve import PORTS, corrupt_stream
 
 SPEED = 20
 FRAME_NS = 2_000_000
+NS = 1_000_000_000
 LOCKED = 2
 
 
@@ -45,6 +46,13 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int,
     (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
     assert is_finished(f)
     return f, truth, log
+
+
+def _latch_config(tmp_path: Path) -> Path:
+    """A daemon config for a latched PPS (the sampled flag's rate fit is too coarse for a few ms at x20)."""
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text('[timesync]\npps_mode = "latch"\n')
+    return cfg
 
 
 def sentences(path: Path) -> list[str]:
@@ -112,11 +120,9 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     # retry periods would have it retry right when the pty comes back; 3.05 s is just after a retry, close
     # to the worst case.)
     # (PPS latch: a sampled flag's rate fit over the 40 s around a 60 s hole is too coarse for a few ms.)
-    cfg = tmp_path / "acquire.toml"
-    cfg.write_text('[timesync]\npps_mode = "latch"\n')
     f, truth, log = record(tmp_path, "--unplug", "daq:20:61", "--link-dir", str(tmp_path / "ports"),
                            "--pps", "latch", "--receiver", receiver, duration=120, seed=3,
-                           daemon_args=("--config", str(cfg)))
+                           daemon_args=("--config", str(_latch_config(tmp_path))))
     assert "daq port lost" in log and "daq port back" in log
     clean = expected_bytes(truth, "figure8", 120.0, 3)
     meta = read_metadata(truth)["serve"]
@@ -217,3 +223,24 @@ def test_one_percent_corruption_in_ublox_mode_keeps_every_intact_ubx_message(tmp
     # one fix per NAV-PVT, plus the GGA epochs before the first intact NAV-PVT; never two for one second
     stamps = reader.read_topic(f, "/gps/fix")["log_time_ns"]
     assert int(c["gps_epochs"]) >= sum(1 for fr in got if fr[2:4] == b"\x01\x07") and len(set(stamps)) == len(stamps)
+
+
+def test_a_receiver_clock_jump_over_the_pty_is_flagged_no_fix_and_not_written_an_hour_late(tmp_path: Path) -> None:
+    """sim --serve --clock-jump: the receiver writes its time +1 h for 10 s; the daemon (locked by then) flags
+    exactly those epochs NO_FIX, counts them, keeps their sentences, and stamps them by the clock fit."""
+    f, truth, _ = record(tmp_path, "--clock-jump", "40:10:3600", "--pps", "latch", duration=70, seed=5,
+                         daemon_args=("--config", str(_latch_config(tmp_path))))
+    clean = expected_bytes(truth, "figure8", 70.0, 5)
+    assert raw_stream(f, "gps")[0] == clean["gps"]
+    t0 = int(read_metadata(truth)["serve"]["drive_start_utc_ns"])
+    times = [s.split(",")[1] for s in sentences(f) if s[3:6] in ("GGA", "RMC", "GST", "ZDA")]
+    sod = [int(x[:2]) * 3600 + int(x[2:4]) * 60 + float(x[4:]) for x in dict.fromkeys(times)]   # epochs in order
+    jumped = sum((x - sod[0]) % 86400 > 1800 for x in sod)        # an hour ahead of the drive's first epoch
+    assert 9 <= jumped <= 11                              # 10 s at 1 Hz, give or take the window's edges
+    c = read_metadata(f)["acquire.counters"]
+    fix = reader.read_topic(f, "/gps/fix")
+    t = fix["log_time_ns"]
+    flagged = fix["status"] == messages.STATUS_NO_FIX
+    assert flagged.sum() == int(c["gps_no_fix.receiver_time"]) == int(c["gps_no_fix"]) == jumped
+    assert np.all((t[flagged] > t0 + 39 * NS) & (t[flagged] < t0 + 52 * NS)) and np.all(np.diff(t) > 0)
+    assert t.max() < t0 + 71 * NS and np.all(np.isnan(fix["lat_deg"][flagged]))    # nothing an hour late
