@@ -17,8 +17,9 @@ up). :func:`resolve` picks the topics and the IMU frame:
 :class:`InputStream` streams the drive in blocks as the engine's ``ImuBlock`` and ``GpsBlock``, on the messages'
 header stamps (the sensor's time; a bag's log time is when the logger received the message): IMU samples are
 rotated to RFU, sorted, repeated stamps dropped, gaps (dropped samples: a step above 1.5 sample periods) counted
-and bridged by the INS over the longer step; the samples of the last ``HOLD_S`` of each block wait for the next,
-so a fix logged late (its stamp in the previous block) still arrives before the INS passes it.
+and bridged by the INS over the longer step. :class:`Resequencer` holds every topic's rows of the last ``HOLD_S``
+of each block for the next, so a fix logged late (its stamp in the previous block) still arrives before the INS
+passes it; ``fuse``, ``replay`` and ``view`` all read a drive through it (``canonical_blocks``).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ if TYPE_CHECKING:
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
 TF_STATIC = "/tf_static"
-HOLD_S = 1.0  # IMU held back per block: longer than a fix's logging latency
+HOLD_S = 1.0  # rows held back per block (Resequencer): longer than a fix's logging latency
 RATE_HZ = (100.0, 1000.0)  # the IMU rates fusion is built for
 
 
@@ -197,6 +198,48 @@ def by_stamp(d: dict) -> dict:
     return out
 
 
+class Resequencer:
+    """Blocks of a drive re-timed on their header stamps and released in stamp order ``HOLD_S`` behind each
+    block's end: what another logger wrote late (a fix logged after IMU samples later than its stamp, a sample
+    that arrived out of order) is still in its place when a consumer (the fusion engine, the viewer) passes it.
+    Every topic is held alike, so a released block holds every topic's rows up to the same stamp. The one
+    re-sequencing step of ``fuse``, ``replay`` and ``view`` (``InputStream``, ``canonical_blocks``)."""
+
+    def __init__(self, hold_s: float = HOLD_S) -> None:
+        self.hold_ns = int(hold_s * 1e9)
+        self._held: dict[str, dict] = {}
+
+    def push(self, t1_ns: int, data: dict[str, dict]) -> dict[str, dict]:
+        """``data`` (decoded rows per topic, as ``reader.iter_blocks`` gives them) of a block ending at log time
+        ``t1_ns``; -> the rows, of this and earlier blocks, stamped before ``t1_ns - hold``, sorted."""
+        return self._release(data, t1_ns - self.hold_ns)
+
+    def flush(self) -> dict[str, dict]:
+        """Every row still held."""
+        return self._release({}, None)
+
+    def _release(self, data: dict[str, dict], cut_ns: int | None) -> dict[str, dict]:
+        out = {}
+        for topic in {*self._held, *data}:
+            d = _join(self._held.pop(topic, {}), by_stamp(data.get(topic, {})))
+            if not d:
+                continue
+            k = len(d["log_time_ns"]) if cut_ns is None else int(np.searchsorted(d["log_time_ns"], cut_ns))
+            out[topic] = {f: v[:k] for f, v in d.items()}
+            if k < len(d["log_time_ns"]):
+                self._held[topic] = {f: v[k:] for f, v in d.items()}
+        return out
+
+
+def _join(a: dict, b: dict) -> dict:
+    """Two stamp-sorted row sets of one topic as one, sorted (stable: ``a``'s rows first at equal stamps)."""
+    if not a or not b:
+        return a or b
+    d = {f: np.concatenate([a[f], b[f]]) for f in a if f in b}
+    order = np.argsort(d["log_time_ns"], kind="stable")
+    return {f: v[order] for f, v in d.items()}
+
+
 @dataclass
 class InputBlock:
     t0_ns: int  # the block's log-time span
@@ -206,54 +249,71 @@ class InputBlock:
 
 
 class InputStream:
-    """A drive's fusion input in blocks (module docstring); counts IMU gaps as it goes."""
+    """A drive's fusion input in blocks (module docstring): the mapped topics under fieldlog's own names
+    (``/imu`` in body RFU, ``/gps/fix``, ``/gps/vel``) re-sequenced on their stamps (``Resequencer``), IMU rows
+    with a repeated stamp dropped; counts the IMU's gaps as it goes. ``blocks()`` gives them as
+    ``reader.Block``s (for the viewer and the player, plus the ``extra`` topics), iterating gives the engine's
+    ``ImuBlock`` and ``GpsBlock``."""
 
-    def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float) -> None:
+    def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float,
+                 extra: tuple[str, ...] = ()) -> None:
         self.path, self.imap, self.block_s = path, imap, block_s
+        self.extra = tuple(t for t in extra if t not in imap.topics)
         self.samples = 0
         self.gaps = 0  # steps longer than 1.5 sample periods
-        self.missing = 0  # samples those steps lack, at the median period
+        self.missing = 0  # samples those steps lack, at the sample period
         self.repeated = 0  # samples dropped for a stamp not after the previous one
         self._last_t: int | None = None
-        self._period_ns: float | None = None  # median step of the first block with 100 samples
+        self._period_ns: float | None = None  # the sample period, from the first 100 steps
 
     @property
     def rate_hz(self) -> float:
-        """The IMU's sample rate, Hz (median step; NaN before it is known)."""
+        """The IMU's sample rate, Hz (NaN before it is known)."""
         return 1e9 / self._period_ns if self._period_ns else float("nan")
 
-    def __iter__(self) -> Iterator[InputBlock]:
-        im = self.imap
-        hold_ns = int(HOLD_S * 1e9)
-        held = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-        last_t1 = None
-        for b in reader.iter_blocks(self.path, im.topics, self.block_s):
-            d = by_stamp(b.data.get(im.imu_topic, {}))
-            new = (d["log_time_ns"], d["omega_ib_b"] @ im.C_rfu_imu.T, d["f_b"] @ im.C_rfu_imu.T) if d else held[:0]
-            t, w, f = (np.concatenate([h, n]) for h, n in zip(held, new)) if d else held
-            if d:
-                order = np.argsort(t, kind="stable")
-                t, w, f = t[order], w[order], f[order]
-            cut = np.searchsorted(t, b.t1_ns - hold_ns)
-            held = (t[cut:], w[cut:], f[cut:])
-            last_t1 = b.t1_ns
-            fix, vel = by_stamp(b.data.get(im.fix_topic, {})), by_stamp(b.data.get(im.vel_topic, {}))
-            yield InputBlock(b.t0_ns, b.t1_ns, self._imu_block(t[:cut], w[:cut], f[:cut]), reader.gps_block(fix, vel))
-        if last_t1 is not None and len(held[0]):
-            yield InputBlock(last_t1, last_t1, self._imu_block(*held), reader.gps_block({}, {}))
+    def blocks(self) -> Iterator[reader.Block]:
+        """The drive's blocks under fieldlog's names, re-sequenced; a last block (``t0 == t1``, the drive's end)
+        with the rows still held."""
+        names = dict(zip(self.imap.topics, NATIVE))
+        seq = Resequencer()
+        t1 = None
+        for b in reader.iter_blocks(self.path, (*self.imap.topics, *self.extra), self.block_s):
+            t1 = b.t1_ns
+            yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, b.data), names))
+        if t1 is not None:
+            yield reader.Block(t1, t1, self._canonical(seq.flush(), names))
 
-    def _imu_block(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> ImuBlock:
-        """Drop repeated stamps, count the gaps; the samples as an ImuBlock (body RFU)."""
-        from fieldlog.fusion.engine import ImuBlock
+    def __iter__(self) -> Iterator[InputBlock]:
+        for b in self.blocks():
+            imu = b.data.get(NATIVE[0])
+            yield InputBlock(b.t0_ns, b.t1_ns, imu_block(imu), reader.gps_block(b.data.get(NATIVE[1], {}),
+                                                                               b.data.get(NATIVE[2], {})))
+
+    def _canonical(self, data: dict[str, dict], names: dict[str, str]) -> dict[str, dict]:
+        out = {names.get(k, k): v for k, v in data.items()}
+        imu = out.get(NATIVE[0])
+        if imu:
+            C = self.imap.C_rfu_imu
+            out[NATIVE[0]] = imu = self._count({**imu, "omega_ib_b": imu["omega_ib_b"] @ C.T,
+                                                "f_b": imu["f_b"] @ C.T})
+            if not len(imu["log_time_ns"]):
+                del out[NATIVE[0]]
+        return out
+
+    def _count(self, imu: dict) -> dict:
+        """Drop repeated stamps, count the samples and gaps."""
+        t = imu["log_time_ns"]
         keep = np.ones(len(t), bool)
         keep[1:] = t[1:] > t[:-1]
         if self._last_t is not None:
             keep &= t > self._last_t
         self.repeated += int((~keep).sum())
-        t, w, f = t[keep], w[keep], f[keep]
+        imu = {k: v[keep] for k, v in imu.items()}
+        t = imu["log_time_ns"]
         steps = np.diff(t if self._last_t is None else np.concatenate([[self._last_t], t]))
         if self._period_ns is None and len(steps) >= 100:
-            self._period_ns = float(np.median(steps))
+            med = np.median(steps)
+            self._period_ns = float(np.mean(steps[steps <= 1.5 * med]))  # the mean: jitter does not bias it
         if self._period_ns is not None:
             long = steps > 1.5 * self._period_ns
             self.gaps += int(long.sum())
@@ -261,23 +321,20 @@ class InputStream:
         if len(t):
             self._last_t = int(t[-1])
         self.samples += len(t)
-        return ImuBlock(t, w, f)
+        return imu
+
+
+def imu_block(imu: dict | None) -> ImuBlock:
+    """A block's valid ``/imu`` rows as the engine's ImuBlock (empty without)."""
+    from fieldlog.fusion.engine import ImuBlock
+    if not imu or not len(imu.get("log_time_ns", ())):
+        return ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+    ok = imu["valid"]
+    return ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
 
 
 def canonical_blocks(path: str | os.PathLike[str], imap: InputMap, block_s: float, extra: tuple[str, ...] = ()
                      ) -> Iterator[reader.Block]:
-    """``reader.iter_blocks`` of the mapped inputs under fieldlog's own names (``/imu`` in body RFU, ``/gps/fix``,
-    ``/gps/vel``), each re-timed on its header stamps, plus the ``extra`` topics as they are: for the viewer and
-    the player, which read fieldlog's names. (No hold-back as in :class:`InputStream`: a fix logged after the
-    next block started may reach the player's engine after its IMU passed it, and is then not used.)"""
-    names = dict(zip(imap.topics, NATIVE))
-    for b in reader.iter_blocks(path, (*imap.topics, *(t for t in extra if t not in imap.topics)), block_s):
-        data = {k: v for k, v in b.data.items() if k not in names}
-        for k, n in names.items():
-            d = by_stamp(b.data.get(k, {}))
-            if d:
-                data[n] = d
-        imu = data.get(NATIVE[0])
-        if imu:
-            imu["omega_ib_b"], imu["f_b"] = imu["omega_ib_b"] @ imap.C_rfu_imu.T, imu["f_b"] @ imap.C_rfu_imu.T
-        yield reader.Block(b.t0_ns, b.t1_ns, data)
+    """``InputStream.blocks``: the mapped inputs under fieldlog's own names, re-sequenced as ``fuse`` reads them,
+    plus the ``extra`` topics; for the viewer and the player."""
+    return InputStream(path, imap, block_s, extra).blocks()

@@ -1,8 +1,9 @@
 """``fieldlog replay DRIVE --speed X [--method M] [--rrd OUT.rrd | --connect URL]``: live fusion into rerun.
 
-The drive is read in ``PLAY_BLOCK_S`` blocks (``replay.reader.iter_blocks``), each block goes through the
-incremental ``fusion.engine.Engine`` and what it holds and produced is logged at once on the ``gps_time``
-timeline, paced so that data time runs X times faster than the wall clock. ``play`` takes any iterator of
+The drive is read in ``PLAY_BLOCK_S`` blocks as ``fuse`` reads it (``replay.inputs.canonical_blocks``: header
+stamps, late-logged messages re-sequenced), each block goes through the incremental ``fusion.engine.Engine``
+and what it holds and produced is logged at once on the ``gps_time`` timeline, paced so that data time runs X
+times faster than the wall clock. ``play`` takes any iterator of
 ``replay.reader.Block``: ``live_view`` (``fieldlog view --live``, ``fieldlog acquire --view``) feeds it the
 daemon's live bus (``replay.live.iter_blocks``), unpaced.
 
@@ -28,10 +29,10 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock, Outage, Solution
+from fieldlog.fusion.engine import Engine, FusionConfig, Outage, Solution
 from fieldlog.replay import reader
 from fieldlog.replay import inputs
-from fieldlog.replay.drive import DriveSpec, label
+from fieldlog.replay.drive import DriveSpec
 from fieldlog.replay.reader import IN_TOPICS, gps_block
 from fieldlog.replay import view as rv
 
@@ -44,6 +45,7 @@ class ReplayResult:
     sink: str
     blocks: int = 0
     solutions: int = 0
+    updates: int = 0  # GPS updates the filter made
     gps_fixes: int = 0
     imu_rows: int = 0
     outages: int = 0
@@ -169,12 +171,8 @@ class Player:
         """Fuse one block and log it."""
         d = b.data
         imu = d.get("/imu", {})
-        if len(imu.get("log_time_ns", ())):
-            ok = imu["valid"]
-            ib = ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
-        else:
-            ib = ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-        sol, done = self.engine.process(ib, gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {})))
+        epochs = gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {}))
+        sol, done = self.engine.process(inputs.imu_block(imu), epochs)
         self._imu(imu)
         ref = None
         fix = d.get("/gps/fix")
@@ -226,6 +224,7 @@ class Player:
 
     def finish(self) -> ReplayResult:
         self._outages(self.engine.finish())
+        self.res.updates = self.engine.updates
         return self.res
 
 
@@ -295,15 +294,12 @@ def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[s
            progress: Callable[[float], None] | None = None, imap: inputs.InputMap | None = None) -> ReplayResult:
     """Play ``drive`` into a rerun viewer: ``connect`` (a gRPC URL, e.g. ``rerun+http://127.0.0.1:9876/proxy``),
     else the ``rrd`` file, else a spawned viewer. ``imap``: the topics and IMU frame of another logger's drive
-    (``replay.inputs.resolve``; None: fieldlog's own)."""
-    if imap is not None and not imap.native:
-        tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
-        blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])
-    else:
-        tops = [t for t in reader.topics(drive) if t.topic in IN_TOPICS and t.count]
-        if not any(t.topic == "/imu" for t in tops):
-            raise ValueError(f"{label(drive)}: no /imu messages")
-        blocks = reader.iter_blocks(drive, TOPICS, PLAY_BLOCK_S)
+    (``replay.inputs.resolve``; None: resolved from the drive). The drive is read as ``fuse`` reads it
+    (``replay.inputs.canonical_blocks``: on the header stamps, late-logged messages re-sequenced), so the
+    solution is ``fuse``'s."""
+    imap = imap or inputs.resolve(drive)
+    tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
+    blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])  # as `fuse` reads it
     _check_sink(rrd, connect)
     span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
     return _play_into(rrd, connect, blocks, method, speed, config, progress, span)

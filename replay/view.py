@@ -342,7 +342,8 @@ def _read_drive(rec: rr.RecordingStream, drive: DriveSpec, names: dict[str, int]
                 ) -> tuple[dict[str, dict[str, np.ndarray]], int]:
     """One streaming pass (each chunk decompressed once): /imu is logged block by block, decimated by means of
     IMU_DECIMATION valid samples (carried across blocks); the LOW_RATE topics are returned whole. ``imap``: the
-    inputs of another logger's drive (``replay.inputs``), read as /imu (body RFU), /gps/fix and /gps/vel.
+    inputs of another logger's drive (``replay.inputs.canonical_blocks``), read as /imu (body RFU), /gps/fix and
+    /gps/vel on their header stamps, re-sequenced as ``fuse`` reads them.
     -> ({topic: {field: array}}, IMU rows logged)."""
     wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
     span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]

@@ -57,11 +57,13 @@ class Foreign:
     imu_topic: str = "/sensors/imu"
     fix_topic: str = "/sensors/gnss/fix"
     frame: str = "flu"
-    imu_rate_hz: float | None = None  # resample the IMU (linear interpolation) to this rate
+    imu_rate_hz: float | None = None  # resample the IMU to this rate (means over each sample's interval)
     silent: tuple[tuple[float, float], ...] = ()  # (start_s, length_s) from the first IMU sample: no fix messages
     drop_every: int = 0  # drop every n-th IMU sample (0: none)
+    drop_runs: tuple[tuple[float, int], ...] = ()  # (start_s, n): drop n consecutive IMU samples from start_s
     jitter_ns: int = 0  # IMU stamp jitter (uniform +-), ns
-    log_lag_ns: int = 2_000_000  # log time = stamp + this (+ jitter on the GPS: 0.05-0.3 s)
+    log_lag_ns: int = 2_000_000  # IMU log time = stamp + this
+    fix_lag_s: tuple[float, float] = (0.05, 0.3)  # fix log time = stamp + uniform(this), s
     tf_static: bool = False  # write /tf_static with the IMU frame (and then no frame option is needed)
     imu_frame_id: str = "imu_link"
     imu_at: tuple[float, float, float] = (0.0, 0.0, 0.0)  # /tf_static: IMU and antenna ("gnss") origins in
@@ -72,6 +74,24 @@ class Foreign:
 
 def _stamp(t_ns: int) -> dict:
     return {"sec": int(t_ns // 1_000_000_000), "nanosec": int(t_ns % 1_000_000_000)}
+
+
+def _resample(t: np.ndarray, w: np.ndarray, f: np.ndarray, rate_hz: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The IMU at ``rate_hz`` as an integrating IMU outputs it: each sample the mean rate and specific force over
+    the sample period centred on its stamp (the integral's differences), so the noise density is kept whether the
+    rate is lower (a point sample of every n-th row would not) or higher than the drive's."""
+    period = int(round(1e9 / rate_hz))
+    tn = np.arange(t[0] + period, t[-1] - period, period, dtype=np.int64)
+    dt = np.diff(t) * 1e-9
+    edges = np.concatenate([tn - period // 2, [tn[-1] + period - period // 2]])
+
+    def means(x: np.ndarray) -> np.ndarray:
+        integral = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (x[1:] + x[:-1]) * dt[:, None], axis=0)])
+        at = np.stack([np.interp(edges, t, integral[:, i]) for i in range(3)], axis=1)
+        return np.diff(at, axis=0) / (np.diff(edges)[:, None] * 1e-9)
+
+    return tn, means(w), means(f)
 
 
 def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
@@ -85,13 +105,13 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
         t, w, f = t[:n], w[:n], f[:n]
         fix = {k: v[fix["log_time_ns"] < t[-1]] for k, v in fix.items() if isinstance(v, np.ndarray)}
     if spec.imu_rate_hz:
-        tn = np.arange(t[0], t[-1], int(1e9 / spec.imu_rate_hz), dtype=np.int64)
-        w = np.stack([np.interp(tn, t, w[:, i]) for i in range(3)], axis=1)
-        f = np.stack([np.interp(tn, t, f[:, i]) for i in range(3)], axis=1)
-        t = tn
+        t, w, f = _resample(t, w, f, spec.imu_rate_hz)
     keep = np.ones(len(t), bool)
     if spec.drop_every:
         keep[spec.drop_every - 1::spec.drop_every] = False
+    for start_s, n in spec.drop_runs:
+        i = int(np.searchsorted(t, t[0] + int(start_s * 1e9)))
+        keep[i:i + n] = False
     C = TO_FRAME[spec.frame]
     w, f = w @ C.T, f @ C.T
     st = t + (rng.integers(-spec.jitter_ns, spec.jitter_ns + 1, len(t)) if spec.jitter_ns else 0)
@@ -116,7 +136,7 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
         for j in range(len(fix["log_time_ns"])):
             tj = int(fix["log_time_ns"][j])
             if not any(a <= tj < b for a, b in quiet):
-                events.append((tj + int(rng.uniform(0.05, 0.3) * 1e9), 1, j))
+                events.append((tj + int(rng.uniform(*spec.fix_lag_s) * 1e9), 1, j))
         events.sort()
         for log_t, kind, i in events:
             if kind == 0:

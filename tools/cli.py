@@ -420,8 +420,8 @@ def cmd_replay(a: argparse.Namespace) -> int:
     res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
                  progress=Progress(f"replay {a.method}"), imap=st.inputs)
     print(f"played {res.data_s:.1f} s of {' '.join(a.drive)} in {res.wall_s:.1f} s (x{res.data_s / max(res.wall_s, 1e-9):.1f}): "
-          f"{res.solutions} {a.method} solutions, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, "
-          f"{res.outages} outages -> {res.sink}")
+          f"{res.solutions} {a.method} solutions, {res.updates} GPS updates, {res.gps_fixes} GPS fixes, "
+          f"{res.imu_rows} IMU rows, {res.outages} outages -> {res.sink}")
     return 0
 
 
