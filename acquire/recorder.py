@@ -38,6 +38,7 @@ from mcap.records import (
     DataEnd,
     Footer,
     Header,
+    Message,
     Metadata,
     MetadataIndex,
     Schema,
@@ -679,8 +680,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Ex
     """Rebuild a valid MCAP from ``src`` (cut short by a kill or power loss) into ``dst``.
 
     Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
-    metadata record and every complete chunk whose CRC checks, up to the first truncated or
-    invalid record; writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
+    metadata record, every complete chunk whose CRC checks and every message outside chunks (written as
+    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record; writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
     kept chunk and adds its messages before the summary. ``src`` must start with the MCAP magic (ValueError).
     ``dst`` appears only complete: it is written as ``dst`` + ``.partial`` and renamed at the end; on any
     error (a full disk) the partial file is removed and the error raised, so a later attempt starts afresh.
@@ -707,7 +708,25 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
     last_t = 0
     good_end = 0
     had_summary = False
+    loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
     rec = Recorder(dst, flush_interval_s=None, fsync=False, stats=False)
+
+    def keep(cm: ChunkMessages) -> None:
+        nonlocal last_t
+        _copy_chunk(rec, cm)
+        if extend is not None:
+            extend.chunk(rec, cm, meta)
+        for cid, cnt in zip(*np.unique(cm.channel_id, return_counts=True)):
+            kept[int(cid)] = kept.get(int(cid), 0) + int(cnt)
+        if len(cm.log_time):
+            last_t = max(last_t, int(cm.log_time.max()))
+
+    def keep_loose(f: BinaryIO) -> None:
+        """The pending messages outside chunks (their records as they are in src) kept as one chunk."""
+        if loose[1] > loose[0]:
+            keep(chunk_messages(os.pread(f.fileno(), loose[1] - loose[0], loose[0])))
+        loose[0] = loose[1]
+
     try:
         with open(src, "rb") as f:
             reader = StreamReader(f, emit_chunks=True, record_size_limit=size)
@@ -724,6 +743,15 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
                     break
                 except Exception:  # truncated or corrupt record: stop here
                     break
+                if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
+                    if record.channel_id not in rec._channels:
+                        break
+                    loose[1] = good_end = f.tell()
+                    if loose[1] - loose[0] >= 4 << 20:
+                        keep_loose(f)
+                    continue
+                keep_loose(f)
+                loose[0] = loose[1] = f.tell()
                 if isinstance(record, Schema):
                     rec.add_schema(record)
                 elif isinstance(record, Channel):
@@ -736,18 +764,13 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
                         (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
                     if not set(np.unique(cm.channel_id).tolist()) <= set(rec._channels):
                         break
-                    _copy_chunk(rec, cm)
-                    if extend is not None:
-                        extend.chunk(rec, cm, meta)
-                    for cid, cnt in zip(*np.unique(cm.channel_id, return_counts=True)):
-                        kept[int(cid)] = kept.get(int(cid), 0) + int(cnt)
-                    if len(cm.log_time):
-                        last_t = max(last_t, int(cm.log_time.max()))
+                    keep(cm)
                 elif isinstance(record, (DataEnd, Footer)):
                     good_end = f.tell()
                     had_summary = True
                     break
                 good_end = f.tell()
+            keep_loose(f)
         if extend is not None and not had_summary:
             rederived = extend.finish(rec)
             if rederived:

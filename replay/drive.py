@@ -4,7 +4,7 @@ A drive is given as one MCAP file, several files, a directory of a rotated ``fie
 (``<session start>_0001.mcap``, ``_0002.mcap``, ...), or a rosbag2 directory (``metadata.yaml`` lists its
 files in ``relative_file_paths``). ``drive_files`` resolves any of these (or a list mixing them) to the
 files; ``open_drive`` opens them (``replay.mcapfile.McapFile``) ordered by their first log time, so they
-read as one drive. In a session directory, ``NAME.recovered.mcap`` (``fieldlog recover``, or the daemon on
+read as one drive. In a session or rosbag2 directory, ``NAME.recovered.mcap`` (``fieldlog recover``, or the daemon on
 restart) stands in for the cut-short ``NAME.mcap`` next to it.
 """
 from __future__ import annotations
@@ -37,14 +37,16 @@ def _rosbag2_files(d: Path) -> list[Path]:
 
 
 def _dir_files(d: Path) -> list[Path]:
+    """A directory's files (a rosbag2's in its metadata order, else ``*.mcap`` by name), each ``NAME.mcap``
+    replaced by ``NAME.recovered.mcap`` when that is there."""
     if (d / "metadata.yaml").is_file():
-        return _rosbag2_files(d)
-    files = sorted(d.glob("*.mcap"))
-    recovered = {f.name[: -len(RECOVERED)] + ".mcap" for f in files if f.name.endswith(RECOVERED)}
-    files = [f for f in files if f.name not in recovered]
+        files = _rosbag2_files(d)
+    else:
+        files = sorted({f.with_name(f.name[: -len(RECOVERED)] + ".mcap") if f.name.endswith(RECOVERED) else f
+                        for f in d.glob("*.mcap")})
     if not files:
         raise FileNotFoundError(f"{d}: no .mcap files in the directory")
-    return files
+    return [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f for f in files]
 
 
 def drive_files(spec: DriveSpec) -> list[Path]:

@@ -5,23 +5,29 @@ The corpus is written here by third-party writers from one simulated drive: the 
 attachment and the metadata records) and rosbags (a rosbag2 directory, and one split into two files under one
 metadata.yaml). Each must give the original's ``info`` counts and its
 ``kf`` solution (2D RMS against the truth within 1 mm). A rotated session (the daemon's ``RotatingSink``
-fed by the real Pipeline, three files) must fuse to exactly the single file's solution.
+fed by the real Pipeline, three files) must fuse to exactly the single file's solution, and every command
+(allan, filter, recover included) takes it. ``recover`` keeps the messages outside chunks of a cut-short
+unchunked file.
 """
 from __future__ import annotations
 
 import heapq
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.opcode import Opcode
 
 from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
 from fieldlog.acquire.pipeline import Pipeline, read_order
+from fieldlog.acquire.recorder import walk_records
 from fieldlog.replay import reader
 from fieldlog.replay.drive import drive_files, open_drive
-from fieldlog.replay.mcapfile import TruncatedError
+from fieldlog.replay.mcapfile import TruncatedError, le
+from fieldlog.tools.allan import drive_report
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.evaluate import outage_error_series
 from fieldlog.tools.fuse import fuse
@@ -255,3 +261,66 @@ def test_truncated_is_told_apart_from_unindexed(corpus, tmp_path, capsys):
     shutil.copy(cut, d / "s_0001.mcap")
     shutil.copy(corpus["lz4"], d / "s_0001.recovered.mcap")
     assert drive_files(d) == [d / "s_0001.recovered.mcap"]
+
+
+def test_allan_and_filter_take_the_session(original, session, tmp_path):
+    """allan and filter read the three files as the one drive: allan gives the single file's report, filter the
+    single file's slice (the same messages, byte for byte)."""
+    files = [str(f) for f in sorted(session.glob("*.mcap"))]
+    assert drive_report(files) == drive_report(original)
+    imu = reader.read_topic(original, "/imu")["log_time_ns"]
+    t0, t1 = str(imu[len(imu) // 5]), str(imu[4 * len(imu) // 5])     # across both file boundaries
+    for name, drive in (("one", [str(original)]), ("session", files)):
+        assert fieldlog(["filter", *drive, "--start", t0, "--end", t1, "--topics", "/imu,/gps/*",
+                         "--out", str(tmp_path / f"{name}.mcap")]) == 0
+    one, many = tmp_path / "one.mcap", tmp_path / "session.mcap"
+    counts = {t.topic: t.count for t in reader.topics(one)}
+    assert counts["/imu"] == np.count_nonzero((imu >= int(t0)) & (imu < int(t1)))
+    got = {t.topic: t.count for t in reader.topics(many)}
+    assert got.pop("/tf_static") == 3 * counts.pop("/tf_static") and got == counts   # /tf_static: once per file
+    for topic in ("/imu", "/gps/fix", "/gps/vel"):
+        a, b = reader.read_payloads(one, topic), reader.read_payloads(many, topic)
+        assert np.array_equal(a[0], b[0]) and a[2].to_list() == b[2].to_list()
+
+
+def test_recover_takes_a_session_directory(session, tmp_path, capsys):
+    """A session whose last file was cut short: ``recover DIR`` recovers that file next to it and leaves the
+    complete ones; the directory then reads as a drive, and a second run has nothing to do."""
+    d = tmp_path / "cut"
+    shutil.copytree(session, d)
+    last = sorted(d.glob("*.mcap"))[-1]
+    last.write_bytes(last.read_bytes()[: last.stat().st_size * 2 // 3])
+    assert fieldlog(["info", str(d)]) == 2
+    capsys.readouterr()
+    assert fieldlog(["recover", str(d)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("complete, nothing to recover") == 2 and f"wrote {last.with_name(last.stem + '.recovered.mcap')}" in out
+    assert drive_files(d)[-1].name.endswith(".recovered.mcap")
+    full = {t.topic: t.count for t in reader.topics(session)}
+    got = {t.topic: t.count for t in reader.topics(d)}
+    first_two = sum(next(t.count for t in reader.topics(f) if t.topic == "/imu") for f in drive_files(d)[:2])
+    assert 0 < got["/raw/daq"] < full["/raw/daq"] and first_two < got["/imu"] <= full["/imu"]
+    assert fieldlog(["recover", str(d)]) == 0
+    assert capsys.readouterr().out.count("recovered already") == 1
+    assert fieldlog(["recover", str(d), "--out", str(tmp_path / "x.mcap")]) == 2
+
+
+def test_recover_keeps_messages_outside_chunks(original, corpus, tmp_path):
+    """An unchunked file (mcap's Writer) cut short: recover keeps every message whose record is whole before the
+    cut, found here by the record walk of the complete file."""
+    raw = corpus["unchunked"].read_bytes()
+    cut = len(raw) * 2 // 3
+    src = tmp_path / "cut.mcap"
+    src.write_bytes(raw[:cut])
+    assert fieldlog(["recover", str(src)]) == 0
+    buf = np.frombuffer(raw, np.uint8)
+    ops, starts, lengths, _ = walk_records(buf, 8, len(buf) // 64)
+    whole = (ops == Opcode.MESSAGE) & (starts + lengths <= cut)
+    (f,) = open_drive(corpus["unchunked"])
+    want = Counter(f.channels[c].topic for c in le(buf, starts[whole], "<u2").tolist())
+    got = {t.topic: t.count for t in reader.topics(tmp_path / "cut.recovered.mcap") if t.count}
+    assert got == dict(want) and 0 < sum(want.values()) < np.count_nonzero(ops == Opcode.MESSAGE)
+    a = reader.read_payloads(original, "/imu")
+    b = reader.read_payloads(tmp_path / "cut.recovered.mcap", "/imu")
+    n = len(b[0])
+    assert np.array_equal(a[0][:n], b[0]) and a[2].take(np.arange(n)).to_list() == b[2].to_list()

@@ -11,9 +11,12 @@ Gyro: ARW [deg/sqrt(h)] = 60 * N [deg/s/sqrt(Hz)]. Accel: VRW [m/s/sqrt(h)] = 60
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from fieldlog.replay.drive import DriveSpec
 
 G0 = 9.80665  # m/s^2 per g
 FLICKER_ADEV_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.6643...
@@ -199,17 +202,20 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
     return path
 
 
-def drive_report(path: str, plot_prefix: str | None = None) -> str:
-    """``report`` of the /imu topic of a recorded drive (meant for a static drive); rate from the stamps.
+def drive_report(path: DriveSpec, plot_prefix: str | None = None) -> str:
+    """``report`` of the /imu topic of a recorded drive (meant for a static drive; one file or several:
+    ``replay.drive``); rate from the stamps.
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
     names them at the end of the text."""
+    from fieldlog.replay.drive import label
     from fieldlog.replay.reader import read_topic
 
     imu = read_topic(path, "/imu")
+    name = label(path)
     stamp_ns = np.asarray(imu["stamp_ns"])
     if stamp_ns.size < 3:
-        raise ValueError(f"{path}: /imu has {stamp_ns.size} samples, need at least 3")
+        raise ValueError(f"{name}: /imu has {stamp_ns.size} samples, need at least 3")
     fs_hz = (stamp_ns.size - 1) / ((stamp_ns[-1] - stamp_ns[0]) * 1e-9)
     text = report(np.asarray(imu["omega_ib_b"]), np.asarray(imu["f_b"]), fs_hz)
     if plot_prefix is None:
@@ -217,7 +223,7 @@ def drive_report(path: str, plot_prefix: str | None = None) -> str:
     taus, adev_g = allan_deviation(np.asarray(imu["omega_ib_b"]), fs_hz)
     _, adev_a = allan_deviation(np.asarray(imu["f_b"]), fs_hz, taus)
     files = [plot(taus, adev_g * _RAD2DEG * 3600.0, f"{plot_prefix}_gyro.png", "gyro Allan deviation (deg/h)",
-                  f"gyro, {path}"),
+                  f"gyro, {name}"),
              plot(taus, adev_a / G0 * 1e6, f"{plot_prefix}_accel.png", "accel Allan deviation (ug)",
-                  f"accelerometer, {path}")]
+                  f"accelerometer, {name}")]
     return text + "".join(f"wrote {f}\n" for f in files)

@@ -125,10 +125,34 @@ def cmd_acquire(a: argparse.Namespace) -> int:
 
 
 def cmd_recover(a: argparse.Namespace) -> int:
-    from fieldlog.acquire.recovery import recover_drive
+    """One file: recovered whatever it is. A session or rosbag2 directory, or several files: each cut-short file
+    recovered next to it (the drive then reads NAME.recovered.mcap in its place), the complete ones left."""
+    from fieldlog.replay.drive import RECOVERED, drive_files
+    from fieldlog.replay.mcapfile import McapFile, TruncatedError
 
-    src = Path(a.drive)
-    out = Path(a.out) if a.out else src.with_name(src.stem + ".recovered.mcap")
+    if len(a.drive) == 1 and not Path(a.drive[0]).is_dir():
+        return _recover_one(Path(a.drive[0]), Path(a.out) if a.out else None)
+    if a.out:
+        raise ValueError(f"{' '.join(a.drive)}: --out takes one damaged file; a drive of several files is recovered "
+                         f"next to them (NAME{RECOVERED})")
+    for src in drive_files(a.drive):
+        if src.name.endswith(RECOVERED):
+            print(f"{src}: recovered already")
+            continue
+        try:
+            McapFile(src)
+        except TruncatedError:
+            _recover_one(src, None)
+        else:
+            print(f"{src}: complete, nothing to recover")
+    return 0
+
+
+def _recover_one(src: Path, out: Path | None) -> int:
+    from fieldlog.acquire.recovery import recover_drive
+    from fieldlog.replay.drive import RECOVERED
+
+    out = out or src.with_name(src.stem + RECOVERED)
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from the damaged file (it is kept as it is)")
     rep = recover_drive(src, out)
@@ -155,7 +179,7 @@ def cmd_filter(a: argparse.Namespace) -> int:
     from fieldlog.tools.filter import filter_drive
 
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
-    res = filter_drive(a.drive, a.out, a.start, a.end, topics, progress=Progress("filter"))
+    res = filter_drive(drive_arg(a.drive), a.out, a.start, a.end, topics, progress=Progress("filter"))
     print(f"wrote {res.path.resolve()}: {sum(res.messages.values())} messages from {res.start_ns} to {res.end_ns} ns")
     for topic, n in res.messages.items():
         print(f"  {topic:<24} {n}")
@@ -183,7 +207,7 @@ def cmd_rebuild(a: argparse.Namespace) -> int:
 def cmd_allan(a: argparse.Namespace) -> int:
     from fieldlog.tools.allan import drive_report
 
-    print(drive_report(a.drive, plot_prefix=a.plot))
+    print(drive_report(drive_arg(a.drive), plot_prefix=a.plot))
     return 0
 
 
@@ -522,8 +546,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_acquire)
 
     s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
-    s.add_argument("drive", help="the damaged MCAP (kept as it is)")
-    s.add_argument("--out", default=None, help="output MCAP (default: DRIVE.recovered.mcap next to it)")
+    s.add_argument("drive", nargs="+", help="the damaged MCAP (kept as it is); or a session or rosbag2 directory, "
+                   "or several files: each cut-short one is recovered, the complete ones left")
+    s.add_argument("--out", default=None, help="output MCAP, one damaged file only (default: NAME.recovered.mcap "
+                   "next to each)")
     s.set_defaults(func=cmd_recover)
 
     s = sub.add_parser("info", help="topics, rates, duration, time-sync quality, gaps, counters")
@@ -534,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_info)
 
     s = sub.add_parser("filter", help="a slice of a drive by time and topic, as `mcap filter`")
-    s.add_argument("drive", help="a drive (MCAP)")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--start", default=None, metavar="TIME",
                    help="first log time kept: seconds from the drive's first message (negative: from its end), "
                         "an ISO UTC time (2026-05-04T09:32:00Z) or UTC ns (default: the drive's start)")
@@ -562,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_rebuild)
 
     s = sub.add_parser("allan", help="Allan deviation and noise parameters of a static drive")
-    s.add_argument("drive", help="a static drive (MCAP)")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP + "; static")
     s.add_argument("--plot", default=None, metavar="PREFIX",
                    help="also write PREFIX_gyro.png and PREFIX_accel.png (needs fieldlog[plots]; default: none)")
     s.set_defaults(func=cmd_allan)

@@ -1,4 +1,5 @@
-"""``fieldlog filter DRIVE --start S --end S --topics T,... --out OUT``: a slice of a drive, as ``mcap filter``.
+"""``fieldlog filter DRIVE... --start S --end S --topics T,... --out OUT``: a slice of a drive (one file or several,
+a session or rosbag2 directory: ``replay.drive``) into one file, as ``mcap filter``.
 
 Messages with ``start <= log_time < end`` on the chosen topics are copied as they are (payload, log and publish
 time, schema and channel records with their ids and ``offered_qos_profiles``), chunk by chunk; the metadata
@@ -14,16 +15,17 @@ from __future__ import annotations
 import datetime as _dt
 import fnmatch
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from mcap.records import Channel, Schema
 
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.replay import reader
-from fieldlog.replay.drive import open_drive
+from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
 from fieldlog.replay.mcapfile import McapFile
 
 NS = 1_000_000_000
@@ -66,53 +68,83 @@ def select_topics(available: list[str], patterns: list[str] | None) -> list[str]
     return [t for t in available if any(fnmatch.fnmatchcase(t, p) for p in patterns)]
 
 
-def filter_drive(src: str | os.PathLike[str], out: str | os.PathLike[str], start: str | None = None,
+def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None = None,
                  end: str | None = None, topics: list[str] | None = None,
                  progress: Callable[[float], None] | None = None) -> FilterResult:
-    src, out = Path(src), Path(out)
-    if out.resolve() == src.resolve():
+    """``src`` (a drive of one or several files, ``replay.drive``) sliced into ``out`` (module docstring). Several
+    files: one output, their messages file by file in the drive's order, each topic on one channel (the first
+    file's record; renumbered if its id is taken), the metadata records by name as the drive reads them."""
+    out = Path(out)
+    src = drive_files(src)  # resolved once: the output may land in the drive's directory
+    if any(out.resolve() == f.resolve() for f in src):
         raise ValueError("--out must differ from the drive")
-    (f,) = files = open_drive(src)
-    stats = f.channel_stats()  # also defines the channels written only inside chunks
-    metadata = reader.metadata_records(src)
-    first = min((lo for _, lo, _ in stats.values()), default=0)
-    last = max((hi for _, _, hi in stats.values()), default=0)
+    files = open_drive(src)
+    for f in files:
+        f.channel_stats()  # also defines the channels written only inside chunks
+    spans = [(t.first_ns, t.last_ns) for t in reader.topics(src) if t.count]
+    first = min((lo for lo, _ in spans), default=0)
+    last = max((hi for _, hi in spans), default=0)
     t0 = parse_time(start, first, last) if start else first
     t1 = parse_time(end, first, last) if end else last + 1
     if t1 <= t0:
         raise ValueError(f"--end ({t1} ns) must be after --start ({t0} ns)")
-    by_topic = {ch.topic: cid for cid, ch in f.channels.items()}
-    chosen = select_topics(sorted(by_topic, key=lambda t: by_topic[t]), topics)
-    if "/tf_static" in by_topic and "/tf_static" not in chosen:
+    channels = _channels(files)
+    chosen = select_topics(list(channels), topics)
+    if "/tf_static" in channels and "/tf_static" not in chosen:
         chosen.insert(0, "/tf_static")
-    cids = {by_topic[t] for t in chosen}
-    latched = {by_topic[t] for t in chosen if t == "/tf_static"}
-    counts: dict[int, int] = {}
+    counts: dict[str, int] = {}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:
-        for name, d in metadata:
+        for name, d in dict(reader.metadata_records(src)).items():  # by name, the last wins
             if name != INFO_RECORD:
                 rec.add_metadata(name, d)
-        rec.add_metadata("filter", {"source": str(src.resolve()), "start_ns": str(t0), "end_ns": str(t1),
-                                    "topics": ",".join(chosen)})
-        for cid in sorted(cids):
-            ch = f.channels[cid]
-            rec.add_schema(f.schemas[ch.schema_id])
+        rec.add_metadata("filter", {"source": " ".join(str(f.path.resolve()) for f in files), "start_ns": str(t0),
+                                    "end_ns": str(t1), "topics": ",".join(chosen)})
+        for topic in chosen:
+            schema, ch = channels[topic]
+            if schema is not None:
+                rec.add_schema(schema)
             rec.add_channel(ch)
+
+        def latched(f: McapFile) -> list[int]:
+            return [c for c, ch in f.channels.items() if ch.topic == "/tf_static"]
 
         def wanted(f: McapFile) -> np.ndarray:
             p = f.pieces
-            return (p.end_ns >= t0) & (p.start_ns < t1) | (f.may_hold(latched) if latched else False)
+            return (p.end_ns >= t0) & (p.start_ns < t1) | f.may_hold(latched(f)) & bool(latched(f))
 
         groups = list(reader.piece_groups(files, chosen, file_order=True, keep=wanted))
         for i, (f, group) in enumerate(groups):
             cm = f.read(group, chosen)
-            keep = np.isin(cm.channel_id, list(cids)) & (cm.log_time >= t0) & (cm.log_time < t1)
-            keep |= np.isin(cm.channel_id, list(latched))
-            sel = cm.select(keep)
+            sel = cm.select((cm.log_time >= t0) & (cm.log_time < t1) | np.isin(cm.channel_id, latched(f)))
             for cid in np.unique(sel.channel_id).tolist():
                 part = sel.select(sel.channel_id == cid)
-                rec.write_channel(cid, part.log_time, part.packed(), part.publish_time)
-                counts[cid] = counts.get(cid, 0) + len(part.log_time)
+                topic = f.channels[cid].topic
+                rec.write_channel(channels[topic][1].id, part.log_time, part.packed(), part.publish_time)
+                counts[topic] = counts.get(topic, 0) + len(part.log_time)
             if progress:
                 progress((i + 1) / len(groups))
-    return FilterResult(out, {f.channels[c].topic: n for c, n in sorted(counts.items())}, t0, t1)
+    order = list(channels)
+    return FilterResult(out, {t: counts[t] for t in sorted(counts, key=order.index)}, t0, t1)
+
+
+def _channels(files: list[McapFile]) -> dict[str, tuple[Schema | None, Channel]]:
+    """Per topic (in the order of their channel ids in the first file that has them), the schema and channel
+    records to write: the first file's, with ids that are free (a later file's clashing id renumbered)."""
+    out: dict[str, tuple[Schema | None, Channel]] = {}
+    schemas: dict[tuple, Schema] = {}
+    for f in files:
+        for cid, ch in sorted(f.channels.items()):
+            if ch.topic in out:
+                continue
+            s = f.schemas.get(ch.schema_id)
+            if s is not None:
+                key = (s.name, s.encoding, s.data)
+                if key not in schemas:
+                    sid = s.id if s.id not in {x.id for x in schemas.values()} else \
+                        max(x.id for x in schemas.values()) + 1
+                    schemas[key] = replace(s, id=sid)
+                s = schemas[key]
+            used = {c.id for _, c in out.values()}
+            out[ch.topic] = (s, replace(ch, id=cid if cid not in used else max(used) + 1,
+                                        schema_id=s.id if s is not None else ch.schema_id))
+    return out
