@@ -495,9 +495,10 @@ def walk_records(buf: np.ndarray, pos: int, cap: int, jit: bool = True, limit: i
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``_walk_records``, numba-compiled on first use when numba is installed (so importing the recorder, as
     ``fieldlog acquire`` and ``info`` do, never loads numba); ``jit`` False: the plain walk, stopping after
-    ``limit`` records (a file's top level: a few records, where compiling would cost more than it saves)."""
+    ``limit`` records (a file's top level: a few records, where compiling would cost more than it saves), unless
+    the compiled walk is loaded already: then that, to the end."""
     global _walk_impl
-    if not jit:
+    if not jit and (_walk_impl is None or _walk_impl is _walk_python):
         return _walk_python(buf, pos, cap, limit)
     if _walk_impl is None:
         try:

@@ -609,7 +609,10 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # Session 5 (pieces as arrays, batch decompression, rows gathered through a strided window, messages filtered
     # by channel before their headers are parsed), load 1.5-3.4, medians of 7, back to back with the session-4
     # code (medians of 5): own 0.18 -> 0.14 s; 4 KiB chunks 0.88 -> 0.41 s (x4.96 -> x2.93; runs 0.33-0.65);
-    # unchunked 0.54 -> 0.27; lz4 0.28 -> 0.17; uncompressed 0.25 -> 0.16; no summary 0.30 -> 0.23.
+    # unchunked 0.54 -> 0.27; lz4 0.28 -> 0.17; uncompressed 0.25 -> 0.16; no summary 0.30 -> 0.23. Then the
+    # compiled top-level walk when numba is loaded already: at load 10 (medians of 7) own 0.41 s, 4 KiB 1.25 s
+    # (x3.04), unchunked x2.14; the same reads interleaved, CPU time (process_time): own 0.178 s, 4 KiB 0.356 s
+    # (x2.00), unchunked 0.240 s (x1.35). Under contention the wall ratio is not the CPU ratio.
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
