@@ -41,6 +41,7 @@ NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
 TF_STATIC = "/tf_static"
 HOLD_S = 1.0  # rows held back per block (Resequencer): longer than a fix's logging latency
 RATE_HZ = (100.0, 1000.0)  # the IMU rates fusion is built for
+FIELDS = ("imu_topic", "fix_topic", "vel_topic", "imu_frame")  # of InputSpec
 
 
 @dataclass
@@ -54,8 +55,11 @@ class InputSpec:
 
     def merged(self, over: "InputSpec") -> "InputSpec":
         """This spec with the fields ``over`` sets replacing its own."""
-        return InputSpec(*(getattr(over, k) if getattr(over, k) is not None else getattr(self, k)
-                           for k in ("imu_topic", "fix_topic", "vel_topic", "imu_frame")))
+        return InputSpec(*(getattr(over, k) if getattr(over, k) is not None else getattr(self, k) for k in FIELDS))
+
+    def given(self) -> list[str]:
+        """The fields this spec sets."""
+        return [k for k in FIELDS if getattr(self, k) is not None]
 
 
 @dataclass
@@ -144,16 +148,19 @@ def _frame_name(C: np.ndarray) -> str:
     return "rotated " + ", ".join(f"{x:.3f}" for x in C.ravel())
 
 
-def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None) -> InputMap:
-    """The input of a drive (module docstring); ValueError with one line naming the problem."""
+def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None, given: dict[str, str] | None = None
+            ) -> InputMap:
+    """The input of a drive (module docstring); ValueError with one line naming the problem. ``given``: where a
+    field of ``spec`` was given, for the sources (e.g. a config's ``[input]`` table; default: its option)."""
     spec = spec or InputSpec()
+    where = {k: (given or {}).get(k, "--" + k.replace("_", "-")) for k in FIELDS}
     infos = [t for t in reader.topics(path) if t.count]
-    imu, s_imu = _pick(spec.imu_topic, infos, messages.IMU, NATIVE[0], "--imu-topic", path)
-    fix, s_fix = _pick(spec.fix_topic, infos, messages.NAVSATFIX, NATIVE[1], "--fix-topic", path)
+    imu, s_imu = _pick(spec.imu_topic, infos, messages.IMU, NATIVE[0], where["imu_topic"], path)
+    fix, s_fix = _pick(spec.fix_topic, infos, messages.NAVSATFIX, NATIVE[1], where["fix_topic"], path)
     if spec.vel_topic is not None and spec.vel_topic.lower() in ("", "none"):
-        vel, s_vel = None, "--vel-topic none"
+        vel, s_vel = None, f"{where['vel_topic']} none"
     elif spec.vel_topic:
-        vel, s_vel = _pick(spec.vel_topic, infos, messages.TWIST, NATIVE[2], "--vel-topic", path)
+        vel, s_vel = _pick(spec.vel_topic, infos, messages.TWIST, NATIVE[2], where["vel_topic"], path)
     elif any(t.topic == NATIVE[2] and t.type == messages.TWIST for t in infos):
         vel, s_vel = NATIVE[2], "fieldlog's own"
     else:
@@ -161,7 +168,7 @@ def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None) -> Inpu
     tf = tf_static(path) if any(t.topic == TF_STATIC for t in infos) else {}
     lever = None
     if spec.imu_frame:
-        C, frame, s_frame = earth.C_rfu_from(spec.imu_frame), spec.imu_frame.lower(), "--imu-frame"
+        C, frame, s_frame = earth.C_rfu_from(spec.imu_frame), spec.imu_frame.lower(), where["imu_frame"]
     else:
         imu_id = _first_frame_id(path, imu).lstrip("/") if tf else ""
         if imu_id in tf:

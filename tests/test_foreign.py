@@ -297,6 +297,7 @@ def test_config_input_table_and_named_lever_arm_frame(ros_drive, tmp_path, capsy
     assert cli_main(["fuse", str(drive), "--config", str(cfg), "--out", str(tmp_path / "o.mcap")]) == 0
     text = capsys.readouterr()
     assert f"fusion settings (--config {cfg}): lever_arm_b=(0.5, 0, 1), lever_arm_frame=flu" in text.out
+    assert f"IMU /sensors/imu ([input] of {cfg}) in flu ([input] of {cfg})" in text.out
     assert "(default)" in text.out and "warning" not in text.err
     from fieldlog.fusion.engine import Engine
 

@@ -231,6 +231,7 @@ def add_input_args(s: argparse.ArgumentParser) -> None:
 
 
 def cmd_fuse(a: argparse.Namespace) -> int:
+    from fieldlog.replay.inputs import RATE_HZ
     from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 
     drive = drive_arg(a.drive)
@@ -248,8 +249,10 @@ def cmd_fuse(a: argparse.Namespace) -> int:
           f"{res.outages} outage windows in {time.monotonic() - t0:.1f} s")
     if res.alignment:
         print(f"alignment: {res.alignment}")
-    if not 100.0 <= res.imu_rate_hz <= 1000.0:
-        print(f"fieldlog fuse: warning: IMU rate {res.imu_rate_hz:.0f} Hz is outside 100-1000 Hz", file=sys.stderr)
+    lo, hi = RATE_HZ
+    if not lo <= res.imu_rate_hz <= hi:
+        print(f"fieldlog fuse: warning: IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz",
+              file=sys.stderr)
     if res.rows == 0 and a.method != "ins":
         print(f"fieldlog fuse: warning: {NO_ALIGNMENT}", file=sys.stderr)
     return 0
@@ -361,16 +364,14 @@ def cmd_view(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
-    from fieldlog.replay.inputs import InputSpec, resolve
-    from fieldlog.tools.fuse import load_input_spec
+    from fieldlog.tools.fuse import input_map, load_input_spec
 
-    spec = load_input_spec(a.config).merged(input_spec(a))
     files, fused = split_fused([a.drive, *a.fused])
     drive = drive_arg(files)
     try:
-        imap = resolve(drive, spec)
+        imap = input_map(drive, a.config, input_spec(a))
     except ValueError:
-        if spec != InputSpec():
+        if load_input_spec(a.config).merged(input_spec(a)).given():
             raise
         imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
     output_parent(a.rrd)

@@ -147,6 +147,14 @@ def load_input_spec(path: str | os.PathLike[str] | None) -> InputSpec:
     return spec
 
 
+def input_map(drive: DriveSpec, config_path: str | os.PathLike[str] | None, spec: InputSpec | None) -> InputMap:
+    """``replay.inputs.resolve`` of the config's ``[input]`` table overridden by ``spec`` (the options), each
+    input's source naming where it was given."""
+    table, spec = load_input_spec(config_path), spec or InputSpec()
+    given = {k: f"[input] of {config_path}" for k in table.given() if k not in spec.given()}
+    return inputs_mod.resolve(drive, table.merged(spec), given)
+
+
 @dataclass
 class Settings:
     """What a fusion run uses: the FusionConfig, the input map, and where each setting came from."""
@@ -189,7 +197,7 @@ def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None
     [input] table overridden by ``spec``), the FusionConfig from ``--config``'s [fusion] table (replacing the
     drive's record as a whole), else the drive's ``fusion.config`` record, else the defaults; the lever arm from
     the drive's /tf_static when neither gives it; ``outages`` (``--outage``) replace the config's."""
-    imap = inputs_mod.resolve(drive, load_input_spec(config_path).merged(spec or InputSpec()))
+    imap = input_map(drive, config_path, spec)
     table = read_toml(config_path).get("fusion") if config_path else None
     if table is None:
         table = {k: ast.literal_eval(v) for k, v in read_metadata(drive).get("fusion.config", {}).items()}
