@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fieldlog.fusion import earth, kf
-from fieldlog.fusion.align import ImuSums, StillRun, gps_speed
+from fieldlog.fusion.align import ImuSums, StillRun
 from fieldlog.fusion.errmodel import BA, BG
 from fieldlog.fusion.ins import NavState
 
@@ -26,22 +26,21 @@ if TYPE_CHECKING:
 _DEG = math.pi / 180.0
 
 
-def vehicle_aid(cfg: FusionConfig, nav: NavState, v_gps: np.ndarray, v_prev: np.ndarray, interval: ImuSums,
+def vehicle_aid(cfg: FusionConfig, nav: NavState, v_gps: np.ndarray, speed: tuple[float, float], interval: ImuSums,
                 stop: StillRun, bg: np.ndarray, ba: np.ndarray, P: np.ndarray, imu_dt: float
                 ) -> kf.Measurement | None:
     """The aid of this epoch: stationary (ZUPT + ZARU) when the vehicle stood still over the interval since the
     last epoch (``fusion.align.still``), else the non-holonomic constraint; None when disabled.
 
-    v_gps, v_prev (3,) the GPS velocities at this and the previous epoch, ENU m/s, NaN when there is none (the
-    INS speed decides then); interval: the IMU sums since the last epoch (raw rates); stop: the current run of
+    v_gps (3,) the GPS velocity at this epoch, ENU m/s, NaN when there is none (the INS speed decides then);
+    speed: the GPS speed of the interval and its limit, m/s (``fusion.align.GpsSpeed``); interval: the IMU sums since the last epoch (raw rates); stop: the current run of
     still intervals (``fusion.align.StillRun``, updated here); bg, ba (3,) the bias
     estimates, rad/s and m/s^2; P (15, 15) the filter covariance (the sigmas of the still references); imu_dt
     the IMU sample period, s."""
     has_gps = np.isfinite(v_gps[:2]).all()
     slow = (float(np.hypot(v_gps[0], v_gps[1])) < cfg.static_speed_mps if has_gps
             else float(np.linalg.norm(nav.v_n)) < cfg.still_speed_mps)
-    speed = gps_speed(v_prev, v_gps)
-    if not (math.isfinite(speed) or float(np.linalg.norm(nav.v_n)) < cfg.still_speed_mps):
+    if not (math.isfinite(speed[0]) or float(np.linalg.norm(nav.v_n)) < cfg.still_speed_mps):
         stop.reset()
     elif cfg.zupt and stop.update(interval, speed, *_still_references(nav, bg, ba, P)):
         return kf.stationary_measurement(nav, interval.sum_w / interval.n - bg, interval.n * imu_dt,

@@ -3,8 +3,13 @@
 Still detection (:func:`still`, shared by the alignment and the ZUPT aid of ``fusion.aids``): the vehicle stood
 still over a GPS interval when
 
-- the GPS speed is below ``still_gps_speed_mps``: the mean of the velocities at the interval's two ends
-  (skipped when the drive has no velocity);
+- the GPS speed is below its limit (:class:`GpsSpeed`): the horizontal speed of the mean of the GPS velocities
+  of the last second (at least the interval's two ends), below ``still_gps_speed_mps`` or, for a noisier
+  receiver, below ``SPEED_K`` = 1.5 sigmas of that mean (from the reported velocity covariance: sigma_v /
+  sqrt(N) for N velocities). Between the limit and twice it the interval is "unsure" (left out; the still run
+  goes on), beyond twice it "moving": a standing car's speed (Rayleigh) passes 2 x 1.5 = 3 sigmas in 1.1 % of
+  its intervals, and a 10 Hz receiver's 0.1 m/s per axis averages to 0.03 m/s over a second. Skipped when the
+  drive has no velocity;
 - the specific force and rate vary less than ``still_accel_std_mps2`` and ``still_gyro_std_dps`` over it;
 - the mean rate and the mean specific force are where standing still puts them, within 4 sigma plus the
   floors ``still_rate_tol_dps`` and ``still_accel_tol_mps2``: before the alignment the means of the still
@@ -34,7 +39,12 @@ Alignment (:class:`Alignment`):
   Without a static interval: bias 0 with the prior sigma, roll and pitch 0 with 5 deg.
 - **Optional initial attitude** ``init_attitude_deg = [roll, pitch, heading]`` at the drive's start (with
   ``init_level_sigma_deg``, ``init_heading_sigma_deg``): replaces levelling and heading, carried to the
-  alignment epoch by the yaw gyro; position and velocity always come from the alignment epoch's fix.
+  alignment epoch by the yaw gyro; position and velocity from the alignment epoch's fix.
+- **Optional initial state** (:meth:`Alignment.configured`): with ``init_position_llh = [lat deg, lon deg, h m]``
+  (the IMU's, ellipsoidal; sigma ``init_position_sigma_m`` per axis) as well, the INS starts at the first IMU
+  sample from the config: that position, ``init_velocity_enu`` (m/s, default 0: standing; sigma
+  ``init_vel_sigma_mps``) and ``init_attitude_deg``, the gyro bias 0 with its prior sigma; no alignment, the
+  filter runs from the first sample (a static start then levels and calibrates through the GPS updates).
 
 **Re-alignment** (:class:`HeadingCheck`): over the first ``realign_window_s`` after the alignment, the GPS
 velocity innovations' normalised squares (NIS; a heading error shows in the velocity as soon as the vehicle
@@ -46,8 +56,8 @@ from the scale-factor errors the 15 states do not carry) with the course's sigma
 reopened to the prior, the other states kept. Once per drive; not with the RTS smoother (its log has no
 record of a jump).
 
-Position and velocity come from the alignment epoch. Frames: navigation ENU, body RFU; IMU sums in rad/s and
-m/s^2.
+Position and velocity come from the alignment epoch (unless configured). Frames: navigation ENU, body RFU;
+IMU sums in rad/s and m/s^2.
 """
 
 from __future__ import annotations
@@ -101,25 +111,47 @@ class ImuSums:
         self.n += other.n
 
 
-def gps_speed(v_prev: np.ndarray, v_now: np.ndarray) -> float:
-    """Horizontal speed (m/s) of the mean of the GPS velocities (3,) ENU at an interval's two ends; NaN when
-    either is missing."""
-    v = 0.5 * (np.asarray(v_prev, float)[:2] + np.asarray(v_now, float)[:2])
-    return float(np.hypot(v[0], v[1])) if np.isfinite(v).all() else math.nan
+SPEED_K = 1.5  # the GPS speed limit of the still detector: at least this many sigmas of the tested mean
+_SPEED_SPAN_S = 1.0  # the GPS velocities of the last second are averaged for the tested speed
+
+
+class GpsSpeed:
+    """The GPS speed the still detector tests at each epoch, and its limit (module docstring)."""
+
+    def __init__(self, cfg: FusionConfig) -> None:
+        self.floor = cfg.still_gps_speed_mps
+        self.recent: list[tuple[float, np.ndarray, float]] = []  # t (s), horizontal velocity (2,), sigma per axis
+
+    def add(self, t: float, v: np.ndarray, ep: dict) -> tuple[float, float]:
+        """The epoch ep at t (s) with its GPS velocity v (3,) ENU m/s (NaN: none): (the horizontal speed of the
+        mean velocity of the last second and the epoch before it, m/s, NaN without two velocities in a row; the
+        limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma))."""
+        if not np.isfinite(v[:2]).all():
+            self.recent = []
+            return math.nan, self.floor
+        keep = [r for r in self.recent if r[0] >= t - _SPEED_SPAN_S - 1e-6]
+        self.recent = (keep or self.recent[-1:]) + [(t, np.asarray(v[:2], float), _vel_sigma(ep))]
+        if len(self.recent) < 2:
+            return math.nan, self.floor
+        n = len(self.recent)
+        mean = sum(r[1] for r in self.recent) / n
+        sigma = math.sqrt(sum(r[2] ** 2 for r in self.recent)) / n
+        return float(np.hypot(mean[0], mean[1])), max(self.floor, SPEED_K * sigma)
 
 
 _MIN_STATIC_S = 1.0  # a still run shorter than this after its trimmed ends does not replace an earlier one
 _MIN_SAMPLES = 10  # per GPS interval, for its spread: 20 at 200 Hz with a 10 Hz receiver (aircraft)
 
 
-def still(cfg: FusionConfig, interval: ImuSums, speed: float, w_ref: np.ndarray | None, w_sigma: float,
-          f_ref: np.ndarray | None, f_sigma: float) -> bool:
+def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray | None,
+          w_sigma: float, f_ref: np.ndarray | None, f_sigma: float) -> bool:
     """Whether the vehicle stood still over a GPS interval (module docstring).
 
-    speed: ``gps_speed`` of the interval, m/s (NaN: no GPS velocity, not tested); w_ref (3,) rad/s and f_ref (3,)
+    speed: (the GPS speed, m/s, NaN: no GPS velocity, not tested; its limit, m/s) (:class:`GpsSpeed`); w_ref (3,)
+    rad/s and f_ref (3,)
     m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
     sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added."""
-    if interval.n < _MIN_SAMPLES or (math.isfinite(speed) and not speed < cfg.still_gps_speed_mps):
+    if interval.n < _MIN_SAMPLES or (math.isfinite(speed[0]) and not speed[0] < speed[1]):
         return False
     sd_f = interval.std(interval.sum_f, interval.sum_ff)
     sd_w = interval.std(interval.sum_w, interval.sum_ww)
@@ -135,13 +167,13 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: float, w_ref: np.ndarray 
     return True
 
 
-def _verdict(cfg: FusionConfig, interval: ImuSums, speed: float, refs: list[tuple]) -> str:
+def _verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple]) -> str:
     """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma);
-    "unsure" when it fails only on a GPS speed below twice ``still_gps_speed_mps`` (a noisy velocity: the
-    interval is left out, the still run goes on); else "moving"."""
+    "unsure" when it fails only on a GPS speed below twice its limit (a noisy velocity: the interval is left
+    out, the still run goes on); else "moving"."""
     if all(still(cfg, interval, speed, *r) for r in refs):
         return "still"
-    if math.isfinite(speed) and all(still(cfg, interval, 0.5 * speed, *r) for r in refs):
+    if math.isfinite(speed[0]) and all(still(cfg, interval, (0.5 * speed[0], speed[1]), *r) for r in refs):
         return "unsure"
     return "moving"
 
@@ -160,8 +192,8 @@ class StillRun:
     def reset(self) -> None:
         self.run, self.count = ImuSums(), 0
 
-    def update(self, interval: ImuSums, speed: float, w_ref: np.ndarray, w_sigma: float, f_ref: np.ndarray,
-               f_sigma: float) -> bool:
+    def update(self, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray, w_sigma: float,
+               f_ref: np.ndarray, f_sigma: float) -> bool:
         """Test the interval (arguments of :func:`still`); True when the vehicle stood still over it and over
         the interval before it."""
         c = self.cfg
@@ -300,7 +332,7 @@ class Alignment:
         self._static: list[tuple[ImuSums, float]] = []  # the last finished run, trimmed at the alignment
         self._static_first = True
         self._after: list[tuple[ImuSums, float]] = []  # the intervals since that run
-        self._v_prev = np.full(3, np.nan)
+        self._speed = GpsSpeed(cfg)
         self._t_prev: float | None = None
 
     def epoch(self, ep: dict, usable: bool, v: np.ndarray, interval: ImuSums, t_k: float, t_ref_ns: int
@@ -311,7 +343,7 @@ class Alignment:
         v_gps = ep["v_n"] if usable else np.full(3, np.nan)
         dt = t_k - self._t_prev if self._t_prev is not None else 0.0
         self._t_prev = t_k
-        verdict = self._verdict(interval, gps_speed(self._v_prev, v_gps))
+        verdict = self._verdict(interval, self._speed.add((ep["t_ns"] - t_ref_ns) * 1e-9, v_gps, ep))
         if verdict == "still":
             self._run.append((interval, dt))
         elif verdict == "unsure":
@@ -325,13 +357,12 @@ class Alignment:
                 self._run = []
             self._run_first = False
             self._after.append((interval, dt))
-        self._v_prev = v_gps
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
         if usable and math.isfinite(ep["h"]) and math.isfinite(speed) and speed >= self.cfg.align_speed_mps:
             return self._initialise(ep, v, t_k, t_ref_ns)
         return None
 
-    def _verdict(self, interval: ImuSums, speed: float) -> str:
+    def _verdict(self, interval: ImuSums, speed: tuple[float, float]) -> str:
         c = self.cfg
         if not self._run:
             prior = math.hypot(c.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
@@ -414,8 +445,27 @@ class Alignment:
                            ep["h"] + d_enu[2], v0, earth.dcm_to_quat(C))
         pos_var = np.diag(ep["pos_cov"]).copy()
         pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
-        P0 = np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
-                                     [sd_level ** 2, sd_level ** 2, sd_head ** 2], sd_bg ** 2,
-                                     np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
-        return Aligned(nav, bg, P0)
+        return Aligned(nav, bg, self._P0(pos_var, sd_level, sd_head, sd_bg))
+
+    def configured(self) -> Aligned:
+        """The initial state from the config at the first IMU sample (t = 0): ``init_position_llh`` (IMU, not the
+        antenna), ``init_velocity_enu`` (0: standing), ``init_attitude_deg``, with their sigmas; the gyro bias 0
+        with its prior sigma (no static mean: the filter learns it)."""
+        c = self.cfg
+        roll, pitch, heading = (x * _DEG for x in c.init_attitude_deg)
+        lat, lon, h = c.init_position_llh[0] * _DEG, c.init_position_llh[1] * _DEG, float(c.init_position_llh[2])
+        v0 = np.array(c.init_velocity_enu, float) if c.init_velocity_enu else np.zeros(3)
+        nav = ins.NavState(0.0, lat, lon, h, v0, earth.dcm_to_quat(earth.euler_to_dcm(heading, pitch, roll)))
+        self.note = "initial state from the config (init_position_llh, init_velocity_enu, init_attitude_deg)"
+        return Aligned(nav, np.zeros(3), self._P0(np.full(3, c.init_position_sigma_m ** 2), c.init_level_sigma_deg * _DEG,
+                                                  c.init_heading_sigma_deg * _DEG,
+                                                  np.full(3, c.gyro_bias_prior_sigma_dps * _DEG)))
+
+    def _P0(self, pos_var: np.ndarray, sd_level: float, sd_head: float, sd_bg: np.ndarray) -> np.ndarray:
+        """The initial covariance (15, 15): position variances (3,) ENU m^2, velocity ``init_vel_sigma_mps``,
+        level and heading sigmas (rad), gyro bias sigmas (3,) rad/s, accel bias ``init_accel_bias_sigma_ug``."""
+        c = self.cfg
+        return np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
+                                       [sd_level ** 2, sd_level ** 2, sd_head ** 2], sd_bg ** 2,
+                                       np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
 

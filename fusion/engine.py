@@ -81,10 +81,14 @@ class FusionConfig:
     accel_noise_ug_rthz: float = 300.0
     gyro_bias_rw_dps_rts: float = 2e-4  # deg/s/sqrt(s)
     accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
-    init_vel_sigma_mps: float = 0.2
+    init_vel_sigma_mps: float = 0.2  # sigma of the initial velocity (the alignment epoch's or init_velocity_enu), m/s
     init_level_sigma_deg: float = 0.5  # roll/pitch allowance added to the levelling's own sigma (fusion.align)
     init_heading_sigma_deg: float = 3.0  # sigma of init_attitude_deg's heading
     init_attitude_deg: tuple[float, ...] = ()  # optional [roll, pitch, heading] at the drive's start, deg
+    init_position_llh: tuple[float, ...] = ()  # optional [lat deg, lon deg, h m (ellipsoidal)] of the IMU at the
+    # first IMU sample: with init_attitude_deg, the INS starts there from the config (fusion.align)
+    init_position_sigma_m: float = 1.0  # sigma of init_position_llh per axis (E, N, U), m
+    init_velocity_enu: tuple[float, ...] = ()  # optional [E, N, U] velocity at the first IMU sample, m/s (default 0)
     init_gyro_bias_sigma_dps: float = 0.02  # floor after the static gyro mean: the bias instability
     gyro_bias_prior_sigma_dps: float = 0.1  # before any static mean: turn-on and instability
     init_accel_bias_sigma_ug: float = 2000.0
@@ -104,7 +108,8 @@ class FusionConfig:
     zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
     zupt_sigma_mps: float = 0.02
     still_speed_mps: float = 0.5  # still (fusion.align.still): INS speed below this without GPS velocity, ...
-    still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity over the interval below this, ...
+    still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity of the last second below this (or 1.5 of its
+    # sigmas from the reported velocity covariance, fusion.align.GpsSpeed), ...
     still_accel_std_mps2: float = 0.1  # ... specific force and rate varying less than these over the interval,
     still_gyro_std_dps: float = 0.5
     still_rate_tol_dps: float = 0.01  # ... and their means within 3 sigma plus these of standing still
@@ -186,7 +191,7 @@ class Engine:
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
         self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
-        self._v_prev = np.full(3, np.nan)  # GPS velocity of the previous epoch (still detection)
+        self._speed = align.GpsSpeed(self.cfg)  # the GPS speed of the still detection after the alignment
         self.stills: list[int] = []  # epoch times (UTC ns) with a stationary update
         self._stop = align.StillRun(self.cfg)
         self._check: align.HeadingCheck | None = None
@@ -206,6 +211,8 @@ class Engine:
         if self.t_ref_ns is None and len(t_ns):
             self.t_ref_ns = int(t_ns[0])
             self.outages.force(self.t_ref_ns, self.cfg.outages)
+            if self.cfg.init_position_llh:
+                self._start(self.alignment.configured(), 0.0, self.t_ref_ns)
         self.silence.add(self._gps, _epochs(gps), int(t_ns[-1]) if len(t_ns) else None)
         if self.t_ref_ns is None or len(t_ns) == 0:
             return Solution.concat([]), self.outages.take()
@@ -266,8 +273,11 @@ class Engine:
             self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
         interval, self._interval = self._interval, align.ImuSums()
         a = self.alignment.epoch(ep, usable, v, interval, t_k, self.t_ref_ns)
-        if a is None:
-            return
+        if a is not None:
+            self._start(a, t_k, t_k_ns)
+
+    def _start(self, a: align.Aligned, t_k: float, t_k_ns: int) -> None:
+        """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg = a.nav, a.bg
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
         self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
@@ -284,8 +294,8 @@ class Engine:
             return
         v = self._velocity(ep) if usable else np.full(3, np.nan)
         v_gps = ep["v_n"] if usable else np.full(3, np.nan)
-        v_prev, self._v_prev = self._v_prev, v_gps
-        aid = aids.vehicle_aid(self.cfg, self.nav, v_gps if np.isfinite(v_gps[:2]).all() else v, v_prev, interval,
+        speed = self._speed.add((ep["t_ns"] - self.t_ref_ns) * 1e-9, v_gps, ep)
+        aid = aids.vehicle_aid(self.cfg, self.nav, v_gps if np.isfinite(v_gps[:2]).all() else v, speed, interval,
                                self._stop, self.bg, self.ba, self.filter.covariance, self._imu_dt)
         if aid is not None and len(aid[0]) == 6:
             self.stills.append(ep["t_ns"])

@@ -19,7 +19,7 @@ from fieldlog.replay import reader
 from fieldlog.tools.evaluate import _quat_interp, heading_at_starts, outage_error_series, rms_columns
 from fieldlog.tools.fuse import drive_config, fuse, fusion_config
 from fieldlog.tools.sim.emit import GpsConfig
-from fieldlog.tools.sim.sensors import ImuErrorConfig
+from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise
 from fieldlog.tools.sim.simulate import simulate
 
 NS = 1_000_000_000
@@ -27,6 +27,7 @@ G = 9.80665
 TACTICAL_OUTAGES = ((630.0, 60.0), (720.0, 60.0))  # 60 s, after 10 minutes of driving (the car leaves at 30 s)
 MEMS_S = 300.0
 MEMS_OUTAGE = ((200.0, 60.0),)
+SHORT_S, SHORT_SEEDS, SHORT_OUTAGE = 300.0, (1, 2, 3), ((170.0, 60.0),)
 
 
 def _scenario(tmp: Path, name: str, body: str) -> Path:
@@ -40,6 +41,16 @@ def tactical(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("tactical") / "tactical.mcap"
     simulate("figure8-tactical", None, 1, path)
     return path
+
+
+@pytest.fixture(scope="module")
+def tactical_short(tmp_path_factory) -> list[Path]:
+    """figure8-tactical cut to SHORT_S, seeds 1-3 (the configured start against the aligned one)."""
+    tmp = tmp_path_factory.mktemp("tactical_short")
+    paths = [tmp / f"s{seed}.mcap" for seed in SHORT_SEEDS]
+    for seed, path in zip(SHORT_SEEDS, paths):
+        simulate("figure8-tactical", SHORT_S, seed, path)
+    return paths
 
 
 @pytest.fixture(scope="module")
@@ -174,18 +185,122 @@ def test_initial_heading_error_converges_and_sigma_covers_it(mems, offset_deg, t
     assert np.mean(np.abs(e) <= 3.0 * s) > 0.95
 
 
+def _true_start(drive: Path) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    """The true position (lat deg, lon deg, h m), velocity ENU (m/s) and attitude (roll, pitch, heading deg) at the
+    drive's first IMU sample (the truth's rows are 100 Hz; the drive starts standing)."""
+    t0 = _t0(drive)
+    fx, tv, ta = (reader.read_topic(drive, f"/truth/{k}") for k in ("fix", "vel", "attitude"))
+    j = int(np.searchsorted(fx["log_time_ns"], t0))
+    h, p, r = np.degrees(earth.dcm_to_euler(earth.quat_to_dcm(ta["q_xyzw"][j])))
+    return ((float(fx["lat_deg"][j]), float(fx["lon_deg"][j]), float(fx["alt_m"][j])), tuple(map(float, tv["v_n"][j])),
+            (float(r), float(p), float(h)))
+
+
+def test_configured_start_tactical(tactical_short, tmp_path):
+    """Issue 18 item 1 / issue 13 item 5: the initial state from the config (position, velocity, attitude and
+    their sigmas) starts the INS at the first IMU sample. Given the truth plus a draw within the sigmas, on the
+    tactical RTK drive (300 s, seeds 1-3; the car stands 30 s, creeps and turns, pulls away): the heading sigma
+    covers the error (3 sigma) at 99 % of the rows of all seeds and at 98 % of each seed's, and at least 40 %
+    within 1 sigma; the 2D RMS in a 60 s outage is no worse than the aligned start's, within twice the standard
+    error of the per-seed differences plus a tenth of the aligned start's spread over the seeds."""
+    sd_pos, sd_vel, sd_level, sd_head = 0.05, 0.01, 0.05, 0.1  # m, m/s, deg: a surveyed spot, the last heading
+    rng = np.random.default_rng(18)
+    within1, within3, rms = [], [], {"aligned": [], "configured": []}
+    for drive in tactical_short:
+        base = replace(drive_config(drive), outages=SHORT_OUTAGE)
+        (lat, lon, h), v, (roll, pitch, head) = _true_start(drive)
+        e = rng.standard_normal(6)
+        de, dn = e[0] * sd_pos, e[1] * sd_pos  # m east, north
+        cfg = replace(base, init_position_llh=(lat + math.degrees(dn / 6.378e6),
+                                               lon + math.degrees(de / (6.378e6 * math.cos(math.radians(lat)))),
+                                               h + e[2] * sd_pos),
+                      init_position_sigma_m=sd_pos, init_velocity_enu=v, init_vel_sigma_mps=sd_vel,
+                      init_attitude_deg=(roll + e[3] * sd_level, pitch + e[4] * sd_level, head + e[5] * sd_head),
+                      init_level_sigma_deg=sd_level, init_heading_sigma_deg=sd_head)
+        for name, c in (("aligned", base), ("configured", cfg)):
+            out = tmp_path / f"{drive.stem}_{name}.mcap"
+            r = fuse(drive, "kf", out, c)
+            assert ("initial state from the config" in r.alignment) == (name == "configured"), r.alignment
+            win = _windows(drive, SHORT_OUTAGE)
+            _, err = outage_error_series(drive, out, "kf", win)
+            rms[name].append(float(np.hypot(*rms_columns(err)[:2])))
+            if name == "configured":
+                _, e_h, s_h = _heading_series(drive, out, "kf")
+                within1.append(np.abs(e_h) <= s_h)
+                within3.append(np.abs(e_h) <= 3.0 * s_h)
+    share3 = [float(np.mean(w)) for w in within3]
+    pooled3, pooled1 = float(np.mean(np.concatenate(within3))), float(np.mean(np.concatenate(within1)))
+    assert pooled3 >= 0.99 and min(share3) >= 0.98, (pooled3, share3)
+    assert pooled1 >= 0.4, pooled1  # 68 % if Gaussian; measured 48 %: minutes near 1-2 sigma after the pull-away
+    d = np.array(rms["configured"]) - np.array(rms["aligned"])
+    margin = 2.0 * d.std(ddof=1) / math.sqrt(len(d)) + 0.1 * float(np.std(rms["aligned"], ddof=1))
+    assert d.mean() <= margin, rms
+
+
+def _no_static_run(tmp: Path, scenario: str, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Simulate the scenario (TOML text) and fuse it with kf: it has no static start; its heading series."""
+    sc = tmp / "nostatic.toml"
+    sc.write_text(scenario)
+    drive = tmp / "drive.mcap"
+    simulate(str(sc), seconds, seed, drive)
+    out = tmp / "kf.mcap"
+    r = fuse(drive, "kf", out, drive_config(drive))
+    assert r.alignment.endswith("no static start)"), r.alignment
+    return _heading_series(drive, out, "kf")
+
+
+@pytest.fixture(scope="module")
+def tactical_reference(tactical_short, tmp_path_factory) -> tuple[Path, float, float]:
+    """The aligned start on the first short tactical drive: (drive, its largest heading error from 60 s after the
+    alignment on, deg; 3x its median heading sigma there, deg: the margin of the sweep)."""
+    drive = tactical_short[0]
+    out = tmp_path_factory.mktemp("tactical_ref") / "kf.mcap"
+    fuse(drive, "kf", out, drive_config(drive))
+    t, e, s = _heading_series(drive, out, "kf")
+    late = t > t[0] + 60.0
+    return drive, float(np.abs(e[late]).max()), 3.0 * float(np.median(s[late]))
+
+
+@pytest.mark.parametrize("offset_deg", [2.0, 10.0, 30.0])
+def test_tactical_initial_heading_error_converges_and_sigma_covers_it(tactical_reference, offset_deg, tmp_path):
+    """Initial-error sweep on the tactical IMU with RTK (issue 18 item 3): the config's initial attitude with the
+    heading off by 2, 10, 30 deg and that offset as its sigma, on a drive that stands 30 s, creeps 1 m with a
+    3-degree turn and pulls away. From 60 s after the alignment the heading error is as small as the aligned
+    start's (gyrocompassing): its largest value at most 1.5x that run's plus 3 of that run's sigmas; the sigma
+    covers the error (3 sigma) at 99 % of the rows throughout."""
+    drive, ref, margin = tactical_reference
+    cfg = replace(drive_config(drive), init_attitude_deg=(0.0, 0.0, 45.0 + offset_deg),
+                  init_heading_sigma_deg=offset_deg)
+    out = tmp_path / "kf.mcap"
+    r = fuse(drive, "kf", out, cfg)
+    assert "init_attitude_deg" in r.alignment
+    t, e, s = _heading_series(drive, out, "kf")
+    assert abs(e[0] - offset_deg) < 0.1 * offset_deg  # the offset is there at the start (3 deg turned since) ...
+    late = float(np.abs(e[t > t[0] + 60.0]).max())
+    assert late < 1.5 * ref + margin, (late, ref, margin)  # ... and gone a minute later
+    assert np.mean(np.abs(e) <= 3.0 * s) >= 0.99
+
+
+def test_tactical_no_static_start(tactical_reference, tmp_path):
+    """The tactical RTK drive with no static start (it creeps and turns from the first sample, then pulls
+    away): no levelling, no static gyro mean, no gyrocompassing; the heading from the course with its sigma.
+    The sigma covers the heading error (3 sigma) at 99 % of the rows; from 60 s after the alignment the error is
+    at most 1.5x the aligned start's (30 s static) plus 3 of its sigmas."""
+    _, ref, margin = tactical_reference
+    t, e, s = _no_static_run(tmp_path, 'extends = "figure8-tactical"\nname = "nostatic"\n[motion]\nstatic_s = 0.0\n',
+                             200.0, 1)
+    assert np.mean(np.abs(e) <= 3.0 * s) >= 0.99
+    late = float(np.abs(e[t > t[0] + 60.0]).max())
+    assert late < 1.5 * ref + margin, (late, ref, margin)
+
+
 def test_no_static_start(tmp_path):
     """A drive that moves off at once: no static interval, so no levelling and no gyro bias from it; the
     heading from the course with its sigma, which covers the error over the first 120 s (alignment and
     convergence). Later, in the loops, the Table 2 MEMS's 1000 ppm scale factor (not a filter state) can take
     the heading error past 3 sigma (1.3 deg against 0.34 deg at 140 s on this seed): not the alignment's."""
-    sc = _scenario(tmp_path, "nostatic", "[motion]\nstatic_s = 0.0\n[fusion]\nnhc = false\nzupt = false\n")
-    drive = tmp_path / "drive.mcap"
-    simulate(str(sc), 150.0, 3, drive)
-    out = tmp_path / "kf.mcap"
-    r = fuse(drive, "kf", out, drive_config(drive))
-    assert r.alignment.endswith("no static start)"), r.alignment
-    t, e, s = _heading_series(drive, out, "kf")
+    t, e, s = _no_static_run(tmp_path, 'extends = "figure8"\nname = "nostatic"\n[motion]\nstatic_s = 0.0\n'
+                             '[fusion]\nnhc = false\nzupt = false\n', 150.0, 3)
     first = t < t[0] + 120.0
     assert np.mean(np.abs(e[first]) <= 3.0 * s[first]) > 0.95
     assert np.all(np.abs(e[t > t[0] + 60.0]) < 1.5)
@@ -215,7 +330,7 @@ def test_datasheet_units_and_grades():
                        "gyro_bias_corr_time_s": 200.0})
     assert c.gyro_noise_dps_rthz == pytest.approx(0.01)
     assert c.accel_noise_ug_rthz == pytest.approx(0.001 / (G * 1e-6))
-    assert c.gyro_bias_rw_dps_rts == pytest.approx(0.01 * math.sqrt(2.0 / 200.0))
+    assert c.gyro_bias_rw_dps_rts >= 0.01 * math.sqrt(2.0 / 200.0)  # the Gauss-Markov reading, or the flicker's
     assert c.init_gyro_bias_sigma_dps == pytest.approx(0.01)
     assert c.accel_bias_rw_ug_rts == fusion_config({}).accel_bias_rw_ug_rts  # not given: the default stays
     table2 = fusion_config({"imu": "table2-mems"})
@@ -233,6 +348,30 @@ def test_datasheet_units_and_grades():
         fusion_config({"imu": "fog"})
     with pytest.raises(ConfigError, match=r"\[gps\] quality"):
         GpsConfig.from_dict({"quality": "dgps"})
+
+
+@pytest.mark.parametrize("grade", ["tactical", "navigation", "s000-mems"])
+def test_bias_instability_covers_the_simulated_flicker(grade):
+    """The filter's reading of a bias instability (fusion.imugrade.flicker_bias) against the simulator's draw of
+    it (tools.sim.sensors: turn-on bias + flicker noise with the Allan floor 0.664 B), 400 draws per axis: the
+    prior gyro_bias_prior_sigma_dps covers the spread of the bias a 30 s static start sees (its mean), and the
+    random walk covers the change of the bias (10 s means) over the minute the filter leans on it; both within
+    the draws' sampling error (10 %). The old reading (prior hypot(turn-on, B), walk B sqrt(2 / T)) does not."""
+    g, s = imugrade.grade(grade), imugrade.grade(grade).filter_settings()
+    sim = ImuErrorConfig.from_dict({"grade": grade})
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 100.0, 0.1)
+    flick = flicker_noise(t, 400, sim.bias_corr_time_min_s, sim.bias_corr_time_max_s, rng)
+    bias = rng.normal(0.0, sim.gyro_turn_on_bias_dps, (400, 1)) + sim.gyro_bias_instability_dps * flick.T  # deg/s
+    spread = float(np.std(bias[:, :300].mean(axis=1)))
+    lean = imugrade.BIAS_LEAN_S
+    k = int(lean / 0.1)
+    change = float(np.sqrt(np.mean((bias[:, k:k + 100].mean(axis=1) - bias[:, :100].mean(axis=1)) ** 2)))
+    assert s["gyro_bias_prior_sigma_dps"] >= spread / 1.1, (s["gyro_bias_prior_sigma_dps"], spread)
+    assert s["gyro_bias_rw_dps_rts"] * math.sqrt(lean) >= change / 1.1, (s["gyro_bias_rw_dps_rts"], change)
+    old_prior = math.hypot(g.gyro_turn_on_bias_dph, g.gyro_bias_instability_dph) / 3600.0
+    old_walk = g.gyro_bias_instability_dph / 3600.0 * math.sqrt(2.0 / g.gyro_bias_corr_time_s)
+    assert old_prior < spread / 1.1 or old_walk * math.sqrt(lean) < change / 1.1
 
 
 def test_realignment_by_chi_square(mems, tmp_path):

@@ -116,6 +116,17 @@ def fusion_config(table: dict[str, Any]) -> FusionConfig:
             raise ConfigError(f"[fusion] {key}: must be > 0")
     if cfg.dkf_fusion not in FUSIONS:
         raise ConfigError(f"[fusion] dkf_fusion: {cfg.dkf_fusion!r}; one of {', '.join(FUSIONS)}")
+    for key in ("init_attitude_deg", "init_position_llh", "init_velocity_enu"):
+        v = getattr(cfg, key)
+        if v and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
+            raise ConfigError(f"[fusion] {key}: expected 3 finite numbers, got {list(v)!r}")
+    if cfg.init_position_llh and not cfg.init_attitude_deg:
+        raise ConfigError("[fusion] init_position_llh: a configured start needs init_attitude_deg too")
+    if cfg.init_velocity_enu and not cfg.init_position_llh:
+        raise ConfigError("[fusion] init_velocity_enu: only with init_position_llh (the configured start)")
+    for key in ("init_position_sigma_m", "init_vel_sigma_mps", "init_level_sigma_deg", "init_heading_sigma_deg"):
+        if not getattr(cfg, key) > 0:
+            raise ConfigError(f"[fusion] {key}: must be > 0")
     for i, o in enumerate(cfg.outages):
         if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
             raise ConfigError(f"[fusion] outages[{i}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")
