@@ -92,10 +92,19 @@ class InputMap:
                 f"fixes {self.fix_topic} ({s['fix_topic']}), velocity {vel}")
 
 
+def detect(infos: list[reader.TopicInfo], type_name: str, native: str) -> str | None:
+    """The topic of one input without an option: fieldlog's own (``native``), else the only one of ``type_name``
+    with messages; None when there is none or several."""
+    of_type = [t.topic for t in infos if t.type == type_name and t.count]
+    return native if native in of_type else of_type[0] if len(of_type) == 1 else None
+
+
 def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, native: str, option: str,
           path: str | os.PathLike[str]) -> tuple[str, str]:
     """(topic, source) of one input."""
     of_type = [t.topic for t in infos if t.type == type_name]
+    if not spec and (found := detect(infos, type_name, native)):
+        return found, "fieldlog's own" if found == native else f"the only {type_name.rsplit('/', 1)[-1]} topic"
     if spec:
         found = [t for t in infos if t.topic == spec]
         if not found:
@@ -104,10 +113,6 @@ def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, nativ
         if found[0].type != type_name:
             raise ValueError(f"{path}: {spec} is {found[0].type}, not {type_name} ({option})")
         return spec, option
-    if native in of_type:
-        return native, "fieldlog's own"
-    if len(of_type) == 1:
-        return of_type[0], f"the only {type_name.rsplit('/', 1)[-1]} topic"
     if not of_type:
         raise ValueError(f"{path}: no {type_name} topic; name one with {option}")
     raise ValueError(f"{path}: several {type_name} topics ({', '.join(of_type)}): choose one with {option}")

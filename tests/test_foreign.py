@@ -98,6 +98,17 @@ def test_silence_runs_the_predictors_like_a_forced_outage(ros_drive, native, tmp
     assert abs(res.predicted - ref.predicted) <= 3, (res.predicted, ref.predicted)
 
 
+def test_info_counts_the_silence_of_another_loggers_receiver(ros_drive, native):
+    """`info` reads another logger's only Imu and NavSatFix topics as it reads /imu and /gps/fix: the silent gap's
+    epochs are counted missing (they were 0: it looked for /gps/fix only)."""
+    from fieldlog.tools.info import drive_info
+
+    info = drive_info(ros_drive)
+    count = {t.topic: t.count for t in reader.topics(native) + reader.topics(ros_drive)}
+    assert info.gps_missing_epochs == count["/gps/fix"] - count["/sensors/gnss/fix"] > 0
+    assert info.imu_gaps == 0
+
+
 def test_frd_imu_from_tf_static_auto_detected_topics(native, native_gap, tmp_path):
     """FRD IMU on /imu/data and fixes on /ublox/fix, found by message type; the frame comes from /tf_static."""
     spec = Foreign(imu_topic="/imu/data", fix_topic="/ublox/fix", frame="frd", tf_static=True, max_s=300.0)

@@ -17,9 +17,9 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import drivestats
+from fieldlog.acquire import drivestats, messages
 from fieldlog.acquire.drivestats import Quality, timing_error
-from fieldlog.replay import reader
+from fieldlog.replay import inputs, reader
 from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
 
 NS = 1_000_000_000
@@ -82,10 +82,13 @@ def scan_quality(path: DriveSpec, topics: list[reader.TopicInfo],
     """The figures of ``Quality`` from reading the messages (a file without a ``fieldlog.info`` record)."""
     by = {t.topic: t for t in topics if t.count}
     q = Quality()
-    todo = [t for t in ("/time/sync", "/imu", "/gps/fix", "/truth/imu") if t in by]
+    # another logger's drive: its only Imu and NavSatFix topics (replay.inputs.detect), read as /imu, /gps/fix
+    names = {t: n for t, n in ((inputs.detect(topics, messages.IMU, "/imu"), "/imu"),
+                               (inputs.detect(topics, messages.NAVSATFIX, "/gps/fix"), "/gps/fix")) if t}
+    todo = [t for t in ("/time/sync", "/truth/imu") if t in by] + list(names)
     data = {}
     for i, topic in enumerate(todo):
-        data[topic] = reader.read_topic(path, topic)
+        data[names.get(topic, topic)] = reader.read_topic(path, topic)
         if progress:
             progress((i + 1) / len(todo))
     if "/time/sync" in data:
