@@ -45,6 +45,10 @@ MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
+_CHUNK_HEAD = np.dtype({"names": ["start", "end", "size", "crc", "comp_len"],
+                        "formats": ["<u8", "<u8", "<u8", "<u4", "<u4"], "offsets": [0, 8, 16, 24, 28], "itemsize": 32})
+_MESSAGE_HEAD = np.dtype({"names": ["channel", "log_time"], "formats": ["<u2", "<i8"], "offsets": [0, 6],
+                          "itemsize": 14})
 
 
 class NotMcapError(ValueError):
@@ -55,8 +59,9 @@ class TruncatedError(ValueError):
     """The file is MCAP but cut short (no footer and closing magic)."""
 
 
-def le(buf: np.ndarray, pos: np.ndarray, dtype: str) -> np.ndarray:
-    """Little-endian ``dtype`` values at byte positions ``pos`` (each must leave room for the value)."""
+def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
+    """Little-endian ``dtype`` values (or records of a structured dtype) at byte positions ``pos`` (each must leave
+    room for the value)."""
     k = np.dtype(dtype).itemsize
     windows = np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - k + 1, 0), k), strides=(1, 1),
                                               writeable=False)  # row i: the k bytes from byte i
@@ -151,9 +156,8 @@ class McapFile:
         bad = clen_rec < 40
         if bad.any():
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
-        t0, t1, usize = (le(self.buf, cs + k, "<u8").astype(np.int64) for k in (0, 8, 16))
-        crc = le(self.buf, cs + 24, "<u4").astype(np.int64)
-        clen = le(self.buf, cs + 28, "<u4").astype(np.int64)
+        head = le(self.buf, cs, _CHUNK_HEAD)
+        t0, t1, usize, crc, clen = (head[k].astype(np.int64) for k in _CHUNK_HEAD.names)
         bad = clen > clen_rec - 40
         rlen = le(self.buf, np.where(bad, cs, cs + 32 + clen), "<u8")
         bad |= rlen > (clen_rec - 40 - clen).clip(0).astype(np.uint64)
@@ -198,8 +202,8 @@ class McapFile:
             return []
         run_of = np.searchsorted(np.flatnonzero(ops == Opcode.CHUNK), msg)  # messages between the same two chunks
         s = starts[msg]
-        cid = le(self.buf, s, "<u2").astype(np.int64)
-        t = le(self.buf, s + 6, "<i8")
+        head = le(self.buf, s, _MESSAGE_HEAD)
+        cid, t = head["channel"].astype(np.int64), head["log_time"]
         rec_start, rec_end = s - 9, s + lengths[msg]
         brk = np.flatnonzero(np.diff(run_of) != 0) + 1
         out = []
