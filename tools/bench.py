@@ -612,7 +612,10 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # unchunked 0.54 -> 0.27; lz4 0.28 -> 0.17; uncompressed 0.25 -> 0.16; no summary 0.30 -> 0.23. Then the
     # compiled top-level walk when numba is loaded already: at load 10 (medians of 7) own 0.41 s, 4 KiB 1.25 s
     # (x3.04), unchunked x2.14; the same reads interleaved, CPU time (process_time): own 0.178 s, 4 KiB 0.356 s
-    # (x2.00), unchunked 0.240 s (x1.35). Under contention the wall ratio is not the CPU ratio.
+    # (x2.00), unchunked 0.240 s (x1.35). Under contention the wall ratio is not the CPU ratio. At load 4.5 (medians
+    # of 7): own 0.20 s, unchunked x1.59, lz4 x1.00, uncompressed x0.91, no summary x1.47, 4 KiB x2.48 (0.49 s). Per
+    # 4 KiB read (cProfile): zstd 0.21 s and CRC 0.09 s of 133 MB (every chunk holds /imu, so every chunk is read:
+    # 2.7x the own file's bytes), record walk 0.08, join 0.06, per-chunk loop 0.06: the x2 target is not reached.
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
