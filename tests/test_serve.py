@@ -7,15 +7,13 @@ import signal
 import subprocess
 import sys
 import tty
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from fieldlog.replay import reader
 from fieldlog.tools.rebuild import read_metadata
-from fieldlog.tools.sim import simulate, trajectory
-from fieldlog.tools.sim.serve import corrupt_stream
+from fieldlog.tools.sim.serve import corrupt_stream, simulated_streams
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,14 +30,11 @@ def start_serve(*args: str) -> tuple[subprocess.Popen, dict[str, str]]:
 
 
 def expected_bytes(truth_path: Path, scenario: str, duration_s: float, seed: int) -> dict[str, bytes]:
-    """The simulator's byte streams per port, for the drive start the serve process used."""
+    """The simulator's byte streams per port, for the drive start the serve process used (checking that it
+    served this scenario, duration and seed)."""
     meta = read_metadata(truth_path)["serve"]
-    sc = trajectory.load_scenario(scenario)
-    jumps = [[float(x) for x in j.split(":")] for j in meta.get("gps_clock_jumps", "").split(";") if j]
-    sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])},
-                 gps={**sc.gps, "clock_jumps": jumps})
-    reads = simulate.make_reads(sc, duration_s, seed, meta["pps_mode"], meta.get("receiver"))[0]
-    return {port: b"".join(r.data for r in reads if r.port == port) for port in ("daq", "gps")}
+    assert (meta["scenario"], float(meta["duration_s"]), int(meta["seed"])) == (scenario, duration_s, seed)
+    return simulated_streams(meta)
 
 
 def test_serve_streams_exactly_the_simulated_bytes(tmp_path: Path) -> None:

@@ -325,21 +325,31 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
 
 def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 20.0) -> None:
-    """soak: acquire at x20 for 30 min of data, 1 % corrupt bytes, the DAQ unplugged 5 s every 2 min: loss, RSS, CPU."""
+    """soak: acquire at x20 for 30 min of data, 1 % corrupt bytes, the DAQ unplugged 5 s every 2 min and the
+    receiver's clock +1 h for 30 s halfway: frames and lines lost outside the unplugged intervals, the jump's
+    fixes, RSS over data time (warm-up against growth), CPU."""
     import os
+    import re
     import signal
+    from collections import Counter
 
+    from fieldlog.acquire import daq
+    from fieldlog.acquire.messages import STATUS_NO_FIX
+    from fieldlog.replay import reader
     from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.tools.sim.serve import PORTS, corrupt_stream, delivered, simulated_streams
 
     out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"
     unplug = [a for t in range(120, int(duration_s) - 10, 120) for a in ("--unplug", f"daq:{t}:5")]
-    serve, d = _serve_and_acquire(duration_s, speed, truth, out, serve_args=("--corrupt", "0.01", "--link-dir", str(links), *unplug))
-    rss: list[float] = []
+    jump_s = round(duration_s / 2) + 0.5                     # (mid-second: the window's edges are unambiguous)
+    serve, d = _serve_and_acquire(duration_s, speed, truth, out, serve_args=(
+        "--corrupt", "0.01", "--link-dir", str(links), "--clock-jump", f"{jump_s:g}:30:3600", *unplug))
+    rss: list[tuple[float, float]] = []                      # (s of data, MB)
 
     def sample() -> None:
         try:
             text = Path(f"/proc/{d.pid}/status").read_text()
-            rss.append(int(text.split("VmRSS:")[1].split()[0]) / 1024)
+            rss.append(((time.monotonic() - t0) * speed, int(text.split("VmRSS:")[1].split()[0]) / 1024))
         except (OSError, IndexError):
             pass
 
@@ -347,28 +357,65 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     serve.send_signal(signal.SIGUSR1)
     while serve.poll() is None:
         sample()
-        time.sleep(2.0)
+        time.sleep(1.0)
     d.send_signal(signal.SIGTERM)
     _, status, usage = os.wait4(d.pid, 0)
     wall = time.monotonic() - t0
     sent = read_metadata(truth)["serve"]
     files = sorted(out.glob("*.mcap"))
     c = read_metadata(files[-1])["acquire.counters"]
-    daq_sent, gps_sent = int(sent["daq_bytes"]), int(sent["gps_bytes"])
-    daq_got = int(c["port.daq.bytes"])
-    gps_got = int(c["port.gps.bytes"])
-    n = max(len(rss) // 10, 1)
+    # what the ports delivered: the simulated streams, corrupted as served, minus the unplugs' byte ranges
+    clean = simulated_streams(sent)
+    stream = {p: corrupt_stream(clean[p], 0.01, int(sent["seed"]), p) for p in PORTS}
+    daq_ok, daq_keep = delivered(clean["daq"], sent["daq_gaps"])
+    hit = np.zeros(len(clean["daq"]), bool)
+    hit[stream["daq"][1]] = True
+    n = len(clean["daq"]) // daq.FRAME_SIZE
+    whole = (daq_keep & ~hit)[:n * daq.FRAME_SIZE].reshape(n, daq.FRAME_SIZE).all(axis=1)
+    got_daq = b"".join(bytes(m.data) for f in files for m in reader.read_topic(f, "/raw/daq")["msgs"])
+    want_daq = delivered(stream["daq"][0], sent["daq_gaps"])[0]
+    text, pos = clean["gps"], stream["gps"][1]
+    lines = text.split(b"\r\n")[:-1]
+    starts = np.cumsum([0] + [len(x) + 2 for x in lines[:-1]])
+    ghit = np.zeros(len(text), bool)
+    ghit[pos] = True
+    gkeep = delivered(text, sent["gps_gaps"])[1]
+    intact = Counter(x.decode() for s0, x in zip(starts, lines)
+                     if not ghit[s0:s0 + len(x) + 1].any() and gkeep[s0:s0 + len(x) + 2].all())
+    got_lines = Counter(m.sentence for f in files for m in reader.read_topic(f, "/gps/nmea")["msgs"])
+    # the jumped epochs that reached the daemon: their timed sentences carry the drive's time + 1 h
+    sod0 = (int(sent["drive_start_utc_ns"]) / 1e9 + jump_s + 3600) % 86400
+    shown = {f[1] for f in (x.split(",") for x in got_lines if x[3:6] in ("GGA", "RMC", "GST", "ZDA"))
+             if len(f) > 1 and re.fullmatch(r"\d{6}(\.\d*)?", f[1])}    # (1/256 corrupt lines pass the checksum)
+    jumped = sum(0 <= (int(x[:2]) * 3600 + int(x[2:4]) * 60 + float(x[4:]) - sod0) % 86400 < 30 for x in shown)
+    fix = {k: np.concatenate([reader.read_topic(f, "/gps/fix")[k] for f in files]) for k in ("log_time_ns", "status")}
+    t_start = int(sent["drive_start_utc_ns"])
+    t_fix = (fix["log_time_ns"] - t_start) / 1e9
+    flagged = t_fix[fix["status"] == STATUS_NO_FIX]
+    # (a flagged epoch is stamped at the read that brought it; the jumped epochs arrive up to 1.5 s later)
+    in_jump = int(((flagged >= jump_s) & (flagged < jump_s + 31.5)).sum())
     print(f"soak {duration_s / 60:.0f} min of data at x{speed:g} in {wall:.0f} s: exit {os.waitstatus_to_exitcode(status)}, "
-          f"{len(files)} file(s); DAQ bytes sent {daq_sent}, read {daq_got} (lost outside the unplugged intervals: "
-          f"{daq_sent - daq_got}), {sent['daq_lost_bytes']} bytes lost while unplugged, "
-          f"{c['port.daq.disconnects']} disconnects; frames {c['daq.frames']}, lost {c['daq.lost_frames']} "
-          f"(corrupt or unplugged), bad CRC {c['daq.bad_crc']}; GPS bytes sent {gps_sent}, read {gps_got} "
-          f"(lost {gps_sent - gps_got}), NMEA lines {c['nmea.lines']} of {sent['nmea_lines']} sent, bad checksum "
-          f"{c['nmea.bad_checksum']}; processing errors {c['processing_errors']}, dropped reads "
-          f"{c['port.daq.dropped_reads']}/{c['port.gps.dropped_reads']}")
-    print(f"soak RSS: first tenth {statistics.mean(rss[:n]):.0f} MB, last tenth {statistics.mean(rss[-n:]):.0f} MB, max {max(rss):.0f} MB;"
-          f" CPU {usage.ru_utime + usage.ru_stime:.0f} s ({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of "
-          f"one core)")
+          f"{len(files)} file(s), {c['port.daq.disconnects']} DAQ disconnects, {sent['daq_undrained_unplugs']} "
+          f"undrained unplugs")
+    print(f"  DAQ: bytes delivered {len(want_daq)} (+{sent['daq_lost_bytes']} lost while unplugged), recorded "
+          f"{len(got_daq)}, recorded == delivered: {got_daq == want_daq}; whole uncorrupted frames outside the "
+          f"unplugs {int(whole.sum())}, decoded {c['daq.frames']}: lost outside the unplugged intervals "
+          f"{int(whole.sum()) - int(c['daq.frames'])}; bad CRC {c['daq.bad_crc']}, resyncs {c['daq.resyncs']}")
+    print(f"  GPS: bytes delivered {sent['gps_bytes']}, read {c['port.gps.bytes']}; intact NMEA lines "
+          f"{sum(intact.values())}, of them not recorded {sum((intact - got_lines).values())}; bad checksum "
+          f"{c['nmea.bad_checksum']}; epochs {c['gps_epochs']}, NO_FIX {c['gps_no_fix']}: receiver_time "
+          f"{c.get('gps_no_fix.receiver_time', 0)}, NO_FIX in the jump window {in_jump} (30 epochs jumped +1 h at "
+          f"{jump_s:g} s, {jumped} of them recorded in /gps/nmea), no_quality (GGA lost to corruption) {c.get('gps_no_fix.no_quality', 0)}; latest fix "
+          f"{t_fix.max():.1f} s after the drive start ({duration_s:g} s long)")
+    print(f"  processing errors {c['processing_errors']}, dropped reads {c['port.daq.dropped_reads']}/"
+          f"{c['port.gps.dropped_reads']}; daemon CPU {usage.ru_utime + usage.ru_stime:.0f} s "
+          f"({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of one core)")
+    t_rss, mb = np.array(rss).T
+    at = ", ".join(f"{m:g} min {mb[np.argmin(np.abs(t_rss - 60 * m))]:.0f} MB" for m in (1, 5, 10, 20, 30)
+                   if 60 * m <= t_rss[-1] + 60)
+    half = t_rss >= t_rss[-1] / 2
+    slope = np.polyfit(t_rss[half] / 600, mb[half], 1)[0]
+    print(f"  daemon RSS at {at}; max {mb.max():.0f} MB; slope over the second half {slope:+.2f} MB per 10 min of data")
 
 
 def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:

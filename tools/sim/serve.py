@@ -103,6 +103,28 @@ class Unplug:
         return u
 
 
+def simulated_streams(meta: dict[str, str]) -> dict[str, bytes]:
+    """Each port's full byte stream as the serve run with this ``serve`` metadata simulated it, before
+    corruption and unplugs: what a recording is scored against."""
+    sc = trajectory.load_scenario(meta["scenario"])
+    jumps = [[float(x) for x in j.split(":")] for j in meta.get("gps_clock_jumps", "").split(";") if j]
+    sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])},
+                 gps={**sc.gps, "clock_jumps": jumps})
+    reads = simulate.make_reads(sc, float(meta["duration_s"]), int(meta["seed"]), meta["pps_mode"],
+                                meta.get("receiver"))[0]
+    return {port: b"".join(r.data for r in reads if r.port == port) for port in PORTS}
+
+
+def delivered(stream: bytes, gaps: str) -> tuple[bytes, np.ndarray]:
+    """``stream`` minus the ``START:LENGTH;...`` byte ranges an unplug lost (metadata ``daq_gaps`` /
+    ``gps_gaps``), and a mask over ``stream`` of the bytes delivered."""
+    keep = np.ones(len(stream), bool)
+    for g in filter(None, gaps.split(";")):
+        a, n = map(int, g.split(":"))
+        keep[a:a + n] = False
+    return np.frombuffer(stream, np.uint8)[keep].tobytes(), keep
+
+
 def parse_clock_jump(text: str) -> list[float]:
     """``START:LEN:OFFSET`` in simulated seconds, e.g. ``900:30:3600`` (the receiver's clock +1 h for 30 s at
     15 min), as a ``[gps] clock_jumps`` row."""
