@@ -272,7 +272,7 @@ class InputStream:
         self.path, self.imap, self.block_s = path, imap, block_s
         self.extra = tuple(t for t in extra if t not in imap.topics)
         self.samples = 0
-        self.gaps = 0  # steps longer than 1.5 sample periods
+        self.gaps = 0  # steps longer than 1.5 sample periods (exact while the stamps jitter by < 1/4 period)
         self.missing = 0  # samples those steps lack, at the sample period
         self.repeated = 0  # samples dropped for a stamp not after the previous one
         self._last_t: int | None = None
@@ -324,8 +324,8 @@ class InputStream:
         t = imu["log_time_ns"]
         steps = np.diff(t if self._last_t is None else np.concatenate([[self._last_t], t]))
         if self._period_ns is None and len(steps) >= 100:
-            med = np.median(steps)
-            self._period_ns = float(np.mean(steps[steps <= 1.5 * med]))  # the mean: jitter does not bias it
+            med = np.median(steps)  # the mean of the steps near it: less noisy, and no gap or jitter biases it
+            self._period_ns = float(np.mean(steps[(steps >= 0.5 * med) & (steps <= 1.5 * med)]))
         if self._period_ns is not None:
             long = steps > 1.5 * self._period_ns
             self.gaps += int(long.sum())
