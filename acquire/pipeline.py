@@ -104,6 +104,8 @@ class Pipeline:
         self._accepts = gpsport.ACCEPTS[self.cfg.gps_protocol]
         self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
         self._epochs = nmea.EpochAssembler()
+        self._gps_prev_read: dict[int, int] = {}   # mono_ns of a recent GPS read -> of the GPS read before it
+        self._gps_last_read = 0
         self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
         self._last_fix_key: tuple | None = None
         self._date: _dt.date | None = None
@@ -221,6 +223,10 @@ class Pipeline:
 
     def _feed_gps(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
         frames = self._port.feed(data)
+        self._gps_prev_read[mono_ns] = self._gps_last_read or mono_ns
+        self._gps_last_read = mono_ns
+        if len(self._gps_prev_read) > 64:
+            del self._gps_prev_read[next(iter(self._gps_prev_read))]
         st, fs = self._nmea.stats, self._port.stats
         st.lines, st.bytes_discarded, st.overlong = fs.frames.get("nmea", 0), fs.bytes_discarded, fs.overlong
         if not frames:
@@ -318,15 +324,18 @@ class Pipeline:
     def _emit_solution(self, sol: gpsport.Solution, why: str = "") -> None:
         """/gps/fix and /gps/vel of one receiver epoch; ``why`` it is not a fix (counted by reason).
 
-        Once time sync has a GPS clock fit, the epoch must lie in the second before its first message was read;
-        a receiver time further off than ``receiver_time_tolerance_s`` (a receiver clock jump) is NO_FIX
-        ``receiver_time`` and stamped with the fit's time of that read, not the receiver's."""
+        Once time sync has a GPS clock fit, the epoch must lie between one second before the port's previous
+        read (its first message came after that read: a read the host made late holds older epochs) and the
+        read of its first message; a receiver time further off than ``receiver_time_tolerance_s`` (a receiver
+        clock jump) is NO_FIX ``receiver_time`` and stamped with the fit's time of that read, not the
+        receiver's."""
         why = why or ("" if sol.fix else "receiver")
         utc_ns = sol.utc_ns
         if self.sync.gps_clock and sol.first_mono_ns:
-            arrival = int(self.sync.mono_to_utc(np.array([sol.first_mono_ns], np.int64))[0])
+            prev = self._gps_prev_read.get(sol.first_mono_ns, sol.first_mono_ns)
+            arrival, after = (int(x) for x in self.sync.mono_to_utc(np.array([sol.first_mono_ns, prev], np.int64)))
             tol = int(self.cfg.receiver_time_tolerance_s * NS)
-            if not arrival - NS - tol <= utc_ns <= arrival + tol:
+            if not after - NS - tol <= utc_ns <= arrival + tol:
                 why, utc_ns = "receiver_time", arrival
         t_ns = np.array([utc_ns], np.int64)
         fix = not why

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fieldlog.acquire import gnss, messages, nmea, recorder, timesync
-from fieldlog.acquire.pipeline import Pipeline, RawRead
+from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.replay import reader
 from fieldlog.tools.rebuild import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
@@ -219,6 +219,32 @@ def test_a_receiver_clock_jump_is_flagged_and_stamped_by_the_clock_fit(tmp_path:
     assert 14 <= flagged.sum() == int(c["gps_no_fix.receiver_time"]) <= 16
     assert np.all((t[flagged] > t0_ns + 29 * NS) & (t[flagged] < t0_ns + 47 * NS))
     assert np.all(np.diff(t) > 0)
+
+
+def test_a_gps_read_the_host_made_late_is_not_a_clock_jump(tmp_path: Path, sim60) -> None:
+    """The host reads the GPS port 3.5 s late (busy): one read brings four epochs. Their receiver times are right,
+    so none is flagged, and each is stamped at its receiver time; the same read with the clock +1 h is flagged."""
+    reads, t0_ns, ccfg = sim60
+    a, b = reads[0].mono_ns + 30 * NS, reads[0].mono_ns + 33 * NS + NS // 2
+    late = [r for r in reads if r.port == "gps" and a <= r.mono_ns < b]
+    joined = RawRead("gps", b, late[-1].wall_ns + NS // 2, b"".join(r.data for r in late))
+    delayed = sorted([r for r in reads if not any(r is x for x in late)] + [joined],
+                     key=lambda r: read_order(r.port, r.mono_ns))
+    c = pipe_drive(tmp_path / "late.mcap", delayed, ccfg)
+    fix = reader.read_topic(tmp_path / "late.mcap", "/gps/fix")
+    assert int(c.get("gps_no_fix", 0)) == 0 and np.all(fix["status"] != messages.STATUS_NO_FIX)
+    assert len(fix["log_time_ns"]) >= 58 and np.all(fix["log_time_ns"] % NS == t0_ns % NS - t0_ns % NS)  # whole s
+
+    late_epochs = {m.group(1) for m in re.finditer(rb"\$..(?:GGA|RMC|GST|ZDA),([0-9.]+),", joined.data)}
+
+    def jump(body: str, mono_ns: int) -> str:      # the late read's epochs, all their sentences, +1 h
+        f = body.split(",")
+        if f[0][2:] in ("GGA", "RMC", "GST", "ZDA") and f[1].encode() in late_epochs:
+            f[1] = f"{(int(f[1][:2]) + 1) % 24:02d}{f[1][2:]}"
+        return ",".join(f)
+
+    c = pipe_drive(tmp_path / "jump.mcap", rewrite_gps(delayed, jump), ccfg)
+    assert 3 <= int(c["gps_no_fix.receiver_time"]) == int(c["gps_no_fix"]) <= 5
 
 
 # ------------------------------------------------------------------------------------------- CLI contract
