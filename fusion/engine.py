@@ -69,8 +69,9 @@ _UG = 9.80665e-6
 @dataclass
 class FusionConfig:
     """Fusion settings. Sensor figures default to the distributed-KF paper's Table 2 class of MEMS
-    IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), inflated to absorb
-    the scale-factor and misalignment errors the 15-state model does not carry."""
+    IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), the noise densities
+    inflated to absorb the scale-factor and misalignment errors the 15-state model does not carry; the gyro
+    bias random walk is Table 2's bias stability as a random walk over a minute (``fusion.imugrade``)."""
 
     imu: str = ""  # the IMU grade whose figures were taken (fusion.imugrade); "" = the figures below as given
     lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, m, in lever_arm_frame
@@ -79,7 +80,7 @@ class FusionConfig:
     cov_step_s: float = 0.1  # covariance propagation cycle, s
     gyro_noise_dps_rthz: float = 0.03
     accel_noise_ug_rthz: float = 300.0
-    gyro_bias_rw_dps_rts: float = 2e-4  # deg/s/sqrt(s)
+    gyro_bias_rw_dps_rts: float = 0.02 * math.sqrt(2.0 / 60.0)  # deg/s/sqrt(s): B sqrt(2 / 60 s) (fusion.imugrade)
     accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
     init_vel_sigma_mps: float = 0.2  # sigma of the initial velocity (the alignment epoch's or init_velocity_enu), m/s
     init_level_sigma_deg: float = 0.5  # roll/pitch allowance added to the levelling's own sigma (fusion.align)

@@ -101,17 +101,33 @@ def _budget(grade: str, fused: Path, method: str, w0: int, t: float) -> float:
     return math.sqrt(sum(x * x for x in terms))
 
 
-def _heading_series(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t_s from the first IMU sample, heading error deg, heading sigma deg) of every solution row."""
+def _attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t_s from the first IMU sample, C_bn solution, C_bn truth, attitude sigma (n, 3) rad: phi E, N, U) of
+    every solution row within the truth."""
     a = reader.read_topic(fused, f"/fusion/{method}/attitude")
     sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std")
     ta = reader.read_topic(drive, "/truth/attitude")
     ts = a["log_time_ns"]
     ok = (ts >= ta["log_time_ns"][0]) & (ts <= ta["log_time_ns"][-1])
-    h_s = earth.dcm_to_euler(earth.quat_to_dcm(a["q_xyzw"][ok]))[0]
-    h_t = earth.dcm_to_euler(earth.quat_to_dcm(_quat_interp(ts[ok], ta["log_time_ns"], ta["q_xyzw"])))[0]
+    return ((ts[ok] - _t0(drive)) * 1e-9, earth.quat_to_dcm(a["q_xyzw"][ok]),
+            earth.quat_to_dcm(_quat_interp(ts[ok], ta["log_time_ns"], ta["q_xyzw"])), sd["xyz"][ok])
+
+
+def _heading_series(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_s from the first IMU sample, heading error deg, heading sigma deg) of every solution row."""
+    t, C_s, C_t, sd = _attitudes(drive, fused, method)
+    h_s, h_t = earth.dcm_to_euler(C_s)[0], earth.dcm_to_euler(C_t)[0]
     err = np.degrees((h_s - h_t + np.pi) % (2 * np.pi) - np.pi)
-    return (ts[ok] - _t0(drive)) * 1e-9, err, np.degrees(sd["xyz"][ok, 2])
+    return t, err, np.degrees(sd[:, 2])
+
+
+def _phi_z(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s, attitude error phi E, N, U over its sigma (n, 3)): C_solution = (I - [phi x]) C_truth
+    (fusion.errmodel), phi from the skew part of I - C_solution C_truth^T."""
+    t, C_s, C_t, sd = _attitudes(drive, fused, method)
+    M = np.eye(3) - C_s @ np.swapaxes(C_t, 1, 2)
+    phi = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1)
+    return t, phi / np.maximum(sd, 1e-12)
 
 
 def _outage_check(drive: Path, fused: Path, grade: str, outages) -> tuple[float, list[float], list[float]]:
@@ -158,6 +174,22 @@ def test_mems_grades(mems, tmp_path):
     assert drift[0] < 3.0 * budget[0], (drift, budget)
     err, sig = heading_at_starts(drive, out, "kf", _windows(drive, MEMS_OUTAGE))
     assert abs(err[0]) <= 3.0 * sig[0], (err, sig)
+
+
+def test_mems_attitude_sigma_covers_the_error(mems, tmp_path):
+    """Honest attitude sigma on the MEMS grades (aids off, GPS only, one 60 s outage): from 100 s on, the tilt
+    (phi E, N) and heading (phi U) errors are within 3 sigma at >= 95 % of the rows and within 1 sigma at 40-97 %
+    (68 % if honest; one 300 s drive holds a few independent samples of a heading error). With the gyro bias
+    random walk the flicker bias instability needs (fusion.imugrade, matched over 60 s) rather than the 2e-4
+    deg/s/sqrt(s) before, figure8 seeds 1-5 went from 62-86 % to 100 % of the heading within 3 sigma."""
+    grade, drive = mems
+    out = tmp_path / "kf.mcap"
+    fuse(drive, "kf", out, replace(drive_config(drive), outages=MEMS_OUTAGE))
+    t, z = _phi_z(drive, out, "kf")
+    z = np.abs(z[t > 100.0])
+    in1, in3 = np.mean(z <= 1.0, axis=0), np.mean(z <= 3.0, axis=0)
+    assert np.all(in3 >= 0.95), (grade, in1, in3)
+    assert np.all((in1 >= 0.4) & (in1 <= 0.97)), (grade, in1, in3)
 
 
 @pytest.mark.parametrize("offset_deg", [2.0, 10.0, 30.0])
