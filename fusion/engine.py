@@ -47,12 +47,13 @@ it (the covariance is then propagated one cycle per call, to capture each P).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import aids, align, clipgyro, earth, errmodel, hinf, ins, kf, output, predictors, sckf, ukf
+from fieldlog.fusion import (aids, align, clipgyro, earth, errmodel, gpserror, hinf, ins, kf, output, predictors, sckf,
+                             ukf)
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge, Silence
@@ -62,6 +63,7 @@ if TYPE_CHECKING:
     from fieldlog.fusion.smoother import SmootherLog
 
 METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
+GPS_ERROR_MODELS = ("consider", "gm-states")
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
 
@@ -117,6 +119,9 @@ class FusionConfig:
     still_accel_tol_mps2: float = 0.02
     still_trim_s: float = 2.0  # the static start loses this much at an end where the vehicle moved
     gps_error_tau_s: float = 300.0  # correlation time of the GPS position error (multipath, atmosphere); 0: white
+    gps_error_model: str = "consider"  # "consider": added to the printed sigma (fusion.output); "gm-states": kf
+    # (unsmoothed) carries it as Gauss-Markov states (fusion.gpserror), the other methods keep "consider"
+    gps_error_white_share: float = 0.15  # gm-states: share of the fix's variance that is white (the rest correlated)
     dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
@@ -171,6 +176,10 @@ class Engine:
         self.method = method
         self.log = log
         self.cfg = config or FusionConfig()
+        if self.cfg.gps_error_model not in GPS_ERROR_MODELS:
+            raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps_error_model!r}")
+        if self.cfg.gps_error_model == "gm-states" and (method != "kf" or log is not None):
+            self.cfg = replace(self.cfg, gps_error_model="consider")  # the states are kf's, without smoothing
         self.lever = self.cfg.lever_rfu()
         self.q = self.cfg.noise_psd()
         self.t_ref_ns: int | None = None
@@ -321,8 +330,9 @@ class Engine:
                                           self.cfg.vel_var_max)
         self.filter.update_gps(vel, pos)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
-        self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
-                                                   period, self.cfg.gps_error_tau_s)
+        if not isinstance(self.filter, gpserror.GpsErrorKF):  # the states carry it: nothing to add
+            self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
+                                                       period, self.cfg.gps_error_tau_s)
         if self.log is not None:
             self.log.gps_var.append((ep["t_ns"], self._gps_var.copy()))
         x = self.filter.state
@@ -411,6 +421,8 @@ class Engine:
             rel = sd_v / max(abs(float(fwd @ sol.v_n[0])), 1.0)
             sigma = math.hypot(self.cfg.clip_rate_sigma_dps * _DEG, rel * float(np.abs(wc[clip, 2]).max()))
             Q = Q + clipgyro.clip_noise(clip, tt, starts, ends, C, sigma)
+        if isinstance(self.filter, gpserror.GpsErrorKF):
+            self.filter.cycles(tt[ends] - tt[starts])
         if isinstance(self.filter, ukf.CycleFilter):  # the nodes of its RK4 through the nonlinear model
             self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, starts, mid, ends, f_mean,
                                                   tt[ends] - tt[starts]))
@@ -450,6 +462,8 @@ def make_filter(method: str, P0: np.ndarray, q: np.ndarray, cfg: FusionConfig) -
         return ukf.HybridKfUkf(P0, q)
     if method in sckf.FILTERS:
         return sckf.FILTERS[method](P0, q)
+    if cfg.gps_error_model == "gm-states":
+        return gpserror.GpsErrorKF(P0, q, cfg.gps_error_tau_s, cfg.gps_error_white_share)
     return kf.KalmanFilter(P0, q)
 
 

@@ -53,7 +53,7 @@ class KalmanFilter:
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Apply a sequence of discrete cycles: Phi, Q (m, 15, 15). Returns diag(P) after each, (m, 15)."""
-        out = np.empty((len(Phi), N_STATES))
+        out = np.empty((len(Phi), len(self.x)))
         x, P = self.x, self.P
         for i in range(len(Phi)):
             x = Phi[i] @ x
@@ -74,7 +74,7 @@ class KalmanFilter:
         self.gain = K
         dx = K @ (z - H @ self.x)
         self.x = self.x + dx
-        A = np.eye(N_STATES) - K @ H
+        A = np.eye(len(self.x)) - K @ H
         P = A @ self.P @ A.T + K @ R @ K.T
         self.P = 0.5 * (P + P.T)
         return dx

@@ -15,7 +15,7 @@ from fieldlog.fusion.engine import FusionConfig
 from fieldlog.replay import inputs, reader
 from fieldlog.replay import view as rview
 from fieldlog.tools.cli import main as cli_main
-from fieldlog.tools.evaluate import consistency, outage_error_series
+from fieldlog.tools.evaluate import consistency, outage_error_series, position_errors
 from fieldlog.tools.fuse import Diverged, _write, fuse
 from fieldlog.tools.sim.simulate import simulate
 
@@ -338,3 +338,51 @@ def test_printed_sigma_is_honest_and_the_solution_unchanged(native, tmp_path):
     assert 1.0 < c["nees"] < 9.0 and w["nees"] > 3 * c["nees"]
     a, b = reader.read_topic(out, "/fusion/kf/fix"), reader.read_topic(white, "/fusion/kf/fix")
     np.testing.assert_array_equal(a["lat_deg"], b["lat_deg"])
+
+
+def test_gm_states_sigma_is_honest(native, tmp_path):
+    """gps_error_model = "gm-states" (the GPS error as Gauss-Markov states, fusion.gpserror) on the default figure8
+    drive: >= 90 % of kf's rows within 3 sigma on east and north and a NEES near 3 from the filter's own P (nothing
+    added); the position error RMS within 20 % of the consider term's filter (same drive, same outage)."""
+    cfg = FusionConfig(outages=(GAP,))
+    gm, con = tmp_path / "gm.mcap", tmp_path / "consider.mcap"
+    fuse(native, "kf", gm, dataclasses.replace(cfg, gps_error_model="gm-states"))
+    fuse(native, "kf", con, cfg)
+    c = consistency(native, gm, "kf")
+    assert c["in3_e"] >= 0.9 and c["in3_n"] >= 0.9, c
+    assert 1.0 < c["nees"] < 9.0, c
+    rms = [np.sqrt(np.mean(np.sum(position_errors(native, f, "kf")[0][:, :2] ** 2, axis=1))) for f in (gm, con)]
+    assert rms[0] < 1.2 * rms[1], rms
+
+
+def test_gm_state_block():
+    """GpsErrorKF: without fixes the error states keep their stationary variance (exact discretisation); the
+    closed-loop reset clears the INS error states and keeps the GPS error's; from the second fix on, the INS
+    position variance stays above the white-error kf's (a correlated error does not average away)."""
+    from fieldlog.fusion import errmodel, gpserror, kf
+
+    P0 = np.diag(np.r_[np.full(3, 25.0), np.full(3, 1.0), np.full(9, 1e-4)])
+    q = errmodel.noise_psd(1e-4, 1e-3, 1e-6, 1e-5)
+    f, w = gpserror.GpsErrorKF(P0, q, 300.0, 0.15), kf.KalmanFilter(P0, q)
+    H = np.zeros((3, 15))
+    H[:, :3] = np.eye(3)
+    R = np.diag([1.44, 1.44, 4.0])
+    for k in range(30):
+        for filt in (f, w):
+            filt.update_gps(None, (np.array([0.3, -0.2, 0.5]), H, R))
+        d_f, d_w = np.diag(f.covariance)[:3], np.diag(w.covariance)[:3]
+        assert np.all(d_f > d_w) if k else np.allclose(d_f, d_w)  # the first fix: the same total variance
+        f.x[:15] = 1.0
+        f.reset()
+        assert not f.state.any() and f.x[15:].any()
+        Phi, Q = np.repeat(np.eye(15)[None], 10, 0), np.zeros((10, 15, 15))
+        for filt in (f, w):
+            if filt is f:
+                filt.cycles(np.full(10, 0.1))
+            filt.propagate(Phi, Q)
+    P_e = f.P[15:, 15:].copy()
+    for _ in range(200):
+        f.cycles(np.full(10, 10.0))
+        f.propagate(Phi, Q)
+    np.testing.assert_allclose(np.diag(f.P[15:, 15:]), 0.85 * np.diag(R), rtol=1e-6)
+    assert np.all(np.diag(P_e) < 0.85 * np.diag(R))

@@ -179,6 +179,18 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
     3 sigma (0.997): keys ``in1_e``, ``in3_e``, ... ."""
     if not any(t.topic == "/truth/fix" and t.count for t in reader.topics(drive)):
         return None
+    e, sd = position_errors(drive, fused, method)
+    z = e / np.maximum(sd, 1e-9)
+    out = {"nees": float(np.mean(np.sum(z * z, axis=1))), "rows": len(z)}
+    for i, ax in enumerate("enu"):
+        out[f"in1_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 1.0))
+        out[f"in3_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 3.0))
+    return out
+
+
+def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The method's position error (solution - ``/truth/fix``, ENU m) and its printed sigma (m), (n, 3) each, at
+    every solution row within the truth."""
     s = reader.read_topic(fused, f"/fusion/{method}/fix")
     sd = reader.read_topic(fused, f"/fusion/{method}/std")
     ref = reader.read_topic(drive, "/truth/fix")
@@ -189,12 +201,7 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
     rm, rn = earth.principal_radii(lat, llh[:, 2])
     e = np.stack([np.radians(s["lon_deg"][m] - llh[:, 1]) * rn * np.cos(lat),
                   np.radians(s["lat_deg"][m] - llh[:, 0]) * rm, s["alt_m"][m] - llh[:, 2]], axis=1)
-    z = e / np.maximum(sd["xyz"][m], 1e-9)
-    out = {"nees": float(np.mean(np.sum(z * z, axis=1))), "rows": int(m.sum())}
-    for i, ax in enumerate("enu"):
-        out[f"in1_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 1.0))
-        out[f"in3_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 3.0))
-    return out
+    return e, sd["xyz"][m]
 
 
 def pooled(cs: list[dict[str, float]]) -> dict[str, float]:

@@ -53,7 +53,7 @@ from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
 from fieldlog.fusion import imugrade
 from fieldlog.fusion.dkf import FUSIONS
-from fieldlog.fusion.engine import Engine, FusionConfig, Solution
+from fieldlog.fusion.engine import GPS_ERROR_MODELS, Engine, FusionConfig, Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
@@ -127,6 +127,8 @@ def fusion_config(table: dict[str, Any]) -> FusionConfig:
     for key in ("init_position_sigma_m", "init_vel_sigma_mps", "init_level_sigma_deg", "init_heading_sigma_deg"):
         if not getattr(cfg, key) > 0:
             raise ConfigError(f"[fusion] {key}: must be > 0")
+    if cfg.gps_error_model not in GPS_ERROR_MODELS:
+        raise ConfigError(f"[fusion] gps_error_model: {cfg.gps_error_model!r}; one of {', '.join(GPS_ERROR_MODELS)}")
     for i, o in enumerate(cfg.outages):
         if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
             raise ConfigError(f"[fusion] outages[{i}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")
