@@ -409,8 +409,8 @@ def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
                 rrb.Tabs(*err[3:], name="velocity error"),
                 _plot("status", "GPS outage / no fix (1 = yes)"),
                 rrb.Tabs(
-                    _plot("imu/gyro", "gyro (50 Hz means)"),
-                    _plot("imu/accel", "accel (50 Hz means)"),
+                    _plot("imu/gyro", f"gyro (means of {IMU_DECIMATION} samples)"),
+                    _plot("imu/accel", f"accel (means of {IMU_DECIMATION} samples)"),
                     rrb.Vertical(
                         _plot("timesync/state", "sync state"),
                         _plot("timesync/rate_ppm", "rate error (ppm)"),

@@ -278,10 +278,13 @@ def test_evaluate_on_another_loggers_drive_without_truth(ros_drive, tmp_path):
     """The outage study runs on a mapped drive scored against its own fixes (no velocity: position only)."""
     from fieldlog.tools.evaluate import evaluate
 
+    said: list[str] = []
     table = evaluate([ros_drive], [30.0], ["kf"], tmp_path / "rep", spec=inputs.InputSpec(imu_frame="flu"),
-                     say=lambda _: None)
+                     say=said.append)
     lon = table.filter(table["quantity"] == "longitude")["mean"][0]
     assert 0.0 < lon < 10.0 and (tmp_path / "rep" / "errors_30s.png").is_file()
+    report = "\n".join(said) + (tmp_path / "rep" / "table.md").read_text()
+    assert "nan" not in report.lower() and "(no truth)" in report  # the heading at the starts: sigma only
 
 
 def test_input_errors_are_one_line(ros_drive, tmp_path, capsys):

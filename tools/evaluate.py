@@ -244,6 +244,19 @@ def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tu
     return err, sig
 
 
+def vel_cell(rms_enu: np.ndarray) -> str:
+    """The 3D velocity RMS, m/s; ``not scored`` for a drive without a velocity reference."""
+    v = float(np.linalg.norm(rms_enu))
+    return f"{v:.3f} m/s" if math.isfinite(v) else "not scored (no velocity reference)"
+
+
+def heading_cell(err_deg: float, sigma_deg: float, digits: int, unit: str = "") -> str:
+    """``+e ± s`` with ``digits`` decimals; ``σ s (no truth)`` for a drive without ``/truth/attitude``."""
+    if math.isnan(err_deg):
+        return f"σ {sigma_deg:.{digits}f}{unit} (no truth)"
+    return f"{err_deg:+.{digits}f} ± {sigma_deg:.{digits}f}{unit}"
+
+
 PLOT_DT_S = 0.5  # time step of the error curves, s
 
 
@@ -375,8 +388,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
                 done += 1
                 say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s x {len(win)}: "
-                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {np.linalg.norm(rms[3:6]):.3f} m/s; heading "
-                    "at the starts " + ", ".join(f"{e:+.2f}±{sg:.2f}°" for e, sg in zip(h_err, h_sig)))
+                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {vel_cell(rms[3:6])}; heading "
+                    "at the starts " + ", ".join(heading_cell(e, sg, 2, "°") for e, sg in zip(h_err, h_sig)))
     rows = []
     for (name, L), vals in per.items():
         arr = np.array(vals)
@@ -418,8 +431,8 @@ def heading_markdown(heading: pl.DataFrame) -> str:
     lines = ["", "## Heading error ± the filter's σ at each outage start (deg)", "",
              "| method | outage | " + "drive @ start: error ± σ |", "|---|---|---|"]
     for (m, L), g in heading.group_by(["method", "outage_s"], maintain_order=True):
-        cells = ", ".join(f"{r['drive']} @ {r['start_s']:g} s: {r['heading_err_deg']:+.3f} ± "
-                          f"{r['heading_sigma_deg']:.3f}" for r in g.iter_rows(named=True))
+        cells = ", ".join(f"{r['drive']} @ {r['start_s']:g} s: {heading_cell(r['heading_err_deg'], r['heading_sigma_deg'], 3)}"
+                          for r in g.iter_rows(named=True))
         lines.append(f"| {m} | {L:g} s | {cells} |")
     return "\n".join(lines) + "\n"
 

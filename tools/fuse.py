@@ -201,7 +201,7 @@ def _show(v: Any) -> str:
         return f"{v:g}"
     if isinstance(v, tuple):
         return "(" + ", ".join(_show(x) for x in v) + ")"
-    return str(v)
+    return str(v) if v != "" else "none"
 
 
 def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None,
