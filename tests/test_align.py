@@ -16,7 +16,7 @@ import pytest
 from fieldlog.acquire.config import ConfigError
 from fieldlog.fusion import earth, imugrade
 from fieldlog.replay import reader
-from fieldlog.tools.evaluate import _quat_interp, heading_at_starts, outage_error_series, rms_columns
+from fieldlog.tools.evaluate import attitude_errors, attitudes, heading_at_starts, outage_error_series, rms_columns
 from fieldlog.tools.fuse import drive_config, fuse, fusion_config
 from fieldlog.tools.sim.emit import GpsConfig
 from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise
@@ -102,15 +102,9 @@ def _budget(grade: str, fused: Path, method: str, w0: int, t: float) -> float:
 
 
 def _attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(t_s from the first IMU sample, C_bn solution, C_bn truth, attitude sigma (n, 3) rad: phi E, N, U) of
-    every solution row within the truth."""
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
-    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std")
-    ta = reader.read_topic(drive, "/truth/attitude")
-    ts = a["log_time_ns"]
-    ok = (ts >= ta["log_time_ns"][0]) & (ts <= ta["log_time_ns"][-1])
-    return ((ts[ok] - _t0(drive)) * 1e-9, earth.quat_to_dcm(a["q_xyzw"][ok]),
-            earth.quat_to_dcm(_quat_interp(ts[ok], ta["log_time_ns"], ta["q_xyzw"])), sd["xyz"][ok])
+    """evaluate.attitudes with the time in s from the first IMU sample."""
+    t, C_s, C_t, sd = attitudes(drive, fused, method)
+    return (t - _t0(drive)) * 1e-9, C_s, C_t, sd
 
 
 def _heading_series(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -122,12 +116,9 @@ def _heading_series(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, 
 
 
 def _phi_z(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
-    """(t_s, attitude error phi E, N, U over its sigma (n, 3)): C_solution = (I - [phi x]) C_truth
-    (fusion.errmodel), phi from the skew part of I - C_solution C_truth^T."""
-    t, C_s, C_t, sd = _attitudes(drive, fused, method)
-    M = np.eye(3) - C_s @ np.swapaxes(C_t, 1, 2)
-    phi = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1)
-    return t, phi / np.maximum(sd, 1e-12)
+    """(t_s from the first IMU sample, attitude error phi E, N, U over its sigma (n, 3))."""
+    t, phi, sd = attitude_errors(drive, fused, method)
+    return (t - _t0(drive)) * 1e-9, phi / np.maximum(sd, 1e-12)
 
 
 def _outage_check(drive: Path, fused: Path, grade: str, outages) -> tuple[float, list[float], list[float]]:

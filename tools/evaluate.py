@@ -112,6 +112,27 @@ def _quat_interp(t: np.ndarray, tr: np.ndarray, q: np.ndarray) -> np.ndarray:
     return qi / np.linalg.norm(qi, axis=1, keepdims=True)
 
 
+def attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t_ns, C_bn of the solution, C_bn of ``/truth/attitude``, the printed attitude sigma (n, 3) rad: phi E, N,
+    U) at every solution row within the truth."""
+    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std")
+    ta = reader.read_topic(drive, "/truth/attitude")
+    ts = a["log_time_ns"]
+    ok = (ts >= ta["log_time_ns"][0]) & (ts <= ta["log_time_ns"][-1])
+    return (ts[ok], earth.quat_to_dcm(a["q_xyzw"][ok]),
+            earth.quat_to_dcm(_quat_interp(ts[ok], ta["log_time_ns"], ta["q_xyzw"])), sd["xyz"][ok])
+
+
+def attitude_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_ns, attitude error phi E, N, U (n, 3) rad, its printed sigma (n, 3) rad) at every solution row within the
+    truth: C_solution = (I - [phi x]) C_truth (``fusion.errmodel``), phi from the skew part of
+    I - C_solution C_truth^T."""
+    t, C_s, C_t, sd = attitudes(drive, fused, method)
+    M = np.eye(3) - C_s @ np.swapaxes(C_t, 1, 2)
+    return t, 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1), sd
+
+
 def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]) -> np.ndarray:
     """Errors (n, 9) in QUANTITIES order (m, m/s, deg) of the rows inside the windows: against /truth
     when the drive has it, else against the withheld GPS fixes (attitude NaN)."""
