@@ -108,6 +108,8 @@ def piece_groups(files: list[McapFile], topics: Sequence[str], file_order: bool 
     fk, idx, off, t = (np.concatenate(x) for x in zip(*rows)) if rows else [np.zeros(0, np.int64)] * 4
     order = np.lexsort((off, fk) if file_order else (off, fk, t))
     fk, idx = fk[order], idx[order]
+    if not len(fk):
+        return
     cut = np.flatnonzero(np.diff(fk)) + 1
     for a, b in zip(np.r_[0, cut].tolist(), np.r_[cut, len(fk)].tolist()):
         f = files[int(fk[a])]
