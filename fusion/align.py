@@ -31,8 +31,9 @@ Alignment (:class:`Alignment`):
   sigma = hypot(velocity noise / speed, ``align_sideslip_deg``), the velocity noise from the epoch's covariance
   (or from the fix's when the drive has no velocity). The heading of the static interval is carried to the
   alignment epoch by the yaw gyro (a car that turns as it pulls away).
-- **Initial gyro bias**: the static mean minus the Earth rate through the aligned attitude; sigma per axis, in
-  quadrature: the mean's standard error from the spread of its intervals (noise and residual motion), the bias
+- **Initial gyro bias**: the static mean minus the Earth rate through the static interval's attitude (the aligned
+  one less the heading ``turned`` since: a 3 deg creep turn moves 0.5 deg/h of horizontal Earth rate between the
+  body axes); sigma per axis, in quadrature: the mean's standard error from the spread of its intervals (noise and residual motion), the bias
   instability ``init_gyro_bias_sigma_dps`` (the floor: never the static estimate alone), and the Earth-rate
   projection error (Omega_ie cos(lat) x heading sigma on the horizontal axes; a gyrocompass cannot separate the
   horizontal bias from its heading, so there the horizontal sigma is the prior ``gyro_bias_prior_sigma_dps``).
@@ -429,8 +430,8 @@ class Alignment:
         C = earth.euler_to_dcm(heading, pitch, roll)
         bg = np.zeros(3)
         sd_bg = np.full(3, c.gyro_bias_prior_sigma_dps * _DEG)
-        if static:
-            bg = wm - C.T @ earth.omega_ie_n(lat)
+        if static:  # the Earth rate as the gyros saw it: through the static interval's attitude, before the turn
+            bg = wm - earth.euler_to_dcm(heading - turned, pitch, roll).T @ earth.omega_ie_n(lat)
             horiz = w_h * sd_head  # Earth-rate projection error through the heading sigma
             sd_bg = np.sqrt(se_w ** 2 + (c.init_gyro_bias_sigma_dps * _DEG) ** 2
                             + np.array([horiz, horiz, earth.OMEGA_IE * sd_level]) ** 2)
