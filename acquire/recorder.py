@@ -559,9 +559,7 @@ class ChunkMessages:
         n = len(self.start)
         if n and np.all(self.length == self.length[0]):
             w = int(self.length[0])
-            windows = np.lib.stride_tricks.as_strided(self.data, shape=(len(self.data) - w + 1, w), strides=(1, 1),
-                                                      writeable=False)  # row i: the w bytes from byte i
-            return messages.Packed.from_matrix(windows[self.start])
+            return messages.Packed.from_matrix(byte_windows(self.data, w)[self.start])
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(self.length, out=offsets[1:])
         src = np.repeat(self.start - offsets[:-1], self.length) + np.arange(offsets[-1], dtype=np.int64)
@@ -618,14 +616,20 @@ def chunk_messages(data: bytes) -> ChunkMessages:
     return messages_of(buf, *_walk(buf)[:3])
 
 
+def byte_windows(buf: np.ndarray, k: int) -> np.ndarray:
+    """A read-only view (len(buf) - k + 1, k) of a uint8 buffer: row i holds the k bytes from byte i (no copy;
+    index it with record positions to gather fixed-size heads or payloads in one step)."""
+    return np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - k + 1, 0), k), strides=(1, 1),
+                                           writeable=False)
+
+
 def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
                 channels: Sequence[int] | None = None) -> ChunkMessages:
     """The Message records among walked records (``walk_records``) of ``buf``, as arrays (only those on
     ``channels``, when given)."""
     is_msg = (ops == Opcode.MESSAGE) & (lengths >= 22)
     s, ln = starts[is_msg], lengths[is_msg]
-    windows = np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - 21, 0), 22), strides=(1, 1),
-                                              writeable=False)  # row i: the 22 bytes from byte i
+    windows = byte_windows(buf, 22)
     if channels is not None:
         on = np.isin(windows[s, :2].copy().view("<u2").ravel(), list(channels))
         s, ln = s[on], ln[on]
@@ -682,7 +686,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Ex
 
     Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
     metadata record, every complete chunk whose CRC checks and every message outside chunks (written as
-    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record; writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
+    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record;
+    writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
     kept chunk and adds its messages before the summary. ``src`` must start with the MCAP magic (ValueError).
     ``dst`` appears only complete: it is written as ``dst`` + ``.partial`` and renamed at the end; on any
     error (a full disk) the partial file is removed and the error raised, so a later attempt starts afresh.

@@ -39,7 +39,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
-from fieldlog.acquire.recorder import ChunkMessages, decompress_many, messages_of, walk_records
+from fieldlog.acquire.recorder import ChunkMessages, byte_windows, decompress_many, messages_of, walk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
@@ -63,9 +63,7 @@ def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
     """Little-endian ``dtype`` values (or records of a structured dtype) at byte positions ``pos`` (each must leave
     room for the value)."""
     k = np.dtype(dtype).itemsize
-    windows = np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - k + 1, 0), k), strides=(1, 1),
-                                              writeable=False)  # row i: the k bytes from byte i
-    return windows[np.asarray(pos, np.int64)].view(dtype).ravel()
+    return byte_windows(buf, k)[np.asarray(pos, np.int64)].view(dtype).ravel()
 
 
 @dataclass(eq=False)
