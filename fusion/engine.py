@@ -1,7 +1,10 @@
 """The fusion loop every method runs in: blocks of IMU samples and GPS epochs in, a solution out.
 
-Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only one IMU
-sample, the navigation state and the filter between calls, so memory does not grow with the drive.
+Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only the navigation
+state, the filter and the IMU samples of the covariance cycle still open at the block's end (under
+``cov_step_s``; their rows come with the next block, or :meth:`Engine.finish`) between calls, so memory does
+not grow with the drive and the solution does not depend on where the blocks end (fuse, replay and the live
+view give the same rows).
 
 Per block:
 
@@ -196,7 +199,9 @@ class Engine:
         self.outages = OutageTracker(self.cfg.max_fix_sigma_m)
         self.silence = Silence()
         self._gps_var = np.zeros(3)  # variance (m^2, E N U) of the correlated GPS error the filter cannot see
-        self._carry: tuple[int, np.ndarray, np.ndarray] | None = None  # last sample: t_ns, omega, f (raw)
+        # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
+        self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
         self._gps: list[dict] = []  # epochs not yet reached by the IMU
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
@@ -214,10 +219,8 @@ class Engine:
         t_ns = np.asarray(imu.t_ns, np.int64)[ok]
         w, f = np.asarray(imu.omega_ib_b, float)[ok], np.asarray(imu.f_b, float)[ok]
         if self._carry is not None:
-            keep = t_ns > self._carry[0]
-            t_ns = np.concatenate([[self._carry[0]], t_ns[keep]])
-            w = np.concatenate([self._carry[1][None], w[keep]])
-            f = np.concatenate([self._carry[2][None], f[keep]])
+            keep = t_ns > self._carry[0][-1]
+            t_ns, w, f = (np.concatenate([c, x[keep]]) for c, x in zip(self._carry, (t_ns, w, f)))
         if self.t_ref_ns is None and len(t_ns):
             self.t_ref_ns = int(t_ns[0])
             self.outages.force(self.t_ref_ns, self.cfg.outages)
@@ -245,16 +248,25 @@ class Engine:
                 out.append(self._advance(t, t_ns, w, f, cursor, k))
                 cursor = k
                 self._epoch(ep, w[k] - self.bg)
-        self._interval.add(w, f, cursor, len(t) - 1)
+                self._anchor = float(t[k])
+        # the tail after the last cycle start waits for the next block, so blocks never cut a cycle short
+        held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
+        self._interval.add(w, f, cursor, held)
         if self.nav is not None:
-            out.append(self._advance(t, t_ns, w, f, cursor, len(t) - 1))
-        self._carry = (int(t_ns[-1]), w[-1].copy(), f[-1].copy())
+            out.append(self._advance(t, t_ns, w, f, cursor, held))
+        self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
         return Solution.concat(out), self.outages.take()
 
-    def finish(self) -> list[Outage]:
-        """Close an outage still open at the end of the drive; returns the outages not yet returned."""
-        self.outages.finish(self._carry[0] if self._carry else None)
-        return self.outages.take()
+    def finish(self) -> tuple[Solution, list[Outage]]:
+        """End of the drive: the rows of the samples held back for their covariance cycle (under ``cov_step_s``),
+        and the outages not yet returned (one still open is closed)."""
+        sol = Solution.concat([])
+        if self._carry is not None and self.nav is not None:
+            t_ns, w, f = self._carry
+            sol = self._advance((t_ns - self.t_ref_ns) * 1e-9, t_ns, w, f, 0, len(t_ns) - 1)
+            self._carry = (t_ns[-1:], w[-1:], f[-1:])
+        self.outages.finish(int(self._carry[0][-1]) if self._carry else None)
+        return sol, self.outages.take()
 
     # -- epochs ---------------------------------------------------------------------------------
 
@@ -288,7 +300,7 @@ class Engine:
 
     def _start(self, a: align.Aligned, t_k: float, t_k_ns: int) -> None:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
-        self.nav, self.bg = a.nav, a.bg
+        self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
         self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
         if self.bridge is not None:
@@ -403,8 +415,7 @@ class Engine:
         self.nav = sol.state(-1)
         # filter cycles: end at the first sample of each cov_step_s slot after i0, and at i1
         tt = sol.t
-        slot = np.floor((tt - tt[0]) / self.cfg.cov_step_s).astype(np.int64)
-        ends = np.flatnonzero(np.diff(slot) != 0) + 1
+        ends = self._slot_starts(tt)
         if len(ends) == 0 or ends[-1] != len(tt) - 1:
             ends = np.append(ends, len(tt) - 1)
         starts = np.concatenate([[0], ends[:-1]])
@@ -432,6 +443,18 @@ class Engine:
         else:
             diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
         return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, self._gps_var, local)
+
+    def _slot_starts(self, t: np.ndarray) -> np.ndarray:
+        """Indexes into t (s) of the samples that start a ``cov_step_s`` slot counted from the last GPS epoch (the
+        anchor; t[0] before the first), after t[0]."""
+        anchor = t[0] if self._anchor is None else self._anchor
+        slot = np.floor((t - anchor) / self.cfg.cov_step_s).astype(np.int64)
+        return np.flatnonzero(np.diff(slot) != 0) + 1
+
+    def _cycle_start(self, t: np.ndarray, i0: int, i1: int) -> int:
+        """The last sample in [i0, i1] that starts a covariance cycle (i0 if none after it)."""
+        s = self._slot_starts(t[i0:i1 + 1])
+        return i0 + int(s[-1]) if len(s) else i0
 
     def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray
                           ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:

@@ -174,7 +174,7 @@ class Player:
         epochs = gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {}))
         sol, done = self.engine.process(inputs.imu_block(imu), epochs)
         self._imu(imu)
-        ref = None
+        ref, ref_is_truth = None, False
         fix = d.get("/gps/fix")
         if fix is not None and len(fix["log_time_ns"]):
             gps, epochs_t, no_fix = rv.gps_track(fix)
@@ -206,6 +206,12 @@ class Player:
             self.truth_row += len(tf["log_time_ns"])
         if ref is not None and not ref_is_truth:
             ref = self.gps_pending = _cat(self.gps_pending, ref)
+        self._solution(sol, ref, ref_is_truth)
+        self._outages(done)
+        self.res.blocks += 1
+
+    def _solution(self, sol: Solution, ref: rv.Track | None, ref_is_truth: bool) -> None:
+        """Log fused rows, and their errors against ``ref`` (truth, or the GPS epochs not yet scored)."""
         if len(sol.t_ns) and self.origin is not None:
             trk = _fused_track(sol)
             self.fused.log(trk, self.origin)
@@ -219,11 +225,11 @@ class Player:
                 rv._log_errors(self.rec, self.method, rv.errors(trk, ref, ref_is_truth, self.origin),
                                rv.method_color(self.method, 0))
         self.res.solutions += len(sol.t_ns)
-        self._outages(done)
-        self.res.blocks += 1
 
     def finish(self) -> ReplayResult:
-        self._outages(self.engine.finish())
+        sol, done = self.engine.finish()
+        self._solution(sol, self.gps_pending, False)
+        self._outages(done)
         self.res.updates = self.engine.updates
         return self.res
 

@@ -368,8 +368,8 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                     o.start_ns, o.start_ns, o.end_ns, o.reason))
                 outages += 1
 
-        for block in stream:
-            sol, done = engine.process(block.imu, block.gps)
+        def take(sol: Solution, done) -> None:
+            nonlocal rows
             if smooth:
                 kept.append(sol)
             else:
@@ -377,9 +377,12 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                 odom.write(rec, sol)
             write_outages(done)
             rows += len(sol.t_ns)
+
+        for block in stream:
+            take(*engine.process(block.imu, block.gps))
             if progress:
                 progress(min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
-        write_outages(engine.finish())
+        take(*engine.finish())
         if smooth:
             smoothed = smooth_solution(Solution.concat(kept), log)
             _write(rec, method, smoothed)
