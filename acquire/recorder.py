@@ -22,13 +22,13 @@ import os
 import struct
 import threading
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, Protocol, Sequence
 
 import numpy as np
 import zstandard
+from zlib_ng.zlib_ng import crc32
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -346,7 +346,7 @@ class Recorder:
             data=compressed,
             message_start_time=start,
             message_end_time=end,
-            uncompressed_crc=zlib.crc32(data),
+            uncompressed_crc=crc32(data),
             uncompressed_size=len(data),
         )
         chunk_offset = self._f.tell()
@@ -427,8 +427,8 @@ class Recorder:
         for o in offsets:
             o.write(sb)
         summary = sb.end()
-        crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+        crc = crc32(summary)
+        crc = crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._f.write(summary)
         self._write_record(Footer(summary_start, summary_offset_start, crc))
         self._f.write(MAGIC)
@@ -585,29 +585,69 @@ def _zstd() -> "zstandard.ZstdDecompressor":
 def decompress(compression: str, data, size: int, crc: int):
     """A chunk's records, uncompressed (``data``: bytes or a buffer; returned as it is when not compressed);
     raises ValueError if the size or the CRC (0: none) does not match."""
-    return decompress_many([compression], [data], [size], [crc])[0]
+    out = decompress_many(data, [compression], [0], [len(data)], [size], [crc])
+    return data if compression == "" else out
 
 
-def decompress_many(compression: Sequence[str], data: Sequence, size: Sequence[int], crc: Sequence[int]) -> list:
-    """``decompress`` over many chunks (``compression[i]``, ``data[i]``, ...) in one call: small chunks are
-    many, and the per-chunk work outside the codec is most of their cost."""
-    zstd = _zstd().decompress
-    out = []
-    for comp, d, n, c in zip(compression, data, size, crc):
-        if comp == "zstd":
-            d = zstd(d, max_output_size=n)
-        elif comp == "lz4":
+class ChunkError(ValueError):
+    """A chunk that is not what its record says (it does not decompress, or to another size or CRC);
+    ``index``: its position among the chunks of the ``decompress_many`` call."""
+
+    def __init__(self, index: int, what: str) -> None:
+        super().__init__(what)
+        self.index = index
+
+
+def decompress_many(buf, compression: Sequence[str], at: Sequence[int], length: Sequence[int],
+                    size: Sequence[int], crc: Sequence[int]):
+    """The records of many chunks, uncompressed and joined in order (one bytes-like object): chunk i is
+    ``compression[i]`` of the ``length[i]`` bytes at ``at[i]`` of ``buf`` (bytes, mmap, ...), ``size[i]``
+    bytes with CRC-32 ``crc[i]`` (0: none) once uncompressed. Raises ``ChunkError`` for the first chunk that
+    does not match. Small chunks are many, so the zstd ones are decompressed in one call (python-zstandard's
+    ``multi_decompress_to_buffer``, in C) and the CRCs taken with zlib-ng's SIMD CRC-32."""
+    at, length, size, crc = (np.asarray(x, np.int64) for x in (at, length, size, crc))
+    mv = memoryview(buf).cast("B")
+    parts: list = []
+    i, n = 0, len(at)
+    while i < n:
+        j = i + 1
+        while j < n and compression[j] == compression[i]:
+            j += 1
+        if compression[i] == "zstd":
+            segs = np.stack([at[i:j], length[i:j]], axis=1).astype(np.uint64)
+            try:
+                parts.extend(_zstd().multi_decompress_to_buffer(
+                    zstandard.BufferWithSegments(mv, segs.tobytes()),
+                    decompressed_sizes=size[i:j].astype(np.uint64).tobytes()))
+            except zstandard.ZstdError:
+                parts.extend(_one(compression[k], mv[at[k]:at[k] + length[k]], int(size[k]), k) for k in range(i, j))
+        else:
+            parts.extend(_one(compression[k], mv[at[k]:at[k] + length[k]], int(size[k]), k) for k in range(i, j))
+        i = j
+    got = np.fromiter(map(len, parts), np.int64, n)
+    bad = got != size
+    check = crc != 0
+    bad[check] |= np.fromiter(map(crc32, (p for p, c in zip(parts, check.tolist()) if c)), np.int64) != crc[check]
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ChunkError(k, "chunk size mismatch" if got[k] != size[k] else "chunk CRC mismatch")
+    return parts[0] if n == 1 else b"".join(parts)
+
+
+def _one(compression: str, data, size: int, k: int):
+    """Chunk ``k`` of a ``decompress_many`` call (``size`` bytes uncompressed), uncompressed (not checked)."""
+    try:
+        if compression == "zstd":
+            return _zstd().decompress(data, max_output_size=size)
+        if compression == "lz4":
             import lz4.frame
 
-            d = lz4.frame.decompress(d)
-        elif comp != "":
-            raise ValueError(f"unknown compression {comp!r}")
-        if len(d) != n:
-            raise ValueError("chunk size mismatch")
-        if c != 0 and zlib.crc32(d) != c:
-            raise ValueError("chunk CRC mismatch")
-        out.append(d)
-    return out
+            return lz4.frame.decompress(data)
+    except Exception as e:  # a damaged frame: the codecs raise their own errors
+        raise ChunkError(k, f"chunk does not decompress ({compression}: {e})") from None
+    if compression != "":
+        raise ChunkError(k, f"unknown compression {compression!r}")
+    return data
 
 
 def chunk_messages(data: bytes) -> ChunkMessages:

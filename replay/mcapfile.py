@@ -16,13 +16,14 @@ facts, so a file with or without a summary, indexes, statistics or summary offse
 is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
 or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
 per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
-walk, the choice of pieces for some topics and the reading of a group of them are all vectorised; only the
-decompression is a call per chunk.
+walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (the zstd
+chunks of a group are decompressed in one call, and checked against their CRC-32s).
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
 "cut short, run ``fieldlog recover``". A file that is not MCAP at all is ``NotMcapError``; a chunk whose
-fields overrun its record is ``ValueError`` naming its byte offset. All are ValueErrors, so every command
+fields overrun its record, or whose content does not decompress to its size and CRC, is ``ValueError`` naming
+its byte offset. All are ValueErrors, so every command
 reports them in one line.
 """
 from __future__ import annotations
@@ -39,7 +40,8 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
-from fieldlog.acquire.recorder import ChunkMessages, byte_windows, decompress_many, messages_of, walk_records
+from fieldlog.acquire.recorder import (ChunkError, ChunkMessages, byte_windows, decompress_many, messages_of,
+                                      walk_records)
 
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
@@ -230,22 +232,24 @@ class McapFile:
 
     def records(self, i: int) -> bytes | memoryview:
         """The uncompressed records of piece ``i`` (a chunk's content, or the run's bytes in place)."""
-        return self._bodies(np.array([i]))[0]
+        return self._bodies(np.array([i]))
 
-    def _bodies(self, idx: np.ndarray) -> list[bytes | memoryview]:
-        p, mv = self.pieces, memoryview(self._mm)
+    def _bodies(self, idx: np.ndarray) -> bytes | memoryview:
+        """The uncompressed records of pieces ``idx``, joined; ``ValueError`` naming the first damaged chunk."""
+        p = self.pieces
         names = [self.compressions[k] if c else "" for c, k in zip(p.chunk[idx].tolist(), p.comp[idx].tolist())]
-        size = np.where(p.chunk[idx], p.size[idx], p.body_len[idx]).tolist()
-        return decompress_many(names, [mv[b:b + n] for b, n in zip(p.body[idx].tolist(), p.body_len[idx].tolist())],
-                               size, p.crc[idx].tolist())
+        try:
+            return decompress_many(self._mm, names, p.body[idx], p.body_len[idx],
+                                   np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx])
+        except ChunkError as e:
+            raise ValueError(f"{self.path}: damaged chunk at byte {int(p.offset[idx[e.index]])}: {e} "
+                             f"(`fieldlog recover {self.path}` keeps the chunks before it)") from None
 
     def read(self, idx: np.ndarray | list[int], topics: Collection[str] | None = None) -> ChunkMessages:
         """The messages of pieces ``idx`` (of this file) as one batch (only those on ``topics``, when given):
         their records joined and walked once; schema and channel records found inside are added to the file's
         tables first."""
-        parts = self._bodies(np.asarray(idx, np.int64))
-        data = parts[0] if len(parts) == 1 else b"".join(parts)
-        buf = np.frombuffer(data, np.uint8)
+        buf = np.frombuffer(self._bodies(np.asarray(idx, np.int64)), np.uint8)
         ops, starts, lengths, _ = walk_records(buf, 0, len(buf) // 31 + 1)
         for op in (Opcode.SCHEMA, Opcode.CHANNEL):
             for i in np.flatnonzero(ops == op).tolist():

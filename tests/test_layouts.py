@@ -12,6 +12,7 @@ unchunked file.
 from __future__ import annotations
 
 import heapq
+import re
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -261,6 +262,29 @@ def test_truncated_is_told_apart_from_unindexed(corpus, tmp_path, capsys):
     shutil.copy(cut, d / "s_0001.mcap")
     shutil.copy(corpus["lz4"], d / "s_0001.recovered.mcap")
     assert drive_files(d) == [d / "s_0001.recovered.mcap"]
+
+
+@pytest.mark.parametrize("layout", ["original", "chunks-4k", "lz4", "uncompressed"])
+def test_a_damaged_chunk_is_reported_never_read(layout, original, corpus, tmp_path, capsys):
+    """One byte flipped inside a chunk holding /imu (zstd, 4 KiB zstd, lz4, uncompressed): reading the topic
+    fails naming the file and the chunk's byte offset (its CRC-32, or the codec, catches it), and a command
+    reading it (``allan``) says so in one line with exit code 2; no wrong data comes back."""
+    src = original if layout == "original" else corpus[layout]
+    (f,) = open_drive(src)
+    p = f.pieces
+    imu = {c for c, ch in f.channels.items() if ch.topic == "/imu"}
+    held = np.flatnonzero(p.chunk & f.may_hold(imu))
+    i = int(held[len(held) // 2])
+    assert p.crc[i] != 0                                          # the writer gave the chunk a CRC
+    raw = bytearray(src.read_bytes())
+    raw[int(p.body[i] + p.body_len[i] // 2)] ^= 0x55
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(raw)
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: damaged chunk at byte {int(p.offset[i])}: chunk ")):
+        reader.read_topic(bad, "/imu")
+    assert fieldlog(["allan", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{bad}: damaged chunk at byte {int(p.offset[i])}" in err[0], err
 
 
 def test_allan_and_filter_take_the_session(original, session, tmp_path):

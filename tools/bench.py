@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -677,12 +678,22 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
                    if "/imu" in b.data)
 
     read(own)  # numba compile / cache load outside the timing
-    base = None
+    wall: dict[str, list[float]] = {k: [] for k in files}
+    cpu: dict[str, list[float]] = {k: [] for k in files}
+    n = {}
+    for _ in range(runs):  # interleaved: every layout once per round, so a change of load hits them all
+        for name, path in files.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            n[name] = read(path)
+            wall[name].append(time.perf_counter() - w0)
+            cpu[name].append(time.process_time() - c0)
+    print(f"load average {os.getloadavg()[0]:.1f} (1 min) after the runs; medians of {runs} interleaved runs")
+    w_base, c_base = statistics.median(wall["own (recorder)"]), statistics.median(cpu["own (recorder)"])
     for name, path in files.items():
-        med, ts, n = timed(lambda p=path: read(p), runs)
-        base = base or med
-        print(f"read {name:15s} {path.stat().st_size / 1e6:6.1f} MB: median {med:5.2f} s  (runs: {fmt_times(ts)})  "
-              f"{n} IMU samples, x{med / base:.2f} of the own file   target <= x2")
+        w, c = statistics.median(wall[name]), statistics.median(cpu[name])
+        print(f"read {name:15s} {path.stat().st_size / 1e6:6.1f} MB: wall {w:5.2f} s x{w / w_base:.2f}, "
+              f"CPU {c:5.2f} s x{c / c_base:.2f} of the own file (target <= x2)  (wall runs: {fmt_times(wall[name])})  "
+              f"{n[name]} IMU samples")
 
 
 BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
