@@ -185,6 +185,7 @@ TOPICS: dict[str, str] = {
     "/truth/fix": NAVSATFIX,
     "/truth/vel": TWIST,
     "/truth/attitude": QUATERNION,
+    "/truth/imu_bias": IMU,
     "/fusion/outage": OUTAGE,
     "/tf_static": TFMESSAGE,
     "/tf": TFMESSAGE,
@@ -199,13 +200,14 @@ FUSION_SUBTOPICS: dict[str, str] = {
     "std": VECTOR3,
     "odom": ODOMETRY,
     "attitude_std": VECTOR3,
+    "imu_bias": IMU,
 }
 _FUSION_RE = re.compile(rf"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|({'|'.join(FUSION_SUBTOPICS)}))$")
 
 
 def topic_type(topic: str) -> str:
-    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom}`` and the
-    distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom,imu_bias}``
+    and the distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
     """

@@ -442,7 +442,8 @@ class Engine:
             local = (self.filter.local_states, self.filter.local_diag) if self._distributed else None
         else:
             diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, self._gps_var, local)
+        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, np.concatenate([self.bg, self.ba]),
+                           self._gps_var, local)
 
     def _slot_starts(self, t: np.ndarray) -> np.ndarray:
         """Indexes into t (s) of the samples that start a ``cov_step_s`` slot counted from the last GPS epoch (the

@@ -16,7 +16,9 @@ NS = 1_000_000_000
 @dataclass
 class Solution:
     """Output rows: t_ns (n,), lat, lon (rad), h (m), v_n (n, 3), q (n, 4) [x, y, z, w] of C_bn,
-    sigma (n, 9): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad.
+    sigma (n, 15): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad, gyro bias rad/s, accelerometer
+    bias m/s^2; bias (n, 6): the IMU bias estimate the row's INS ran with, gyro rad/s then accelerometer m/s^2,
+    body RFU (``fusion.errmodel`` states 9:15 are its residual).
 
     local (n, 2, 12) or None: the distributed filter's local solutions (KF_I, KF_II), the INS corrected by that
     local estimate alone: lat, lon (rad), h (m), v_n (3) ENU m/s, sigma position ENU (3) m, velocity (3) m/s."""
@@ -28,22 +30,23 @@ class Solution:
     v_n: np.ndarray
     q: np.ndarray
     sigma: np.ndarray
+    bias: np.ndarray
     local: np.ndarray | None = None
 
     @staticmethod
     def concat(parts: list["Solution"]) -> "Solution":
         if not parts:
             return Solution(np.zeros(0, np.int64), *(np.zeros(0),) * 3, np.zeros((0, 3)), np.zeros((0, 4)),
-                            np.zeros((0, 9)))
+                            np.zeros((0, 15)), np.zeros((0, 6)))
         local = [p.local for p in parts if len(p.t_ns)]
         return Solution(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma")),
+                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")),
                         np.concatenate(local) if local and all(x is not None for x in local) else None)
 
 
 def sigmas(diag: np.ndarray) -> np.ndarray:
-    """Position, velocity and attitude sigmas (..., 9) from covariance diagonals (..., 15)."""
-    return np.sqrt(np.maximum(np.asarray(diag)[..., :9], 0.0))
+    """Position, velocity, attitude and IMU bias sigmas (..., 15) from covariance diagonals (..., 15)."""
+    return np.sqrt(np.maximum(np.asarray(diag)[..., :15], 0.0))
 
 
 def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
@@ -52,11 +55,12 @@ def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
     return np.flatnonzero(np.diff(bucket) != 0) + 1
 
 
-def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray,
+def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray, bias: np.ndarray,
          gps_var: np.ndarray | None = None, local: tuple[np.ndarray, np.ndarray] | None = None
          ) -> Solution:
     """Solution rows of an INS segment: sol a ``fusion.ins.NavSolution`` over samples t_ns (n,); the covariance
-    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); local: the distributed filter's
+    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); bias (6,) the segment's gyro
+    (rad/s) and accelerometer (m/s^2) bias estimate, body RFU; local: the distributed filter's
     local estimates and variances after each cycle, (m, 2, 15) each, or None; gps_var (3,) m^2
     added to the position variances (``correlated_variance``)."""
     r = output_rows(t_ns, output_hz)
@@ -71,7 +75,8 @@ def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.nda
         for i in range(2):
             loc[:, i, 0:6] = corrected(sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], x[:, i])
             loc[:, i, 6:12] = np.sqrt(np.maximum(d[:, i, 0:6], 0.0))
-    return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig, loc)
+    return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig,
+                    np.tile(np.asarray(bias, float), (len(r), 1)), loc)
 
 
 def corrected(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, x: np.ndarray) -> np.ndarray:

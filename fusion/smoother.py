@@ -217,9 +217,9 @@ def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
         return sol
     e, var = row_errors(rts(log), sol.t_ns)
     lat, lon, h, v_n, q = correct(sol.lat, sol.lon, sol.h, sol.v_n, sol.q, e)
-    var = np.maximum(var[:, :9], 0.0)
+    var = np.maximum(var, 0.0)
     if log.gps_var:  # the correlated GPS error no smoothing removes either
         t = np.array([g[0] for g in log.gps_var])
         k = np.searchsorted(t, sol.t_ns, side="right") - 1
         var[:, :3] += np.where((k >= 0)[:, None], np.array([g[1] for g in log.gps_var])[np.maximum(k, 0)], 0.0)
-    return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(var))
+    return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(var), sol.bias + e[:, 9:15])  # e 9:15: true - estimate

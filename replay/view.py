@@ -34,6 +34,10 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       ``IMU_DECIMATION`` consecutive valid samples (500 Hz -> 50 Hz), stamped at
                                       the mean sample time; a trailing incomplete group is dropped, so the row
                                       count is ``valid /imu samples // IMU_DECIMATION``
+``bias/gyro/<method>``                Scalars x, y, z (body RFU), deg/h: the gyro bias estimate the method's INS
+                                      ran with (``/fusion/<method>/imu_bias``), one row per solution row
+``bias/accel/<method>``               Scalars x, y, z (body RFU), mg (1 mg = 9.80665e-3 m/s^2): the accelerometer
+                                      bias estimate
 ``timesync/state``                    Scalars: FREE=0, HOLDOVER=1, LOCKED=2 (``/time/sync``)
 ``timesync/rate_ppm``                 Scalars: DAQ oscillator rate error, ppm
 ``timesync/residual_us``              Scalars: RMS fit residual of the inlier PPS edges, us
@@ -328,6 +332,22 @@ def _log_scalar(rec: rr.RecordingStream, path: str, t_ns: np.ndarray, x: np.ndar
             static=True)
 
 
+BIAS_UNITS = (("gyro", "omega_ib_b", 180.0 / np.pi * 3600.0, "deg/h"), ("accel", "f_b", 1e3 / 9.80665, "mg"))
+
+
+def _log_bias(rec: rr.RecordingStream, fused: str | os.PathLike[str], method: str, color) -> None:
+    """``bias/{gyro,accel}/<method>`` from ``/fusion/<method>/imu_bias`` (fused files written before it: none)."""
+    topic = f"/fusion/{method.split('@')[0]}/imu_bias"
+    if not _topic_names(fused).get(topic):
+        return
+    b = reader.read_topic(fused, topic)
+    ok = b["valid"]
+    shades = [tuple(int(c * k) for c in color) for k in (1.0, 0.7, 0.45)]
+    for kind, key, scale, unit in BIAS_UNITS:
+        _log_scalar(rec, f"bias/{kind}/{method}", b["log_time_ns"][ok], b[key][ok] * scale,
+                    [f"{method} {kind} bias {a} ({unit})" for a in "xyz"], shades)
+
+
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
     "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
     "/gps/vel": ("v_n",),
@@ -411,6 +431,8 @@ def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
                 rrb.Tabs(
                     _plot("imu/gyro", f"gyro (means of {IMU_DECIMATION} samples)"),
                     _plot("imu/accel", f"accel (means of {IMU_DECIMATION} samples)"),
+                    rrb.Vertical(_plot("bias/gyro", "gyro bias estimate (deg/h)"),
+                                 _plot("bias/accel", "accel bias estimate (mg)"), name="IMU bias estimates"),
                     rrb.Vertical(
                         _plot("timesync/state", "sync state"),
                         _plot("timesync/rate_ppm", "rate error (ppm)"),
@@ -481,6 +503,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                 _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
+        _log_bias(rec, path, m, color)
 
     windows = _outages(files)
     t_start = min(int(c.t_ns[0]) for c in candidates)

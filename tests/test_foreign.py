@@ -324,7 +324,7 @@ def test_nan_is_never_written():
     from fieldlog.fusion.engine import Solution
 
     bad = Solution(np.array([1, 2], np.int64), np.array([0.5, np.nan]), np.zeros(2), np.zeros(2),
-                   np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.ones((2, 9)))
+                   np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.ones((2, 15)), np.zeros((2, 6)))
     with pytest.raises(Diverged, match="diverged"):
         _write(None, "kf", bad)
 

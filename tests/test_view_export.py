@@ -88,6 +88,8 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
         ("/enu/fusion/kf", "LineStrips3D:strips"): n_kf,
         ("/errors/pos/east/kf", "Scalars:scalars"): n_kf,
         ("/errors/vel/up/kf", "Scalars:scalars"): n_kf,
+        ("/bias/gyro/kf", "Scalars:scalars"): n_kf,
+        ("/bias/accel/kf", "Scalars:scalars"): n_kf,
         ("/status/outage", "Scalars:scalars"): 1 + 2 * 2,  # drive start, then each window's start and end
         ("/map/outage", "GeoLineStrings:line_strings"): 1,  # one static row holding both windows' strips
         ("/map/gps/track", "GeoLineStrings:line_strings"): 1,

@@ -241,7 +241,7 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     if len(s.t_ns) == 0:
         return
     bad = ~(np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
-            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1))
+            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
     if bad.any():
         raise Diverged(f"the {method} solution diverged (NaN or inf) at UTC {int(s.t_ns[np.argmax(bad)]) * 1e-9:.3f} s; "
                        "nothing from there on was written: check the IMU frame (--imu-frame) and units")
@@ -259,6 +259,10 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id="enu"))
     rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id="enu"))
     rec.write_batch(f"{base}/attitude_std", t, messages.encode_vector3(t, s.sigma[:, 6:9], frame_id="enu"))
+    bias_cov = np.zeros((len(t), 2, 9))
+    bias_cov[:, :, [0, 4, 8]] = var[:, 9:15].reshape(-1, 2, 3)
+    rec.write_batch(f"{base}/imu_bias", t, messages.encode_imu(t, s.bias[:, 0:3], s.bias[:, 3:6], bias_cov[:, 0],
+                                                               bias_cov[:, 1], frame_id="imu"))
     if s.local is None:
         return
     for i, name in enumerate(("kf1", "kf2")):
