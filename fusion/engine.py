@@ -199,6 +199,7 @@ class Engine:
         self.outages = OutageTracker(self.cfg.max_fix_sigma_m)
         self.silence = Silence()
         self._gps_var = np.zeros(3)  # variance (m^2, E N U) of the correlated GPS error the filter cannot see
+        self._gps_var_kf2 = np.zeros(3)  # the same for the distributed filter's KF_II (GPS position) alone
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
@@ -345,6 +346,9 @@ class Engine:
         if not isinstance(self.filter, gpserror.GpsErrorKF):  # the states carry it: nothing to add
             self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
                                                        period, self.cfg.gps_error_tau_s)
+        if self._distributed:  # KF_II's local solution averages the same fixes (KF_I sees no position)
+            self._gps_var_kf2 = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.kf_pos.P)[POS],
+                                                           period, self.cfg.gps_error_tau_s)
         if self.log is not None:
             self.log.gps_var.append((ep["t_ns"], self._gps_var.copy()))
         x = self.filter.state
@@ -442,6 +446,10 @@ class Engine:
             local = (self.filter.local_states, self.filter.local_diag) if self._distributed else None
         else:
             diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
+        if local is not None:
+            d = local[1].copy()
+            d[:, 1, POS] += self._gps_var_kf2
+            local = (local[0], d)
         return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, np.concatenate([self.bg, self.ba]),
                            self._gps_var, local)
 

@@ -149,6 +149,30 @@ def test_local_solutions_exist_and_differ(runs):
     assert s1 > 2.0 * s2 > 0.0
 
 
+def test_local_solution_sigmas_cover_the_truth(runs):
+    """The published KF_I and KF_II solutions are honest: from 100 s on, east and north within 3 sigma at >= 90 %
+    of the rows of every seed, with GPS and in the outage. KF_II averages the fixes as the fused filter does, so its
+    sigma carries the same correlated GPS error (output.correlated_variance); without it 29-85 % of KF_II's rows
+    with GPS were within 3 sigma, and the outage reached 4.5 sigma."""
+    shares = []
+    for seed in SEEDS:
+        res, _, drive = runs[seed, "dkf"]
+        tr = read_topic(drive, "/truth/fix")
+        t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
+        for k in ("kf1", "kf2"):
+            f = read_topic(res.path, f"/fusion/dkf/{k}/fix")
+            m = f["log_time_ns"] > t0 + 100 * 10**9
+            t = f["log_time_ns"][m]
+            lat = np.radians(np.interp(t, tr["log_time_ns"], tr["lat_deg"]))
+            rm, rn = earth.principal_radii(lat, 0.0)
+            e = np.column_stack([np.radians(f["lon_deg"][m] - np.interp(t, tr["log_time_ns"], tr["lon_deg"]))
+                                 * rn * np.cos(lat), (np.radians(f["lat_deg"][m]) - lat) * rm])
+            sd = np.sqrt(f["position_covariance"][m][:, [0, 4]])
+            shares.append((seed, k, np.mean(np.abs(e) <= 3 * sd, axis=0)))
+    print("within 3 sigma, E N:", [(s, k, np.round(x, 2)) for s, k, x in shares])
+    assert all(np.all(x >= 0.9) for _, _, x in shares)
+
+
 def test_hybrid_differs_from_dkf_in_the_outage_only(runs):
     for seed in SEEDS:
         a = read_topic(runs[seed, "dkf"][0].path, "/fusion/dkf/fix")
