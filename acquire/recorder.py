@@ -585,7 +585,7 @@ def _zstd() -> "zstandard.ZstdDecompressor":
 def decompress(compression: str, data, size: int, crc: int):
     """A chunk's records, uncompressed (``data``: bytes or a buffer; returned as it is when not compressed);
     raises ValueError if the size or the CRC (0: none) does not match."""
-    out = decompress_many(data, [compression], [0], [len(data)], [size], [crc])
+    out = decompress_many(data, [compression], [0], [0], [len(data)], [size], [crc])
     return data if compression == "" else out
 
 
@@ -598,40 +598,37 @@ class ChunkError(ValueError):
         self.index = index
 
 
-def decompress_many(buf, compression: Sequence[str], at: Sequence[int], length: Sequence[int],
+def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int], length: Sequence[int],
                     size: Sequence[int], crc: Sequence[int]):
     """The records of many chunks, uncompressed and joined in order (one bytes-like object): chunk i is
-    ``compression[i]`` of the ``length[i]`` bytes at ``at[i]`` of ``buf`` (bytes, mmap, ...), ``size[i]``
-    bytes with CRC-32 ``crc[i]`` (0: none) once uncompressed. Raises ``ChunkError`` for the first chunk that
-    does not match. Small chunks are many, so the zstd ones are decompressed in one call (python-zstandard's
-    ``multi_decompress_to_buffer``, in C) and the CRCs taken with zlib-ng's SIMD CRC-32."""
-    at, length, size, crc = (np.asarray(x, np.int64) for x in (at, length, size, crc))
+    compressed with ``names[comp[i]]`` ("": not compressed), the ``length[i]`` bytes at ``at[i]`` of ``buf``
+    (bytes, mmap, ...), and ``size[i]`` bytes with CRC-32 ``crc[i]`` (0: none) once uncompressed. Raises
+    ``ChunkError`` for the first chunk that does not match. Small chunks are many, so each run of zstd chunks is
+    decompressed in one call (python-zstandard's ``multi_decompress_to_buffer``: in C, without the GIL, and it
+    checks the sizes) and the CRCs are taken with zlib-ng's SIMD CRC-32."""
+    comp, at, length, size, crc = (np.asarray(x, np.int64) for x in (comp, at, length, size, crc))
     mv = memoryview(buf).cast("B")
     parts: list = []
-    i, n = 0, len(at)
-    while i < n:
-        j = i + 1
-        while j < n and compression[j] == compression[i]:
-            j += 1
-        if compression[i] == "zstd":
+    cut = np.r_[0, np.flatnonzero(np.diff(comp)) + 1, len(comp)].tolist()
+    for i, j in zip(cut, cut[1:]):
+        name = names[comp[i]]
+        if name == "zstd":
             segs = np.stack([at[i:j], length[i:j]], axis=1).astype(np.uint64)
             try:
                 parts.extend(_zstd().multi_decompress_to_buffer(
                     zstandard.BufferWithSegments(mv, segs.tobytes()),
                     decompressed_sizes=size[i:j].astype(np.uint64).tobytes()))
-            except zstandard.ZstdError:
-                parts.extend(_one(compression[k], mv[at[k]:at[k] + length[k]], int(size[k]), k) for k in range(i, j))
-        else:
-            parts.extend(_one(compression[k], mv[at[k]:at[k] + length[k]], int(size[k]), k) for k in range(i, j))
-        i = j
-    got = np.fromiter(map(len, parts), np.int64, n)
-    bad = got != size
+                continue
+            except zstandard.ZstdError:  # a damaged frame: find it
+                pass
+        parts.extend(_one(name, mv[at[k]:at[k] + length[k]], int(size[k]), k) for k in range(i, j))
+    bad = np.fromiter(map(len, parts), np.int64, len(parts)) != size
     check = crc != 0
     bad[check] |= np.fromiter(map(crc32, (p for p, c in zip(parts, check.tolist()) if c)), np.int64) != crc[check]
     if bad.any():
         k = int(np.argmax(bad))
-        raise ChunkError(k, "chunk size mismatch" if got[k] != size[k] else "chunk CRC mismatch")
-    return parts[0] if n == 1 else b"".join(parts)
+        raise ChunkError(k, "chunk size mismatch" if len(parts[k]) != size[k] else "chunk CRC mismatch")
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def _one(compression: str, data, size: int, k: int):
@@ -663,6 +660,20 @@ def byte_windows(buf: np.ndarray, k: int) -> np.ndarray:
                                            writeable=False)
 
 
+def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
+    """Little-endian ``dtype`` values (or records of a structured dtype) at byte positions ``pos`` of a uint8
+    buffer (each must leave room for the value). Integers are put together from one ``take`` per byte (twice as
+    fast as gathering rows of ``byte_windows``, which the records use)."""
+    dt, pos = np.dtype(dtype), np.asarray(pos, np.int64)
+    if dt.kind not in "iu":
+        return byte_windows(buf, dt.itemsize)[pos].view(dt).ravel()
+    u = np.dtype(f"<u{dt.itemsize}")
+    out = buf.take(pos).astype(u)
+    for j in range(1, dt.itemsize):
+        out |= buf.take(pos + j).astype(u) << u.type(8 * j)
+    return out.view(dt)
+
+
 def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
                 channels: Sequence[int] | None = None) -> ChunkMessages:
     """The Message records among walked records (``walk_records``) of ``buf``, as arrays (only those on
@@ -671,7 +682,7 @@ def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: n
     s, ln = starts[is_msg], lengths[is_msg]
     windows = byte_windows(buf, 22)
     if channels is not None:
-        on = np.isin(windows[s, :2].copy().view("<u2").ravel(), list(channels))
+        on = np.isin(le(buf, s, "<u2"), list(channels))
         s, ln = s[on], ln[on]
     hdr = windows[s]
     fields = hdr.reshape(-1).view(

@@ -40,8 +40,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
-from fieldlog.acquire.recorder import (ChunkError, ChunkMessages, byte_windows, decompress_many, messages_of,
-                                      walk_records)
+from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, messages_of, walk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
@@ -59,13 +58,6 @@ class NotMcapError(ValueError):
 
 class TruncatedError(ValueError):
     """The file is MCAP but cut short (no footer and closing magic)."""
-
-
-def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
-    """Little-endian ``dtype`` values (or records of a structured dtype) at byte positions ``pos`` (each must leave
-    room for the value)."""
-    k = np.dtype(dtype).itemsize
-    return byte_windows(buf, k)[np.asarray(pos, np.int64)].view(dtype).ravel()
 
 
 @dataclass(eq=False)
@@ -147,7 +139,7 @@ class McapFile:
         """The chunks and the loose runs, as one table; the message index entries kept per piece."""
         ci = np.flatnonzero(ops == Opcode.CHUNK)
         mi = np.flatnonzero(ops == Opcode.MESSAGE_INDEX)
-        owner = np.searchsorted(ci, mi) - 1  # a message index belongs to the chunk before it (nondecreasing)
+        owner = np.cumsum(ops == Opcode.CHUNK)[mi] - 1  # a message index belongs to the chunk before it
         mi, owner = mi[owner >= 0], owner[owner >= 0]
         s = starts[mi]
         ix_cid = le(self.buf, s, "<u2").astype(np.int64)
@@ -165,7 +157,7 @@ class McapFile:
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
         comp = self._compressions(cs + 32, clen)
         lo_rows = self._loose(ops, starts, lengths)
-        cids = np.unique(np.concatenate([ix_cid, *[r[4] for r in lo_rows]]))
+        cids = np.flatnonzero(np.bincount(np.concatenate([ix_cid, *[r[4] for r in lo_rows]]), minlength=1))
         n_c, n = len(ci), len(ci) + len(lo_rows)
         has = np.zeros((n, len(cids)), bool)
         has[owner, np.searchsorted(cids, ix_cid)] = True
@@ -188,8 +180,12 @@ class McapFile:
             raise ValueError(f"{self.path}: unknown chunk compression at byte {int(at[np.argmax(n)]) - 41}")
         j = np.arange(max(w, 1))
         take = j < n[:, None]
-        raw = np.where(take, self.buf[np.where(take, at[:, None] + j, 0)], 0).astype(np.uint8)
-        names, inv = np.unique(np.ascontiguousarray(raw).view(f"S{max(w, 1)}").ravel(), return_inverse=True)
+        raw = np.ascontiguousarray(np.where(take, self.buf[np.where(take, at[:, None] + j, 0)], 0).astype(np.uint8))
+        raw = raw.view(f"S{max(w, 1)}").ravel()
+        if len(raw) and (raw == raw[0]).all():  # the usual file: one compression
+            names, inv = raw[:1], np.zeros(len(raw), np.int64)
+        else:
+            names, inv = np.unique(raw, return_inverse=True)
         self.compressions = [x.decode("latin-1") for x in names.tolist()]
         return inv.astype(np.int64).ravel()
 
@@ -237,9 +233,9 @@ class McapFile:
     def _bodies(self, idx: np.ndarray) -> bytes | memoryview:
         """The uncompressed records of pieces ``idx``, joined; ``ValueError`` naming the first damaged chunk."""
         p = self.pieces
-        names = [self.compressions[k] if c else "" for c, k in zip(p.chunk[idx].tolist(), p.comp[idx].tolist())]
         try:
-            return decompress_many(self._mm, names, p.body[idx], p.body_len[idx],
+            comp = np.where(p.chunk[idx], p.comp[idx], len(self.compressions))  # "": loose runs
+            return decompress_many(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
                                    np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx])
         except ChunkError as e:
             raise ValueError(f"{self.path}: damaged chunk at byte {int(p.offset[idx[e.index]])}: {e} "
