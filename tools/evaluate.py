@@ -206,7 +206,31 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
     for i, ax in enumerate("enu"):
         out[f"in1_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 1.0))
         out[f"in3_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 3.0))
+    bias = gyro_bias_errors(drive, fused, method)
+    if bias is not None and len(bias[0]):
+        out["in3_bg"] = float(np.mean(np.abs(bias[1]) <= 3.0 * bias[2]))
     return out
+
+
+def gyro_bias_errors(drive: Path, fused: Path, method: str, mean_s: float = 10.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t_ns (n,), error, sigma): the method's gyro bias estimate minus the simulator's (``/truth/imu_bias``, its
+    mean over the last ``mean_s``: the truth holds the fast part of the flicker too) and the estimate's sigma,
+    rad/s, body RFU, (n, 3) each, at the rows of ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth
+    to its end. None when either
+    topic is missing (a drive not simulated, a fused file written before the estimate was published)."""
+    have = {t.topic for t in reader.topics(drive) if t.count} | {t.topic for t in reader.topics(fused) if t.count}
+    if not {"/truth/imu_bias", f"/fusion/{method}/imu_bias"} <= have:
+        return None
+    b, tr = reader.read_topic(fused, f"/fusion/{method}/imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
+    tt = tr["log_time_ns"]
+    t = b["log_time_ns"]
+    m = (t >= tt[0] + int(mean_s * 1e9)) & (t <= tt[-1])
+    c = np.cumsum(np.vstack([np.zeros(3), tr["omega_ib_b"]]), axis=0)
+    j = np.searchsorted(tt, t[m], side="right")
+    i = np.searchsorted(tt, t[m] - int(mean_s * 1e9), side="right")
+    truth = (c[j] - c[i]) / np.maximum(j - i, 1)[:, None]
+    return t[m], b["omega_ib_b"][m] - truth, np.sqrt(np.maximum(b["gyro_cov"][m][:, [0, 4, 8]], 0.0))
 
 
 def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -228,7 +252,8 @@ def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, 
 def pooled(cs: list[dict[str, float]]) -> dict[str, float]:
     """``consistency`` results of several drives as one, weighted by their rows."""
     n = np.array([c["rows"] for c in cs], float)
-    out = {k: float(np.sum([c[k] for c in cs] * n) / max(n.sum(), 1)) for k in cs[0] if k != "rows"}
+    keys = [k for k in cs[0] if k != "rows" and all(k in c for c in cs)]
+    out = {k: float(np.sum([c[k] for c in cs] * n) / max(n.sum(), 1)) for k in keys}
     out["rows"] = int(n.sum())
     return out
 
@@ -237,7 +262,8 @@ def consistency_line(method: str, c: dict[str, float]) -> str:
     """One line of ``consistency``: NEES and the per-axis shares within 1 and 3 sigma."""
     return (f"{method}: position NEES {c['nees']:.2f} (3 if honest); within 1 sigma E {c['in1_e']:.0%} "
             f"N {c['in1_n']:.0%} U {c['in1_u']:.0%} (68 %), within 3 sigma E {c['in3_e']:.0%} N {c['in3_n']:.0%} "
-            f"U {c['in3_u']:.0%} (99.7 %), over {c['rows']} rows")
+            f"U {c['in3_u']:.0%} (99.7 %), over {c['rows']} rows"
+            + (f"; gyro bias within 3 sigma {c['in3_bg']:.0%}" if "in3_bg" in c else ""))
 
 def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
                       ) -> tuple[np.ndarray, np.ndarray]:
