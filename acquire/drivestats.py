@@ -3,14 +3,33 @@
 The recorder feeds every message it writes to a ``DriveStats``; at close it writes ``record()`` as the MCAP
 metadata record ``fieldlog.info``. ``fieldlog info`` then answers from the summary, the statistics and the
 metadata alone (about a second for an hour-long drive, instead of decoding every /imu message). A file without
-the record (recovered, or from another writer) is scanned instead, through the same functions below, so both
-paths give the same figures.
+the record (recovered, or from another writer) is scanned instead: ``info`` feeds the decoded topics to a
+``DriveStats`` (``observe_stamps``), so both paths compute every figure with the same accumulators.
 
-Memory: the /imu stamps (8 bytes per sample, 14 MB per hour at 500 Hz) for the gap and truth-timing figures,
-up to ``MAX_IMU_STAMPS``; a longer file gets a record without the /imu figures, which ``info`` then scans for.
+Memory is bounded, whatever the drive's length (the daemon's RSS stays flat):
+- medians (the /imu and /gps/fix steps that define "nominal period", the rate and residual while locked) are
+  exact medians of values quantised to a fixed quantum (1 us for steps, 1e-4 ppm, 0.01 us), held as counts per
+  quantum (``QuantisedMedian``). A clocked sensor's steps fall into a few quanta (the daemon's /imu: 2-3 keys),
+  so the count table stays small; if it passes ``QuantisedMedian.MAX_KEYS`` the quantum doubles (pairs of keys
+  merge), which bounds it for any input. The final table does not depend on how the values were batched, so
+  the recorder (batches as written) and the scan (whole topics) agree. A median of the first window instead
+  would be O(1) too, but one bad start (a DAQ that comes up stuttering) would set the period for the whole
+  drive; the whole drive's median is what ``info`` always reported. Quantising moves a step only across a
+  threshold it is within half a microsecond of.
+- gaps (steps > 1.5 nominal periods, the longest one; missing GPS epochs) are read off the same count table at
+  the end, since they need the median first.
+- the truth-timing figure pairs each /imu stamp with its /truth/imu sample as both stream in (``TimingPairs``):
+  one to one in order, and with the nearest truth time, and keeps the first when both topics hold every
+  sample (the simulator writes one truth record per DAQ frame); sums, not stamps, are kept (so the figure
+  equals the whole-array one to rounding). Pairs before the first locked /time/sync record is seen are held
+  (the pipeline writes /time/sync ahead of the /imu it stamps, so that is the time to lock; all of a drive that
+  never locks). Otherwise what it holds is the lag between the two topics: the simulator and ``rebuild`` write /truth/imu first (the truth is in their
+  memory anyway); the daemon writes no truth and so holds nothing. A writer whose /imu comes before any
+  /truth/imu gets a record without ``timing``, and ``info`` scans that file for it.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -19,7 +38,6 @@ from fieldlog.acquire import messages
 
 NS = 1_000_000_000
 RECORD = "fieldlog.info"
-MAX_IMU_STAMPS = 8_000_000
 SYNC_NAMES = {messages.TIMESYNC_FREE: "free", messages.TIMESYNC_HOLDOVER: "holdover",
               messages.TIMESYNC_LOCKED: "locked"}
 
@@ -49,69 +67,224 @@ class Quality:
     gps_no_fix: int = 0
 
 
-def sync_quality(q: Quality, stamp_ns: np.ndarray, state: np.ndarray, rate_ppm: np.ndarray,
-                 residual_us: np.ndarray) -> None:
-    """/time/sync records -> the state fractions, and the median rate and residual while locked."""
-    if len(state) == 0:
-        return
-    q.sync_states = {SYNC_NAMES.get(int(s), str(s)): float(np.mean(state == s)) for s in np.unique(state)}
-    locked = state == messages.TIMESYNC_LOCKED
-    if locked.any():
-        q.first_lock_ns = int(stamp_ns[locked][0])
-        q.rate_ppm = float(np.median(rate_ppm[locked]))
-        q.residual_us = float(np.median(residual_us[locked]))
+class QuantisedMedian:
+    """Values counted per quantum (``round(x / quantum)``; NaN makes the median NaN, as in ``np.median``): the
+    exact median of the quantised values, and the table for sums over it. At most ``MAX_KEYS`` keys: past that
+    the quantum doubles, merging pairs of keys, so the final table is that of the smallest doubling of the
+    quantum that fits, however the values were batched."""
+
+    MAX_KEYS = 4096
+
+    def __init__(self, quantum: float) -> None:
+        self.quantum = quantum
+        self.shift = 0                         # a key is round(x / quantum) >> shift
+        self.counts: dict[int, int] = {}
+        self.n = 0
+        self.nan = False
+
+    def add(self, x: np.ndarray) -> None:
+        x = np.asarray(x, np.float64)
+        finite = np.isfinite(x)
+        if not finite.all():
+            self.nan = True
+            x = x[finite]
+        if len(x) == 0:
+            return
+        keys, n = np.unique(np.round(x / self.quantum).astype(np.int64) >> self.shift, return_counts=True)
+        c = self.counts
+        for k, m in zip(keys.tolist(), n.tolist()):
+            c[k] = c.get(k, 0) + m
+        self.n += len(x)
+        while len(c) > self.MAX_KEYS:
+            self.shift += 1
+            merged: dict[int, int] = {}
+            for k, m in c.items():
+                merged[k >> 1] = merged.get(k >> 1, 0) + m
+            self.counts = c = merged
+
+    def table(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each key's value (the middle of its interval; the quantised value itself before any doubling) and
+        count, in ascending order."""
+        k = np.array(sorted(self.counts), np.int64)
+        w = 1 << self.shift
+        return (k * w + (w - 1) / 2) * self.quantum, np.array([self.counts[i] for i in k.tolist()], np.int64)
+
+    def median(self) -> float:
+        if self.nan or self.n == 0:
+            return float("nan")
+        v, n = self.table()
+        c = np.cumsum(n)
+        lo, hi = np.searchsorted(c, [(self.n - 1) // 2, self.n // 2], side="right")
+        return float((v[lo] + v[hi]) / 2)
 
 
-def imu_gaps(q: Quality, imu_ns: np.ndarray) -> None:
-    """Gaps in /imu: steps longer than 1.5 nominal periods (the median step)."""
-    fs_nominal = 1.0 / np.median(np.diff(imu_ns) / NS) if len(imu_ns) > 1 else 0.0
-    if fs_nominal:
-        gaps = np.diff(imu_ns) / NS > 1.5 / fs_nominal
-        q.imu_gaps = int(gaps.sum())
-        q.imu_longest_gap_s = float(np.max(np.diff(imu_ns)) / NS) if gaps.any() else 0.0
+class Steps:
+    """The steps between consecutive stamps (ns) of one topic, as its batches arrive: counted per microsecond
+    (``QuantisedMedian``) and the longest."""
+
+    def __init__(self) -> None:
+        self.hist = QuantisedMedian(1000.0)
+        self.longest = 0
+        self._last: int | None = None
+
+    def add(self, t_ns: np.ndarray) -> None:
+        t = np.asarray(t_ns, np.int64)
+        if len(t) == 0:
+            return
+        d = np.diff(t) if self._last is None else np.diff(t, prepend=np.int64(self._last))
+        self._last = int(t[-1])
+        if len(d):
+            self.hist.add(d)
+            self.longest = max(self.longest, int(d.max()))
 
 
-def gps_gaps(q: Quality, fix_ns: np.ndarray, status: np.ndarray) -> None:
-    """Epochs without a fix, and epochs missing from /gps/fix (steps of more than the median period)."""
-    q.gps_no_fix = int(np.count_nonzero(status < 0))
-    if len(fix_ns) > 2:
-        dt = np.diff(fix_ns) / NS
-        q.gps_missing_epochs = int(np.sum(np.round(dt / np.median(dt)) - 1))
+class _ErrorSums:
+    """Sums of stamp errors (ns) of the pairs after the first lock; pairs held while it is not known yet."""
+
+    def __init__(self) -> None:
+        self.n, self.sum, self.sum2, self.max_abs = 0, 0.0, 0.0, 0.0
+        self.lock: int | None = None
+        self._held: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def add(self, imu_ns: np.ndarray, err_ns: np.ndarray) -> None:
+        if self.lock is None:
+            self._held.append((imu_ns, err_ns))
+        else:
+            self._fold(err_ns[imu_ns >= self.lock])
+
+    def _fold(self, err_ns: np.ndarray) -> None:
+        if len(err_ns):
+            e = err_ns.astype(np.float64) / 1e3
+            self.n += len(e)
+            self.sum += float(e.sum())
+            self.sum2 += float(np.dot(e, e))
+            self.max_abs = max(self.max_abs, float(np.abs(e).max()))
+
+    def set_lock(self, lock_ns: int) -> None:
+        self.lock = lock_ns
+        for imu_ns, err_ns in self._held:
+            self.add(imu_ns, err_ns)
+        self._held = []
+
+    def result(self, more: tuple[np.ndarray, np.ndarray] | None = None) -> TimingError | None:
+        """The figure, with the pairs ``more`` (imu_ns, err_ns) besides; pairs still held (no lock) all count."""
+        s = _ErrorSums()
+        s.n, s.sum, s.sum2, s.max_abs = self.n, self.sum, self.sum2, self.max_abs
+        for imu_ns, err_ns in self._held + ([more] if more else []):
+            s._fold(err_ns if self.lock is None else err_ns[imu_ns >= self.lock])
+        if s.n == 0:
+            return None
+        return TimingError(s.n, float(np.sqrt(s.sum2 / s.n)), s.max_abs, s.sum / s.n)
 
 
-def timing_error(imu_ns: np.ndarray, truth_ns: np.ndarray, first_lock_ns: int | None) -> TimingError | None:
-    """Pair each /imu stamp with its true sample time: one to one when both hold every sample (the simulator
-    writes one truth record per DAQ frame, in order), otherwise with the nearest truth time."""
-    if len(imu_ns) == 0 or len(truth_ns) == 0:
-        return None
-    if len(imu_ns) == len(truth_ns):
-        err = (imu_ns - truth_ns).astype(np.float64)
-    else:
-        i = np.clip(np.searchsorted(truth_ns, imu_ns), 1, len(truth_ns) - 1)
-        j = np.where(np.abs(truth_ns[i - 1] - imu_ns) < np.abs(truth_ns[i] - imu_ns), i - 1, i)
-        err = (imu_ns - truth_ns[j]).astype(np.float64)
-    if first_lock_ns is not None:
-        err = err[imu_ns >= first_lock_ns]
-    if len(err) == 0:
-        return None
-    err_us = err / 1e3
-    return TimingError(len(err_us), float(np.sqrt(np.mean(err_us**2))), float(np.max(np.abs(err_us))),
-                       float(np.mean(err_us)))
+def _take(q: deque[np.ndarray], m: int) -> np.ndarray:
+    """The first m stamps of a queue of arrays, removed from it."""
+    out, got = [], 0
+    while got < m:
+        a = q.popleft()
+        if got + len(a) > m:
+            q.appendleft(a[m - got:])
+            a = a[:m - got]
+        out.append(a)
+        got += len(a)
+    return np.concatenate(out) if out else np.empty(0, np.int64)
 
 
-_DECODED = ("/imu", "/truth/imu", "/gps/fix", "/time/sync")
+def _nearest(truth_ns: np.ndarray, imu_ns: np.ndarray) -> np.ndarray:
+    """Index of the nearest stamp in sorted ``truth_ns`` for each of ``imu_ns`` (the later one on a tie)."""
+    if len(truth_ns) == 1:
+        return np.zeros(len(imu_ns), np.int64)
+    i = np.clip(np.searchsorted(truth_ns, imu_ns), 1, len(truth_ns) - 1)
+    return np.where(np.abs(truth_ns[i - 1] - imu_ns) < np.abs(truth_ns[i] - imu_ns), i - 1, i)
+
+
+class TimingPairs:
+    """/imu stamps against /truth/imu sample times, paired as both stream in: one to one in order, and with the
+    nearest truth time (truth in ascending order); ``result`` keeps the one-to-one figure when both topics
+    hold the same number of samples. Holds the unpaired stamps of whichever topic is ahead, and the nearest
+    pairing's recent truth window."""
+
+    MARGIN = 64          # truth samples kept before the latest paired /imu stamp (small reorders of /imu)
+
+    def __init__(self) -> None:
+        self.n_imu = self.n_truth = 0
+        self.incomplete = False        # /imu came before any /truth/imu: those samples were not paired
+        self._imu_q: deque[np.ndarray] = deque()
+        self._truth_q: deque[np.ndarray] = deque()
+        self._q_len = [0, 0]
+        self._window = np.empty(0, np.int64)
+        self._near_pending: deque[np.ndarray] = deque()
+        self.one, self.near = _ErrorSums(), _ErrorSums()
+
+    def set_lock(self, lock_ns: int) -> None:
+        self.one.set_lock(lock_ns)
+        self.near.set_lock(lock_ns)
+
+    def truth(self, t_ns: np.ndarray) -> None:
+        t = np.sort(np.asarray(t_ns, np.int64))
+        if len(t) == 0:
+            return
+        self.n_truth += len(t)
+        self._truth_q.append(t)
+        self._q_len[1] += len(t)
+        self._window = np.concatenate((self._window, t))
+        self._pair()
+
+    def imu(self, t_ns: np.ndarray) -> None:
+        t = np.asarray(t_ns, np.int64)
+        if len(t) == 0:
+            return
+        self.n_imu += len(t)
+        if self.n_truth == 0:
+            self.incomplete = True
+            return
+        self._imu_q.append(t)
+        self._q_len[0] += len(t)
+        self._near_pending.append(t)
+        self._pair()
+
+    def _pair(self) -> None:
+        m = min(self._q_len)
+        if m:
+            a, b = _take(self._imu_q, m), _take(self._truth_q, m)
+            self._q_len = [self._q_len[0] - m, self._q_len[1] - m]
+            self.one.add(a, a - b)
+        if not self._near_pending:
+            return
+        imu = np.concatenate(self._near_pending)
+        ready = imu <= self._window[-1]
+        self._near_pending = deque([imu[~ready]] if not ready.all() else [])
+        if ready.any():
+            t = imu[ready]
+            j = _nearest(self._window, t)
+            self.near.add(t, t - self._window[j])
+            self._window = self._window[max(int(j.min()) - self.MARGIN, 0):]
+
+    def result(self) -> TimingError | None:
+        if self.n_truth == 0 or self.n_imu == 0:
+            return None
+        if self.n_imu == self.n_truth:
+            return self.one.result()
+        # /imu stamps after the last truth sample: that one is the nearest
+        t = np.concatenate(self._near_pending) if self._near_pending else np.empty(0, np.int64)
+        return self.near.result((t, t - self._window[_nearest(self._window, t)]) if len(t) else None)
 
 
 class DriveStats:
-    """Fed every message a Recorder writes (``observe``); ``record()`` at close."""
+    """The figures of ``Quality`` from a drive's messages as they are written (``observe``, by the recorder) or
+    read back (the topics' stamps and fields, by ``fieldlog info``'s scan); ``record()`` at close."""
 
     def __init__(self) -> None:
         self.span: dict[str, list[int]] = {}          # topic -> [first, last] log_time
-        self._imu: list[np.ndarray] = []
-        self._imu_n = 0
-        self._truth: list[np.ndarray] = []
-        self._fix: list[tuple[np.ndarray, np.ndarray]] = []
-        self._sync: list[dict[str, np.ndarray]] = []
+        self._states: dict[int, int] = {}
+        self._n_sync = 0
+        self._first_lock: int | None = None
+        self._rate = QuantisedMedian(1e-4)            # ppm
+        self._residual = QuantisedMedian(1e-2)        # us
+        self._imu = Steps()
+        self._fix = Steps()
+        self._no_fix = 0
+        self._timing = TimingPairs()
 
     def _span(self, topic: str, lo: int, hi: int) -> None:
         s = self.span.get(topic)
@@ -122,7 +295,7 @@ class DriveStats:
 
     def observe_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """One message (``Recorder.write``: raw reads, sentences, outages; cheap for those)."""
-        if topic in _DECODED:
+        if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
             self.observe(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
         else:
             self._span(topic, log_time_ns, log_time_ns)
@@ -131,48 +304,66 @@ class DriveStats:
         """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times."""
         self._span(topic, int(log_time_ns.min()), int(log_time_ns.max()))
         if topic == "/imu":
-            self._imu_n += len(log_time_ns)
-            if self._imu_n <= MAX_IMU_STAMPS:
-                self._imu.append(log_time_ns.copy())
-            else:
-                self._imu = []
+            self.imu(log_time_ns)
         elif topic == "/truth/imu":
-            self._truth.append(log_time_ns.copy())
+            self.truth(log_time_ns)
         elif topic == "/gps/fix":
             d = messages.decode_navsatfix(p)
-            self._fix.append((d["stamp_ns"], d["status"]))
+            self.fix(d["stamp_ns"], d["status"])
         elif topic == "/time/sync":
-            self._sync.append(messages.decode_time_sync(p))
+            d = messages.decode_time_sync(p)
+            self.sync(d["stamp_ns"], d["state"], d["rate_ppm"], d["residual_us"])
 
-    def quality(self) -> tuple[Quality, bool]:
-        """The figures, and whether the /imu ones are complete (False past MAX_IMU_STAMPS)."""
-        q = Quality()
-        if self._sync:
-            cat = {k: np.concatenate([d[k] for d in self._sync]) for k in ("stamp_ns", "state", "rate_ppm",
-                                                                           "residual_us")}
-            sync_quality(q, cat["stamp_ns"], cat["state"], cat["rate_ppm"], cat["residual_us"])
-        if self._fix:
-            gps_gaps(q, np.concatenate([a for a, _ in self._fix]), np.concatenate([b for _, b in self._fix]))
-        imu_ok = self._imu_n <= MAX_IMU_STAMPS
-        if imu_ok and self._imu:
-            imu_ns = np.concatenate(self._imu)
-            imu_gaps(q, imu_ns)
-            if self._truth:
-                q.timing = timing_error(imu_ns, np.sort(np.concatenate(self._truth)), q.first_lock_ns)
-        return q, imu_ok
+    def imu(self, stamp_ns: np.ndarray) -> None:
+        self._imu.add(stamp_ns)
+        self._timing.imu(stamp_ns)
+
+    def truth(self, stamp_ns: np.ndarray) -> None:
+        self._timing.truth(stamp_ns)
+
+    def fix(self, stamp_ns: np.ndarray, status: np.ndarray) -> None:
+        self._fix.add(stamp_ns)
+        self._no_fix += int(np.count_nonzero(np.asarray(status) < 0))
+
+    def sync(self, stamp_ns: np.ndarray, state: np.ndarray, rate_ppm: np.ndarray, residual_us: np.ndarray) -> None:
+        """/time/sync records: the states, the first lock, the rate and residual while locked."""
+        state = np.asarray(state)
+        for s, n in zip(*(a.tolist() for a in np.unique(state, return_counts=True))):
+            self._states[s] = self._states.get(s, 0) + n
+        self._n_sync += len(state)
+        locked = state == messages.TIMESYNC_LOCKED
+        if locked.any():
+            if self._first_lock is None:
+                self._first_lock = int(np.asarray(stamp_ns)[locked][0])
+                self._timing.set_lock(self._first_lock)
+            self._rate.add(np.asarray(rate_ppm)[locked])
+            self._residual.add(np.asarray(residual_us)[locked])
+
+    def quality(self) -> Quality:
+        q = Quality(first_lock_ns=self._first_lock, gps_no_fix=self._no_fix, timing=self._timing.result())
+        q.sync_states = {SYNC_NAMES.get(s, str(s)): self._states[s] / self._n_sync for s in sorted(self._states)}
+        if self._first_lock is not None:
+            q.rate_ppm, q.residual_us = self._rate.median(), self._residual.median()
+        period = self._imu.hist.median()
+        if period > 0:                       # gaps: steps longer than 1.5 nominal periods (the median step)
+            v, n = self._imu.hist.table()
+            q.imu_gaps = int(n[v > 1.5 * period].sum())
+            q.imu_longest_gap_s = self._imu.longest / NS if q.imu_gaps else 0.0
+        period = self._fix.hist.median()
+        if self._fix.hist.n > 1 and period > 0:   # GPS epochs missing: steps of more than the median period
+            v, n = self._fix.hist.table()
+            q.gps_missing_epochs = int(np.sum(n * (np.round(v / period) - 1)))
+        return q
 
     def record(self) -> dict[str, str]:
-        """The ``fieldlog.info`` metadata record: Python literals, one key each."""
-        q, imu_ok = self.quality()
+        """The ``fieldlog.info`` metadata record: Python literals, one key each (no ``timing`` when /imu came
+        before /truth/imu: ``info`` scans for it)."""
         out = {f"span.{topic}": repr(tuple(s)) for topic, s in self.span.items()}
-        d = asdict(q)
-        if not imu_ok:
-            for k in ("imu_gaps", "imu_longest_gap_s", "timing"):
-                d.pop(k)
+        d = asdict(self.quality())
+        if self._timing.incomplete and self._timing.n_truth:
+            d.pop("timing")
         out.update({k: repr(v) for k, v in d.items()})
         return out
-
-
 def quality_from_record(rec: dict[str, str]) -> Quality | None:
     """The inverse of ``DriveStats.record`` (None when the record lacks a figure: scan the file instead)."""
     import ast

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from fieldlog.acquire import drivestats, messages
-from fieldlog.acquire.drivestats import Quality, timing_error
+from fieldlog.acquire.drivestats import Quality
 from fieldlog.replay import inputs, reader
 from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
 
@@ -81,7 +81,6 @@ def scan_quality(path: DriveSpec, topics: list[reader.TopicInfo],
                  progress: Callable[[float], None] | None = None) -> Quality:
     """The figures of ``Quality`` from reading the messages (a file without a ``fieldlog.info`` record)."""
     by = {t.topic: t for t in topics if t.count}
-    q = Quality()
     # another logger's drive: its only Imu and NavSatFix topics (replay.inputs.detect), read as /imu, /gps/fix
     names = {t: n for t, n in ((inputs.detect(topics, messages.IMU, "/imu"), "/imu"),
                                (inputs.detect(topics, messages.NAVSATFIX, "/gps/fix"), "/gps/fix")) if t}
@@ -91,17 +90,16 @@ def scan_quality(path: DriveSpec, topics: list[reader.TopicInfo],
         data[names.get(topic, topic)] = reader.read_topic(path, topic)
         if progress:
             progress((i + 1) / len(todo))
+    stats = drivestats.DriveStats()   # the recorder's accumulators; truth before /imu, as the writers order them
     if "/time/sync" in data:
-        ts = data["/time/sync"]
-        drivestats.sync_quality(q, *(np.asarray(ts[k]) for k in ("stamp_ns", "state", "rate_ppm", "residual_us")))
+        stats.sync(*(np.asarray(data["/time/sync"][k]) for k in ("stamp_ns", "state", "rate_ppm", "residual_us")))
+    if "/truth/imu" in data:
+        stats.truth(np.asarray(data["/truth/imu"]["stamp_ns"]))
     if "/imu" in data:
-        drivestats.imu_gaps(q, np.asarray(data["/imu"]["stamp_ns"]))
+        stats.imu(np.asarray(data["/imu"]["stamp_ns"]))
     if "/gps/fix" in data:
-        drivestats.gps_gaps(q, np.asarray(data["/gps/fix"]["stamp_ns"]), np.asarray(data["/gps/fix"]["status"]))
-    if "/imu" in data and "/truth/imu" in data:
-        q.timing = timing_error(np.asarray(data["/imu"]["stamp_ns"]), np.asarray(data["/truth/imu"]["stamp_ns"]),
-                                q.first_lock_ns)
-    return q
+        stats.fix(np.asarray(data["/gps/fix"]["stamp_ns"]), np.asarray(data["/gps/fix"]["status"]))
+    return stats.quality()
 
 
 def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], None] | None = None) -> DriveInfo:

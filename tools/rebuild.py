@@ -64,6 +64,9 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
         pipe = Pipeline(rec, cal, sync_cfg, pipe_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
+        for topic in (t.topic for t in reader.topics(src) if t.topic.startswith("/truth/") and t.count):
+            t, pub, p = reader.read_payloads(src, topic, file_order=True)   # first: drivestats pairs /imu with it
+            rec.write_batch(topic, t, p, pub)
         merged = heapq.merge(iter_raw(src, "daq"), iter_raw(src, "gps"), key=lambda r: read_order(r.port, r.mono_ns))
         for r in merged:
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
@@ -71,9 +74,6 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
             if progress and n % 2000 == 0:
                 progress(n / total)
         pipe.finish()
-        for topic in (t.topic for t in reader.topics(src) if t.topic.startswith("/truth/") and t.count):
-            t, pub, p = reader.read_payloads(src, topic, file_order=True)
-            rec.write_batch(topic, t, p, pub)
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     if progress:
         progress(1.0)

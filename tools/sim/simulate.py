@@ -164,13 +164,13 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             rec.add_metadata(name, d)
         if fusion_meta:
             rec.add_metadata("fusion.config", fusion_meta)
+        write_truth(rec, truth_data, duration_s)   # before /imu: drivestats pairs /imu with it as /imu comes
         step = max(len(reads) // 100, 1)
         for i, r in enumerate(reads):
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
             if progress and i % step == 0:
                 progress(i / len(reads))
         pipe.finish()
-        write_truth(rec, truth_data, duration_s)
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     if progress:
         progress(1.0)
