@@ -68,6 +68,10 @@ from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_or
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+# A read lands in the reader's own buffer and is copied out at its length: os.read(fd, n) mallocs n bytes and
+# shrinks them to the read, which, for ~1 KiB reads of 64 KiB blocks handed to another thread, fragmented the
+# heap (RSS +2 MB per 10 min of data at x20, returned by malloc_trim; see README, the soak)
+READ_SIZE = 65536
 STORAGE_FULL = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file size limit"}
 
 
@@ -161,13 +165,14 @@ class PortReader(threading.Thread):
     def _read_until_lost(self) -> None:
         fd = self.ser.fileno()
         st = self.stats
+        buf = memoryview(bytearray(READ_SIZE))
         while not self.stop.is_set():
             ready, _, _ = select.select([fd], [], [], 0.1)
             if not ready:
                 continue
             self.busy = True
             try:
-                data = os.read(fd, 65536)
+                data = bytes(buf[:os.readv(fd, [buf])])   # (see READ_SIZE)
                 err = "end of file" if not data else ""
             except OSError as e:
                 data, err = b"", os.strerror(e.errno or 0) or str(e)

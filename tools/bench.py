@@ -412,11 +412,15 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
           f"{c['port.gps.dropped_reads']}; daemon CPU {usage.ru_utime + usage.ru_stime:.0f} s "
           f"({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of one core)")
     t_rss, mb = np.array(rss).T
-    at = ", ".join(f"{m:g} min {mb[np.argmin(np.abs(t_rss - 60 * m))]:.0f} MB" for m in (1, 5, 10, 20, 30)
+    at = ", ".join(f"{m:g} min {mb[np.argmin(np.abs(t_rss - 60 * m))]:.0f} MB" for m in (1, 5, 10, 20, 30, 45, 60)
                    if 60 * m <= t_rss[-1] + 60)
     half = t_rss >= t_rss[-1] / 2
     slope = np.polyfit(t_rss[half] / 600, mb[half], 1)[0]
-    print(f"  daemon RSS at {at}; max {mb.max():.0f} MB; slope over the second half {slope:+.2f} MB per 10 min of data")
+    i, j = np.triu_indices(int(half.sum()), 1)        # Theil-Sen: one transient (the clock jump) does not tilt it
+    x, y = t_rss[half] / 600, mb[half]
+    robust = np.median((y[j] - y[i]) / (x[j] - x[i]))
+    print(f"  daemon RSS at {at}; max {mb.max():.0f} MB; slope over the second half {slope:+.2f} MB per 10 min of data "
+          f"(least squares; median of pairwise slopes {robust:+.2f})")
 
 
 def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
