@@ -207,3 +207,35 @@ def test_rerun_shows_imu_as_scalars_and_fix_as_geopoints(tmp_path):
 
 def _rows(lines: list[str], column: str) -> int:
     return sum(int(re.search(r"with (\d+) rows", ln).group(1)) for ln in lines if column in ln)
+
+
+def test_decompress_many_takes_empty_and_lying_chunks():
+    """Chunks in one call (``decompress_many``): an empty zstd chunk among others reads as nothing (the batch
+    decompressor would corrupt memory on it: it goes one by one), and a chunk whose record claims a wrong or an
+    absurd size, or whose bytes are damaged, is a ``ChunkError`` naming it, never a crash or wrong data."""
+    import zlib
+
+    import zstandard
+
+    from fieldlog.acquire.recorder import ChunkError, decompress_many
+
+    rng = np.random.default_rng(3)
+    raws = [b"", *(rng.integers(0, 4, n, dtype=np.uint8).tobytes() for n in (4096, 1, 5000))]
+    frames = [zstandard.ZstdCompressor().compress(r) for r in raws]
+    at = np.cumsum([0] + [len(f) for f in frames])[:-1]
+    buf = b"".join(frames)
+
+    def read(size, data=buf):
+        return decompress_many(data, ["zstd"], [0] * len(raws), at, [len(f) for f in frames], size,
+                               [zlib.crc32(r) for r in raws])
+
+    assert bytes(read([len(r) for r in raws])) == b"".join(raws)
+    for wrong in (7, 1 << 40, 1 << 62):
+        with pytest.raises(ChunkError) as e:
+            read([len(raws[0]), len(raws[1]), wrong, len(raws[3])])
+        assert e.value.index == 2
+    damaged = bytearray(buf)
+    damaged[int(at[3]) + len(frames[3]) // 2] ^= 0x20
+    with pytest.raises(ChunkError) as e:
+        read([len(r) for r in raws], bytes(damaged))
+    assert e.value.index == 3
