@@ -38,6 +38,8 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       ran with (``/fusion/<method>/imu_bias``), one row per solution row
 ``bias/accel/<method>``               Scalars x, y, z (body RFU), mg (1 mg = 9.80665e-3 m/s^2): the accelerometer
                                       bias estimate
+``bias/{gyro,accel}/truth``           the simulator's ``/truth/imu_bias`` at 10 Hz (every ``TRUTH_DECIMATION``-th
+                                      row): the sensor error less its white noise
 ``timesync/state``                    Scalars: FREE=0, HOLDOVER=1, LOCKED=2 (``/time/sync``)
 ``timesync/rate_ppm``                 Scalars: DAQ oscillator rate error, ppm
 ``timesync/residual_us``              Scalars: RMS fit residual of the inlier PPS edges, us
@@ -335,17 +337,13 @@ def _log_scalar(rec: rr.RecordingStream, path: str, t_ns: np.ndarray, x: np.ndar
 BIAS_UNITS = (("gyro", "omega_ib_b", 180.0 / np.pi * 3600.0, "deg/h"), ("accel", "f_b", 1e3 / 9.80665, "mg"))
 
 
-def _log_bias(rec: rr.RecordingStream, fused: str | os.PathLike[str], method: str, color) -> None:
-    """``bias/{gyro,accel}/<method>`` from ``/fusion/<method>/imu_bias`` (fused files written before it: none)."""
-    topic = f"/fusion/{method.split('@')[0]}/imu_bias"
-    if not _topic_names(fused).get(topic):
-        return
-    b = reader.read_topic(fused, topic)
+def _log_bias(rec: rr.RecordingStream, src: str, b: dict[str, np.ndarray], color) -> None:
+    """``bias/{gyro,accel}/<src>`` from rows of an Imu-typed bias topic (valid rows only)."""
     ok = b["valid"]
     shades = [tuple(int(c * k) for c in color) for k in (1.0, 0.7, 0.45)]
     for kind, key, scale, unit in BIAS_UNITS:
-        _log_scalar(rec, f"bias/{kind}/{method}", b["log_time_ns"][ok], b[key][ok] * scale,
-                    [f"{method} {kind} bias {a} ({unit})" for a in "xyz"], shades)
+        _log_scalar(rec, f"bias/{kind}/{src}", b["log_time_ns"][ok], b[key][ok] * scale,
+                    [f"{src} {kind} bias {a} ({unit})" for a in "xyz"], shades)
 
 
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
@@ -353,6 +351,7 @@ LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass a
     "/gps/vel": ("v_n",),
     "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
     "/truth/vel": ("v_n",),
+    "/truth/imu_bias": ("omega_ib_b", "f_b"),
     "/time/sync": ("state", "rate_ppm", "residual_us"),
 }
 
@@ -489,6 +488,8 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
         sl = slice(None, None, TRUTH_DECIMATION)
         truth_map = Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl])
         _log_track(rec, "truth", truth_map, TRUTH_COLOR, origin, 2.0)
+    if "/truth/imu_bias" in low:
+        _log_bias(rec, "truth", {k: v[::TRUTH_DECIMATION] for k, v in low["/truth/imu_bias"].items()}, TRUTH_COLOR)
 
     ref = truth if truth is not None else gps
     for i, (m, trk) in enumerate(fused_trk):
@@ -503,7 +504,8 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                 _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
-        _log_bias(rec, path, m, color)
+        if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/imu_bias"):  # fused files before it: none
+            _log_bias(rec, m, reader.read_topic(path, f"/fusion/{m.split('@')[0]}/imu_bias"), color)
 
     windows = _outages(files)
     t_start = min(int(c.t_ns[0]) for c in candidates)

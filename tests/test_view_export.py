@@ -90,6 +90,7 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
         ("/errors/vel/up/kf", "Scalars:scalars"): n_kf,
         ("/bias/gyro/kf", "Scalars:scalars"): n_kf,
         ("/bias/accel/kf", "Scalars:scalars"): n_kf,
+        ("/bias/gyro/truth", "Scalars:scalars"): n_truth,
         ("/status/outage", "Scalars:scalars"): 1 + 2 * 2,  # drive start, then each window's start and end
         ("/map/outage", "GeoLineStrings:line_strings"): 1,  # one static row holding both windows' strips
         ("/map/gps/track", "GeoLineStrings:line_strings"): 1,
