@@ -674,13 +674,14 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # The code before and after, run back to back (medians of 9, load 2.2-2.3): own 0.18 -> 0.13 s wall, 0.17 -> 0.12 s
     # CPU; 4 KiB 0.43 -> 0.24 s wall (x2.44 -> x1.88), 0.42 -> 0.24 s CPU (x2.48 -> x1.94); unchunked x1.46 -> x1.84
     # (0.26 -> 0.24 s: the own file got faster), lz4 x1.34 -> x1.14, uncompressed x1.32 -> x0.96, no summary x1.77 ->
-    # x1.48. Another run at load 1.9 (medians of 7): own 0.12 s, 4 KiB 0.25 s, x2.14 wall, x2.10 CPU. At load 2.8-3.6
-    # (medians of 7, two runs) 4 KiB x2.15-2.45 wall, x2.00-2.25 CPU (before: x2.14-2.58, x2.67-2.82): the x2 target is
-    # met only at the edge. What is left is per byte: zstd of 2.3x the bytes of 4 KiB frames, the join of the group
-    # (python-zstandard gives no single output buffer), the record walk (latency bound, ~50 ns a record; locating the
-    # messages through the message indexes instead cost as much). Measured and dropped: a worker thread decompressing
-    # the next group (load 4: own 0.31 vs 0.26 s, 4 KiB 0.48 vs 0.39 s wall, CPU worse too) and
-    # multi_decompress_to_buffer(threads=2) (no gain).
+    # x1.48. Other runs (medians of 7): load 1.9, own 0.12 s, 4 KiB 0.25 s, x2.14 wall, x2.10 CPU; load 1.7, own 0.11 s,
+    # 4 KiB 0.26 s, x2.40 wall and CPU. At load 2.8-3.6 (medians of 7, two runs) 4 KiB x2.15-2.45 wall, x2.00-2.25 CPU
+    # (before: x2.14-2.58, x2.67-2.82): the x2 target is not met reliably. What is left is per byte: zstd of 2.3x the
+    # bytes of 4 KiB frames, the join of the group (python-zstandard gives no single output buffer), the record walk
+    # (latency bound, ~50 ns a record; locating the messages through the message indexes instead cost as much), and the
+    # file walk at open (280k top-level records, chunks and their message indexes: about 35 ms, the own file's 1 ms).
+    # Measured and dropped: a worker thread decompressing the next group (load 4: own 0.31 vs 0.26 s, 4 KiB 0.48 vs 0.39
+    # s wall, CPU worse too) and multi_decompress_to_buffer(threads=2) (no gain).
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
