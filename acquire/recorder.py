@@ -718,7 +718,8 @@ def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: n
 class RecoverReport:
     """messages: kept per topic; chunks: complete chunks kept; bytes_discarded: source bytes
     after the last complete record; last_log_time_ns: latest log time kept (0 if none);
-    had_summary: the source was already complete (footer read)."""
+    had_summary: the source was already complete (footer read); damaged: byte offsets of whole chunk records whose
+    content failed its CRC or codec, skipped (their messages are lost; every other chunk is kept)."""
 
     messages: dict[str, int]
     chunks: int
@@ -726,6 +727,7 @@ class RecoverReport:
     last_log_time_ns: int
     had_summary: bool
     rederived: dict[str, int] = field(default_factory=dict)   # tail messages re-derived per topic
+    damaged: list[int] = field(default_factory=list)
 
 
 class Extend(Protocol):
@@ -741,7 +743,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Ex
 
     Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
     metadata record, every complete chunk whose CRC checks and every message outside chunks (written as
-    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record;
+    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record; a chunk
+    whose record is whole but whose content fails its CRC or codec is skipped and counted, and the walk goes on;
     writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
     kept chunk and adds its messages before the summary. ``src`` must start with the MCAP magic (ValueError).
     ``dst`` appears only complete: it is written as ``dst`` + ``.partial`` and renamed at the end; on any
@@ -770,6 +773,7 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
     good_end = 0
     had_summary = False
     loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
+    damaged: list[int] = []
     rec = Recorder(dst, flush_interval_s=None, fsync=False, stats=False)
 
     def keep(cm: ChunkMessages) -> None:
@@ -793,17 +797,24 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
             reader = StreamReader(f, emit_chunks=True, record_size_limit=size)
             it = reader.records
             while True:
+                start = f.tell()
                 try:
                     record = next(it)
-                    if isinstance(record, Chunk):
-                        data = decompress_chunk(record)
-                        cm = chunk_messages(data)
-                        inner = _chunk_definitions(record, data)
                 except StopIteration:
                     had_summary = True
                     break
                 except Exception:  # truncated or corrupt record: stop here
                     break
+                if isinstance(record, Chunk):
+                    try:
+                        data = decompress_chunk(record)
+                        cm = chunk_messages(data)
+                        inner = _chunk_definitions(record, data)
+                    except Exception:  # a whole record with damaged content: skip it, go on
+                        damaged.append(start)
+                        keep_loose(f)
+                        loose[0] = loose[1] = good_end = f.tell()
+                        continue
                 if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
                     if record.channel_id not in rec._channels:
                         break
@@ -847,6 +858,7 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
         last_log_time_ns=last_t,
         had_summary=had_summary,
         rederived=rederived,
+        damaged=damaged,
     )
 
 

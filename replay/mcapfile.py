@@ -239,7 +239,7 @@ class McapFile:
                                    np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx])
         except ChunkError as e:
             raise ValueError(f"{self.path}: damaged chunk at byte {int(p.offset[idx[e.index]])}: {e} "
-                             f"(`fieldlog recover {self.path}` keeps the chunks before it)") from None
+                             f"(`fieldlog recover {self.path}` keeps every other chunk)") from None
 
     def read(self, idx: np.ndarray | list[int], topics: Collection[str] | None = None) -> ChunkMessages:
         """The messages of pieces ``idx`` (of this file) as one batch (only those on ``topics``, when given):

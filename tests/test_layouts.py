@@ -287,6 +287,33 @@ def test_a_damaged_chunk_is_reported_never_read(layout, original, corpus, tmp_pa
     assert len(err) == 1 and f"{bad}: damaged chunk at byte {int(p.offset[i])}" in err[0], err
 
 
+@pytest.mark.parametrize("layout", ["original", "chunks-4k"])
+def test_recover_skips_a_damaged_chunk_and_keeps_every_other(layout, original, corpus, tmp_path, capsys):
+    """A complete file with one damaged chunk in the middle: ``recover`` keeps every other chunk (it used to stop
+    at the damaged one and drop the rest of the drive), names the chunk's byte offset, and the result reads."""
+    src = original if layout == "original" else corpus[layout]
+    (f,) = open_drive(src)
+    p = f.pieces
+    imu = {c for c, ch in f.channels.items() if ch.topic == "/imu"}
+    held = np.flatnonzero(p.chunk & f.may_hold(imu))
+    i = int(held[len(held) // 3])
+    lost = f.read([i])
+    raw = bytearray(src.read_bytes())
+    raw[int(p.body[i] + p.body_len[i] // 2)] ^= 0x55
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(raw)
+    out = tmp_path / "fixed.mcap"
+    assert fieldlog(["recover", str(bad), "--out", str(out)]) == 0
+    assert f"1 damaged chunk skipped, at byte {int(p.offset[i])}" in capsys.readouterr().out
+    before = {t.topic: t.count for t in reader.topics(src)}
+    gone = {f.channels[int(c)].topic: int(n) for c, n in zip(*np.unique(lost.channel_id, return_counts=True))}
+    after = {t.topic: t.count for t in reader.topics(out)}
+    assert gone["/imu"] > 0
+    assert after == {k: v - gone.get(k, 0) for k, v in before.items() if v - gone.get(k, 0)}
+    t = reader.read_topic(out, "/imu")["log_time_ns"]
+    assert t[-1] == reader.read_topic(src, "/imu")["log_time_ns"][-1]  # the drive's end is there
+
+
 def test_allan_and_filter_take_the_session(original, session, tmp_path):
     """allan and filter read the three files as the one drive: allan gives the single file's report, filter the
     single file's slice (the same messages, byte for byte)."""

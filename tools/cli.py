@@ -158,6 +158,9 @@ def _recover_one(src: Path, out: Path | None) -> int:
     rep = recover_drive(src, out)
     state = "was already complete" if rep.had_summary else f"{rep.bytes_discarded} bytes after the last complete " \
                                                             f"chunk discarded"
+    if rep.damaged:
+        state += f"; {len(rep.damaged)} damaged chunk{'s' * (len(rep.damaged) > 1)} skipped, at byte " + \
+            ", ".join(str(x) for x in rep.damaged)
     print(f"wrote {out}: {sum(rep.messages.values())} messages in {rep.chunks} chunks ({state}), "
           f"{sum(rep.rederived.values())} tail messages re-derived from the raw reads")
     for topic in sorted(set(rep.messages) | set(rep.rederived)):
