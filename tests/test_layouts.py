@@ -264,22 +264,30 @@ def test_truncated_is_told_apart_from_unindexed(corpus, tmp_path, capsys):
     assert drive_files(d) == [d / "s_0001.recovered.mcap"]
 
 
+def _damaged(src, tmp_path, k: int):
+    """A copy of src with one byte flipped inside the chunk 1/k of the way through those holding /imu:
+    (the copy, src's McapFile, the chunk's piece index)."""
+    (f,) = open_drive(src)
+    p = f.pieces
+    imu = {c for c, ch in f.channels.items() if ch.topic == "/imu"}
+    held = np.flatnonzero(p.chunk & f.may_hold(imu))
+    i = int(held[len(held) // k])
+    assert p.crc[i] != 0                                          # the writer gave the chunk a CRC
+    raw = bytearray(src.read_bytes())
+    raw[int(p.body[i] + p.body_len[i] // 2)] ^= 0x55
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(raw)
+    return bad, f, i
+
+
 @pytest.mark.parametrize("layout", ["original", "chunks-4k", "lz4", "uncompressed"])
 def test_a_damaged_chunk_is_reported_never_read(layout, original, corpus, tmp_path, capsys):
     """One byte flipped inside a chunk holding /imu (zstd, 4 KiB zstd, lz4, uncompressed): reading the topic
     fails naming the file and the chunk's byte offset (its CRC-32, or the codec, catches it), and a command
     reading it (``allan``) says so in one line with exit code 2; no wrong data comes back."""
     src = original if layout == "original" else corpus[layout]
-    (f,) = open_drive(src)
+    bad, f, i = _damaged(src, tmp_path, 2)
     p = f.pieces
-    imu = {c for c, ch in f.channels.items() if ch.topic == "/imu"}
-    held = np.flatnonzero(p.chunk & f.may_hold(imu))
-    i = int(held[len(held) // 2])
-    assert p.crc[i] != 0                                          # the writer gave the chunk a CRC
-    raw = bytearray(src.read_bytes())
-    raw[int(p.body[i] + p.body_len[i] // 2)] ^= 0x55
-    bad = tmp_path / "bad.mcap"
-    bad.write_bytes(raw)
     with pytest.raises(ValueError, match=re.escape(f"{bad}: damaged chunk at byte {int(p.offset[i])}: chunk ")):
         reader.read_topic(bad, "/imu")
     assert fieldlog(["allan", str(bad)]) == 2
@@ -292,16 +300,9 @@ def test_recover_skips_a_damaged_chunk_and_keeps_every_other(layout, original, c
     """A complete file with one damaged chunk in the middle: ``recover`` keeps every other chunk (it used to stop
     at the damaged one and drop the rest of the drive), names the chunk's byte offset, and the result reads."""
     src = original if layout == "original" else corpus[layout]
-    (f,) = open_drive(src)
+    bad, f, i = _damaged(src, tmp_path, 3)
     p = f.pieces
-    imu = {c for c, ch in f.channels.items() if ch.topic == "/imu"}
-    held = np.flatnonzero(p.chunk & f.may_hold(imu))
-    i = int(held[len(held) // 3])
     lost = f.read([i])
-    raw = bytearray(src.read_bytes())
-    raw[int(p.body[i] + p.body_len[i] // 2)] ^= 0x55
-    bad = tmp_path / "bad.mcap"
-    bad.write_bytes(raw)
     out = tmp_path / "fixed.mcap"
     assert fieldlog(["recover", str(bad), "--out", str(out)]) == 0
     assert f"1 damaged chunk skipped, at byte {int(p.offset[i])}" in capsys.readouterr().out
