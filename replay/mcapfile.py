@@ -1,9 +1,7 @@
 """One MCAP file in any valid layout, as pieces of messages to read.
 
-An MCAP file is a sequence of records, and so is a chunk's content. ``McapFile`` memory-maps the file and walks
-its top-level records once (``acquire.recorder.walk_records``: it reads only each record's 9-byte head, so it
-jumps over chunk bodies; the first ``WALK_PLAIN`` records without numba, so ``info`` on a chunked file never
-loads it). That one walk finds everything, whatever the writer chose to write:
+An MCAP file is a sequence of records, and so is a chunk's content. ``McapFile`` memory-maps the file and finds
+what it holds, whatever the writer chose to write:
 
 - chunks (any compression) and the message index records after them (optional, per chunk);
 - messages outside chunks (unchunked writers), grouped into runs of about ``LOOSE_RUN_BYTES``;
@@ -11,8 +9,16 @@ loads it). That one walk finds everything, whatever the writer chose to write:
   chunk is read);
 - metadata records (``metadata()``); attachments are skipped.
 
-The summary section (chunk indexes, statistics, summary offsets) is not needed: the walk gives the same
-facts, so a file with or without a summary, indexes, statistics or summary offsets reads the same. A *piece*
+When the file has a summary with chunk indexes, the chunk table comes from them, as every MCAP reader does:
+the summary's CRC (when the footer has one) is checked, each chunk index must point at a chunk record, its
+message index offsets must tile the bytes after that chunk, and the few records of the data section between
+the listed chunks (header, schemas, channels, metadata, attachments, data end) are walked: a message, chunk or
+message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
+Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
+top-level records are walked once (``acquire.recorder.walk_records``: it reads only each record's 9-byte head,
+so it jumps over chunk bodies; the first ``WALK_PLAIN`` records without numba, so ``info`` on a chunked file
+never loads it). Both give the same table, so a file with or without a summary, indexes, statistics or summary
+offsets reads the same; a file of 4 KiB chunks opens in 28 ms from its summary against 38 ms walked. A *piece*
 is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
 or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
 per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
@@ -31,6 +37,7 @@ from __future__ import annotations
 import io
 import mmap
 import os
+import struct
 from dataclasses import dataclass
 from typing import Collection
 from pathlib import Path
@@ -40,6 +47,8 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
+from zlib_ng.zlib_ng import crc32
+
 from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, messages_of, walk_records
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -48,6 +57,15 @@ LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about t
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
 _CHUNK_HEAD = np.dtype({"names": ["start", "end", "size", "crc", "comp_len"],
                         "formats": ["<u8", "<u8", "<u8", "<u4", "<u4"], "offsets": [0, 8, 16, 24, 28], "itemsize": 32})
+_CHUNK_INDEX_HEAD = np.dtype({"names": ["offset", "length", "map_len"], "formats": ["<u8", "<u8", "<u4"],
+                              "offsets": [16, 24, 32], "itemsize": 36})
+_CHUNK_INDEX_TAIL = np.dtype({"names": ["mi_len", "comp_len"], "formats": ["<u8", "<u4"], "offsets": [0, 8],
+                              "itemsize": 12})
+_MAP_ENTRY = np.dtype({"names": ["channel", "offset"], "formats": ["<u2", "<u8"], "offsets": [0, 2], "itemsize": 10})
+_RECORD_HEAD = np.dtype({"names": ["op", "length"], "formats": ["u1", "<u8"], "offsets": [0, 1], "itemsize": 9})
+FOOTER_HEAD = struct.pack("<BQ", Opcode.FOOTER, 20)
+MAX_GAPS = 64  # more runs of records between the summary's chunks than this: walk the file instead
+_NOT_IN_GAPS = [Opcode.MESSAGE, Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.FOOTER]
 _MESSAGE_HEAD = np.dtype({"names": ["channel", "log_time"], "formats": ["<u2", "<i8"], "offsets": [0, 6],
                           "itemsize": 14})
 
@@ -95,25 +113,22 @@ class McapFile:
         self.buf = np.frombuffer(self._mm, np.uint8)
         if self._mm[: len(MAGIC)] != MAGIC:
             raise NotMcapError(f"{self.path}: not an MCAP file")
-        ops, starts, lengths, end = walk_records(self.buf, len(MAGIC), 1024, jit=False, limit=WALK_PLAIN)
-        if len(ops) == WALK_PLAIN:  # many records (messages outside chunks, small chunks): the compiled walk
-            more = walk_records(self.buf, end, (size - end) // 64 + 1)
-            ops, starts, lengths = (np.concatenate(x) for x in zip((ops, starts, lengths), more[:3]))
-            end = more[3]
-        if not (len(ops) and ops[-1] == Opcode.FOOTER and end == size - len(MAGIC)
-                and self._mm[size - len(MAGIC):] == MAGIC):
-            raise TruncatedError(f"{self.path}: cut short (no footer): run `fieldlog recover {self.path}` first")
+        laid = self._from_summary(size)
+        self.from_summary = laid is not None  # the chunk table came from the summary's chunk indexes
+        if laid is None:
+            laid = self._from_walk(size)
+        top, chunks, index, loose = laid
+        ops, starts, lengths = top
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         for op in (Opcode.SCHEMA, Opcode.CHANNEL):
             for i in np.flatnonzero(ops == op).tolist():
                 self._define(self._record(op, int(starts[i]), int(lengths[i])))
         data_end = np.flatnonzero(ops == Opcode.DATA_END)
-        n_data = int(data_end[0]) if len(data_end) else len(ops) - 1
-        ops, starts, lengths = ops[:n_data], starts[:n_data], lengths[:n_data]
-        self._metadata = [(int(starts[i]), int(lengths[i])) for i in np.flatnonzero(ops == Opcode.METADATA)]
+        n_data = int(data_end[0]) if len(data_end) else len(ops)
+        self._metadata = [(int(starts[i]), int(lengths[i])) for i in np.flatnonzero(ops[:n_data] == Opcode.METADATA)]
         self.compressions: list[str] = []
-        self.pieces = self._pieces(ops, starts, lengths)
+        self.pieces = self._pieces(*chunks, *index, loose)
         self._topics: dict[int, tuple[int, int, int]] | None = None
 
     # -- records -----------------------------------------------------------------------------
@@ -135,16 +150,120 @@ class McapFile:
 
     # -- pieces ------------------------------------------------------------------------------
 
-    def _pieces(self, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> Pieces:
-        """The chunks and the loose runs, as one table; the message index entries kept per piece."""
-        ci = np.flatnonzero(ops == Opcode.CHUNK)
-        mi = np.flatnonzero(ops == Opcode.MESSAGE_INDEX)
-        owner = np.cumsum(ops == Opcode.CHUNK)[mi] - 1  # a message index belongs to the chunk before it
+    def _walk(self, pos: int, end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The records from ``pos`` up to ``end``: the first ``WALK_PLAIN`` without numba, the rest compiled."""
+        buf = self.buf[:end]
+        ops, starts, lengths, stop = walk_records(buf, pos, 1024, jit=False, limit=WALK_PLAIN)
+        if len(ops) == WALK_PLAIN:
+            more = walk_records(buf, stop, (end - stop) // 64 + 1)
+            ops, starts, lengths = (np.concatenate(x) for x in zip((ops, starts, lengths), more[:3]))
+            stop = more[3]
+        return ops, starts, lengths, stop
+
+    def _from_walk(self, size: int) -> tuple:
+        """The layout from one walk over every top-level record: (the records (ops, starts, lengths): every one
+        but the chunks, message indexes and loose messages' use is read from them; the chunks (content start,
+        length); the message indexes (chunk, content start, length); the loose runs)."""
+        ops, starts, lengths, end = self._walk(len(MAGIC), size)
+        if not (len(ops) and ops[-1] == Opcode.FOOTER and end == size - len(MAGIC)
+                and self._mm[size - len(MAGIC):] == MAGIC):
+            raise TruncatedError(f"{self.path}: cut short (no footer): run `fieldlog recover {self.path}` first")
+        data_end = np.flatnonzero(ops == Opcode.DATA_END)
+        n = int(data_end[0]) if len(data_end) else len(ops) - 1
+        d_ops, d_starts, d_lengths = ops[:n], starts[:n], lengths[:n]
+        ci = np.flatnonzero(d_ops == Opcode.CHUNK)
+        mi = np.flatnonzero(d_ops == Opcode.MESSAGE_INDEX)
+        owner = np.cumsum(d_ops == Opcode.CHUNK)[mi] - 1  # a message index belongs to the chunk before it
         mi, owner = mi[owner >= 0], owner[owner >= 0]
-        s = starts[mi]
-        ix_cid = le(self.buf, s, "<u2").astype(np.int64)
-        self._index = (owner, ix_cid, s + 6, (lengths[mi] - 6) // 16)  # piece, channel, entries' offset, count
-        cs, clen_rec = starts[ci], lengths[ci]
+        cid = le(self.buf, d_starts[mi], "<u2").astype(np.int64)
+        return ((ops, starts, lengths), (d_starts[ci], d_lengths[ci]), (owner, cid, d_starts[mi], d_lengths[mi]),
+                self._loose(d_ops, d_starts, d_lengths))
+
+    def _from_summary(self, size: int) -> tuple | None:
+        """The layout of ``_from_walk`` from the summary's chunk indexes, or None (walk the file instead) unless
+        the file is complete and its summary checks out: its CRC (when the footer has one), every chunk index
+        pointing at a chunk record, its message indexes tiling the bytes after the chunk, and the data section
+        between those chunks and indexes walked (a few records: header, schemas, channels, metadata, attachments,
+        data end) holding no message, chunk or message index the summary does not list."""
+        foot = size - len(MAGIC) - 29
+        if foot < len(MAGIC) or self._mm[size - len(MAGIC):] != MAGIC or self._mm[foot:foot + 9] != FOOTER_HEAD:
+            return None
+        start, _, crc = struct.unpack_from("<QQI", self._mm, foot + 9)
+        if not len(MAGIC) < start < foot or (crc and crc32(self._mm[start:foot + 25]) != crc):
+            return None
+        s_ops, s_starts, s_lengths, end = self._walk(int(start), size)
+        if end != size - len(MAGIC) or not len(s_ops) or s_ops[-1] != Opcode.FOOTER or s_starts[-1] != foot + 9:
+            return None
+        k = np.flatnonzero(s_ops == Opcode.CHUNK_INDEX)
+        s, rec_end = s_starts[k], s_starts[k] + s_lengths[k]
+        if not len(k) or (s_lengths[k] < 64).any():
+            return None
+        buf, lim = self.buf, np.uint64(start)
+        head = le(buf, s, _CHUNK_INDEX_HEAD)
+        co, clen, mlen = head["offset"], head["length"], head["map_len"].astype(np.int64)
+        if (co >= lim).any() or (clen >= lim).any() or (s + 36 + mlen + 12 > rec_end).any() or (mlen % 10).any():
+            return None
+        co, clen, at = co.astype(np.int64), clen.astype(np.int64), s + 36 + mlen
+        tail = le(buf, at, _CHUNK_INDEX_TAIL)
+        mil = tail["mi_len"]
+        if (mil >= lim).any() or (at + 12 + tail["comp_len"] + 16 > rec_end).any():
+            return None
+        iv_end = co + clen + mil.astype(np.int64)  # the chunk record and its message indexes
+        if ((co < len(MAGIC)) | (clen < 49) | (iv_end > start)).any() or (co[1:] < iv_end[:-1]).any():
+            return None
+        rec = le(buf, co, _RECORD_HEAD)
+        if (rec["op"] != Opcode.CHUNK).any() or (rec["length"] != (clen - 9).astype(np.uint64)).any():
+            return None
+        index = self._summary_index(s, mlen // 10, co + clen, iv_end)
+        gaps = self._gaps(np.r_[len(MAGIC), iv_end], np.r_[co, start])
+        if index is None or gaps is None:
+            return None
+        top = tuple(np.concatenate(x) for x in zip(gaps, (s_ops, s_starts, s_lengths)))
+        return top, (co + 9, clen - 9), index, []
+
+    def _summary_index(self, s: np.ndarray, n: np.ndarray, a: np.ndarray, b: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The message indexes listed by the chunk indexes at ``s`` (``n`` entries each) as ``_pieces`` takes
+        them (chunk, channel, content start, length), or None unless each chunk's fill its bytes ``a``..``b``
+        exactly (in order of their offsets; their lengths are those gaps, their opcodes are checked)."""
+        owner = np.repeat(np.arange(len(s)), n)
+        first = np.cumsum(n) - n
+        e = le(self.buf, np.repeat(s + 36 - 10 * first, n) + 10 * np.arange(int(n.sum())), _MAP_ENTRY)
+        off = e["offset"]
+        if (off < a[owner].astype(np.uint64)).any() or (off >= b[owner].astype(np.uint64)).any():
+            return None
+        off, cid = off.astype(np.int64), e["channel"].astype(np.int64)
+        if (np.diff(off) <= 0).any():  # each lies in its chunk's bytes: sorted by offset, each chunk's stay together
+            order = np.argsort(off)
+            owner, off, cid = owner[order], off[order], cid[order]
+        last = np.r_[owner[1:] != owner[:-1], True]
+        rec_end = np.where(last, b[owner], np.r_[off[1:], 0])
+        first_of = np.r_[True, last[:-1]]
+        bare = np.bincount(owner, minlength=len(a)) == 0
+        if ((rec_end - off < 15) | (self.buf[off] != Opcode.MESSAGE_INDEX)).any() or (
+                off[first_of] != a[owner[first_of]]).any() or (a[bare] != b[bare]).any():
+            return None
+        return owner, cid, off + 9, rec_end - off - 9
+
+    def _gaps(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The records in the file's bytes ``lo[i]``..``hi[i]`` (between the chunks the summary lists), or None
+        when they do not walk exactly or hold a message, chunk or message index (a summary that leaves them out)."""
+        parts = []
+        for a, b in zip(lo[hi > lo].tolist(), hi[hi > lo].tolist()):
+            if len(parts) >= MAX_GAPS:
+                return None
+            ops, starts, lengths, end = walk_records(self.buf[:b], a, 64, jit=False, limit=WALK_PLAIN)
+            if end != b or np.isin(ops, _NOT_IN_GAPS).any():
+                return None
+            parts.append((ops, starts, lengths))
+        return tuple(np.concatenate(x) for x in zip(*parts)) if parts else (
+            np.zeros(0, np.uint8), np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+    def _pieces(self, cs: np.ndarray, clen_rec: np.ndarray, owner: np.ndarray, ix_cid: np.ndarray, s: np.ndarray,
+                mi_len: np.ndarray, lo_rows: list) -> Pieces:
+        """The chunks (content start ``cs``, length ``clen_rec``) and the loose runs, as one table; the message
+        indexes (chunk ``owner``, channel ``ix_cid``, content start ``s``, length ``mi_len``) kept per piece."""
+        self._index = (owner, ix_cid, s + 6, (mi_len - 6) // 16)  # piece, channel, entries' offset, count
         bad = clen_rec < 40
         if bad.any():
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
@@ -156,9 +275,8 @@ class McapFile:
         if bad.any():
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
         comp = self._compressions(cs + 32, clen)
-        lo_rows = self._loose(ops, starts, lengths)
         cids = np.flatnonzero(np.bincount(np.concatenate([ix_cid, *[r[4] for r in lo_rows]]), minlength=1))
-        n_c, n = len(ci), len(ci) + len(lo_rows)
+        n_c, n = len(cs), len(cs) + len(lo_rows)
         has = np.zeros((n, len(cids)), bool)
         has[owner, np.searchsorted(cids, ix_cid)] = True
         for k, r in enumerate(lo_rows):

@@ -11,6 +11,7 @@ unchunked file.
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import re
 import shutil
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.opcode import Opcode
+from mcap.writer import Writer
 
 from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
@@ -27,7 +29,7 @@ from fieldlog.acquire.pipeline import Pipeline, read_order
 from fieldlog.acquire.recorder import walk_records
 from fieldlog.replay import reader
 from fieldlog.replay.drive import drive_files, open_drive
-from fieldlog.replay.mcapfile import TruncatedError, le
+from fieldlog.replay.mcapfile import McapFile, TruncatedError, le
 from fieldlog.tools.allan import drive_report
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.evaluate import outage_error_series
@@ -155,6 +157,73 @@ def test_the_corpus_has_the_layouts_it_claims(corpus):
     split = files["rosbag2-split"]
     assert len(split) == 2 and split[0].channel_stats() and split[1].channel_stats()   # messages in both files
     assert split[0].pieces.end_ns.max() < split[1].pieces.start_ns.min()
+
+
+def _layout(path: Path) -> tuple:
+    """What ``McapFile`` found in ``path``: whether from the summary, and its tables as comparable values."""
+    f = McapFile(path)
+    p = f.pieces
+    return f.from_summary, ([getattr(p, x.name).tolist() for x in dataclasses.fields(p)], f.compressions, f.channels,
+                            f.schemas, f.metadata(), f.message_counts())
+
+
+def _summary(path: Path) -> tuple[bytearray, int]:
+    """The bytes of ``path`` and the offset of its footer record."""
+    raw = bytearray(path.read_bytes())
+    return raw, len(raw) - 8 - 29
+
+
+@pytest.mark.parametrize("layout", ["original", *LAYOUTS])
+def test_the_summary_gives_the_walks_table_and_a_bad_summary_falls_back(layout, original, corpus, tmp_path):
+    """Files whose summary lists their chunks get their table from the chunk indexes, the same table the walk
+    of every record gives: a copy whose footer CRC does not match its summary, and one with a chunk index
+    pointing off its chunk (no CRC to catch it), are walked and read the same."""
+    src = original if layout == "original" else corpus[layout]
+    from_summary, table = _layout(src)
+    assert from_summary == (layout not in ("unchunked", "no-summary"))   # no chunk indexes: walked
+    if not from_summary:
+        return
+    raw, foot = _summary(src)
+    assert raw[foot + 25:foot + 29] != bytes(4)                          # the writer gave the summary a CRC
+    raw[foot + 25] ^= 0x01
+    bad_crc = tmp_path / "bad_crc.mcap"
+    bad_crc.write_bytes(raw)
+    raw[foot + 25:foot + 29] = bytes(4)                                  # no CRC, and a chunk index off by one
+    start = int.from_bytes(raw[foot + 9:foot + 17], "little")
+    ops, starts, _, _ = walk_records(np.frombuffer(bytes(raw), np.uint8), start, 64, jit=False)
+    at = int(starts[np.flatnonzero(ops == Opcode.CHUNK_INDEX)[0]]) + 16
+    raw[at:at + 8] = (int.from_bytes(raw[at:at + 8], "little") + 1).to_bytes(8, "little")
+    bad_index = tmp_path / "bad_index.mcap"
+    bad_index.write_bytes(raw)
+    for bad in (bad_crc, bad_index):
+        assert _layout(bad) == (False, table)
+        assert len(reader.read_topic(bad, "/imu")["log_time_ns"]) == len(reader.read_topic(src, "/imu")["log_time_ns"])
+
+
+def test_messages_outside_chunks_beside_a_summary_are_read(original, tmp_path):
+    """The mcap Writer's chunked file with runs of messages written outside its chunks (valid MCAP; its summary
+    lists only the chunks, its statistics count every message): the file is walked and every message read."""
+    topics = ["/imu", "/gps/fix"]
+    k, t, pub, data = merged(original, topics)
+    path = tmp_path / "mixed.mcap"
+    with open(path, "wb") as out:
+        w = Writer(out)
+        w.start("ros2", "mcap python Writer, some messages outside chunks")
+        cids = [w.register_channel(x, "cdr", w.register_schema((s := schema_of(original, x)).name, s.encoding,
+                                                                  s.data)) for x in topics]
+        builder = w._Writer__chunk_builder
+        for j, (i, ti, pi, d) in enumerate(zip(k.tolist(), t.tolist(), pub.tolist(), data)):
+            loose = j % 20_000 < 300
+            if loose:  # the Writer has no option for it: its chunk closed, its chunk builder set aside
+                w._Writer__finalize_chunk()
+                w._Writer__chunk_builder = None
+            w.add_message(cids[i], ti, d, pi)
+            w._Writer__chunk_builder = builder
+        w.finish()
+    f = McapFile(path)
+    assert not f.from_summary and (~f.pieces.chunk).sum() >= 3 and f.pieces.chunk.sum() >= 3
+    for i, topic in enumerate(topics):
+        assert np.array_equal(np.sort(reader.read_topic(path, topic)["log_time_ns"]), np.sort(t[k == i]))
 
 
 def test_the_split_rosbag2_directory_is_one_bag_to_rosbags(corpus):
