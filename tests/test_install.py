@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from fieldlog.acquire import recorder
+from fieldlog.acquire.recovery import recover_drive
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
 from fieldlog.tools.sim.simulate import simulate
@@ -71,16 +72,17 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "/imu" in r.stdout and "sensor_msgs/msg/Imu" in r.stdout
 
-    # a drive cut short mid-chunk: recover keeps exactly the messages of the complete chunks (the core build walks
-    # chunks without numba; the numba walk of the test environment must find the same records)
+    # a drive cut short mid-chunk: recover keeps exactly the messages of the complete chunks and re-derives the
+    # same tail (the core build walks chunks without numba; the numba walk of the test environment must find the
+    # same records)
     cut = tmp_path / "cut.mcap"
     data = drive.read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
     r = _run([fl, "recover", cut, "--out", tmp_path / "rec.mcap"], tmp_path)
     assert r.returncode == 0, r.stderr
     ref = tmp_path / "ref.mcap"
-    rep = recorder.recover(cut, ref)
-    assert rep.chunks > 0
+    rep = recover_drive(cut, ref)
+    assert rep.chunks > 0 and rep.rederived.get("/imu", 0) > 0
     assert {t.topic: t.count for t in reader.topics(tmp_path / "rec.mcap")} == \
         {t.topic: t.count for t in reader.topics(ref)}
 
