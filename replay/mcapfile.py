@@ -11,7 +11,8 @@ what it holds, whatever the writer chose to write:
 
 When the file has a summary with chunk indexes, the chunk table comes from them, as every MCAP reader does:
 the summary's CRC (when the footer has one) is checked, each chunk index must point at a chunk record, its
-message index offsets must tile the bytes after that chunk, and the few records of the data section between
+message index offsets must tile the bytes after that chunk (without a CRC, each message index record is read
+and must agree with the summary), and the few records of the data section between
 the listed chunks (header, schemas, channels, metadata, attachments, data end) are walked: a message, chunk or
 message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
 Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
@@ -63,6 +64,8 @@ _CHUNK_INDEX_TAIL = np.dtype({"names": ["mi_len", "comp_len"], "formats": ["<u8"
                               "itemsize": 12})
 _MAP_ENTRY = np.dtype({"names": ["channel", "offset"], "formats": ["<u2", "<u8"], "offsets": [0, 2], "itemsize": 10})
 _RECORD_HEAD = np.dtype({"names": ["op", "length"], "formats": ["u1", "<u8"], "offsets": [0, 1], "itemsize": 9})
+_INDEX_HEAD = np.dtype({"names": ["op", "length", "channel"], "formats": ["u1", "<u8", "<u2"], "offsets": [0, 1, 9],
+                        "itemsize": 11})
 FOOTER_HEAD = struct.pack("<BQ", Opcode.FOOTER, 20)
 MAX_GAPS = 64  # more runs of records between the summary's chunks than this: walk the file instead
 _NOT_IN_GAPS = [Opcode.MESSAGE, Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.FOOTER]
@@ -214,25 +217,27 @@ class McapFile:
         rec = le(buf, co, _RECORD_HEAD)
         if (rec["op"] != Opcode.CHUNK).any() or (rec["length"] != (clen - 9).astype(np.uint64)).any():
             return None
-        index = self._summary_index(s, mlen // 10, co + clen, iv_end)
+        index = self._summary_index(s, mlen // 10, co + clen, iv_end, crc != 0)
         gaps = self._gaps(np.r_[len(MAGIC), iv_end], np.r_[co, start])
         if index is None or gaps is None:
             return None
         top = tuple(np.concatenate(x) for x in zip(gaps, (s_ops, s_starts, s_lengths)))
         return top, (co + 9, clen - 9), index, []
 
-    def _summary_index(self, s: np.ndarray, n: np.ndarray, a: np.ndarray, b: np.ndarray
+    def _summary_index(self, s: np.ndarray, n: np.ndarray, a: np.ndarray, b: np.ndarray, checked: bool
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The message indexes listed by the chunk indexes at ``s`` (``n`` entries each) as ``_pieces`` takes
-        them (chunk, channel, content start, length), or None unless each chunk's fill its bytes ``a``..``b``
-        exactly (in order of their offsets; their lengths are those gaps, their opcodes are checked)."""
+        """The message index records listed by the chunk indexes at ``s`` (``n`` entries each) as ``_pieces``
+        takes them (chunk, channel, content start, length), or None unless each chunk's records fill its bytes
+        ``a``..``b`` one after the other, with their opcode. ``checked`` (the summary's CRC held): their
+        channels as the summary lists them; else each record's channel and length are read and must agree (220k
+        random reads in a file of 4 KiB chunks: 9 ms)."""
         owner = np.repeat(np.arange(len(s)), n)
         first = np.cumsum(n) - n
         e = le(self.buf, np.repeat(s + 36 - 10 * first, n) + 10 * np.arange(int(n.sum())), _MAP_ENTRY)
-        off = e["offset"]
+        off, cid = e["offset"], e["channel"].astype(np.int64)
         if (off < a[owner].astype(np.uint64)).any() or (off >= b[owner].astype(np.uint64)).any():
             return None
-        off, cid = off.astype(np.int64), e["channel"].astype(np.int64)
+        off = off.astype(np.int64)
         if (np.diff(off) <= 0).any():  # each lies in its chunk's bytes: sorted by offset, each chunk's stay together
             order = np.argsort(off)
             owner, off, cid = owner[order], off[order], cid[order]
@@ -240,10 +245,15 @@ class McapFile:
         rec_end = np.where(last, b[owner], np.r_[off[1:], 0])
         first_of = np.r_[True, last[:-1]]
         bare = np.bincount(owner, minlength=len(a)) == 0
-        if ((rec_end - off < 15) | (self.buf[off] != Opcode.MESSAGE_INDEX)).any() or (
-                off[first_of] != a[owner[first_of]]).any() or (a[bare] != b[bare]).any():
+        if (rec_end - off < 15).any() or (off[first_of] != a[owner[first_of]]).any() or (a[bare] != b[bare]).any():
             return None
-        return owner, cid, off + 9, rec_end - off - 9
+        if checked:
+            ok = self.buf[off] == Opcode.MESSAGE_INDEX
+        else:
+            rec = le(self.buf, off, _INDEX_HEAD)
+            ok = (rec["op"] == Opcode.MESSAGE_INDEX) & (rec["length"] == (rec_end - off - 9).astype(np.uint64)) & (
+                rec["channel"] == cid)
+        return (owner, cid, off + 9, rec_end - off - 9) if ok.all() else None
 
     def _gaps(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The records in the file's bytes ``lo[i]``..``hi[i]`` (between the chunks the summary lists), or None
