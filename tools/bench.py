@@ -686,16 +686,19 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # Measured and dropped: a worker thread decompressing the next group (load 4: own 0.31 vs 0.26 s, 4 KiB 0.48 vs 0.39
     # s wall, CPU worse too) and multi_decompress_to_buffer(threads=2) (no gain).
     # 2026-12-01, later: the chunk table from the summary's chunk indexes when the summary checks out (else the walk):
-    # the 4 KiB file opens in 28 ms against 38 ms walked (own file 1.2 against 0.9 ms). Before/after interleaved in one
-    # process (the open by the walk vs from the summary, nothing else differs), medians: 31 runs at load 2.1, own 0.120
-    # -> 0.119 s, 4 KiB 0.267 -> 0.253 s wall (x2.22 -> x2.12; CPU x2.21 -> x2.14); 15 runs of every layout at load
-    # 1.9-2.2, 4 KiB 0.241 -> 0.237 s (x2.25 -> x2.13 wall and CPU), the others within the noise (own 0.107 -> 0.112,
-    # no summary 0.176 -> 0.199: the same code both ways). This bench after it, load 1.9: own 0.11 s, 4 KiB 0.25 s, x2.37
-    # wall, x2.39 CPU. The x2 target is still not met reliably (x1.94-2.39). Per 4 KiB read now (cProfile, load 1.9): zstd
-    # 71 ms, the group's join 27 ms, record walk 21 ms, integer gathers 12 ms, CRC 11 ms, open 28 ms. Measured and dropped
-    # for the join: the output of multi_decompress_to_buffer is not one buffer (the C backend fills ~1 MB buffers), so it
-    # cannot be walked in place; stream_reader().readinto a preallocated buffer costs 3.6 ms against 2.2 ms per 1000
-    # chunks (a Python call each), decompressobj(read_across_frames=True) over the joined frames 7.7-8.5 ms (with CRCs);
+    # the 4 KiB file opens in 29 ms against 39 ms walked (own file 1.4 against 1.0 ms). Before/after interleaved in one
+    # process (/tmp script: the open by the walk vs from the summary, nothing else differs; rounds alternate which goes
+    # first), medians: 31 runs at load 2.1, own 0.120 -> 0.119 s, 4 KiB 0.267 -> 0.253 s (x2.22 -> x2.12 wall, x2.21 ->
+    # x2.14 CPU); 15 runs of every layout at load 1.0, 4 KiB 0.258 -> 0.244 s (x2.36 -> x2.05 wall and CPU), the others
+    # within the noise of the order (own 0.109 -> 0.119 s, and no summary, the same code both ways, 0.194 -> 0.198; 41 runs
+    # of own and no summary alone at load 0.8: 0.109 -> 0.111 and 0.190 -> 0.194). This bench after it: load 1.9, own
+    # 0.11 s, 4 KiB 0.25 s, x2.37 wall, x2.39 CPU; load 0.9, own 0.15 s, 4 KiB 0.36 s, x2.37 wall and CPU (every layout
+    # slower in this process than in the /tmp script's, which reads the same files without simulating them first). The
+    # x2 target is still not met reliably (x2.05-2.39). Per 4 KiB read now (cProfile, load 1.9): zstd 71 ms, the group's
+    # join 27 ms, record walk 21 ms, integer gathers 12 ms, CRC 11 ms, open 29 ms. Measured and dropped for the join: the
+    # output of multi_decompress_to_buffer is not one buffer (the C backend fills ~1 MB buffers), so it cannot be walked
+    # in place; stream_reader().readinto a preallocated buffer costs 3.6 ms against 2.2 ms per 1000 chunks (a Python
+    # call each), decompressobj(read_across_frames=True) over the joined frames 7.7-8.5 ms (with CRCs);
     # decompress(read_across_frames=True) is not implemented (zstandard 0.25).
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
