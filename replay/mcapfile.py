@@ -28,7 +28,8 @@ chunks of a group are decompressed in one call, and checked against their CRC-32
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
-"cut short, run ``fieldlog recover``". A file that is not MCAP at all is ``NotMcapError``; a chunk whose
+"cut short, run ``fieldlog recover``", unless the walk passed the Data End record: then the data section is
+whole and the damaged or cut summary is left out (as are damaged schema or channel copies in it). A file that is not MCAP at all is ``NotMcapError``; a chunk whose
 fields overrun its record, or whose content does not decompress to its size and CRC, is ``ValueError`` naming
 its byte offset. All are ValueErrors, so every command
 reports them in one line.
@@ -122,13 +123,20 @@ class McapFile:
             laid = self._from_walk(size)
         top, chunks, index, loose = laid
         ops, starts, lengths = top
+        data_end = np.flatnonzero(ops == Opcode.DATA_END)
+        n_data = int(data_end[0]) if len(data_end) else len(ops)
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         for op in (Opcode.SCHEMA, Opcode.CHANNEL):
             for i in np.flatnonzero(ops == op).tolist():
-                self._define(self._record(op, int(starts[i]), int(lengths[i])))
-        data_end = np.flatnonzero(ops == Opcode.DATA_END)
-        n_data = int(data_end[0]) if len(data_end) else len(ops)
+                try:
+                    r = self._record(op, int(starts[i]), int(lengths[i]))
+                except Exception as e:  # a damaged record: the summary's copy is left out, the data section's named
+                    if i >= n_data:
+                        continue
+                    raise ValueError(f"{self.path}: damaged {Opcode(op).name.lower()} record at byte "
+                                     f"{int(starts[i]) - 9} ({e}): the file cannot be read as it is") from None
+                self._define(r)
         self._metadata = [(int(starts[i]), int(lengths[i])) for i in np.flatnonzero(ops[:n_data] == Opcode.METADATA)]
         self.compressions: list[str] = []
         self.pieces = self._pieces(*chunks, *index, loose)
@@ -141,7 +149,9 @@ class McapFile:
         return {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}[op].read(stream)
 
     def _define(self, r: Schema | Channel) -> None:
-        (self.schemas if isinstance(r, Schema) else self.channels)[r.id] = r
+        """The first record of an id counts (MCAP: repeats are copies): the data section's, not the summary's copy,
+        which a damaged summary without a CRC could hold wrong."""
+        (self.schemas if isinstance(r, Schema) else self.channels).setdefault(r.id, r)
 
     def metadata(self) -> list[Metadata]:
         """The metadata records in file order."""
@@ -168,10 +178,13 @@ class McapFile:
         but the chunks, message indexes and loose messages' use is read from them; the chunks (content start,
         length); the message indexes (chunk, content start, length); the loose runs)."""
         ops, starts, lengths, end = self._walk(len(MAGIC), size)
+        data_end = np.flatnonzero(ops == Opcode.DATA_END)
         if not (len(ops) and ops[-1] == Opcode.FOOTER and end == size - len(MAGIC)
                 and self._mm[size - len(MAGIC):] == MAGIC):
-            raise TruncatedError(f"{self.path}: cut short (no footer): run `fieldlog recover {self.path}` first")
-        data_end = np.flatnonzero(ops == Opcode.DATA_END)
+            if not len(data_end):
+                raise TruncatedError(f"{self.path}: cut short (no footer): run `fieldlog recover {self.path}` first")
+            # the data section is whole (its end record is there): a damaged or cut summary is left out
+            ops, starts, lengths = (x[:int(data_end[0]) + 1] for x in (ops, starts, lengths))
         n = int(data_end[0]) if len(data_end) else len(ops) - 1
         d_ops, d_starts, d_lengths = ops[:n], starts[:n], lengths[:n]
         ci = np.flatnonzero(d_ops == Opcode.CHUNK)

@@ -194,7 +194,11 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
             continue
         t, _, p = _select(cm, cids)
         ch = f.channels[cids[0]]
-        dec = factory.decoder_for(ch.message_encoding, f.schemas.get(ch.schema_id))
+        try:
+            dec = factory.decoder_for(ch.message_encoding, f.schemas.get(ch.schema_id))
+        except Exception as e:  # a damaged schema record
+            raise ValueError(f"{f.path}: the schema of {topic} does not parse ({e}): the file is damaged; "
+                             f"`fieldlog recover {f.path}` rewrites what is sound") from None
         for i in np.argsort(t, kind="stable").tolist():
             yield dec(p[i])
 
