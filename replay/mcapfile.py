@@ -29,9 +29,9 @@ chunks of a group are decompressed in one call, and checked against their CRC-32
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
 "cut short, run ``fieldlog recover``", unless the walk passed the Data End record: then the data section is
-whole and the damaged or cut summary is left out (as are damaged schema or channel copies in it). A file that is not MCAP at all is ``NotMcapError``; a chunk whose
-fields overrun its record, or whose content does not decompress to its size and CRC, is ``ValueError`` naming
-its byte offset. All are ValueErrors, so every command
+whole and the damaged or cut summary is left out (as are damaged schema or channel copies in it). A file that
+is not MCAP at all is ``NotMcapError``; a chunk whose fields overrun its record, or whose content does not
+decompress to its size and CRC, is ``ValueError`` naming its byte offset. All are ValueErrors, so every command
 reports them in one line.
 """
 from __future__ import annotations

@@ -217,8 +217,8 @@ def gyro_bias_errors(drive: Path, fused: Path, method: str, mean_s: float = 10.0
     """(t_ns (n,), error, sigma): the method's gyro bias estimate minus the simulator's (``/truth/imu_bias``, its
     mean over the last ``mean_s``: the truth holds the fast part of the flicker too) and the estimate's sigma,
     rad/s, body RFU, (n, 3) each, at the rows of ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth
-    to its end. None when either
-    topic is missing (a drive not simulated, a fused file written before the estimate was published)."""
+    to its end. None when either topic is missing (a drive not simulated, a fused file written before the
+    estimate was published)."""
     have = {t.topic for t in reader.topics(drive) if t.count} | {t.topic for t in reader.topics(fused) if t.count}
     if not {"/truth/imu_bias", f"/fusion/{method}/imu_bias"} <= have:
         return None

@@ -226,6 +226,12 @@ def _misalignment_error(rng: np.random.Generator, sigma: float) -> np.ndarray:
     return E
 
 
+def gain(realised: dict[str, np.ndarray], name: str) -> np.ndarray:
+    """The (3, 3) matrix a ``name`` ("gyro", "accel") triad of ``imu_counts``' ``realised`` errors applies to the
+    true signal: (I + scale factor) (I + misalignment)."""
+    return (np.eye(3) + np.diag(realised[f"{name}_scale_factor"])) @ (np.eye(3) + realised[f"{name}_misalignment"])
+
+
 def imu_counts(
     t_s: np.ndarray,
     omega_ib_b: np.ndarray,
@@ -275,8 +281,7 @@ def imu_counts(
     for j, (name, m) in enumerate(mag.items()):
         cols = slice(3 * j, 3 * j + 3)
         bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * flicker[:, cols]
-        gain = (np.eye(3) + np.diag(realised[f"{name}_scale_factor"])) @ (np.eye(3) + realised[f"{name}_misalignment"])
-        measured[name] = np.dot(x_true[name], gain.T) + bias + m["noise_density"] * white[:, cols]
+        measured[name] = np.dot(x_true[name], gain(realised, name).T) + bias + m["noise_density"] * white[:, cols]
         if coloured is not None:
             realised[f"{name}_coloured"] = m["gm_sigma"] * coloured[:, cols]
             measured[name] += realised[f"{name}_coloured"]

@@ -124,9 +124,8 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     k = np.clip(np.searchsorted(t_k, t_nav), 0, len(t_k) - 1)
     bias = {}
     for x, true in (("gyro", ts.omega_ib_b), ("accel", ts.f_b)):
-        gain = (np.eye(3) + np.diag(r[f"{x}_scale_factor"])) @ (np.eye(3) + r[f"{x}_misalignment"])
         coloured = r[f"{x}_coloured"][k] if f"{x}_coloured" in r else 0.0
-        bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (gain - np.eye(3)).T
+        bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
     rec.write_batch("/truth/imu_bias", tn_ns, messages.encode_imu(tn_ns, bias["gyro"], bias["accel"], zero, zero,
                                                                   frame_id="imu"))
 
