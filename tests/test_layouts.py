@@ -384,16 +384,19 @@ def test_recover_skips_a_damaged_chunk_and_keeps_every_other(layout, original, c
     assert t[-1] == reader.read_topic(src, "/imu")["log_time_ns"][-1]  # the drive's end is there
 
 
-def test_a_damaged_or_cut_summary_is_left_out(original, tmp_path):
+@pytest.mark.parametrize("layout", ["original", "lz4"])
+def test_a_damaged_or_cut_summary_is_left_out(layout, original, corpus, tmp_path):
     """The data section is whole, the summary is not: a byte flipped in the summary's schema and channel copies
-    (footer CRC zeroed, so nothing catches it), or the file cut inside the summary. Both read as the original
-    (it was a UnicodeDecodeError without the file's name, or "cut short, run recover")."""
+    (footer CRC zeroed, so nothing catches it), or the file cut inside the summary; our recorder's file and the
+    mcap library Writer's. Both read as the original (it was a UnicodeDecodeError without the file's name, or
+    "cut short, run recover")."""
     import struct
 
-    data = original.read_bytes()
+    src = original if layout == "original" else corpus[layout]
+    data = src.read_bytes()
     foot = len(data) - 8 - 29
     start = struct.unpack_from("<Q", data, foot + 9)[0]
-    want = reader.read_topic(original, "/imu")["log_time_ns"]
+    want = reader.read_topic(src, "/imu")["log_time_ns"]
     cases = {}
     for k in range(0, 400, 40):   # the first records of the summary: schemas, channels
         d = bytearray(data)
@@ -405,7 +408,7 @@ def test_a_damaged_or_cut_summary_is_left_out(original, tmp_path):
         p = tmp_path / f"{name}.mcap"
         p.write_bytes(d)
         assert np.array_equal(reader.read_topic(p, "/imu")["log_time_ns"], want), name
-        assert {t.topic for t in reader.topics(p)} == {t.topic for t in reader.topics(original)}, name
+        assert {t.topic for t in reader.topics(p)} == {t.topic for t in reader.topics(src)}, name
 
 
 def test_allan_and_filter_take_the_session(original, session, tmp_path):
