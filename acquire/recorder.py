@@ -24,7 +24,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Protocol, Sequence
+from typing import BinaryIO, Callable, Protocol, Sequence
 
 import numpy as np
 import zstandard
@@ -48,7 +48,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import messages, native
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.drivestats import DriveStats
 
@@ -631,7 +631,7 @@ def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence
     bad[check] |= np.fromiter(map(crc32, (p for p, c in zip(parts, check.tolist()) if c)), np.int64) != crc[check]
     if bad.any():
         k = int(np.argmax(bad))
-        raise ChunkError(k, "chunk size mismatch" if len(parts[k]) != size[k] else "chunk CRC mismatch")
+        raise ChunkError(k, native.ERRORS[native.SIZE if len(parts[k]) != size[k] else native.CRC])
     return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
@@ -708,6 +708,34 @@ def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: n
         start=s + 22,
         length=ln - 22,
     )
+
+
+def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int], length: Sequence[int],
+                size: Sequence[int], crc: Sequence[int], want: np.ndarray,
+                scratch: Callable[[int, int], tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[ChunkMessages, list[tuple[int, int, int]]]:
+    """The messages of many chunks (as ``decompress_many`` takes them) on the channels marked in ``want`` (bool per
+    channel id, 65536 long), and the schema and channel records among their records as (opcode, body start in
+    the batch's ``data``, body length). When zstd chunks are among them (and uncompressed ones only besides) and
+    ``acquire.native`` is ready, in one compiled pass that keeps only those records: ``scratch(a, b)`` gives a
+    staging buffer of ``a`` bytes and the batch's buffer of ``b`` bytes. Else the chunks are decompressed and joined
+    (``decompress_many``), walked (``walk_records``) and their messages picked (``messages_of``)."""
+    comp, size = np.asarray(comp, np.int64), np.asarray(size, np.int64)
+    used = {names[c] for c in np.unique(comp).tolist()}
+    if "zstd" in used and used <= {"", "zstd"} and (size < 1 << 32).all() and native.ready():
+        stage, out = scratch(int(size.max()), int(size.sum()))
+        j, what, n, rec, ch, defs = native.read_chunks(
+            buf, np.where(comp == names.index("zstd"), native.ZSTD, native.NONE), np.asarray(at, np.int64),
+            np.asarray(length, np.int64), size, np.asarray(crc, np.int64), stage, out, want)
+        if j >= 0:
+            raise ChunkError(j, native.ERRORS[what])
+        cm = ChunkMessages(out[:n], ch, rec[:, 2], rec[:, 3], rec[:, 0], rec[:, 0] + 31, rec[:, 1] - 22)
+        return cm, [tuple(d) for d in defs.tolist()]
+    data = np.frombuffer(decompress_many(buf, names, comp, at, length, size, crc), np.uint8)
+    ops, starts, lengths, _ = _walk(data)
+    d = np.flatnonzero((ops == Opcode.SCHEMA) | (ops == Opcode.CHANNEL))
+    cm = messages_of(data, ops, starts, lengths, None if want.all() else np.flatnonzero(want))
+    return cm, list(zip(ops[d].tolist(), starts[d].tolist(), lengths[d].tolist()))
 
 
 # ---------------------------------------------------------------------------------------------

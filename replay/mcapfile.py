@@ -40,8 +40,9 @@ import io
 import mmap
 import os
 import struct
+import threading
 from dataclasses import dataclass
-from typing import Collection
+from typing import Callable, Collection
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,7 @@ from mcap.records import Channel, Metadata, Schema
 
 from zlib_ng.zlib_ng import crc32
 
-from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, messages_of, walk_records
+from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
@@ -72,6 +73,22 @@ MAX_GAPS = 64  # more runs of records between the summary's chunks than this: wa
 _NOT_IN_GAPS = [Opcode.MESSAGE, Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.FOOTER]
 _MESSAGE_HEAD = np.dtype({"names": ["channel", "log_time"], "formats": ["<u2", "<i8"], "offsets": [0, 6],
                           "itemsize": 14})
+
+
+_SCRATCH = threading.local()
+SCRATCH_MAX = 64 << 20  # a read needing more gets buffers of its own, not kept
+
+
+def _scratch(stage: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """Buffers of ``stage`` and ``batch`` bytes for ``recorder.read_chunks``: this thread's, reused, so their pages
+    are touched once (a fresh 4 MB buffer per read costs as much in page faults as decompressing 4 KiB chunks)."""
+    if stage + batch > SCRATCH_MAX:
+        return np.empty(stage, np.uint8), np.empty(batch, np.uint8)
+    bufs = getattr(_SCRATCH, "bufs", None)
+    if bufs is None or len(bufs[0]) < stage or len(bufs[1]) < batch:
+        n = (stage, batch) if bufs is None else (max(stage, len(bufs[0])), max(batch, len(bufs[1])))
+        bufs = _SCRATCH.bufs = (np.empty(n[0], np.uint8), np.empty(max(n[1], 2 * READ_BYTES), np.uint8))
+    return bufs
 
 
 class NotMcapError(ValueError):
@@ -373,27 +390,44 @@ class McapFile:
 
     def _bodies(self, idx: np.ndarray) -> bytes | memoryview:
         """The uncompressed records of pieces ``idx``, joined; ``ValueError`` naming the first damaged chunk."""
+        return self._chunks(decompress_many, idx)
+
+    def _chunks(self, read: Callable, idx: np.ndarray, *args: object):
+        """``read`` (``recorder.decompress_many`` or ``read_chunks``) over pieces ``idx``; ``ValueError`` naming
+        the first damaged chunk."""
         p = self.pieces
         try:
             comp = np.where(p.chunk[idx], p.comp[idx], len(self.compressions))  # "": loose runs
-            return decompress_many(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
-                                   np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx])
+            return read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
+                        np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
         except ChunkError as e:
             raise ValueError(f"{self.path}: damaged chunk at byte {int(p.offset[idx[e.index]])}: {e} "
                              f"(`fieldlog recover {self.path}` keeps every other chunk)") from None
 
+    def _want(self, topics: Collection[str] | None) -> np.ndarray:
+        """Per channel id (65536): read its messages (on ``topics``; every channel when None)."""
+        if topics is None:
+            return np.ones(1 << 16, bool)
+        want = np.zeros(1 << 16, bool)
+        want[[c for c, ch in self.channels.items() if ch.topic in topics]] = True
+        return want
+
     def read(self, idx: np.ndarray | list[int], topics: Collection[str] | None = None) -> ChunkMessages:
         """The messages of pieces ``idx`` (of this file) as one batch (only those on ``topics``, when given):
-        their records joined and walked once; schema and channel records found inside are added to the file's
-        tables first."""
-        buf = np.frombuffer(self._bodies(np.asarray(idx, np.int64)), np.uint8)
-        ops, starts, lengths, _ = walk_records(buf, 0, len(buf) // 31 + 1)
-        for op in (Opcode.SCHEMA, Opcode.CHANNEL):
-            for i in np.flatnonzero(ops == op).tolist():
-                stream = ReadDataStream(io.BytesIO(buf[starts[i]:starts[i] + lengths[i]].tobytes()))
+        their records walked once (``recorder.read_chunks``); schema and channel records found inside are added to
+        the file's tables (and the pieces read again when they define a channel on ``topics``). The batch's
+        ``data`` may be this thread's read buffer (``_scratch``): it holds until the next read in the thread, so
+        take what you keep (``ChunkMessages.packed`` copies) before the next."""
+        idx = np.asarray(idx, np.int64)
+        want = self._want(topics)
+        cm, defs = self._chunks(read_chunks, idx, want, _scratch)
+        if defs:
+            for op, start, length in defs:
+                stream = ReadDataStream(io.BytesIO(cm.data[start:start + length].tobytes()))
                 self._define((Schema if op == Opcode.SCHEMA else Channel).read(stream))
-        cids = None if topics is None else [c for c, ch in self.channels.items() if ch.topic in topics]
-        return messages_of(buf, ops, starts, lengths, cids)
+            if not np.array_equal(want, self._want(topics)):
+                cm, _ = self._chunks(read_chunks, idx, self._want(topics), _scratch)
+        return cm
 
     # -- per channel -------------------------------------------------------------------------
 

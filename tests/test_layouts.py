@@ -26,6 +26,7 @@ from mcap.writer import Writer
 from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
 from fieldlog.acquire.pipeline import Pipeline, read_order
+from fieldlog.acquire import native
 from fieldlog.acquire.recorder import walk_records
 from fieldlog.replay import reader
 from fieldlog.replay.drive import drive_files, open_drive
@@ -349,11 +350,50 @@ def _damaged(src, tmp_path, k: int):
     return bad, f, i
 
 
+@pytest.fixture(params=["compiled", "numpy"])
+def read_path(request, monkeypatch) -> str:
+    """The reader's two paths for chunks: ``acquire.native``'s compiled pass (zstd, uncompressed), or
+    python-zstandard and the numpy walk (what runs without numba, and for lz4)."""
+    if request.param == "numpy":
+        monkeypatch.setitem(native._state, "ok", False)
+    else:
+        assert native.ready()
+    return request.param
+
+
+@pytest.mark.parametrize("layout", ["original", *LAYOUTS])
+def test_the_compiled_read_equals_the_numpy_read(layout, original, corpus, monkeypatch):
+    """Every group of pieces of every layout (channels defined inside chunks in ``no-summary``; messages outside
+    chunks in ``unchunked``), read whole and for a few topics, gives the same messages by both paths: channel,
+    log and publish time, and payload bytes."""
+    src = original if layout == "original" else corpus[layout]
+
+    def batches() -> list:
+        f = McapFile(src)  # a new one: the channels defined inside chunks are found again
+        out = []
+        for topics in (None, ["/imu", "/gps/fix", "/tf_static"]):
+            for g in f.groups(np.arange(len(f.pieces)), f.pieces.size):
+                cm = f.read(g, topics)
+                p = cm.packed()
+                out.append((cm.channel_id.copy(), cm.log_time.copy(), cm.publish_time.copy(), p.buf.copy(),
+                            p.offsets.copy()))
+        return out
+
+    compiled = batches()
+    monkeypatch.setitem(native._state, "ok", False)
+    numpy_path = batches()
+    assert len(compiled) == len(numpy_path) > 0
+    for a, b in zip(compiled, numpy_path):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    assert sum(len(a[0]) for a in compiled) > 0
+
+
 @pytest.mark.parametrize("layout", ["original", "chunks-4k", "lz4", "uncompressed"])
-def test_a_damaged_chunk_is_reported_never_read(layout, original, corpus, tmp_path, capsys):
-    """One byte flipped inside a chunk holding /imu (zstd, 4 KiB zstd, lz4, uncompressed): reading the topic
-    fails naming the file and the chunk's byte offset (its CRC-32, or the codec, catches it), and a command
-    reading it (``allan``) says so in one line with exit code 2; no wrong data comes back."""
+def test_a_damaged_chunk_is_reported_never_read(layout, read_path, original, corpus, tmp_path, capsys):
+    """One byte flipped inside a chunk holding /imu (zstd, 4 KiB zstd, lz4, uncompressed; both read paths):
+    reading the topic fails naming the file and the chunk's byte offset (its CRC-32, or the codec, catches it),
+    and a command reading it (``allan``) says so in one line with exit code 2; no wrong data comes back."""
     src = original if layout == "original" else corpus[layout]
     bad, f, i = _damaged(src, tmp_path, 2)
     p = f.pieces

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import struct
 import subprocess
 from pathlib import Path
 
@@ -238,4 +239,60 @@ def test_decompress_many_takes_empty_and_lying_chunks():
     damaged[int(at[3]) + len(frames[3]) // 2] ^= 0x20
     with pytest.raises(ChunkError) as e:
         read([len(r) for r in raws], bytes(damaged))
+    assert e.value.index == 3
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch):
+    """``read_chunks`` (the reader's hot path) by both paths (the compiled pass of ``acquire.native``, and
+    python-zstandard with the numpy walk): message records in zstd chunks (one empty) and an uncompressed one come
+    back with their channels, times and payloads, only those asked for; a chunk whose record claims a wrong or an
+    absurd size, whose bytes are damaged, or whose CRC is wrong is a ``ChunkError`` naming it."""
+    import zlib
+
+    import zstandard
+
+    from fieldlog.acquire import native
+    from fieldlog.acquire.recorder import ChunkError, read_chunks
+
+    if not compiled:
+        monkeypatch.setitem(native._state, "ok", False)
+    rng = np.random.default_rng(5)
+
+    def record(cid: int, t: int, payload: bytes) -> bytes:
+        return struct.pack("<BQHIqq", 5, 22 + len(payload), cid, t, t, t + 1) + payload
+
+    msgs = [(int(c), 1000 + i, rng.integers(0, 255, int(n), dtype=np.uint8).tobytes())
+            for i, (c, n) in enumerate(zip(rng.integers(1, 4, 60), rng.integers(0, 400, 60)))]
+    raws = [b"", *(b"".join(record(*m) for m in msgs[a:a + 20]) for a in (0, 20, 40))]
+    comp = [0, 0, 0, 1]  # the last one uncompressed
+    stored = [zstandard.ZstdCompressor().compress(r) for r in raws[:3]] + [raws[3]]
+    at = np.cumsum([0] + [len(f) for f in stored])[:-1]
+    buf = b"".join(stored)
+    crc = [zlib.crc32(r) for r in raws]
+
+    def read(size, data=buf, crcs=crc, want=(1, 3)):
+        mask = np.zeros(1 << 16, bool)
+        mask[list(want)] = True
+        return read_chunks(data, ["zstd", ""], comp, at, [len(f) for f in stored], size, crcs, mask,
+                           lambda a, b: (np.empty(a, np.uint8), np.empty(b, np.uint8)))
+
+    cm, defs = read([len(r) for r in raws])
+    kept = [m for m in msgs if m[0] in (1, 3)]
+    assert defs == [] and cm.channel_id.tolist() == [m[0] for m in kept]
+    assert cm.log_time.tolist() == [m[1] for m in kept] and cm.publish_time.tolist() == [m[1] + 1 for m in kept]
+    assert list(cm.packed()) == [m[2] for m in kept]
+    for k, wrong in ((2, 7), (1, len(raws[1]) + 1), (3, len(raws[3]) - 1), (2, 1 << 40), (1, 1 << 62)):
+        size = [len(r) for r in raws]
+        size[k] = wrong
+        with pytest.raises(ChunkError) as e:
+            read(size)
+        assert e.value.index == k
+    damaged = bytearray(buf)
+    damaged[int(at[2]) + len(stored[2]) // 2] ^= 0x20
+    with pytest.raises(ChunkError) as e:
+        read([len(r) for r in raws], bytes(damaged))
+    assert e.value.index == 2
+    with pytest.raises(ChunkError, match="CRC") as e:
+        read([len(r) for r in raws], crcs=[*crc[:3], crc[3] ^ 1])
     assert e.value.index == 3
