@@ -700,6 +700,15 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # in place; stream_reader().readinto a preallocated buffer costs 3.6 ms against 2.2 ms per 1000 chunks (a Python
     # call each), decompressobj(read_across_frames=True) over the joined frames 7.7-8.5 ms (with CRCs);
     # decompress(read_across_frames=True) is not implemented (zstandard 0.25).
+    # 2026-12-01, session 7: zstd and uncompressed chunks through one compiled pass (acquire/native.py: libzstd's
+    # ZSTD_decompressDCtx and zlib-ng's zng_crc32 called from numba): each chunk decompressed into a reused buffer
+    # that stays in the cache, checked, walked, and only the records asked for copied out. perf showed the 4 KiB
+    # read's excess over our own file was as much numpy gathering rows out of the 4 MB joined buffer (memmove on cache
+    # misses) as zstd; now it is zstd (its entropy tables rebuilt for every 4 KiB frame: ZSTD_buildFSETable and
+    # FSE_readNCount, about 30 ms of the ~75 ms excess). This bench: x1.88 (load 0.9) and x1.66 (load 1.0), wall and
+    # CPU alike; three back-to-back pairs of processes, old code vs new: x2.17-2.34 -> x1.77-1.86; in one process,
+    # the numpy path vs the compiled one (15 alternating runs): own 0.120 -> 0.117 s, 4 KiB 0.261 -> 0.208 s,
+    # no-summary 0.221 -> 0.164 s, unchunked and uncompressed unchanged.
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
