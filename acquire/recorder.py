@@ -538,7 +538,7 @@ def _walk_python(buf: np.ndarray, pos: int, cap: int, limit: int | None = None
 class ChunkMessages:
     """Message records of one chunk, as arrays; payload i is data[start[i]:start[i]+length[i]]."""
 
-    data: np.ndarray  # uint8, the uncompressed chunk
+    data: np.ndarray  # uint8: the uncompressed chunk(s), or the records of them a read kept (read_chunks)
     channel_id: np.ndarray  # uint16
     log_time: np.ndarray  # int64 ns
     publish_time: np.ndarray  # int64 ns

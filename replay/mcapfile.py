@@ -23,8 +23,9 @@ offsets reads the same; a file of 4 KiB chunks opens in 29 ms from its summary a
 is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
 or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
 per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
-walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (the zstd
-chunks of a group are decompressed in one call, and checked against their CRC-32s).
+walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (a group's
+chunks are decompressed, checked against their CRC-32s and walked in one compiled pass that keeps the records of
+the topics asked for: ``recorder.read_chunks``).
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:

@@ -4,9 +4,9 @@ A drive is one MCAP file, several, a rotated session directory or a rosbag2 dire
 (``replay.drive``); its files are walked once each (``replay.mcapfile``: any valid layout, with or
 without summary and indexes, messages in or outside chunks) into *pieces* (chunks, runs of messages
 outside chunks), which are read in one log-time order across the files. The hot path never decodes
-one message at a time: consecutive pieces are decompressed and joined (``READ_BYTES`` at a time, so
-small chunks cost little more than large ones), their message records parsed with a vectorised walk
-(``acquire.recorder.walk_records``), and the payloads of each topic decoded as one batch by the
+one message at a time: consecutive pieces are read together (``READ_BYTES`` at a time, so small chunks
+cost little more than large ones), decompressed, walked and the records of the topics asked for kept in one
+pass (``acquire.recorder.read_chunks``), and the payloads of each topic decoded as one batch by the
 vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA sentences,
 outages) are decoded per message with mcap_ros2's decoder; they are low rate. ``/raw/*``
 (``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
