@@ -766,6 +766,17 @@ class Extend(Protocol):
     def finish(self, rec: "Recorder") -> dict[str, int]: ...
 
 
+def has_footer(path: str | os.PathLike[str]) -> bool:
+    """``path`` ends with a Footer record and the magic, as a complete MCAP file does."""
+    n = 9 + 20 + len(MAGIC)
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size < len(MAGIC) + n:
+            return False
+        f.seek(-n, os.SEEK_END)
+        tail = f.read(n)
+    return tail[:9] == struct.pack("<BQ", Opcode.FOOTER, 20) and tail[-len(MAGIC):] == MAGIC
+
+
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Extend | None = None) -> RecoverReport:
     """Rebuild a valid MCAP from ``src`` (cut short by a kill or power loss) into ``dst``.
 

@@ -5,7 +5,7 @@ A drive is given as one MCAP file, several files, a directory of a rotated ``fie
 files in ``relative_file_paths``). ``drive_files`` resolves any of these (or a list mixing them) to the
 files; ``open_drive`` opens them (``replay.mcapfile.McapFile``) ordered by their first log time, so they
 read as one drive. In a session or rosbag2 directory, ``NAME.recovered.mcap`` (``fieldlog recover``, or the daemon on
-restart) stands in for the cut-short ``NAME.mcap`` next to it.
+restart) stands in for the cut-short (or damaged) ``NAME.mcap`` next to it.
 """
 from __future__ import annotations
 

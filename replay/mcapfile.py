@@ -396,14 +396,34 @@ class McapFile:
     def _chunks(self, read: Callable, idx: np.ndarray, *args: object):
         """``read`` (``recorder.decompress_many`` or ``read_chunks``) over pieces ``idx``; ``ValueError`` naming
         the first damaged chunk."""
-        p = self.pieces
         try:
-            comp = np.where(p.chunk[idx], p.comp[idx], len(self.compressions))  # "": loose runs
-            return read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
-                        np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
+            return self._call(read, idx, *args)
         except ChunkError as e:
-            raise ValueError(f"{self.path}: damaged chunk at byte {int(p.offset[idx[e.index]])}: {e} "
+            raise ValueError(f"{self.path}: damaged chunk at byte {int(self.pieces.offset[idx[e.index]])}: {e} "
                              f"(`fieldlog recover {self.path}` keeps every other chunk)") from None
+
+    def _call(self, read: Callable, idx: np.ndarray, *args: object):
+        """``read`` over pieces ``idx`` (``ChunkError``: the first damaged one's position in ``idx``)."""
+        p = self.pieces
+        comp = np.where(p.chunk[idx], p.comp[idx], len(self.compressions))  # "": loose runs
+        return read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
+                    np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
+
+    def damaged(self) -> list[int]:
+        """Byte offsets of the chunks whose content does not decompress to its size and CRC-32 (what ``fieldlog
+        recover`` skips): each chunk decompressed and checked once, in groups, nothing copied out."""
+        p = self.pieces
+        todo, out = np.flatnonzero(p.chunk), []
+        none = np.zeros(1 << 16, bool)
+        for g in self.groups(todo, p.size[todo]):
+            while len(g):
+                try:
+                    self._call(read_chunks, g, none, _scratch)
+                    break
+                except ChunkError as e:
+                    out.append(int(p.offset[g[e.index]]))
+                    g = g[e.index + 1:]
+        return out
 
     def _want(self, topics: Collection[str] | None) -> np.ndarray:
         """Per channel id (65536): read its messages (on ``topics``; every channel when None)."""

@@ -493,6 +493,61 @@ def test_recover_takes_a_session_directory(session, tmp_path, capsys):
     assert fieldlog(["recover", str(d), "--out", str(tmp_path / "x.mcap")]) == 2
 
 
+def test_recover_takes_a_directory_with_a_damaged_chunk(corpus, session, tmp_path, capsys):
+    """A complete file with one byte flipped inside a chunk holding /imu: the middle file of a rotated session, and
+    the mcap library Writer's lz4 copy alone in a directory. ``recover DIR`` (it said "complete, nothing to
+    recover") checks every chunk, recovers that file next to it naming the chunk's byte offset, leaves the sound
+    ones, and the directory then reads as the drive without that chunk's /imu messages (counted from the
+    message indexes); a sound directory has nothing to recover, and a second run nothing to do."""
+    d = tmp_path / "session"
+    shutil.copytree(session, d)
+    assert fieldlog(["recover", str(d)]) == 0
+    assert capsys.readouterr().out.count("complete, nothing to recover") == 3 and len(list(d.glob("*.mcap"))) == 3
+    mid = sorted(d.glob("*.mcap"))[1]
+    (tmp_path / "lz4").mkdir()
+    for dst, src, sound in ((mid, mid, 2), (tmp_path / "lz4" / "lz4.mcap", corpus["lz4"], 0)):
+        want = reader.read_topic(dst.parent if dst == mid else src, "/imu")["log_time_ns"]
+        bad, f, i = _damaged(src, tmp_path, 2)
+        bad.replace(dst)
+        owner, cid, _, n = f._index
+        imu = [c for c, ch in f.channels.items() if ch.topic == "/imu"]
+        gone = int(n[(owner == i) & np.isin(cid, imu)].sum())
+        assert gone > 0
+        assert fieldlog(["recover", str(dst.parent)]) == 0
+        out = capsys.readouterr().out
+        at = int(f.pieces.offset[i])
+        fixed = dst.with_name(dst.stem + ".recovered.mcap")
+        assert f"{dst}: damaged chunk at byte {at}" in out and f"1 damaged chunk skipped, at byte {at}" in out
+        assert f"wrote {fixed}" in out and out.count("complete, nothing to recover") == sound
+        assert fixed in drive_files(dst.parent) and dst not in drive_files(dst.parent)
+        got = reader.read_topic(dst.parent, "/imu")["log_time_ns"]
+        assert len(got) == len(want) - gone and np.isin(got, want).all()
+        assert fieldlog(["recover", str(dst.parent)]) == 0
+        assert capsys.readouterr().out.count("recovered already") == 1
+
+
+def test_recover_rederives_the_tail_of_a_complete_file_whose_walk_stops(session, tmp_path):
+    """``recover`` copies a complete file's chunks without feeding the pipeline (it has no tail to re-derive) only
+    when its walk reaches the data end: a session file with its footer but a chunk record's length damaged mid-file
+    stops the walk there, so the tail is re-derived as for a cut-short file (the very file ``TailDeriver`` gives)."""
+    import filecmp
+    import struct
+
+    from fieldlog.acquire.recorder import recover
+    from fieldlog.acquire.recovery import TailDeriver, recover_drive
+
+    src = sorted(session.glob("*.mcap"))[1]
+    p = McapFile(src).pieces
+    raw = bytearray(src.read_bytes())
+    struct.pack_into("<Q", raw, int(p.offset[np.flatnonzero(p.chunk)[int(p.chunk.sum()) // 2]]) + 1, 1 << 60)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(raw)
+    rep = recover_drive(bad, tmp_path / "a.mcap")
+    recover(bad, tmp_path / "b.mcap", TailDeriver())
+    assert not rep.had_summary and rep.rederived.get("/imu", 0) > 0
+    assert filecmp.cmp(tmp_path / "a.mcap", tmp_path / "b.mcap", shallow=False)
+
+
 def test_recover_keeps_messages_outside_chunks(original, corpus, tmp_path):
     """An unchunked file (mcap's Writer) cut short: recover keeps every message whose record is whole before the
     cut, found here by the record walk of the complete file."""

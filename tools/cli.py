@@ -125,8 +125,9 @@ def cmd_acquire(a: argparse.Namespace) -> int:
 
 
 def cmd_recover(a: argparse.Namespace) -> int:
-    """One file: recovered whatever it is. A session or rosbag2 directory, or several files: each cut-short file
-    recovered next to it (the drive then reads NAME.recovered.mcap in its place), the complete ones left."""
+    """One file: recovered whatever it is. A session or rosbag2 directory, or several files: each cut-short file,
+    and each complete one with a damaged chunk (every chunk's CRC checked), recovered next to it (the drive then
+    reads NAME.recovered.mcap in its place), the complete and sound ones left."""
     from fieldlog.replay.drive import RECOVERED, drive_files
     from fieldlog.replay.mcapfile import McapFile, TruncatedError
 
@@ -140,8 +141,12 @@ def cmd_recover(a: argparse.Namespace) -> int:
             print(f"{src}: recovered already")
             continue
         try:
-            McapFile(src)
+            damaged = McapFile(src).damaged()
         except TruncatedError:
+            _recover_one(src, None)
+            continue
+        if damaged:
+            print(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
             _recover_one(src, None)
         else:
             print(f"{src}: complete, nothing to recover")
@@ -549,9 +554,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--view-method", choices=METHODS, default="kf", help="--view: fusion method")
     s.set_defaults(func=cmd_acquire)
 
-    s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss")
+    s = sub.add_parser("recover", help="rescue a drive cut short by a crash or power loss, or with a damaged chunk")
     s.add_argument("drive", nargs="+", help="the damaged MCAP (kept as it is); or a session or rosbag2 directory, "
-                   "or several files: each cut-short one is recovered, the complete ones left")
+                   "or several files: each cut-short one, and each with a damaged chunk, is recovered, the complete "
+                   "and sound ones left")
     s.add_argument("--out", default=None, help="output MCAP, one damaged file only (default: NAME.recovered.mcap "
                    "next to each)")
     s.set_defaults(func=cmd_recover)
