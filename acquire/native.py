@@ -60,7 +60,7 @@ def ready() -> bool:
         g["_zstd_decompress"] = types.ExternalFunction("ZSTD_decompressDCtx", ptr(ptr, ptr, ptr, ptr, ptr))
         g["_zstd_is_error"] = types.ExternalFunction("ZSTD_isError", types.uint32(ptr))
         g["_crc32"] = types.ExternalFunction("zng_crc32", types.uint64(types.uint64, ptr, types.uint64))
-        for name in ("_u64", "_grown", "_keep", "_read"):
+        for name in ("_u64", "_read"):
             g[name] = numba.njit(cache=True)(g[name])
         _state["dctx"] = int(create())  # this process's context (the kernels hold the GIL)
         _state["ok"] = True
@@ -74,64 +74,46 @@ def _u64(buf, at, width):
     return v
 
 
-def _grown(a, k):
-    b = np.empty((2 * len(a),) + a.shape[1:], a.dtype)
-    b[:k] = a[:k]
-    return b
-
-
-def _keep(chunk, end, want, out, o, rec, ch, k, defs, nd):
-    """The records of ``chunk[:end]`` walked; the messages on ``want``'s channels and the schema and channel
-    records copied into ``out`` from byte ``o`` on, their rows appended to rec/ch (k rows) and defs (nd rows)."""
-    pos = 0
-    while pos + 9 <= end:
-        length = _u64(chunk, pos + 1, 8)
-        if length < 0 or pos + 9 + length > end:
-            break
-        op = chunk[pos]
-        keep = op == 3 or op == 4  # Schema, Channel: defined inside the chunk
-        if op == 5 and length >= 22:  # Message: channel u16, sequence u32, log_time, publish_time
-            c = _u64(chunk, pos + 9, 2)
-            if want[c]:
-                keep = True
-                if k == len(ch):
-                    rec, ch = _grown(rec, k), _grown(ch, k)
-                rec[k, 0], rec[k, 1] = o, length
-                rec[k, 2], rec[k, 3] = _u64(chunk, pos + 15, 8), _u64(chunk, pos + 23, 8)
-                ch[k] = c
-                k += 1
-        elif keep:
-            if nd == len(defs):
-                defs = _grown(defs, nd)
-            defs[nd, 0], defs[nd, 1], defs[nd, 2] = op, o + 9, length
-            nd += 1
-        if keep:
-            out[o:o + 9 + length] = chunk[pos:pos + 9 + length]
-            o += 9 + length
-        pos += 9 + length
-    return o, rec, ch, k, defs, nd
-
-
-def _read(dctx, src, comp, at, length, size, crc, stage, out, want):
-    rec, ch, defs = np.empty((1024, 4), np.int64), np.empty(1024, np.uint16), np.empty((4, 3), np.int64)
+def _read(dctx, src, comp, at, length, size, crc, stage, out, want, rec, ch, defs):
     src_at, stage_at = src.ctypes.data, stage.ctypes.data
     k = nd = o = 0
     for j in range(len(at)):
         if comp[j] == ZSTD:
             r = _zstd_decompress(dctx, stage_at, size[j], src_at + at[j], length[j])
             if _zstd_is_error(r) != 0:
-                return j, CODEC, o, rec[:0], ch[:0], defs[:0]
+                return j, CODEC, o, k, nd
             n = np.int64(r)
         else:
             n = length[j]
             if n == size[j]:
                 stage[:n] = src[at[j]:at[j] + n]
         if n != size[j]:
-            return j, SIZE, o, rec[:0], ch[:0], defs[:0]
+            return j, SIZE, o, k, nd
         if crc[j] != 0 and (_crc32(0, stage_at, n) & 0xFFFFFFFF) != crc[j]:
-            return j, CRC, o, rec[:0], ch[:0], defs[:0]
-        o, rec, ch, k, defs, nd = _keep(stage, n, want, out, o, rec, ch, k, defs, nd)
-    return -1, OK, o, rec[:k], ch[:k], defs[:nd]
+            return j, CRC, o, k, nd
+        pos = 0
+        while pos + 9 <= n:  # the chunk's records, while they are in the cache
+            body = _u64(stage, pos + 1, 8)
+            if body < 0 or pos + 9 + body > n:
+                break
+            op = stage[pos]
+            keep = (op == 3 or op == 4) and body >= 14  # Schema, Channel (14, 16 bytes at least): defined inside
+            if op == 5 and body >= 22:  # Message: channel u16, sequence u32, log_time, publish_time
+                c = _u64(stage, pos + 9, 2)
+                if want[c]:
+                    keep = True
+                    rec[k, 0], rec[k, 1] = o, body
+                    rec[k, 2], rec[k, 3] = _u64(stage, pos + 15, 8), _u64(stage, pos + 23, 8)
+                    ch[k] = c
+                    k += 1
+            elif keep:
+                defs[nd, 0], defs[nd, 1], defs[nd, 2] = op, o + 9, body
+                nd += 1
+            if keep:
+                out[o:o + 9 + body] = stage[pos:pos + 9 + body]
+                o += 9 + body
+            pos += 9 + body
+    return -1, OK, o, k, nd
 
 
 def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size: np.ndarray, crc: np.ndarray,
@@ -146,6 +128,11 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     publish_time), their channel ids (uint16), the schema and channel records as rows (opcode, body start in
     ``out``, body length)), or the first bad chunk and what is wrong with it (``CODEC``, ``SIZE``, ``CRC``). Only
     when ``ready()``."""
-    j, what, used, rec, ch, defs = _read(_state["dctx"], np.frombuffer(buf, np.uint8), comp, at, length, size, crc,
-                                         stage, out, want)
-    return int(j), int(what), int(used), rec, ch, defs
+    n = int(size.sum())
+    # rows for as many records as the bytes could hold (compiled code checks no bounds): a message record is 31
+    # bytes at least, a schema or channel record kept 23
+    rec, ch = np.empty((n // 31 + 1, 4), np.int64), np.empty(n // 31 + 1, np.uint16)
+    defs = np.empty((n // 23 + 1, 3), np.int64)
+    j, what, used, k, nd = _read(_state["dctx"], np.frombuffer(buf, np.uint8), comp, at, length, size, crc, stage,
+                                 out, want, rec, ch, defs)
+    return int(j), int(what), int(used), rec[:k], ch[:k], defs[:nd]

@@ -733,7 +733,7 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
         return cm, [tuple(d) for d in defs.tolist()]
     data = np.frombuffer(decompress_many(buf, names, comp, at, length, size, crc), np.uint8)
     ops, starts, lengths, _ = _walk(data)
-    d = np.flatnonzero((ops == Opcode.SCHEMA) | (ops == Opcode.CHANNEL))
+    d = np.flatnonzero(((ops == Opcode.SCHEMA) | (ops == Opcode.CHANNEL)) & (lengths >= 14))
     cm = messages_of(data, ops, starts, lengths, None if want.all() else np.flatnonzero(want))
     return cm, list(zip(ops[d].tolist(), starts[d].tolist(), lengths[d].tolist()))
 

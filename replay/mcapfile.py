@@ -445,7 +445,13 @@ class McapFile:
         if defs:
             for op, start, length in defs:
                 stream = ReadDataStream(io.BytesIO(cm.data[start:start + length].tobytes()))
-                self._define((Schema if op == Opcode.SCHEMA else Channel).read(stream))
+                try:
+                    r = (Schema if op == Opcode.SCHEMA else Channel).read(stream)
+                except Exception as e:  # a writer's bad record (its chunk's CRC held)
+                    raise ValueError(f"{self.path}: a damaged {Opcode(op).name.lower()} record inside the chunks "
+                                     f"from byte {int(self.pieces.offset[idx[0]])} ({e}): the file cannot be read "
+                                     f"as it is") from None
+                self._define(r)
             if not np.array_equal(want, self._want(topics)):
                 cm, _ = self._chunks(read_chunks, idx, self._want(topics), _scratch)
         return cm

@@ -15,6 +15,7 @@ import dataclasses
 import heapq
 import re
 import shutil
+import zlib
 from collections import Counter
 from pathlib import Path
 
@@ -402,6 +403,31 @@ def test_a_damaged_chunk_is_reported_never_read(layout, read_path, original, cor
     assert fieldlog(["allan", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{bad}: damaged chunk at byte {int(p.offset[i])}" in err[0], err
+
+
+def test_a_bad_record_inside_a_chunk_is_one_line(read_path, corpus, tmp_path, capsys):
+    """A channel record inside a chunk (the mcap library's Writer puts them there) whose topic length runs past
+    it, the chunk's CRC made to match (a writer's bug, not damage on the way): reading names the file and the
+    chunk (both read paths), and a command says so in one line, exit code 2."""
+    src = corpus["uncompressed"]
+    f = McapFile(src)
+    p = f.pieces
+    for i in np.flatnonzero(p.chunk).tolist():
+        ops, starts, _, _ = walk_records(np.frombuffer(f.records(i), np.uint8), 0, 64, jit=False)
+        if (ops == Opcode.CHANNEL).any():
+            break
+    raw = bytearray(src.read_bytes())
+    topic_len = int(p.body[i]) + int(starts[np.argmax(ops == Opcode.CHANNEL)]) + 4  # after id and schema id
+    raw[topic_len:topic_len + 4] = (1 << 30).to_bytes(4, "little")
+    body = bytes(raw[int(p.body[i]):int(p.body[i] + p.body_len[i])])
+    raw[int(p.offset[i]) + 9 + 24:int(p.offset[i]) + 9 + 28] = zlib.crc32(body).to_bytes(4, "little")
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(raw)
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: a damaged channel record inside the chunks from byte")):
+        reader.read_topic(bad, "/imu")
+    assert fieldlog(["allan", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{bad}: a damaged channel record" in err[0], err
 
 
 @pytest.mark.parametrize("layout", ["original", "chunks-4k"])
