@@ -55,8 +55,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import (aids, align, clipgyro, earth, errmodel, gpserror, hinf, ins, kf, output, predictors, sckf,
-                             ukf)
+from fieldlog.fusion import (aids, align, clipgyro, consider, earth, errmodel, gpserror, hinf, ins, kf, output,
+                             predictors, sckf, ukf)
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge, Silence
@@ -98,6 +98,8 @@ class FusionConfig:
     init_gyro_bias_sigma_dps: float = 0.02  # floor after the static gyro mean: the bias instability
     gyro_bias_prior_sigma_dps: float = 0.1  # before any static mean: turn-on and instability
     init_accel_bias_sigma_ug: float = 2000.0
+    gyro_scale_factor_ppm: float = 1000.0  # 1-sigma per axis, not a state: its consider variance is added to the
+    gyro_misalignment_mrad: float = 1.0  # printed accelerometer-bias sigma (fusion.consider); 0 and 0: none
     static_speed_mps: float = 0.3  # below this GPS speed the car is slow: no non-holonomic constraint
     align_speed_mps: float = 3.0  # the GPS course gives the heading from this speed
     align_sideslip_deg: float = 2.0  # course - heading allowance (sideslip, IMU mounting yaw)
@@ -211,6 +213,7 @@ class Engine:
         self.stills: list[int] = []  # epoch times (UTC ns) with a stationary update
         self._stop = align.StillRun(self.cfg)
         self._check: align.HeadingCheck | None = None
+        self.consider: consider.GyroConsider | None = None
 
     # -- public ---------------------------------------------------------------------------------
 
@@ -303,6 +306,9 @@ class Engine:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
+        if self.cfg.gyro_scale_factor_ppm > 0.0 or self.cfg.gyro_misalignment_mrad > 0.0:
+            self.consider = consider.GyroConsider(self.cfg.gyro_scale_factor_ppm * 1e-6,
+                                                  self.cfg.gyro_misalignment_mrad * 1e-3)
         self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
         if self.bridge is not None:
             self.bridge.origin = (self.nav.lat, self.nav.lon, self.nav.h)
@@ -323,7 +329,7 @@ class Engine:
         if aid is not None and len(aid[0]) == 6:
             self.stills.append(ep["t_ns"])
         if aid is not None:
-            self.filter.update_aid(aid)
+            self._considered(aid, self.filter.update_aid, aid)
             self._feedback(self.filter.state)
         if not usable:
             self.filter.start_outage()
@@ -341,7 +347,7 @@ class Engine:
             pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
             vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever,
                                           self.cfg.vel_var_max)
-        self.filter.update_gps(vel, pos)
+        self._considered(kf.stack(vel, pos), self.filter.update_gps, vel, pos)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         if not isinstance(self.filter, gpserror.GpsErrorKF):  # the states carry it: nothing to add
             self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
@@ -356,6 +362,12 @@ class Engine:
             self.bridge.train(t_g, u, self.filter.innovations, pos, vel)
         self._feedback(x)
         self.updates += 1
+
+    def _considered(self, m: kf.Measurement | None, update, *args) -> None:
+        """``update(*args)``, the filter's update with the measurement m (stacked), and the consider sensitivity's."""
+        if self.consider is not None and m is not None:
+            self.consider.update(consider.gain(self.filter.covariance, m[1], m[2]), m[1])
+        update(*args)
 
     def _realign(self, ep: dict) -> bool:
         """The heading is far off its sigma (``fusion.align.HeadingCheck``): take it again from the GPS course and
@@ -426,6 +438,8 @@ class Engine:
         mid = (starts + ends) // 2
         csum = np.cumsum(np.vstack([np.zeros(3), fc[1:]]), axis=0)
         f_mean = (csum[ends] - csum[starts]) / (ends - starts)[:, None]
+        wsum = np.cumsum(np.vstack([np.zeros(3), wc[1:]]), axis=0)
+        w_mean = (wsum[ends] - wsum[starts]) / (ends - starts)[:, None]
         C = earth.quat_to_dcm(sol.q[mid])
         F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
                                         np.einsum("kij,kj->ki", C, f_mean))
@@ -446,6 +460,10 @@ class Engine:
             local = (self.filter.local_states, self.filter.local_diag) if self._distributed else None
         else:
             diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
+        if self.consider is not None:
+            diag = diag.copy()
+            Bdt = consider.gyro_sensitivity(C, w_mean, tt[ends] - tt[starts])
+            diag[:, BA] += self.consider.propagate(Phi, Bdt)[:, BA]
         if local is not None:
             d = local[1].copy()
             d[:, 1, POS] += self._gps_var_kf2

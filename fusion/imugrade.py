@@ -19,6 +19,9 @@ accel_bias_instability_ug       ug, with                   accel_bias_rw_ug_rts 
 accel_bias_corr_time_s          T in s
 gyro_turn_on_bias_dph           deg/h                      gyro_bias_prior_sigma_dps = hypot(turn-on, s(B, T))
 accel_turn_on_bias_ug           ug                         init_accel_bias_sigma_ug = hypot(turn-on, s(B, T))
+gyro_scale_factor_ppm,          ppm, mrad                  the same keys: not states; their consider
+gyro_misalignment_mrad                                     variance (``fusion.consider``) joins the
+                                                           printed accelerometer-bias sigma
 ==============================  =========================  ===========================================
 
 Bias instability B is the flicker floor of the Allan deviation (0.664 B, IEEE 952), which the simulator draws
@@ -98,7 +101,9 @@ class ImuGrade:
                    gyro_bias_rw_dps_rts=q_g, accel_bias_rw_ug_rts=q_a,
                    init_gyro_bias_sigma_dps=self.gyro_bias_instability_dph / 3600.0,
                    gyro_bias_prior_sigma_dps=math.hypot(self.gyro_turn_on_bias_dph / 3600.0, s_g),
-                   init_accel_bias_sigma_ug=math.hypot(self.accel_turn_on_bias_ug, s_a))
+                   init_accel_bias_sigma_ug=math.hypot(self.accel_turn_on_bias_ug, s_a),
+                   gyro_scale_factor_ppm=self.gyro_scale_factor_ppm,
+                   gyro_misalignment_mrad=self.gyro_misalignment_mrad)
         return {**out, **self.fusion}
 
 

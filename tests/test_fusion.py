@@ -293,12 +293,12 @@ def test_gyro_bias_estimate_is_published_and_its_sigma_covers_the_truth(drive, t
     rows on every axis, and closer to it than no estimate is (here 0.42 of it overall; the forward axis, the least
     observable, 0.7). (Horizontal accelerometer biases are not checked: the truth holds misalignment x g, which
     the 15 states cannot tell from tilt.)"""
-    from fieldlog.tools.evaluate import consistency, gyro_bias_errors
+    from fieldlog.tools.evaluate import bias_errors, consistency, consistency_line
 
     out = fuse(drive, "kf", tmp_path / "kf.mcap")
     b, fix = read_topic(out.path, "/fusion/kf/imu_bias"), read_topic(out.path, "/fusion/kf/fix")
     assert np.array_equal(b["log_time_ns"], fix["log_time_ns"]) and b["valid"].all()
-    t, err, sd = gyro_bias_errors(drive, out.path, "kf")
+    t, err, sd = bias_errors(drive, out.path, "kf")
     t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
     m = t > t0 + 100 * 10**9
     err, sd = err[m], sd[m]
@@ -309,7 +309,25 @@ def test_gyro_bias_estimate_is_published_and_its_sigma_covers_the_truth(drive, t
           f"within 3 sigma {in3}")
     assert np.all(in3 >= 0.9)
     assert np.all(rms < rms_none) and np.linalg.norm(rms) < 0.6 * np.linalg.norm(rms_none)
-    assert 0.9 <= consistency(drive, out.path, "kf")["in3_bg"] <= 1.0  # what evaluate prints
+    c = consistency(drive, out.path, "kf")
+    assert 0.9 <= c["in3_bg"] <= 1.0 and 0.0 <= c["in1_ba"] <= c["in3_ba"] <= 1.0  # what evaluate prints
+    assert "accel bias within 1 sigma" in consistency_line("kf", c)
+
+
+def test_the_gyro_consider_variance_changes_the_accel_bias_sigma_only(drive, tmp_path):
+    """fusion.consider: the gyro scale factor and misalignment's consider variance is added to the printed
+    accelerometer-bias sigma; the estimate, every other sigma and the position stay what the filter gives."""
+    rows = {}
+    for name, cfg in (("with", FusionConfig()), ("without", FusionConfig(gyro_scale_factor_ppm=0.0,
+                                                                         gyro_misalignment_mrad=0.0))):
+        out = fuse(drive, "kf", tmp_path / f"{name}.mcap", cfg)
+        rows[name] = [read_topic(out.path, f"/fusion/kf/{x}") for x in ("imu_bias", "fix", "std")]
+    (b1, f1, s1), (b0, f0, s0) = rows["with"], rows["without"]
+    assert np.array_equal(b1["f_b"], b0["f_b"]) and np.array_equal(b1["omega_ib_b"], b0["omega_ib_b"])
+    assert np.array_equal(f1["lat_deg"], f0["lat_deg"]) and np.array_equal(s1["xyz"], s0["xyz"])
+    assert np.array_equal(b1["gyro_cov"], b0["gyro_cov"])
+    a1, a0 = b1["accel_cov"][:, [0, 4, 8]], b0["accel_cov"][:, [0, 4, 8]]
+    assert np.all(a1 >= a0) and np.mean(a1[-100:, :2] > 1.5 * a0[-100:, :2]) > 0.9  # the horizontal sigmas grow
 
 
 # -- fieldlog fuse on a simulated drive -----------------------------------------------------------

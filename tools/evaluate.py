@@ -197,7 +197,9 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
     """How honest the printed sigma is, over every solution row of the drive against ``/truth/fix`` (None
     without truth): ``nees`` the mean normalised estimation error squared of the position (E, N, U with their
     sigmas; 3 when honest), and per axis e, n, u the shares of rows within 1 sigma (0.683 when honest) and
-    3 sigma (0.997): keys ``in1_e``, ``in3_e``, ... ."""
+    3 sigma (0.997): keys ``in1_e``, ``in3_e``, ...; on a simulated drive the same shares of the IMU bias
+    estimate's errors (``bias_errors``, every axis): ``in1_bg``, ``in3_bg`` (gyro), ``in1_ba``, ``in3_ba``
+    (accelerometer)."""
     if not any(t.topic == "/truth/fix" and t.count for t in reader.topics(drive)):
         return None
     e, sd = position_errors(drive, fused, method)
@@ -206,31 +208,37 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
     for i, ax in enumerate("enu"):
         out[f"in1_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 1.0))
         out[f"in3_{ax}"] = float(np.mean(np.abs(z[:, i]) <= 3.0))
-    bias = gyro_bias_errors(drive, fused, method)
-    if bias is not None and len(bias[0]):
-        out["in3_bg"] = float(np.mean(np.abs(bias[1]) <= 3.0 * bias[2]))
+    for sensor, key in (("gyro", "bg"), ("accel", "ba")):
+        bias = bias_errors(drive, fused, method, sensor)
+        if bias is not None and len(bias[0]):
+            out[f"in1_{key}"] = float(np.mean(np.abs(bias[1]) <= bias[2]))
+            out[f"in3_{key}"] = float(np.mean(np.abs(bias[1]) <= 3.0 * bias[2]))
     return out
 
 
-def gyro_bias_errors(drive: Path, fused: Path, method: str, mean_s: float = 10.0
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(t_ns (n,), error, sigma): the method's gyro bias estimate minus the simulator's (``/truth/imu_bias``, its
-    mean over the last ``mean_s``: the truth holds the fast part of the flicker too) and the estimate's sigma,
-    rad/s, body RFU, (n, 3) each, at the rows of ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth
-    to its end. None when either topic is missing (a drive not simulated, a fused file written before the
-    estimate was published)."""
+BIAS_FIELDS = {"gyro": ("omega_ib_b", "gyro_cov"), "accel": ("f_b", "accel_cov")}  # imu_bias message fields
+
+
+def bias_errors(drive: Path, fused: Path, method: str, sensor: str = "gyro", mean_s: float = 10.0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t_ns (n,), error, sigma): the method's ``sensor`` ("gyro" rad/s, "accel" m/s^2) bias estimate minus the
+    simulator's (``/truth/imu_bias``, its mean over the last ``mean_s``: the truth holds the fast part of the
+    flicker too) and the estimate's printed sigma, body RFU, (n, 3) each, at the rows of
+    ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth to its end. None when either topic is missing (a
+    drive not simulated, a fused file written before the estimate was published)."""
     have = {t.topic for t in reader.topics(drive) if t.count} | {t.topic for t in reader.topics(fused) if t.count}
     if not {"/truth/imu_bias", f"/fusion/{method}/imu_bias"} <= have:
         return None
+    value, cov = BIAS_FIELDS[sensor]
     b, tr = reader.read_topic(fused, f"/fusion/{method}/imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
     tt = tr["log_time_ns"]
     t = b["log_time_ns"]
     m = (t >= tt[0] + int(mean_s * 1e9)) & (t <= tt[-1])
-    c = np.cumsum(np.vstack([np.zeros(3), tr["omega_ib_b"]]), axis=0)
+    c = np.cumsum(np.vstack([np.zeros(3), tr[value]]), axis=0)
     j = np.searchsorted(tt, t[m], side="right")
     i = np.searchsorted(tt, t[m] - int(mean_s * 1e9), side="right")
     truth = (c[j] - c[i]) / np.maximum(j - i, 1)[:, None]
-    return t[m], b["omega_ib_b"][m] - truth, np.sqrt(np.maximum(b["gyro_cov"][m][:, [0, 4, 8]], 0.0))
+    return t[m], b[value][m] - truth, np.sqrt(np.maximum(b[cov][m][:, [0, 4, 8]], 0.0))
 
 
 def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -263,7 +271,9 @@ def consistency_line(method: str, c: dict[str, float]) -> str:
     return (f"{method}: position NEES {c['nees']:.2f} (3 if honest); within 1 sigma E {c['in1_e']:.0%} "
             f"N {c['in1_n']:.0%} U {c['in1_u']:.0%} (68 %), within 3 sigma E {c['in3_e']:.0%} N {c['in3_n']:.0%} "
             f"U {c['in3_u']:.0%} (99.7 %), over {c['rows']} rows"
-            + (f"; gyro bias within 3 sigma {c['in3_bg']:.0%}" if "in3_bg" in c else ""))
+            + "".join(f"; {name} bias within 1 sigma {c[f'in1_{k}']:.0%}, 3 sigma {c[f'in3_{k}']:.0%}"
+                      for k, name in (("bg", "gyro"), ("ba", "accel")) if f"in3_{k}" in c))
+
 
 def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
                       ) -> tuple[np.ndarray, np.ndarray]:

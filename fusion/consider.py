@@ -1,0 +1,88 @@
+"""What the gyros' scale-factor and misalignment errors do to the estimate: a consider (sensitivity) analysis.
+
+The 15-state model (``fusion.errmodel``) has no states for the gyro triad's scale-factor errors s_i and
+misalignments m_ij (i != j): the measured rate is (I + S)(I + M) omega_ib_b + bias + noise, and the filter takes
+the S and M part as noise (its gyro noise and bias walk are inflated for them). That part is not noise: it is
+the constant c = [s_x, s_y, s_z, m_xy, m_xz, m_yx, m_yz, m_zx, m_zy] times the rate, so in a figure-eight its
+sign follows the turn. Its tilt error comes and goes with the turns, which in the body frame is what a
+horizontal accelerometer bias looks like, and the filter's accelerometer bias estimate takes it in while its
+covariance says the two are separated. Measured (kf, figure8 300 s, Table 2 MEMS, seeds 1-5, after 100 s,
+against ``/truth/imu_bias``'s 10 s mean): horizontal accelerometer bias error 0.3-1.4 mg RMS against a printed
+sigma of 0.41-0.48 mg, 36-100 % of rows within 3 sigma, 0-98 % within 1 sigma; the tilt error and the bias
+error correlated at 0.13-0.63 where the covariance says 0.16-0.19. With the gyros' scale factor and
+misalignment set to 0 in the simulator (the accelerometers' kept) 100 % within 3 sigma on seeds 1-2; with the
+accelerometers' set to 0 (the gyros' kept) still 53-75 % on seed 1, 60 % on seed 2; tactical grade (none of
+them) 97-100 %. With the consider variance below: sigma 0.60 (x) and 0.88 mg (y), 89-100 % within 3 sigma,
+within 1 sigma 0.60 (x) and 0.66 (y) pooled over the seeds.
+
+Standard consider analysis (Schmidt; Maybeck vol. 1, ch. 6 sensitivity): the estimation error the filter does not
+know of is S c, with the sensitivity S (15, 9) propagated beside the covariance and passed through each update
+as the error is:
+
+    predict:  S <- Phi S + Gamma,   Gamma = (I + Phi) / 2 B dt,   B = d(x')/dc: phi' = -C_bn (S + M) omega_ib_b
+    update:   S <- (I - K H) S      (K the update's gain)
+
+and the consider covariance is S diag(sigma_c^2) S^T, with sigma_c the grade's 1-sigma scale factor and
+misalignment (``fusion.imugrade``; ``FusionConfig.gyro_scale_factor_ppm``, ``gyro_misalignment_mrad``). It is
+added to the printed accelerometer-bias variance only, so the estimate does not change. Only there: the
+filter's noise was inflated (``FusionConfig``) for the position, velocity, attitude and gyro bias to absorb
+this error, and their sigmas measure honest; the simulator's truth of the gyro bias (``/truth/imu_bias``) holds
+(S + M) omega_ib_b itself. The accelerometers' own scale factor and misalignment are left out: their effect
+(mainly M x g) is constant in the body frame and the bias states take it (the estimate follows M x g; with the
+gyros' set to 0, 100 % of horizontal rows within 3 sigma).
+
+K is the gain of a linear KF update with the filter's covariance before the update (``gain``): kf's own gain;
+for the other methods the gain a KF with their (fused) covariance would use, an approximation of theirs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fieldlog.fusion.errmodel import ATT, N_STATES
+
+N_PARAMS = 9
+_MA = [(i, j) for i in range(3) for j in range(3) if i != j]  # misalignment m_ij: rate j read on axis i
+
+
+def gyro_sensitivity(C_bn: np.ndarray, omega_b: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """B dt (m, 15, 9): the error-state change over cycles of dt (m,) s per unit of c (module docstring), with the
+    cycle's C_bn (m, 3, 3) body RFU -> ENU and mean bias-corrected rate omega_b (m, 3) rad/s."""
+    B = np.zeros((len(dt), N_STATES, N_PARAMS))
+    for i in range(3):
+        B[:, ATT, i] = -C_bn[:, :, i] * omega_b[:, i:i + 1]
+    for k, (i, j) in enumerate(_MA):
+        B[:, ATT, 3 + k] = -C_bn[:, :, i] * omega_b[:, j:j + 1]
+    return B * np.asarray(dt, float)[:, None, None]
+
+
+def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """K (15, m) of a linear KF update of covariance P (15, 15) with H (m, 15), R (m, m)."""
+    return np.linalg.solve(H @ P @ H.T + R, H @ P).T
+
+
+class GyroConsider:
+    """The sensitivity S (15, 9) of the error state to the gyro scale factors and misalignments, and the consider
+    variance it gives. scale_factor (fraction) and misalignment (rad): 1-sigma per axis of the unmodelled c."""
+
+    def __init__(self, scale_factor: float, misalignment: float) -> None:
+        self.S = np.zeros((N_STATES, N_PARAMS))
+        self.var_c = np.repeat([scale_factor ** 2, misalignment ** 2], [3, 6])
+
+    def variance(self) -> np.ndarray:
+        """diag(S diag(var_c) S^T) (15,)."""
+        return (self.S * self.S) @ self.var_c
+
+    def propagate(self, Phi: np.ndarray, Bdt: np.ndarray) -> np.ndarray:
+        """Cycles Phi (m, 15, 15) with their ``gyro_sensitivity`` Bdt (m, 15, 9); the variance after each (m, 15)."""
+        out = np.empty((len(Phi), N_STATES))
+        S = self.S
+        for i in range(len(Phi)):
+            S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
+            out[i] = (S * S) @ self.var_c
+        self.S = S
+        return out
+
+    def update(self, K: np.ndarray, H: np.ndarray) -> None:
+        """The update x <- x + K (z - H x) leaves the error (I - K H) times the one before it."""
+        self.S = self.S - K @ (H @ self.S)
