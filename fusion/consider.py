@@ -24,12 +24,14 @@ as the error is:
 
 and the consider covariance is S diag(sigma_c^2) S^T, with sigma_c the grade's 1-sigma scale factor and
 misalignment (``fusion.imugrade``; ``FusionConfig.gyro_scale_factor_ppm``, ``gyro_misalignment_mrad``). It is
-added to the printed accelerometer-bias variance only, so the estimate does not change. Only there: the
+added to the printed accelerometer-bias variance only (forward and smoothed), so the estimate does not change. Only there: the
 filter's noise was inflated (``FusionConfig``) for the position, velocity, attitude and gyro bias to absorb
 this error, and their sigmas measure honest; the simulator's truth of the gyro bias (``/truth/imu_bias``) holds
 (S + M) omega_ib_b itself. The accelerometers' own scale factor and misalignment are left out: their effect
 (mainly M x g) is constant in the body frame and the bias states take it (the estimate follows M x g; with the
 gyros' set to 0, 100 % of horizontal rows within 3 sigma).
+
+Smoothing (``fusion.smoother``) carries S back as it carries the error: Ss_k = S+_k + C_k (Ss_{k+1} - S-_{k+1}).
 
 K is the gain of a linear KF update with the filter's covariance before the update (``gain``): kf's own gain;
 for the other methods the gain a KF with their (fused) covariance would use, an approximation of theirs.
@@ -69,17 +71,18 @@ class GyroConsider:
         self.S = np.zeros((N_STATES, N_PARAMS))
         self.var_c = np.repeat([scale_factor ** 2, misalignment ** 2], [3, 6])
 
-    def variance(self) -> np.ndarray:
-        """diag(S diag(var_c) S^T) (15,)."""
-        return (self.S * self.S) @ self.var_c
+    def variance(self, S: np.ndarray | None = None) -> np.ndarray:
+        """diag(S diag(var_c) S^T) (..., 15) of sensitivities S (..., 15, 9); the current one by default."""
+        S = self.S if S is None else S
+        return (S * S) @ self.var_c
 
     def propagate(self, Phi: np.ndarray, Bdt: np.ndarray) -> np.ndarray:
-        """Cycles Phi (m, 15, 15) with their ``gyro_sensitivity`` Bdt (m, 15, 9); the variance after each (m, 15)."""
-        out = np.empty((len(Phi), N_STATES))
+        """Cycles Phi (m, 15, 15) with their ``gyro_sensitivity`` Bdt (m, 15, 9); S after each (m, 15, 9)."""
+        out = np.empty((len(Phi), N_STATES, N_PARAMS))
         S = self.S
         for i in range(len(Phi)):
             S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
-            out[i] = (S * S) @ self.var_c
+            out[i] = S
         self.S = S
         return out
 

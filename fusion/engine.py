@@ -309,6 +309,8 @@ class Engine:
         if self.cfg.gyro_scale_factor_ppm > 0.0 or self.cfg.gyro_misalignment_mrad > 0.0:
             self.consider = consider.GyroConsider(self.cfg.gyro_scale_factor_ppm * 1e-6,
                                                   self.cfg.gyro_misalignment_mrad * 1e-3)
+            if self.log is not None:
+                self.log.var_c = self.consider.var_c
         self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
         if self.bridge is not None:
             self.bridge.origin = (self.nav.lat, self.nav.lon, self.nav.h)
@@ -367,6 +369,8 @@ class Engine:
         """``update(*args)``, the filter's update with the measurement m (stacked), and the consider sensitivity's."""
         if self.consider is not None and m is not None:
             self.consider.update(consider.gain(self.filter.covariance, m[1], m[2]), m[1])
+            if self.log is not None:
+                self.log.sensitivity_update(self.consider.S)
         update(*args)
 
     def _realign(self, ep: dict) -> bool:
@@ -462,8 +466,10 @@ class Engine:
             diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
         if self.consider is not None:
             diag = diag.copy()
-            Bdt = consider.gyro_sensitivity(C, w_mean, tt[ends] - tt[starts])
-            diag[:, BA] += self.consider.propagate(Phi, Bdt)[:, BA]
+            S = self.consider.propagate(Phi, consider.gyro_sensitivity(C, w_mean, tt[ends] - tt[starts]))
+            diag[:, BA] += self.consider.variance(S)[:, BA]
+            if self.log is not None:
+                self.log.sensitivity(S)
         if local is not None:
             d = local[1].copy()
             d[:, 1, POS] += self._gps_var_kf2

@@ -33,11 +33,14 @@ and the smoothed state is the forward solution corrected by y_k, as ``correct_in
 row between records k-1 and k (stamped before the update at k) has forward error interpolated linearly
 in time between y_{k-1} and y_k + dx_k; the jump of the forward solution at an update disappears.
 
-Memory: a record is 3 x 15 x 15 + 15 float64 + the time, 5.5 kB; a 1-hour drive at 10 Hz is 36 000
-records, about 200 MB. :class:`SmootherLog` keeps only the last ``chunk`` records in memory and spills the
+The consider sensitivity S (``fusion.consider``) is smoothed the same way, Ss_k = S+_k + C_k (Ss_{k+1} - S-_{k+1}),
+its variance added to the smoothed accelerometer-bias variance.
+
+Memory: a record is 3 x 15 x 15 + 2 x 15 + 2 x 15 x 9 float64 + the time, 7.8 kB; a 1-hour drive at 10 Hz is
+36 000 records, about 280 MB. :class:`SmootherLog` keeps only the last ``chunk`` records in memory and spills the
 rest to an anonymous temporary file; :func:`rts` reads that file backwards a chunk at a time and keeps, per
 record, only y and the diagonal of Ps (240 bytes). Memory then grows by that and by the forward solution
-rows (about 15 MB per hour in all) rather than 200 MB per hour.
+rows (about 15 MB per hour in all) rather than 280 MB per hour.
 """
 
 from __future__ import annotations
@@ -48,11 +51,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldlog.fusion import earth
+from fieldlog.fusion.consider import N_PARAMS
 from fieldlog.fusion.engine import Solution
-from fieldlog.fusion.errmodel import ATT, N_STATES, POS, VEL
+from fieldlog.fusion.errmodel import ATT, BA, N_STATES, POS, VEL
 
 RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
-                   ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES)])
+                   ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES),
+                   ("sm", "<f8", (N_STATES, N_PARAMS)), ("sp", "<f8", (N_STATES, N_PARAMS))])
 
 
 class SmootherLog:
@@ -68,6 +73,7 @@ class SmootherLog:
         self._n_pending = 0
         self.bridged = False
         self.gps_var: list[tuple[int, np.ndarray]] = []  # (t_ns, m^2 E N U) from each GPS update on: output.correlated_variance
+        self.var_c: np.ndarray | None = None  # the consider parameters' variances (fusion.consider), None: none
 
     def __len__(self) -> int:
         return self._spilled + self._n_pending
@@ -101,6 +107,15 @@ class SmootherLog:
         fed back, covariance after it. A second update at the same instant adds its correction (linear)."""
         self._pending[-1]["dx"][-1] += dx
         self._pending[-1]["pp"][-1] = P_upd
+
+    def sensitivity(self, S: np.ndarray) -> None:
+        """The consider sensitivity (``fusion.consider``) after each of the cycles last recorded, (m, 15, 9)."""
+        self._pending[-1]["sm"] = S
+        self._pending[-1]["sp"] = S
+
+    def sensitivity_update(self, S: np.ndarray) -> None:
+        """The consider sensitivity after the update at the last recorded cycle end, (15, 9)."""
+        self._pending[-1]["sp"][-1] = S
 
     def bridge(self, b: np.ndarray) -> None:
         """A predicted correction b (15,) fed into the INS at the last recorded cycle end (``rbfn``, ``tdln``,
@@ -146,7 +161,7 @@ def rts(log: SmootherLog) -> Smoothed:
     d = np.zeros((n, N_STATES))
     dx = np.zeros((n, N_STATES))
     m_pred, m_upd = _filtered_means(log) if log.bridged else (None, None)
-    nxt = None  # (record k + 1, Ps_{k+1})
+    nxt = None  # (record k + 1, Ps_{k+1}, Ss_{k+1})
     for i1 in range(n, 0, -log.chunk):
         i0 = max(i1 - log.chunk, 0)
         r = log.read(i0, i1)
@@ -154,11 +169,11 @@ def rts(log: SmootherLog) -> Smoothed:
         for j in range(len(r) - 1, -1, -1):
             k = i0 + j
             if nxt is None:
-                Ps = r["pp"][j]
+                Ps, Ss = r["pp"][j], r["sp"][j]
                 if m_upd is not None:
                     y[k] = m_upd[k]
             else:
-                (rn, Ps1) = nxt
+                (rn, Ps1, Ss1) = nxt
                 C = np.linalg.solve(rn["pm"], rn["phi"] @ r["pp"][j]).T
                 if m_upd is None:
                     y[k] = C @ (y[k + 1] + rn["dx"])
@@ -166,8 +181,11 @@ def rts(log: SmootherLog) -> Smoothed:
                     y[k] = m_upd[k] + C @ (y[k + 1] + rn["dx"] - m_pred[k + 1])
                 P = r["pp"][j] + C @ (Ps1 - rn["pm"]) @ C.T
                 Ps = 0.5 * (P + P.T)
+                Ss = r["sp"][j] + C @ (Ss1 - rn["sm"])
             d[k] = np.diag(Ps)
-            nxt = (r[j], Ps)
+            if log.var_c is not None:  # the gyros' unmodelled errors in the accelerometer-bias sigma (fusion.consider)
+                d[k, BA] += ((Ss * Ss) @ log.var_c)[BA]
+            nxt = (r[j], Ps, Ss)
     return Smoothed(t_ns, y, d, dx)
 
 

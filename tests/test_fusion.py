@@ -314,13 +314,15 @@ def test_gyro_bias_estimate_is_published_and_its_sigma_covers_the_truth(drive, t
     assert "accel bias within 1 sigma" in consistency_line("kf", c)
 
 
-def test_the_gyro_consider_variance_changes_the_accel_bias_sigma_only(drive, tmp_path):
+@pytest.mark.parametrize("smooth", [False, True])
+def test_the_gyro_consider_variance_changes_the_accel_bias_sigma_only(drive, tmp_path, smooth):
     """fusion.consider: the gyro scale factor and misalignment's consider variance is added to the printed
-    accelerometer-bias sigma; the estimate, every other sigma and the position stay what the filter gives."""
+    accelerometer-bias sigma (smoothed: its smoothed sensitivity's); the estimate, every other sigma and the
+    position stay what the filter (the smoother) gives."""
     rows = {}
     for name, cfg in (("with", FusionConfig()), ("without", FusionConfig(gyro_scale_factor_ppm=0.0,
                                                                          gyro_misalignment_mrad=0.0))):
-        out = fuse(drive, "kf", tmp_path / f"{name}.mcap", cfg)
+        out = fuse(drive, "kf", tmp_path / f"{name}.mcap", cfg, smooth=smooth)
         rows[name] = [read_topic(out.path, f"/fusion/kf/{x}") for x in ("imu_bias", "fix", "std")]
     (b1, f1, s1), (b0, f0, s0) = rows["with"], rows["without"]
     assert np.array_equal(b1["f_b"], b0["f_b"]) and np.array_equal(b1["omega_ib_b"], b0["omega_ib_b"])
