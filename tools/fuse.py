@@ -192,8 +192,9 @@ class Settings:
         return out
 
 
+# the figures of a particular car and IMU: a default is a guess
 SENSOR_KEYS = ("lever_arm_b", "gyro_noise_dps_rthz", "accel_noise_ug_rthz", "gyro_bias_rw_dps_rts",
-               "accel_bias_rw_ug_rts")  # the figures of a particular car and IMU: a default is a guess
+               "accel_bias_rw_ug_rts", "gyro_scale_factor_ppm", "gyro_misalignment_mrad")
 
 
 def _show(v: Any) -> str:
