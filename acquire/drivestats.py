@@ -270,6 +270,9 @@ class TimingPairs:
         return self.near.result((t, t - self._window[_nearest(self._window, t)]) if len(t) else None)
 
 
+IMU_HOLD = 4096          # /imu stamps held before their steps are counted
+
+
 class DriveStats:
     """The figures of ``Quality`` from a drive's messages as they are written (``observe``, by the recorder) or
     read back (the topics' stamps and fields, by ``fieldlog info``'s scan); ``record()`` at close."""
@@ -282,6 +285,8 @@ class DriveStats:
         self._rate = QuantisedMedian(1e-4)            # ppm
         self._residual = QuantisedMedian(1e-2)        # us
         self._imu = Steps()
+        self._imu_held: list[np.ndarray] = []        # /imu stamps not yet in _imu (Steps is batching-independent)
+        self._imu_n_held = 0
         self._fix = Steps()
         self._no_fix = 0
         self._timing = TimingPairs()
@@ -315,8 +320,20 @@ class DriveStats:
             self.sync(d["stamp_ns"], d["state"], d["rate_ppm"], d["residual_us"])
 
     def imu(self, stamp_ns: np.ndarray) -> None:
-        self._imu.add(stamp_ns)
-        self._timing.imu(stamp_ns)
+        """/imu stamps; their steps are counted IMU_HOLD at a time: the daemon writes /imu a DAQ read at a time
+        (~24 samples at x20), and counted per batch they cost 39 us a batch, 0.05 s of CPU per minute of data
+        (held: 7 us, 0.009 s)."""
+        t = np.array(stamp_ns, np.int64)
+        self._imu_held.append(t)
+        self._imu_n_held += len(t)
+        if self._imu_n_held >= IMU_HOLD:
+            self._fold_imu()
+        self._timing.imu(t)
+
+    def _fold_imu(self) -> None:
+        if self._imu_held:
+            self._imu.add(np.concatenate(self._imu_held))
+            self._imu_held, self._imu_n_held = [], 0
 
     def truth(self, stamp_ns: np.ndarray) -> None:
         self._timing.truth(stamp_ns)
@@ -340,6 +357,7 @@ class DriveStats:
             self._residual.add(np.asarray(residual_us)[locked])
 
     def quality(self) -> Quality:
+        self._fold_imu()
         q = Quality(first_lock_ns=self._first_lock, gps_no_fix=self._no_fix, timing=self._timing.result())
         q.sync_states = {SYNC_NAMES.get(s, str(s)): self._states[s] / self._n_sync for s in sorted(self._states)}
         if self._first_lock is not None:

@@ -325,10 +325,16 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     one(20.0, 120.0)
 
 
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (all its threads), from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 20.0) -> None:
-    """soak: acquire at x20 for 30 min of data, 1 % corrupt bytes, the DAQ unplugged 5 s every 2 min and the
-    receiver's clock +1 h for 30 s halfway: frames and lines lost outside the unplugged intervals, the jump's
-    fixes, RSS over data time (warm-up against growth), CPU."""
+    """soak: acquire at x20 for 30 min of data (--soak-minutes), 1 % corrupt bytes, the DAQ unplugged 5 s every
+    2 min and the receiver's clock +1 h for 30 s halfway: frames and lines lost outside the unplugged intervals,
+    the jump's fixes, RSS over data time (warm-up against growth), CPU (also per minute of data)."""
     import os
     import re
     import signal
@@ -354,6 +360,7 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
         except (OSError, IndexError):
             pass
 
+    cpu0 = _cpu_s(d.pid)                                     # (startup: imports, first file, ports)
     t0 = time.monotonic()
     serve.send_signal(signal.SIGUSR1)
     while serve.poll() is None:
@@ -411,6 +418,8 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     print(f"  processing errors {c['processing_errors']}, dropped reads {c['port.daq.dropped_reads']}/"
           f"{c['port.gps.dropped_reads']}; daemon CPU {usage.ru_utime + usage.ru_stime:.0f} s "
           f"({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of one core)")
+    print(f"  daemon CPU per minute of data: {(usage.ru_utime + usage.ru_stime - cpu0) / (duration_s / 60):.3f} s "
+          f"(from the release of the stream to the exit; startup {cpu0:.2f} s before it)")
     t_rss, mb = np.array(rss).T
     at = ", ".join(f"{m:g} min {mb[np.argmin(np.abs(t_rss - 60 * m))]:.0f} MB" for m in (1, 5, 10, 20, 30, 45, 60)
                    if 60 * m <= t_rss[-1] + 60)
@@ -418,6 +427,8 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     def slope(after: np.ndarray) -> str:
         """MB per 10 min of data: least squares, and Theil-Sen (the median of pairwise slopes)."""
         x, y = t_rss[after] / 600, mb[after]
+        if x.size < 3:
+            return "n/a (too short)"
         i, j = np.triu_indices(len(x), 1)
         return f"{np.polyfit(x, y, 1)[0]:+.2f} ({np.median((y[j] - y[i]) / (x[j] - x[i])):+.2f})"
 
@@ -780,11 +791,13 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
     p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--soak-minutes", type=float, default=30.0, help="minutes of data the soak records (30)")
     a = p.parse_args()
     with tempfile.TemporaryDirectory() as d:
         for name in a.only or BENCHES:
             print(f"--- {name}: {BENCHES[name].__doc__.splitlines()[0]}")
-            BENCHES[name](a.runs, Path(d))
+            extra = {"duration_s": a.soak_minutes * 60} if name == "soak" else {}
+            BENCHES[name](a.runs, Path(d), **extra)
 
 
 if __name__ == "__main__":
