@@ -69,8 +69,8 @@ from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_or
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
 # A read lands in the reader's own buffer and is copied out at its length: os.read(fd, n) mallocs n bytes and
-# shrinks them to the read, which, for ~1 KiB reads of 64 KiB blocks handed to another thread, fragmented the
-# heap (RSS +2 MB per 10 min of data at x20, returned by malloc_trim; see README, the soak)
+# shrinks them to the read, which, for ~1 KiB reads of 64 KiB blocks handed to another thread, fragments the
+# heap: free memory glibc cannot return, and RSS that grows with the drive (docs/results.md, the soak)
 READ_SIZE = 65536
 STORAGE_FULL = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file size limit"}
 

@@ -6,15 +6,9 @@ the S and M part as noise (its gyro noise and bias walk are inflated for them). 
 the constant c = [s_x, s_y, s_z, m_xy, m_xz, m_yx, m_yz, m_zx, m_zy] times the rate, so in a figure-eight its
 sign follows the turn. Its tilt error comes and goes with the turns, which in the body frame is what a
 horizontal accelerometer bias looks like, and the filter's accelerometer bias estimate takes it in while its
-covariance says the two are separated. Measured (kf, figure8 300 s, Table 2 MEMS, seeds 1-5, after 100 s,
-against ``/truth/imu_bias``'s 10 s mean): horizontal accelerometer bias error 0.3-1.4 mg RMS against a printed
-sigma of 0.41-0.48 mg, 36-100 % of rows within 3 sigma, 0-98 % within 1 sigma; the tilt error and the bias
-error correlated at 0.13-0.63 where the covariance says 0.16-0.19. With the gyros' scale factor and
-misalignment set to 0 in the simulator (the accelerometers' kept) 100 % within 3 sigma on seeds 1-2; with the
-accelerometers' set to 0 (the gyros' kept) still 53-75 % on seed 1, 60 % on seed 2; tactical grade (none of
-them) 97-100 %. With the consider variance below: sigma 0.60 (x) and 0.88 mg (y), 89-100 % within 3 sigma,
-within 1 sigma 0.60 (x) and 0.66 (y) pooled over the seeds. On the s000-mems grade (300 ppm, 0.5 mrad; seeds
-1-3, the filter on the grade's figures): within 3 sigma 3-100 % -> 100 %, sigma 0.18/0.17 -> 0.44/0.47 mg.
+covariance says the two are separated, so (without the consider term below) its printed sigma does not cover the
+bias error. The accelerometers' own scale factor and misalignment are not the cause (see below); the gyros'
+are. Figures: docs/results.md, "Bias estimates".
 
 Standard consider analysis (Schmidt; Maybeck vol. 1, ch. 6 sensitivity): the estimation error the filter does not
 know of is S c, with the sensitivity S (15, 9) propagated beside the covariance and passed through each update
@@ -27,10 +21,9 @@ and the consider covariance is S diag(sigma_c^2) S^T, with sigma_c the grade's 1
 misalignment (``fusion.imugrade``; ``FusionConfig.gyro_scale_factor_ppm``, ``gyro_misalignment_mrad``). It is
 added to the printed accelerometer-bias variance only (forward and smoothed), so the estimate does not change. Only there: the
 filter's noise was inflated (``FusionConfig``) for the position, velocity, attitude and gyro bias to absorb
-this error, and their sigmas measure honest; the simulator's truth of the gyro bias (``/truth/imu_bias``) holds
+this error, and their sigmas cover it; the simulator's truth of the gyro bias (``/truth/imu_bias``) holds
 (S + M) omega_ib_b itself. The accelerometers' own scale factor and misalignment are left out: their effect
-(mainly M x g) is constant in the body frame and the bias states take it (the estimate follows M x g; with the
-gyros' set to 0, 100 % of horizontal rows within 3 sigma).
+(mainly M x g) is constant in the body frame and the bias states take it (the estimate follows M x g).
 
 Smoothing (``fusion.smoother``) carries S back as it carries the error: Ss_k = S+_k + C_k (Ss_{k+1} - S-_{k+1}).
 

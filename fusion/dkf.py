@@ -28,9 +28,8 @@ against the centralised KF (as the paper's section 2.1 says of distributed fusio
 is optimistic. We keep the paper's estimate (eq. 3) and report, as ``covariance``, the actual covariance of
 that estimate's error, W_I P_I W_I^T + W_I P_12 W_II^T + W_II P_12^T W_I^T + W_II P_II W_II^T with
 W_i = P P_i^-1 (honest sigmas); ``fused_covariance`` is eq. 4's. P_12 is tracked for that (a third 15x15
-recursion). Measured loss against ``kf`` (2D RMS in outages, 5 figure8 drives of 600 s, README's Table 3
-section): GPS only +10 % in 30 s outages (+1.4 +- 1.0 m, 2 SE), +13 % in 60 s (+6.4 +- 6.6 m); with the car
-aids +15 % and +45 % (+1.5 +- 1.1 m); tests/test_dkf.py checks the relation over seeds.
+recursion). tests/test_dkf.py checks the loss against ``kf`` over seeds; its size is in docs/results.md
+("Fusion").
 
 The federated variant (``fusion="federated"``, ``[fusion] dkf_fusion = "federated"``): information sharing
 with full reset (Carlson): each local filter runs with P_i = P / beta and Q_i = Q / beta, beta = 1/2, and after

@@ -22,8 +22,8 @@ condition checked here, at every update; a smaller gamma raises :class:`GammaToo
 It is stricter than the general H-infinity existence condition P^-1 - gamma^-2 L^T L + H^T R^-1 H > 0
 (Simon, Optimal State Estimation, sec. 11.3), which it implies.
 
-The bound grows with P, so during a long GPS outage any fixed gamma is eventually too small (gamma = 30
-fails in a 60 s outage with the Table 2 MEMS IMU). The paper gives no rule for choosing gamma. Two
+The bound grows with P, so during a long GPS outage any fixed gamma is eventually too small (even a large
+one, with a MEMS IMU). The paper gives no rule for choosing gamma. Two
 policies: ``min_ratio = 0`` keeps gamma fixed and raises; ``min_ratio = c > 1`` (the engine's default,
 ``FusionConfig.hinf_min_ratio``) uses gamma_k = max(gamma, c * bound_k) at each update, i.e. the
 filter is never closer to its existence limit than c, and moves towards the KF (gamma -> infinity) when

@@ -38,9 +38,9 @@ The 15-state model (``fusion.errmodel``) carries random-walk biases, so B and T 
 walk**: q(B, T) = max(B sqrt(2 / T), sqrt(D(60 s) / 60 s)), the Gauss-Markov driving noise or the random walk
 that changes the bias over a minute (the time over which the filter leans on its bias estimate: a tilt or a
 heading drift shows in the GPS within it) as much as the flicker does; over longer times the random walk is
-the more conservative (its variance grows with the time, the flicker's with its logarithm). Measured against
-the flicker draw on figure8-tactical (seed 1): B sqrt(2 / T) changes the bias 7x less over 100 s than the
-drawn bias changes, and B alone as the prior is 1.6-2.3x below the drawn bias's spread.
+the more conservative (its variance grows with the time, the flicker's with its logarithm). The Gauss-Markov
+reading alone (walk B sqrt(2 / T), prior B) is well below the change and the spread of the flicker the
+simulator draws (test_bias_instability_covers_the_simulated_flicker).
 
 The scale-factor and misalignment residuals are not states of the filter. For the grades where they are
 large against the noise (the MEMS ones), the grade carries the noise figures a 15-state filter needs to
@@ -128,10 +128,8 @@ GRADES: dict[str, ImuGrade] = {
     # The distributed-KF paper's Table 2 MEMS (gyro 0.01 deg/s/sqrt(Hz) = 0.6 deg/sqrt(h), bias stability
     # 0.02 deg/s; accel 5 ug/sqrt(Hz)); the rest are our choices (tools.sim.sensors). The filter keeps the
     # figures it was tuned on, which absorb the 1000 ppm and 1 mrad residuals: FusionConfig's defaults. Its gyro
-    # bias walk is B sqrt(2 / 60 s) = 3.65e-3 deg/s/sqrt(s) (flicker_bias gives 4.45e-3): it was 2e-4, 18x
-    # steadier than Table 2's bias stability, and the heading and tilt sigma were half the errors (figure8 s1-5,
-    # GPS only, kf, 60 s outages: heading within 3 sigma at 62-86 % of rows, an outage start at 4.8 sigma, 2D RMS
-    # 47.8 m; with 3.65e-3: 100 %, 2.5 sigma, 34.4 m; 1e-3: 37.6 m; 3e-3: 33.9 m; 6e-3: 37.8 m).
+    # bias walk is B sqrt(2 / 60 s) = 3.65e-3 deg/s/sqrt(s) (flicker_bias gives 4.45e-3), Table 2's bias
+    # stability over the minute the filter leans on its bias estimate (docs/results.md, "IMU grades").
     "table2-mems": ImuGrade(
         "distributed-KF paper, Table 2 MEMS (the simulator's default IMU)",
         gyro_arw_deg_rth=0.6, gyro_bias_instability_dph=72.0, gyro_bias_corr_time_s=1000.0,
@@ -141,7 +139,7 @@ GRADES: dict[str, ImuGrade] = {
         fusion=dict(gyro_noise_dps_rthz=0.03, accel_noise_ug_rthz=300.0,
                     gyro_bias_rw_dps_rts=0.02 * math.sqrt(2.0 / 60.0), accel_bias_rw_ug_rts=10.0,
                     init_gyro_bias_sigma_dps=0.02, gyro_bias_prior_sigma_dps=0.1, init_accel_bias_sigma_ug=2000.0)),
-    # An industrial MEMS unit (our figures: the issue names the grade, not the unit): 0.2 deg/sqrt(h),
+    # An industrial MEMS unit (our figures for the grade, not a named unit): 0.2 deg/sqrt(h),
     # 5 deg/h, 300 ppm, 0.5 mrad. The filter's noise is inflated as for table2-mems (x3 gyro, x~20 accel).
     "s000-mems": ImuGrade(
         "industrial MEMS: 0.2 deg/sqrt(h), 5 deg/h; 0.05 m/s/sqrt(h), 20 ug",
@@ -150,7 +148,7 @@ GRADES: dict[str, ImuGrade] = {
         accel_vrw_mps_rth=0.05, accel_bias_instability_ug=20.0, accel_bias_corr_time_s=600.0,
         accel_turn_on_bias_ug=500.0, accel_scale_factor_ppm=300.0, accel_misalignment_mrad=0.5,
         fusion=dict(gyro_noise_dps_rthz=0.01, accel_noise_ug_rthz=100.0)),
-    # A Leador-A15-class FOG unit (issue 18's real track): ARW 0.003 deg/sqrt(h), VRW 0.03 m/s/sqrt(h), gyro
+    # A Leador-A15-class FOG unit: ARW 0.003 deg/sqrt(h), VRW 0.03 m/s/sqrt(h), gyro
     # bias 0.027 deg/h, accel bias 15 mGal (15 ug); turn-on biases and T are our choices; calibrated, so the
     # scale-factor and misalignment residuals are taken as 0 (the truth IMU plus the datasheet's errors).
     "tactical": ImuGrade(

@@ -19,7 +19,7 @@ Training (``PredictorConfig.training``):
   input normaliser refreshed every ``refresh`` trained epochs and whenever an input leaves the centres' span
   (the RLS is then rerun over the window, since its features changed). RLS rather than LMS: see
   :class:`OnlineChannel`.
-- ``"batch"`` (measured beside it): :class:`Rbfn` / :class:`Tdln` fitted once, at the first epoch of an outage,
+- ``"batch"`` (for comparison): :class:`Rbfn` / :class:`Tdln` fitted once, at the first epoch of an outage,
   on the window, with a ridge chosen by generalised cross-validation (:func:`ridge_solve`); with 200 taps the
   window often holds fewer epochs than weights, and an unregularised fit extrapolates wildly.
 

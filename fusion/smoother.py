@@ -27,7 +27,7 @@ m-_{k+1} = Phi_{k+1} m+_k, m+_k = P+_k (P-_k)^-1 m-_k - b_k (``_filtered_means``
     y_k = m+_k + C_k (y_{k+1} + dx_{k+1} - m-_{k+1})
 
 Treating b as an estimate instead makes the smoother believe a wrong prediction: a predicted velocity
-correction is carried back through the outage as a position error (17 m at the start of a 30 s outage).
+correction is carried back through the outage as a position error, largest at the outage's start.
 
 and the smoothed state is the forward solution corrected by y_k, as ``correct_ins`` would. A solution
 row between records k-1 and k (stamped before the update at k) has forward error interpolated linearly

@@ -151,7 +151,7 @@ def client_for(scheduler: str | None, workers: int) -> Iterator["object"]:
             yield client
         return
     # Dask's default MALLOC_TRIM_THRESHOLD_=65536 makes glibc hand every freed block array back to the kernel:
-    # the fusion then spends about as long in page faults as in computing (measured: 1.5-2x slower per drive)
+    # the fusion then spends about as long in page faults as in computing
     environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
                if k != "MALLOC_TRIM_THRESHOLD_"}
     # dashboard off; the scheduler's bare HTTP server (health, metrics) on a free loopback port, not 8787

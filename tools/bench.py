@@ -667,59 +667,8 @@ def bench_cli(runs: int, tmp: Path) -> None:
 
 def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """Reading what fuse reads (/imu, /gps/fix, /gps/vel in 10 s blocks) of a 300 s drive in every MCAP layout."""
-    # Measured 2026-11-30 (shared 2-core VM, load 4-6), medians of 3: own 0.34 s; unchunked 0.63 (x1.84), lz4 0.45
-    # (x1.30), uncompressed 0.37 (x1.07), no summary 0.53 (x1.53), 4 KiB chunks 1.60 (x4.7). The reader before
-    # (summary chunk indexes, one chunk at a time), best of 3 on the same files: own 0.20 (now 0.25; 7 alternating
-    # runs: medians 0.41 before, 0.33 now), 4 KiB chunks of every topic 4.60 s (now 1.22), 4 KiB chunks of the
-    # fusion/info topics only 2.65 s (now 0.67); unchunked and no-summary files read nothing / were refused.
-    # Session 5 (pieces as arrays, batch decompression, rows gathered through a strided window, messages filtered
-    # by channel before their headers are parsed), load 1.5-3.4, medians of 7, back to back with the session-4
-    # code (medians of 5): own 0.18 -> 0.14 s; 4 KiB chunks 0.88 -> 0.41 s (x4.96 -> x2.93; runs 0.33-0.65);
-    # unchunked 0.54 -> 0.27; lz4 0.28 -> 0.17; uncompressed 0.25 -> 0.16; no summary 0.30 -> 0.23. Then the
-    # compiled top-level walk when numba is loaded already: at load 10 (medians of 7) own 0.41 s, 4 KiB 1.25 s
-    # (x3.04), unchunked x2.14; the same reads interleaved, CPU time (process_time): own 0.178 s, 4 KiB 0.356 s
-    # (x2.00), unchunked 0.240 s (x1.35). Under contention the wall ratio is not the CPU ratio. At load 4.5 (medians
-    # of 7): own 0.20 s, unchunked x1.59, lz4 x1.00, uncompressed x0.91, no summary x1.47, 4 KiB x2.48 (0.49 s). Per
-    # 4 KiB read (cProfile): zstd 0.21 s and CRC 0.09 s of 133 MB (every chunk holds /imu, so every chunk is read:
-    # 2.7x the own file's bytes), record walk 0.08, join 0.06, per-chunk loop 0.06: the x2 target is not reached.
-    # 2026-12-01: the zstd chunks of a group in one multi_decompress_to_buffer call, CRC-32 by zlib-ng (SIMD, 14x zlib's
-    # on 4 KiB), integers gathered by one take per byte (recorder.le), and this bench interleaved with CPU time. The
-    # drive now also has /truth/imu_bias (4 KiB file 49.9 MB, 151 MB of chunks to read against the own file's 65 MB).
-    # The code before and after, run back to back (medians of 9, load 2.2-2.3): own 0.18 -> 0.13 s wall, 0.17 -> 0.12 s
-    # CPU; 4 KiB 0.43 -> 0.24 s wall (x2.44 -> x1.88), 0.42 -> 0.24 s CPU (x2.48 -> x1.94); unchunked x1.46 -> x1.84
-    # (0.26 -> 0.24 s: the own file got faster), lz4 x1.34 -> x1.14, uncompressed x1.32 -> x0.96, no summary x1.77 ->
-    # x1.48. Other runs (medians of 7): load 1.9, own 0.12 s, 4 KiB 0.25 s, x2.14 wall, x2.10 CPU; load 1.7, own 0.11 s,
-    # 4 KiB 0.26 s, x2.40 wall and CPU. At load 2.8-3.6 (medians of 7, two runs) 4 KiB x2.15-2.45 wall, x2.00-2.25 CPU
-    # (before: x2.14-2.58, x2.67-2.82): the x2 target is not met reliably. What is left is per byte: zstd of 2.3x the
-    # bytes of 4 KiB frames, the join of the group (python-zstandard gives no single output buffer), the record walk
-    # (latency bound, ~50 ns a record; locating the messages through the message indexes instead cost as much), and the
-    # file walk at open (280k top-level records, chunks and their message indexes: about 35 ms, the own file's 1 ms).
-    # Measured and dropped: a worker thread decompressing the next group (load 4: own 0.31 vs 0.26 s, 4 KiB 0.48 vs 0.39
-    # s wall, CPU worse too) and multi_decompress_to_buffer(threads=2) (no gain).
-    # 2026-12-01, later: the chunk table from the summary's chunk indexes when the summary checks out (else the walk):
-    # the 4 KiB file opens in 29 ms against 39 ms walked (own file 1.4 against 1.0 ms). Before/after interleaved in one
-    # process (/tmp script: the open by the walk vs from the summary, nothing else differs; rounds alternate which goes
-    # first), medians: 31 runs at load 2.1, own 0.120 -> 0.119 s, 4 KiB 0.267 -> 0.253 s (x2.22 -> x2.12 wall, x2.21 ->
-    # x2.14 CPU); 15 runs of every layout at load 1.0, 4 KiB 0.258 -> 0.244 s (x2.36 -> x2.05 wall and CPU), the others
-    # within the noise of the order (own 0.109 -> 0.119 s, and no summary, the same code both ways, 0.194 -> 0.198; 41 runs
-    # of own and no summary alone at load 0.8: 0.109 -> 0.111 and 0.190 -> 0.194). This bench after it: load 1.9, own
-    # 0.11 s, 4 KiB 0.25 s, x2.37 wall, x2.39 CPU; load 0.9, own 0.15 s, 4 KiB 0.36 s, x2.37 wall and CPU (every layout
-    # slower in this process than in the /tmp script's, which reads the same files without simulating them first). The
-    # x2 target is still not met reliably (x2.05-2.39). Per 4 KiB read now (cProfile, load 1.9): zstd 71 ms, the group's
-    # join 27 ms, record walk 21 ms, integer gathers 12 ms, CRC 11 ms, open 29 ms. Measured and dropped for the join: the
-    # output of multi_decompress_to_buffer is not one buffer (the C backend fills ~1 MB buffers), so it cannot be walked
-    # in place; stream_reader().readinto a preallocated buffer costs 3.6 ms against 2.2 ms per 1000 chunks (a Python
-    # call each), decompressobj(read_across_frames=True) over the joined frames 7.7-8.5 ms (with CRCs);
-    # decompress(read_across_frames=True) is not implemented (zstandard 0.25).
-    # 2026-12-01, session 7: zstd and uncompressed chunks through one compiled pass (acquire/native.py: libzstd's
-    # ZSTD_decompressDCtx and zlib-ng's zng_crc32 called from numba): each chunk decompressed into a reused buffer
-    # that stays in the cache, checked, walked, and only the records asked for copied out. perf showed the 4 KiB
-    # read's excess over our own file was as much numpy gathering rows out of the 4 MB joined buffer (memmove on cache
-    # misses) as zstd; now it is zstd (its entropy tables rebuilt for every 4 KiB frame: ZSTD_buildFSETable and
-    # FSE_readNCount, about 30 ms of the ~75 ms excess). This bench: x1.88 (load 0.9) and x1.66 (load 1.0), wall and
-    # CPU alike; three back-to-back pairs of processes, old code vs new: x2.17-2.34 -> x1.77-1.86; in one process,
-    # the numpy path vs the compiled one (15 alternating runs): own 0.120 -> 0.117 s, 4 KiB 0.261 -> 0.208 s,
-    # no-summary 0.221 -> 0.164 s, unchunked and uncompressed unchanged.
+    # Wall and CPU time both: under contention the wall ratio is not the CPU ratio. The 4 KiB-chunk file is the
+    # hard case: every chunk holds /imu, so every chunk is decompressed (about 2.3x the own file's bytes).
     from fieldlog.replay import drive, reader
     from fieldlog.tools.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
@@ -754,8 +703,6 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """``recover DIR``'s check of a complete file (every chunk's CRC), and the recovery of one with a damaged chunk."""
-    # 2026-12-01, load 3.3, medians of 5: own file (35 chunks) check 124 ms, recover 0.96 s (5.07 s feeding the
-    # pipeline); 4 KiB chunks (33536) check 119 ms, recover 13.81 s (24.86 s): mcap's StreamReader, a chunk at a time.
     from fieldlog.acquire import recorder
     from fieldlog.acquire.recovery import TailDeriver, recover_drive
     from fieldlog.replay.mcapfile import McapFile

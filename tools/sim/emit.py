@@ -109,7 +109,7 @@ class GpsConfig:
     def clock_offset_ns(self, t_s: np.ndarray) -> np.ndarray:
         """Per epoch time (s from the start): how far the time the receiver writes in its messages is off
         (``clock_jumps`` windows, [start_s, start_s + len_s)), int64 ns. Its time pulse and when it sends are
-        not affected: a receiver clock jump, as issue 14 measured it."""
+        not affected: the messages' time jumps, the pulse and the timing of the bursts do not."""
         off = np.zeros(np.shape(t_s), np.int64)
         for start, length, offset_s in self.clock_jumps:
             off[(t_s >= start) & (t_s < start + length)] = round(offset_s * NS)
