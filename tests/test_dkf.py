@@ -1,5 +1,5 @@
 """The paper's distributed filter (fusion.dkf), its local solutions, and the KF+RBFN hybrid as eq. 7 with
-networks trained in real time (fusion.predictors): relations measured over seeds."""
+networks trained in real time (fusion.predictors): relations checked over seeds."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Fusion on drives fieldlog did not record (issue 13): other loggers' topic names and body frames, written by a
+"""Fusion on drives fieldlog did not record: other loggers' topic names and body frames, written by a
 third-party writer (mcap_ros2's Writer, tests/foreign_drives.py) from a simulated drive, fused against the
 simulated truth with bounds relative to the native drive; silence as an outage; the printed sigma's honesty."""
 
@@ -67,7 +67,7 @@ def ros_drive(native):
 
 
 def test_done_when_flu_imu_other_topics_no_velocity_silent_gap(ros_drive, native, native_gap, tmp_path, capsys):
-    """The issue's acceptance test: fused with --imu-topic /sensors/imu --fix-topic /sensors/gnss/fix --imu-frame
+    """The whole path at once: fused with --imu-topic /sensors/imu --fix-topic /sensors/gnss/fix --imu-frame
     flu: no NaN, the gap is a `silent` outage, and kf's 2D RMS in the gap is at most 1.5x the native drive's with
     the same forced outage, plus 1 m."""
     drive = ros_drive

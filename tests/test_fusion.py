@@ -216,7 +216,7 @@ def test_aid_to_the_distributed_filter_equals_the_centralised_update():
 def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
     """Urban 90-degree turns at 6 m/s on a 15 m radius need 22.9 deg/s; the Table 2 gyro clips at 20 deg/s and
     each turn lost 8.3 deg of heading. The clipped rate is rebuilt from the lateral acceleration, and NHC makes
-    heading observable on the straights: GPS-good heading RMS below 1 deg (it was 6.5 deg)."""
+    heading observable on the straights: GPS-good heading RMS below 1 deg."""
     drive = tmp_path / "urban.mcap"
     simulate("urban", 210, 1, drive)
     w = read_topic(drive, "/imu")["omega_ib_b"][:, 2]
@@ -273,9 +273,8 @@ def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
 
 @pytest.mark.parametrize("method", ["kf", "dkf-rbfn", "ssr-sckf"])
 def test_the_solution_does_not_depend_on_the_block_length(drive, method):
-    """Live replay hands the engine other blocks than fuse does: the rows must be the same. A block end used to cut
-    a covariance cycle short (kf here: 1e-5 m and 0.019 in a sigma between 10 s and 2.37 s blocks); the tail now
-    waits for its cycle to end."""
+    """Live replay hands the engine other blocks than fuse does: the rows must be the same. A block end must not
+    cut a covariance cycle short: the tail waits for its cycle to end."""
     cfg = FusionConfig(outages=(OUTAGE,))
     (a, ea), (b, eb) = (_fused_in_blocks(drive, method, s, cfg) for s in (10.0, 2.37))
     assert ea.updates == eb.updates > 100

@@ -1,4 +1,4 @@
-"""Every valid MCAP layout and every multi-file drive reads as the same drive (issue 17).
+"""Every valid MCAP layout and every multi-file drive reads as the same drive.
 
 The corpus is written here by third-party writers from one simulated drive: the mcap library's ``Writer``
 (``tools.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
@@ -432,8 +432,8 @@ def test_a_bad_record_inside_a_chunk_is_one_line(read_path, corpus, tmp_path, ca
 
 @pytest.mark.parametrize("layout", ["original", "chunks-4k"])
 def test_recover_skips_a_damaged_chunk_and_keeps_every_other(layout, original, corpus, tmp_path, capsys):
-    """A complete file with one damaged chunk in the middle: ``recover`` keeps every other chunk (it used to stop
-    at the damaged one and drop the rest of the drive), names the chunk's byte offset, and the result reads."""
+    """A complete file with one damaged chunk in the middle: ``recover`` keeps every other chunk (not only
+    those before the damaged one), names the chunk's byte offset, and the result reads."""
     src = original if layout == "original" else corpus[layout]
     bad, f, i = _damaged(src, tmp_path, 3)
     p = f.pieces
@@ -454,8 +454,7 @@ def test_recover_skips_a_damaged_chunk_and_keeps_every_other(layout, original, c
 def test_a_damaged_or_cut_summary_is_left_out(layout, original, corpus, tmp_path):
     """The data section is whole, the summary is not: a byte flipped in the summary's schema and channel copies
     (footer CRC zeroed, so nothing catches it), or the file cut inside the summary; our recorder's file and the
-    mcap library Writer's. Both read as the original (it was a UnicodeDecodeError without the file's name, or
-    "cut short, run recover")."""
+    mcap library Writer's. Both read as the original (no decoding error, no "cut short, run recover")."""
     import struct
 
     src = original if layout == "original" else corpus[layout]

@@ -1,6 +1,6 @@
 """TimeSync against the simulator's DAQ clock: accuracy, holdover, rejection rules, chunking invariance.
 
-Run with -s to see the measured RMS figures.
+Run with -s to see the RMS figures.
 """
 from __future__ import annotations
 

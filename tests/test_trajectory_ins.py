@@ -101,7 +101,7 @@ def test_imu_output_is_smooth(figure8):
 def test_perfect_ins_figure8(figure8):
     s, sol = _run_perfect_ins(figure8, 600.0)
     d_hor, d_ver, d_vel, d_att = _errors(s, sol)
-    # issue acceptance: 0.5 m, 0.01 m/s; measured about 16 mm, 0.3 mm, 9e-5 m/s, 8e-8 rad
+    # tighter than the target of 0.5 m, 0.01 m/s (docs/results.md)
     assert d_hor < 0.1 and d_ver < 0.01 and d_vel < 1e-3 and d_att < 1e-6
 
 
@@ -109,7 +109,6 @@ def test_perfect_ins_urban():
     truth = tj.generate(tj.load_scenario("urban"), 300.0)
     s, sol = _run_perfect_ins(truth, 300.0)
     d_hor, d_ver, d_vel, d_att = _errors(s, sol)
-    # measured about 1.5 mm, 0.01 mm, 2e-5 m/s, 1.5e-7 rad
     assert d_hor < 0.05 and d_ver < 0.01 and d_vel < 1e-3 and d_att < 1e-6
 
 
