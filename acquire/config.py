@@ -8,7 +8,7 @@ standard baud rate``.
     port = "/dev/ttyUSB0"
     baud = 921600
     [gps]                       # the GPS receiver
-    port = "/dev/ttyUSB1"
+    port = "/dev/ttyUSB1"       # or "gpsd://HOST[:PORT][/DEVICE]": through a running gpsd (acquire/gpsd.py)
     baud = 115200
     protocol = "auto"           # NMEA, u-blox UBX and NovAtel OEM, mixed, found by themselves; or one of
                                 # "nmea", "ubx", "novatel" (with NMEA) to ignore the others
@@ -77,9 +77,66 @@ class PortConfig:
     baud: int = 115200
 
 
+GPSD_SCHEME = "gpsd://"
+GPSD_DEFAULT_PORT = 2947
+
+
+@dataclass(frozen=True)
+class GpsdAddress:
+    """A gpsd to read the receiver through: TCP ``host``:``port``; ``device`` the receiver's path in gpsd
+    ("" = every device gpsd has)."""
+
+    host: str
+    port: int = GPSD_DEFAULT_PORT
+    device: str = ""
+
+    def __str__(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{GPSD_SCHEME}{host}:{self.port}{self.device}"
+
+
+def parse_gpsd_url(text: str) -> GpsdAddress | None:
+    """``gpsd://HOST[:PORT][/DEVICE]`` (an IPv6 host in brackets) -> GpsdAddress; None when ``text`` is not a
+    gpsd URL (a serial port path). ConfigError naming ``[gps] port`` when it is one but malformed.
+    ``gpsd://localhost/dev/ttyACM0`` reads /dev/ttyACM0 through the gpsd on localhost:2947."""
+    if not text.startswith(GPSD_SCHEME):
+        return None
+    rest = text[len(GPSD_SCHEME):]
+    slash = rest.find("/")
+    netloc, device = (rest, "") if slash < 0 else (rest[:slash], rest[slash:])
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"[gps] port: {text!r} is not gpsd://HOST[:PORT][/DEVICE]: {why}")
+
+    if netloc.startswith("["):
+        close = netloc.find("]")
+        if close < 0:
+            raise bad("unclosed '[' around an IPv6 host")
+        host, tail = netloc[1:close], netloc[close + 1:]
+        if tail and not tail.startswith(":"):
+            raise bad(f"unexpected {tail!r} after the host")
+        port_text = tail[1:] if tail else None
+    else:
+        host, sep, port_text = netloc.partition(":")
+        port_text = port_text if sep else None
+    if not host:
+        raise bad("no host")
+    port = GPSD_DEFAULT_PORT
+    if port_text is not None:
+        if not port_text.isdigit() or not 0 < int(port_text) < 65536:
+            raise bad(f"port {port_text!r} is not a number in 1..65535")
+        port = int(port_text)
+    return GpsdAddress(host, port, "" if device == "/" else device)
+
+
 @dataclass
 class GpsPortConfig(PortConfig):
     protocol: str = "auto"      # 'auto' (every protocol, mixed), 'nmea', 'ubx' (+ NMEA), 'novatel' (+ NMEA)
+
+    @property
+    def gpsd(self) -> GpsdAddress | None:
+        """The gpsd the receiver is read through, or None (a serial port); ConfigError if malformed."""
+        return parse_gpsd_url(self.port)
 
 
 @dataclass
@@ -248,6 +305,9 @@ def validate(c: AcquireConfig) -> None:
             raise ConfigError(f"[{name}] port: no {name} port given (--{name} PORT or [{name}] port in the config)")
         if p.baud not in STANDARD_BAUDS:
             raise ConfigError(f"[{name}] baud: {p.baud} is not a standard baud rate")
+    if parse_gpsd_url(c.daq.port) is not None:
+        raise ConfigError(f"[daq] port: {c.daq.port} is a gpsd URL; only the GPS receiver can be read through gpsd")
+    c.gps.gpsd    # raises on a malformed gpsd URL
     if c.gps.protocol not in GPS_PROTOCOLS:
         raise ConfigError(f"[gps] protocol: {c.gps.protocol!r} is not one of {', '.join(GPS_PROTOCOLS)}")
     if c.daq.port == c.gps.port:

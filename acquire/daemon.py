@@ -63,7 +63,8 @@ import numpy as np
 import serial
 
 from fieldlog.acquire import calib, messages, nmea, recorder, recovery, timesync
-from fieldlog.acquire.config import AcquireConfig, PortConfig, RecorderConfig, file_name
+from fieldlog.acquire.config import AcquireConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name
+from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 
 NS = 1_000_000_000
@@ -117,21 +118,29 @@ class PortStats:
     connected: bool = False
 
 
-def open_port(cfg: PortConfig) -> serial.Serial:
-    """The port, raw, at the configured baud rate, non-blocking (the reader waits with select)."""
+def open_port(cfg: PortConfig) -> serial.Serial | GpsdLink:
+    """The port, raw, at the configured baud rate, non-blocking (the reader waits with select); for a
+    ``gpsd://`` GPS port the connection to gpsd in raw mode (acquire/gpsd.py)."""
+    address = cfg.gpsd if isinstance(cfg, GpsPortConfig) else None
+    if address is not None:
+        return GpsdLink(address)
     return serial.Serial(cfg.port, cfg.baud, timeout=0, exclusive=True)
 
 
 class PortReader(threading.Thread):
-    """Reads one port into a bounded queue of RawRead / PortEvent; reconnects when the port goes away."""
+    """Reads one port into a bounded queue of RawRead / PortEvent; reconnects when the port goes away: a
+    serial port every ``reconnect_s``, gpsd with a backoff doubling from ``reconnect_s`` to BACKOFF_MAX_S."""
 
-    def __init__(self, name: str, cfg: PortConfig, ser: serial.Serial, maxsize: int, wake: threading.Event,
-                 stop: threading.Event, reconnect_s: float) -> None:
+    def __init__(self, name: str, cfg: PortConfig, ser: serial.Serial | GpsdLink, maxsize: int,
+                 wake: threading.Event, stop: threading.Event, reconnect_s: float) -> None:
         super().__init__(name=f"read-{name}", daemon=True)
         self.port, self.cfg, self.ser = name, cfg, ser
         self.q: queue.Queue = queue.Queue(maxsize)
         self.wake, self.stop, self.reconnect_s = wake, stop, reconnect_s
+        self.gpsd = isinstance(ser, GpsdLink)
+        self.max_retry_s = max(reconnect_s, BACKOFF_MAX_S) if self.gpsd else reconnect_s
         self.stats = PortStats(connected=True)
+        self.gpsd_reports = 0     # gpsd's own JSON reports taken out of the stream (all connections)
         self.busy = False     # True from the moment bytes may be read until that read is queued
 
     def _put(self, item: RawRead | PortEvent) -> None:
@@ -146,29 +155,36 @@ class PortReader(threading.Thread):
         self._put(PortEvent(self.port, kind, time.monotonic_ns(), time.time_ns(), detail))
 
     def run(self) -> None:
+        retry_s = self.reconnect_s
         while not self.stop.is_set():
             if self.ser is None:
-                device = os.path.realpath(self.cfg.port)
+                device = self.cfg.port if self.gpsd else os.path.realpath(self.cfg.port)
                 try:
                     self.ser = open_port(self.cfg)
                 except (serial.SerialException, OSError):
-                    self.stop.wait(self.reconnect_s)
+                    self.stop.wait(retry_s)
+                    retry_s = min(2 * retry_s, self.max_retry_s)
                     continue
+                retry_s = self.reconnect_s
                 self.busy = True
                 self.stats.connected = True
                 self._event("back", self.cfg.port if device == self.cfg.port else f"{self.cfg.port} -> {device}")
                 self.busy = False
             self._read_until_lost()
         if self.ser is not None:
-            self.ser.close()
+            self._close_link()
 
     def _read_until_lost(self) -> None:
         fd = self.ser.fileno()
         st = self.stats
         buf = memoryview(bytearray(READ_SIZE))
         while not self.stop.is_set():
-            ready, _, _ = select.select([fd], [], [], 0.1)
+            hold_s = self.ser.hold_s() if self.gpsd else None
+            ready, _, _ = select.select([fd], [], [], 0.1 if hold_s is None else hold_s)
             if not ready:
+                if hold_s is not None:         # nothing followed what might have begun a gpsd report
+                    self.busy = True
+                    self._deliver(self.ser.release(), time.monotonic_ns(), time.time_ns())
                 continue
             self.busy = True
             try:
@@ -178,17 +194,27 @@ class PortReader(threading.Thread):
                 data, err = b"", os.strerror(e.errno or 0) or str(e)
             mono, wall = time.monotonic_ns(), time.time_ns()
             if err:
-                self.ser.close()
-                self.ser = None
+                self._close_link()
                 st.connected = False
                 st.disconnects += 1
                 self._event("lost", err)
                 self.busy = False
                 return
-            st.reads += 1
-            st.bytes += len(data)
+            self._deliver(self.ser.decode(data) if self.gpsd else data, mono, wall)
+
+    def _deliver(self, data: bytes, mono: int, wall: int) -> None:
+        """Queue one read's bytes with the host times at which the read returned; clears ``busy``."""
+        if data:                               # (a gpsd read may hold only gpsd's own reports)
+            self.stats.reads += 1
+            self.stats.bytes += len(data)
             self._put(RawRead(self.port, mono, wall, data))
-            self.busy = False
+        self.busy = False
+
+    def _close_link(self) -> None:
+        if self.gpsd:
+            self.gpsd_reports += self.ser.stream.reports_seen
+        self.ser.close()
+        self.ser = None
 
 
 class RotatingSink:
@@ -539,6 +565,10 @@ class Daemon:
         out = self.pipe.counters_metadata()
         for name, r in self.readers.items():
             out.update({f"port.{name}.{k}": str(v) for k, v in asdict(r.stats).items() if k != "connected"})
+            if r.gpsd:
+                link = r.ser                   # (the reader may drop it meanwhile)
+                live = link.stream.reports_seen if link is not None else 0
+                out[f"port.{name}.gpsd_reports"] = str(r.gpsd_reports + live)
         out["daemon.late_reads"] = str(self.late_reads)
         out["daemon.merge_timeouts"] = str(self.merge_timeouts)
         if self.bus is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import resource
 import signal
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +24,12 @@ NS = 1_000_000_000
 LOCKED = 2
 
 
-def record(tmp_path: Path, *serve_args: str, duration: float, seed: int,
-           daemon_args: tuple[str, ...] = ()) -> tuple[Path, Path, str]:
+def record(tmp_path: Path, *serve_args: str, duration: float, seed: int, daemon_args: tuple[str, ...] = (),
+           attach: Callable[[dict[str, str]], dict[str, str]] | None = None,
+           during: Callable[[], None] | None = None) -> tuple[Path, Path, str]:
     """Serve a figure8 drive at x20 to a running daemon, stop both; returns the one drive file, the truth file
-    and the daemon's log."""
+    and the daemon's log. ``attach`` maps the serve's ports to the daemon's (e.g. through gpsd); ``during``
+    runs once the drive has started."""
     truth = tmp_path / "truth.mcap"
     serve, paths = start_serve("--scenario", "figure8", "--duration", str(duration), "--seed", str(seed),
                                "--speed", str(SPEED), "--hold", "--truth", str(truth), *serve_args)
@@ -34,8 +37,12 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int,
     if links is not None:
         paths = {p: str(links / p) for p in PORTS}
     try:
+        if attach is not None:
+            paths = attach(paths)
         d, _ = start_daemon(tmp_path / "drives", paths, "--time-scale", str(SPEED), *daemon_args)
         serve.send_signal(signal.SIGUSR1)
+        if during is not None:
+            during()
         assert serve.wait(60) == 0                  # the drive ended and the daemon drained the ptys
     finally:
         if serve.poll() is None:

@@ -534,7 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")
     s.add_argument("--daq", default=None, metavar="PORT", help="DAQ serial port (default: [daq] port of --config)")
-    s.add_argument("--gps", default=None, metavar="PORT", help="GPS serial port (default: [gps] port of --config)")
+    s.add_argument("--gps", default=None, metavar="PORT",
+                   help="GPS serial port, or gpsd://HOST[:PORT][/DEVICE] to read the receiver's own bytes through a "
+                        "running gpsd (default: [gps] port of --config)")
     s.add_argument("--out", default=None, metavar="DIR",
                    help="output directory (default: [output] dir of --config, else drives/)")
     s.add_argument("--config", default=None, metavar="FILE",
