@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 export RERUN_ANALYTICS ?= 0
 
-.PHONY: setup demo test bench screenshot clean
+.PHONY: setup demo test bench screenshot firmware clean
 
 setup: $(STAMP)
 
@@ -27,9 +27,13 @@ test: setup
 bench: setup
 	$(BIN)/python -m fieldlog.tools.bench
 
+# the DAQ board's firmware images (firmware/README.md); needs `apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi`
+firmware:
+	$(MAKE) -C firmware
+
 # docs/viewer.png; needs `apt-get install -y xvfb xauth mesa-vulkan-drivers` (not part of `make test`)
 screenshot: setup
 	$(BIN)/python -m fieldlog.tools.screenshot
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .hypothesis
+	rm -rf $(VENV) out .pytest_cache .hypothesis firmware/build
