@@ -315,3 +315,113 @@ def test_cross_build_makes_both_images_with_a_vector_table(tmp_path: Path) -> No
         assert sp == 0x20020000                                  # top of the 128 KiB SRAM
         assert reset & 1 and 0x08000000 < reset < 0x08000000 + len(image)   # Thumb code inside the image
         assert len(image) < 64 * 1024
+
+
+needs_qemu = pytest.mark.skipif(shutil.which("qemu-system-arm") is None,
+                                reason="qemu-system-arm absent: apt-get install qemu-system-arm")
+LATCH_CONFIG = '[timesync]\npps_mode = "latch"\n'
+
+
+def record_emulated(tmp_path: Path, image: Path, duration_s: float, seed: int) -> tuple[Path, Path, str]:
+    """``sim --serve --board emulated`` at real speed recorded by ``fieldlog acquire`` (latched PPS): the
+    recording, the serve truth file and the daemon's stderr."""
+    import signal
+
+    from test_daemon import start_daemon
+    from test_serve import start_serve
+
+    truth, cfg = tmp_path / "truth.mcap", tmp_path / "acquire.toml"
+    cfg.write_text(LATCH_CONFIG)
+    serve, paths = start_serve("--board", "emulated", "--board-image", str(image), "--scenario", "figure8",
+                               "--duration", str(duration_s), "--seed", str(seed), "--speed", "1", "--hold",
+                               "--truth", str(truth))
+    d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
+    serve.send_signal(signal.SIGUSR1)
+    assert serve.wait(duration_s + 60) == 0, serve.stderr.read()
+    d.send_signal(signal.SIGTERM)
+    assert d.wait(30) == 0
+    (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
+    return f, truth, d.stderr.read()
+
+
+@needs_cross
+@needs_qemu
+def test_daemon_records_the_emulated_board_as_the_simulated_one(tmp_path: Path) -> None:
+    """40 s of figure8 through the firmware under QEMU: /imu at 500 Hz, every sample, no bad CRC, counts and
+    PPS flags those the simulator fed, latches within 2 LSB of the simulator's own, time sync locked, and the
+    stamps' error against truth within 2x that of the plain simulator (`fieldlog sim`, same drive)."""
+    from fieldlog.acquire.timesync import SyncState
+    from fieldlog.replay import reader
+    from fieldlog.tools import info
+    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.tools.sim.serve import simulated_streams
+    from fieldlog.tools.sim.simulate import simulate
+
+    cross_build(tmp_path / "fw")
+    f, truth, log = record_emulated(tmp_path, tmp_path / "fw" / "qemu" / "fieldlog-qemu.elf", 40.0, 4)
+    sent = read_metadata(truth)["serve"]
+    assert sent["board"] == "emulated" and sent["pps_mode"] == "latch" and int(sent["daq_frames"]) == 20000
+    c = read_metadata(f)["acquire.counters"]
+    assert int(c["daq.frames"]) == 20000
+    assert int(c["daq.bad_crc"]) == int(c["daq.counter_gaps"]) == int(c["daq.lost_frames"]) == 0
+    assert int(c["daq.bytes_skipped"]) == 0
+    # the frames on /raw/daq are the firmware's: the simulator's samples, latched by the firmware
+    raw = b"".join(bytes(m.data) for m in reader.read_topic(f, "/raw/daq")["msgs"])
+    fw = daq.DaqDecoder().feed(raw)
+    sim = daq.DaqDecoder().feed(simulated_streams(sent)["daq"])
+    assert np.array_equal(fw.k, np.arange(20000)) and np.array_equal(fw.counts, sim.counts)
+    assert np.array_equal(fw.pps, sim.pps) and np.array_equal(fw.latch_valid, sim.pps)
+    assert fw.pps.sum() >= 35 and np.abs(fw.latch.astype(int) - sim.latch.astype(int)).max() <= 2
+    assert np.array_equal(fw.temperature_c, sim.temperature_c)
+    # /imu: every sample at 500 Hz on the time sync's clock, locked
+    imu = reader.read_topic(f, "/imu")["log_time_ns"]
+    tru = reader.read_topic(truth, "/truth/imu")["log_time_ns"]
+    assert len(imu) == len(tru) == 20000
+    assert abs(np.median(np.diff(imu)) - 2e6) < 2e6 * 1e-4
+    sync = reader.read_topic(f, "/time/sync")
+    assert sync["state"][-1] == SyncState.LOCKED
+    lock_ns = sync["log_time_ns"][np.flatnonzero(sync["state"] == SyncState.LOCKED)[0]]
+    after = imu >= lock_ns
+    assert after.mean() > 0.6
+    rms_us = np.sqrt(np.mean(((imu - tru)[after] / 1e3) ** 2))
+    plain = simulate("figure8", 40.0, 4, tmp_path / "plain.mcap", pps_mode="latch")
+    assert plain.imu_samples == 20000
+    plain_rms_us = info.drive_info(tmp_path / "plain.mcap").timing.rms_us
+    print(f"\nemulated board: stamp RMS vs truth {rms_us:.3f} us after lock; plain simulator {plain_rms_us:.3f} us")
+    assert rms_us <= 2 * plain_rms_us
+
+
+@needs_cross
+@needs_qemu
+def test_a_transmit_path_slower_than_the_adc_shows_as_counted_dropped_samples(tmp_path: Path) -> None:
+    """A test build whose transmit path sends at most 400 frames a second against the ADC's 500: the ring
+    overruns, the board drops samples, and every drop is a counter gap that the daemon counts and
+    `fieldlog info` prints; frames plus lost frames account for every sample fed, but for those the ring
+    still held when the drive ended."""
+    from fieldlog.tools.rebuild import read_metadata
+
+    from test_daemon import run
+
+    cross_build(tmp_path / "fw", "-DFW_TX_MAX_HZ=400")
+    f, truth, _ = record_emulated(tmp_path, tmp_path / "fw" / "qemu" / "fieldlog-qemu.elf", 8.0, 2)
+    fed = int(read_metadata(truth)["serve"]["daq_frames"])
+    c = {k: int(v) for k, v in read_metadata(f)["acquire.counters"].items() if k.startswith("daq.")}
+    assert fed == 4000 and c["daq.bad_crc"] == 0 and c["daq.bytes_skipped"] == 0
+    assert c["daq.counter_gaps"] > 10 and c["daq.lost_frames"] > 0.05 * fed
+    assert fed - 2 * 64 <= c["daq.frames"] + c["daq.lost_frames"] <= fed
+    out = run("info", str(f)).stdout
+    print(f"\nTX at 400 Hz: {fed} samples fed, {c['daq.frames']} frames, {c['daq.counter_gaps']} gaps, "
+          f"{c['daq.lost_frames']} lost")
+    assert f"daq.counter_gaps={c['daq.counter_gaps']}" in out and f"daq.lost_frames={c['daq.lost_frames']}" in out
+
+
+def test_emulated_board_without_its_image_or_with_unplugs_is_one_line_exit_2(tmp_path: Path) -> None:
+    from test_daemon import run
+
+    missing = tmp_path / "none.elf"
+    r = run("sim", "--serve", "--board", "emulated", "--board-image", str(missing), "--duration", "2")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert ("qemu-system-arm" in r.stderr) if shutil.which("qemu-system-arm") is None else (
+        str(missing) in r.stderr and "make firmware" in r.stderr)
+    r = run("sim", "--serve", "--board", "emulated", "--unplug", "daq:1:1", "--duration", "2")
+    assert r.returncode == 2 and "--unplug" in r.stderr and len(r.stderr.strip().splitlines()) == 1

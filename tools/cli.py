@@ -91,7 +91,8 @@ def cmd_sim_serve(a: argparse.Namespace) -> int:
 
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
-                 corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump])
+                 corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
+                 board_image=a.board_image)
 
 
 def cmd_acquire(a: argparse.Namespace) -> int:
@@ -530,6 +531,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--clock-jump", action="append", default=[], metavar="START:LEN:OFFSET",
                    help="--serve: the receiver writes its time OFFSET s off for LEN s from START s of the drive, "
                         "e.g. 900:30:3600 (repeatable; default: never)")
+    s.add_argument("--board", choices=["simulated", "emulated"], default="simulated",
+                   help="--serve: the DAQ port is the simulator's frames, or the firmware's under QEMU fed by the "
+                        "simulator (firmware/README.md; needs qemu-system-arm and `make firmware`)")
+    s.add_argument("--board-image", default=None, metavar="ELF",
+                   help="--serve --board emulated: the firmware image (default: firmware/build/qemu/fieldlog-qemu.elf)")
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("acquire", help="the acquisition daemon: serial ports -> crash-safe MCAP")

@@ -13,12 +13,14 @@ starts ``TIMER_WRAP_AFTER_S`` before its 32-bit wrap, so a drive longer than tha
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import select
 import shutil
 import subprocess
 import sys
+import termios
 import threading
 import time
 from pathlib import Path
@@ -35,6 +37,7 @@ TIMER_PPM = -17.0             # its crystal's rate error (not the ADC's: the lat
 TIMER_WRAP_AFTER_S = 20.0
 READY = b"fieldlog-fw emulated ready\n"
 READY_TIMEOUT_S = 20.0
+DRAIN_QUIET_S = 0.3           # the reader has taken the board's frames once its pty stays empty this long
 IMAGE = Path(__file__).resolve().parents[2] / "firmware" / "build" / "qemu" / "fieldlog-qemu.elf"
 
 RECORD_DTYPE = np.dtype([("sync", "u1", (2,)), ("flags", "u1"), ("counts", "u1", (6, 3)),
@@ -80,24 +83,24 @@ def encode_records(counts: np.ndarray, sample_ticks: np.ndarray, pps: np.ndarray
     return rows
 
 
-def pps_times(t_k: np.ndarray, pps: np.ndarray, edges, rng: np.random.Generator) -> np.ndarray:
+def pps_times(t_k: np.ndarray, pps: np.ndarray, latch: np.ndarray, edges) -> np.ndarray:
     """True time of the PPS edge captured in each flagged sample period: the receiver's edge for a real one
-    (``edges``, a clock.PpsTruth), a random instant inside the period for a glitch; 0 where no flag."""
+    (``edges``, a clock.PpsTruth), for a glitch the middle of the latch step the simulator drew for it
+    (``latch``, clock.pps_frames in 'latch' mode); 0 where no flag."""
     t = np.zeros(len(t_k))
     real = edges.k >= 0
     t[edges.k[real]] = edges.t_s[real]
     glitch = np.flatnonzero(pps)
     glitch = glitch[~np.isin(glitch, edges.k[real])]
-    t[glitch] = t_k[glitch - 1] + rng.uniform(0.01, 0.99, glitch.size) * (t_k[glitch] - t_k[glitch - 1])
+    t[glitch] = t_k[glitch - 1] + (latch[glitch] + 0.5) / 65536 * (t_k[glitch] - t_k[glitch - 1])
     return t
 
 
-def input_records(truth: dict, seed: int) -> np.ndarray:
-    """The records of a simulated drive (``simulate.make_reads``'s truth: sample times, ADC counts, PPS
-    flags and edges, temperature), one per DAQ sample."""
+def input_records(truth: dict) -> np.ndarray:
+    """The records of a simulated drive made in 'latch' mode (``simulate.make_reads``'s truth: sample times,
+    ADC counts, PPS flags, latches and edges, temperature), one per DAQ sample."""
     t_k = truth["t_k"]
-    rng = np.random.default_rng([seed, 0xB0A4D])
-    t_pps = pps_times(t_k, truth["pps"], truth["edges"], rng)
+    t_pps = pps_times(t_k, truth["pps"], truth["latch"], truth["edges"])
     return encode_records(truth["counts"], timer_ticks(t_k), truth["pps"], timer_ticks(t_pps), truth["temp_c"])
 
 
@@ -111,7 +114,9 @@ def qemu_command(image: Path, input_tty: str) -> list[str]:
 
 class EmulatedBoard:
     """A running QEMU with the firmware: ``daq_path`` is its USART1 pty. ``start`` returns once the firmware
-    has written its ready line on its input port (read from ``input_master``, a pty master in packet mode)."""
+    has written its ready line on its input port (read from ``input_master``, a pty master in packet mode).
+    The DAQ pty is held open here, never read, to see (``FIONREAD``) whether the reader has taken every
+    frame: stopping QEMU closes the pty and would discard what is still queued."""
 
     def __init__(self, image: str | Path | None = None) -> None:
         self.image = Path(image) if image else IMAGE
@@ -121,6 +126,8 @@ class EmulatedBoard:
             raise BoardError(f"{self.image}: no firmware image; build it with `make firmware`")
         self.proc: subprocess.Popen[str] | None = None
         self.daq_path = ""
+        self.daq_fd = -1
+        self._empty_since: float | None = None
 
     def start(self, input_tty: str, input_master: int) -> None:
         self.proc = subprocess.Popen(qemu_command(self.image, input_tty), stdin=subprocess.DEVNULL,
@@ -131,6 +138,7 @@ class EmulatedBoard:
             self.stop()
             raise BoardError(f"qemu-system-arm did not start the board: {line.strip() or 'no output'}")
         self.daq_path = m.group(1)
+        self.daq_fd = os.open(self.daq_path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
         threading.Thread(target=self._forward, daemon=True).start()
         got = b""
         deadline = time.monotonic() + READY_TIMEOUT_S
@@ -143,11 +151,23 @@ class EmulatedBoard:
             self.stop()
             raise BoardError(f"{self.image}: the firmware sent no ready line in {READY_TIMEOUT_S:g} s")
 
+    def drained(self) -> bool:
+        """True once the DAQ pty's input queue has stayed empty for DRAIN_QUIET_S (call repeatedly)."""
+        unread = int.from_bytes(fcntl.ioctl(self.daq_fd, termios.FIONREAD, b"\0\0\0\0"), sys.byteorder)
+        now = time.monotonic()
+        if unread or self._empty_since is None:
+            self._empty_since = None if unread else now
+            return False
+        return now - self._empty_since >= DRAIN_QUIET_S
+
     def _forward(self) -> None:
         for line in self.proc.stdout:
             print(f"qemu: {line.rstrip()}", file=sys.stderr, flush=True)
 
     def stop(self) -> None:
+        if self.daq_fd >= 0:
+            os.close(self.daq_fd)
+            self.daq_fd = -1
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:

@@ -40,6 +40,14 @@ Receiver clock jumps: ``clock_jumps`` rows (start, length, offset in simulated s
 ``[gps] clock_jumps``) make the receiver write a time that far off in its messages, while its pulse and its
 sending keep true time; metadata ``gps_clock_jumps`` (``START:LEN:OFFSET;...``) has them all.
 
+The emulated board: with ``board="emulated"`` the DAQ port is not the simulator's frames but the firmware's
+(``tools/sim/board.py``): the serve process starts QEMU with the emulated board's image and writes the board's
+input records (one per sample, at its simulated time) to a pty that QEMU's second USART reads; the printed
+``daq PATH`` is QEMU's pty of the first USART, where the firmware sends its frames. The board always latches
+the PPS (metadata ``pps_mode`` = ``latch``); ``daq_bytes`` and ``daq_frames`` count the input records written,
+one per sample (frames the board drops show as counter gaps on the DAQ port). Unplugging and corruption are
+for the simulated board only.
+
 Corruption: ``corrupt`` > 0 replaces that fraction of the bytes of both streams with other values
 (``corrupt_stream``: deterministic from the seed and the port, so a test can redo it and know every
 corrupted position); metadata ``daq_corrupt_bytes`` / ``gps_corrupt_bytes`` count them.
@@ -63,10 +71,13 @@ from typing import Callable, TextIO
 import numpy as np
 
 from fieldlog.acquire import daq, recorder
-from fieldlog.tools.sim import simulate, trajectory
+from fieldlog.acquire.pipeline import RawRead
+from fieldlog.tools.sim import board as emulated, simulate, trajectory
+from fieldlog.tools.sim.emit import HostClock
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+BOARDS = ("simulated", "emulated")
 TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
 TIOCPKT_FLUSHREAD = 0x01
 DRAIN_QUIET_S = 0.2     # the reader has drained a pty once its input queue stays empty this long (wall s)
@@ -250,11 +261,19 @@ class Server:
     def __init__(self, scenario: str, duration_s: float | None, seed: int, speed: float = 1.0,
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
                  link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None,
-                 clock_jumps: list[list[float]] | None = None) -> None:
+                 clock_jumps: list[list[float]] | None = None, board: str = "simulated",
+                 board_image: str | Path | None = None) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
             raise ValueError(f"--corrupt {corrupt}: must be in [0, 1)")
+        if board not in BOARDS:
+            raise ValueError(f"--board {board!r}: one of {', '.join(BOARDS)}")
+        if board == "emulated" and (unplug or corrupt):
+            raise ValueError("--board emulated: --unplug and --corrupt are for the simulated board only")
+        self.board = emulated.EmulatedBoard(board_image) if board == "emulated" else None
+        if self.board is not None:
+            pps_mode = "latch"          # the board latches; the simulator's latches place its glitch edges
         sc = trajectory.load_scenario(scenario)
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
         sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()},
@@ -267,6 +286,12 @@ class Server:
         self.speed = speed
         reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode,
                                                                              receiver)
+        if self.board is not None:     # the DAQ port carries the board's input records, one per sample
+            records = emulated.input_records(self.truth)
+            mono = HostClock().mono_ns(self.truth["t_k"])
+            reads = [r for r in reads if r.port != "daq"] + [RawRead("daq", m, 0, r.tobytes())
+                                                            for m, r in zip(mono.tolist(), records)]
+            reads.sort(key=lambda r: r.mono_ns)
         m0 = reads[0].mono_ns
         self.ports = {}
         for name in PORTS:
@@ -287,12 +312,21 @@ class Server:
         self.completed = False
 
     def open(self, out: TextIO = sys.stdout) -> None:
-        """Open the ptys and print ``daq PATH`` and ``gps PATH`` (flushed)."""
+        """Open the ptys (and start the emulated board) and print ``daq PATH`` and ``gps PATH`` (flushed)."""
         if self.link_dir is not None:
             self.link_dir.mkdir(parents=True, exist_ok=True)
         for p in self.ports.values():
-            p.open(self.link_dir)
-            out.write(f"{p.name} {p.path}\n")
+            if p.name == "daq" and self.board is not None:
+                p.open(None)
+                self.board.start(p.path, p.master)
+                path = self.board.daq_path
+                if self.link_dir is not None:
+                    (self.link_dir / "daq").unlink(missing_ok=True)
+                    (self.link_dir / "daq").symlink_to(path)
+            else:
+                p.open(self.link_dir)
+                path = p.path
+            out.write(f"{p.name} {path}\n")
         out.flush()
 
     def _unplugged(self, name: str, t_s: float) -> Unplug | None:
@@ -320,7 +354,8 @@ class Server:
         # wait (at most 10 s) for the reader to drain the ptys (one empty reading is not enough: module doc)
         deadline = time.monotonic() + 10.0
         while self.completed and not self.stop.is_set() and time.monotonic() < deadline:
-            if all([p.master < 0 or p.drained() for p in self.ports.values()]):
+            if all([p.master < 0 or p.drained() for p in self.ports.values()]) and (
+                    self.board is None or self.board.drained()):
                 break
             time.sleep(0.02)
 
@@ -372,7 +407,11 @@ class Server:
                 "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
                 "daq_undrained_unplugs": str(d.undrained_unplugs), "gps_undrained_unplugs": str(g.undrained_unplugs),
                 "gps_clock_jumps": ";".join(":".join(f"{x:g}" for x in j) for j in self.clock_jumps),
-                "drive_start_utc_ns": str(self.t0_ns), "pps_mode": self.ccfg.pps_mode, "receiver": self.receiver}
+                "drive_start_utc_ns": str(self.t0_ns), "receiver": self.receiver,
+                "board": "simulated" if self.board is None else "emulated",
+                "pps_mode": self.ccfg.pps_mode,
+                **({} if self.board is None else {"daq_frames": str(len(d.sent) // emulated.RECORD_SIZE),
+                                                  "board_image": str(self.board.image)})}
 
     def write_truth(self, path: str | Path) -> None:
         """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path``."""
@@ -383,17 +422,23 @@ class Server:
             simulate.write_truth(rec, self.truth, self.duration_s)
 
     def close(self) -> None:
+        if self.board is not None:
+            self.board.stop()
+            if self.link_dir is not None:
+                (self.link_dir / "daq").unlink(missing_ok=True)
         for p in self.ports.values():
-            p.close(self.link_dir)
+            p.close(self.link_dir if p.name != "daq" or self.board is None else None)
 
 
 def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_mode: str | None = None,
           receiver: str | None = None, truth: str | None = None, unplug: list[Unplug] | None = None,
           link_dir: str | None = None,
-          hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None) -> int:
+          hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None,
+          board: str = "simulated", board_image: str | None = None) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first)."""
-    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps)
+    srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps,
+                 board, board_image)
     go = threading.Event()
     if not hold:
         go.set()
@@ -405,7 +450,11 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
     signal.signal(signal.SIGINT, on_stop)
     signal.signal(signal.SIGTERM, on_stop)
     signal.signal(signal.SIGUSR1, lambda s, f: go.set())
-    srv.open()
+    try:
+        srv.open()
+    except Exception:
+        srv.close()
+        raise
     log = lambda s: print(f"sim --serve: {s}", file=sys.stderr, flush=True)  # noqa: E731
     try:
         while not go.wait(0.1):

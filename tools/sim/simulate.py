@@ -101,7 +101,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
                                   rng_gps_reads)
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
-                      gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, temp_c=temp_c)
+                      gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
+                      temp_c=temp_c)
     return reads, truth_data, t0_ns, ccfg, cal
 
 
