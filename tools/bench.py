@@ -1,10 +1,14 @@
 """``make bench``: speed and accuracy figures. Medians of several runs; ratios where two things are compared.
 
-    python -m fieldlog.tools.bench [--only NAME ...] [--runs N]
+    python -m fieldlog.tools.bench [--only NAME ...] [--runs N] [--markdown]
+
+Each bench prints its full figures; ``--markdown`` prints, instead (the full output goes to stderr), the headline
+figures as rows of docs/results.md's "From make bench" table, so that table is refreshed from a run.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import statistics
@@ -16,6 +20,14 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+
+ROWS: list[tuple[str, str, str]] = []   # (what [bench], figure, target): the --markdown table
+
+
+def row(what: str, figure: str, target: str = "") -> None:
+    """One row of docs/results.md's table of bench figures; ``what`` names the bench in brackets."""
+    ROWS.append((what, figure, target))
 
 
 def timed(fn: Callable[[], object], runs: int) -> tuple[float, list[float], object]:
@@ -55,6 +67,9 @@ def bench_sim(runs: int, tmp: Path) -> None:
         lat.append(drive_info(path).timing.rms_us)
     print(f"timestamp RMS, latched PPS:   median {statistics.median(lat):6.3f} us (seeds 1..{runs}: "
           f"{', '.join(f'{r:.3f}' for r in lat)})   target <= 5 us")
+    row("`fieldlog sim`, figure8 600 s [sim]", f"{min(ts):.1f}–{max(ts):.1f} s", "≤ 30 s")
+    row("IMU time-stamp RMS vs truth, sampled PPS [sim]", f"{min(rms):.0f}–{max(rms):.0f} µs", "≤ 100 µs")
+    row("the same, latched PPS [sim]", f"{statistics.median(lat):.2f} µs", "≤ 5 µs")
 
 
 def bench_codecs(runs: int, tmp: Path) -> None:
@@ -75,6 +90,7 @@ def bench_codecs(runs: int, tmp: Path) -> None:
     assert got == n
     print(f"DAQ decode 300k frames:       median {med:6.3f} s  ({n / med / 1e6:.2f} M frames/s, "
           f"{len(chunks)} chunks)")
+    row("DAQ frame decode in read-sized chunks [codecs]", f"{n / med / 1e6:.2f} M frames/s")
 
     from datetime import date
 
@@ -106,6 +122,8 @@ def bench_codecs(runs: int, tmp: Path) -> None:
 
     med_theirs, _, _ = timed(theirs, runs)
     print(f"  same with pynmeagps.parse:  median {med_theirs * 1e3:6.1f} ms  -> ours is {med_theirs / med_ours:.1f}x faster")
+    row("NMEA decode, ours against pynmeagps [codecs]", f"{med_ours / len(lines) * 1e6:.1f} µs a sentence, "
+        f"×{med_theirs / med_ours:.1f} faster")
 
 
 def bench_recorder(runs: int, tmp: Path) -> None:
@@ -126,6 +144,7 @@ def bench_recorder(runs: int, tmp: Path) -> None:
     med, ts, _ = timed(write, runs)
     print(f"encode+write 600k Imu msgs:   median {med:6.2f} s  ({2 * n / med / 1e6:.2f} M msg/s, "
           f"{(tmp / 'rec.mcap').stat().st_size / 1e6:.0f} MB)")
+    row("encode and write Imu messages [recorder]", f"{2 * n / med / 1e6:.2f} M messages/s")
 
 
 def bench_ins(runs: int, tmp: Path) -> None:
@@ -141,6 +160,7 @@ def bench_ins(runs: int, tmp: Path) -> None:
     med, _, sol = timed(lambda: ins.integrate(s0, t, ts.omega_ib_b, ts.f_b), runs)
     print(f"truth evaluate 300k samples:  median {med_eval:6.3f} s")
     print(f"INS integrate 300k samples:   median {med:6.3f} s  ({300_000 / med / 1e6:.1f} M samples/s)")
+    row("strapdown INS [ins]", f"{300_000 / med / 1e6:.1f} M samples/s")
 
 
 def bench_allan(runs: int, tmp: Path) -> None:
@@ -166,6 +186,15 @@ def bench_allan(runs: int, tmp: Path) -> None:
     print("  accel VRW         " + " ".join(f"{v / cfg.accel_noise_density_ug_rthz:6.3f}" for v in a["vrw_ug_rthz"]))
     print("  accel bias instab." + " ".join(f"{v / cfg.accel_bias_instability_ug:6.3f}" for v in a["bias_instability_ug"]))
 
+    def span(v: np.ndarray, ref: float) -> str:
+        return f"{np.min(v) / ref:.2f}–{np.max(v) / ref:.2f}"
+
+    row("Allan deviation of a 2-hour static drive: recovered / configured gyro ARW, bias instability; accel VRW, "
+        "bias instability [allan]", f"{span(g['arw_dps_rthz'], cfg.gyro_noise_density_dps_rthz)}, "
+        f"{span(g['bias_instability_dps'], cfg.gyro_bias_instability_dps)}; "
+        f"{span(a['vrw_ug_rthz'], cfg.accel_noise_density_ug_rthz)}, "
+        f"{span(a['bias_instability_ug'], cfg.accel_bias_instability_ug)}", "within 15 %")
+
 
 def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog fuse of a 600 s figure8 drive by ins, kf, dkf and dkf-rbfn: seconds and real-time factor."""
@@ -180,6 +209,8 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
         med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap"), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
+        row(f"`fieldlog fuse --method {method}`, figure8 {duration_s:g} s [fusion]",
+            f"{med:.2f} s (×{duration_s / med:.0f} real time)")
 
 
 def bench_grades(runs: int, tmp: Path) -> None:
@@ -212,6 +243,9 @@ def bench_grades(runs: int, tmp: Path) -> None:
         print(f"{grade:12s} {gps:10s} 2D RMS {math.sqrt(np.mean(h ** 2)):8.3f} m, max drift per outage "
               + ", ".join(f"{d:.3f}" for d in drift) + " m; heading at the starts "
               + ", ".join(f"{x:+.3f}±{y:.3f}°" for x, y in zip(err, sig)))
+        row(f"{grade}, {gps} GPS: 2D RMS in two 60 s outages; max drift per outage; heading error ± σ at the "
+            "starts [grades]", f"{math.sqrt(np.mean(h ** 2)):.2f} m; " + ", ".join(f"{d:.2f}" for d in drift)
+            + " m; " + ", ".join(f"{x:+.3f} ± {y:.3f}°" for x, y in zip(err, sig)))
 
 
 # Peak RSS of a child is read from its VmHWM, the high-water mark of its own address space: ru_maxrss (and
@@ -263,6 +297,9 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
         print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
+        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {name}: time; peak RSS {h0:g} h / {hours[1]:g} h "
+            "[fuse-long]", f"{r[0]['s']:.1f} s (×{3600.0 * h0 / r[0]['s']:.0f}); {r[0]['rss_mb']:.0f} / "
+            f"{r[1]['rss_mb']:.0f} MB", "dkf-rbfn ≤ 60 s; RSS equal")
 
 
 def _serve_and_acquire(duration_s: float, speed: float, truth: Path, out: Path, *daemon_args: str,
@@ -314,12 +351,16 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
         lost_lines = int(sent["nmea_lines"]) - int(counters["nmea.lines"])
         line = (f"x{speed:<4g} {duration:5.0f} s of data: lost DAQ frames {lost_frames}, lost NMEA lines {lost_lines}, "
                 f"daemon CPU {cpu:.1f} s = {100 * cpu * speed / duration:.1f} % of one core")
+        figure = f"{lost_frames} / {lost_lines}, {100 * cpu * speed / duration:.1f} % of a core"
         if speed == 1 and len(imu) == len(tru):
             # at real speed the serve process sets the drive start to 'now', so stamps compare with truth directly
             locked = np.searchsorted(imu, imu[0]) if (state == SyncState.LOCKED).any() else 0
             err = (imu[locked:] - tru[locked:]) / 1e3
             line += f", timestamp RMS vs truth {np.sqrt(np.mean(err ** 2)):.1f} us"
+            figure += f", {np.sqrt(np.mean(err ** 2)):.1f} µs"
         print(line)
+        row(f"daemon on ptys at x{speed:g}, {duration / 60:g} min of data: lost frames / lines, CPU, time-stamp RMS "
+            "[daemon]", figure, "0 / 0, ≤ 10 %, ≤ 100 µs" if speed == 1 else "0 / 0")
 
     one(1.0, duration_s)
     one(20.0, 120.0)
@@ -435,6 +476,19 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     # (the second half starts at the clock jump, whose few MB held for seconds then freed tilt its slope)
     print(f"  daemon RSS at {at}; max {mb.max():.0f} MB; slope per 10 min of data, least squares (Theil-Sen): after "
           f"the 5-min warm-up {slope(t_rss >= 300)} MB, over the second half {slope(t_rss >= t_rss[-1] / 2)} MB")
+    what = f"soak, x{speed:g}, {duration_s / 60:g} min of data"
+    row(f"{what}: DAQ frames lost outside the unplugs, intact NMEA lines not recorded, processing errors [soak]",
+        f"{int(whole.sum()) - int(c['daq.frames'])} of {int(whole.sum())} "
+        f"({'byte-exact' if got_daq == want_daq else 'recording differs'}), "
+        f"{sum((intact - got_lines).values())} of {sum(intact.values())}, {c['processing_errors']}", "0, 0, 0")
+    row(f"{what}: jumped epochs flagged NO_FIX, of those recorded [soak]", f"{in_jump} of {jumped}", "all")
+    minutes = [m for m in (1, 5, 10, 20, 30, 45, 60) if 60 * m <= t_rss[-1] + 60]
+    row(f"{what}: daemon RSS at {' / '.join(map(str, minutes))} min; slope per 10 min after the warm-up, least "
+        "squares (Theil-Sen) [soak]", " / ".join(f"{mb[np.argmin(np.abs(t_rss - 60 * m))]:.0f}" for m in minutes)
+        + f" MB; {slope(t_rss >= 300)} MB", "flat")
+    row(f"{what}: daemon CPU, whole run; per minute of data [soak]",
+        f"{usage.ru_utime + usage.ru_stime:.0f} s ({(usage.ru_utime + usage.ru_stime) / wall * 100:.0f} % of a core); "
+        f"{(usage.ru_utime + usage.ru_stime - cpu0) / (duration_s / 60):.2f} s")
 
 
 def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
@@ -465,6 +519,8 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     print(f"provisional /imu on the bus, x1 {duration_s:g} s: {len(prov)} batches (one per DAQ read), latency serial "
           f"read -> client median {np.median(lat):.2f} ms, p95 {np.percentile(lat, 95):.2f} ms, max {lat.max():.1f} ms"
           f"   target median <= 50 ms; daemon CPU {100 * cpu / duration_s:.1f} % of one core")
+    row("live bus: serial read to client, IMU block latency median / p95 [bus]",
+        f"{np.median(lat):.2f} ms / {np.percentile(lat, 95):.1f} ms", "≤ 50 ms median")
     (f,) = sorted(out.glob("*.mcap"))
     final = reader.read_topic(f, "/imu")["log_time_ns"]
     tru = reader.read_topic(truth, "/truth/imu")["log_time_ns"]
@@ -555,6 +611,8 @@ def bench_qerr(runs: int, tmp: Path) -> None:
         print(f"  {mode} PPS, u-blox: IMU stamp RMS vs truth with qErr {statistics.mean(res[True]):.4f} {unit}, "
               f"without {statistics.mean(res[False]):.4f} {unit} (per seed with: "
               f"{', '.join(f'{x:.4f}' for x in res[True])}; without: {', '.join(f'{x:.4f}' for x in res[False])})")
+        row(f"u-blox receiver, {mode} PPS: IMU stamp RMS with / without TIM-TP qErr [qerr]",
+            f"{statistics.mean(res[True]):.4f} / {statistics.mean(res[False]):.4f} µs")
 
 
 def bench_view(runs: int, tmp: Path) -> None:
@@ -568,6 +626,8 @@ def bench_view(runs: int, tmp: Path) -> None:
     med, ts, _ = timed(lambda: view(drive, [fused], rrd), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
           f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
+    row("`fieldlog view` of a 1-hour drive plus kf to `.rrd` [view]",
+        f"{med:.1f} s, {rrd.stat().st_size / 1e6:.0f} MB from a {drive.stat().st_size / 1e6:.0f} MB drive", "≤ 10 s")
 
 
 def bench_export(runs: int, tmp: Path) -> None:
@@ -593,6 +653,7 @@ def bench_export(runs: int, tmp: Path) -> None:
     rss = max(peaks)
     print(f"export 1 h drive -> Parquet:  median {med:6.2f} s  (runs: {fmt_times(ts)}); peak RSS {rss:.0f} MB; "
           f"{size / 1e6:.0f} MB of Parquet from a {drive.stat().st_size / 1e6:.0f} MB drive")
+    row("`fieldlog export` of a 1-hour drive to Parquet: time, peak RSS [export]", f"{med:.0f} s, {rss:.0f} MB")
 
 
 def bench_batch(runs: int, tmp: Path) -> None:
@@ -609,6 +670,7 @@ def bench_batch(runs: int, tmp: Path) -> None:
                                             say=lambda _m: None), 1)
     print(f"batch 4 drives: one by one {t_one:.1f} s, Dask 2 workers {t_batch:.1f} s (cluster start included) "
           f"-> speed-up {t_one / t_batch:.2f}x")
+    row("`fieldlog batch` of 4 drives, 2 Dask workers against one by one [batch]", f"×{t_one / t_batch:.2f}")
 
 
 def bench_cycle(runs: int, tmp: Path) -> None:
@@ -628,6 +690,9 @@ def bench_cycle(runs: int, tmp: Path) -> None:
         fl_p, fl_t = flops[name][2], flops[name][2] + flops[name][3]
         print(f"{name:9s} {p:10.1f} {p / kp:6.1f} {t:11.1f} {t / kt:6.1f} {u:8.1f} "
               f"{fl_p / 1e3:10.1f} {fl_p / fp:6.1f} {fl_t / 1e3:11.1f} {fl_t / ft:6.1f}")
+        if name != "kf":
+            row(f"filter cycle cost of {name} against kf, prediction / with a GPS update [cycle]",
+                f"×{p / kp:.1f} / ×{t / kt:.1f}")
     print("flop formulas (n states, m rows, c = 4 c_f + 12 n per point RK4 step, c_f ~ 450):")
     for name, (fp_s, fu_s, _, _) in flops.items():
         print(f"  {name:9s} predict: {fp_s};  update: {fu_s}")
@@ -661,6 +726,7 @@ def bench_cli(runs: int, tmp: Path) -> None:
     med, ts, _ = timed(lambda: run("info", str(hour)), runs)
     print(f"fieldlog info, 1 h drive:     median {med:6.2f} s  (runs: {fmt_times(ts)}; {size:.1f} GB; the "
           f"fieldlog.info record)   target <= 2 s")
+    row("`fieldlog info` of a 1-hour drive [cli]", f"{med:.2f} s", "≤ 2 s")
     med, ts, _ = timed(lambda: run("info", "--scan", str(hour)), 1)
     print(f"fieldlog info --scan, 1 h:    {med:6.2f} s  (reading every /imu, /gps/fix, /time/sync, /truth/imu message)")
 
@@ -699,6 +765,9 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         print(f"read {name:15s} {path.stat().st_size / 1e6:6.1f} MB: wall {w:5.2f} s x{w / w_base:.2f}, "
               f"CPU {c:5.2f} s x{c / c_base:.2f} of the own file (target <= x2)  (wall runs: {fmt_times(wall[name])})  "
               f"{n[name]} IMU samples")
+        if path != own:
+            row(f"reading what `fuse` reads of a 300 s drive, {name} against our own file, wall / CPU [reader]",
+                f"×{w / w_base:.2f} / ×{c / c_base:.2f}", "≤ ×2" if name == "chunks-4k" else "")
 
 
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
@@ -725,7 +794,10 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         slow, _, _ = timed(lambda: recorder.recover(bad, tmp / "r.mcap", TailDeriver()), runs)
         print(f"{duration_s:.0f} s drive, {path.name} ({path.stat().st_size / 1e6:.1f} MB, {int(p.chunk.sum())} "
               f"chunks, {p.size.sum() / 1e6:.0f} MB uncompressed): open + check every chunk {check * 1e3:.0f} ms; recover with "
-              f"one damaged chunk {fast:.2f} s (feeding the pipeline, as before: {slow:.2f} s)")
+              f"one damaged chunk {fast:.2f} s (feeding the pipeline: {slow:.2f} s)")
+        row(f"{duration_s:.0f} s drive, {'own file' if path == own else '4 KiB chunks'}: check every chunk; recover "
+            "one damaged chunk, copying / feeding the pipeline [recover]",
+            f"{check * 1e3:.0f} ms; {fast:.2f} / {slow:.2f} s")
 
 
 BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
@@ -739,12 +811,22 @@ def main() -> None:
     p.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--soak-minutes", type=float, default=30.0, help="minutes of data the soak records (30)")
+    p.add_argument("--markdown", action="store_true",
+                   help="print the headline figures as rows of docs/results.md's table (the full output to stderr)")
     a = p.parse_args()
-    with tempfile.TemporaryDirectory() as d:
+    full = contextlib.redirect_stdout(sys.stderr) if a.markdown else contextlib.nullcontext()
+    with tempfile.TemporaryDirectory() as d, full:
         for name in a.only or BENCHES:
             print(f"--- {name}: {BENCHES[name].__doc__.splitlines()[0]}")
             extra = {"duration_s": a.soak_minutes * 60} if name == "soak" else {}
             BENCHES[name](a.runs, Path(d), **extra)
+    if a.markdown:
+        print("| what [bench] | figure | target |\n|---|---|---|")
+        for what, figure, target in ROWS:
+            print(f"| {what} | {figure} | {target} |")
+        print(f"\n`python -m fieldlog.tools.bench --runs {a.runs} --markdown"
+              + (f" --only {' '.join(a.only)}" if a.only else "") + f"`, load average {os.getloadavg()[0]:.1f} "
+              "(1 min) at the end")
 
 
 if __name__ == "__main__":
