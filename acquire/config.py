@@ -12,6 +12,16 @@ standard baud rate``.
     baud = 115200
     protocol = "auto"           # NMEA, u-blox UBX and NovAtel OEM, mixed, found by themselves; or one of
                                 # "nmea", "ubx", "novatel" (with NMEA) to ignore the others
+    [can]                       # optional: the vehicle bus (acquire/can.py, acquire/canbus.py)
+    url = "slcan:///dev/ttyACM0@500000"   # or socketcan://can0; --can URL
+    baud = 115200               # the SLCAN adapter's serial rate (USB adapters ignore it)
+    dbc = "car.dbc"             # decode through this DBC ("" : record the frames only)
+    latency_s = 0.0             # adapter and bus delay, subtracted from the read time
+    forward = ""                # wheels of the forward speed: rear, front, all, vehicle ("" : rear if named)
+    [can.signals]               # MESSAGE.SIGNAL (or SIGNAL) of the DBC for each that the car has
+    wheel_rl = "WHEEL_SPEEDS.WHEEL_SPEED_RL"
+    wheel_rr = "WHEEL_SPEEDS.WHEEL_SPEED_RR"
+    gear = "GEARBOX.GEAR"       # reverse when its choice is named [can] reverse_gear ("R")
     [calibration]
     file = "cal.toml"           # acquire/calib.py layout; omitted: the built-in defaults
     [timesync]                  # acquire/timesync.py TimeSyncConfig keys, e.g. pps_mode = "latch"
@@ -44,7 +54,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
-    from fieldlog.acquire import timesync
+    from fieldlog.acquire import canbus, timesync
 
 T = TypeVar("T")
 
@@ -140,6 +150,20 @@ class GpsPortConfig(PortConfig):
 
 
 @dataclass
+class CanConfig:
+    """``[can]``: the vehicle bus (``url`` empty: none). Keys as in acquire/canbus.BusConfig."""
+
+    url: str = ""
+    baud: int = 115200
+    dbc: str = ""
+    latency_s: float = 0.0
+    forward: str = ""
+    reverse_gear: str = "R"
+    speed_unit: str = ""
+    signals: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
 class RotationConfig:
     max_duration_s: float = 3600.0
     max_size_mb: float = 2048.0
@@ -166,12 +190,39 @@ class DaemonConfig:
 class AcquireConfig:
     daq: PortConfig = field(default_factory=lambda: PortConfig(baud=921600))
     gps: GpsPortConfig = field(default_factory=lambda: GpsPortConfig(baud=115200))
+    can: CanConfig = field(default_factory=CanConfig)
     calibration_file: str = ""
     timesync: dict[str, Any] = field(default_factory=dict)
     out_dir: str = "drives"
     rotation: RotationConfig = field(default_factory=RotationConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
+
+    def can_bus(self) -> "canbus.BusConfig | None":
+        """How the pipeline decodes /raw/can (None: no [can] url); ConfigError naming the key or the DBC file."""
+        from fieldlog.acquire import can, canbus
+
+        c = self.can
+        if not c.url:
+            if c.dbc or c.signals:
+                raise ConfigError("[can] url: a DBC or signals without a bus (--can URL or [can] url)")
+            return None
+        try:
+            url = can.parse_url(c.url)
+            bad = [k for k, v in c.signals.items() if not isinstance(v, str)]
+            if bad:
+                raise ConfigError(f"[can.signals] {bad[0]}: expected MESSAGE.SIGNAL as a string")
+            if url.kind == "slcan" and c.baud not in STANDARD_BAUDS:
+                raise ConfigError(f"[can] baud: {c.baud} is not a standard baud rate")
+            bus = canbus.BusConfig(wire=url.wire, dbc=canbus.read_dbc(c.dbc) if c.dbc else "", dbc_name=c.dbc,
+                                   signals=dict(c.signals), forward=c.forward, reverse_gear=c.reverse_gear,
+                                   speed_unit=c.speed_unit, latency_s=c.latency_s)
+            canbus.VehicleDecoder(bus)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        return bus
 
     def sync_config(self) -> "timesync.TimeSyncConfig":
         from fieldlog.acquire import timesync
@@ -241,13 +292,14 @@ def _section(d: dict[str, Any], name: str, obj: Any) -> None:
 
 def from_dict(d: dict[str, Any]) -> AcquireConfig:
     """An AcquireConfig from parsed TOML; raises ConfigError naming the key."""
-    known = {"daq", "gps", "calibration", "timesync", "output", "rotation", "recorder", "daemon"}
+    known = {"daq", "gps", "can", "calibration", "timesync", "output", "rotation", "recorder", "daemon"}
     for key in d:
         if key not in known:
             raise ConfigError(f"[{key}]: unknown section; known sections: {', '.join(sorted(known))}")
     c = AcquireConfig()
     _section(d, "daq", c.daq)
     _section(d, "gps", c.gps)
+    _section(d, "can", c.can)
     _section(d, "rotation", c.rotation)
     _section(d, "recorder", c.recorder)
     _section(d, "daemon", c.daemon)
@@ -290,6 +342,10 @@ def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> Ac
         c.daq.port = o["daq"]
     if o.get("gps"):
         c.gps.port = o["gps"]
+    if o.get("can"):
+        c.can.url = o["can"]
+    if o.get("dbc"):
+        c.can.dbc = o["dbc"]
     if o.get("out"):
         c.out_dir = o["out"]
     if o.get("time_scale") is not None:
@@ -312,6 +368,8 @@ def validate(c: AcquireConfig) -> None:
         raise ConfigError(f"[gps] protocol: {c.gps.protocol!r} is not one of {', '.join(GPS_PROTOCOLS)}")
     if c.daq.port == c.gps.port:
         raise ConfigError(f"[gps] port: same device as [daq] port ({c.gps.port})")
+    if c.can.url or c.can.dbc or c.can.signals:
+        c.can_bus()
     if c.calibration_file and not Path(c.calibration_file).is_file():
         raise ConfigError(f"[calibration] file: {c.calibration_file} does not exist")
     if c.rotation.max_duration_s < 0:

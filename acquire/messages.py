@@ -119,6 +119,16 @@ MSG_DEFS: dict[str, str] = {
     "fieldlog_msgs/msg/Outage": (
         "std_msgs/Header header\nint64 start_ns\nint64 end_ns\nstring reason\n"
     ),
+    "fieldlog_msgs/msg/WheelSpeeds": (
+        "std_msgs/Header header\n"
+        "uint32 can_id\n"
+        "float64[4] wheel_speed\n"
+        "float64 vehicle_speed\n"
+        "float64 steering_angle\n"
+        "int8 reverse\n"
+        "string[] names\n"
+        "float64[] values\n"
+    ),
 }
 
 _SEPARATOR = "=" * 80
@@ -171,10 +181,12 @@ RAWBYTES = "fieldlog_msgs/msg/RawBytes"
 OUTAGE = "fieldlog_msgs/msg/Outage"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 ODOMETRY = "nav_msgs/msg/Odometry"
+WHEELSPEEDS = "fieldlog_msgs/msg/WheelSpeeds"
 
 TOPICS: dict[str, str] = {
     "/raw/daq": RAWBYTES,
     "/raw/gps": RAWBYTES,
+    "/raw/can": RAWBYTES,
     "/imu": IMU,
     "/gps/fix": NAVSATFIX,
     "/gps/vel": TWIST,
@@ -186,6 +198,9 @@ TOPICS: dict[str, str] = {
     "/truth/vel": TWIST,
     "/truth/attitude": QUATERNION,
     "/truth/imu_bias": IMU,
+    "/truth/vehicle/twist": TWIST,
+    "/vehicle/twist": TWIST,
+    "/vehicle/wheel_speeds": WHEELSPEEDS,
     "/fusion/outage": OUTAGE,
     "/tf_static": TFMESSAGE,
     "/tf": TFMESSAGE,
@@ -655,6 +670,22 @@ def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:
     pos += -pos % 4
     (dlen,) = struct.unpack_from("<I", data, 4 + pos)
     return sec * 1_000_000_000 + nsec, mono_ns, port, data[4 + pos + 4: 4 + pos + 4 + dlen]
+
+
+def encode_wheel_speeds(stamp_ns: int, can_id: int, wheel_speed: Sequence[float], vehicle_speed: float,
+                        steering_angle: float, reverse: int, names: Sequence[str], values: Sequence[float],
+                        frame_id: str = "base_link") -> bytes:
+    """``fieldlog_msgs/msg/WheelSpeeds``: wheel speeds (front left, front right, rear left, rear right) and the
+    vehicle speed in m/s, the steering angle in rad (NaN: not known), reverse 1/0 (-1: not known), and the
+    configured signals of the frame ``can_id`` by name with their values in the DBC's units."""
+    w = _Cdr().header(stamp_ns, frame_id).put("I", can_id).put("dddd", *map(float, wheel_speed))
+    w.put("dd", float(vehicle_speed), float(steering_angle)).put("b", int(reverse)).put("I", len(names))
+    for n in names:
+        w.string(n)
+    w.put("I", len(values))
+    if len(values):
+        w.put("d" * len(values), *map(float, values))
+    return w.bytes()
 
 
 def encode_tf(stamp_ns: int, transforms: Sequence[tuple[str, str, Sequence[float], Sequence[float]]]) -> bytes:

@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, frames, gnss, gpsport, messages, nmea, novatel, timesync, ubx
+from fieldlog.acquire import calib, canbus, daq, frames, gnss, gpsport, messages, nmea, novatel, timesync, ubx
 
 log = logging.getLogger(__name__)
 
@@ -36,13 +36,13 @@ class RawRead:
     data: bytes
 
 
-PORT_ORDER = {"daq": 0, "gps": 1}
+PORT_ORDER = {"daq": 0, "gps": 1, "can": 2}
 
 
 def read_order(port: str, mono_ns: int) -> tuple[int, int]:
     """The order reads are processed in: host monotonic time, DAQ first on a tie. The daemon, the
     simulator and ``rebuild`` all use it, so they feed the pipeline identically."""
-    return (mono_ns, PORT_ORDER.get(port, 2))
+    return (mono_ns, PORT_ORDER.get(port, 3))
 
 
 class Sink(Protocol):
@@ -66,6 +66,7 @@ class PipelineConfig:
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
     gps_protocol: str = "auto"                      # [gps] protocol: which frames are decoded (gpsport.ACCEPTS)
     receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (see _emit_solution)
+    can: canbus.BusConfig | None = None             # the vehicle bus: how /raw/can is decoded (acquire/canbus.py)
 
 
 @dataclass
@@ -120,6 +121,7 @@ class Pipeline:
         # daemon's live bus publishes provisional /imu from it); it must not feed back into the pipeline
         self.on_frames: Callable[[int, np.ndarray, np.ndarray], None] | None = None
         self._tf_file: object = None     # the file /tf_static was last written to (a rotating sink changes files)
+        self.vehicle = canbus.VehicleDecoder(self.cfg.can) if self.cfg.can is not None else None
 
     def _write_tf_static(self, wall_ns: int) -> None:
         """/tf_static (acquire/frames.py) at the start of every file, stamped with the host clock of its first read."""
@@ -142,6 +144,9 @@ class Pipeline:
                 self._feed_daq(mono_ns, wall_ns, data)
             elif port == "gps":
                 self._feed_gps(mono_ns, wall_ns, data)
+            elif port == "can" and self.vehicle is not None:
+                self.sync.add_host_time(mono_ns, wall_ns)
+                self.vehicle.feed(data, int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0]), self.sink)
             if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
                 self._last_emit_ns = mono_ns
                 self._emit_sync()
@@ -169,9 +174,12 @@ class Pipeline:
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
-        return {"calibration": {"toml": self.cal.to_toml()},
-                "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()},
-                "gps": {"protocol": self.cfg.gps_protocol}}
+        out = {"calibration": {"toml": self.cal.to_toml()},
+               "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()},
+               "gps": {"protocol": self.cfg.gps_protocol}}
+        if self.cfg.can is not None:
+            out["can"] = self.cfg.can.metadata()
+        return out
 
     @staticmethod
     def settings_from_metadata(meta: dict[str, dict[str, str]]) -> tuple[calib.Calibration,
@@ -181,8 +189,9 @@ class Pipeline:
             calib.load_calibration(None)
         sync = {k: ast.literal_eval(v) for k, v in meta.get("timesync", {}).items()}
         protocol = meta.get("gps", {}).get("protocol", "auto")
+        can = canbus.BusConfig.from_metadata(meta["can"]) if "can" in meta else None
         return cal, timesync.TimeSyncConfig.from_dict(sync), PipelineConfig(
-            gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto")
+            gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto", can=can)
 
     def counters_metadata(self) -> dict[str, str]:
         """The counters, flattened for an MCAP metadata record."""
@@ -201,6 +210,8 @@ class Pipeline:
             out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
         out["nmea.epoch_repeats"] = str(self._epochs.late)
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
+        if self.vehicle is not None:
+            out.update(self.vehicle.counters())
         return out
 
     def finish(self) -> None:

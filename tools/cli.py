@@ -80,7 +80,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"),
-                   receiver=a.receiver)
+                   receiver=a.receiver, can=a.can)
     print(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial reads "
           f"in {time.monotonic() - t0:.1f} s")
     return 0
@@ -516,6 +516,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--receiver", choices=["nmea", "ublox", "novatel"], default=None,
                    help="the GPS port's protocol (default: the scenario's, NMEA): u-blox sends GGA + UBX NAV-PVT "
                         "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA")
+    s.add_argument("--can", action="store_true",
+                   help="the car's CAN bus too: wheel speeds, steering, gear on an SLCAN adapter (data/sim-car.dbc)")
     s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
     s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
     s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")

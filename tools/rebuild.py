@@ -15,7 +15,9 @@ from typing import Callable, Iterator
 from fieldlog.acquire import calib, recorder
 from fieldlog.replay import reader
 from fieldlog.replay.drive import DriveSpec, label
-from fieldlog.acquire.pipeline import Counters, Pipeline, RawRead, read_order
+from fieldlog.acquire.pipeline import PORT_ORDER, Counters, Pipeline, RawRead, read_order
+
+RAW_PORTS = tuple(PORT_ORDER)      # /raw/daq, /raw/gps, /raw/can
 
 
 @dataclass
@@ -67,7 +69,7 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
         for topic in (t.topic for t in reader.topics(src) if t.topic.startswith("/truth/") and t.count):
             t, pub, p = reader.read_payloads(src, topic, file_order=True)   # first: drivestats pairs /imu with it
             rec.write_batch(topic, t, p, pub)
-        merged = heapq.merge(iter_raw(src, "daq"), iter_raw(src, "gps"), key=lambda r: read_order(r.port, r.mono_ns))
+        merged = heapq.merge(*(iter_raw(src, port) for port in RAW_PORTS), key=lambda r: read_order(r.port, r.mono_ns))
         for r in merged:
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
             n += 1

@@ -19,9 +19,9 @@ from typing import Callable
 import numpy as np
 
 from fieldlog.acquire import calib, daq, messages, recorder, timesync
-from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
-from fieldlog.tools.sim import sensors, trajectory
+from fieldlog.tools.sim import sensors, trajectory, vehicle
 from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, pulse_errors, serial_reads
 
 NS = 1_000_000_000
@@ -47,12 +47,13 @@ def drive_start_ns(seed: int) -> int:
 
 
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
-               receiver: str | None = None) -> tuple[list[RawRead], dict, int, simclock.ClockConfig,
-                                                      calib.Calibration]:
+               receiver: str | None = None, can: bool = False) -> tuple[list[RawRead], dict, int,
+                                                                        simclock.ClockConfig, calib.Calibration]:
     """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it.
-    ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``."""
-    seeds = np.random.SeedSequence(seed).spawn(7)
-    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads, rng_pulse = (
+    ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``; ``can``: the car's
+    CAN bus on an SLCAN adapter too (port ``can``, ``sim.vehicle``)."""
+    seeds = np.random.SeedSequence(seed).spawn(8)     # spawn(n)'s first children do not depend on n
+    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads, rng_pulse, rng_can = (
         np.random.default_rng(s) for s in seeds)
     imu_cfg = sensors.ImuErrorConfig.from_dict(dict(scenario.imu))
     clock_d = dict(scenario.clock)
@@ -99,10 +100,14 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
         if sentences:
             reads += serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
                                   rng_gps_reads)
+    vehicle_truth = None
+    if can:
+        can_reads, vehicle_truth = vehicle.can_reads(truth, duration_s, host, t0_ns, rng_can)
+        reads += can_reads
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
                       gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
-                      temp_c=temp_c)
+                      temp_c=temp_c, vehicle=vehicle_truth)
     return reads, truth_data, t0_ns, ccfg, cal
 
 
@@ -129,6 +134,12 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
         bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
     rec.write_batch("/truth/imu_bias", tn_ns, messages.encode_imu(tn_ns, bias["gyro"], bias["accel"], zero, zero,
                                                                   frame_id="imu"))
+    vt = truth_data.get("vehicle")
+    if vt is not None:   # the rear axle centre's forward speed at each wheel-speed sample instant
+        tv_ns = t0_ns + np.round(vt["t_s"] * NS).astype(np.int64)
+        lin = np.zeros((len(tv_ns), 3))
+        lin[:, 0] = vt["forward"]
+        rec.write_batch("/truth/vehicle/twist", tv_ns, messages.encode_twist(tv_ns, lin, frame_id="base_link"))
 
 
 def fusion_metadata(table: dict) -> dict[str, str]:
@@ -144,13 +155,14 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
-             receiver: str | None = None, sync_settings: dict | None = None) -> SimResult:
+             receiver: str | None = None, sync_settings: dict | None = None, can: bool = False) -> SimResult:
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
-    more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``)."""
+    more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``); ``can``: with the car's CAN
+    bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``)."""
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
     fusion_meta = fusion_metadata(scenario.fusion)
-    reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver)
+    reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver, can)
     gps_cfg = GpsConfig.from_dict({**scenario.gps, **({"receiver": receiver} if receiver else {})})
     meta = {"source": "fieldlog sim", "scenario": scenario.name, "seed": str(seed),
             "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
@@ -159,7 +171,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
                                                   **(sync_settings or {})})
     with recorder.Recorder(out, metadata=meta) as rec:
-        pipe = Pipeline(rec, cal, sync_cfg)
+        pipe = Pipeline(rec, cal, sync_cfg, PipelineConfig(can=vehicle.bus_config() if can else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
         if fusion_meta:

@@ -1,0 +1,226 @@
+"""The vehicle bus: SLCAN bytes and frame records (acquire/can.py), DBC decoding (acquire/canbus.py), the
+simulator's car (tools/sim/vehicle.py), rebuild and import of CAN logs written by python-can."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can as pycan
+import cantools
+import numpy as np
+import pytest
+
+from fieldlog.acquire import can, canbus, messages
+from fieldlog.replay import reader
+from fieldlog.tools.rebuild import rebuild
+
+ROOT = Path(__file__).resolve().parents[1]
+DBC = ROOT / "data" / "sim-car.dbc"
+
+
+class ListSink:
+    """A pipeline sink keeping (topic, log_time, payload)."""
+
+    def __init__(self) -> None:
+        self.out: list[tuple[str, int, bytes]] = []
+
+    def write(self, topic: str, t: int, data: bytes) -> None:
+        self.out.append((topic, int(t), data))
+
+    def write_batch(self, topic: str, t, data) -> None:
+        for ti, d in zip(np.asarray(t).tolist(), messages.as_packed(data)):
+            self.out.append((topic, ti, d))
+
+    def topic(self, name: str) -> list[tuple[int, bytes]]:
+        return [(t, d) for top, t, d in self.out if top == name]
+
+
+def foreign_dbc(tmp_path: Path) -> Path:
+    """A DBC another tool made (cantools' own writer): other names, ids, m/s, big-endian, a reverse flag."""
+    from cantools.database.can import Database, Message, Signal
+
+    speeds = [Signal(f"WhlSpd_{w}", start=7 + 16 * i, length=16, byte_order="big_endian", is_signed=False,
+                     conversion=cantools.database.conversion.LinearConversion(0.005, 0.0, False), unit="m/s")
+              for i, w in enumerate(("LF", "RF", "LR", "RR"))]
+    m1 = Message(0x2A1, "ABS_WhlSpd", 8, speeds)
+    m2 = Message(0x18FF1234, "Trans_Status", 1, [Signal("RevGear", start=0, length=1)], is_extended_frame=True)
+    path = tmp_path / "foreign.dbc"
+    path.write_text(Database(messages=[m1, m2]).as_dbc_string())
+    return path
+
+
+FOREIGN_SIGNALS = {"wheel_fl": "WhlSpd_LF", "wheel_fr": "WhlSpd_RF", "wheel_rl": "ABS_WhlSpd.WhlSpd_LR",
+                   "wheel_rr": "ABS_WhlSpd.WhlSpd_RR", "reverse": "RevGear"}
+
+
+# ---------------------------------------------------------------------------------------------- bytes
+
+
+def test_slcan_bytes_written_by_python_can_decode_to_its_frames():
+    master, slave = os.openpty()
+    import tty
+
+    tty.setraw(slave)
+    bus = pycan.Bus(interface="slcan", channel=os.ttyname(slave), sleep_after_open=0)
+    rng = np.random.default_rng(3)
+    sent = []
+    try:
+        for i in range(200):
+            ext = i % 3 == 0
+            cid = int(rng.integers(0, 1 << 29 if ext else 1 << 11))
+            data = rng.bytes(int(rng.integers(0, 9)))
+            remote = i % 17 == 5
+            msg = pycan.Message(arbitration_id=cid, is_extended_id=ext, data=b"" if remote else data,
+                                is_remote_frame=remote, dlc=len(data))
+            bus.send(msg)
+            sent.append((cid, ext, remote, b"" if remote else data))
+        time.sleep(0.05)
+        os.set_blocking(master, False)
+        raw = b""
+        while True:
+            try:
+                chunk = os.read(master, 65536)
+            except BlockingIOError:
+                break
+            if not chunk:
+                break
+            raw += chunk
+    finally:
+        bus.shutdown()
+        os.close(master)
+        os.close(slave)
+    fr = can.SlcanFramer()
+    got = []
+    for i in range(0, len(raw), 7):       # cut anywhere
+        got += fr.feed(raw[i:i + 7])
+    assert [(f.can_id, f.extended, f.remote, f.data) for f in got] == sent
+    # python-can's open commands (C, O, ...) are no frames and are not garbage frames either
+    assert fr.stats.frames == len(sent) and fr.stats.bad_records == 0
+
+
+def test_slcan_garbage_status_and_overlong_are_counted_and_survived():
+    good = [can.CanFrame(0x123, b"\x01\x02"), can.CanFrame(0x1ABCDEF0, bytes(8), extended=True),
+            can.CanFrame(0x7FF, bytes(range(12)), fd=True, brs=True)]
+    stream = (b"\x00\xffnoise\r" + can.slcan_record(good[0], 59999) + b"\x07" + b"t12G1\r" + b"F0C\r" + b"z\r"
+              + b"A" * (can.MAX_RECORD + 50) + b"\r" + can.slcan_record(good[1]) + b"T1234\r"
+              + can.slcan_record(good[2]) + b"t8001\r")
+    fr = can.SlcanFramer()
+    out = fr.feed(stream)
+    assert [(f.can_id, f.data, f.fd) for f in out] == [(g.can_id, g.data, g.fd) for g in good]
+    assert out[0].adapter_ns == 59999 * 1_000_000 and out[1].adapter_ns == -1
+    st = fr.stats
+    assert st.refused == 1 and st.status_errors == 1 and st.overruns == 1
+    assert st.bad_records == 3                 # t12G1 (not hex), T1234 (short), t8001 (id > 0x7FF)
+    assert st.overlong == 1
+    fr.feed(b"x" * 10 * can.MAX_RECORD)         # no CR ever: bounded
+    assert len(fr._buf) <= can.MAX_RECORD
+
+
+def test_frame_records_round_trip_and_a_cut_record_is_counted():
+    frames = [can.CanFrame(0x10, b"", adapter_ns=5), can.CanFrame(0x1FFFFFFF, bytes(range(8)), extended=True),
+              can.CanFrame(0x300, bytes(64), fd=True, brs=True, adapter_ns=10**18)]
+    data = can.encode_records(frames)
+    dec = can.RecordDecoder()
+    assert dec.feed(data) == frames
+    err = can.encode_records([can.CanFrame(can.CAN_ERR_BUSOFF, bytes(8), error=True)])
+    assert dec.feed(err + data[:-3]) == frames[:2]
+    assert dec.stats.error_frames == 1 and dec.stats.bus_off == 1 and dec.stats.bad_records == 1
+
+
+def test_url_parsing():
+    assert can.parse_url("slcan:///dev/ttyACM0@500000") == can.CanUrl("slcan", "/dev/ttyACM0", 500000)
+    assert can.parse_url("slcan:///dev/pts/3") == can.CanUrl("slcan", "/dev/pts/3", 0)
+    assert can.parse_url("socketcan://vcan0").wire == "frames"
+    for bad in ("can0", "slcan://x@12345", "udp://x", "socketcan://"):
+        with pytest.raises(ValueError):
+            can.parse_url(bad)
+
+
+# ---------------------------------------------------------------------------------------------- DBC
+
+
+def test_a_foreign_dbc_decodes_the_rear_mean_reverse_and_variance(tmp_path):
+    path = foreign_dbc(tmp_path)
+    db = cantools.database.load_file(str(path))
+    cfg = canbus.BusConfig(wire="frames", dbc=path.read_text(), dbc_name=path.name, signals=FOREIGN_SIGNALS)
+    dec = canbus.VehicleDecoder(cfg)
+    ws, tr = db.get_message_by_name("ABS_WhlSpd"), db.get_message_by_name("Trans_Status")
+    frames = []
+    speeds = [(10.0, 10.2, 9.9, 10.05), (3.0, 3.1, 2.995, 3.01), (0.0, 0.0, 0.0, 0.0)]
+    for i, s in enumerate(speeds):
+        if i == 1:
+            frames.append(can.CanFrame(tr.frame_id, tr.encode({"RevGear": 1}), extended=True))
+        frames.append(can.CanFrame(ws.frame_id, ws.encode(dict(zip([x.name for x in ws.signals], s)))))
+    frames.append(can.CanFrame(0x555, b"\x00"))     # another id
+    frames.append(can.CanFrame(ws.frame_id, b"\x00"))   # too short for the DBC: counted
+    sink = ListSink()
+    dec.feed(can.encode_records(frames), 1_000_000_000, sink)
+    tw = messages.decode_twist([d for _, d in sink.topic("/vehicle/twist")])
+    expect = [np.mean(s[2:]) * (-1 if i >= 1 else 1) for i, s in enumerate(speeds)]
+    np.testing.assert_allclose(tw["v_n"][:, 0], expect, atol=0.0025 + 1e-12)
+    assert np.all(tw["v_n"][:, 1:] == 0)
+    np.testing.assert_allclose(tw["covariance"][:, 0], 2 * 0.005 ** 2 / 12 / 4)
+    assert dec.decode_errors == 1 and dec.by_id[0x555] == 1
+    ws_msgs = [messages.decode_message(messages.WHEELSPEEDS, d) for _, d in sink.topic("/vehicle/wheel_speeds")]
+    assert [m.reverse for m in ws_msgs] == [-1, 1, 1, 1]
+    np.testing.assert_allclose(ws_msgs[0].wheel_speed, speeds[0], atol=0.0025 + 1e-12)
+
+
+@pytest.mark.parametrize("text,what", [('VERSION ""\nBO_ 1 X: 8 Y\n SG_ S : 0|8@1+ (1,0) [0|1 "" Y\n', "not a DBC"),
+                                       ("VERSION \"\"\n", "no messages"),
+                                       (None, "no signal 'WHEEL_SPEED_XX'")])
+def test_bad_dbc_and_missing_signal_are_one_line(text, what):
+    cfg = canbus.BusConfig(dbc=text or DBC.read_text(), dbc_name="car.dbc",
+                           signals={"wheel_rl": "WHEEL_SPEED_XX", "wheel_rr": "WHEEL_SPEED_RR"})
+    with pytest.raises(canbus.CanConfigError) as e:
+        canbus.VehicleDecoder(cfg)
+    msg = str(e.value)
+    assert what in msg and "car.dbc" in msg and "\n" not in msg
+
+
+# ---------------------------------------------------------------------------------------------- simulator
+
+
+@pytest.fixture(scope="module")
+def can_drive(tmp_path_factory):
+    from fieldlog.tools.sim.simulate import simulate
+
+    path = tmp_path_factory.mktemp("can") / "figure8-can.mcap"
+    simulate("figure8", 90.0, 4, path, can=True)
+    return path
+
+
+def _twists(path, topic):
+    t, _, p = reader.read_payloads(path, topic)
+    d = messages.decode_twist(p)
+    return d["stamp_ns"], d["v_n"][:, 0], d["covariance"][:, 0]
+
+
+def test_sim_can_twist_at_the_bus_rate_with_stamps_and_speeds_near_truth(can_drive):
+    ts, v, var = _twists(can_drive, "/vehicle/twist")
+    tt, vt, _ = _twists(can_drive, "/truth/vehicle/twist")
+    assert len(ts) == len(tt) > 0
+    rate = (len(ts) - 1) / ((ts[-1] - ts[0]) / 1e9)
+    assert abs(rate - 50.0) < 0.5
+    locked = slice(len(ts) // 3, None)          # after time sync has locked
+    err_ms = (ts - tt)[locked] / 1e6
+    assert abs(np.mean(err_ms)) < 1.0 and np.std(err_ms) < 2.0, (np.mean(err_ms), np.std(err_ms))
+    meta = reader.metadata_records(can_drive)
+    assert any(name == "can" for name, _ in meta)
+    moving = vt > 2.0
+    ratio = v[moving] / vt[moving]
+    assert abs(np.median(ratio) - 1) < 0.006          # the tyre scale error: +-0.5 %
+    assert np.all(np.abs(v - vt) < 0.02 * np.abs(vt) + 0.01)
+
+
+def test_rebuild_reproduces_the_vehicle_topics_bit_for_bit(can_drive, tmp_path):
+    out = tmp_path / "rebuilt.mcap"
+    rebuild(can_drive, out)
+    for topic in ("/raw/can", "/vehicle/twist", "/vehicle/wheel_speeds", "/imu"):
+        a, b = reader.read_payloads(can_drive, topic), reader.read_payloads(out, topic)
+        assert len(a[0]) > 0, topic
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[2].to_list() == b[2].to_list(), topic
