@@ -24,8 +24,9 @@ test: setup
 	@$(BIN)/python -m pytest -q; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
 
+# every bench's full output on stderr, then its figures as rows of docs/results.md's table on stdout
 bench: setup
-	$(BIN)/python -m fieldlog.tools.bench
+	$(BIN)/python -m fieldlog.tools.bench --markdown
 
 # the DAQ board's firmware images (firmware/README.md); needs `apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi`
 firmware:
