@@ -159,7 +159,9 @@ class VehicleDecoder:
         self.forward: tuple[str, ...] = ()
         self.variance = 0.0
         if cfg.dbc:
-            self._setup(load_dbc(cfg.dbc, cfg.dbc_name or "the DBC"))
+            db = load_dbc(cfg.dbc, cfg.dbc_name or "the DBC")
+            if cfg.signals:
+                self._setup(db)
 
     def _setup(self, db: Any) -> None:
         c = self.cfg

@@ -200,7 +200,7 @@ class AcquireConfig:
 
     def can_bus(self) -> "canbus.BusConfig | None":
         """How the pipeline decodes /raw/can (None: no [can] url); ConfigError naming the key or the DBC file."""
-        from fieldlog.acquire import can, canbus
+        from fieldlog.acquire import can
 
         c = self.can
         if not c.url:
@@ -209,25 +209,36 @@ class AcquireConfig:
             return None
         try:
             url = can.parse_url(c.url)
-            bad = [k for k, v in c.signals.items() if not isinstance(v, str)]
-            if bad:
-                raise ConfigError(f"[can.signals] {bad[0]}: expected MESSAGE.SIGNAL as a string")
-            if url.kind == "slcan" and c.baud not in STANDARD_BAUDS:
-                raise ConfigError(f"[can] baud: {c.baud} is not a standard baud rate")
-            bus = canbus.BusConfig(wire=url.wire, dbc=canbus.read_dbc(c.dbc) if c.dbc else "", dbc_name=c.dbc,
-                                   signals=dict(c.signals), forward=c.forward, reverse_gear=c.reverse_gear,
-                                   speed_unit=c.speed_unit, latency_s=c.latency_s)
-            canbus.VehicleDecoder(bus)
-        except ConfigError:
-            raise
         except ValueError as e:
-            raise ConfigError(str(e)) from None
-        return bus
+            raise ConfigError(f"[can] url: {e}") from None
+        if url.kind == "slcan" and c.baud not in STANDARD_BAUDS:
+            raise ConfigError(f"[can] baud: {c.baud} is not a standard baud rate")
+        return bus_config(c, url.wire)
 
     def sync_config(self) -> "timesync.TimeSyncConfig":
         from fieldlog.acquire import timesync
 
         return timesync.TimeSyncConfig.from_dict(self.timesync)
+
+
+def bus_config(c: CanConfig, wire: str) -> "canbus.BusConfig":
+    """The pipeline's decoding of a bus recorded as ``wire`` ('slcan', 'frames') from ``[can]``: the DBC read and
+    checked against the signals; ConfigError with one line naming the key or the DBC file."""
+    from fieldlog.acquire import canbus
+
+    bad = [k for k, v in c.signals.items() if not isinstance(v, str)]
+    if bad:
+        raise ConfigError(f"[can.signals] {bad[0]}: expected MESSAGE.SIGNAL as a string")
+    if c.signals and not c.dbc:
+        raise ConfigError("[can] dbc: signals need the DBC that defines them (--dbc FILE or [can] dbc)")
+    try:
+        bus = canbus.BusConfig(wire=wire, dbc=canbus.read_dbc(c.dbc) if c.dbc else "", dbc_name=c.dbc,
+                               signals=dict(c.signals), forward=c.forward, reverse_gear=c.reverse_gear,
+                               speed_unit=c.speed_unit, latency_s=c.latency_s)
+        canbus.VehicleDecoder(bus)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    return bus
 
 
 def typed_value(where: str, key: str, value: Any, like: Any) -> Any:

@@ -14,17 +14,23 @@ invented, and the rule is stated here because time sync depends on it:
   k_pps / fs after T, marks E when k_pps / fs < 1 - L and E + 1 otherwise (L = NMEA_LATENCY_S). Frame k is
   read at that second + 10 ms + (k - k_pps) / fs. A capture without any PPS flag starts at E.
   A latency far from L, or captures started apart, shift the labels by whole seconds: check ``fieldlog info``.
+* CAN (candump ``.log``, Vector ``.asc``, ``.blf`` and the other logs python-can's ``LogReader`` reads): each
+  frame is a read of its own (``frames`` records, ``acquire/can.py``) at the log's time stamp, which is also its
+  adapter time: absolute times (after 2001, e.g. candump's and an ASC file's ``date``) as they are, relative
+  ones from the GPS log's first second (the captures started together), or without a GPS log from the CAN log's
+  modification time less its last time stamp.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import daq, gnss, gpsport, nmea, novatel, recorder, timesync, ubx
-from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.acquire import can, canbus, daq, gnss, gpsport, nmea, novatel, recorder, timesync, ubx
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
 NS = 1_000_000_000
@@ -143,14 +149,69 @@ def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
     return reads
 
 
-def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,
-                    pps_mode: str = "flag") -> RebuildResult:
-    gps_bytes = Path(gps).read_bytes()
-    mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
+ABSOLUTE_S = 1e9     # a CAN log time stamp past this (2001-09-09) is UTC, an earlier one relative
+
+
+def can_reads(path: str | Path, start_ns: int | None) -> list[RawRead]:
+    """A CAN log's frames as reads, timed by the rule above (``start_ns``: the GPS log's first second)."""
+    import can as pycan
+
+    p = Path(path)
+    suffix = "".join(p.suffixes[-2:]).lower() if p.suffix.lower() == ".gz" else p.suffix.lower()
+    if not p.is_file():
+        raise ValueError(f"{path}: no such file: give a CAN log")
     try:
-        reads = gps_reads(gps_bytes, mdate)
-    except ValueError as e:
-        raise ValueError(f"{gps}: {e}: give a GPS log") from None
+        reader = pycan.LogReader(str(p), **({"relative_timestamp": False} if suffix.startswith(".asc") else {}))
+    except ValueError:
+        raise ValueError(f"{path}: {suffix or 'no suffix'} is not a CAN log format python-can reads: give a "
+                         f"candump .log, Vector .asc or .blf file") from None
+    frames: list[tuple[float, can.CanFrame]] = []
+    try:
+        with reader:
+            for m in reader:
+                frames.append((float(m.timestamp), can.CanFrame(
+                    int(m.arbitration_id), bytes(m.data) if not m.is_remote_frame else b"", bool(m.is_extended_id),
+                    bool(m.is_remote_frame), bool(m.is_error_frame), bool(m.is_fd), bool(m.bitrate_switch))))
+    except Exception as e:  # noqa: BLE001 - python-can's readers raise what their parsers meet
+        raise ValueError(f"{path}: not a readable {suffix} CAN log ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''}): give a candump .log, Vector .asc or .blf "
+                         f"file") from None
+    if not frames:
+        raise ValueError(f"{path}: the CAN log holds no frame")
+    if frames[0][0] >= ABSOLUTE_S:
+        offset_ns = 0
+    elif start_ns is not None:
+        offset_ns = start_ns
+    else:
+        offset_ns = int(os.stat(p).st_mtime * NS) - int(round(frames[-1][0] * NS))
+    reads = []
+    last = -(2**62)
+    for t, f in frames:
+        ns = max(int(round(t * NS)) + offset_ns, last + 1)
+        last = ns
+        reads.append(RawRead("can", ns, ns, can.encode_records([f._replace(adapter_ns=ns)])))
+    return reads
+
+
+def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,
+                    pps_mode: str = "flag", can_log: str | Path | None = None,
+                    can_bus: canbus.BusConfig | None = None) -> RebuildResult:
+    """Build ``out`` from a GPS log, a DAQ capture (needs the GPS log) and a CAN log decoded by ``can_bus``
+    (its ``wire`` is set to ``frames``; None: recorded, not decoded)."""
+    reads: list[RawRead] = []
+    if gps is not None:
+        gps_bytes = Path(gps).read_bytes()
+        mdate = _dt.datetime.fromtimestamp(os.stat(gps).st_mtime, _dt.timezone.utc).date()
+        try:
+            reads = gps_reads(gps_bytes, mdate)
+        except ValueError as e:
+            raise ValueError(f"{gps}: {e}: give a GPS log") from None
+    elif daq_path is not None:
+        raise ValueError("--daq needs --gps: the DAQ capture is timed by the GPS log")
+    if can_log is not None:
+        start_ns = round(reads[0].mono_ns / NS - NMEA_LATENCY_S) * NS if reads else None
+        reads += can_reads(can_log, start_ns)
+        can_bus = dataclasses.replace(can_bus or canbus.BusConfig(), wire="frames")
     if daq_path is not None:
         first_epoch = round(reads[0].mono_ns / NS - NMEA_LATENCY_S)
         try:
@@ -159,13 +220,15 @@ def import_captures(gps: str | Path, daq_path: str | Path | None, out: str | Pat
             raise ValueError(f"{daq_path}: {e}: give a byte capture of the DAQ board") from None
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
-    meta = {"source": "fieldlog import", "gps": str(gps), "daq": str(daq_path or "")}
+    meta = {"source": "fieldlog import", "gps": str(gps or ""), "daq": str(daq_path or ""), "can": str(can_log or "")}
     with recorder.Recorder(out, metadata=meta) as rec:
-        pipe = Pipeline(rec, sync_cfg=sync_cfg)
+        pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
         for r in reads:
             pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
-    return RebuildResult(pipe.counters.imu_samples, pipe.counters.gps_epochs, len(reads), pipe.counters)
+    v = pipe.vehicle
+    return RebuildResult(pipe.counters.imu_samples, pipe.counters.gps_epochs, len(reads), pipe.counters,
+                         v.stats.frames if v else 0, v.twists if v else 0)

@@ -26,6 +26,8 @@ class RebuildResult:
     gps_epochs: int
     reads: int
     counters: Counters
+    vehicle_frames: int = 0
+    vehicle_twists: int = 0
 
 
 def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
