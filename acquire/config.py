@@ -53,8 +53,11 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from fieldlog.acquire import timesync
+from fieldlog.acquire.tables import ConfigError, from_table
+
 if TYPE_CHECKING:
-    from fieldlog.acquire import canbus, timesync
+    from fieldlog.acquire import canbus
 
 T = TypeVar("T")
 
@@ -65,20 +68,6 @@ NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
 
 
 GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel")   # the keys of acquire.gpsport.ACCEPTS (kept equal by a test)
-
-
-class ConfigError(ValueError):
-    """A bad configuration; the message names the key."""
-
-
-def from_table(cls: type[T], table: str, d: dict[str, Any]) -> T:
-    """Dataclass ``cls`` from the TOML table ``[table]``; an unknown key raises ConfigError naming it.
-    Value checks are the dataclass's own (``__post_init__``)."""
-    known = {f.name for f in fields(cls)}
-    bad = sorted(set(d) - known)
-    if bad:
-        raise ConfigError(f"[{table}] {', '.join(bad)}: unknown key; known keys: {', '.join(sorted(known))}")
-    return cls(**d)
 
 
 @dataclass
@@ -215,9 +204,7 @@ class AcquireConfig:
             raise ConfigError(f"[can] baud: {c.baud} is not a standard baud rate")
         return bus_config(c, url.wire)
 
-    def sync_config(self) -> "timesync.TimeSyncConfig":
-        from fieldlog.acquire import timesync
-
+    def sync_config(self) -> timesync.TimeSyncConfig:
         return timesync.TimeSyncConfig.from_dict(self.timesync)
 
 

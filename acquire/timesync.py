@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire.config import from_table
+from fieldlog.acquire.tables import from_table
 
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:

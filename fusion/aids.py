@@ -21,7 +21,7 @@ from fieldlog.fusion.errmodel import BA, BG
 from fieldlog.fusion.ins import NavState
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.fusion.config import FusionConfig
 
 _DEG = math.pi / 180.0
 
@@ -38,15 +38,15 @@ def vehicle_aid(cfg: FusionConfig, nav: NavState, v_gps: np.ndarray, speed: tupl
     estimates, rad/s and m/s^2; P (15, 15) the filter covariance (the sigmas of the still references); imu_dt
     the IMU sample period, s."""
     has_gps = np.isfinite(v_gps[:2]).all()
-    slow = (float(np.hypot(v_gps[0], v_gps[1])) < cfg.static_speed_mps if has_gps
-            else float(np.linalg.norm(nav.v_n)) < cfg.still_speed_mps)
-    if not (math.isfinite(speed[0]) or float(np.linalg.norm(nav.v_n)) < cfg.still_speed_mps):
+    slow = (float(np.hypot(v_gps[0], v_gps[1])) < cfg.aids.static_speed_mps if has_gps
+            else float(np.linalg.norm(nav.v_n)) < cfg.still.still_speed_mps)
+    if not (math.isfinite(speed[0]) or float(np.linalg.norm(nav.v_n)) < cfg.still.still_speed_mps):
         stop.reset()
-    elif cfg.zupt and stop.update(interval, speed, *_still_references(nav, bg, ba, P)):
+    elif cfg.aids.zupt and stop.update(interval, speed, *_still_references(nav, bg, ba, P)):
         return kf.stationary_measurement(nav, interval.sum_w / interval.n - bg, interval.n * imu_dt,
-                                         cfg.zupt_sigma_mps, cfg.gyro_noise_dps_rthz * _DEG)
-    if cfg.nhc and not slow:
-        return kf.nhc_measurement(nav, cfg.nhc_sigma_mps)
+                                         cfg.aids.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)
+    if cfg.aids.nhc and not slow:
+        return kf.nhc_measurement(nav, cfg.aids.nhc_sigma_mps)
     return None
 
 

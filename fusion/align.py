@@ -70,9 +70,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fieldlog.fusion import earth, ins
+from fieldlog.fusion.types import Epoch
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.fusion.config import FusionConfig
 
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
@@ -120,10 +121,10 @@ class GpsSpeed:
     """The GPS speed the still detector tests at each epoch, and its limit (module docstring)."""
 
     def __init__(self, cfg: FusionConfig) -> None:
-        self.floor = cfg.still_gps_speed_mps
+        self.floor = cfg.still.still_gps_speed_mps
         self.recent: list[tuple[float, np.ndarray, float]] = []  # t (s), horizontal velocity (2,), sigma per axis
 
-    def add(self, t: float, v: np.ndarray, ep: dict) -> tuple[float, float]:
+    def add(self, t: float, v: np.ndarray, ep: Epoch) -> tuple[float, float]:
         """The epoch ep at t (s) with its GPS velocity v (3,) ENU m/s (NaN: none): (the horizontal speed of the
         mean velocity of the last second and the epoch before it, m/s, NaN without two velocities in a row; the
         limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma))."""
@@ -156,14 +157,14 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_re
         return False
     sd_f = interval.std(interval.sum_f, interval.sum_ff)
     sd_w = interval.std(interval.sum_w, interval.sum_ww)
-    if not (sd_f < cfg.still_accel_std_mps2 and sd_w < cfg.still_gyro_std_dps * _DEG):
+    if not (sd_f < cfg.still.still_accel_std_mps2 and sd_w < cfg.still.still_gyro_std_dps * _DEG):
         return False
     rn = math.sqrt(interval.n)
     if w_ref is not None and np.linalg.norm(interval.sum_w / interval.n - w_ref) > (
-            _GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still_rate_tol_dps * _DEG):
+            _GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still.still_rate_tol_dps * _DEG):
         return False
     if f_ref is not None and np.linalg.norm(interval.sum_f / interval.n - f_ref) > (
-            _GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still_accel_tol_mps2):
+            _GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still.still_accel_tol_mps2):
         return False
     return True
 
@@ -200,7 +201,7 @@ class StillRun:
         c = self.cfg
         refs = [(w_ref, w_sigma, f_ref, f_sigma)]
         if self.count:
-            refs.append((self.run.sum_w / self.run.n, c.init_gyro_bias_sigma_dps * _DEG, self.run.sum_f / self.run.n,
+            refs.append((self.run.sum_w / self.run.n, c.init.init_gyro_bias_sigma_dps * _DEG, self.run.sum_f / self.run.n,
                          0.0))
         verdict = _verdict(c, interval, speed, refs)
         if verdict == "moving":
@@ -247,10 +248,10 @@ def _standard_errors(intervals: list[ImuSums]) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def _vel_sigma(ep: dict) -> float:
+def _vel_sigma(ep: Epoch) -> float:
     """1-sigma of a horizontal GPS velocity component at the epoch, m/s: from its covariance, else (a drive
     without velocity: differenced fixes 1 s apart) sqrt(2) x the fix's horizontal sigma, else 1 m/s."""
-    for cov, k in ((ep["vel_cov"], 1.0), (ep["pos_cov"], math.sqrt(2.0))):
+    for cov, k in ((ep.vel_cov, 1.0), (ep.pos_cov, math.sqrt(2.0))):
         var = 0.5 * (float(cov[0, 0]) + float(cov[1, 1]))
         if math.isfinite(var) and var > 0:
             return k * math.sqrt(var)
@@ -278,9 +279,9 @@ class HeadingCheck:
 
     def __init__(self, cfg: FusionConfig, t_align: float) -> None:
         self.cfg = cfg
-        self.t_end = t_align + cfg.realign_window_s
+        self.t_end = t_align + cfg.align.realign_window_s
         self.recent: list[tuple[float, int]] = []
-        self.done = not cfg.realign_window_s > 0
+        self.done = not cfg.align.realign_window_s > 0
 
     def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, x: np.ndarray, P: np.ndarray) -> bool:
         """Add an epoch's measurement z (m,), H (m, 15), R (m, m) with the filter's predicted error state x (15,)
@@ -290,24 +291,24 @@ class HeadingCheck:
             return False
         nu = z - H @ x
         S = H @ P @ H.T + R
-        self.recent = (self.recent + [(float(nu @ np.linalg.solve(S, nu)), len(z))])[-self.cfg.realign_epochs:]
-        if len(self.recent) < self.cfg.realign_epochs:
+        self.recent = (self.recent + [(float(nu @ np.linalg.solve(S, nu)), len(z))])[-self.cfg.align.realign_epochs:]
+        if len(self.recent) < self.cfg.align.realign_epochs:
             return False
         nis, dof = sum(x for x, _ in self.recent), sum(d for _, d in self.recent)
         return nis > chi2_quantile(dof)
 
-    def realign(self, nav: ins.NavState, ep: dict, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
+    def realign(self, nav: ins.NavState, ep: Epoch, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
         """The INS state with the heading from the epoch's GPS course and the covariance with its heading sigma
         and the gyro bias prior; None while the GPS speed is below ``align_speed_mps``, or while the course agrees
         with the INS heading within 3 sigma of the course (try again later)."""
         c = self.cfg
-        v = ep["v_n"]
+        v = ep.v_n
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else 0.0
-        if speed < c.align_speed_mps:
+        if speed < c.align.align_speed_mps:
             return None
         heading, pitch, roll = (float(x) for x in earth.dcm_to_euler(nav.C_bn))
         course = math.atan2(v[0], v[1])
-        sd = math.hypot(_vel_sigma(ep) / speed, c.align_sideslip_deg * _DEG)
+        sd = math.hypot(_vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
         if abs(math.remainder(course - heading, 2.0 * math.pi)) <= 3.0 * sd:
             return None  # the course agrees with the heading: the innovations are large for another reason
         self.done = True
@@ -316,7 +317,7 @@ class HeadingCheck:
         P[8, :] = P[:, 8] = 0.0
         P[8, 8] = sd * sd
         for i in range(9, 12):
-            P[i, i] = max(P[i, i], (c.gyro_bias_prior_sigma_dps * _DEG) ** 2)
+            P[i, i] = max(P[i, i], (c.init.gyro_bias_prior_sigma_dps * _DEG) ** 2)
         return ins.NavState(nav.t, nav.lat, nav.lon, nav.h, nav.v_n, earth.dcm_to_quat(C)), P
 
 
@@ -326,7 +327,7 @@ class Alignment:
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
-        self.lever = cfg.lever_rfu()
+        self.lever = cfg.gps.lever_rfu()
         self.note = ""
         self._run: list[tuple[ImuSums, float]] = []  # the current run of still intervals, with their seconds
         self._run_first = True  # the run started with the drive (its start needs no trimming)
@@ -336,22 +337,22 @@ class Alignment:
         self._speed = GpsSpeed(cfg)
         self._t_prev: float | None = None
 
-    def epoch(self, ep: dict, usable: bool, v: np.ndarray, interval: ImuSums, t_k: float, t_ref_ns: int
+    def epoch(self, ep: Epoch, usable: bool, v: np.ndarray, interval: ImuSums, t_k: float, t_ref_ns: int
               ) -> Aligned | None:
         """A GPS epoch before the alignment: ep (``engine`` epoch dict), usable fix, its velocity v (3,) ENU m/s
         (NaN when unknown), the IMU sums of the interval that ends here, the current sample's time t_k (s from
         t_ref_ns). Returns the initial state when this epoch aligns the INS, else None."""
-        v_gps = ep["v_n"] if usable else np.full(3, np.nan)
+        v_gps = ep.v_n if usable else np.full(3, np.nan)
         dt = t_k - self._t_prev if self._t_prev is not None else 0.0
         self._t_prev = t_k
-        verdict = self._verdict(interval, self._speed.add((ep["t_ns"] - t_ref_ns) * 1e-9, v_gps, ep))
+        verdict = self._verdict(interval, self._speed.add((ep.t_ns - t_ref_ns) * 1e-9, v_gps, ep))
         if verdict == "still":
             self._run.append((interval, dt))
         elif verdict == "unsure":
             self._after.append((interval, dt))
         elif interval.n:
             if self._run:
-                if not self._static or sum(dt for _, dt in self._run) >= 2.0 * self.cfg.still_trim_s + _MIN_STATIC_S:
+                if not self._static or sum(dt for _, dt in self._run) >= 2.0 * self.cfg.align.still_trim_s + _MIN_STATIC_S:
                     self._static, self._static_first, self._after = self._run, self._run_first, []
                 else:  # a lull too short to level from (an aircraft's first metres): the stop before it stays
                     self._after += self._run
@@ -359,17 +360,17 @@ class Alignment:
             self._run_first = False
             self._after.append((interval, dt))
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
-        if usable and math.isfinite(ep["h"]) and math.isfinite(speed) and speed >= self.cfg.align_speed_mps:
+        if usable and math.isfinite(ep.h) and math.isfinite(speed) and speed >= self.cfg.align.align_speed_mps:
             return self._initialise(ep, v, t_k, t_ref_ns)
         return None
 
     def _verdict(self, interval: ImuSums, speed: tuple[float, float]) -> str:
         c = self.cfg
         if not self._run:
-            prior = math.hypot(c.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
+            prior = math.hypot(c.init.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
             return _verdict(c, interval, speed, [(np.zeros(3), prior, None, 0.0)])
         run = _total(s for s, _ in self._run)  # the bias instability moves the rate between intervals too
-        return _verdict(c, interval, speed, [(run.sum_w / run.n, c.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
+        return _verdict(c, interval, speed, [(run.sum_w / run.n, c.init.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
                                               0.0)])
 
     def _static_interval(self) -> tuple[list[tuple[ImuSums, float]], list[tuple[ImuSums, float]]]:
@@ -378,32 +379,32 @@ class Alignment:
         run, first, after = ((self._run, self._run_first, []) if self._run else
                              (self._static, self._static_first, self._after))
         k, secs = 0, 0.0
-        while k < len(run) and secs < self.cfg.still_trim_s:
+        while k < len(run) and secs < self.cfg.align.still_trim_s:
             secs += run[len(run) - 1 - k][1]
             k += 1
         j, secs = 0, 0.0
-        while not first and j < len(run) - k and secs < self.cfg.still_trim_s:
+        while not first and j < len(run) - k and secs < self.cfg.align.still_trim_s:
             secs += run[j][1]
             j += 1
         return run[j:len(run) - k], run[len(run) - k:] + after
 
-    def _initialise(self, ep: dict, v: np.ndarray, t_k: float, t_ref_ns: int) -> Aligned:
+    def _initialise(self, ep: Epoch, v: np.ndarray, t_k: float, t_ref_ns: int) -> Aligned:
         c = self.cfg
-        lat = ep["lat"]
+        lat = ep.lat
         intervals, after = self._static_interval()
         tot = _total(s for s, _ in intervals)
         static = tot.n >= 200
         speed = math.hypot(v[0], v[1])
         w_h = earth.OMEGA_IE * math.cos(lat)  # horizontal Earth rate, rad/s
-        sd_course = math.hypot(_vel_sigma(ep) / speed, c.align_sideslip_deg * _DEG)
+        sd_course = math.hypot(_vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
         if static:
             fm, wm = tot.sum_f / tot.n, tot.sum_w / tot.n
             pitch, roll = level(fm)
             se_w, se_f = _standard_errors([s for s, _ in intervals])
             seconds = sum(dt for _, dt in intervals)
-            sd_f = math.hypot(c.accel_noise_ug_rthz * _UG / math.sqrt(seconds), c.init_accel_bias_sigma_ug * _UG)
-            sd_level = math.hypot(math.hypot(sd_f, float(np.max(se_f))) / _G, c.init_level_sigma_deg * _DEG)
-            sd_gc = math.sqrt((c.gyro_bias_prior_sigma_dps * _DEG) ** 2 + float(np.max(se_w)) ** 2
+            sd_f = math.hypot(c.sensor.accel_noise_ug_rthz * _UG / math.sqrt(seconds), c.init.init_accel_bias_sigma_ug * _UG)
+            sd_level = math.hypot(math.hypot(sd_f, float(np.max(se_f))) / _G, c.init.init_level_sigma_deg * _DEG)
+            sd_gc = math.sqrt((c.init.gyro_bias_prior_sigma_dps * _DEG) ** 2 + float(np.max(se_w)) ** 2
                               + (earth.OMEGA_IE * math.sin(lat) * sd_level) ** 2) / w_h
         else:
             pitch = roll = 0.0
@@ -413,12 +414,12 @@ class Alignment:
         rest_z = wm[2] if static else earth.OMEGA_IE * math.sin(lat)
         turned = -sum((s.sum_w[2] / s.n - rest_z) * dt for s, dt in after if s.n)
         gyrocompassed = False
-        if c.init_attitude_deg:
-            roll, pitch = c.init_attitude_deg[0] * _DEG, c.init_attitude_deg[1] * _DEG
-            sd_level = c.init_level_sigma_deg * _DEG
-            heading, sd_head = c.init_attitude_deg[2] * _DEG + turned, c.init_heading_sigma_deg * _DEG
+        if c.init.init_attitude_deg:
+            roll, pitch = c.init.init_attitude_deg[0] * _DEG, c.init.init_attitude_deg[1] * _DEG
+            sd_level = c.init.init_level_sigma_deg * _DEG
+            heading, sd_head = c.init.init_attitude_deg[2] * _DEG + turned, c.init.init_heading_sigma_deg * _DEG
             self.note = "heading from the config's init_attitude_deg"
-        elif static and sd_gc < min(sd_course, c.gyrocompass_max_deg * _DEG):
+        elif static and sd_gc < min(sd_course, c.align.gyrocompass_max_deg * _DEG):
             heading, sd_head = gyrocompass(wm, pitch, roll) + turned, sd_gc
             gyrocompassed = True
             self.note = f"heading by gyrocompassing, sigma {math.degrees(sd_gc):.2f} deg"
@@ -429,22 +430,22 @@ class Alignment:
                             if static else "no static start)"))
         C = earth.euler_to_dcm(heading, pitch, roll)
         bg = np.zeros(3)
-        sd_bg = np.full(3, c.gyro_bias_prior_sigma_dps * _DEG)
+        sd_bg = np.full(3, c.init.gyro_bias_prior_sigma_dps * _DEG)
         if static:  # the Earth rate as the gyros saw it: through the static interval's attitude, before the turn
             bg = wm - earth.euler_to_dcm(heading - turned, pitch, roll).T @ earth.omega_ie_n(lat)
             horiz = w_h * sd_head  # Earth-rate projection error through the heading sigma
-            sd_bg = np.sqrt(se_w ** 2 + (c.init_gyro_bias_sigma_dps * _DEG) ** 2
+            sd_bg = np.sqrt(se_w ** 2 + (c.init.init_gyro_bias_sigma_dps * _DEG) ** 2
                             + np.array([horiz, horiz, earth.OMEGA_IE * sd_level]) ** 2)
             if gyrocompassed:
-                sd_bg[:2] = np.maximum(sd_bg[:2], c.gyro_bias_prior_sigma_dps * _DEG)
+                sd_bg[:2] = np.maximum(sd_bg[:2], c.init.gyro_bias_prior_sigma_dps * _DEG)
         arm = C @ self.lever
-        rm, rn = earth.principal_radii(lat, ep["h"])
-        dt = t_k - (ep["t_ns"] - t_ref_ns) * 1e-9
+        rm, rn = earth.principal_radii(lat, ep.h)
+        dt = t_k - (ep.t_ns - t_ref_ns) * 1e-9
         d_enu = v * dt - arm
         v0 = np.array([v[0], v[1], 0.0])
-        nav = ins.NavState(t_k, lat + d_enu[1] / rm, ep["lon"] + d_enu[0] / (rn * math.cos(lat)),
-                           ep["h"] + d_enu[2], v0, earth.dcm_to_quat(C))
-        pos_var = np.diag(ep["pos_cov"]).copy()
+        nav = ins.NavState(t_k, lat + d_enu[1] / rm, ep.lon + d_enu[0] / (rn * math.cos(lat)),
+                           ep.h + d_enu[2], v0, earth.dcm_to_quat(C))
+        pos_var = np.diag(ep.pos_cov).copy()
         pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
         return Aligned(nav, bg, self._P0(pos_var, sd_level, sd_head, sd_bg))
 
@@ -453,20 +454,20 @@ class Alignment:
         antenna), ``init_velocity_enu`` (0: standing), ``init_attitude_deg``, with their sigmas; the gyro bias 0
         with its prior sigma (no static mean: the filter learns it)."""
         c = self.cfg
-        roll, pitch, heading = (x * _DEG for x in c.init_attitude_deg)
-        lat, lon, h = c.init_position_llh[0] * _DEG, c.init_position_llh[1] * _DEG, float(c.init_position_llh[2])
-        v0 = np.array(c.init_velocity_enu, float) if c.init_velocity_enu else np.zeros(3)
+        roll, pitch, heading = (x * _DEG for x in c.init.init_attitude_deg)
+        lat, lon, h = c.init.init_position_llh[0] * _DEG, c.init.init_position_llh[1] * _DEG, float(c.init.init_position_llh[2])
+        v0 = np.array(c.init.init_velocity_enu, float) if c.init.init_velocity_enu else np.zeros(3)
         nav = ins.NavState(0.0, lat, lon, h, v0, earth.dcm_to_quat(earth.euler_to_dcm(heading, pitch, roll)))
         self.note = "initial state from the config (init_position_llh, init_velocity_enu, init_attitude_deg)"
-        return Aligned(nav, np.zeros(3), self._P0(np.full(3, c.init_position_sigma_m ** 2), c.init_level_sigma_deg * _DEG,
-                                                  c.init_heading_sigma_deg * _DEG,
-                                                  np.full(3, c.gyro_bias_prior_sigma_dps * _DEG)))
+        return Aligned(nav, np.zeros(3), self._P0(np.full(3, c.init.init_position_sigma_m ** 2), c.init.init_level_sigma_deg * _DEG,
+                                                  c.init.init_heading_sigma_deg * _DEG,
+                                                  np.full(3, c.init.gyro_bias_prior_sigma_dps * _DEG)))
 
     def _P0(self, pos_var: np.ndarray, sd_level: float, sd_head: float, sd_bg: np.ndarray) -> np.ndarray:
         """The initial covariance (15, 15): position variances (3,) ENU m^2, velocity ``init_vel_sigma_mps``,
         level and heading sigmas (rad), gyro bias sigmas (3,) rad/s, accel bias ``init_accel_bias_sigma_ug``."""
         c = self.cfg
-        return np.diag(np.concatenate([pos_var, np.full(3, c.init_vel_sigma_mps ** 2),
+        return np.diag(np.concatenate([pos_var, np.full(3, c.init.init_vel_sigma_mps ** 2),
                                        [sd_level ** 2, sd_level ** 2, sd_head ** 2], sd_bg ** 2,
-                                       np.full(3, (c.init_accel_bias_sigma_ug * _UG) ** 2)]))
+                                       np.full(3, (c.init.init_accel_bias_sigma_ug * _UG) ** 2)]))
 

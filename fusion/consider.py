@@ -18,7 +18,7 @@ as the error is:
     update:   S <- (I - K H) S      (K the update's gain)
 
 and the consider covariance is S diag(sigma_c^2) S^T, with sigma_c the grade's 1-sigma scale factor and
-misalignment (``fusion.imugrade``; ``FusionConfig.gyro_scale_factor_ppm``, ``gyro_misalignment_mrad``). It is
+misalignment (``fusion.imugrade``; ``[fusion] gyro_scale_factor_ppm``, ``gyro_misalignment_mrad``). It is
 added to the printed accelerometer-bias variance only (forward and smoothed), so the estimate does not change. Only there: the
 filter's noise was inflated (``FusionConfig``) for the position, velocity, attitude and gyro bias to absorb
 this error, and their sigmas cover it; the simulator's truth of the gyro bias (``/truth/imu_bias``) holds

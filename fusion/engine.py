@@ -50,125 +50,21 @@ it (the covariance is then propagated one cycle per call, to capture each P).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import (aids, align, clipgyro, consider, earth, errmodel, gpserror, hinf, ins, kf, output,
-                             predictors, sckf, ukf)
+from fieldlog.fusion import aids, align, clipgyro, consider, earth, errmodel, gpserror, hinf, ins, kf, output, sckf, ukf
+from fieldlog.fusion.config import GPS_ERROR_MODELS, METHODS, FusionConfig
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
-from fieldlog.fusion.outages import PREDICTOR_NETWORK, Outage, OutageTracker, PredictorBridge, Silence
-from fieldlog.fusion.output import Solution
+from fieldlog.fusion.outages import PREDICTOR_NETWORK, OutageTracker, PredictorBridge, Silence
+from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, Outage, Solution
 
 if TYPE_CHECKING:
     from fieldlog.fusion.smoother import SmootherLog
 
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
-GPS_ERROR_MODELS = ("consider", "gm-states")
 _DEG = math.pi / 180.0
-_UG = 9.80665e-6
-
-
-@dataclass
-class FusionConfig:
-    """Fusion settings. Sensor figures default to the distributed-KF paper's Table 2 class of MEMS
-    IMU (gyro 0.01 deg/s/sqrt(Hz), bias stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), the noise densities
-    inflated to absorb the scale-factor and misalignment errors the 15-state model does not carry; the gyro
-    bias random walk is Table 2's bias stability as a random walk over a minute (``fusion.imugrade``)."""
-
-    imu: str = ""  # the IMU grade whose figures were taken (fusion.imugrade); "" = the figures below as given
-    lever_arm_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> GPS antenna, m, in lever_arm_frame
-    lever_arm_frame: str = "rfu"  # body frame of lever_arm_b: rfu, flu (REP-103) or frd (earth.BODY_FRAMES)
-    output_hz: float = 10.0
-    cov_step_s: float = 0.1  # covariance propagation cycle, s
-    gyro_noise_dps_rthz: float = 0.03
-    accel_noise_ug_rthz: float = 300.0
-    gyro_bias_rw_dps_rts: float = 0.02 * math.sqrt(2.0 / 60.0)  # deg/s/sqrt(s): B sqrt(2 / 60 s) (fusion.imugrade)
-    accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
-    init_vel_sigma_mps: float = 0.2  # sigma of the initial velocity (the alignment epoch's or init_velocity_enu), m/s
-    init_level_sigma_deg: float = 0.5  # roll/pitch allowance added to the levelling's own sigma (fusion.align)
-    init_heading_sigma_deg: float = 3.0  # sigma of init_attitude_deg's heading
-    init_attitude_deg: tuple[float, ...] = ()  # optional [roll, pitch, heading] at the drive's start, deg
-    init_position_llh: tuple[float, ...] = ()  # optional [lat deg, lon deg, h m (ellipsoidal)] of the IMU at the
-    # first IMU sample: with init_attitude_deg, the INS starts there from the config (fusion.align)
-    init_position_sigma_m: float = 1.0  # sigma of init_position_llh per axis (E, N, U), m
-    init_velocity_enu: tuple[float, ...] = ()  # optional [E, N, U] velocity at the first IMU sample, m/s (default 0)
-    init_gyro_bias_sigma_dps: float = 0.02  # floor after the static gyro mean: the bias instability
-    gyro_bias_prior_sigma_dps: float = 0.1  # before any static mean: turn-on and instability
-    init_accel_bias_sigma_ug: float = 2000.0
-    gyro_scale_factor_ppm: float = 1000.0  # 1-sigma per axis, not a state: its consider variance is added to the
-    gyro_misalignment_mrad: float = 1.0  # printed accelerometer-bias sigma (fusion.consider); 0 and 0: none
-    static_speed_mps: float = 0.3  # below this GPS speed the car is slow: no non-holonomic constraint
-    align_speed_mps: float = 3.0  # the GPS course gives the heading from this speed
-    align_sideslip_deg: float = 2.0  # course - heading allowance (sideslip, IMU mounting yaw)
-    gyrocompass_max_deg: float = 5.0  # gyrocompass only when its heading sigma is below this (and the course's)
-    realign_window_s: float = 120.0  # chi-square test of the heading on the GPS innovations this long (0: off)
-    realign_epochs: int = 10  # ... summed over this many epochs
-    vel_var_max: float = 100.0  # velocity components with a larger variance are not fed, (m/s)^2
-    max_fix_sigma_m: float = 30.0
-    outages: tuple[tuple[float, float], ...] = ()  # forced (start_s, length_s) from the first IMU sample
-    gyro_range_dps: float = 20.0  # a gyro flat at this rate (or beyond) is clipped (Table 2: +-20 deg/s)
-    clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
-    nhc: bool = True  # non-holonomic constraint of a car (body lateral, vertical velocity 0) at every epoch
-    nhc_sigma_mps: float = 0.1
-    zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
-    zupt_sigma_mps: float = 0.02
-    still_speed_mps: float = 0.5  # still (fusion.align.still): INS speed below this without GPS velocity, ...
-    still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity of the last second below this (or 1.5 of its
-    # sigmas from the reported velocity covariance, fusion.align.GpsSpeed), ...
-    still_accel_std_mps2: float = 0.1  # ... specific force and rate varying less than these over the interval,
-    still_gyro_std_dps: float = 0.5
-    still_rate_tol_dps: float = 0.01  # ... and their means within 3 sigma plus these of standing still
-    still_accel_tol_mps2: float = 0.02
-    still_trim_s: float = 2.0  # the static start loses this much at an end where the vehicle moved
-    gps_error_tau_s: float = 300.0  # correlation time of the GPS position error (multipath, atmosphere); 0: white
-    gps_error_model: str = "consider"  # "consider": added to the printed sigma (fusion.output); "gm-states": kf
-    # (unsmoothed) carries it as Gauss-Markov states (fusion.gpserror), the other methods keep "consider"
-    gps_error_white_share: float = 0.15  # gm-states: share of the fix's variance that is white (the rest correlated)
-    dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
-    hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
-    hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
-    predictor: predictors.PredictorConfig = field(default_factory=predictors.PredictorConfig)
-
-    def lever_rfu(self) -> np.ndarray:
-        """The lever arm IMU -> antenna (3,) in body RFU, m."""
-        return earth.C_rfu_from(self.lever_arm_frame) @ np.asarray(self.lever_arm_b, dtype=float)
-
-    def noise_psd(self) -> np.ndarray:
-        return errmodel.noise_psd(self.gyro_noise_dps_rthz * _DEG, self.accel_noise_ug_rthz * _UG,
-                                  self.gyro_bias_rw_dps_rts * _DEG, self.accel_bias_rw_ug_rts * _UG)
-
-
-@dataclass
-class ImuBlock:
-    """IMU samples: t_ns (n,) int64 UTC, omega_ib_b (n, 3) rad/s, f_b (n, 3) m/s^2, body RFU."""
-
-    t_ns: np.ndarray
-    omega_ib_b: np.ndarray
-    f_b: np.ndarray
-
-
-@dataclass
-class GpsBlock:
-    """GPS epochs: t_ns (m,) UTC of the fix; lat_deg, lon_deg, h (m, ellipsoidal); pos_cov (m, 3, 3) ENU m^2;
-    status (m,) NavSatFix status (-1 no fix); v_n (m, 3) ENU m/s (NaN where missing); vel_cov (m, 3, 3)."""
-
-    t_ns: np.ndarray
-    lat_deg: np.ndarray
-    lon_deg: np.ndarray
-    h: np.ndarray
-    pos_cov: np.ndarray
-    status: np.ndarray
-    v_n: np.ndarray
-    vel_cov: np.ndarray
-
-    @staticmethod
-    def empty() -> "GpsBlock":
-        z = np.zeros(0)
-        return GpsBlock(np.zeros(0, np.int64), z, z, z, np.zeros((0, 3, 3)), np.zeros(0, np.int8),
-                        np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
 
 class Engine:
@@ -181,12 +77,12 @@ class Engine:
         self.method = method
         self.log = log
         self.cfg = config or FusionConfig()
-        if self.cfg.gps_error_model not in GPS_ERROR_MODELS:
-            raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps_error_model!r}")
-        if self.cfg.gps_error_model == "gm-states" and (method != "kf" or log is not None):
-            self.cfg = replace(self.cfg, gps_error_model="consider")  # the states are kf's, without smoothing
-        self.lever = self.cfg.lever_rfu()
-        self.q = self.cfg.noise_psd()
+        if self.cfg.gps.gps_error_model not in GPS_ERROR_MODELS:
+            raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps.gps_error_model!r}")
+        if self.cfg.gps.gps_error_model == "gm-states" and (method != "kf" or log is not None):
+            self.cfg = self.cfg.replace(gps_error_model="consider")  # the states are kf's, without smoothing
+        self.lever = self.cfg.gps.lever_rfu()
+        self.q = self.cfg.sensor.noise_psd()
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
         self.filter: kf.KalmanFilter | DistributedKF | None = None  # hinf, kf-ukf, sckf: KalmanFilter subclasses
@@ -198,14 +94,14 @@ class Engine:
         # fused state prediction and the change the predicted innovations made, position and velocity (6,) each
         self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
-        self.outages = OutageTracker(self.cfg.max_fix_sigma_m)
+        self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()
         self._gps_var = np.zeros(3)  # variance (m^2, E N U) of the correlated GPS error the filter cannot see
         self._gps_var_kf2 = np.zeros(3)  # the same for the distributed filter's KF_II (GPS position) alone
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
-        self._gps: list[dict] = []  # epochs not yet reached by the IMU
+        self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
         self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
@@ -227,10 +123,10 @@ class Engine:
             t_ns, w, f = (np.concatenate([c, x[keep]]) for c, x in zip(self._carry, (t_ns, w, f)))
         if self.t_ref_ns is None and len(t_ns):
             self.t_ref_ns = int(t_ns[0])
-            self.outages.force(self.t_ref_ns, self.cfg.outages)
-            if self.cfg.init_position_llh:
+            self.outages.force(self.t_ref_ns, self.cfg.gps.outages)
+            if self.cfg.init.init_position_llh:
                 self._start(self.alignment.configured(), 0.0, self.t_ref_ns)
-        self.silence.add(self._gps, _epochs(gps), int(t_ns[-1]) if len(t_ns) else None)
+        self.silence.add(self._gps, gps.epochs(), int(t_ns[-1]) if len(t_ns) else None)
         if self.t_ref_ns is None or len(t_ns) == 0:
             return Solution.concat([]), self.outages.take()
         t = (t_ns - self.t_ref_ns) * 1e-9
@@ -238,9 +134,9 @@ class Engine:
             self._imu_dt = float(np.median(np.diff(t)))
         out: list[Solution] = []
         cursor = 0
-        while self._gps and self._gps[0]["t_ns"] <= t_ns[-1]:
+        while self._gps and self._gps[0].t_ns <= t_ns[-1]:
             ep = self._gps.pop(0)
-            k = int(np.searchsorted(t_ns, ep["t_ns"], side="right")) - 1
+            k = int(np.searchsorted(t_ns, ep.t_ns, side="right")) - 1
             if k < cursor:  # the epoch precedes the samples still to process (IMU gap): skip it
                 self.outages.classify(ep)
                 continue
@@ -274,29 +170,29 @@ class Engine:
 
     # -- epochs ---------------------------------------------------------------------------------
 
-    def _usable(self, ep: dict) -> bool:
+    def _usable(self, ep: Epoch) -> bool:
         """Classify the epoch (``OutageTracker``); a usable fix becomes the last good fix."""
         usable = self.outages.classify(ep)
         if usable:
-            self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
+            self._last_fix = ((ep.t_ns - self.t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
         return usable
 
-    def _velocity(self, ep: dict) -> np.ndarray:
+    def _velocity(self, ep: Epoch) -> np.ndarray:
         """GPS velocity, or the difference of this and the previous good fix when the drive has none."""
-        if np.isfinite(ep["v_n"][:2]).all():
-            return ep["v_n"]
-        ts = (ep["t_ns"] - self.t_ref_ns) * 1e-9
+        if np.isfinite(ep.v_n[:2]).all():
+            return ep.v_n
+        ts = (ep.t_ns - self.t_ref_ns) * 1e-9
         if self._last_fix is None or not 0.0 < ts - self._last_fix[0] <= 2.0:
             return np.full(3, np.nan)
         t0, lat0, lon0, h0 = self._last_fix
-        return kf.enu_offset(ep["lat"], ep["lon"], ep["h"], lat0, lon0, h0) / (ts - t0)
+        return kf.enu_offset(ep.lat, ep.lon, ep.h, lat0, lon0, h0) / (ts - t0)
 
-    def _pre_init_epoch(self, ep: dict, t_k: float, t_k_ns: int) -> None:
+    def _pre_init_epoch(self, ep: Epoch, t_k: float, t_k_ns: int) -> None:
         """A GPS epoch before the alignment (``fusion.align``); at the alignment epoch, the filter starts."""
         usable = self.outages.classify(ep)
         v = self._velocity(ep) if usable else np.full(3, np.nan)
         if usable:
-            self._last_fix = ((ep["t_ns"] - self.t_ref_ns) * 1e-9, ep["lat"], ep["lon"], ep["h"])
+            self._last_fix = ((ep.t_ns - self.t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
         interval, self._interval = self._interval, align.ImuSums()
         a = self.alignment.epoch(ep, usable, v, interval, t_k, self.t_ref_ns)
         if a is not None:
@@ -306,9 +202,9 @@ class Engine:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
-        if self.cfg.gyro_scale_factor_ppm > 0.0 or self.cfg.gyro_misalignment_mrad > 0.0:
-            self.consider = consider.GyroConsider(self.cfg.gyro_scale_factor_ppm * 1e-6,
-                                                  self.cfg.gyro_misalignment_mrad * 1e-3)
+        if self.cfg.sensor.gyro_scale_factor_ppm > 0.0 or self.cfg.sensor.gyro_misalignment_mrad > 0.0:
+            self.consider = consider.GyroConsider(self.cfg.sensor.gyro_scale_factor_ppm * 1e-6,
+                                                  self.cfg.sensor.gyro_misalignment_mrad * 1e-3)
             if self.log is not None:
                 self.log.var_c = self.consider.var_c
         self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
@@ -317,19 +213,19 @@ class Engine:
         if self.log is not None:
             self.log.start(t_k_ns, self.filter.covariance)
 
-    def _epoch(self, ep: dict, omega_k: np.ndarray) -> None:
+    def _epoch(self, ep: Epoch, omega_k: np.ndarray) -> None:
         """GPS epoch at the current sample: update, feed back, reset; in an outage, the predicted correction."""
         usable = self._usable(ep)
         interval, self._interval = self._interval, align.ImuSums()
         if self.method == "ins":
             return
         v = self._velocity(ep) if usable else np.full(3, np.nan)
-        v_gps = ep["v_n"] if usable else np.full(3, np.nan)
-        speed = self._speed.add((ep["t_ns"] - self.t_ref_ns) * 1e-9, v_gps, ep)
+        v_gps = ep.v_n if usable else np.full(3, np.nan)
+        speed = self._speed.add((ep.t_ns - self.t_ref_ns) * 1e-9, v_gps, ep)
         aid = aids.vehicle_aid(self.cfg, self.nav, v_gps if np.isfinite(v_gps[:2]).all() else v, speed, interval,
                                self._stop, self.bg, self.ba, self.filter.covariance, self._imu_dt)
         if aid is not None and len(aid[0]) == 6:
-            self.stills.append(ep["t_ns"])
+            self.stills.append(ep.t_ns)
         if aid is not None:
             self._considered(aid, self.filter.update_aid, aid)
             self._feedback(self.filter.state)
@@ -340,25 +236,25 @@ class Engine:
             elif self._distributed and self.filter.state.any():
                 self._feedback(self.filter.state)  # the fused state prediction X(n|n-1) of the local filters
             return
-        t_g = (ep["t_ns"] - self.t_ref_ns) * 1e-9
-        pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
-        vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever, self.cfg.vel_var_max)
+        t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
+        pos = kf.position_measurement(self.nav, t_g, ep.lat, ep.lon, ep.h, ep.pos_cov, self.lever)
+        vel = kf.velocity_measurement(self.nav, ep.v_n, ep.vel_cov, omega_k, self.lever, self.cfg.gps.vel_var_max)
         u = self.bridge.input(self.nav) if self.bridge is not None else None
         if (self._check is not None and vel is not None
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
-            pos = kf.position_measurement(self.nav, t_g, ep["lat"], ep["lon"], ep["h"], ep["pos_cov"], self.lever)
-            vel = kf.velocity_measurement(self.nav, ep["v_n"], ep["vel_cov"], omega_k, self.lever,
-                                          self.cfg.vel_var_max)
+            pos = kf.position_measurement(self.nav, t_g, ep.lat, ep.lon, ep.h, ep.pos_cov, self.lever)
+            vel = kf.velocity_measurement(self.nav, ep.v_n, ep.vel_cov, omega_k, self.lever,
+                                          self.cfg.gps.vel_var_max)
         self._considered(kf.stack(vel, pos), self.filter.update_gps, vel, pos)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         if not isinstance(self.filter, gpserror.GpsErrorKF):  # the states carry it: nothing to add
-            self._gps_var = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.covariance)[POS],
-                                                       period, self.cfg.gps_error_tau_s)
+            self._gps_var = output.correlated_variance(np.diag(ep.pos_cov), np.diag(self.filter.covariance)[POS],
+                                                       period, self.cfg.gps.gps_error_tau_s)
         if self._distributed:  # KF_II's local solution averages the same fixes (KF_I sees no position)
-            self._gps_var_kf2 = output.correlated_variance(np.diag(ep["pos_cov"]), np.diag(self.filter.kf_pos.P)[POS],
-                                                           period, self.cfg.gps_error_tau_s)
+            self._gps_var_kf2 = output.correlated_variance(np.diag(ep.pos_cov), np.diag(self.filter.kf_pos.P)[POS],
+                                                           period, self.cfg.gps.gps_error_tau_s)
         if self.log is not None:
-            self.log.gps_var.append((ep["t_ns"], self._gps_var.copy()))
+            self.log.gps_var.append((ep.t_ns, self._gps_var.copy()))
         x = self.filter.state
         if self.bridge is not None:
             self.bridge.train(t_g, u, self.filter.innovations, pos, vel)
@@ -373,7 +269,7 @@ class Engine:
                 self.log.sensitivity_update(self.consider.S)
         update(*args)
 
-    def _realign(self, ep: dict) -> bool:
+    def _realign(self, ep: Epoch) -> bool:
         """The heading is far off its sigma (``fusion.align.HeadingCheck``): take it again from the GPS course and
         restart the filter with the covariance so far, the heading's and the gyro bias's reopened. False while
         the vehicle is too slow for the course."""
@@ -428,7 +324,7 @@ class Engine:
             return Solution.concat([])
         wc, fc = w[i0:i1 + 1] - self.bg, f[i0:i1 + 1] - self.ba
         sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
-        clip = clipgyro.clipped(w[i0:i1 + 1, 2], self.cfg.gyro_range_dps * _DEG)
+        clip = clipgyro.clipped(w[i0:i1 + 1, 2], self.cfg.sensor.gyro_range_dps * _DEG)
         if clip.any():  # the yaw gyro saturated in a sharp turn: rebuild its rate, integrate again
             wc[:, 2] = clipgyro.turn_rate(wc[:, 2], fc, sol, clip)
             sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
@@ -452,7 +348,7 @@ class Engine:
             fwd = C[0, :, 1]
             sd_v = math.sqrt(max(float(fwd @ self.filter.covariance[VEL, VEL] @ fwd), 0.0))
             rel = sd_v / max(abs(float(fwd @ sol.v_n[0])), 1.0)
-            sigma = math.hypot(self.cfg.clip_rate_sigma_dps * _DEG, rel * float(np.abs(wc[clip, 2]).max()))
+            sigma = math.hypot(self.cfg.sensor.clip_rate_sigma_dps * _DEG, rel * float(np.abs(wc[clip, 2]).max()))
             Q = Q + clipgyro.clip_noise(clip, tt, starts, ends, C, sigma)
         if isinstance(self.filter, gpserror.GpsErrorKF):
             self.filter.cycles(tt[ends] - tt[starts])
@@ -474,14 +370,14 @@ class Engine:
             d = local[1].copy()
             d[:, 1, POS] += self._gps_var_kf2
             local = (local[0], d)
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.output_hz, ends, diag, np.concatenate([self.bg, self.ba]),
+        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate([self.bg, self.ba]),
                            self._gps_var, local)
 
     def _slot_starts(self, t: np.ndarray) -> np.ndarray:
         """Indexes into t (s) of the samples that start a ``cov_step_s`` slot counted from the last GPS epoch (the
         anchor; t[0] before the first), after t[0]."""
         anchor = t[0] if self._anchor is None else self._anchor
-        slot = np.floor((t - anchor) / self.cfg.cov_step_s).astype(np.int64)
+        slot = np.floor((t - anchor) / self.cfg.filter.cov_step_s).astype(np.int64)
         return np.flatnonzero(np.diff(slot) != 0) + 1
 
     def _cycle_start(self, t: np.ndarray, i0: int, i1: int) -> int:
@@ -511,20 +407,13 @@ class Engine:
 def make_filter(method: str, P0: np.ndarray, q: np.ndarray, cfg: FusionConfig) -> kf.KalmanFilter | DistributedKF:
     """The filter object of a method, started at P0 (15, 15) with noise PSD q (12, 12)."""
     if method == "dkf" or method in PREDICTOR_NETWORK:
-        return DistributedKF(P0, q, cfg.dkf_fusion)
+        return DistributedKF(P0, q, cfg.filter.dkf_fusion)
     if method == "hinf":
-        return hinf.HInfinityFilter(P0, q, cfg.hinf_gamma, min_ratio=cfg.hinf_min_ratio)
+        return hinf.HInfinityFilter(P0, q, cfg.filter.hinf_gamma, min_ratio=cfg.filter.hinf_min_ratio)
     if method == "kf-ukf":
         return ukf.HybridKfUkf(P0, q)
     if method in sckf.FILTERS:
         return sckf.FILTERS[method](P0, q)
-    if cfg.gps_error_model == "gm-states":
-        return gpserror.GpsErrorKF(P0, q, cfg.gps_error_tau_s, cfg.gps_error_white_share)
+    if cfg.gps.gps_error_model == "gm-states":
+        return gpserror.GpsErrorKF(P0, q, cfg.gps.gps_error_tau_s, cfg.gps.gps_error_white_share)
     return kf.KalmanFilter(P0, q)
-
-
-def _epochs(g: GpsBlock) -> list[dict]:
-    """GPS epochs as dicts (1 Hz: a Python object per epoch is fine), lat/lon in rad."""
-    return [dict(t_ns=int(g.t_ns[i]), lat=math.radians(float(g.lat_deg[i])), lon=math.radians(float(g.lon_deg[i])),
-                 h=float(g.h[i]), pos_cov=g.pos_cov[i], status=int(g.status[i]), v_n=g.v_n[i], vel_cov=g.vel_cov[i])
-            for i in range(len(g.t_ns))]

@@ -25,7 +25,7 @@ It is stricter than the general H-infinity existence condition P^-1 - gamma^-2 L
 The bound grows with P, so during a long GPS outage any fixed gamma is eventually too small (even a large
 one, with a MEMS IMU). The paper gives no rule for choosing gamma. Two
 policies: ``min_ratio = 0`` keeps gamma fixed and raises; ``min_ratio = c > 1`` (the engine's default,
-``FusionConfig.hinf_min_ratio``) uses gamma_k = max(gamma, c * bound_k) at each update, i.e. the
+``[fusion] hinf_min_ratio``) uses gamma_k = max(gamma, c * bound_k) at each update, i.e. the
 filter is never closer to its existence limit than c, and moves towards the KF (gamma -> infinity) when
 the covariance is large. ``raised`` counts the epochs where gamma_k > gamma. The inflation is applied once per
 epoch (the first update after a propagation), not again for each measurement of the epoch.

@@ -18,25 +18,16 @@ returns the prediction: the correction of the INS (``rbfn``, ``tdln``) or the pr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from fieldlog.fusion import kf, predictors
 from fieldlog.fusion.errmodel import N_STATES, POS, VEL
 from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.types import Epoch, Outage
 
 NS = 1_000_000_000
 PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
-
-
-@dataclass
-class Outage:
-    """A GPS outage window [start_ns, end_ns) UTC; reason "injected", "no_fix", "low_quality" or "silent"."""
-
-    start_ns: int
-    end_ns: int
-    reason: str
 
 
 class OutageTracker:
@@ -53,14 +44,14 @@ class OutageTracker:
         self._forced = [(t_ref_ns + int(s * NS), t_ref_ns + int((s + n) * NS)) for s, n in windows]
         self._outages += [Outage(a, b, "injected") for a, b in self._forced]
 
-    def classify(self, ep: dict) -> bool:
+    def classify(self, ep: Epoch) -> bool:
         """Whether an epoch's fix is usable; opens and closes the detected outage windows."""
-        t = ep["t_ns"]
-        good_fix = ep["status"] >= 0 and math.isfinite(ep["lat"]) and math.isfinite(ep["lon"])  # h may be NaN
-        low = good_fix and not math.sqrt(max(ep["pos_cov"][0, 0], ep["pos_cov"][1, 1])) <= self.max_fix_sigma_m
+        t = ep.t_ns
+        good_fix = ep.status >= 0 and math.isfinite(ep.lat) and math.isfinite(ep.lon)  # h may be NaN
+        low = good_fix and not math.sqrt(max(ep.pos_cov[0, 0], ep.pos_cov[1, 1])) <= self.max_fix_sigma_m
         usable = good_fix and not low
         if not usable and self._open is None:
-            self._open = Outage(t, t, "silent" if ep.get("silent") else "low_quality" if low else "no_fix")
+            self._open = Outage(t, t, "silent" if ep.silent else "low_quality" if low else "no_fix")
         elif usable and self._open is not None:
             self._open.end_ns = t
             self._outages.append(self._open)
@@ -93,12 +84,12 @@ class Silence:
         self.spacings: list[int] = []
         self.period_ns: float | None = None
 
-    def add(self, queue: list[dict], epochs: list[dict], horizon_ns: int | None) -> None:
+    def add(self, queue: list[Epoch], epochs: list[Epoch], horizon_ns: int | None) -> None:
         """Append ``epochs`` (real, time order) to ``queue``. In a silence (more than 1.5 intervals since the last
         real epoch) a silent epoch goes in at every nominal interval up to the next real epoch (not within half an
         interval of it) and up to ``horizon_ns`` (the IMU's last sample: a fix before it would be in this block)."""
         for ep in epochs:
-            t = ep["t_ns"]
+            t = ep.t_ns
             if self.real_ns is not None and t > self.real_ns:
                 if not self._fill(queue, t, t - 0.5 * (self.period_ns or 0.0)) and len(self.spacings) < self.SPACINGS:
                     self.spacings.append(t - self.real_ns)
@@ -109,14 +100,13 @@ class Silence:
         if horizon_ns is not None:
             self._fill(queue, horizon_ns, horizon_ns)
 
-    def _fill(self, queue: list[dict], until_ns: int, last_ns: float) -> bool:
+    def _fill(self, queue: list[Epoch], until_ns: int, last_ns: float) -> bool:
         """Silent epochs up to ``last_ns`` when the silence lasts until ``until_ns``; whether there were any."""
         if self.period_ns is None or self.real_ns is None or until_ns - self.real_ns <= 1.5 * self.period_ns:
             return False
         while self.last_ns + self.period_ns < last_ns:
             self.last_ns += int(round(self.period_ns))
-            queue.append(dict(t_ns=self.last_ns, lat=math.nan, lon=math.nan, h=math.nan, pos_cov=np.full((3, 3), np.nan),
-                              status=-1, v_n=np.full(3, np.nan), vel_cov=np.full((3, 3), np.nan), silent=True))
+            queue.append(Epoch.silence(self.last_ns))
         return True
 
 

@@ -4,44 +4,12 @@ position's with the time-correlated GPS error the filters do not model added (:f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from fieldlog.fusion import earth
+from fieldlog.fusion.types import Solution
 
 NS = 1_000_000_000
-
-
-@dataclass
-class Solution:
-    """Output rows: t_ns (n,), lat, lon (rad), h (m), v_n (n, 3), q (n, 4) [x, y, z, w] of C_bn,
-    sigma (n, 15): position ENU m, velocity ENU m/s, attitude (phi E, N, U) rad, gyro bias rad/s, accelerometer
-    bias m/s^2; bias (n, 6): the IMU bias estimate the row's INS ran with, gyro rad/s then accelerometer m/s^2,
-    body RFU (``fusion.errmodel`` states 9:15 are its residual).
-
-    local (n, 2, 12) or None: the distributed filter's local solutions (KF_I, KF_II), the INS corrected by that
-    local estimate alone: lat, lon (rad), h (m), v_n (3) ENU m/s, sigma position ENU (3) m, velocity (3) m/s."""
-
-    t_ns: np.ndarray
-    lat: np.ndarray
-    lon: np.ndarray
-    h: np.ndarray
-    v_n: np.ndarray
-    q: np.ndarray
-    sigma: np.ndarray
-    bias: np.ndarray
-    local: np.ndarray | None = None
-
-    @staticmethod
-    def concat(parts: list["Solution"]) -> "Solution":
-        if not parts:
-            return Solution(np.zeros(0, np.int64), *(np.zeros(0),) * 3, np.zeros((0, 3)), np.zeros((0, 4)),
-                            np.zeros((0, 15)), np.zeros((0, 6)))
-        local = [p.local for p in parts if len(p.t_ns)]
-        return Solution(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                          ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")),
-                        np.concatenate(local) if local and all(x is not None for x in local) else None)
 
 
 def sigmas(diag: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Formulation. The forward filter (``fusion.engine``) is closed loop: its error state is zero after every
 GPS epoch, the correction dx_k = x_{k|k} having been fed into the INS. Records k = 0..N-1 are the ends
-of the covariance cycles (``FusionConfig.cov_step_s``, 0.1 s) plus the alignment; each stores
+of the covariance cycles (``[fusion] cov_step_s``, 0.1 s) plus the alignment; each stores
 
 - Phi_k, the transition from record k-1 to k,
 - P-_k, the covariance predicted to k (before any update at k),
@@ -52,8 +52,8 @@ import numpy as np
 
 from fieldlog.fusion import earth
 from fieldlog.fusion.consider import N_PARAMS
-from fieldlog.fusion.engine import Solution
 from fieldlog.fusion.errmodel import ATT, BA, N_STATES, POS, VEL
+from fieldlog.fusion.types import Solution
 
 RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
                    ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES),

@@ -35,7 +35,7 @@ from fieldlog.fusion import earth  # numpy only: reading a drive never loads the
 from fieldlog.replay import reader
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.engine import GpsBlock, ImuBlock
+    from fieldlog.fusion.types import GpsBlock, ImuBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
 TF_STATIC = "/tf_static"
@@ -338,7 +338,7 @@ class InputStream:
 
 def imu_block(imu: dict | None) -> ImuBlock:
     """A block's valid ``/imu`` rows as the engine's ImuBlock (empty without)."""
-    from fieldlog.fusion.engine import ImuBlock
+    from fieldlog.fusion.types import ImuBlock
     if not imu or not len(imu.get("log_time_ns", ())):
         return ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
     ok = imu["valid"]

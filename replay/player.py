@@ -29,7 +29,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.fusion.engine import Engine, FusionConfig, Outage, Solution
+from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.types import Outage, Solution
 from fieldlog.replay import reader
 from fieldlog.replay import inputs
 from fieldlog.replay.drive import DriveSpec

@@ -31,7 +31,7 @@ from fieldlog.replay.drive import DriveSpec, label, open_drive
 from fieldlog.replay.mcapfile import McapFile, le
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.engine import GpsBlock
+    from fieldlog.fusion.types import GpsBlock
 
 
 @dataclass(frozen=True)
@@ -394,7 +394,7 @@ IN_TOPICS = ("/imu", "/gps/fix", "/gps/vel")   # the topics ``fusion.engine`` ru
 
 def gps_block(fix: dict, vel: dict) -> "GpsBlock":
     """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs."""
-    from fieldlog.fusion.engine import GpsBlock  # here, so reading a drive never loads the fusion stack
+    from fieldlog.fusion.types import GpsBlock  # here, so reading a drive never loads the fusion stack
 
     n = len(fix.get("log_time_ns", ()))
     if n == 0:

@@ -7,7 +7,6 @@ The outage drift is held against an INS error budget computed from the grade's f
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -140,8 +139,8 @@ def test_tactical_rtk_creeping_pullaway(tactical, tmp_path):
     grade's figures only and aids off: under 0.5 m 2D RMS in 60 s outages after 10 minutes; the heading sigma
     covers the heading error at every outage start (3 sigma); each outage's drift within 3x the budget. The
     heading is gyrocompassed from the trimmed static start (the creep is not in it)."""
-    cfg = replace(drive_config(tactical), outages=TACTICAL_OUTAGES)
-    assert cfg.imu == "tactical" and not cfg.nhc and not cfg.zupt
+    cfg = drive_config(tactical).replace(outages=TACTICAL_OUTAGES)
+    assert cfg.sensor.imu == "tactical" and not cfg.aids.nhc and not cfg.aids.zupt
     out = tmp_path / "kf.mcap"
     r = fuse(tactical, "kf", out, cfg)
     assert r.alignment.startswith("heading by gyrocompassing"), r.alignment
@@ -159,8 +158,8 @@ def test_mems_grades(mems, tmp_path):
     """The same for the MEMS grades on a 300 s figure8 (aids off, one 60 s outage at 200 s): heading within 3
     sigma at the outage start, drift within 3x the budget."""
     grade, drive = mems
-    cfg = replace(drive_config(drive), outages=MEMS_OUTAGE)
-    assert cfg.imu == grade
+    cfg = drive_config(drive).replace(outages=MEMS_OUTAGE)
+    assert cfg.sensor.imu == grade
     out = tmp_path / "kf.mcap"
     r = fuse(drive, "kf", out, cfg)
     assert r.alignment.startswith("heading from the GPS course"), r.alignment  # MEMS cannot see the Earth rate
@@ -178,7 +177,7 @@ def test_mems_attitude_sigma_covers_the_error(mems, tmp_path):
     deg/s/sqrt(s) before, figure8 seeds 1-5 went from 62-86 % to 100 % of the heading within 3 sigma."""
     grade, drive = mems
     out = tmp_path / "kf.mcap"
-    fuse(drive, "kf", out, replace(drive_config(drive), outages=MEMS_OUTAGE))
+    fuse(drive, "kf", out, drive_config(drive).replace(outages=MEMS_OUTAGE))
     t, z = _phi_z(drive, out, "kf")
     z = np.abs(z[t > 100.0])
     in1, in3 = np.mean(z <= 1.0, axis=0), np.mean(z <= 3.0, axis=0)
@@ -199,7 +198,7 @@ def test_initial_heading_error_converges_and_sigma_covers_it(mems, offset_deg, t
     fuse(drive, "kf", tmp_path / "ref.mcap", base)
     t, e_ref, _ = _heading_series(drive, tmp_path / "ref.mcap", "kf")
     ref = float(np.abs(e_ref[t > t[0] + 60.0]).max())
-    cfg = replace(base, init_attitude_deg=(0.0, 0.0, 45.0 + offset_deg),  # figure8 parks at 45 deg, level
+    cfg = base.replace(init_attitude_deg=(0.0, 0.0, 45.0 + offset_deg),  # figure8 parks at 45 deg, level
                   init_heading_sigma_deg=offset_deg)
     out = tmp_path / "kf.mcap"
     r = fuse(drive, "kf", out, cfg)
@@ -233,11 +232,11 @@ def test_configured_start_tactical(tactical_short, tmp_path):
     rng = np.random.default_rng(18)
     within1, within3, rms = [], [], {"aligned": [], "configured": []}
     for drive in tactical_short:
-        base = replace(drive_config(drive), outages=SHORT_OUTAGE)
+        base = drive_config(drive).replace(outages=SHORT_OUTAGE)
         (lat, lon, h), v, (roll, pitch, head) = _true_start(drive)
         e = rng.standard_normal(6)
         de, dn = e[0] * sd_pos, e[1] * sd_pos  # m east, north
-        cfg = replace(base, init_position_llh=(lat + math.degrees(dn / 6.378e6),
+        cfg = base.replace(init_position_llh=(lat + math.degrees(dn / 6.378e6),
                                                lon + math.degrees(de / (6.378e6 * math.cos(math.radians(lat)))),
                                                h + e[2] * sd_pos),
                       init_position_sigma_m=sd_pos, init_velocity_enu=v, init_vel_sigma_mps=sd_vel,
@@ -325,7 +324,7 @@ def test_tactical_initial_heading_error_converges_and_sigma_covers_it(tactical_r
     start's (gyrocompassing): its largest value at most 1.5x that run's plus 3 of that run's sigmas; the sigma
     covers the error (3 sigma) at 99 % of the rows throughout."""
     drive, ref, margin = tactical_reference
-    cfg = replace(drive_config(drive), init_attitude_deg=(0.0, 0.0, 45.0 + offset_deg),
+    cfg = drive_config(drive).replace(init_attitude_deg=(0.0, 0.0, 45.0 + offset_deg),
                   init_heading_sigma_deg=offset_deg)
     out = tmp_path / "kf.mcap"
     r = fuse(drive, "kf", out, cfg)
@@ -384,17 +383,17 @@ def test_datasheet_units_and_grades():
     a datasheet key and the setting it derives cannot both be given; an unknown grade is named."""
     c = fusion_config({"gyro_arw_deg_rth": 0.6, "accel_vrw_mps_rth": 0.06, "gyro_bias_instability_dph": 36.0,
                        "gyro_bias_corr_time_s": 200.0})
-    assert c.gyro_noise_dps_rthz == pytest.approx(0.01)
-    assert c.accel_noise_ug_rthz == pytest.approx(0.001 / (G * 1e-6))
-    assert c.gyro_bias_rw_dps_rts >= 0.01 * math.sqrt(2.0 / 200.0)  # the Gauss-Markov reading, or the flicker's
-    assert c.init_gyro_bias_sigma_dps == pytest.approx(0.01)
-    assert c.accel_bias_rw_ug_rts == fusion_config({}).accel_bias_rw_ug_rts  # not given: the default stays
+    assert c.sensor.gyro_noise_dps_rthz == pytest.approx(0.01)
+    assert c.sensor.accel_noise_ug_rthz == pytest.approx(0.001 / (G * 1e-6))
+    assert c.sensor.gyro_bias_rw_dps_rts >= 0.01 * math.sqrt(2.0 / 200.0)  # the Gauss-Markov reading, or the flicker's
+    assert c.init.init_gyro_bias_sigma_dps == pytest.approx(0.01)
+    assert c.sensor.accel_bias_rw_ug_rts == fusion_config({}).sensor.accel_bias_rw_ug_rts  # not given: the default stays
     table2 = fusion_config({"imu": "table2-mems"})
-    assert replace(table2, imu="") == fusion_config({})
+    assert table2.replace(imu="") == fusion_config({})
     assert ImuErrorConfig.from_dict({"grade": "table2-mems"}) == ImuErrorConfig()
     tac = ImuErrorConfig.from_dict({"grade": "tactical", "rate_hz": 200})
     assert tac.gyro_noise_density_dps_rthz == pytest.approx(0.003 / 60) and tac.rate_hz == 200.0
-    assert fusion_config({"imu": "tactical"}).gyro_noise_dps_rthz == pytest.approx(tac.gyro_noise_density_dps_rthz)
+    assert fusion_config({"imu": "tactical"}).sensor.gyro_noise_dps_rthz == pytest.approx(tac.gyro_noise_density_dps_rthz)
     rtk = GpsConfig.from_dict({"quality": "rtk"})
     assert (rtk.white_h_m, rtk.gm_h_m, rtk.vel_noise_mps) == (0.02, 0.0, 0.01)
     assert GpsConfig.from_dict({"quality": "standalone"}) == GpsConfig()
@@ -439,7 +438,7 @@ def test_realignment_by_chi_square(mems, tmp_path):
         pytest.skip("one grade is enough")
     cover = {}
     for window in (120.0, 0.0):
-        cfg = replace(drive_config(drive), init_attitude_deg=(0.0, 0.0, 75.0), init_heading_sigma_deg=1.0,
+        cfg = drive_config(drive).replace(init_attitude_deg=(0.0, 0.0, 75.0), init_heading_sigma_deg=1.0,
                       realign_window_s=window)
         out = tmp_path / f"kf_{window:g}.mcap"
         r = fuse(drive, "kf", out, cfg)

@@ -6,7 +6,9 @@ import pytest
 
 from fieldlog.fusion import earth, errmodel, kf
 from fieldlog.fusion.dkf import DistributedKF
-from fieldlog.fusion.engine import Engine, FusionConfig, ImuBlock
+from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.types import ImuBlock
 from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks, read_topic
 from fieldlog.tools.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
@@ -99,7 +101,7 @@ def runs(tmp_path_factory):
         simulate("figure8", DURATION, seed, drive)
         t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
         win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
-        cfg = FusionConfig(outages=(OUTAGE,), **GPS_ONLY)
+        cfg = FusionConfig.from_flat(outages=(OUTAGE,), **GPS_ONLY)
         for m in ("kf", "dkf", "dkf-rbfn"):
             out[seed, m] = (fuse(drive, m, d / f"{m}_{seed}.mcap", cfg), win, drive)
     return out
@@ -225,7 +227,7 @@ def _engine_over(drive, method, cfg, at=None):
 
 def test_networks_train_online_and_the_hybrid_prediction_part_is_nonzero(runs):
     drive = runs[SEEDS[0], "dkf"][2]
-    cfg = FusionConfig(outages=(OUTAGE,), **GPS_ONLY)
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,), **GPS_ONLY)
     weights = []
 
     def grab(eng):
@@ -251,7 +253,7 @@ def test_online_and_batch_networks_differ(runs, tmp_path):
     from fieldlog.fusion.predictors import PredictorConfig
 
     res, win, drive = runs[SEEDS[0], "dkf-rbfn"]
-    cfg = FusionConfig(outages=(OUTAGE,), predictor=PredictorConfig(training="batch"), **GPS_ONLY)
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,), predictor=PredictorConfig(training="batch"), **GPS_ONLY)
     batch = fuse(drive, "dkf-rbfn", tmp_path / "batch.mcap", cfg)
     a = read_topic(res.path, "/fusion/dkf-rbfn/fix")
     b = read_topic(batch.path, "/fusion/dkf-rbfn/fix")

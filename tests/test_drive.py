@@ -205,7 +205,7 @@ def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
 
 
 def test_cli_method_list_is_the_engines():
-    from fieldlog.fusion.engine import METHODS
+    from fieldlog.fusion.config import METHODS
     from fieldlog.tools import cli
 
     assert tuple(cli.METHODS) == tuple(METHODS)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import inputs, reader
 from fieldlog.replay import view as rview
 from fieldlog.tools.cli import main as cli_main
@@ -40,7 +40,7 @@ SHORT = (60.0, 240.0)  # the stretch the shorter foreign drives (first 300 s) ar
 def native_gap(native):
     """kf on the native drive with the gap forced as an outage: (2D RMS in the gap, 2D RMS over SHORT)."""
     out = native.parent / "native_kf.mcap"
-    fuse(native, "kf", out, FusionConfig(outages=(GAP,)))
+    fuse(native, "kf", out, FusionConfig.from_flat(outages=(GAP,)))
     return _rms(native, out, "kf", _window(native, GAP)), _rms(native, out, "kf", _window(native, SHORT))
 
 
@@ -93,7 +93,7 @@ def test_silence_runs_the_predictors_like_a_forced_outage(ros_drive, native, tmp
     drive (about one predicted correction per second; none at all before silence was an outage)."""
     imap = inputs.resolve(ros_drive, inputs.InputSpec(imu_frame="flu"))
     res = fuse(ros_drive, "dkf-rbfn", tmp_path / "hyb.mcap", inputs=imap)
-    ref = fuse(native, "dkf-rbfn", tmp_path / "ref.mcap", FusionConfig(outages=(GAP,)))
+    ref = fuse(native, "dkf-rbfn", tmp_path / "ref.mcap", FusionConfig.from_flat(outages=(GAP,)))
     assert res.outages == 1 and ref.predicted > GAP[1] / 2
     assert abs(res.predicted - ref.predicted) <= 3, (res.predicted, ref.predicted)
 
@@ -137,7 +137,7 @@ def test_lever_arm_from_tf_static(native, tmp_path):
     from fieldlog.tools.fuse import settings
 
     st = settings(drive)
-    assert st.sources["lever_arm_b"] == "/tf_static" and st.config.lever_arm_b == pytest.approx((-0.3, -0.8, 1.0))
+    assert st.sources["lever_arm_b"] == "/tf_static" and st.config.gps.lever_arm_b == pytest.approx((-0.3, -0.8, 1.0))
 
 
 def _rrd_geopoints(rrd: Path, entity: str) -> np.ndarray:
@@ -315,13 +315,13 @@ def test_config_input_table_and_named_lever_arm_frame(ros_drive, tmp_path, capsy
     assert "(default)" in text.out and "warning" not in text.err
     from fieldlog.fusion.engine import Engine
 
-    flu = Engine("kf", FusionConfig(lever_arm_b=(0.5, 0.0, 1.0), lever_arm_frame="flu")).lever
+    flu = Engine("kf", FusionConfig.from_flat(lever_arm_b=(0.5, 0.0, 1.0), lever_arm_frame="flu")).lever
     np.testing.assert_allclose(flu, [0.0, 0.5, 1.0])  # forward 0.5 m = RFU y
 
 
 def test_nan_is_never_written():
     """A solution row with NaN stops the run with Diverged (a ValueError: one line, exit 2)."""
-    from fieldlog.fusion.engine import Solution
+    from fieldlog.fusion.types import Solution
 
     bad = Solution(np.array([1, 2], np.int64), np.array([0.5, np.nan]), np.zeros(2), np.zeros(2),
                    np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.ones((2, 15)), np.zeros((2, 6)))
@@ -334,7 +334,7 @@ def test_printed_sigma_is_honest_and_the_solution_unchanged(native, tmp_path):
     correlated GPS error was counted), NEES near 3; the solution itself is the white-error filter's, unchanged."""
     out, white = tmp_path / "kf.mcap", tmp_path / "white.mcap"
     fuse(native, "kf", out)
-    fuse(native, "kf", white, FusionConfig(gps_error_tau_s=0.0))
+    fuse(native, "kf", white, FusionConfig.from_flat(gps_error_tau_s=0.0))
     c, w = consistency(native, out, "kf"), consistency(native, white, "kf")
     assert c["in3_e"] >= 0.9 and c["in3_n"] >= 0.9
     assert w["in3_n"] < 0.9 or w["in3_e"] < 0.9  # the filter's own P is overconfident: the test can fail
@@ -347,9 +347,9 @@ def test_gm_states_sigma_is_honest(native, tmp_path):
     """gps_error_model = "gm-states" (the GPS error as Gauss-Markov states, fusion.gpserror) on the default figure8
     drive: >= 90 % of kf's rows within 3 sigma on east and north and a NEES near 3 from the filter's own P (nothing
     added); the position error RMS within 20 % of the consider term's filter (same drive, same outage)."""
-    cfg = FusionConfig(outages=(GAP,))
+    cfg = FusionConfig.from_flat(outages=(GAP,))
     gm, con = tmp_path / "gm.mcap", tmp_path / "consider.mcap"
-    fuse(native, "kf", gm, dataclasses.replace(cfg, gps_error_model="gm-states"))
+    fuse(native, "kf", gm, cfg.replace(gps_error_model="gm-states"))
     fuse(native, "kf", con, cfg)
     c = consistency(native, gm, "kf")
     assert c["in3_e"] >= 0.9 and c["in3_n"] >= 0.9, c

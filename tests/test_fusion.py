@@ -7,7 +7,8 @@ import pytest
 
 from fieldlog.fusion import earth, errmodel, ins, kf
 from fieldlog.fusion.dkf import DistributedKF
-from fieldlog.fusion.engine import Engine, FusionConfig
+from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.engine import Engine
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
@@ -222,7 +223,7 @@ def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
     w = read_topic(drive, "/imu")["omega_ib_b"][:, 2]
     assert np.isclose(np.abs(w).max(), np.radians(20.0), rtol=1e-3)  # the drive does clip
     res = {}
-    for label, cfg in (("fixed", FusionConfig()), ("unaided", FusionConfig(gyro_range_dps=1e9, nhc=False,
+    for label, cfg in (("fixed", FusionConfig()), ("unaided", FusionConfig.from_flat(gyro_range_dps=1e9, nhc=False,
                                                                              zupt=False))):
         out = fuse(drive, "kf", tmp_path / f"{label}.mcap", cfg)
         res[label] = _errors(drive, out.path, "kf", (int(read_topic(drive, "/imu")["log_time_ns"][0] + 60e9),
@@ -236,7 +237,7 @@ def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
 def test_closed_loop_resets_and_keeps_covariance_spd(drive):
     from fieldlog.replay.reader import iter_blocks
     from fieldlog.replay.reader import IN_TOPICS, gps_block
-    from fieldlog.fusion.engine import ImuBlock
+    from fieldlog.fusion.types import ImuBlock
 
     for method in ("kf", "dkf"):
         eng = Engine(method, FusionConfig())
@@ -258,7 +259,7 @@ def test_closed_loop_resets_and_keeps_covariance_spd(drive):
 def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
     from fieldlog.fusion.output import Solution
     from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks
-    from fieldlog.fusion.engine import ImuBlock
+    from fieldlog.fusion.types import ImuBlock
 
     eng, parts = Engine(method, cfg), []
     for b in iter_blocks(drive, IN_TOPICS, block_s):
@@ -275,7 +276,7 @@ def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
 def test_the_solution_does_not_depend_on_the_block_length(drive, method):
     """Live replay hands the engine other blocks than fuse does: the rows must be the same. A block end must not
     cut a covariance cycle short: the tail waits for its cycle to end."""
-    cfg = FusionConfig(outages=(OUTAGE,))
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,))
     (a, ea), (b, eb) = (_fused_in_blocks(drive, method, s, cfg) for s in (10.0, 2.37))
     assert ea.updates == eb.updates > 100
     assert np.array_equal(a.t_ns, b.t_ns) and len(a.t_ns) > 1000
@@ -319,7 +320,7 @@ def test_the_gyro_consider_variance_changes_the_accel_bias_sigma_only(drive, tmp
     accelerometer-bias sigma (smoothed: its smoothed sensitivity's); the estimate, every other sigma and the
     position stay what the filter (the smoother) gives."""
     rows = {}
-    for name, cfg in (("with", FusionConfig()), ("without", FusionConfig(gyro_scale_factor_ppm=0.0,
+    for name, cfg in (("with", FusionConfig()), ("without", FusionConfig.from_flat(gyro_scale_factor_ppm=0.0,
                                                                          gyro_misalignment_mrad=0.0))):
         out = fuse(drive, "kf", tmp_path / f"{name}.mcap", cfg, smooth=smooth)
         rows[name] = [read_topic(out.path, f"/fusion/kf/{x}") for x in ("imu_bias", "fix", "std")]
@@ -347,7 +348,7 @@ def test_kf_and_dkf_with_gps(drive, tmp_path):
 
 
 def test_outage_drifts_less_than_free_ins(drive, tmp_path):
-    cfg = FusionConfig(outages=(OUTAGE,))
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,))
     t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
     win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
     res = {}
@@ -398,7 +399,7 @@ def test_foreign_drive_without_raw_or_truth_fuses(tmp_path):
             rec.write(ch.topic, m.log_time, m.data)
     assert {t.topic for t in reader.topics(foreign)} == {"/imu", "/gps/fix", "/gps/vel"}
     out = tmp_path / "fused.mcap"
-    cfg = FusionConfig(outages=((100.0, 20.0),))
+    cfg = FusionConfig.from_flat(outages=((100.0, 20.0),))
     res = fuse(foreign, "dkf", out, cfg)
     assert res.rows > 1000 and res.updates > 60 and res.outages == 1
     fix = reader.read_topic(out, "/fusion/dkf/fix")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion import earth, errmodel, hinf, ins, kf, ukf
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
@@ -122,15 +122,15 @@ def test_hinf_relative_gamma_policy_keeps_a_margin_over_the_bound():
 
 def test_hinf_small_gamma_rides_through_an_outage_with_the_relative_policy(drive, tmp_path):
     with pytest.raises(hinf.GammaTooSmall):
-        fuse(drive, "hinf", tmp_path / "fixed.mcap", FusionConfig(outages=(OUTAGE,), hinf_gamma=3.0,
+        fuse(drive, "hinf", tmp_path / "fixed.mcap", FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=3.0,
                                                                    hinf_min_ratio=0.0))
-    out = fuse(drive, "hinf", tmp_path / "auto.mcap", FusionConfig(outages=(OUTAGE,), hinf_gamma=3.0)).path
+    out = fuse(drive, "hinf", tmp_path / "auto.mcap", FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=3.0)).path
     fix = read_topic(out, "/fusion/hinf/fix")
     assert np.isfinite(fix["lat_deg"]).all() and fix["log_time_ns"][-1] - fix["log_time_ns"][0] > 100e9
 
 
 def test_hinf_with_huge_gamma_equals_the_kf_end_to_end(drive, tmp_path):
-    cfg = FusionConfig(outages=(OUTAGE,), hinf_gamma=1e12)
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=1e12)
     a = fuse(drive, "kf", tmp_path / "kf.mcap", cfg).path
     b = fuse(drive, "hinf", tmp_path / "hinf.mcap", cfg).path
     fa, fb = read_topic(a, "/fusion/kf/fix"), read_topic(b, "/fusion/hinf/fix")
@@ -253,7 +253,7 @@ def test_kf_ukf_through_fieldlog_fuse_with_an_outage(drive, tmp_path):
     out = tmp_path / "kf-ukf.mcap"
     spec = f"{OUTAGE[0]:g}:{OUTAGE[1]:g}"
     assert cli_main(["fuse", str(drive), "--method", "kf-ukf", "--outage", spec, "--out", str(out)]) == 0
-    ref = fuse(drive, "kf", tmp_path / "kf.mcap", FusionConfig(outages=(OUTAGE,))).path
+    ref = fuse(drive, "kf", tmp_path / "kf.mcap", FusionConfig.from_flat(outages=(OUTAGE,))).path
     t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
     su, sk = read_topic(out, "/fusion/kf-ukf/std"), read_topic(ref, "/fusion/kf/std")
     assert np.array_equal(su["log_time_ns"], sk["log_time_ns"])

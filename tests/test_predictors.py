@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_centres
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.evaluate import outage_errors
@@ -79,7 +79,7 @@ def study(tmp_path_factory):
     win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
     res, runs = {}, {}
     for m in ("dkf", "rbfn", "tdln", "dkf-rbfn"):
-        runs[m] = fuse(drive, m, d / f"{m}.mcap", FusionConfig(outages=(OUTAGE,)))
+        runs[m] = fuse(drive, m, d / f"{m}.mcap", FusionConfig.from_flat(outages=(OUTAGE,)))
         e = outage_errors(drive, runs[m].path, m, [win])
         res[m] = np.sqrt(np.mean(e[:, :6] ** 2, axis=0))
     print("30 s outage, RMS inside (2D m, E N U m, vE vN vU m/s): " + "; ".join(

@@ -108,7 +108,7 @@ def test_explicit_config_wins_and_bad_keys_are_named(aircraft, tmp_path, capsys)
     assert fieldlog(["fuse", str(aircraft), "--method", "ins", "--config", str(good), "--out", str(out)]) == 0
     cfg = read_metadata(out)["fusion"]["config"]
     assert "'gyro_noise_dps_rthz': 0.05" in cfg and "'lever_arm_b': (0.0, 1.0, 0.5)" in cfg and "'centres': 12" in cfg
-    assert drive_config(aircraft).gyro_noise_dps_rthz == 0.009722
+    assert drive_config(aircraft).sensor.gyro_noise_dps_rthz == 0.009722
     capsys.readouterr()
     bad = tmp_path / "bad.toml"
     for text, named in (("[fusion]\ngyro_nosie_dps_rthz = 0.05\n", "[fusion] gyro_nosie_dps_rthz: unknown key"),
@@ -144,7 +144,7 @@ def test_flight600_through_the_pipeline(tmp_path):
     meta = read_metadata(path)
     assert float(meta["drive"]["imu_rate_hz"]) == 100.0 and float(meta["drive"]["gps_rate_hz"]) == 1.0
     cfg = drive_config(path)   # the paper's initial errors, as the filter's initial sigmas
-    assert (cfg.init_vel_sigma_mps, cfg.init_level_sigma_deg, cfg.init_heading_sigma_deg) == (0.5, 2.0, 3.0)
+    assert (cfg.init.init_vel_sigma_mps, cfg.init.init_level_sigma_deg, cfg.init.init_heading_sigma_deg) == (0.5, 2.0, 3.0)
     # 150 m/s at 120 s: the speed survives RMC/VTG formatting
     vel = reader.read_topic(path, "/gps/vel")
     assert np.hypot(vel["v_n"][-1, 0], vel["v_n"][-1, 1]) == pytest.approx(150.0, abs=0.5)

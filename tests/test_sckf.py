@@ -10,7 +10,7 @@ import pytest
 from test_fusion import _errors
 
 from fieldlog.fusion import earth, errmodel, ins, kf, sckf, ukf
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate

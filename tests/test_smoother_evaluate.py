@@ -4,7 +4,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.evaluate import (
@@ -41,8 +41,8 @@ def test_smoother_shrinks_outage_error_and_does_no_harm_with_gps(drive, tmp_path
     whole = (t0 + int(60e9), t0 + int(DURATION * 1e9))
     res = {}
     gps_only = dict(nhc=False, zupt=False)  # the car constraints bridge a 30 s outage at GPS-noise level already
-    for label, cfg, w in (("outage", FusionConfig(outages=(OUTAGE,), **gps_only), win),
-                          ("aided", FusionConfig(outages=(OUTAGE,)), win), ("gps", FusionConfig(), whole)):
+    for label, cfg, w in (("outage", FusionConfig.from_flat(outages=(OUTAGE,), **gps_only), win),
+                          ("aided", FusionConfig.from_flat(outages=(OUTAGE,)), win), ("gps", FusionConfig(), whole)):
         for smooth in (False, True):
             out = fuse(drive, "kf", tmp_path / f"{label}{smooth}.mcap", cfg, smooth=smooth)
             res[label, smooth] = _rms(drive, out.path, "kf", w)
@@ -66,7 +66,7 @@ def test_smoothed_attitude_sigma_covers_the_error(drive, aids, tmp_path):
     tilt (phi E, N) and heading (phi U) within 3 sigma at >= 98 % of the rows, within 1 sigma at 40-97 %
     (68 % if honest) on tilt. With the gyro bias walk before the table2-mems change (2e-4 deg/s/sqrt(s)) north
     tilt was within 3 sigma at 93-96 %."""
-    out = fuse(drive, "kf", tmp_path / "s.mcap", FusionConfig(outages=(OUTAGE,), nhc=aids, zupt=aids), smooth=True)
+    out = fuse(drive, "kf", tmp_path / "s.mcap", FusionConfig.from_flat(outages=(OUTAGE,), nhc=aids, zupt=aids), smooth=True)
     t, phi, sd = attitude_errors(drive, out.path, "kf")
     z = np.abs(phi / sd)[(t - t[0]) * 1e-9 > 60.0]
     in1, in3 = np.mean(z <= 1.0, axis=0), np.mean(z <= 3.0, axis=0)

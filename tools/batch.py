@@ -27,14 +27,14 @@ import math
 import time
 import traceback
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
 
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import IN_TOPICS
 from fieldlog.tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
 from fieldlog.tools.fuse import drive_config, fuse
@@ -103,7 +103,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
         _, err = outage_error_series(drive, path, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
-        t_fix, good, t0 = fix_quality(drive, cfg.max_fix_sigma_m)
+        t_fix, good, t0 = fix_quality(drive, cfg.gps.max_fix_sigma_m)
         for L in lengths:
             win = place_outages(t_fix, good, L)
             win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
@@ -113,7 +113,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
                 path = fused_dir / f"{drive.stem}_{m}_{L:g}s.mcap"
-                res = fuse(drive, m, path, replace(cfg, outages=tuple(win)))
+                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)))
                 _, err = outage_error_series(drive, path, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows

@@ -217,8 +217,6 @@ def bench_grades(runs: int, tmp: Path) -> None:
     """Outage drift per IMU grade: figure8-tactical (780 s, 200 Hz, creeping pull-away) with the grade in the
     simulator and the filter, kf with aids off, two 60 s outages after 10 minutes of driving; standalone GPS for
     the MEMS grades, RTK for the others."""
-    from dataclasses import replace
-
     from fieldlog.fusion import imugrade
     from fieldlog.replay import reader
     from fieldlog.tools.evaluate import heading_at_starts, outage_error_series
@@ -233,7 +231,7 @@ def bench_grades(runs: int, tmp: Path) -> None:
                       f'[gps]\nquality = "{gps}"\n[fusion]\nimu = "{grade}"\n')
         drive, out = tmp / f"grade_{grade}.mcap", tmp / f"grade_{grade}_kf.mcap"
         simulate(str(sc), None, 1, drive)
-        fuse(drive, "kf", out, replace(drive_config(drive), outages=outages))
+        fuse(drive, "kf", out, drive_config(drive).replace(outages=outages))
         t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
         win = [(t0 + int(a * 1e9), t0 + int((a + n) * 1e9)) for a, n in outages]
         t, e = outage_error_series(drive, out, "kf", win)
@@ -617,7 +615,7 @@ def bench_qerr(runs: int, tmp: Path) -> None:
 
 def bench_view(runs: int, tmp: Path) -> None:
     """A 1-hour 500 Hz drive plus one fused method (kf) to .rrd (target <= 10 s), and the file size."""
-    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.fusion.config import FusionConfig
     from fieldlog.replay.view import view
     from fieldlog.tools.fuse import fuse
 

@@ -39,7 +39,7 @@ import numpy as np
 import polars as pl
 
 from fieldlog.fusion import earth
-from fieldlog.fusion.engine import METHODS, FusionConfig
+from fieldlog.fusion.config import METHODS, FusionConfig
 from fieldlog.replay import reader
 from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
@@ -416,7 +416,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         if paper:
             base = paper_config(base)
         imap = resolve_inputs(drive, spec)
-        t_fix, good, t0 = fix_quality(drive, base.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
+        t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
             if not win:
@@ -424,7 +424,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 done += len(runs)
                 continue
             win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
-            cfg = replace(base, outages=tuple(win))
+            cfg = base.replace(outages=tuple(win))
             for m, sm in runs:
                 name = m + ("+rts" if sm else "")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
@@ -496,8 +496,8 @@ def heading_markdown(heading: pl.DataFrame) -> str:
 
 def aids_note(cfg: FusionConfig) -> str:
     """One line on the vehicle-motion aids the filters used (they need no GPS, so they act in the outages)."""
-    on = [n for n, flag in (("non-holonomic constraint (NHC)", cfg.nhc), ("ZUPT + zero-rate update when stopped",
-                                                                          cfg.zupt)) if flag]
+    on = [n for n, flag in (("non-holonomic constraint (NHC)", cfg.aids.nhc), ("ZUPT + zero-rate update when stopped",
+                                                                          cfg.aids.zupt)) if flag]
     if not on:
         return "Vehicle constraints: none (GPS-only filters, as in the paper)."
     return (f"Vehicle constraints: {' and '.join(on)} at every GPS epoch time, in the outages too, for every method "
@@ -558,7 +558,7 @@ PAPER_CLAIMS = (("dkf-rbfn", "rbfn", "hybrid < RBFN"), ("dkf-rbfn", "tdln", "hyb
 def paper_config(cfg: FusionConfig) -> FusionConfig:
     """The paper's set-up on a drive's config: GPS only (no vehicle aids), its distributed filter (eqs. 3-4), the
     networks trained in real time."""
-    return replace(cfg, nhc=False, zupt=False, dkf_fusion="paper",
+    return cfg.replace(nhc=False, zupt=False, dkf_fusion="paper",
                    predictor=replace(cfg.predictor, training="online"))
 
 

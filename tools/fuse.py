@@ -4,7 +4,7 @@ Streams the drive in blocks (``replay.reader.iter_blocks``: vectorised decode, n
 IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md:
 
 - ``/fusion/<method>/fix`` NavSatFix: position, covariance ENU m^2 (diagonal known); 10 Hz by default
-  (``FusionConfig.output_hz``), stamped with the IMU sample time of the state;
+  (``[fusion] output_hz``), stamped with the IMU sample time of the state;
 - ``/fusion/<method>/vel`` TwistWithCovarianceStamped: ENU velocity, its variances in the covariance;
 - ``/fusion/<method>/attitude`` QuaternionStamped: C_bn (body RFU -> ENU), x, y, z, w;
 - ``/fusion/<method>/std`` Vector3Stamped: position sigma E, N, U in m;
@@ -41,19 +41,20 @@ from __future__ import annotations
 import ast
 import math
 import os
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from fieldlog.acquire import calib, frames, messages
-from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_table
+from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
 from fieldlog.fusion import imugrade
-from fieldlog.fusion.dkf import FUSIONS
-from fieldlog.fusion.engine import GPS_ERROR_MODELS, Engine, FusionConfig, Solution
+from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
+from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
@@ -102,37 +103,22 @@ def parse_outage(text: str) -> tuple[float, float]:
 
 
 def fusion_config(table: dict[str, Any]) -> FusionConfig:
-    """``FusionConfig`` from a ``[fusion]`` table (``acquire.config.typed_table``); a bad key or value raises
+    """``FusionConfig`` from a ``[fusion]`` table of flat keys (``fusion.config``), each value converted by
+    ``acquire.config.typed_value`` and the whole checked by ``FusionConfig.validate``; a bad key or value raises
     ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
     try:
         table = imugrade.settings(table)
     except ValueError as e:
         raise ConfigError(f"[fusion] {e}") from None
-    cfg = typed_table(FusionConfig, "fusion", table)
-    if cfg.lever_arm_frame.lower() not in ("rfu", "flu", "frd"):
-        raise ConfigError(f"[fusion] lever_arm_frame: one of rfu, flu, frd, got {cfg.lever_arm_frame!r}")
-    for key in ("output_hz", "cov_step_s"):
-        if not getattr(cfg, key) > 0:
-            raise ConfigError(f"[fusion] {key}: must be > 0")
-    if cfg.dkf_fusion not in FUSIONS:
-        raise ConfigError(f"[fusion] dkf_fusion: {cfg.dkf_fusion!r}; one of {', '.join(FUSIONS)}")
-    for key in ("init_attitude_deg", "init_position_llh", "init_velocity_enu"):
-        v = getattr(cfg, key)
-        if v and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
-            raise ConfigError(f"[fusion] {key}: expected 3 finite numbers, got {list(v)!r}")
-    if cfg.init_position_llh and not cfg.init_attitude_deg:
-        raise ConfigError("[fusion] init_position_llh: a configured start needs init_attitude_deg too")
-    if cfg.init_velocity_enu and not cfg.init_position_llh:
-        raise ConfigError("[fusion] init_velocity_enu: only with init_position_llh (the configured start)")
-    for key in ("init_position_sigma_m", "init_vel_sigma_mps", "init_level_sigma_deg", "init_heading_sigma_deg"):
-        if not getattr(cfg, key) > 0:
-            raise ConfigError(f"[fusion] {key}: must be > 0")
-    if cfg.gps_error_model not in GPS_ERROR_MODELS:
-        raise ConfigError(f"[fusion] gps_error_model: {cfg.gps_error_model!r}; one of {', '.join(GPS_ERROR_MODELS)}")
-    for i, o in enumerate(cfg.outages):
-        if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
-            raise ConfigError(f"[fusion] outages[{i}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")
-    return cfg
+    bad = sorted(set(table) - set(known_keys()))
+    if bad:
+        raise ConfigError(f"[fusion] {', '.join(bad)}: unknown key; known keys: {', '.join(sorted(known_keys()))}")
+    defaults = FusionConfig()
+    try:
+        return FusionConfig.from_flat(**{k: typed_value("fusion", k, v, defaults.get(k))
+                                         for k, v in table.items()}).validate()
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def load_fusion_config(path: str | os.PathLike[str]) -> FusionConfig:
@@ -182,7 +168,7 @@ class Settings:
         out = [self.inputs.describe()]
         groups: dict[str, list[str]] = {}
         for k, src in self.sources.items():
-            groups.setdefault(src, []).append(f"{k}={_show(getattr(self.config, k))}")
+            groups.setdefault(src, []).append(f"{k}={_show(self.config.get(k))}")
         for src in sorted(groups, key=lambda x: x == "default"):
             out.append(f"fusion settings ({src}): " + ", ".join(groups[src]))
         defaulted = [k for k in SENSOR_KEYS if self.sources[k] == "default"]
@@ -220,13 +206,13 @@ def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None
         where = f"--config {config_path}"
     cfg = fusion_config(table)
     given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
-    sources = {f: (where if f in given else "default") for f in asdict(FusionConfig()) if f != "predictor"}
+    sources = {f: (where if f in given else "default") for f in FLAT_KEYS}
     sources["predictor"] = where if "predictor" in given else "default"
     if "lever_arm_b" not in given and imap.lever_arm_b is not None:
-        cfg = replace(cfg, lever_arm_b=tuple(float(x) for x in imap.lever_arm_b), lever_arm_frame="rfu")
+        cfg = cfg.replace(lever_arm_b=tuple(float(x) for x in imap.lever_arm_b), lever_arm_frame="rfu")
         sources["lever_arm_b"] = sources["lever_arm_frame"] = inputs_mod.TF_STATIC
     if outages:
-        cfg = replace(cfg, outages=tuple(outages))
+        cfg = cfg.replace(outages=tuple(outages))
         sources["outages"] = "--outage"
     return Settings(cfg, imap, sources)
 
@@ -360,7 +346,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     t_last = max(t.last_ns for t in span)
     rows = outages = 0
     stream = InputStream(drive, imap, BLOCK_S)
-    meta = {"source": label(drive), "method": method, "config": repr(asdict(cfg)), "smooth": "rts" if smooth else "no",
+    meta = {"source": label(drive), "method": method, "config": repr(cfg.flat()), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
                                                                       "imu_frame"))}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:

@@ -48,13 +48,13 @@ def screenshot_blueprint(zoom: float | None = None) -> rrb.Blueprint:
 
 def demo_recording(work: Path, duration_s: float) -> Path:
     """Simulate, fuse dkf-rbfn with a 30 s outage at 180 s, write ``work/viewer.rrd``."""
-    from fieldlog.fusion.engine import FusionConfig
+    from fieldlog.fusion.config import FusionConfig
     from fieldlog.tools.fuse import fuse, parse_outage
     from fieldlog.tools.sim.simulate import simulate
 
     drive, fused, rrd = work / "figure8.mcap", work / "dkf-rbfn.mcap", work / "viewer.rrd"
     simulate("figure8", duration_s, 1, drive)
-    fuse(drive, "dkf-rbfn", fused, FusionConfig(outages=(parse_outage("180:30"),)))
+    fuse(drive, "dkf-rbfn", fused, FusionConfig.from_flat(outages=(parse_outage("180:30"),)))
     fix = reader.read_topic(drive, "/gps/fix")
     ok = fix["valid"] & (fix["status"] >= 0)
     rec = rr.RecordingStream("fieldlog")

@@ -29,14 +29,14 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import polars as pl
 
-from fieldlog.fusion.engine import FusionConfig
+from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import reader
 from fieldlog.tools.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import FuseResult, drive_config, fuse
@@ -183,7 +183,7 @@ def study_kf_ukf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) 
     for drive in drives:
         base = drive_config(drive)
         for L in UKF_LENGTHS:
-            cfg = replace(base, outages=((UKF_OUTAGE_START_S, L),))
+            cfg = base.replace(outages=((UKF_OUTAGE_START_S, L),))
             back = UKF_OUTAGE_START_S + L
             for m in ("kf", "kf-ukf"):
                 r = run(drive, m, f"{m}_{L:g}s", cfg, work / "fused", (0.0, duration))
@@ -515,8 +515,8 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
         base = drive_config(drive)
         for m, g in [("kf", None)] + [("hinf", g) for g in HINF_GAMMAS] + [("hinf", "fixed")]:
             label = m if g is None else f"hinf γ={g:g}" if g != "fixed" else f"hinf γ={HINF_PAPER_GAMMA:g} fixed"
-            cfg = (base if g is None else replace(base, hinf_gamma=g) if g != "fixed" else
-                   replace(base, hinf_gamma=HINF_PAPER_GAMMA, hinf_min_ratio=HINF_FIXED_RATIO))
+            cfg = (base if g is None else base.replace(hinf_gamma=g) if g != "fixed" else
+                   base.replace(hinf_gamma=HINF_PAPER_GAMMA, hinf_min_ratio=HINF_FIXED_RATIO))
             r = run(drive, m, label, cfg, work / "fused", (HINF_SETTLE_S, duration))
             if m == "hinf":
                 raised[label] = raised.get(label, 0) + r.fused.gamma_raised
