@@ -27,7 +27,8 @@ standard baud rate``.
     [timesync]                  # acquire/timesync.py TimeSyncConfig keys, e.g. pps_mode = "latch"
                                 # (host_time_scale / --time-scale X: for `sim --serve --speed X` playback only)
     [output]
-    dir = "drives"              # files are DIR/<session start UTC>_<NNNN>.mcap, e.g. 2026-11-22T10-15-00Z_0001.mcap
+    dir = "drives"              # a session is the rosbag2 directory DIR/<session start UTC>/ (metadata.yaml) of
+                                # files <session start UTC>_<NNNN>.mcap, e.g. 2026-11-22T10-15-00Z_0001.mcap
     [rotation]
     max_duration_s = 3600.0     # start the next file after this much host time (0: never)
     max_size_mb = 2048.0        # ... or once the file is this big (0: never)
@@ -394,8 +395,13 @@ def validate(c: AcquireConfig) -> None:
         raise ConfigError(msg if msg.startswith("[timesync]") else f"[timesync]: {msg}") from None
 
 
-def file_name(session_start_wall_ns: int, index: int) -> str:
-    """``2026-11-22T10-15-00Z_0001.mcap``: the session's start (host wall clock, UTC) and the file's number
-    in the session (1, 2, ... as files rotate), so a session's files sort together and in order."""
+def session_name(session_start_wall_ns: int) -> str:
+    """``2026-11-22T10-15-00Z``: the session's start (host wall clock, UTC); the session's directory."""
     t = _dt.datetime.fromtimestamp(session_start_wall_ns / 1e9, _dt.timezone.utc)
-    return f"{t.strftime(NAME_FORMAT)}_{index:04d}.mcap"
+    return t.strftime(NAME_FORMAT)
+
+
+def file_name(session_start_wall_ns: int, index: int) -> str:
+    """``2026-11-22T10-15-00Z_0001.mcap``: the session's start and the file's number in the session (1, 2, ...
+    as files rotate), so a session's files sort together and in order."""
+    return f"{session_name(session_start_wall_ns)}_{index:04d}.mcap"

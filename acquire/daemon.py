@@ -29,13 +29,18 @@ message and exit code 1; the file keeps every chunk flushed before (``fieldlog r
 rescues it if the summary could not be written).
 SIGINT/SIGTERM finish the file (summary and index) and exit 0.
 
-Files. ``DIR/<session start UTC>_<NNNN>.mcap`` (``config.file_name``). One Pipeline runs for the whole
+Files. A session is a rosbag2 directory, ``DIR/<session start UTC>/`` (``config.session_name``; ``-2``, ``-3``
+appended if a session of the same second exists) of ``<session start UTC>_<NNNN>.mcap`` files
+(``config.file_name``) and the ``metadata.yaml`` that lists the closed ones, written again at each rotation
+and on close (``acquire/bagdir.py``), so ``ros2 bag info/play DIR/<session>`` and rosbags open it. One
+Pipeline runs for the whole
 session and its sink switches files on rotation (by host time since the file was opened or by size), so
 decoder and time-sync state carry over: the raw bytes are split between files at a read boundary, and the
 derived topics go to the file open when they become final (``/imu`` lags ``/raw/daq`` by about half the
 time-sync window). Each file carries the ``drive``, ``calibration`` and ``timesync`` metadata, and at close
-the session's cumulative ``acquire.counters``. On start, files in DIR without a summary (a crash or power
-loss) are recovered to ``NAME.recovered.mcap`` next to the untouched original.
+the session's cumulative ``acquire.counters``. On start, files in DIR and its session directories without a
+summary (a crash or power loss) are recovered to ``NAME.recovered.mcap`` next to the untouched original, and
+that session's ``metadata.yaml`` is written again with the recovered file in the cut one's place.
 
 Live bus (``[daemon] bus``). Every derived message is published when it is written to the file (final
 stamps), and, while a client is connected, each read's DAQ frames are published at once as a provisional
@@ -62,8 +67,8 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import calib, messages, nmea, recorder, recovery, timesync
-from fieldlog.acquire.config import AcquireConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name
+from fieldlog.acquire import bagdir, calib, messages, nmea, recorder, recovery, timesync
+from fieldlog.acquire.config import AcquireConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name, session_name
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 
@@ -233,6 +238,7 @@ class RotatingSink:
         self.index = 0
         self.opened_mono = 0.0
         self.files: list[Path] = []
+        self.closed: list[bagdir.FileInfo] = []      # what metadata.yaml lists
         self.last_sync: bytes | None = None
         self.last_gga: bytes | None = None
 
@@ -255,6 +261,8 @@ class RotatingSink:
         for name, d in (closing or {}).items():
             rec.add_metadata(name, d)
         rec.close()
+        self.closed.append(bagdir.file_info(rec.path))
+        bagdir.write_metadata(self.out_dir, self.closed, fsync=self.rcfg.fsync)
         return rec.path
 
     @property
@@ -461,12 +469,13 @@ def is_finished(path: Path) -> bool:
 
 
 def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[Path, Path]]:
-    """Recover every unfinished ``*.mcap`` in ``out_dir`` (no summary) into ``NAME.recovered.mcap`` next to
-    it, once (``recovery.recover_drive``: the complete chunks and the re-derived tail); the original is left as
-    it is. A recovery that fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next
-    start tries again. Returns (original, recovered) pairs."""
+    """Recover every unfinished ``*.mcap`` in ``out_dir`` and its session directories (no summary) into
+    ``NAME.recovered.mcap`` next to it, once (``recovery.recover_drive``: the complete chunks and the re-derived
+    tail); the original is left as it is, and a session's ``metadata.yaml`` is written again. A recovery that
+    fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next start tries again.
+    Returns (original, recovered) pairs."""
     done = []
-    for p in sorted(out_dir.glob("*.mcap")):
+    for p in sorted([*out_dir.glob("*.mcap"), *out_dir.glob("*/*.mcap")]):
         if p.name.endswith(".recovered.mcap") or is_finished(p):
             continue
         dst = p.with_name(p.stem + ".recovered.mcap")
@@ -484,7 +493,22 @@ def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[
             f"{rep.bytes_discarded} bytes after the last complete chunk discarded, {tail} tail messages "
             f"re-derived from the raw reads")
         done.append((p, dst))
+        if p.parent != out_dir:              # a session directory
+            bagdir.rewrite_metadata(p.parent)
     return done
+
+
+def make_session_dir(out_dir: Path, session_wall_ns: int) -> Path:
+    """``out_dir/<session start>``, new (``-2``, ``-3``, ... appended while that name is taken)."""
+    name = session_name(session_wall_ns)
+    for n in range(1, 1000):
+        d = out_dir / (name if n == 1 else f"{name}-{n}")
+        try:
+            d.mkdir()
+            return d
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{out_dir}: no free session directory name for {name}")
 
 
 class Daemon:
@@ -538,7 +562,8 @@ class Daemon:
         recover_unfinished(self.out_dir, self.log)
         if self.cfg.daemon.bus:
             self.bus = BusServer(self.cfg.daemon.bus)
-        self.sink = RotatingSink(self.out_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
+        self.session_dir = make_session_dir(self.out_dir, self.session_wall_ns)
+        self.sink = RotatingSink(self.session_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
                                  self.bus.publish if self.bus else None)
         self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol))
         if self.bus is not None:

@@ -14,10 +14,10 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence, Union
 
+from fieldlog.acquire.bagdir import METADATA, RECOVERED, session_files
 from fieldlog.replay.mcapfile import McapFile
 
 DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
-RECOVERED = ".recovered.mcap"
 _OPEN: "OrderedDict[tuple, McapFile]" = OrderedDict()  # recently opened files, by path and version
 _OPEN_MAX = 64
 
@@ -26,9 +26,9 @@ def _rosbag2_files(d: Path) -> list[Path]:
     import yaml
 
     try:
-        meta = yaml.safe_load((d / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        meta = yaml.safe_load((d / METADATA).read_text())["rosbag2_bagfile_information"]
     except (OSError, yaml.YAMLError, KeyError, TypeError) as e:
-        raise ValueError(f"{d / 'metadata.yaml'}: not a rosbag2 metadata file ({e})") from None
+        raise ValueError(f"{d / METADATA}: not a rosbag2 metadata file ({e})") from None
     storage = meta.get("storage_identifier", "mcap")
     if storage != "mcap":
         raise ValueError(f"{d}: rosbag2 storage {storage!r}; only mcap is read (ros2 bag convert it to mcap)")
@@ -39,14 +39,14 @@ def _rosbag2_files(d: Path) -> list[Path]:
 def _dir_files(d: Path) -> list[Path]:
     """A directory's files (a rosbag2's in its metadata order, else ``*.mcap`` by name), each ``NAME.mcap``
     replaced by ``NAME.recovered.mcap`` when that is there."""
-    if (d / "metadata.yaml").is_file():
-        files = _rosbag2_files(d)
+    if not (d / METADATA).is_file():
+        files = session_files(d)
     else:
-        files = sorted({f.with_name(f.name[: -len(RECOVERED)] + ".mcap") if f.name.endswith(RECOVERED) else f
-                        for f in d.glob("*.mcap")})
+        files = [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f
+                 for f in _rosbag2_files(d)]
     if not files:
         raise FileNotFoundError(f"{d}: no .mcap files in the directory")
-    return [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f for f in files]
+    return files
 
 
 def drive_files(spec: DriveSpec) -> list[Path]:

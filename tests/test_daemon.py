@@ -76,7 +76,7 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     d.send_signal(signal.SIGTERM)
     assert d.wait(30) == 0, d.stderr.read()
     client.join(10)
-    files = sorted((tmp_path / "drives").glob("*.mcap"))
+    files = sorted((tmp_path / "drives").glob("*/*.mcap"))
     assert len(files) >= 2 and all(is_finished(f) for f in files)
     metas = [read_metadata(f) for f in files]
     assert [m["drive"]["previous_file"] for m in metas] == [""] + [f.name for f in files[:-1]]
@@ -129,7 +129,7 @@ def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
         kill_mono = time.monotonic_ns()
         d.send_signal(signal.SIGKILL)
         d.wait(10)
-        (cut,) = sorted(out.glob("*.mcap"))
+        (cut,) = sorted(out.glob("*/*.mcap"))
         assert not is_finished(cut)
         r = run("recover", str(cut), "--out", str(tmp_path / "rescued.mcap"))
         assert r.returncode == 0, r.stderr
@@ -148,7 +148,7 @@ def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
     rec = cut.with_name(cut.stem + ".recovered.mcap")
     assert is_finished(rec) and not is_finished(cut)
     assert len(raw_stream(rec, "daq")[1]) == len(mono)
-    new = [p for p in out.glob("*.mcap") if p not in (cut, rec)]
+    new = [p for p in out.glob("*/*.mcap") if p not in (cut, rec)]
     assert len(new) == 1 and is_finished(new[0])
     assert reader.read_topic(new[0], "/raw/daq")["log_time_ns"].size > 0
 

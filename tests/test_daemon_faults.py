@@ -50,7 +50,7 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int, daemon_
     d.send_signal(signal.SIGTERM)
     code, log = d.wait(30), d.stderr.read()
     assert code == 0, log
-    (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
+    (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     assert is_finished(f)
     return f, truth, log
 
@@ -199,7 +199,7 @@ def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -
     assert code == 1, log
     assert "Traceback" not in log and "Exception" not in log
     (err,) = [line for line in log.splitlines() if "error:" in line]
-    (f,) = sorted(out.glob("*.mcap"))
+    (f,) = sorted(out.glob("*/*.mcap"))
     assert f"file size limit (EFBIG) writing {f}: recording stopped" in err and "fieldlog recover" in err
     assert not is_finished(f) and f.stat().st_size <= limit
     r = run("recover", str(f), "--out", str(tmp_path / "rescued.mcap"))

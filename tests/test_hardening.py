@@ -145,7 +145,7 @@ def test_daemon_records_on_through_hostile_sentences_over_a_pty(tmp_path: Path) 
         sizes = []                   # file size every 0.25 s while streaming (the hostile read goes at 1 s)
         while t.is_alive() and not srv.completed and d.poll() is None:
             t.join(0.25)
-            files = list((tmp_path / "drives").glob("*.mcap"))
+            files = list((tmp_path / "drives").glob("*/*.mcap"))
             sizes.append(files[0].stat().st_size if files else 0)
         while d.poll() is None and (len(sizes) < 8 or sizes[-1] != sizes[-8]):   # until it has caught up (2 s)
             time.sleep(0.25)
@@ -159,7 +159,7 @@ def test_daemon_records_on_through_hostile_sentences_over_a_pty(tmp_path: Path) 
     code, log = d.wait(30), d.stderr.read()
     assert code == 0 and "Traceback" not in log, log
     assert len(sizes) >= 12 and sizes[-1] > sizes[7] > 0         # the file kept growing after mid-drive
-    (f,) = (tmp_path / "drives").glob("*.mcap")
+    (f,) = (tmp_path / "drives").glob("*/*.mcap")
     c = read_metadata(f)["acquire.counters"]
     assert c["processing_errors"] == "0" and int(c["nmea.bad_fields"]) >= 4
     imu = reader.read_topic(f, "/imu")["log_time_ns"]
@@ -389,7 +389,7 @@ def test_recover_after_kill9_gives_imu_to_the_cut_and_a_full_disk_leaves_the_ori
     finally:
         serve.send_signal(signal.SIGTERM)
         serve.wait(10)
-    (cut,) = sorted(out.glob("*.mcap"))
+    (cut,) = sorted(out.glob("*/*.mcap"))
     before = cut.read_bytes()
     plain = tmp_path / "plain.mcap"
     recorder.recover(cut, plain)                                     # the chunks alone

@@ -69,7 +69,7 @@ def test_provisional_imu_arrives_at_once_close_to_truth_on_a_local_only_socket(t
     assert d.wait(30) == 0, d.stderr.read()
     for c in clients:
         c.join(20)
-    (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
+    (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     imu = reader.read_topic(f, "/imu")
     tru = reader.read_topic(truth, "/truth/imu")
     n = len(imu["log_time_ns"])

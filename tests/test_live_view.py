@@ -53,7 +53,7 @@ def test_acquire_view_live_to_rrd(tmp_path: Path) -> None:
 
     assert "1 file verified without error" in _rerun("verify", str(rrd))
     rows = _rows(_rerun("print", str(rrd)))
-    (drive,) = sorted(out.glob("*.mcap"))
+    (drive,) = sorted(out.glob("*/*.mcap"))
     n_imu = int(reader.read_topic(drive, "/imu")["valid"].sum())
     assert n_imu == DURATION_S * 500
     # the view fuses the bus's provisional /imu (stamped at once by the causal fit), which starts at the

@@ -340,7 +340,7 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
         d.returncode = os.waitstatus_to_exitcode(status)
         cpu = usage.ru_utime + usage.ru_stime
         sent = read_metadata(truth)["serve"]
-        files = sorted(out.glob("*.mcap"))
+        files = sorted(out.glob("*/*.mcap"))
         counters = read_metadata(files[-1])["acquire.counters"]
         imu = np.concatenate([reader.read_topic(f, "/imu")["log_time_ns"] for f in files])
         state = np.concatenate([reader.read_topic(f, "/time/sync")["state"] for f in files])
@@ -409,7 +409,7 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     _, status, usage = os.wait4(d.pid, 0)
     wall = time.monotonic() - t0
     sent = read_metadata(truth)["serve"]
-    files = sorted(out.glob("*.mcap"))
+    files = sorted(out.glob("*/*.mcap"))
     c = read_metadata(files[-1])["acquire.counters"]
     # what the ports delivered: the simulated streams, corrupted as served, minus the unplugs' byte ranges
     clean = simulated_streams(sent)
@@ -519,7 +519,7 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
           f"   target median <= 50 ms; daemon CPU {100 * cpu / duration_s:.1f} % of one core")
     row("live bus: serial read to client, IMU block latency median / p95 [bus]",
         f"{np.median(lat):.2f} ms / {np.percentile(lat, 95):.1f} ms", "≤ 50 ms median")
-    (f,) = sorted(out.glob("*.mcap"))
+    (f,) = sorted(out.glob("*/*.mcap"))
     final = reader.read_topic(f, "/imu")["log_time_ns"]
     tru = reader.read_topic(truth, "/truth/imu")["log_time_ns"]
     t = np.concatenate([b.log_time_ns for b in prov])

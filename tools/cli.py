@@ -128,7 +128,10 @@ def cmd_acquire(a: argparse.Namespace) -> int:
 def cmd_recover(a: argparse.Namespace) -> int:
     """One file: recovered whatever it is. A session or rosbag2 directory, or several files: each cut-short file,
     and each complete one with a damaged chunk (every chunk's CRC checked), recovered next to it (the drive then
-    reads NAME.recovered.mcap in its place), the complete and sound ones left."""
+    reads NAME.recovered.mcap in its place), the complete and sound ones left. A directory's every MCAP file on
+    disk is looked at (a session's metadata.yaml lists only the files closed before a crash), and its
+    metadata.yaml is written again when a file was recovered or there was none."""
+    from fieldlog.acquire.bagdir import METADATA, rewrite_metadata, session_files
     from fieldlog.replay.drive import RECOVERED, drive_files
     from fieldlog.replay.mcapfile import McapFile, TruncatedError
 
@@ -137,20 +140,26 @@ def cmd_recover(a: argparse.Namespace) -> int:
     if a.out:
         raise ValueError(f"{' '.join(a.drive)}: --out takes one damaged file; a drive of several files is recovered "
                          f"next to them (NAME{RECOVERED})")
-    for src in drive_files(a.drive):
-        if src.name.endswith(RECOVERED):
-            print(f"{src}: recovered already")
-            continue
-        try:
-            damaged = McapFile(src).damaged()
-        except TruncatedError:
-            _recover_one(src, None)
-            continue
-        if damaged:
-            print(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
-            _recover_one(src, None)
-        else:
-            print(f"{src}: complete, nothing to recover")
+    for spec in a.drive:
+        d = Path(spec)
+        recovered = False
+        for src in session_files(d) if d.is_dir() else drive_files(spec):
+            if src.name.endswith(RECOVERED):
+                print(f"{src}: recovered already")
+                continue
+            try:
+                damaged = McapFile(src).damaged()
+            except TruncatedError:
+                recovered = _recover_one(src, None) == 0 or recovered
+                continue
+            if damaged:
+                print(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
+                recovered = _recover_one(src, None) == 0 or recovered
+            else:
+                print(f"{src}: complete, nothing to recover")
+        if d.is_dir() and (recovered or not (d / METADATA).exists()):
+            meta, left = rewrite_metadata(d)
+            print(f"wrote {meta}" + (f" (left out, no summary: {', '.join(str(f) for f in left)})" if left else ""))
     return 0
 
 
@@ -184,14 +193,39 @@ def cmd_info(a: argparse.Namespace) -> int:
     return 0
 
 
+def add_out_args(s: argparse.ArgumentParser) -> None:
+    """--out, and --bag to make it a one-file rosbag2 directory (acquire/bagdir.py)."""
+    s.add_argument("--out", required=True, help="output MCAP (with --bag: the rosbag2 directory)")
+    s.add_argument("--bag", action="store_true",
+                   help="write --out as a rosbag2 directory: OUT/OUT.mcap and its metadata.yaml, which `ros2 bag "
+                        "info/play` and rosbags open (default: one MCAP file)")
+
+
+def out_file(a: argparse.Namespace) -> Path:
+    """The MCAP file to write: --out, or with --bag the one file of the rosbag2 directory --out."""
+    from fieldlog.acquire.bagdir import bag_file
+
+    return bag_file(Path(a.out)) if a.bag else Path(a.out)
+
+
+def finish_out(a: argparse.Namespace, path: Path) -> None:
+    """With --bag: the directory's metadata.yaml for the file just written."""
+    if a.bag:
+        from fieldlog.acquire.bagdir import write_bag_metadata
+
+        print(f"wrote {write_bag_metadata(path)}")
+
+
 def cmd_filter(a: argparse.Namespace) -> int:
     from fieldlog.tools.filter import filter_drive
 
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
-    res = filter_drive(drive_arg(a.drive), a.out, a.start, a.end, topics, progress=Progress("filter"))
+    out = out_file(a)
+    res = filter_drive(drive_arg(a.drive), out, a.start, a.end, topics, progress=Progress("filter"))
     print(f"wrote {res.path.resolve()}: {sum(res.messages.values())} messages from {res.start_ns} to {res.end_ns} ns")
     for topic, n in res.messages.items():
         print(f"  {topic:<24} {n}")
+    finish_out(a, out)
     return 0
 
 
@@ -228,8 +262,10 @@ def cmd_import(a: argparse.Namespace) -> int:
 def cmd_rebuild(a: argparse.Namespace) -> int:
     from fieldlog.tools.rebuild import rebuild
 
-    res = rebuild(drive_arg(a.drive), a.out, calibration=a.calib, progress=Progress("rebuild"))
-    print(f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
+    out = out_file(a)
+    res = rebuild(drive_arg(a.drive), out, calibration=a.calib, progress=Progress("rebuild"))
+    print(f"wrote {out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
+    finish_out(a, out)
     return 0
 
 
@@ -271,7 +307,8 @@ def cmd_fuse(a: argparse.Namespace) -> int:
         else:
             print(line)
     t0 = time.monotonic()
-    res = fuse(drive, a.method, a.out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+    out = out_file(a)
+    res = fuse(drive, a.method, out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                inputs=st.inputs)
     print(f"wrote {res.path}: {res.rows} solutions from {res.imu_samples} IMU samples ({res.imu_rate_hz:.0f} Hz, "
           f"{res.imu_gaps} gaps bridged, {res.imu_missing} samples missing), {res.updates} GPS updates, "
@@ -284,6 +321,7 @@ def cmd_fuse(a: argparse.Namespace) -> int:
               file=sys.stderr)
     if res.rows == 0 and a.method != "ins":
         print(f"fieldlog fuse: warning: {NO_ALIGNMENT}", file=sys.stderr)
+    finish_out(a, out)
     return 0
 
 
@@ -609,7 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topics", default=None, metavar="T,...",
                    help="comma separated topics or shell patterns, e.g. '/imu,/gps/*' (default: all; /tf_static is "
                         "always kept)")
-    s.add_argument("--out", required=True, help="output MCAP")
+    add_out_args(s)
     s.set_defaults(func=cmd_filter)
 
     s = sub.add_parser("import", help="build a drive from raw captures made elsewhere")
@@ -632,7 +670,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("rebuild", help="re-derive every topic from /raw/*")
     s.add_argument("drive", nargs="+", help=DRIVE_HELP)
-    s.add_argument("--out", required=True, help="output MCAP")
+    add_out_args(s)
     s.add_argument("--calib", default=None, help="calibration TOML (default: the one stored in the drive)")
     s.set_defaults(func=cmd_rebuild)
 
@@ -647,7 +685,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help="force a GPS outage, seconds from the first IMU sample (repeatable; default: none)")
-    s.add_argument("--out", required=True, help="output MCAP")
+    add_out_args(s)
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
     s.add_argument("--config", default=None, metavar="FILE",

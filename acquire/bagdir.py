@@ -1,0 +1,163 @@
+"""rosbag2 directories: ``metadata.yaml`` next to MCAP files, so a session or an output opens as a bag.
+
+``ros2 bag info/play`` and rosbags' ``Reader`` open a directory through its ``metadata.yaml``
+(``rosbag2_bagfile_information``, version 9 as rosbag2 Jazzy writes it): the storage (``mcap``), the files in
+order (``relative_file_paths``, and ``files`` with each file's start, duration and message count), every
+topic with its type, serialization format (``cdr``), offered QoS and message count, and the bag's start,
+duration and message total. rosbags matches a topic of the metadata with the MCAP channel by topic, type,
+serialization format and QoS, so the QoS given here is parsed from the channel's own ``offered_qos_profiles``.
+Durations are last minus first log time (ns), as rosbag2 writes them. Compression is none at the rosbag2 level:
+the MCAP chunks are compressed inside the storage.
+
+Everything is read from each file's MCAP summary (statistics and channels), so only finished files can be
+listed: the daemon lists a session's closed files at each rotation and all of them on close;
+``fieldlog recover`` writes it again from the files on disk. ``write_metadata`` writes a new file and renames
+it over ``metadata.yaml`` (atomic; a symlink planted at that name is replaced, never followed).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+from mcap.reader import make_reader
+
+METADATA = "metadata.yaml"
+RECOVERED = ".recovered.mcap"     # ``fieldlog recover``'s output stands in for the cut-short NAME.mcap
+VERSION = 9
+ROS_DISTRO = "jazzy"
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    type: str
+    serialization_format: str
+    offered_qos_profiles: list
+    type_description_hash: str
+    message_count: int
+
+
+@dataclass(frozen=True)
+class FileInfo:
+    """One MCAP file's share of the bag (log times in ns since the Unix epoch; counts 0 for an empty file)."""
+
+    path: Path
+    start_ns: int
+    end_ns: int
+    message_count: int
+    topics: tuple[TopicInfo, ...]
+
+
+def file_info(path: Path) -> FileInfo:
+    """What the metadata says of one finished MCAP file, from its summary; ValueError when it has none."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    if summary is None or summary.statistics is None:
+        raise ValueError(f"{path}: no MCAP summary with statistics (an unfinished file: run `fieldlog recover`)")
+    st = summary.statistics
+    topics = []
+    for cid, ch in sorted(summary.channels.items()):
+        schema = summary.schemas.get(ch.schema_id)
+        qos = yaml.safe_load(ch.metadata.get("offered_qos_profiles", "") or "[]") or []
+        topics.append(TopicInfo(ch.topic, schema.name if schema else "", ch.message_encoding, qos,
+                                ch.metadata.get("type_description_hash", ""),
+                                int(st.channel_message_counts.get(cid, 0))))
+    n = int(st.message_count)
+    return FileInfo(path, int(st.message_start_time) if n else 0, int(st.message_end_time) if n else 0, n,
+                    tuple(topics))
+
+
+def metadata(files: list[FileInfo], custom_data: dict[str, str] | None = None) -> dict:
+    """The ``metadata.yaml`` content for ``files`` (in bag order, all in one directory)."""
+    with_msgs = [f for f in files if f.message_count]
+    start = min((f.start_ns for f in with_msgs), default=0)
+    end = max((f.end_ns for f in with_msgs), default=0)
+    topics: dict[tuple[str, str], dict] = {}
+    for f in files:
+        for t in f.topics:
+            key = (t.name, t.type)
+            if key not in topics:
+                topics[key] = {"topic_metadata": {"name": t.name, "type": t.type,
+                                                  "serialization_format": t.serialization_format,
+                                                  "offered_qos_profiles": t.offered_qos_profiles,
+                                                  "type_description_hash": t.type_description_hash},
+                               "message_count": 0}
+            topics[key]["message_count"] += t.message_count
+    return {"rosbag2_bagfile_information": {
+        "version": VERSION,
+        "storage_identifier": "mcap",
+        "relative_file_paths": [f.path.name for f in files],
+        "duration": {"nanoseconds": end - start},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": sum(f.message_count for f in files),
+        "topics_with_message_count": list(topics.values()),
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [{"path": f.path.name, "starting_time": {"nanoseconds_since_epoch": f.start_ns},
+                   "duration": {"nanoseconds": f.end_ns - f.start_ns}, "message_count": f.message_count}
+                  for f in files],
+        "custom_data": custom_data or None,
+        "ros_distro": ROS_DISTRO,
+    }}
+
+
+def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str, str] | None = None,
+                   fsync: bool = True) -> Path:
+    """Write ``directory/metadata.yaml`` for ``files`` atomically: a new file (never an existing path or a
+    symlink: O_EXCL | O_NOFOLLOW), fsynced, renamed over the old one. Returns its path."""
+    text = yaml.safe_dump(metadata(files, custom_data), sort_keys=False, default_flow_style=False)
+    dst = directory / METADATA
+    tmp = directory / f".{METADATA}.{os.getpid()}.tmp"
+    try:
+        tmp.unlink()                  # a leftover of a killed writer with this pid (unlink never follows)
+    except FileNotFoundError:
+        pass
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return dst
+
+
+def session_files(directory: Path) -> list[Path]:
+    """A directory's MCAP files on disk by name (a session's in rotation order), each ``NAME.mcap`` replaced by
+    ``NAME.recovered.mcap`` when that is there."""
+    names = sorted({f.with_name(f.name[: -len(RECOVERED)] + ".mcap") if f.name.endswith(RECOVERED) else f
+                    for f in directory.glob("*.mcap")})
+    return [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f for f in names]
+
+
+def rewrite_metadata(directory: Path) -> tuple[Path, list[Path]]:
+    """``metadata.yaml`` of a session directory written again from its files on disk (``session_files``);
+    files without a summary (not recovered yet) are left out and returned."""
+    infos, unfinished = [], []
+    for f in session_files(directory):
+        try:
+            infos.append(file_info(f))
+        except ValueError:
+            unfinished.append(f)
+    return write_metadata(directory, infos), unfinished
+
+
+def bag_file(out: Path) -> Path:
+    """The MCAP file of a one-file bag ``out`` (``--bag``): ``out/<name>.mcap``, ``name`` = ``out`` without a
+    ``.mcap`` suffix; the directory is made (a symlink or a file in its place raises ValueError)."""
+    d = out.with_suffix("") if out.suffix == ".mcap" else out
+    if d.is_symlink() or (d.exists() and not d.is_dir()):
+        raise ValueError(f"{d}: exists and is not a directory; --bag writes a rosbag2 directory there")
+    d.mkdir(parents=True, exist_ok=True)
+    return d / f"{d.name}.mcap"
+
+
+def write_bag_metadata(mcap: Path) -> Path:
+    """``metadata.yaml`` for the one-file bag whose file ``bag_file`` gave."""
+    return write_metadata(mcap.parent, [file_info(mcap)])
