@@ -340,7 +340,7 @@ def record_emulated(tmp_path: Path, image: Path, duration_s: float, seed: int) -
     assert serve.wait(duration_s + 60) == 0, serve.stderr.read()
     d.send_signal(signal.SIGTERM)
     assert d.wait(30) == 0
-    (f,) = sorted((tmp_path / "drives").glob("*.mcap"))
+    (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     return f, truth, d.stderr.read()
 
 
