@@ -17,13 +17,14 @@ angular velocity is absent (covariance[21] = -1). One message per frame that car
 once every one of them has been seen.
 
 Stamps (both topics): the host read time of the frame mapped to UTC through the daemon's GPS clock fit
-(``TimeSync.mono_to_utc``: the PPS edges' least host latency), less ``[can] latency_s`` (the adapter's and the
-bus's delay, configured); frames of one read that carry adapter time stamps are spread back from the read by
-their adapter times (SLCAN: ms within the minute).
+(``TimeSync.mono_to_utc``: the PPS edges' least host latency), less ``[can] latency_s`` (the delay from the ECU's sample to
+the adapter's stamp, configured). Frames with adapter time stamps (SLCAN: ms within the minute; SocketCAN: the
+kernel's receive time) are stamped on the adapter's clock mapped to that time by ``AdapterClock``.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,7 +41,7 @@ SPEED_UNITS = {"km/h": 1 / 3.6, "kph": 1 / 3.6, "kmh": 1 / 3.6, "m/s": 1.0, "mps
 ANGLE_UNITS = {"deg": math.pi / 180, "°": math.pi / 180, "degree": math.pi / 180, "rad": 1.0}
 UNOBSERVED = 1e4            # (m/s)^2: the variance of a velocity component that is not measured
 MAX_IDS = 256               # frames are counted per id for this many ids (the rest together)
-MAX_SPREAD_NS = NS          # adapter times further back than this from the read are not trusted
+CLOCK_WINDOW_NS = NS        # the adapter clock's offset: the least delay over this much adapter time
 
 
 class CanConfigError(ValueError):
@@ -141,6 +142,34 @@ def _unit_scale(key: str, unit: str, override: str, sig: str) -> float:
     raise CanConfigError(f"[can.signals] {key}: signal {sig} has unit {u!r}, not one of {', '.join(table)}{fix}")
 
 
+class AdapterClock:
+    """Adapter time stamps -> UTC: adapter time + the least (read time - adapter time) of the frames of the last
+    CLOCK_WINDOW_NS of adapter time (the frame read with the least delay), so the USB and host read jitter drops
+    out and what is left is the adapter's stamp resolution. SLCAN's ms within the minute are unwrapped (``wrap_ns``);
+    an adapter whose clock restarts (replugged) is followed within the window. Deterministic in the reads."""
+
+    def __init__(self, wrap_ns: int | None) -> None:
+        self.wrap_ns = wrap_ns
+        self._prev = -1                  # the last adapter stamp as given
+        self._a = 0                      # ... unwrapped
+        self._win: deque[tuple[int, int]] = deque()   # (unwrapped adapter time, read - adapter), offsets rising
+
+    def stamp(self, adapter_ns: int, read_ns: int) -> int:
+        if self.wrap_ns is None or self._prev < 0:
+            a = adapter_ns
+        else:
+            a = self._a + (adapter_ns - self._prev) % self.wrap_ns
+        self._prev, self._a = adapter_ns, a
+        off = read_ns - a
+        win = self._win
+        while win and win[-1][1] >= off:
+            win.pop()
+        win.append((a, off))
+        while win[0][0] < a - CLOCK_WINDOW_NS or win[0][0] > a:
+            win.popleft()
+        return a + win[0][1]
+
+
 class VehicleDecoder:
     """Frames in, the derived vehicle topics out (``sink.write`` / ``write_batch``), with counters."""
 
@@ -148,6 +177,7 @@ class VehicleDecoder:
         self.cfg = cfg
         self.stats = can.CanStats()
         self.framer = can.framer(cfg.wire, self.stats)
+        self.clock = AdapterClock(can.SLCAN_TIME_WRAP_MS * 1_000_000 if cfg.wire == "slcan" else None)
         self.by_id: dict[int, int] = {}
         self.other_ids = 0
         self.decode_errors = 0
@@ -201,20 +231,13 @@ class VehicleDecoder:
                 self.other_ids += 1
         if not self._wanted:
             return
-        last = frames[-1].adapter_ns
-        wrap = can.SLCAN_TIME_WRAP_MS * 1_000_000 if self.cfg.wire == "slcan" else None
         base = stamp_ns - int(round(self.cfg.latency_s * NS))
         for f in frames:
             entry = self._wanted.get((f.can_id, f.extended))
             if entry is None or f.remote:
                 continue
-            back = 0
-            if f.adapter_ns >= 0 and last >= 0:
-                back = last - f.adapter_ns
-                if wrap:
-                    back %= wrap
-                back = back if 0 <= back <= MAX_SPREAD_NS else 0
-            self._decode(f, entry, base - back, sink)
+            t_ns = base if f.adapter_ns < 0 else self.clock.stamp(f.adapter_ns, base)
+            self._decode(f, entry, t_ns, sink)
 
     def _decode(self, f: can.CanFrame, entry: tuple[Any, list[_Signal]], t_ns: int, sink: Any) -> None:
         m, sigs = entry

@@ -152,6 +152,16 @@ class CanConfig:
     speed_unit: str = ""
     signals: dict[str, str] = field(default_factory=dict)
 
+    @property
+    def port(self) -> str:
+        """The adapter's serial port or the SocketCAN interface the URL names (for the daemon's log)."""
+        from fieldlog.acquire import can
+
+        try:
+            return can.parse_url(self.url).channel
+        except ValueError:
+            return self.url
+
 
 @dataclass
 class RotationConfig:
@@ -365,6 +375,8 @@ def validate(c: AcquireConfig) -> None:
     c.gps.gpsd    # raises on a malformed gpsd URL
     if c.gps.protocol not in GPS_PROTOCOLS:
         raise ConfigError(f"[gps] protocol: {c.gps.protocol!r} is not one of {', '.join(GPS_PROTOCOLS)}")
+    if c.can.url and c.can.port in (c.daq.port, c.gps.port):
+        raise ConfigError(f"[can] url: same device as a [daq] or [gps] port ({c.can.port})")
     if c.daq.port == c.gps.port:
         raise ConfigError(f"[gps] port: same device as [daq] port ({c.gps.port})")
     if c.can.url or c.can.dbc or c.can.signals:

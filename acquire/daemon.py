@@ -67,8 +67,9 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import bagdir, calib, messages, nmea, recorder, recovery, timesync
-from fieldlog.acquire.config import AcquireConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name, session_name
+from fieldlog.acquire import bagdir, calib, canport, messages, nmea, recorder, recovery, timesync
+from fieldlog.acquire.config import (AcquireConfig, CanConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name,
+                                     session_name)
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 
@@ -123,9 +124,12 @@ class PortStats:
     connected: bool = False
 
 
-def open_port(cfg: PortConfig) -> serial.Serial | GpsdLink:
+def open_port(cfg: PortConfig | CanConfig) -> serial.Serial | GpsdLink | canport.SlcanLink | canport.SocketcanLink:
     """The port, raw, at the configured baud rate, non-blocking (the reader waits with select); for a
-    ``gpsd://`` GPS port the connection to gpsd in raw mode (acquire/gpsd.py)."""
+    ``gpsd://`` GPS port the connection to gpsd in raw mode (acquire/gpsd.py); for ``[can]`` its adapter
+    (acquire/canport.py)."""
+    if isinstance(cfg, CanConfig):
+        return canport.open_link(cfg.url, cfg.baud)
     address = cfg.gpsd if isinstance(cfg, GpsPortConfig) else None
     if address is not None:
         return GpsdLink(address)
@@ -163,7 +167,8 @@ class PortReader(threading.Thread):
         retry_s = self.reconnect_s
         while not self.stop.is_set():
             if self.ser is None:
-                device = self.cfg.port if self.gpsd else os.path.realpath(self.cfg.port)
+                device = os.path.realpath(self.cfg.port) if not self.gpsd and os.path.isabs(self.cfg.port) \
+                    else self.cfg.port
                 try:
                     self.ser = open_port(self.cfg)
                 except (serial.SerialException, OSError):
@@ -183,6 +188,7 @@ class PortReader(threading.Thread):
         fd = self.ser.fileno()
         st = self.stats
         buf = memoryview(bytearray(READ_SIZE))
+        read_ready = getattr(self.ser, "read_ready", None)     # a link that is no byte stream (SocketCAN)
         while not self.stop.is_set():
             hold_s = self.ser.hold_s() if self.gpsd else None
             ready, _, _ = select.select([fd], [], [], 0.1 if hold_s is None else hold_s)
@@ -193,8 +199,8 @@ class PortReader(threading.Thread):
                 continue
             self.busy = True
             try:
-                data = bytes(buf[:os.readv(fd, [buf])])   # (see READ_SIZE)
-                err = "end of file" if not data else ""
+                data = read_ready() if read_ready is not None else bytes(buf[:os.readv(fd, [buf])])  # (READ_SIZE)
+                err = "end of file" if not data and read_ready is None else ""
             except OSError as e:
                 data, err = b"", os.strerror(e.errno or 0) or str(e)
             mono, wall = time.monotonic_ns(), time.time_ns()
@@ -536,6 +542,8 @@ class Daemon:
         self.error = ""
         self._last_mono = 0
         self._status_prev: tuple[float, int, int, int, int] | None = None
+        self._can_prev: int | None = None
+        self.port_names: tuple[str, ...] = PORTS
 
     def log(self, msg: str, level: int = logging.INFO) -> None:
         """One event through ``logging`` (``setup_logging``), clearing the status line first on a terminal."""
@@ -549,8 +557,9 @@ class Daemon:
         """Open both ports (PortError if one cannot be opened), recover unfinished files, open the first file,
         start the readers."""
         sers = {}
-        for name in PORTS:
-            pc: PortConfig = getattr(self.cfg, name)
+        self.port_names = PORTS + (("can",) if self.cfg.can.url else ())
+        for name in self.port_names:
+            pc: PortConfig | CanConfig = getattr(self.cfg, name)
             try:
                 sers[name] = open_port(pc)
             except (serial.SerialException, OSError, ValueError) as e:
@@ -565,13 +574,15 @@ class Daemon:
         self.session_dir = make_session_dir(self.out_dir, self.session_wall_ns)
         self.sink = RotatingSink(self.session_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
                                  self.bus.publish if self.bus else None)
-        self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol))
+        self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol,
+                                                                               can=self.cfg.can_bus()))
         if self.bus is not None:
             self.provisional = self.pipe.on_frames = ProvisionalImu(self.pipe, self.bus)
         path = self.sink.open_next()
-        self.log(f"recording {self.cfg.daq.port} (daq) and {self.cfg.gps.port} (gps) to {path}")
+        can_port = f", {self.cfg.can.url} (can)" if self.cfg.can.url else ""
+        self.log(f"recording {self.cfg.daq.port} (daq), {self.cfg.gps.port} (gps){can_port} to {path}")
         dm = self.cfg.daemon
-        for name in PORTS:
+        for name in self.port_names:
             r = PortReader(name, getattr(self.cfg, name), sers[name], dm.queue_reads, self.wake, self.stop,
                            dm.reconnect_s)
             self.readers[name] = r
@@ -582,7 +593,7 @@ class Daemon:
         drive = {"source": "fieldlog acquire", "session_start_wall_ns": str(self.session_wall_ns),
                  "file_index": str(index), "previous_file": prev.name if prev else "",
                  "daq_port": c.daq.port, "daq_baud": str(c.daq.baud), "gps_port": c.gps.port,
-                 "gps_baud": str(c.gps.baud), "pps_mode": self.sync_cfg.pps_mode,
+                 "gps_baud": str(c.gps.baud), "can_url": c.can.url, "pps_mode": self.sync_cfg.pps_mode,
                  "calibration_file": c.calibration_file}
         return {"drive": drive, **self.pipe.metadata()}
 
@@ -603,7 +614,7 @@ class Daemon:
     # -- processing ---------------------------------------------------------------------------------
     def run(self) -> int:
         """Process until stopped and the queues are drained; finish the file. Returns the exit code."""
-        heads: dict[str, RawRead | PortEvent | None] = {name: None for name in PORTS}
+        heads: dict[str, RawRead | PortEvent | None] = {name: None for name in self.readers}
         wait_ns = int(self.cfg.daemon.merge_wait_s * NS)
         next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
         code = 0
@@ -725,8 +736,15 @@ class Daemon:
 
         d, n = c.daq, c.nmea
         drop = sum(r.stats.dropped_reads for r in self.readers.values())
+        bus = ""
+        if "can" in self.readers and self.pipe.vehicle is not None:
+            cs = self.pipe.vehicle.stats
+            prev_can = cs.frames if self._can_prev is None else self._can_prev
+            self._can_prev = cs.frames
+            bus = (f"can {(cs.frames - prev_can) / dt:.0f} fr/s{port('can')} "
+                   f"err {cs.error_frames + cs.status_errors + cs.bad_records} | ")
         return (f"daq {(frames - prev[1]) / dt:.0f} fr/s {(db - prev[3]) / dt / 1e3:.1f} kB/s{port('daq')} | "
-                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | "
+                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | {bus}"
                 f"pps {c.pps_edges - c.pps_rejected} ok {c.pps_rejected} rej | sync {sync} | {fix} | "
                 f"{self.sink.rec.path.name} {size / 1e6:.1f} MB | dropped {drop} lost {d.lost_frames} "
                 f"crc {d.bad_crc} resync {d.resyncs} nmea-bad {n.bad_checksum} late {self.late_reads}")

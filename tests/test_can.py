@@ -207,7 +207,9 @@ def test_sim_can_twist_at_the_bus_rate_with_stamps_and_speeds_near_truth(can_dri
     assert abs(rate - 50.0) < 0.5
     locked = slice(len(ts) // 3, None)          # after time sync has locked
     err_ms = (ts - tt)[locked] / 1e6
-    assert abs(np.mean(err_ms)) < 1.0 and np.std(err_ms) < 2.0, (np.mean(err_ms), np.std(err_ms))
+    # the adapter's ms stamps on its clock (AdapterClock): the bus jitter and the ms floor are left, and the
+    # host clock's offset to UTC (the PPS read with the least delay is still late by about a millisecond)
+    assert -3.0 < np.mean(err_ms) < 0.0 and np.std(err_ms) < 1.2, (np.mean(err_ms), np.std(err_ms))
     meta = reader.metadata_records(can_drive)
     assert any(name == "can" for name, _ in meta)
     moving = vt > 2.0

@@ -92,14 +92,15 @@ def cmd_sim_serve(a: argparse.Namespace) -> int:
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
                  corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
-                 board_image=a.board_image)
+                 board_image=a.board_image, can=a.can)
 
 
 def cmd_acquire(a: argparse.Namespace) -> int:
     from fieldlog.acquire import config, daemon
 
     daemon.setup_logging(a.verbose - a.quiet)
-    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "out": a.out, "time_scale": a.time_scale})
+    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "can": a.can, "dbc": a.dbc, "out": a.out,
+                                 "time_scale": a.time_scale})
     if not (a.view or a.view_rrd):
         return daemon.run_daemon(cfg, quiet=a.quiet > 0)
     import subprocess
@@ -584,7 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--unplug", action="append", default=[], metavar="PORT:START:LEN",
                    help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable; default: never)")
     s.add_argument("--link-dir", default=None, metavar="DIR",
-                   help="--serve: keep symlinks DIR/daq and DIR/gps to the current ptys (default: none)")
+                   help="--serve: keep symlinks DIR/daq, DIR/gps (and DIR/can) to the current ptys (default: none)")
     s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
     s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
                    help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
@@ -603,6 +604,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gps", default=None, metavar="PORT",
                    help="GPS serial port, or gpsd://HOST[:PORT][/DEVICE] to read the receiver's own bytes through a "
                         "running gpsd (default: [gps] port of --config)")
+    s.add_argument("--can", default=None, metavar="URL",
+                   help="the car's CAN bus: slcan://PORT[@BITRATE] (an SLCAN serial adapter; BITRATE in bit/s) or "
+                        "socketcan://IFACE (default: [can] url of --config, else none)")
+    s.add_argument("--dbc", default=None, metavar="FILE",
+                   help="--can: decode through this DBC with the [can.signals] of --config (default: [can] dbc)")
     s.add_argument("--out", default=None, metavar="DIR",
                    help="output directory (default: [output] dir of --config, else drives/)")
     s.add_argument("--config", default=None, metavar="FILE",

@@ -157,4 +157,22 @@ def format_info(info: DriveInfo) -> str:
                 "nmea.bad_checksum", "nmea.unknown", "nmea.proprietary", "pps_edges", "pps_rejected"]
         shown = [f"{k}={info.counters[k]}" for k in keys if k in info.counters]
         lines.append("counters  " + ", ".join(shown))
+    bus = bus_line(info)
+    if bus:
+        lines.append(bus)
     return "\n".join(lines)
+
+
+def bus_line(info: DriveInfo) -> str:
+    """The vehicle bus in one line (``acquire/canbus.py`` counters): frames, ids, errors, decoded rates."""
+    c = info.counters
+    if "can.frames" not in c:
+        return ""
+    ids = sorted(((int(v), k[len("can.id."):]) for k, v in c.items() if k.startswith("can.id.")), reverse=True)
+    top = ", ".join(f"{name} {n}" for n, name in ids[:6]) + (", ..." if len(ids) > 6 else "")
+    errors = {k: c.get(f"can.{k}", "0") for k in ("error_frames", "bus_off", "status_errors", "overruns", "refused",
+                                                   "bad_records", "bytes_discarded", "decode_errors")}
+    rates = {t.topic: _rate(t) for t in info.topics if t.topic.startswith("/vehicle/")}
+    decoded = ", ".join(f"{topic} {r:.1f} Hz" for topic, r in rates.items()) or "none (no DBC signals)"
+    return (f"can       {c['can.frames']} frames, {c.get('can.ids', '0')} ids ({top}); errors "
+            + ", ".join(f"{k} {v}" for k, v in errors.items()) + f"; decoded {decoded}")

@@ -8,7 +8,9 @@ back-pressure, as a UART's flow control would.
 
 Truth (``/truth/*``, as ``fieldlog sim`` writes it) and what was sent go to a side MCAP at the end: metadata
 ``serve`` holds ``daq_bytes``, ``daq_frames`` (complete frames written), ``gps_bytes``, ``nmea_lines``,
-``speed``, ``completed`` and the unplug windows. The daemon's host clock is the real machine clock, not the
+``speed``, ``completed`` and the unplug windows. With ``--can`` a third pty is the car's SLCAN adapter
+(``sim.vehicle``: wheel speeds, steering, gear and other traffic as CR-terminated records), printed as ``can
+PATH``, with ``can_bytes``, ``can_records``, ``can_gaps`` and the rest as for the other ports. The daemon's host clock is the real machine clock, not the
 simulator's, so a live recording is scored by DAQ sample index: the simulator's frame counter starts at 0,
 so frame k of ``/raw/daq`` is truth sample k (``/truth/imu`` holds one record per frame, in order), and the
 i-th ``/imu`` message is the i-th decoded frame. At ``speed`` 1 the GPS-disciplined ``/imu`` stamps are
@@ -77,6 +79,7 @@ from fieldlog.tools.sim.emit import HostClock
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+ALL_PORTS = PORTS + ("can",)         # the SLCAN adapter with --can
 BOARDS = ("simulated", "emulated")
 TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
 TIOCPKT_FLUSHREAD = 0x01
@@ -88,7 +91,7 @@ def corrupt_stream(data: bytes, fraction: float, seed: int, port: str) -> tuple[
     """``data`` with round(fraction * len) bytes, at random distinct positions, each XORed with a random
     non-zero value (so it really changes); also returns the sorted positions. Deterministic from
     ``seed`` and ``port``."""
-    rng = np.random.default_rng([seed, PORTS.index(port), 0xC0])
+    rng = np.random.default_rng([seed, ALL_PORTS.index(port), 0xC0])
     b = np.frombuffer(data, np.uint8).copy()
     pos = np.sort(rng.choice(b.size, size=int(round(fraction * b.size)), replace=False))
     b[pos] ^= rng.integers(1, 256, pos.size, dtype=np.uint8)
@@ -109,8 +112,8 @@ class Unplug:
             u = cls(port, float(a), float(b))
         except ValueError:
             raise ValueError(f"--unplug {text!r}: expected PORT:START_S:LENGTH_S") from None
-        if port not in PORTS or u.length_s <= 0 or u.start_s < 0:
-            raise ValueError(f"--unplug {text!r}: PORT is daq or gps, START_S >= 0, LENGTH_S > 0")
+        if port not in ALL_PORTS or u.length_s <= 0 or u.start_s < 0:
+            raise ValueError(f"--unplug {text!r}: PORT is daq, gps or can, START_S >= 0, LENGTH_S > 0")
         return u
 
 
@@ -122,8 +125,9 @@ def simulated_streams(meta: dict[str, str]) -> dict[str, bytes]:
     sc = replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])},
                  gps={**sc.gps, "clock_jumps": jumps})
     reads = simulate.make_reads(sc, float(meta["duration_s"]), int(meta["seed"]), meta["pps_mode"],
-                                meta.get("receiver"))[0]
-    return {port: b"".join(r.data for r in reads if r.port == port) for port in PORTS}
+                                meta.get("receiver"), can=meta.get("can") == "True")[0]
+    return {port: b"".join(r.data for r in reads if r.port == port)
+            for port in (ALL_PORTS if meta.get("can") == "True" else PORTS)}
 
 
 def delivered(stream: bytes, gaps: str) -> tuple[bytes, np.ndarray]:
@@ -262,7 +266,7 @@ class Server:
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
                  link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None,
                  clock_jumps: list[list[float]] | None = None, board: str = "simulated",
-                 board_image: str | Path | None = None) -> None:
+                 board_image: str | Path | None = None, can: bool = False) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
@@ -284,8 +288,9 @@ class Server:
         self.duration_s = float(duration_s or sc.duration_s)
         self.seed = seed
         self.speed = speed
+        self.can = can
         reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode,
-                                                                             receiver)
+                                                                             receiver, can)
         if self.board is not None:     # the DAQ port carries the board's input records, one per sample
             records = emulated.input_records(self.truth)
             mono = HostClock().mono_ns(self.truth["t_k"])
@@ -294,7 +299,7 @@ class Server:
             reads.sort(key=lambda r: r.mono_ns)
         m0 = reads[0].mono_ns
         self.ports = {}
-        for name in PORTS:
+        for name in ALL_PORTS if can else PORTS:
             rs = [r for r in reads if r.port == name]
             data = [r.data for r in rs]
             n_corrupt = 0
@@ -312,7 +317,8 @@ class Server:
         self.completed = False
 
     def open(self, out: TextIO = sys.stdout) -> None:
-        """Open the ptys (and start the emulated board) and print ``daq PATH`` and ``gps PATH`` (flushed)."""
+        """Open the ptys (and start the emulated board) and print ``daq PATH``, ``gps PATH`` and, with the CAN bus,
+        ``can PATH`` (flushed)."""
         if self.link_dir is not None:
             self.link_dir.mkdir(parents=True, exist_ok=True)
         for p in self.ports.values():
@@ -411,7 +417,18 @@ class Server:
                 "board": "simulated" if self.board is None else "emulated",
                 "pps_mode": self.ccfg.pps_mode,
                 **({} if self.board is None else {"daq_frames": str(len(d.sent) // emulated.RECORD_SIZE),
-                                                  "board_image": str(self.board.image)})}
+                                                  "board_image": str(self.board.image)}),
+                "can": str(self.can), **self._can_metadata()}
+
+    def _can_metadata(self) -> dict[str, str]:
+        """What the SLCAN adapter sent (``can_records``: CR-terminated records), as for the other ports."""
+        c = self.ports.get("can")
+        if c is None:
+            return {}
+        return {"can_bytes": str(len(c.sent)), "can_records": str(bytes(c.sent).count(b"\r")),
+                "can_lost_bytes": str(c.lost_bytes), "can_gaps": ";".join(f"{a}:{n}" for a, n in c.gaps),
+                "can_corrupt_bytes": str(c.corrupt_bytes), "can_replug_mono_ns": ";".join(map(str, c.replugged_mono_ns)),
+                "can_undrained_unplugs": str(c.undrained_unplugs)}
 
     def write_truth(self, path: str | Path) -> None:
         """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path``."""
@@ -434,11 +451,11 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
           receiver: str | None = None, truth: str | None = None, unplug: list[Unplug] | None = None,
           link_dir: str | None = None,
           hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None,
-          board: str = "simulated", board_image: str | None = None) -> int:
+          board: str = "simulated", board_image: str | None = None, can: bool = False) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first)."""
     srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps,
-                 board, board_image)
+                 board, board_image, can)
     go = threading.Event()
     if not hold:
         go.set()

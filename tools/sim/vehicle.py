@@ -12,7 +12,7 @@ braking. The road wheel angle is the bicycle model's atan(wheelbase x yaw rate /
 
 Timing: each ECU samples at its own rate with a random phase; a frame reaches the bus ``latency_s`` plus a
 uniform jitter in [0, ``jitter_s``) after its sample; the adapter stamps the frame's end with its own ms clock
-(its offset to UTC is random) and sends the SLCAN record over its serial line (``emit.serial_reads``).
+(its offset to UTC is random, its rate ``adapter_ppm`` off) and sends the SLCAN record over its serial line (``emit.serial_reads``).
 ``/truth/vehicle/twist`` has the true forward speed of the rear axle's centre at every wheel-speed sample
 instant (UTC), so the stamps of ``/vehicle/twist`` and its speeds can be scored.
 """
@@ -53,6 +53,7 @@ class CanSimConfig:
     brake_slip: float = 0.1             # ... of every wheel braking
     latency_s: float = 0.004            # sample -> bus (ECU processing)
     jitter_s: float = 0.002
+    adapter_ppm: float = 30.0           # the adapter's ms clock runs this fast
     serial_baud: int = 1_000_000        # the adapter's serial line (USB CDC)
     read_period_s: tuple[float, float] = (0.001, 0.004)
 
@@ -141,7 +142,7 @@ def can_reads(truth, duration_s: float, host: HostClock, t0_ns: int, rng: np.ran
     if not frames:
         return [], truth_out
     adapter_offset_s = rng.uniform(0, 60)
-    ms = np.floor((t_bus + adapter_offset_s) * 1000).astype(np.int64)
+    ms = np.floor((t_bus * (1 + cfg.adapter_ppm * 1e-6) + adapter_offset_s) * 1000).astype(np.int64)
     records = [can.slcan_record(f, int(m)) for f, m in zip(frames, ms.tolist())]
     byte_s = 10.0 / cfg.serial_baud
     start = np.empty(len(records))
