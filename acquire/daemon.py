@@ -19,6 +19,10 @@ would differ from the live derived topics only there.
 Queues are bounded (``queue_reads`` per port); when one stays full for a second the read is dropped and
 counted (``port.<name>.dropped_reads/bytes``); that only happens when processing cannot keep up.
 
+The vehicle bus. With ``[can] url`` (``--can``) a third reader takes the CAN adapter (``acquire/canport.py``: an
+SLCAN serial port read as the others, or SocketCAN through python-can) as port ``can``, merged by the same rule;
+its faults are handled as below.
+
 Faults. A port whose read fails or hits end of file (adapter unplugged, pty closed) is closed and reopened
 every ``reconnect_s`` until it comes back; the outage is recorded as an ``acquire.port_event`` metadata
 record (``event`` = ``lost`` / ``back``, host mono and wall ns, the error) and counted in

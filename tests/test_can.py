@@ -314,3 +314,18 @@ def test_import_bad_input_is_one_line_exit_2(tmp_path):
                                                                    FOREIGN_SIGNALS.items()), []),
              "--out", str(tmp_path / "ok.mcap"))
     assert r.returncode == 0 and "20 /vehicle/twist" in r.stdout, r.stderr
+
+
+def test_acquire_with_a_bad_can_config_is_one_line_exit_2(tmp_path):
+    bad = tmp_path / "car.dbc"
+    bad.write_text("VERSION \"\"\nBO_ 1 X: 8 Y\n SG_ S : 0|8@1+ (1,0) [0|1 \"\" Y\n")
+    cfg = tmp_path / "car.toml"
+    cfg.write_text('[can.signals]\nwheel_rl = "WHEEL_SPEEDS.WHEEL_SPEED_RL"\nwheel_rr = "NO_SUCH.SIGNAL"\n')
+    base = ["acquire", "--daq", "/dev/null", "--gps", "/dev/zero", "--out", str(tmp_path / "d")]
+    for extra, name in ((["--can", "slcan:///dev/ttyACM0", "--dbc", str(bad)], "car.dbc"),
+                        (["--can", "slcan:///dev/ttyACM0", "--dbc", str(DBC), "--config", str(cfg)], "NO_SUCH"),
+                        (["--can", "slcan:///dev/ttyACM0@12345"], "12345"),
+                        (["--can", "udp://x"], "udp://x")):
+        r = _cli(*base, *extra)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and name in lines[0], r.stderr
