@@ -1,7 +1,7 @@
 """Initial alignment of the INS from a standing start and the first GPS epochs, and the still detector.
 
-Still detection (:func:`still`, shared by the alignment and the ZUPT aid of ``fusion.aids``): the vehicle stood
-still over a GPS interval when
+Still detection (:func:`still`, shared by the alignment and the stationary update of
+``fusion.measurements.Stationary``): the vehicle stood still over a GPS interval when
 
 - the GPS speed is below its limit (:class:`GpsSpeed`): the horizontal speed of the mean of the GPS velocities
   of the last second (at least the interval's two ends), below ``still_gps_speed_mps`` or, for a noisier
@@ -69,7 +69,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import earth, ins
+from fieldlog.fusion import earth, ins, kf
 from fieldlog.fusion.types import Epoch
 
 if TYPE_CHECKING:
@@ -336,12 +336,26 @@ class Alignment:
         self._after: list[tuple[ImuSums, float]] = []  # the intervals since that run
         self._speed = GpsSpeed(cfg)
         self._t_prev: float | None = None
+        self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of the last good fix
 
-    def epoch(self, ep: Epoch, usable: bool, v: np.ndarray, interval: ImuSums, t_k: float, t_ref_ns: int
-              ) -> Aligned | None:
-        """A GPS epoch before the alignment: ep (``engine`` epoch dict), usable fix, its velocity v (3,) ENU m/s
-        (NaN when unknown), the IMU sums of the interval that ends here, the current sample's time t_k (s from
-        t_ref_ns). Returns the initial state when this epoch aligns the INS, else None."""
+    def _velocity(self, ep: Epoch, t_ref_ns: int) -> np.ndarray:
+        """The epoch's GPS velocity (3,) ENU m/s, or the difference of its fix and the last good one (at most 2 s
+        before it) when the drive has none; NaN without either."""
+        if np.isfinite(ep.v_n[:2]).all():
+            return ep.v_n
+        ts = (ep.t_ns - t_ref_ns) * 1e-9
+        if self._last_fix is None or not 0.0 < ts - self._last_fix[0] <= 2.0:
+            return np.full(3, np.nan)
+        t0, lat0, lon0, h0 = self._last_fix
+        return kf.enu_offset(ep.lat, ep.lon, ep.h, lat0, lon0, h0) / (ts - t0)
+
+    def epoch(self, ep: Epoch, usable: bool, interval: ImuSums, t_k: float, t_ref_ns: int) -> Aligned | None:
+        """A GPS epoch before the alignment: ep, whether its fix is usable, the IMU sums of the interval that ends
+        here, the current sample's time t_k (s from t_ref_ns). Returns the initial state when this epoch aligns
+        the INS, else None."""
+        v = self._velocity(ep, t_ref_ns) if usable else np.full(3, np.nan)
+        if usable:
+            self._last_fix = ((ep.t_ns - t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
         v_gps = ep.v_n if usable else np.full(3, np.nan)
         dt = t_k - self._t_prev if self._t_prev is not None else 0.0
         self._t_prev = t_k

@@ -51,7 +51,7 @@ import numpy as np
 
 from fieldlog.fusion.errmodel import N_STATES
 from fieldlog.fusion.ins import NavState
-from fieldlog.fusion.kf import KalmanFilter, Measurement, cycle_matrices
+from fieldlog.fusion.kf import KalmanFilter, Measurement, Observation, cycle_matrices, gps_observations, stack
 
 BETA = 0.5  # information share of each local filter (federated)
 FUSIONS = ("paper", "federated")
@@ -60,7 +60,14 @@ FUSIONS = ("paper", "federated")
 class DistributedKF:
     """KF_I (velocity) + KF_II (position) with eqs. 3-4 fusion; the interface of :class:`fusion.kf.KalmanFilter`.
 
-    P0 (15, 15), q (12, 12) as KalmanFilter; fusion "paper" (default) or "federated"."""
+    P0 (15, 15), q (12, 12) as KalmanFilter; fusion "paper" (default) or "federated". Its declarations
+    (:class:`fusion.kf.KalmanFilter`): local filters, and the fused state prediction fed back between fixes."""
+
+    wants_nodes = False
+    wants_cycle_lengths = False
+    models_gps_error = False
+    has_locals = True
+    feeds_prediction = True
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, fusion: str = "paper") -> None:
         if fusion not in FUSIONS:
@@ -139,18 +146,23 @@ class DistributedKF:
         self._fuse()
         return self.x - before
 
-    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        """KF_I with the velocity, KF_II with the position, then fusion by eqs. 3-4. The innovation components
-        K_i nu_i are kept in ``innovations``."""
+    def update_batch(self, obs: list[Observation]) -> None:
+        """The velocity kind (stacked) to KF_I, the position kind to KF_II, then fusion by eqs. 3-4. The
+        innovation components K_i nu_i are kept in ``innovations``."""
+        vel = stack(*(o.m for o in obs if o.kind == "velocity"))
+        pos = stack(*(o.m for o in obs if o.kind == "position"))
         dx1 = self._update_local(0, vel) if vel is not None else np.zeros(N_STATES)
         dx2 = self._update_local(1, pos) if pos is not None else np.zeros(N_STATES)
         self.innovations = (dx1, dx2)
         self._fuse()
 
+    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
+        """KF_I with the GPS velocity, KF_II with the position (:meth:`update_batch`)."""
+        self.update_batch(gps_observations(vel, pos))
+
     def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (velocity-domain constraint) to KF_I only, then fusion."""
-        self._update_local(0, m)
-        self._fuse()
+        """A vehicle-motion aid (velocity-domain constraint): to KF_I only (:meth:`update_batch`)."""
+        self.update_batch([Observation("velocity", m)])
 
     def predicted_update(self, dx_vel: np.ndarray, dx_pos: np.ndarray) -> None:
         """Paper eq. 7 in an outage: X_i(n) = X_i(n|n-1) + predicted innovation dx_i (15,) (KF_I: dx_vel,

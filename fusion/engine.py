@@ -1,50 +1,27 @@
 """The fusion loop every method runs in: blocks of IMU samples and GPS epochs in, a solution out.
 
-Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only the navigation
-state, the filter and the IMU samples of the covariance cycle still open at the block's end (under
-``cov_step_s``; their rows come with the next block, or :meth:`Engine.finish`) between calls, so memory does
-not grow with the drive and the solution does not depend on where the blocks end (fuse, replay and the live
-view give the same rows).
+Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only the navigation state, the
+filter and the IMU samples of the covariance cycle still open at the block's end (under ``cov_step_s``; their rows
+come with the next block, or :meth:`Engine.finish`), so memory does not grow with the drive and the solution does
+not depend on where the blocks end (fuse, replay and the live view give the same rows).
 
-Per block:
+Per block: the INS (``fusion.ins.integrate``) runs over the bias-corrected samples up to each GPS epoch, the yaw
+rate rebuilt where the gyro clipped (``fusion.clipgyro``); the error covariance is propagated in filter cycles of
+``cov_step_s`` (a cycle also ends at every epoch), their Phi and Q built in one vectorised call
+(``fusion.errmodel``). Before the alignment (``fusion.align``) the epochs go to the alignment; after it, at each
+epoch (``fusion.outages`` classifies it, a GPS silence gives no-fix epochs):
 
-1. The INS (numba, ``fusion.ins.integrate``) runs over the bias-corrected IMU samples up to each GPS
-   epoch in one call, then to the end of the block.
-2. The error covariance is propagated at a lower rate than the IMU: the samples are cut into filter
-   cycles of ``cov_step_s`` (0.1 s by default, 50 samples at 500 Hz; a cycle also ends at every GPS
-   epoch). F, G, Phi and Q of all the cycles of a segment are built in one vectorised call
-   (``fusion.errmodel``), with F taken at the cycle's middle sample and the cycle's mean specific force.
-   Only the 15x15 covariance recursion loops in Python, at 10 Hz.
-3. At a usable GPS epoch the filter is updated with the velocity and position measurements (lever
-   arm from the config), the estimate corrects the INS and the bias estimates, and is reset (closed
-   loop).
+1. each vehicle aid of the method's measurements (``fusion.measurements``, stage "aid") that gives (z, H, R) is an
+   update of its own, fed back (closed loop: the estimate corrects the INS and the biases, the filter resets);
+2. at an epoch without a usable fix the filter is told of the outage; a predictor method bridges it
+   (``fusion.outages.PredictorBridge``), a filter that ``feeds_prediction`` has its state prediction fed back;
+3. at a usable fix the fix's measurements (stage "fix") are one update, after the heading check
+   (``fusion.align.HeadingCheck``, which may re-align), then fed back.
 
-The pieces the loop calls, one module each:
-
-- alignment (``fusion.align``): static levelling, gyro bias and the GPS-course heading before the filter starts;
-- vehicle aids (``fusion.aids``: NHC, ZUPT + ZARU at every GPS epoch time, in outages too; not for ``ins``),
-  through the filter's ``update_aid`` and fed back like a GPS update;
-- outages (``fusion.outages``): usable epochs, forced and detected windows, and the predictors' bridging
-  (``rbfn``, ``tdln``, ``dkf-rbfn``) at the unusable or withheld epochs;
-- the clipped yaw gyro (``fusion.clipgyro``), rebuilt from the turn kinematics before the segment is integrated
-  again;
-- the filter (:func:`make_filter`): every method's filter has the interface of ``fusion.kf.KalmanFilter``
-  (``propagate``, ``update_gps``, ``update_aid``, ``start_outage``, ``reset``, ``state``, ``covariance``);
-- output (``fusion.output``): the solution rows.
-
-A fix without height (NaN altitude: the GGA of that second was lost) updates the horizontal position only.
-
-``hinf``, ``kf-ukf``, ``sckf`` and ``ssr-sckf`` run the ``kf`` path with another filter object:
-``fusion.hinf.HInfinityFilter`` (``hinf_gamma``), ``fusion.ukf.HybridKfUkf`` and the square-root cubature
-filters of ``fusion.sckf``. The last three are ``fusion.ukf.CycleFilter`` s: they are given the navigation
-solution at the start, middle and end of each covariance cycle (the nodes of their RK4 through the nonlinear
-error model: the hybrid filter's in outages, the cubature filters' at every cycle). Every filter is told of an
-outage at its unusable epochs (``start_outage``; only the hybrid KF/UKF acts on it).
-
-Smoothing: given a ``log`` (``fusion.smoother.SmootherLog``) the engine records, per covariance cycle,
-Phi and the predicted covariance, and at each update the correction fed back and the covariance after
-it (the covariance is then propagated one cycle per call, to capture each P).
-
+The filter (:func:`make_filter`) is told what it declares it needs (``fusion.kf.KalmanFilter``'s attributes) and
+routes the observations by their kind. The listeners (``fusion.listeners``: the consider analysis, the correlated
+GPS error, the smoother's records) are called at each cycle, update, fix and feedback. The loop itself names no
+sensor and no filter type.
 """
 
 from __future__ import annotations
@@ -54,9 +31,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import aids, align, clipgyro, consider, earth, errmodel, gpserror, hinf, ins, kf, output, sckf, ukf
+from fieldlog.fusion import align, clipgyro, errmodel, ins, kf, listeners, measurements, output, ukf
 from fieldlog.fusion.config import GPS_ERROR_MODELS, METHODS, FusionConfig
-from fieldlog.fusion.dkf import DistributedKF
+from fieldlog.fusion.filters import make_filter
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import PREDICTOR_NETWORK, OutageTracker, PredictorBridge, Silence
 from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, Outage, Solution
@@ -68,7 +45,10 @@ _DEG = math.pi / 180.0
 
 
 class Engine:
-    """One fusion run (a method of ``METHODS``) over a stream of blocks."""
+    """One fusion run (a method of ``METHODS``) over a stream of blocks. ``measurements``: what the method updates
+    with (``fusion.measurements.for_method``); ``updates``: fixes used; ``predicted``: outage epochs bridged by a
+    predictor; ``hybrid_parts`` (``dkf-rbfn``): per outage epoch t (s), the fused state prediction and the change
+    the predicted innovations made, position and velocity (6,) each."""
 
     def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
         """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
@@ -81,35 +61,36 @@ class Engine:
             raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps.gps_error_model!r}")
         if self.cfg.gps.gps_error_model == "gm-states" and (method != "kf" or log is not None):
             self.cfg = self.cfg.replace(gps_error_model="consider")  # the states are kf's, without smoothing
-        self.lever = self.cfg.gps.lever_rfu()
         self.q = self.cfg.sensor.noise_psd()
+        self.measurements = measurements.for_method(method, self.cfg)
+        self.gps_errors = listeners.GpsErrorBook(self.cfg.gps.gps_error_tau_s, log)
+        self.listeners: list[listeners.Listener] = ([listeners.SmootherRecorder(log)] if log is not None else []) + [
+            self.gps_errors]
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
-        self.filter: kf.KalmanFilter | DistributedKF | None = None  # hinf, kf-ukf, sckf: KalmanFilter subclasses
+        self.filter = None  # make_filter's, from the alignment on
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
         self.updates = 0
-        self.predicted = 0  # outage epochs bridged by a predicted correction
-        self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []  # dkf-rbfn outage epochs: t (s), the
-        # fused state prediction and the change the predicted innovations made, position and velocity (6,) each
+        self.predicted = 0
+        self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()
-        self._gps_var = np.zeros(3)  # variance (m^2, E N U) of the correlated GPS error the filter cannot see
-        self._gps_var_kf2 = np.zeros(3)  # the same for the distributed filter's KF_II (GPS position) alone
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
         self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
         self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
-        self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of last good fix
-        self._speed = align.GpsSpeed(self.cfg)  # the GPS speed of the still detection after the alignment
-        self.stills: list[int] = []  # epoch times (UTC ns) with a stationary update
-        self._stop = align.StillRun(self.cfg)
         self._check: align.HeadingCheck | None = None
-        self.consider: consider.GyroConsider | None = None
+        self._history = any(x.records_history for x in self.listeners)
+
+    def used(self, name: str) -> tuple[int, ...]:
+        """The epoch times (UTC ns) at which the measurement class ``name`` (e.g. "Stationary") gave an update."""
+        parts = [p for m in self.measurements for p in getattr(m, "parts", (m,))]
+        return tuple(t for p in parts if p.__class__.__name__ == name for t in p.times)
 
     # -- public ---------------------------------------------------------------------------------
 
@@ -170,31 +151,11 @@ class Engine:
 
     # -- epochs ---------------------------------------------------------------------------------
 
-    def _usable(self, ep: Epoch) -> bool:
-        """Classify the epoch (``OutageTracker``); a usable fix becomes the last good fix."""
-        usable = self.outages.classify(ep)
-        if usable:
-            self._last_fix = ((ep.t_ns - self.t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
-        return usable
-
-    def _velocity(self, ep: Epoch) -> np.ndarray:
-        """GPS velocity, or the difference of this and the previous good fix when the drive has none."""
-        if np.isfinite(ep.v_n[:2]).all():
-            return ep.v_n
-        ts = (ep.t_ns - self.t_ref_ns) * 1e-9
-        if self._last_fix is None or not 0.0 < ts - self._last_fix[0] <= 2.0:
-            return np.full(3, np.nan)
-        t0, lat0, lon0, h0 = self._last_fix
-        return kf.enu_offset(ep.lat, ep.lon, ep.h, lat0, lon0, h0) / (ts - t0)
-
     def _pre_init_epoch(self, ep: Epoch, t_k: float, t_k_ns: int) -> None:
         """A GPS epoch before the alignment (``fusion.align``); at the alignment epoch, the filter starts."""
         usable = self.outages.classify(ep)
-        v = self._velocity(ep) if usable else np.full(3, np.nan)
-        if usable:
-            self._last_fix = ((ep.t_ns - self.t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
         interval, self._interval = self._interval, align.ImuSums()
-        a = self.alignment.epoch(ep, usable, v, interval, t_k, self.t_ref_ns)
+        a = self.alignment.epoch(ep, usable, interval, t_k, self.t_ref_ns)
         if a is not None:
             self._start(a, t_k, t_k_ns)
 
@@ -202,72 +163,74 @@ class Engine:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
-        if self.cfg.sensor.gyro_scale_factor_ppm > 0.0 or self.cfg.sensor.gyro_misalignment_mrad > 0.0:
-            self.consider = consider.GyroConsider(self.cfg.sensor.gyro_scale_factor_ppm * 1e-6,
-                                                  self.cfg.sensor.gyro_misalignment_mrad * 1e-3)
-            if self.log is not None:
-                self.log.var_c = self.consider.var_c
-        self._check = align.HeadingCheck(self.cfg, t_k) if self.log is None else None
+        s = self.cfg.sensor
+        if s.gyro_scale_factor_ppm > 0.0 or s.gyro_misalignment_mrad > 0.0:
+            self.listeners.append(listeners.GyroConsider(s.gyro_scale_factor_ppm * 1e-6,
+                                                         s.gyro_misalignment_mrad * 1e-3, self.log))
+        self._check = None if self._history else align.HeadingCheck(self.cfg, t_k)
         if self.bridge is not None:
             self.bridge.origin = (self.nav.lat, self.nav.lon, self.nav.h)
-        if self.log is not None:
-            self.log.start(t_k_ns, self.filter.covariance)
+        for x in self.listeners:
+            x.start(t_k_ns, self.filter.covariance)
 
     def _epoch(self, ep: Epoch, omega_k: np.ndarray) -> None:
-        """GPS epoch at the current sample: update, feed back, reset; in an outage, the predicted correction."""
-        usable = self._usable(ep)
+        """GPS epoch at the current sample: the aids, then the fix or the outage (module docstring)."""
+        usable = self.outages.classify(ep)
         interval, self._interval = self._interval, align.ImuSums()
-        if self.method == "ins":
-            return
-        v = self._velocity(ep) if usable else np.full(3, np.nan)
-        v_gps = ep.v_n if usable else np.full(3, np.nan)
-        speed = self._speed.add((ep.t_ns - self.t_ref_ns) * 1e-9, v_gps, ep)
-        aid = aids.vehicle_aid(self.cfg, self.nav, v_gps if np.isfinite(v_gps[:2]).all() else v, speed, interval,
-                               self._stop, self.bg, self.ba, self.filter.covariance, self._imu_dt)
-        if aid is not None and len(aid[0]) == 6:
-            self.stills.append(ep.t_ns)
-        if aid is not None:
-            self._considered(aid, self.filter.update_aid, aid)
-            self._feedback(self.filter.state)
+        v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
+        t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
+        at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._imu_dt, self.bg, self.ba,
+                                 self.filter.covariance)
+        for m in self.measurements:
+            if m.stage == "aid" and self._update(self._observe([m], at)):
+                self._feedback(self.filter.state)
+                at.nav = self.nav
         if not usable:
             self.filter.start_outage()
             if self.bridge is not None:
                 self._bridge()
-            elif self._distributed and self.filter.state.any():
+            elif self.filter.feeds_prediction and self.filter.state.any():
                 self._feedback(self.filter.state)  # the fused state prediction X(n|n-1) of the local filters
             return
-        t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
-        pos = kf.position_measurement(self.nav, t_g, ep.lat, ep.lon, ep.h, ep.pos_cov, self.lever)
-        vel = kf.velocity_measurement(self.nav, ep.v_n, ep.vel_cov, omega_k, self.lever, self.cfg.gps.vel_var_max)
+        fixes = [m for m in self.measurements if m.stage == "fix"]
+        obs = self._observe(fixes, at)
+        if not obs:
+            return
         u = self.bridge.input(self.nav) if self.bridge is not None else None
+        vel = kf.stack(*(o.m for o in obs if o.kind == "velocity"))
         if (self._check is not None and vel is not None
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
-            pos = kf.position_measurement(self.nav, t_g, ep.lat, ep.lon, ep.h, ep.pos_cov, self.lever)
-            vel = kf.velocity_measurement(self.nav, ep.v_n, ep.vel_cov, omega_k, self.lever,
-                                          self.cfg.gps.vel_var_max)
-        self._considered(kf.stack(vel, pos), self.filter.update_gps, vel, pos)
+            at.nav = self.nav
+            obs = self._observe(fixes, at)
+        self._update(obs)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
-        if not isinstance(self.filter, gpserror.GpsErrorKF):  # the states carry it: nothing to add
-            self._gps_var = output.correlated_variance(np.diag(ep.pos_cov), np.diag(self.filter.covariance)[POS],
-                                                       period, self.cfg.gps.gps_error_tau_s)
-        if self._distributed:  # KF_II's local solution averages the same fixes (KF_I sees no position)
-            self._gps_var_kf2 = output.correlated_variance(np.diag(ep.pos_cov), np.diag(self.filter.kf_pos.P)[POS],
-                                                           period, self.cfg.gps.gps_error_tau_s)
-        if self.log is not None:
-            self.log.gps_var.append((ep.t_ns, self._gps_var.copy()))
-        x = self.filter.state
+        for x in self.listeners:
+            x.fix(ep, self.filter, period)
         if self.bridge is not None:
-            self.bridge.train(t_g, u, self.filter.innovations, pos, vel)
-        self._feedback(x)
+            self.bridge.train(t_g, u, self.filter.innovations, kf.stack(*(o.m for o in obs if o.kind == "position")),
+                              kf.stack(*(o.m for o in obs if o.kind == "velocity")))
+        self._feedback(self.filter.state)
         self.updates += 1
 
-    def _considered(self, m: kf.Measurement | None, update, *args) -> None:
-        """``update(*args)``, the filter's update with the measurement m (stacked), and the consider sensitivity's."""
-        if self.consider is not None and m is not None:
-            self.consider.update(consider.gain(self.filter.covariance, m[1], m[2]), m[1])
-            if self.log is not None:
-                self.log.sensitivity_update(self.consider.S)
-        update(*args)
+    @staticmethod
+    def _observe(ms: list[measurements.MeasurementModel], at: measurements.Moment) -> list[kf.Observation]:
+        """The observations the measurements ms give at the moment."""
+        out = []
+        for m in ms:
+            z_H_R = m.compute_matrices(at)
+            if z_H_R is not None:
+                out.append(kf.Observation(m.kind, z_H_R, m.receiver))
+        return out
+
+    def _update(self, obs: list[kf.Observation]) -> bool:
+        """One filter update with the observations (the listeners told first); False when there are none."""
+        if not obs:
+            return False
+        m = kf.stack(*(o.m for o in obs))
+        for x in self.listeners:
+            x.update(self.filter.covariance, m[1], m[2])
+        self.filter.update_batch(obs)
+        return True
 
     def _realign(self, ep: Epoch) -> bool:
         """The heading is far off its sigma (``fusion.align.HeadingCheck``): take it again from the GPS course and
@@ -283,8 +246,8 @@ class Engine:
 
     def _feedback(self, x: np.ndarray) -> None:
         """Closed loop: the estimate x (15,) corrects the INS and the biases; the filter is reset."""
-        if self.log is not None:
-            self.log.update(x.copy(), self.filter.covariance.copy())
+        for lis in self.listeners:
+            lis.feedback(x, self.filter.covariance)
         self.nav = kf.correct_ins(self.nav, x)
         self.bg = self.bg + x[BG]
         self.ba = self.ba + x[BA]
@@ -311,8 +274,8 @@ class Engine:
         x = self.bridge.as_state(d)
         self.nav = kf.correct_ins(self.nav, x)
         self.filter.shift(x)
-        if self.log is not None:
-            self.log.bridge(x)
+        for lis in self.listeners:
+            lis.bridged(x)
         self.predicted += 1
 
     # -- INS and covariance between epochs ------------------------------------------------------------
@@ -334,44 +297,43 @@ class Engine:
         ends = self._slot_starts(tt)
         if len(ends) == 0 or ends[-1] != len(tt) - 1:
             ends = np.append(ends, len(tt) - 1)
-        starts = np.concatenate([[0], ends[:-1]])
-        mid = (starts + ends) // 2
-        csum = np.cumsum(np.vstack([np.zeros(3), fc[1:]]), axis=0)
-        f_mean = (csum[ends] - csum[starts]) / (ends - starts)[:, None]
-        wsum = np.cumsum(np.vstack([np.zeros(3), wc[1:]]), axis=0)
-        w_mean = (wsum[ends] - wsum[starts]) / (ends - starts)[:, None]
-        C = earth.quat_to_dcm(sol.q[mid])
-        F, G = errmodel.system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C,
-                                        np.einsum("kij,kj->ki", C, f_mean))
-        Phi, Q = errmodel.discretise(F, G, self.q, tt[ends] - tt[starts])
+        c = errmodel.segment_cycles(sol, ends, wc, fc, self.q)
+        Q = c.Q
         if clip.any():  # the rebuilt rate scales with the INS forward speed: its error counts too
-            fwd = C[0, :, 1]
+            fwd = c.C_bn[0, :, 1]
             sd_v = math.sqrt(max(float(fwd @ self.filter.covariance[VEL, VEL] @ fwd), 0.0))
             rel = sd_v / max(abs(float(fwd @ sol.v_n[0])), 1.0)
             sigma = math.hypot(self.cfg.sensor.clip_rate_sigma_dps * _DEG, rel * float(np.abs(wc[clip, 2]).max()))
-            Q = Q + clipgyro.clip_noise(clip, tt, starts, ends, C, sigma)
-        if isinstance(self.filter, gpserror.GpsErrorKF):
-            self.filter.cycles(tt[ends] - tt[starts])
-        if isinstance(self.filter, ukf.CycleFilter):  # the nodes of its RK4 through the nonlinear model
-            self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, starts, mid, ends, f_mean,
-                                                  tt[ends] - tt[starts]))
-        if self.log is None:
-            diag = self.filter.propagate(Phi, Q)
-            local = (self.filter.local_states, self.filter.local_diag) if self._distributed else None
-        else:
-            diag, local = self._propagate_logged(Phi, Q, t_ns[i0:i1 + 1][ends])
-        if self.consider is not None:
-            diag = diag.copy()
-            S = self.consider.propagate(Phi, consider.gyro_sensitivity(C, w_mean, tt[ends] - tt[starts]))
-            diag[:, BA] += self.consider.variance(S)[:, BA]
-            if self.log is not None:
-                self.log.sensitivity(S)
-        if local is not None:
-            d = local[1].copy()
-            d[:, 1, POS] += self._gps_var_kf2
-            local = (local[0], d)
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate([self.bg, self.ba]),
-                           self._gps_var, local)
+            Q = Q + clipgyro.clip_noise(clip, tt, c.starts, ends, c.C_bn, sigma)
+        if self.filter.wants_cycle_lengths:
+            self.filter.cycles(c.dt)
+        if self.filter.wants_nodes:  # the nodes of its RK4 through the nonlinear model
+            self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, c.starts, c.mid, ends, c.f_mean,
+                                                  c.dt))
+        diag, P, local = self._propagate(c.Phi, Q)
+        diag = diag.copy()
+        for x in self.listeners:
+            x.cycles(t_ns[i0:i1 + 1][ends], c.Phi, P, c.C_bn, c.w_mean, c.dt, diag)
+        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag,
+                           np.concatenate([self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local)
+
+    def _propagate(self, Phi: np.ndarray, Q: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+        """``filter.propagate`` over the cycles: diag(P) after each (m, 15); each predicted P (m, 15, 15) when a
+        listener records the history (one cycle per call), else None; the local states and variances after each
+        cycle ((m, 2, 15) each) of a filter with local filters, else None."""
+        f = self.filter
+        if not self._history:
+            diag = f.propagate(Phi, Q)
+            return diag, None, ((f.local_states, f.local_diag) if f.has_locals else None)
+        P = np.empty_like(Phi)
+        local = np.empty((2, len(Phi), 2, N_STATES))
+        for i in range(len(Phi)):
+            f.propagate(Phi[i:i + 1], Q[i:i + 1])
+            P[i] = f.covariance
+            if f.has_locals:
+                local[:, i] = f.local_states[-1], f.local_diag[-1]
+        return np.diagonal(P, axis1=1, axis2=2).copy(), P, (tuple(local) if f.has_locals else None)
 
     def _slot_starts(self, t: np.ndarray) -> np.ndarray:
         """Indexes into t (s) of the samples that start a ``cov_step_s`` slot counted from the last GPS epoch (the
@@ -384,36 +346,3 @@ class Engine:
         """The last sample in [i0, i1] that starts a covariance cycle (i0 if none after it)."""
         s = self._slot_starts(t[i0:i1 + 1])
         return i0 + int(s[-1]) if len(s) else i0
-
-    def _propagate_logged(self, Phi: np.ndarray, Q: np.ndarray, t_end_ns: np.ndarray
-                          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
-        """``filter.propagate`` one cycle at a time, recording Phi and each predicted P; returns diag(P) and, for
-        the distributed filter, the local states and variances after each cycle."""
-        P = np.empty_like(Phi)
-        local = np.empty((2, len(Phi), 2, N_STATES))
-        for i in range(len(Phi)):
-            self.filter.propagate(Phi[i:i + 1], Q[i:i + 1])
-            P[i] = self.filter.covariance
-            if self._distributed:
-                local[:, i] = self.filter.local_states[-1], self.filter.local_diag[-1]
-        self.log.cycles(t_end_ns, Phi, P)
-        return np.diagonal(P, axis1=1, axis2=2).copy(), (tuple(local) if self._distributed else None)
-
-    @property
-    def _distributed(self) -> bool:
-        return isinstance(self.filter, DistributedKF)
-
-
-def make_filter(method: str, P0: np.ndarray, q: np.ndarray, cfg: FusionConfig) -> kf.KalmanFilter | DistributedKF:
-    """The filter object of a method, started at P0 (15, 15) with noise PSD q (12, 12)."""
-    if method == "dkf" or method in PREDICTOR_NETWORK:
-        return DistributedKF(P0, q, cfg.filter.dkf_fusion)
-    if method == "hinf":
-        return hinf.HInfinityFilter(P0, q, cfg.filter.hinf_gamma, min_ratio=cfg.filter.hinf_min_ratio)
-    if method == "kf-ukf":
-        return ukf.HybridKfUkf(P0, q)
-    if method in sckf.FILTERS:
-        return sckf.FILTERS[method](P0, q)
-    if cfg.gps.gps_error_model == "gm-states":
-        return gpserror.GpsErrorKF(P0, q, cfg.gps.gps_error_tau_s, cfg.gps.gps_error_white_share)
-    return kf.KalmanFilter(P0, q)

@@ -42,6 +42,8 @@ Every function is vectorised over leading axes (a stack of filter cycles is buil
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -130,3 +132,37 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
     Q = (GqG * dt + 0.5 * (FGqG + np.swapaxes(FGqG, -1, -2)) * dt * dt
          + (FGqG @ np.swapaxes(F, -1, -2)) * (dt * dt * dt / 3.0))
     return Phi, Q
+
+
+@dataclass
+class Cycles:
+    """The filter cycles of an INS segment: sample indices of each cycle's start, middle and end (m,), lengths dt
+    (m,) s, mean bias-corrected specific force f_mean and rate w_mean (m, 3) (m/s^2, rad/s, body RFU) over each,
+    the middle sample's C_bn (m, 3, 3), and the discrete Phi, Q (m, 15, 15)."""
+
+    starts: np.ndarray
+    mid: np.ndarray
+    ends: np.ndarray
+    dt: np.ndarray
+    f_mean: np.ndarray
+    w_mean: np.ndarray
+    C_bn: np.ndarray
+    Phi: np.ndarray
+    Q: np.ndarray
+
+
+def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: np.ndarray) -> Cycles:
+    """The cycles of an INS solution ``sol`` (``fusion.ins.NavSolution``: t, lat, h, v_n, q per sample) over
+    bias-corrected samples w_b, f_b (n, 3), each cycle ending at a sample of ``ends`` (the first cycle starts at
+    sample 0); F taken at each cycle's middle sample with its mean specific force, noise PSD q (12, 12)."""
+    starts = np.concatenate([[0], ends[:-1]])
+    mid = (starts + ends) // 2
+    dt = sol.t[ends] - sol.t[starts]
+    csum = np.cumsum(np.vstack([np.zeros(3), f_b[1:]]), axis=0)
+    f_mean = (csum[ends] - csum[starts]) / (ends - starts)[:, None]
+    wsum = np.cumsum(np.vstack([np.zeros(3), w_b[1:]]), axis=0)
+    w_mean = (wsum[ends] - wsum[starts]) / (ends - starts)[:, None]
+    C = earth.quat_to_dcm(sol.q[mid])
+    F, G = system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean))
+    Phi, Q = discretise(F, G, q, dt)
+    return Cycles(starts, mid, ends, dt, f_mean, w_mean, C, Phi, Q)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from fieldlog.fusion.errmodel import N_STATES, POS
-from fieldlog.fusion.kf import KalmanFilter, Measurement
+from fieldlog.fusion.kf import KalmanFilter, Observation
 
 N_GPS = 3
 GPS = slice(N_STATES, N_STATES + N_GPS)
@@ -29,6 +29,9 @@ GPS = slice(N_STATES, N_STATES + N_GPS)
 class GpsErrorKF(KalmanFilter):
     """``kf`` with the GPS position error as three Gauss-Markov states (module docstring). ``state`` and
     ``covariance`` are the 15 INS error states' (what the engine feeds back and prints)."""
+
+    wants_cycle_lengths = True
+    models_gps_error = True
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, tau_s: float, white_share: float) -> None:
         super().__init__(P0, q)
@@ -79,23 +82,27 @@ class GpsErrorKF(KalmanFilter):
             H = np.hstack([H, np.zeros((len(H), N_GPS))])
         return super().update(z, H, R)[:N_STATES]
 
-    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        if pos is not None:
-            z, H, R = pos
-            axes = np.argmax(np.abs(H[:, POS]), axis=1)  # the position rows are unit rows (kf.position_measurement)
-            r = np.diag(R)
-            new = np.isnan(self.s2[axes])
-            self.s2[axes] = (1.0 - self.white_share) * r
-            for k in np.flatnonzero(new):
-                j = N_STATES + axes[k]
-                self.P[j, :], self.P[:, j] = 0.0, 0.0
-                self.P[j, j] = self.s2[axes[k]]
-            Hg = np.zeros((len(H), N_GPS))
-            Hg[np.arange(len(H)), axes] = -1.0
-            pos = (z, np.hstack([H, Hg]), self.white_share * R)
-        if vel is not None:
-            vel = (vel[0], np.hstack([vel[1], np.zeros((len(vel[1]), N_GPS))]), vel[2])
-        super().update_gps(vel, pos)
+    def update_batch(self, obs: list[Observation]) -> None:
+        """The observations stacked, the receiver's position rows with the error states' columns (module
+        docstring: H = [I, -I], R the white share); the other rows see no GPS error state."""
+        out = []
+        for o in obs:
+            z, H, R = o.m
+            if o.kind == "position" and o.receiver:
+                axes = np.argmax(np.abs(H[:, POS]), axis=1)  # the position rows are unit rows
+                r = np.diag(R)
+                new = np.isnan(self.s2[axes])
+                self.s2[axes] = (1.0 - self.white_share) * r
+                for k in np.flatnonzero(new):
+                    j = N_STATES + axes[k]
+                    self.P[j, :], self.P[:, j] = 0.0, 0.0
+                    self.P[j, j] = self.s2[axes[k]]
+                Hg = np.zeros((len(H), N_GPS))
+                Hg[np.arange(len(H)), axes] = -1.0
+                out.append(Observation(o.kind, (z, np.hstack([H, Hg]), self.white_share * R), o.receiver))
+            else:
+                out.append(Observation(o.kind, (z, np.hstack([H, np.zeros((len(H), N_GPS))]), R), o.receiver))
+        super().update_batch(out)
 
     def reset(self) -> None:
         """Closed loop: the INS error states are fed back and cleared; the GPS error states stay."""

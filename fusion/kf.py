@@ -1,8 +1,9 @@
 """The shared error-state Kalman filter, GPS measurement models and the closed-loop INS correction.
 
 Every filter of the project exposes the interface of design section 6: ``predict(dt, ins_state, imu)``,
-``update(z, H, R)``, ``state``, ``covariance``; :class:`KalmanFilter` is the 15-state one
-(``fusion.errmodel`` for the state order and the model). Closed loop: after each GPS epoch the estimate
+``update(z, H, R)``, ``state``, ``covariance``, and the loop's ``update_batch(observations)`` (the measurements of
+one update, each an :class:`Observation` with its kind, which the filter routes); :class:`KalmanFilter` is the
+15-state one (``fusion.errmodel`` for the state order and the model). Closed loop: after each GPS epoch the estimate
 is fed back into the INS (:func:`correct_ins`) and the biases, and the error state is reset to zero.
 
 Both the centralised ``kf`` (one filter, z = [dv; dp]) and the two local filters of ``dkf``
@@ -10,6 +11,8 @@ Both the centralised ``kf`` (one filter, z = [dv; dp]) and the two local filters
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,12 +23,41 @@ from fieldlog.fusion.ins import NavState
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]  # (z (m,), H (m, 15), R (m, m))
 
 
+@dataclass(frozen=True)
+class Observation:
+    """A measurement's matrices m = (z, H, R) with what the filters route on: kind "velocity" or "position"
+    (``fusion.measurements``); receiver: R is the GPS receiver's own figure."""
+
+    kind: str
+    m: Measurement
+    receiver: bool = False
+
+
+def gps_observations(vel: Measurement | None, pos: Measurement | None) -> list[Observation]:
+    """The GPS velocity and position measurements given (None: left out) as observations, in that order."""
+    return [Observation(k, m, True) for k, m in (("velocity", vel), ("position", pos)) if m is not None]
+
+
 class KalmanFilter:
     """Linear KF on the 15-state INS error (``fusion.errmodel``).
 
     P0 (15, 15) initial covariance; q (12, 12) noise PSD (``errmodel.noise_psd``); q_scale multiplies
     the discrete Q (the information-sharing factor 1/beta of a federated local filter; 1 otherwise).
+
+    What a filter needs from the loop, and what it carries, it declares (class attributes, all False here):
+    ``wants_nodes``: the navigation solution at each cycle's RK4 nodes (``queue``, ``fusion.ukf.CycleFilter``);
+    ``wants_cycle_lengths``: the cycle lengths before each ``propagate`` (``cycles``, ``fusion.gpserror``);
+    ``models_gps_error``: the correlated GPS error is in its states (nothing is added to its sigmas);
+    ``has_locals``: local filters whose solutions are written too (``locals``, ``local_states``,
+    ``local_diag``, ``fusion.dkf``); ``feeds_prediction``: its state prediction between epochs is an estimate,
+    fed back at every epoch without a fix (the distributed filter's fused X(n|n-1)).
     """
+
+    wants_nodes = False
+    wants_cycle_lengths = False
+    models_gps_error = False
+    has_locals = False
+    feeds_prediction = False
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
         self.x = np.zeros(N_STATES)
@@ -79,16 +111,19 @@ class KalmanFilter:
         self.P = 0.5 * (P + P.T)
         return dx
 
-    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        """Centralised update with the available GPS measurements stacked, z = [dv; dp]."""
-        m = stack(vel, pos)
+    def update_batch(self, obs: list[Observation]) -> None:
+        """One update with the observations' matrices stacked in their order (the centralised filter: one z)."""
+        m = stack(*(o.m for o in obs))
         if m is not None:
             self.update(*m)
 
+    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
+        """Update with the available GPS measurements, z = [dv; dp] (:meth:`update_batch`)."""
+        self.update_batch(gps_observations(vel, pos))
+
     def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (``nhc_measurement``, ``stationary_measurement``): one :meth:`update`. Its own
-        call so that a filter made of local filters (``fusion.dkf``) can route it to the right one."""
-        self.update(*m)
+        """A vehicle-motion aid (``nhc_measurement``, ``stationary_measurement``), a velocity-kind observation."""
+        self.update_batch([Observation("velocity", m)])
 
     def start_outage(self) -> None:
         """Told at each unusable GPS epoch; nothing to do for a linear KF (``fusion.ukf.HybridKfUkf`` acts on it)."""

@@ -24,13 +24,13 @@ def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
 
 
 def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray, bias: np.ndarray,
-         gps_var: np.ndarray | None = None, local: tuple[np.ndarray, np.ndarray] | None = None
-         ) -> Solution:
+         gps_var: np.ndarray | None = None, local: tuple[np.ndarray, np.ndarray] | None = None,
+         gps_var_local: np.ndarray | None = None) -> Solution:
     """Solution rows of an INS segment: sol a ``fusion.ins.NavSolution`` over samples t_ns (n,); the covariance
     diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); bias (6,) the segment's gyro
     (rad/s) and accelerometer (m/s^2) bias estimate, body RFU; local: the distributed filter's
     local estimates and variances after each cycle, (m, 2, 15) each, or None; gps_var (3,) m^2
-    added to the position variances (``correlated_variance``)."""
+    added to the position variances (``correlated_variance``), gps_var_local (3,) to KF_II's."""
     r = output_rows(t_ns, output_hz)
     cyc = np.searchsorted(ends, r)
     sig = sigmas(diag)[cyc]
@@ -38,7 +38,10 @@ def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.nda
         sig[:, :3] = np.sqrt(sig[:, :3] ** 2 + gps_var)
     loc = None
     if local is not None:
-        x, d = local[0][cyc], local[1][cyc]  # (n, 2, 15)
+        d = local[1].copy()
+        if gps_var_local is not None:
+            d[:, 1, 0:3] += gps_var_local
+        x, d = local[0][cyc], d[cyc]  # (n, 2, 15)
         loc = np.empty((len(r), 2, 12))
         for i in range(2):
             loc[:, i, 0:6] = corrected(sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], x[:, i])

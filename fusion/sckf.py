@@ -56,7 +56,7 @@ from the paper, each compared against it (docs/results.md, "Fusion"):
   on urban) and the filter then over-trusts the GPS, worse than ``sckf`` in the outages that follow. A floor
   below 1 also covers eq. 25's Cholesky failing (a negative ratio).
 
-Only GPS updates (``update_gps``) feed and use the window; another aid through ``update(z, H, R)`` keeps
+Only GPS updates (the receiver's rows, ``update_batch``) feed and use the window; another aid through ``update(z, H, R)`` keeps
 its own R.
 
 Slips of the paper, fixed here:
@@ -244,11 +244,12 @@ class CubatureKF(ukf.CycleFilter):
             out[i] = np.einsum("ij,ij->i", self.S, self.S)
         return out
 
-    def update_gps(self, vel: kf.Measurement | None, pos: kf.Measurement | None) -> None:
-        """GPS update, z = [dv; dp] as :meth:`fusion.kf.KalmanFilter.update_gps`, with the window R if adaptive."""
-        m = kf.stack(vel, pos)
+    def update_batch(self, obs: list[kf.Observation]) -> None:
+        """The observations stacked as :meth:`fusion.kf.KalmanFilter.update_batch`; with the window R if adaptive
+        and every row is the receiver's (a GPS update)."""
+        m = kf.stack(*(o.m for o in obs))
         if m is not None:
-            self._update(*m, self.adaptive is not None)
+            self._update(*m, self.adaptive is not None and all(o.receiver for o in obs))
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Measurement update with R as given (a non-GPS aid: not part of the GPS window). Returns the change of

@@ -209,6 +209,8 @@ class CycleFilter(KalmanFilter):
     """A :class:`fusion.kf.KalmanFilter` whose prediction needs the navigation solution at the RK4 nodes of each
     cycle: the engine queues them (:meth:`queue`) before each ``propagate``, which takes them (:meth:`take`)."""
 
+    wants_nodes = True
+
     def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
         super().__init__(P0, q, q_scale)
         self._queue: list[Cycles] = []

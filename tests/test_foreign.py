@@ -313,9 +313,7 @@ def test_config_input_table_and_named_lever_arm_frame(ros_drive, tmp_path, capsy
     assert f"fusion settings (--config {cfg}): lever_arm_b=(0.5, 0, 1), lever_arm_frame=flu" in text.out
     assert f"IMU /sensors/imu ([input] of {cfg}) in flu ([input] of {cfg})" in text.out
     assert "(default)" in text.out and "warning" not in text.err
-    from fieldlog.fusion.engine import Engine
-
-    flu = Engine("kf", FusionConfig.from_flat(lever_arm_b=(0.5, 0.0, 1.0), lever_arm_frame="flu")).lever
+    flu = FusionConfig.from_flat(lever_arm_b=(0.5, 0.0, 1.0), lever_arm_frame="flu").gps.lever_rfu()
     np.testing.assert_allclose(flu, [0.0, 0.5, 1.0])  # forward 0.5 m = RFU y
 
 

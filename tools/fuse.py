@@ -383,4 +383,4 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
-                      getattr(engine.filter, "raised", 0), tuple(engine.stills), engine.alignment.note)
+                      getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note)

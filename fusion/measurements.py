@@ -1,0 +1,200 @@
+"""The measurements of the fusion loop, one object each: at a GPS epoch time each gives (z, H, R) or nothing.
+
+A measurement holds its own noise, lever arm and state (a still detector's run) and reads the epoch from a
+:class:`Moment`, what the loop knows at that instant. Its ``compute_matrices(moment)`` returns ``(z, H, R)``
+(``fusion.kf.Measurement``: z = INS - measured, H over the 15 error states of ``fusion.errmodel``) or None. Two
+attributes tell the filters what it is:
+
+- ``kind``: "velocity" or "position", the domain it observes; the distributed filter (``fusion.dkf``) gives the
+  velocity kind to KF_I and the position kind to KF_II;
+- ``stage``: "aid" (a vehicle-motion aid: needs no GPS, acts at every epoch time, outages included, and each is
+  its own update before the fix) or "fix" (the GPS fix's measurements: at usable epochs, stacked into one
+  update); ``receiver`` True when R is the receiver's own figure (the adaptive filters of ``fusion.sckf`` rescale
+  only those).
+
+:func:`for_method` builds the list a method runs with. A new aid (a wheel-speed odometer, say) is one more
+class here with the same method and attributes, and one more entry there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from fieldlog.fusion import earth, kf
+from fieldlog.fusion.align import GpsSpeed, ImuSums, StillRun
+from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.errmodel import BA, BG
+from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.types import Epoch
+
+_DEG = math.pi / 180.0
+
+
+@dataclass
+class Moment:
+    """What the measurements see at one GPS epoch time. epoch: the GPS epoch; usable: whether its fix is used
+    (``fusion.outages.OutageTracker``); t_fix: the fix time, s from the drive's first IMU sample; v_aid (3,) ENU
+    m/s: the GPS velocity the aids test (the receiver's, else differenced fixes; NaN: none); nav: the INS at the
+    epoch's sample (refreshed by the loop after each update); omega_b (3,) rad/s: the bias-corrected rate there,
+    body RFU; interval: the raw IMU sums since the previous epoch; imu_dt: the IMU sample period, s; bg, ba (3,):
+    the bias estimates, rad/s and m/s^2; P (15, 15): the filter's covariance before this epoch's updates."""
+
+    epoch: Epoch
+    usable: bool
+    t_fix: float
+    v_aid: np.ndarray
+    nav: NavState
+    omega_b: np.ndarray
+    interval: ImuSums
+    imu_dt: float
+    bg: np.ndarray
+    ba: np.ndarray
+    P: np.ndarray
+
+
+class MeasurementModel(Protocol):
+    """What the loop asks of a measurement (module docstring)."""
+
+    kind: str
+    stage: str
+    receiver: bool
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """(z, H, R) at the moment, or None."""
+
+
+@dataclass
+class GpsPosition:
+    """The fix: z = INS antenna position - GPS position, ENU m (``kf.position_measurement``); lever_b (3,) IMU ->
+    antenna, body RFU, m. R is the fix's covariance; a fix without height gives the horizontal rows only."""
+
+    lever_b: np.ndarray
+    kind = "position"
+    stage = "fix"
+    receiver = True
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        e = m.epoch
+        if not m.usable:
+            return None
+        return kf.position_measurement(m.nav, m.t_fix, e.lat, e.lon, e.h, e.pos_cov, self.lever_b)
+
+
+@dataclass
+class GpsVelocity:
+    """The receiver's velocity: z = INS antenna velocity - GPS velocity, ENU m/s (``kf.velocity_measurement``);
+    components with a variance above max_var ((m/s)^2, NMEA's unobserved vertical) are left out."""
+
+    lever_b: np.ndarray
+    max_var: float
+    kind = "velocity"
+    stage = "fix"
+    receiver = True
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        if not m.usable:
+            return None
+        return kf.velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
+
+
+@dataclass
+class NonHolonomic:
+    """A car's body lateral and vertical velocity are zero (``kf.nhc_measurement``), sigma_mps each; not when the
+    car is slow: GPS speed below slow_gps_mps, or (without a GPS velocity) INS speed below slow_ins_mps."""
+
+    sigma_mps: float
+    slow_gps_mps: float
+    slow_ins_mps: float
+    kind = "velocity"
+    stage = "aid"
+    receiver = False
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        v = m.v_aid
+        slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
+                else float(np.linalg.norm(m.nav.v_n)) < self.slow_ins_mps)
+        return None if slow else kf.nhc_measurement(m.nav, self.sigma_mps)
+
+
+@dataclass
+class Stationary:
+    """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``kf.stationary_measurement``) when the vehicle
+    stood still over the interval since the last epoch and the one before it (``fusion.align.StillRun``): ZUPT
+    1-sigma sigma_mps; ZARU 1-sigma gyro_noise (rad/s/sqrt(Hz)) over the root of the interval's length.
+    ``times``: the epochs (UTC ns) it gave a measurement at."""
+
+    cfg: FusionConfig
+    sigma_mps: float
+    gyro_noise: float
+    kind = "velocity"
+    stage = "aid"
+    receiver = False
+    times: list[int] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.speed = GpsSpeed(self.cfg)
+        self.run = StillRun(self.cfg)
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        v_gps = m.epoch.v_n if m.usable else np.full(3, np.nan)
+        speed = self.speed.add(m.t_fix, v_gps, m.epoch)
+        if not (math.isfinite(speed[0]) or float(np.linalg.norm(m.nav.v_n)) < self.cfg.still.still_speed_mps):
+            self.run.reset()
+            return None
+        if not self.run.update(m.interval, speed, *_still_references(m.nav, m.bg, m.ba, m.P)):
+            return None
+        self.times.append(m.epoch.t_ns)
+        n = m.interval.n
+        return kf.stationary_measurement(m.nav, m.interval.sum_w / n - m.bg, n * m.imu_dt, self.sigma_mps,
+                                         self.gyro_noise)
+
+
+@dataclass
+class FirstOf:
+    """The first of the given measurements that gives one (the others are not asked): the vehicle aids of one
+    epoch exclude each other (a standing car gets the stationary update, not the non-holonomic constraint).
+    All must share one kind and stage."""
+
+    parts: tuple[MeasurementModel, ...]
+
+    def __post_init__(self) -> None:
+        kinds = {(p.kind, p.stage, p.receiver) for p in self.parts}
+        if len(kinds) != 1:
+            raise ValueError(f"FirstOf: measurements of different kinds or stages: {kinds}")
+        self.kind, self.stage, self.receiver = kinds.pop()
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        for p in self.parts:
+            out = p.compute_matrices(m)
+            if out is not None:
+                return out
+        return None
+
+
+def for_method(method: str, cfg: FusionConfig) -> list[MeasurementModel]:
+    """The measurements a method runs with, in the order the loop applies them: the vehicle aids (not for the
+    free INS, ``ins``; ``[fusion] zupt``, ``nhc``), then the GPS velocity and position."""
+    if method == "ins":
+        return []
+    lever = cfg.gps.lever_rfu()
+    a = cfg.aids
+    aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
+        [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
+    return ([FirstOf(tuple(aids))] if aids else []) + [GpsVelocity(lever, cfg.gps.vel_var_max), GpsPosition(lever)]
+
+
+def _still_references(nav: NavState, bg: np.ndarray, ba: np.ndarray, P: np.ndarray
+                      ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """What a vehicle standing still would measure, body: the rate (Earth rate + gyro bias, rad/s) and the
+    specific force (gravity through the attitude + accelerometer bias, m/s^2), each with its sigma from P."""
+    C_nb = nav.C_bn.T
+    w_ref = C_nb @ earth.omega_ie_n(nav.lat) + bg
+    f_ref = -C_nb @ earth.gravity_n(nav.lat, nav.h) + ba
+    sd_w = math.sqrt(max(float(np.trace(P[BG, BG])), 0.0))
+    sd_f = math.hypot(math.sqrt(max(float(P[6, 6] + P[7, 7]), 0.0)) * float(np.linalg.norm(f_ref)),
+                      math.sqrt(max(float(np.trace(P[BA, BA])), 0.0)))
+    return w_ref, sd_w, f_ref, sd_f
