@@ -40,6 +40,10 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       bias estimate
 ``bias/{gyro,accel}/truth``           the simulator's ``/truth/imu_bias`` at 10 Hz (every ``TRUTH_DECIMATION``-th
                                       row): the sensor error less its white noise
+``speed/wheels``, ``speed/truth``     Scalars, m/s: the forward speed of ``/vehicle/twist`` (the wheels) and of
+                                      ``/truth/vehicle/twist`` (simulated drives), one row per message
+``speed/<method>``                    Scalars, m/s: the fused forward speed (``/fusion/<method>/odom`` twist x,
+                                      base_link), one row per solution row, beside the wheels'
 ``timesync/state``                    Scalars: FREE=0, HOLDOVER=1, LOCKED=2 (``/time/sync``)
 ``timesync/rate_ppm``                 Scalars: DAQ oscillator rate error, ppm
 ``timesync/residual_us``              Scalars: RMS fit residual of the inlier PPS edges, us
@@ -73,6 +77,7 @@ TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
 AXES = ("east", "north", "up")
 
 GPS_COLOR = (255, 140, 0)
+WHEELS_COLOR = (120, 60, 200)
 TRUTH_COLOR = (20, 160, 20)
 NO_FIX_COLOR = (230, 30, 30)
 OUTAGE_COLOR = (230, 30, 30, 200)
@@ -353,6 +358,8 @@ LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass a
     "/truth/vel": ("v_n",),
     "/truth/imu_bias": ("omega_ib_b", "f_b"),
     "/time/sync": ("state", "rate_ppm", "residual_us"),
+    "/vehicle/twist": ("v_n",),
+    "/truth/vehicle/twist": ("v_n",),
 }
 
 
@@ -432,6 +439,7 @@ def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
                     _plot("imu/accel", f"accel (means of {IMU_DECIMATION} samples)"),
                     rrb.Vertical(_plot("bias/gyro", "gyro bias estimate (deg/h)"),
                                  _plot("bias/accel", "accel bias estimate (mg)"), name="IMU bias estimates"),
+                    _plot("speed", "forward speed: wheels and fused (m/s)"),
                     rrb.Vertical(
                         _plot("timesync/state", "sync state"),
                         _plot("timesync/rate_ppm", "rate error (ppm)"),
@@ -506,6 +514,18 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
         if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/imu_bias"):  # fused files before it: none
             _log_bias(rec, m, reader.read_topic(path, f"/fusion/{m.split('@')[0]}/imu_bias"), color)
+        if "/vehicle/twist" in low and _topic_names(path).get(f"/fusion/{m.split('@')[0]}/odom"):
+            od = reader.read_topic(path, f"/fusion/{m.split('@')[0]}/odom")
+            keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
+            fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
+            _log_scalar(rec, f"speed/{m}", od["log_time_ns"][keep], fwd, f"{m} forward speed (m/s)", [color])
+    for topic, src, color in (("/vehicle/twist", "wheels", WHEELS_COLOR), ("/truth/vehicle/twist", "truth",
+                                                                           TRUTH_COLOR)):
+        if topic in low:
+            d = low[topic]
+            ok = d["valid"]
+            _log_scalar(rec, f"speed/{src}", d["log_time_ns"][ok], d["v_n"][ok, 0], f"{src} forward speed (m/s)",
+                        [color])
 
     windows = _outages(files)
     t_start = min(int(c.t_ns[0]) for c in candidates)

@@ -329,3 +329,20 @@ def test_acquire_with_a_bad_can_config_is_one_line_exit_2(tmp_path):
         r = _cli(*base, *extra)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and name in lines[0], r.stderr
+
+
+def test_view_shows_the_wheel_speed_beside_the_fused_forward_speed(can_drive, tmp_path):
+    pytest.importorskip("rerun", reason="needs the view extra (rerun-sdk)")
+    from test_view_export import _rerun, _rows
+
+    from fieldlog.tools.cli import main as cli_main
+
+    fused, rrd = tmp_path / "kf.mcap", tmp_path / "v.rrd"
+    assert cli_main(["fuse", str(can_drive), "--method", "kf", "--out", str(fused)]) == 0
+    assert cli_main(["view", str(can_drive), str(fused), "--rrd", str(rrd)]) == 0
+    rows = _rows(_rerun("print", str(rrd)))
+    n_twist = len(reader.read_payloads(can_drive, "/vehicle/twist")[0])
+    n_kf = len(reader.read_payloads(fused, "/fusion/kf/odom")[0])
+    assert rows.get(("/speed/wheels", "Scalars:scalars")) == n_twist
+    assert rows.get(("/speed/truth", "Scalars:scalars")) == n_twist
+    assert rows.get(("/speed/kf", "Scalars:scalars")) == n_kf > 0
