@@ -12,7 +12,6 @@ from fieldlog.fusion.types import ImuBlock
 from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks, read_topic
 from fieldlog.tools.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.sim.simulate import simulate
 
 SEEDS = (1, 2, 3)
 DURATION = 240.0
@@ -92,13 +91,12 @@ def test_federated_option_is_the_centralised_filter_and_paper_is_not():
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, simulated):
     """GPS-only figure8 drives, one 30 s outage: kf, dkf, dkf-rbfn (online and batch networks) per seed."""
     d = tmp_path_factory.mktemp("dkf")
     out = {}
     for seed in SEEDS:
-        drive = d / f"f8_{seed}.mcap"
-        simulate("figure8", DURATION, seed, drive)
+        drive = simulated("figure8", DURATION, seed)  # seed 3: test_fusion's drive
         t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
         win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
         cfg = FusionConfig.from_flat(outages=(OUTAGE,), **GPS_ONLY)

@@ -21,12 +21,9 @@ BIN = Path(sys.executable).parent
 
 
 @pytest.fixture(scope="module")
-def figure8(tmp_path_factory) -> Path:
-    """The reference drive: figure8, 600 s, seed 1, PPS as a sampled flag (40 ppm, wander, 3 dropped edges,
-    5 dropped sentences are the scenario defaults)."""
-    path = tmp_path_factory.mktemp("drive") / "X.mcap"
-    assert fieldlog(["sim", "--scenario", "figure8", "--duration", "600", "--seed", "1", "--out", str(path)]) == 0
-    return path
+def figure8(figure8_600s_seed1) -> Path:
+    """The reference drive (conftest: `fieldlog sim --scenario figure8 --duration 600 --seed 1`)."""
+    return figure8_600s_seed1
 
 
 def counts(path: Path) -> dict[str, int]:

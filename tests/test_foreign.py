@@ -26,20 +26,24 @@ GAP = (200.0, 60.0)  # the silent gap / forced outage, s from the first IMU samp
 
 
 @pytest.fixture(scope="module")
-def native(tmp_path_factory):
-    """The default figure8 drive (600 s, seed 1), as `fieldlog sim` writes it."""
-    path = tmp_path_factory.mktemp("foreign") / "figure8.mcap"
-    simulate("figure8", 600.0, 1, path)
-    return path
+def native(figure8_600s_seed1):
+    """The default figure8 drive (600 s, seed 1), as `fieldlog sim` writes it (conftest; read-only)."""
+    return figure8_600s_seed1
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    """This module's own directory for what its module-scoped fixtures write."""
+    return tmp_path_factory.mktemp("foreign")
 
 
 SHORT = (60.0, 240.0)  # the stretch the shorter foreign drives (first 300 s) are scored on
 
 
 @pytest.fixture(scope="module")
-def native_gap(native):
+def native_gap(native, work):
     """kf on the native drive with the gap forced as an outage: (2D RMS in the gap, 2D RMS over SHORT)."""
-    out = native.parent / "native_kf.mcap"
+    out = work / "native_kf.mcap"
     fuse(native, "kf", out, FusionConfig.from_flat(outages=(GAP,)))
     return _rms(native, out, "kf", _window(native, GAP)), _rms(native, out, "kf", _window(native, SHORT))
 
@@ -60,10 +64,10 @@ def _rms(native: Path, fused: Path, method: str, win: list[tuple[int, int]] | No
 
 
 @pytest.fixture(scope="module")
-def ros_drive(native):
+def ros_drive(native, work):
     """FLU IMU on /sensors/imu, fixes on /sensors/gnss/fix, no velocity topic, a 60 s silent gap; jittered IMU
     stamps, every message logged after its stamp (the fixes 0.05-0.3 s late)."""
-    return write_foreign(native, native.parent / "ros.mcap", Foreign(silent=(GAP,), jitter_ns=200_000))
+    return write_foreign(native, work / "ros.mcap", Foreign(silent=(GAP,), jitter_ns=200_000))
 
 
 def test_done_when_flu_imu_other_topics_no_velocity_silent_gap(ros_drive, native, native_gap, tmp_path, capsys):
@@ -218,9 +222,9 @@ RATE_WIN = (60.0, 85.0)
 
 
 @pytest.fixture(scope="module")
-def native_rate_rms(native):
+def native_rate_rms(native, work):
     """kf's 2D RMS on the native drive (500 Hz, no outage) over RATE_WIN."""
-    out = native.parent / "native_whole_kf.mcap"
+    out = work / "native_whole_kf.mcap"
     fuse(native, "kf", out)
     return _rms(native, out, "kf", _window(native, RATE_WIN))
 

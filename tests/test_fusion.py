@@ -19,10 +19,9 @@ OUTAGE = (170.0, 30.0)
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    path = tmp_path_factory.mktemp("fusion") / "figure8.mcap"
-    simulate("figure8", DURATION, 3, path)
-    return path
+def drive(figure8_240s_seed3):
+    """figure8, DURATION s, seed 3 (conftest; read-only)."""
+    return figure8_240s_seed3
 
 
 def _errors(drive, fused, method, window_ns=None):

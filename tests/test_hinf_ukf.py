@@ -12,17 +12,15 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 150.0
 OUTAGE = (95.0, 25.0)
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    path = tmp_path_factory.mktemp("hinf_ukf") / "figure8.mcap"
-    simulate("figure8", DURATION, 3, path)
-    return path
+def drive(figure8_150s_seed3):
+    """figure8, DURATION s, seed 3 (conftest; read-only)."""
+    return figure8_150s_seed3
 
 
 def _system(rng):

@@ -13,17 +13,15 @@ from fieldlog.fusion import earth, errmodel, ins, kf, sckf, ukf
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.sim.simulate import simulate
 
 N = 15
 RULES = {"spherical-radial": sckf.spherical_radial_rule(N), "simplex-radial": sckf.simplex_radial_rule(N)}
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    path = tmp_path_factory.mktemp("sckf") / "figure8.mcap"
-    simulate("figure8", 150.0, 3, path)
-    return path
+def drive(figure8_150s_seed3):
+    """figure8, 150 s, seed 3 (conftest; read-only)."""
+    return figure8_150s_seed3
 
 
 def _gauss_moment(powers: np.ndarray) -> float:

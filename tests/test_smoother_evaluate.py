@@ -17,17 +17,15 @@ from fieldlog.tools.evaluate import (
     window_curves,
 )
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.sim.simulate import simulate
 
 DURATION = 240.0
 OUTAGE = (170.0, 30.0)
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    path = tmp_path_factory.mktemp("smooth") / "figure8.mcap"
-    simulate("figure8", DURATION, 3, path)
-    return path
+def drive(figure8_240s_seed3):
+    """figure8, DURATION s, seed 3 (conftest; read-only)."""
+    return figure8_240s_seed3
 
 
 def _rms(drive, fused, method, window_ns):
