@@ -312,7 +312,7 @@ def test_config_input_table_and_named_lever_arm_frame(ros_drive, tmp_path, capsy
                    "[fusion]\nlever_arm_b = [0.5, 0.0, 1.0]\nlever_arm_frame = \"flu\"\n"
                    "gyro_noise_dps_rthz = 0.03\naccel_noise_ug_rthz = 300.0\ngyro_bias_rw_dps_rts = 2e-4\n"
                    "accel_bias_rw_ug_rts = 10.0\ngyro_scale_factor_ppm = 1000.0\ngyro_misalignment_mrad = 1.0\n")
-    assert cli_main(["fuse", str(drive), "--config", str(cfg), "--out", str(tmp_path / "o.mcap")]) == 0
+    assert cli_main(["fuse", "-v", str(drive), "--config", str(cfg), "--out", str(tmp_path / "o.mcap")]) == 0
     text = capsys.readouterr()
     assert f"fusion settings (--config {cfg}): lever_arm_b=(0.5, 0, 1), lever_arm_frame=flu" in text.out
     assert f"IMU /sensors/imu ([input] of {cfg}) in flu ([input] of {cfg})" in text.out

@@ -50,9 +50,10 @@ def test_filter_slices_by_time_and_topic(drive, tmp_path, capsys):
     assert main(["filter", str(drive), "--start", "30", "--end", "75.5", "--topics", "/imu,/gps/*",
                  "--out", str(out)]) == 0
     assert str(out.resolve()) in capsys.readouterr().out
+    t_imu = int(reader.read_topic(drive, "/imu")["log_time_ns"][0])  # times count from the first IMU sample
     with open(drive, "rb") as f:
-        t_first = make_reader(f).get_summary().statistics.message_start_time
-    t0, t1 = t_first + 30 * NS, t_first + int(75.5 * NS)
+        assert make_reader(f).get_summary().statistics.message_start_time < t_imu  # (not the first message)
+    t0, t1 = t_imu + 30 * NS, t_imu + int(75.5 * NS)
     got = {t.topic: t for t in reader.topics(out)}
     assert set(got) == {"/imu", "/gps/fix", "/gps/vel", "/gps/nmea", "/tf_static"}
     for topic in ("/imu", "/gps/fix", "/gps/nmea"):

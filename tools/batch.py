@@ -184,9 +184,9 @@ def _line(rows: list[dict]) -> str:
 
 def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Sequence[float], out: str | Path,
               scheduler: str | None = None, workers: int = 2, config: FusionConfig | None = None,
-              say: Callable[[str], None] = print) -> BatchResult:
+              say: Callable[[str], None] = print, progress: Callable[[float], None] | None = None) -> BatchResult:
     """Process ``drives`` on Dask (one task per drive); writes ``out/results.parquet`` and ``out/fused/``.
-    Progress lines go to ``say`` as the drives complete."""
+    A line per drive goes to ``say`` as the drives complete, and the fraction done to ``progress``."""
     check_methods(list(methods))
     if not drives:
         raise ValueError("no drive to process")
@@ -214,6 +214,8 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
                 got = [failed_row(p, f"{type(e).__name__}: {e}")]
             rows += got
             say(f"[{i}/{len(paths)}] {time.monotonic() - t0:6.1f} s  {Path(p).name}: {_line(got)}")
+            if progress:
+                progress(i / len(paths))
     table = results_table(rows)
     parquet = out / "results.parquet"
     table.write_parquet(parquet)

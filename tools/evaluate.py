@@ -389,8 +389,8 @@ def rms_columns(e: np.ndarray) -> np.ndarray:
 
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
-             say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False
-             ) -> pl.DataFrame:
+             say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False,
+             progress: Callable[[float], None] | None = None) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
@@ -398,7 +398,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
-    (:func:`paper_report`)."""
+    (:func:`paper_report`). progress: called with the fraction of the runs done."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
@@ -411,6 +411,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     honesty: dict[tuple[str, float], list[dict[str, float]]] = {}
     headings: list[dict] = []
     total, done = len(drives) * len(lengths) * len(runs), 0
+    progress = progress or (lambda fraction: None)
     for drive in map(Path, drives):
         base = config or drive_config(drive)
         if paper:
@@ -422,6 +423,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             if not win:
                 say(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
                 done += len(runs)
+                progress(done / total)
                 continue
             win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
             cfg = base.replace(outages=tuple(win))
@@ -430,6 +432,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
                 if fuse(drive, m, out, cfg, smooth=sm, inputs=imap).rows == 0:
                     done += 1
+                    progress(done / total)
                     say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
                     continue
                 t_err, err = outage_error_series(drive, out, m, win_ns, imap.fix_topic, imap.vel_topic)
@@ -444,6 +447,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 per.setdefault((name, L), []).append(rms)
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
                 done += 1
+                progress(done / total)
                 say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s x {len(win)}: "
                     f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {vel_cell(rms[3:6])}; heading "
                     "at the starts " + ", ".join(heading_cell(e, sg, 2, "°") for e, sg in zip(h_err, h_sig)))

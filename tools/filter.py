@@ -7,8 +7,10 @@ records are copied too, plus a ``filter`` record naming the source and the slice
 the slice (it is written once, at the start of a file, and a slice without it cannot be placed). The
 ``fieldlog.info`` record is recomputed for the slice, so ``fieldlog info`` on it stays fast.
 
-Times: seconds from the drive's first message (``120``, ``-60`` from its end), an ISO 8601 UTC time
-(``2026-05-04T09:32:00Z``) or UTC nanoseconds (``1777887120000000000``).
+Times: seconds from the drive's first IMU sample (``120``; ``-60``: from its end), the origin ``fuse --outage``
+counts from too (a drive without an IMU topic: from its first message), an ISO 8601 UTC time
+(``2026-05-04T09:32:00Z``) or UTC nanoseconds (``1777887120000000000``). The IMU topic is found as ``fuse`` finds
+it without options (``replay.inputs.detect``: ``/imu``, else the only ``sensor_msgs/msg/Imu`` topic).
 """
 from __future__ import annotations
 
@@ -22,10 +24,12 @@ from typing import Callable
 import numpy as np
 from mcap.records import Channel, Schema
 
+from fieldlog.acquire import messages
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.replay import reader
 from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
+from fieldlog.replay.inputs import NATIVE, detect
 from fieldlog.replay.mcapfile import McapFile
 
 NS = 1_000_000_000
@@ -39,8 +43,9 @@ class FilterResult:
     end_ns: int
 
 
-def parse_time(text: str, first_ns: int, last_ns: int) -> int:
-    """A ``--start``/``--end`` value -> UTC ns (see the module docstring)."""
+def parse_time(text: str, origin_ns: int, last_ns: int) -> int:
+    """A ``--start``/``--end`` value -> UTC ns (see the module docstring): seconds count from ``origin_ns``
+    (the first IMU sample), negative ones from ``last_ns``."""
     t = text.strip()
     try:
         if t.lstrip("-").isdigit() and abs(int(t)) >= 10**17:
@@ -55,7 +60,7 @@ def parse_time(text: str, first_ns: int, last_ns: int) -> int:
         if d.tzinfo is None:
             d = d.replace(tzinfo=_dt.timezone.utc)
         return int(round(d.timestamp() * NS))
-    return int(round(s * NS)) + (first_ns if s >= 0 else last_ns + 1)
+    return int(round(s * NS)) + (origin_ns if s >= 0 else last_ns + 1)
 
 
 def select_topics(available: list[str], patterns: list[str] | None) -> list[str]:
@@ -81,11 +86,13 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
     files = open_drive(src)
     for f in files:
         f.channel_stats()  # also defines the channels written only inside chunks
-    spans = [(t.first_ns, t.last_ns) for t in reader.topics(src) if t.count]
-    first = min((lo for lo, _ in spans), default=0)
-    last = max((hi for _, hi in spans), default=0)
-    t0 = parse_time(start, first, last) if start else first
-    t1 = parse_time(end, first, last) if end else last + 1
+    infos = [t for t in reader.topics(src) if t.count]
+    first = min((t.first_ns for t in infos), default=0)
+    last = max((t.last_ns for t in infos), default=0)
+    imu = detect(infos, messages.IMU, NATIVE[0])
+    origin = next(t.first_ns for t in infos if t.topic == imu) if imu else first
+    t0 = parse_time(start, origin, last) if start else first
+    t1 = parse_time(end, origin, last) if end else last + 1
     if t1 <= t0:
         raise ValueError(f"--end ({t1} ns) must be after --start ({t0} ns)")
     channels = _channels(files)

@@ -1,0 +1,69 @@
+"""``fieldlog acquire``: the acquisition daemon (serial ports -> crash-safe MCAP), optionally with a live view."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from fieldlog.tools.commands.common import METHODS, add_out_dir, command_parser, needs_extras
+
+
+def add_parser(sub) -> None:
+    s = command_parser(sub, "acquire", "the acquisition daemon: serial ports -> crash-safe MCAP",
+                       quiet_help="no status line (a service's journal gets the events only); twice: warnings and "
+                                  "errors only",
+                       verbose_help="debug lines too (with -q: the status line once per status interval) (default: "
+                                    "info: start, files, port events, stop)")
+    s.add_argument("--daq", default=None, metavar="PORT", help="DAQ serial port (default: [daq] port of --config)")
+    s.add_argument("--gps", default=None, metavar="PORT",
+                   help="GPS serial port, or gpsd://HOST[:PORT][/DEVICE] to read the receiver's own bytes through a "
+                        "running gpsd (default: [gps] port of --config)")
+    s.add_argument("--can", default=None, metavar="URL",
+                   help="the car's CAN bus: slcan://PORT[@BITRATE] (an SLCAN serial adapter; BITRATE in bit/s) or "
+                        "socketcan://IFACE (default: [can] url of --config, else none)")
+    s.add_argument("--dbc", default=None, metavar="FILE",
+                   help="--can: decode through this DBC with the [can.signals] of --config (default: [can] dbc)")
+    add_out_dir(s, "output directory (default: [output] dir of --config, else drives/)", default=None)
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML config; acquire/config.py documents the keys (default: none, all defaults)")
+    s.add_argument("--time-scale", type=float, default=None, metavar="X",
+                   help="for simulator playback at `sim --serve --speed X` only: the host clock runs X times "
+                        "slower than the data ([timesync] host_time_scale; default: 1, real time)")
+    s.add_argument("--view", action="store_true",
+                   help="also show the car live in rerun (a child `fieldlog view --live` on the live bus)")
+    s.add_argument("--view-rrd", default=None, metavar="FILE",
+                   help="--view into this .rrd instead of a viewer (default: a viewer)")
+    s.add_argument("--view-method", choices=METHODS, default="kf", help="--view: fusion method")
+    s.set_defaults(func=needs_extras(run))
+
+
+def run(a: argparse.Namespace) -> int:
+    from fieldlog.acquire import config, daemon
+
+    daemon.setup_logging(a.verbose - a.quiet)  # the daemon's own format: timestamped lines for the journal
+    cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "can": a.can, "dbc": a.dbc, "out": a.out_dir,
+                                 "time_scale": a.time_scale})
+    if not (a.view or a.view_rrd):
+        return daemon.run_daemon(cfg, quiet=a.quiet > 0)
+    import subprocess
+    import tempfile
+
+    from fieldlog.replay.view import has_display
+
+    if not a.view_rrd and not has_display():
+        raise ValueError("--view: no display to open the viewer on (use --view-rrd FILE)")
+    if not cfg.daemon.bus:  # the view needs the live bus
+        cfg.daemon.bus = str(Path(tempfile.gettempdir()) / f"fieldlog-{os.getpid()}.sock")
+    # the view runs as a child process, so fusion and rendering never take the GIL from the acquisition threads
+    viewer = subprocess.Popen([sys.executable, "-m", "fieldlog", "view", "--live", cfg.daemon.bus, "--method",
+                               a.view_method, *(["--rrd", a.view_rrd] if a.view_rrd else [])])
+    try:
+        rc = daemon.run_daemon(cfg, quiet=a.quiet > 0)
+    finally:
+        try:
+            viewer.wait(timeout=30)  # it ends when the daemon closes the bus
+        except subprocess.TimeoutExpired:
+            viewer.terminate()
+            viewer.wait(timeout=10)
+    return rc

@@ -1,0 +1,42 @@
+"""``fieldlog demo``: simulate, look, fuse, evaluate and view: the whole pipeline through the same commands a
+user types."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fieldlog.tools.commands.common import add_out_dir, command_parser, needs_extras
+from fieldlog.tools.commands.view import rerun_exe
+
+
+def add_parser(sub) -> None:
+    s = command_parser(sub, "demo", "simulate, fuse, evaluate and view, on the built-in default")
+    add_out_dir(s, "output directory", default="out/demo")
+    s.add_argument("--duration", type=float, default=300.0, help="seconds of drive to simulate (>= 240)")
+    s.set_defaults(func=needs_extras(run))
+
+
+def run(a: argparse.Namespace) -> int:
+    """Each step through ``a.cli_main`` (the CLI's entry, which sets it), as if typed."""
+    out = Path(a.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    drive, fused, rrd, report = out / "figure8.mcap", out / "dkf-rbfn.mcap", out / "figure8.rrd", out / "report"
+    steps = [
+        ("simulate a figure8 drive", ["sim", "--scenario", "figure8", "--duration", f"{a.duration:g}", "--seed", "1",
+                                      "--out", str(drive)]),
+        ("what the drive holds", ["info", str(drive)]),
+        ("fuse with the KF+RBFN hybrid through a 30 s GPS outage",
+         ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "180:30", "--out", str(fused)]),
+        ("the outage study", ["evaluate", str(drive), "--outages", "30", "--methods", "ins,dkf,dkf-rbfn",
+                              "--out-dir", str(report)]),
+        ("a rerun recording", ["view", str(drive), str(fused), "--rrd", str(rrd)]),
+    ]
+    flags = ["-v"] * a.verbose + ["-q"] * a.quiet
+    for i, (title, argv) in enumerate(steps, 1):
+        print(f"\n{i}/{len(steps)}  {title}:  fieldlog {' '.join(argv)}\n", flush=True)
+        rc = a.cli_main([argv[0], *flags, *argv[1:]])
+        if rc:
+            return rc
+    print(f"\nreport:  {report.resolve() / 'table.md'}\nrerun:   {rerun_exe()} {rrd.resolve()}   "
+          f"(or: {rerun_exe()} {drive.resolve()})")
+    return 0

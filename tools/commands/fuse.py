@@ -1,0 +1,74 @@
+"""``fieldlog fuse``: run one fusion method over a drive and write its solution (``tools.fuse``).
+
+By default one summary line (what was read, what was written, the method, the outages) and how the heading was
+aligned; the settings and their sources with -v (they are always in the fused file's ``fusion`` metadata
+record); ``--json``: the summary as one JSON object instead."""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Progress, add_input_args,
+                                            add_out_args, command_parser, drive_arg, finish_out, input_spec, log,
+                                            needs_extras, out_file)
+
+
+def add_parser(sub) -> None:
+    s = command_parser(sub, "fuse", "run one fusion method over a drive and write its solution")
+    s.add_argument("drive", nargs="+", help=DRIVE_HELP)
+    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
+    s.add_argument("--outage", action="append", metavar="START:LEN",
+                   help=f"force a GPS outage of LEN s from START, {TIME_ORIGIN}, as `filter --start` counts "
+                        "(repeatable; default: none)")
+    add_out_args(s)
+    s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
+    add_input_args(s)
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML with a [fusion] table (FusionConfig keys; default: the drive's fusion.config record) "
+                        "and/or an [input] table (imu_topic, fix_topic, vel_topic, imu_frame)")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON (machine-readable)")
+    s.set_defaults(func=needs_extras(run))
+
+
+def run(a: argparse.Namespace) -> int:
+    from fieldlog.replay.drive import label
+    from fieldlog.replay.inputs import RATE_HZ
+    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
+
+    drive = drive_arg(a.drive)
+    st = settings(drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    for line in st.lines(drive):
+        if line.startswith("warning: "):
+            log.warning(line.removeprefix("warning: "))
+        else:
+            log.debug(line)
+    t0 = time.monotonic()
+    out = out_file(a)
+    res = fuse(drive, a.method, out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+               inputs=st.inputs)
+    imap, forced = st.inputs, st.config.get("outages")
+    summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
+                   imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
+                   vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
+                   imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, gps_updates=res.updates,
+                   solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
+                   alignment=res.alignment, wall_s=round(time.monotonic() - t0, 3))
+    if a.json:
+        print(json.dumps(summary))
+    else:
+        windows = f" ({', '.join(f'{s:g}:{n:g}' for s, n in forced)} forced)" if forced else ""
+        log.info(f"fused {summary['drive']} with {a.method}{' + RTS' * a.smooth}: IMU {imap.imu_topic} in "
+                 f"{imap.imu_frame} ({res.imu_samples} samples, {res.imu_rate_hz:.0f} Hz, {res.imu_gaps} gaps "
+                 f"bridged, {res.imu_missing} samples missing), fixes {imap.fix_topic}, velocity "
+                 f"{imap.vel_topic or 'none'}: {res.updates} GPS updates, {res.outages} outage windows{windows}; "
+                 f"wrote {res.path}: {res.rows} solutions in {summary['wall_s']:.1f} s")
+        if res.alignment:
+            log.info(f"alignment: {res.alignment}")
+    lo, hi = RATE_HZ
+    if not lo <= res.imu_rate_hz <= hi:
+        log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")
+    if res.rows == 0 and a.method != "ins":
+        log.warning(NO_ALIGNMENT)
+    finish_out(a, out)
+    return 0

@@ -1,0 +1,66 @@
+"""``fieldlog sim``: simulate a drive through the real acquisition code, or serve it on pseudo-terminals."""
+from __future__ import annotations
+
+import argparse
+import time
+
+from fieldlog.tools.commands.common import Progress, command_parser, log, needs_extras
+
+
+def add_parser(sub) -> None:
+    s = command_parser(sub, "sim", "simulate a drive through the real acquisition code")
+    s.add_argument("--scenario", default="figure8", help="scenario name (tools/sim/scenarios) or a TOML path")
+    s.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    s.add_argument("--seed", type=int, default=1, help="random seed of the sensor errors and clocks")
+    s.add_argument("--pps", choices=["flag", "latch"], default=None,
+                   help="PPS as a sampled flag or a latch (default: the scenario's, else flag)")
+    s.add_argument("--receiver", choices=["nmea", "ublox", "novatel"], default=None,
+                   help="the GPS port's protocol (default: the scenario's, NMEA): u-blox sends GGA + UBX NAV-PVT "
+                        "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA")
+    s.add_argument("--can", action="store_true",
+                   help="the car's CAN bus too: wheel speeds, steering, gear on an SLCAN adapter (data/sim-car.dbc)")
+    s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
+    s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
+    s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")
+    s.add_argument("--truth", default=None, metavar="FILE",
+                   help="--serve: write /truth/* and what was sent to this MCAP at the end (default: none)")
+    s.add_argument("--unplug", action="append", default=[], metavar="PORT:START:LEN",
+                   help="--serve: close PORT's pty for LEN s at START s of the drive (repeatable; default: never)")
+    s.add_argument("--link-dir", default=None, metavar="DIR",
+                   help="--serve: keep symlinks DIR/daq, DIR/gps (and DIR/can) to the current ptys (default: none)")
+    s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
+    s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
+                   help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
+    s.add_argument("--clock-jump", action="append", default=[], metavar="START:LEN:OFFSET",
+                   help="--serve: the receiver writes its time OFFSET s off for LEN s from START s of the drive, "
+                        "e.g. 900:30:3600 (repeatable; default: never)")
+    s.add_argument("--board", choices=["simulated", "emulated"], default="simulated",
+                   help="--serve: the DAQ port is the simulator's frames, or the firmware's under QEMU fed by the "
+                        "simulator (firmware/README.md; needs qemu-system-arm and `make firmware`)")
+    s.add_argument("--board-image", default=None, metavar="ELF",
+                   help="--serve --board emulated: the firmware image (default: firmware/build/qemu/fieldlog-qemu.elf)")
+    s.set_defaults(func=needs_extras(run))
+
+
+def run(a: argparse.Namespace) -> int:
+    if a.serve:
+        return serve(a)
+    if not a.out:
+        raise ValueError("--out is required (or --serve)")
+    from fieldlog.tools.sim.simulate import simulate
+
+    t0 = time.monotonic()
+    res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"),
+                   receiver=a.receiver, can=a.can)
+    log.info(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial "
+             f"reads in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def serve(a: argparse.Namespace) -> int:
+    from fieldlog.tools.sim.serve import Unplug, parse_clock_jump, serve
+
+    return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
+                 unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
+                 corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
+                 board_image=a.board_image, can=a.can)

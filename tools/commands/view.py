@@ -1,0 +1,87 @@
+"""``fieldlog view``: show a drive and fused solutions in rerun, or write an .rrd; or the daemon's live bus."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
+                                            drive_arg, input_spec, log, needs_extras, output_parent)
+
+
+def add_parser(sub) -> None:
+    s = command_parser(sub, "view", "show a drive and fused solutions in rerun, or write an .rrd")
+    s.add_argument("drive", nargs="?", default=None, help=DRIVE_HELP + "; none with --live")
+    s.add_argument("fused", nargs="*", help="fused MCAPs from `fieldlog fuse` (each adds its methods); other files "
+                                            "given here are more files of the drive")
+    s.add_argument("--rrd", default=None, metavar="FILE",
+                   help="write this .rrd instead of opening the viewer (default: open the viewer)")
+    s.add_argument("--live", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="instead of a drive: the running daemon's live bus (its Unix socket; default: [daemon] bus "
+                        "of --config), fused incrementally as in `fieldlog replay`, until the daemon stops")
+    s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
+    s.add_argument("--connect", default=None, metavar="URL",
+                   help="--live: a running viewer, as for `fieldlog replay` (default: spawn one)")
+    s.add_argument("--config", default=None, metavar="FILE",
+                   help="--live: the daemon's config, for [daemon] bus; else its [input] (default: none)")
+    add_input_args(s)
+    s.set_defaults(func=needs_extras(run))
+
+
+def rerun_exe() -> str:
+    """The rerun viewer of this installation, as an absolute path (the venv's, next to this Python)."""
+    exe = Path(sys.executable).parent / "rerun"
+    return str(exe) if exe.exists() else "rerun"
+
+
+def run_live(a: argparse.Namespace) -> int:
+    from fieldlog.acquire import config
+    from fieldlog.replay.player import live_view
+
+    address = a.live or config.load(a.config, {"daq": "-", "gps": "--"}).daemon.bus
+    if not address:
+        raise ValueError("no live bus: give its socket path (--live PATH) or a config with [daemon] bus")
+    output_parent(a.rrd)
+    try:
+        res = live_view(address, a.method, rrd=a.rrd, connect=a.connect)
+    except KeyboardInterrupt:
+        return 130
+    log.info(f"viewed {res.data_s:.1f} s live from {address}: {res.solutions} {a.method} solutions, {res.gps_fixes} "
+             f"GPS fixes, {res.imu_rows} IMU rows, {res.outages} outages -> {res.sink}")
+    return 0
+
+
+def run(a: argparse.Namespace) -> int:
+    from fieldlog.replay.view import split_fused, view
+
+    if a.live is not None:
+        if a.drive or a.fused:
+            raise ValueError("--live takes no drive files")
+        return run_live(a)
+    if a.drive is None:
+        raise ValueError("a drive is required (or --live)")
+    if a.connect:
+        raise ValueError("--connect is for --live (and `fieldlog replay`)")
+    t0 = time.monotonic()
+    from fieldlog.tools.fuse import input_map, load_input_spec
+
+    files, fused = split_fused([a.drive, *a.fused])
+    drive = drive_arg(files)
+    try:
+        imap = input_map(drive, a.config, input_spec(a))
+    except ValueError:
+        if load_input_spec(a.config).merged(input_spec(a)).given():
+            raise
+        imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
+    output_parent(a.rrd)
+    res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap)
+    if res.rrd is None:
+        log.info(f"sent {' '.join(files)} to the rerun viewer")
+        return 0
+    size = res.rrd.stat().st_size
+    log.info(f"wrote {res.rrd} ({size / 1e6:.1f} MB) in {time.monotonic() - t0:.1f} s: {res.gps_fixes} GPS fixes "
+             f"({res.no_fix} epochs without fix), {res.imu_rows} IMU rows (decimated), methods: "
+             f"{', '.join(res.methods) or 'none'}, {res.outages} outage windows\n"
+             f"Open it with:  {rerun_exe()} {Path(res.rrd).resolve()}")
+    return 0
