@@ -9,8 +9,9 @@ drive:
   rotated by -90 deg about up (RFU -> FLU) and by ``imu_rpy_deg`` (the triad vs the vehicle's RFU axes);
 - ``imu -> gps_antenna``: the lever arm ``[mounting] antenna_m`` (IMU axes, m), no rotation.
 
-``fieldlog fuse`` adds ``map -> base_link`` (``/tf``, ``/fusion/<method>/odom``): ``map`` is a local ENU frame
-at the alignment point.
+``fieldlog fuse`` adds REP-105's world frames: ``earth -> map`` (``/tf_static``: ECEF to a local ENU frame at
+the alignment point), ``map -> odom -> base_link`` (``/tf``; odom continuous, map -> odom absorbing the GPS
+corrections) and ``/fusion/<method>/odom`` in odom (tools/fuse.py, ``Odometry``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from fieldlog.acquire import calib, messages
 
-BASE_LINK, IMU, GPS_ANTENNA, MAP = "base_link", "imu", "gps_antenna", "map"
+BASE_LINK, IMU, GPS_ANTENNA, MAP, ODOM, EARTH = "base_link", "imu", "gps_antenna", "map", "odom", "earth"
 
 # C_rfu_flu: a vector in RFU axes -> the same vector in FLU axes (forward = y_rfu, left = -x_rfu, up = z_rfu)
 C_RFU_FLU = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -216,12 +216,14 @@ FUSION_SUBTOPICS: dict[str, str] = {
     "odom": ODOMETRY,
     "attitude_std": VECTOR3,
     "imu_bias": IMU,
+    "datum": NAVSATFIX,
 }
 _FUSION_RE = re.compile(rf"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|({'|'.join(FUSION_SUBTOPICS)}))$")
 
 
 def topic_type(topic: str) -> str:
-    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom,imu_bias}``
+    """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom,imu_bias,
+    datum}``
     and the distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
@@ -235,16 +237,19 @@ def topic_type(topic: str) -> str:
 
 
 # QoS offered by the "publisher" of each topic, as rosbag2 (Jazzy, metadata version 9) records it in the
-# channel's ``offered_qos_profiles``: what `ros2 bag play` offers again. /tf_static is latched (transient local),
-# so a node that starts after the first message still gets the frames.
+# channel's ``offered_qos_profiles``: what `ros2 bag play` offers again. /tf_static and the map datum
+# (/fusion/<method>/datum) are latched (transient local), so a node that starts after their one message still
+# gets it.
 _INFINITE = "\n    sec: 9223372036\n    nsec: 854775807"
 
 
 @lru_cache(maxsize=None)
 def offered_qos_profiles(topic: str) -> str:
-    """The YAML text rosbag2 writes for one publisher of ``topic`` (reliable; volatile except /tf_static)."""
-    durability = "transient_local" if topic == "/tf_static" else "volatile"
-    history, depth = ("keep_last", 1) if topic == "/tf_static" else ("unknown", 0)
+    """The YAML text rosbag2 writes for one publisher of ``topic`` (reliable; volatile except the latched
+    /tf_static and /fusion/<method>/datum)."""
+    latched = topic == "/tf_static" or (topic.startswith("/fusion/") and topic.endswith("/datum"))
+    durability = "transient_local" if latched else "volatile"
+    history, depth = ("keep_last", 1) if latched else ("unknown", 0)
     return (f"- history: {history}\n  depth: {depth}\n  reliability: reliable\n  durability: {durability}\n"
             f"  deadline:{_INFINITE}\n  lifespan:{_INFINITE}\n  liveliness: automatic\n"
             f"  liveliness_lease_duration:{_INFINITE}\n  avoid_ros_namespace_conventions: false")
@@ -482,7 +487,7 @@ def encode_navsatfix(
     covariance_type: int | np.ndarray = 2,
     status: int | np.ndarray = 0,
     service: int | np.ndarray = 1,
-    frame_id: str = "gps",
+    frame_id: str = "gps_antenna",
 ) -> Packed:
     """``sensor_msgs/msg/NavSatFix`` batch.
 
@@ -505,7 +510,7 @@ def encode_twist(
     v_n: np.ndarray,
     omega: np.ndarray | None = None,
     covariance: np.ndarray | None = None,
-    frame_id: str = "enu",
+    frame_id: str = "map",
 ) -> Packed:
     """``geometry_msgs/msg/TwistWithCovarianceStamped`` batch.
 
@@ -522,7 +527,7 @@ def encode_twist(
     return _pack(arr)
 
 
-def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = "enu") -> Packed:
+def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = "map") -> Packed:
     """``geometry_msgs/msg/QuaternionStamped`` batch: q_xyzw (n,4) rotation body -> ENU (C_bn)."""
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(QUATERNION, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
@@ -530,7 +535,7 @@ def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = 
     return _pack(arr)
 
 
-def encode_vector3(stamp_ns: np.ndarray, xyz: np.ndarray, frame_id: str = "enu") -> Packed:
+def encode_vector3(stamp_ns: np.ndarray, xyz: np.ndarray, frame_id: str = "map") -> Packed:
     """``geometry_msgs/msg/Vector3Stamped`` batch; xyz (n,3), units set by the topic."""
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(VECTOR3, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
@@ -563,7 +568,7 @@ def encode_odometry(
 
 
 def encode_time_reference(
-    stamp_ns: np.ndarray, time_ref_ns: np.ndarray, source: str = "pps", frame_id: str = "daq"
+    stamp_ns: np.ndarray, time_ref_ns: np.ndarray, source: str = "pps", frame_id: str = "imu"
 ) -> Packed:
     """``sensor_msgs/msg/TimeReference`` batch: stamp = the PPS edge on the DAQ clock (UTC ns),
     time_ref = the GPS second the edge marks (UTC ns)."""
@@ -580,7 +585,7 @@ def encode_time_sync(
     residual_us: np.ndarray,
     edges_used: np.ndarray,
     edges_rejected: np.ndarray,
-    frame_id: str = "daq",
+    frame_id: str = "imu",
 ) -> Packed:
     """``fieldlog_msgs/msg/TimeSyncState`` batch; state FREE=0, HOLDOVER=1, LOCKED=2;
     rate_ppm = DAQ oscillator rate error (ppm); residual_us = fit residual RMS (µs)."""

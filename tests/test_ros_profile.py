@@ -78,7 +78,7 @@ def test_every_channel_offers_rosbag2_qos(fused):
         for ch in summary.channels.values():
             (qos,) = parse_qos(ch.metadata["offered_qos_profiles"])
             assert qos.reliability.name == "RELIABLE", ch.topic
-            want = "TRANSIENT_LOCAL" if ch.topic == "/tf_static" else "VOLATILE"
+            want = "TRANSIENT_LOCAL" if ch.topic == "/tf_static" or ch.topic.endswith("/datum") else "VOLATILE"
             assert qos.durability.name == want, ch.topic
 
 
@@ -113,15 +113,18 @@ def test_fused_drive_has_odometry_and_tf(fused, typestore):
     att = reader.read_topic(out, "/fusion/kf/attitude")
     n = len(fix["log_time_ns"])
     assert n > 500 and len(odom) == len(tfs) == n
-    assert {(o.header.frame_id, o.child_frame_id) for o in odom} == {("map", "base_link")}
+    assert {(o.header.frame_id, o.child_frame_id) for o in odom} == {("odom", "base_link")}
     p = np.array([[o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z] for o in odom])
     q = np.array([[o.pose.pose.orientation.x, o.pose.pose.orientation.y, o.pose.pose.orientation.z,
                    o.pose.pose.orientation.w] for o in odom])
     v_base = np.array([[o.twist.twist.linear.x, o.twist.twist.linear.y, o.twist.twist.linear.z] for o in odom])
-    # /tf map -> base_link is the odometry pose
-    tp = np.array([[t.transforms[0].transform.translation.x, t.transforms[0].transform.translation.y,
-                    t.transforms[0].transform.translation.z] for t in tfs])
-    np.testing.assert_array_equal(tp, p)
+    # /tf map -> odom -> base_link: odom -> base_link is the odometry pose, and both compose to the map pose
+    assert {tuple((x.header.frame_id, x.child_frame_id) for x in t.transforms) for t in tfs} == \
+        {(("map", "odom"), ("odom", "base_link"))}
+    tr = np.array([[[x.transform.translation.x, x.transform.translation.y, x.transform.translation.z]
+                    for x in t.transforms] for t in tfs])
+    np.testing.assert_array_equal(tr[:, 1], p)
+    p = tr[:, 0] + tr[:, 1]
 
     # the map origin is the first solution; the IMU position (base_link origin + C imu_position) is the fix in ENU
     lat, lon, h = np.radians(fix["lat_deg"]), np.radians(fix["lon_deg"]), fix["alt_m"]

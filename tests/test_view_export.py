@@ -158,13 +158,18 @@ def test_export_parquet_round_trip(drives, tmp_path):
     out = tmp_path / "export"
     assert cli_main(["export", str(sim), "--out", str(out)]) == 0
     assert cli_main(["export", str(kf), "--out", str(out)]) == 0
-    for drive in (sim, kf):
+    assert cli_main(["export", str(sim), "--out", str(tmp_path / "sim"), "--topics", "/tf_static"]) == 0
+    for drive, where in ((sim, tmp_path / "sim"), (kf, None)):
         truth = _mcap_log_times(drive)
         for topic, times in truth.items():
-            df = pl.read_parquet(out.joinpath(*topic.strip("/").split("/")).with_suffix(".parquet"))
+            # (both files have /tf_static, the fused one's written last into ``out``)
+            base = where if where is not None and topic == "/tf_static" else out
+            df = pl.read_parquet(base.joinpath(*topic.strip("/").split("/")).with_suffix(".parquet"))
             got = df["log_time_ns"].to_numpy()
-            if topic in ("/tf", "/tf_static"):   # one row per transform
-                assert df.height == len(times) * (2 if topic == "/tf_static" else 1), topic
+            if topic in ("/tf", "/tf_static"):   # one row per transform: the drive's base_link -> imu ->
+                # gps_antenna; the fused file's and earth -> map; /tf map -> odom -> base_link
+                per = 2 if topic == "/tf" or drive is sim else 3
+                assert df.height == len(times) * per, topic
                 got = got[np.r_[True, np.diff(got) != 0]]
             assert len(got) == len(times), topic
             np.testing.assert_array_equal(got, times, err_msg=topic)

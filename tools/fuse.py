@@ -12,8 +12,9 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
   the local solutions, the INS corrected by KF_I's (velocity) or KF_II's (position) estimate alone, with
   that local filter's variances (the paper's Fig. 5);
 - ``/fusion/<method>/attitude_std`` Vector3Stamped: attitude sigma (phi E, N, U: ~pitch, roll, heading), rad;
-- ``/fusion/<method>/odom`` nav_msgs/Odometry and ``/tf`` ``map -> base_link`` (REP-105, ``Odometry`` below):
-  the same rows for ROS tools, with the vehicle frame of the drive's ``/tf_static``;
+- ``/fusion/<method>/odom`` nav_msgs/Odometry (odom -> base_link), ``/tf`` map -> odom -> base_link,
+  ``/tf_static`` (earth -> map, base_link -> imu -> gps_antenna) and ``/fusion/<method>/datum`` (map's origin)
+  (REP-105, ``Odometry`` below): the same rows for ROS tools, with the vehicle frame of the drive's mounting;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
@@ -240,16 +241,17 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     vel_cov[:, [0, 7, 14]] = var[:, 3:6]
     vel_cov[:, [21, 28, 35]] = -1.0  # angular part unused
     base = f"/fusion/{method}"
+    # positions are the IMU's (frame imu); ENU vectors and the attitude body -> ENU are in map's axes
     rec.write_batch(f"{base}/fix", t, messages.encode_navsatfix(
-        t, np.degrees(s.lat), np.degrees(s.lon), s.h, pos_cov, covariance_type=2, frame_id=method))
-    rec.write_batch(f"{base}/vel", t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id="enu"))
-    rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id="enu"))
-    rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id="enu"))
-    rec.write_batch(f"{base}/attitude_std", t, messages.encode_vector3(t, s.sigma[:, 6:9], frame_id="enu"))
+        t, np.degrees(s.lat), np.degrees(s.lon), s.h, pos_cov, covariance_type=2, frame_id=frames.IMU))
+    rec.write_batch(f"{base}/vel", t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id=frames.MAP))
+    rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id=frames.MAP))
+    rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id=frames.MAP))
+    rec.write_batch(f"{base}/attitude_std", t, messages.encode_vector3(t, s.sigma[:, 6:9], frame_id=frames.MAP))
     bias_cov = np.zeros((len(t), 2, 9))
     bias_cov[:, :, [0, 4, 8]] = var[:, 9:15].reshape(-1, 2, 3)
     rec.write_batch(f"{base}/imu_bias", t, messages.encode_imu(t, s.bias[:, 0:3], s.bias[:, 3:6], bias_cov[:, 0],
-                                                               bias_cov[:, 1], frame_id="imu"))
+                                                               bias_cov[:, 1], frame_id=frames.IMU))
     if s.local is None:
         return
     for i, name in enumerate(("kf1", "kf2")):
@@ -261,38 +263,70 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
         vel_cov[:, [21, 28, 35]] = -1.0
         rec.write_batch(f"{base}/{name}/fix", t, messages.encode_navsatfix(
             t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov, covariance_type=2,
-            frame_id=f"{method}/{name}"))
+            frame_id=frames.IMU))
         rec.write_batch(f"{base}/{name}/vel", t, messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov,
-                                                                       frame_id="enu"))
+                                                                       frame_id=frames.MAP))
 
 
 UNKNOWN_VAR = 1e6   # variance of what the filter does not estimate (the odometry's angular rate), rad^2/s^2
 
 
 class Odometry:
-    """``/fusion/<method>/odom`` (nav_msgs/Odometry) and ``/tf`` map -> base_link from solution rows.
+    """The REP-105 frames of a fused solution: ``/tf_static``, ``/tf`` map -> odom -> base_link,
+    ``/fusion/<method>/odom`` (nav_msgs/Odometry in odom / base_link) and ``/fusion/<method>/datum``.
 
     ``map`` is a local ENU frame whose origin is the first solution row (the alignment point, in geodetic
-    coordinates of the IMU). The filter's state is the IMU (RFU axes, ``C_bn``); base_link follows from the
-    calibration's mounting (``acquire.frames``): C_base_n = C_bn C_imu_base^T, origin = IMU - C_base_n
-    imu_position_m. Pose covariance: position ENU and attitude error (phi E, N, U), both in map axes, diagonal.
-    Twist in base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the
-    lever-arm term w x r is left out); the angular rate from consecutive attitudes (rows of one block), with the
-    variance UNKNOWN_VAR because the filter does not estimate it.
+    coordinates of the IMU): ``/fusion/<method>/datum`` (NavSatFix, once, latched) and the ``fusion.map``
+    metadata record give it, and ``/tf_static`` holds ``earth -> map`` (ECEF, REP-105) with the drive's
+    ``base_link -> imu -> gps_antenna``. The filter's state is the IMU (RFU axes, ``C_bn``); base_link follows
+    from the calibration's mounting (``acquire.frames``): C_base_n = C_bn C_imu_base^T, origin = IMU - C_base_n
+    imu_position_m; the local ENU axes at the vehicle are taken as map's (they differ by the meridian
+    convergence and the tilt of the vertical: about 0.16 mrad per km from the origin).
+
+    ``odom`` is continuous as robot_localization's odom frame: base_link's odom position is the fused velocity
+    integrated (trapezoid, row to row), so it never jumps when a GPS update or the end of an outage corrects the
+    fused position; its orientation is the fused attitude (map and odom axes stay parallel), and
+    ``map -> odom`` (a translation) absorbs the corrections: map -> odom -> base_link equals the fused pose at
+    every row. Pose covariance: position ENU and attitude error (phi E, N, U) of the filter, diagonal. Twist in
+    base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the lever-arm
+    term w x r is left out); the angular rate from consecutive attitudes, with the variance UNKNOWN_VAR because
+    the filter does not estimate it.
     """
 
     def __init__(self, method: str, mounting: calib.Mounting) -> None:
+        self.method = method
         self.topic = f"/fusion/{method}/odom"
+        self.mounting = mounting
         self.C_imu_base = frames.C_imu_base(mounting)
         self.imu_position_m = np.asarray(mounting.imu_position_m, float)
         self.origin: tuple[float, float, float] | None = None
+        self._last: tuple[int, np.ndarray, np.ndarray] | None = None   # t_ns, v_n, odom position of the last row
+
+    def _start(self, rec: Recorder, s: Solution) -> None:
+        """The origin of map from the first row: datum, /tf_static."""
+        self.origin = (float(s.lat[0]), float(s.lon[0]), float(s.h[0]))
+        lat0, lon0, h0 = self.origin
+        t0 = s.t_ns[:1]
+        rec.write_batch(f"/fusion/{self.method}/datum", t0, messages.encode_navsatfix(
+            t0, [np.degrees(lat0)], [np.degrees(lon0)], [h0], np.zeros(9), covariance_type=2,
+            frame_id=frames.MAP))   # (the origin is defined, not measured: zero covariance, known)
+        earth_map = (frames.EARTH, frames.MAP, earth.lla_to_ecef(lat0, lon0, h0),
+                     frames.quat_xyzw(earth.C_en(lat0, lon0).T))
+        rec.write("/tf_static", int(t0[0]), messages.encode_tf(
+            int(t0[0]), [*frames.static_transforms(self.mounting), earth_map]))
+
+    def metadata(self) -> dict[str, str]:
+        """The ``fusion.map`` record: map's geodetic origin (deg, deg, m above the WGS-84 ellipsoid)."""
+        lat0, lon0, h0 = self.origin
+        return {"frame": frames.MAP, "datum_topic": f"/fusion/{self.method}/datum", "lat_deg": repr(float(np.degrees(lat0))),
+                "lon_deg": repr(float(np.degrees(lon0))), "h_m": repr(h0)}
 
     def write(self, rec: Recorder, s: Solution) -> None:
         n = len(s.t_ns)
         if n == 0:
             return
         if self.origin is None:
-            self.origin = (float(s.lat[0]), float(s.lon[0]), float(s.h[0]))
+            self._start(rec, s)
         lat0, lon0, h0 = self.origin
         dr_e = earth.lla_to_ecef(s.lat, s.lon, s.h) - earth.lla_to_ecef(lat0, lon0, h0)
         p_imu = dr_e @ earth.C_en(lat0, lon0).T
@@ -307,18 +341,26 @@ class Odometry:
             omega = np.vstack([w, w[-1:]])
         else:
             omega = np.zeros((1, 3))
+        t = s.t_ns
+        t_prev, v_prev, p_prev = self._last or (int(t[0]), s.v_n[0], p_base[0])
+        dt_s = np.diff(np.concatenate(([t_prev], t))) / 1e9
+        v_before = np.vstack([v_prev[None], s.v_n[:-1]])
+        p_odom = p_prev + np.cumsum(0.5 * (v_before + s.v_n) * dt_s[:, None], axis=0)
+        self._last = (int(t[-1]), s.v_n[-1].copy(), p_odom[-1].copy())
+        p_map_odom = p_base - p_odom
         var = s.sigma ** 2
         pose_cov = np.zeros((n, 6, 6))
         pose_cov[:, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 4, 5]] = var[:, [0, 1, 2, 6, 7, 8]]
         twist_cov = np.zeros((n, 6, 6))
         twist_cov[:, :3, :3] = C_n_base @ (var[:, 3:6, None] * C_base_n)
         twist_cov[:, [3, 4, 5], [3, 4, 5]] = UNKNOWN_VAR
-        t = s.t_ns
         rec.write_batch(self.topic, t, messages.encode_odometry(
-            t, p_base, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
-            frame_id=frames.MAP, child_frame_id=frames.BASE_LINK))
-        rec.write_batch("/tf", t, [messages.encode_tf(int(ti), [(frames.MAP, frames.BASE_LINK, pi, qi)])
-                                   for ti, pi, qi in zip(t.tolist(), p_base, q_base)])
+            t, p_odom, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
+            frame_id=frames.ODOM, child_frame_id=frames.BASE_LINK))
+        identity = np.array([0.0, 0.0, 0.0, 1.0])
+        rec.write_batch("/tf", t, [messages.encode_tf(int(ti), [(frames.MAP, frames.ODOM, mi, identity),
+                                                              (frames.ODOM, frames.BASE_LINK, pi, qi)])
+                                   for ti, mi, pi, qi in zip(t.tolist(), p_map_odom, p_odom, q_base)])
 
 
 def drive_mounting(drive: DriveSpec) -> calib.Mounting:
@@ -379,6 +421,8 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             _write(rec, method, smoothed)
             odom.write(rec, smoothed)
             log.close()
+        if odom.origin is not None:
+            rec.add_metadata("fusion.map", odom.metadata())
     if progress:
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,

@@ -122,10 +122,11 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     nav = truth_data["truth"].evaluate(t_nav)
     tn_ns = t0_ns + np.round(t_nav * NS).astype(np.int64)
     rec.write_batch("/truth/fix", tn_ns, messages.encode_navsatfix(
-        tn_ns, np.degrees(nav.lat), np.degrees(nav.lon), nav.h, frame_id="truth"))
-    rec.write_batch("/truth/vel", tn_ns, messages.encode_twist(tn_ns, nav.v_n, frame_id="truth"))
+        tn_ns, np.degrees(nav.lat), np.degrees(nav.lon), nav.h, frame_id="imu"))
+    # ENU vectors in a drive: the frame of the point they belong to (local ENU axes), as ROS GPS drivers do
+    rec.write_batch("/truth/vel", tn_ns, messages.encode_twist(tn_ns, nav.v_n, frame_id="imu"))
     rec.write_batch("/truth/attitude", tn_ns, messages.encode_quaternion(
-        tn_ns, nav.q, frame_id="truth"))
+        tn_ns, nav.q, frame_id="imu"))
     r = truth_data["realised"]  # the sensor error less its white noise, at the nav rate (sim.sensors.imu_counts)
     k = np.clip(np.searchsorted(t_k, t_nav), 0, len(t_k) - 1)
     bias = {}

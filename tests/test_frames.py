@@ -1,0 +1,119 @@
+"""REP-105 frames: a simulated drive and its fused file, every message decoded by mcap_ros2 (a third-party
+decoder) and every frame_id checked against the TF tree the two files carry."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from fieldlog.acquire import calib
+from fieldlog.fusion import earth
+from fieldlog.tools.cli import main as fieldlog
+from fieldlog.tools.rebuild import read_metadata
+from fieldlog.tools.sim.simulate import simulate
+
+
+@pytest.fixture(scope="module")
+def fused(tmp_path_factory) -> tuple[Path, Path]:
+    d = tmp_path_factory.mktemp("frames")
+    drive, out = d / "drive.mcap", d / "kf.mcap"
+    simulate("figure8", 150, 2, drive)
+    assert fieldlog(["fuse", str(drive), "--method", "kf", "--outage", "60:30", "--out", str(out)]) == 0
+    return drive, out
+
+
+def decoded(path: Path) -> list[tuple[str, int, object]]:
+    with open(path, "rb") as f:
+        return [(ch.topic, m.log_time, msg) for _s, ch, m, msg in
+                make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
+
+
+def tree_edges(msgs) -> dict[str, str]:
+    """child -> parent of every transform in /tf and /tf_static."""
+    edges: dict[str, str] = {}
+    for topic, _t, m in msgs:
+        if topic in ("/tf", "/tf_static"):
+            for tr in m.transforms:
+                assert edges.setdefault(tr.child_frame_id, tr.header.frame_id) == tr.header.frame_id
+    return edges
+
+
+def test_every_frame_id_is_a_frame_of_the_tree(fused) -> None:
+    msgs = decoded(fused[0]) + decoded(fused[1])
+    edges = tree_edges(msgs)
+    frames = set(edges) | set(edges.values())
+    roots = {p for p in edges.values() if p not in edges}
+    assert roots == {"earth"}                                  # one tree: earth -> map -> odom -> base_link -> ...
+    for child in edges:
+        seen, f = set(), child
+        while f in edges:
+            assert f not in seen
+            seen.add(f)
+            f = edges[f]
+    used: dict[str, set[str]] = {}
+    for topic, _t, m in msgs:
+        header = getattr(m, "header", None)
+        ids = [header.frame_id] if header is not None else []
+        ids += [getattr(m, "child_frame_id", "")]
+        for tr in getattr(m, "transforms", []):
+            ids += [tr.header.frame_id, tr.child_frame_id]
+        for i in ids:
+            if i:                                              # (raw bytes and outage records name no frame)
+                used.setdefault(i, set()).add(topic)
+    assert set(used) <= frames, {k: v for k, v in used.items() if k not in frames}
+    assert {"map", "odom", "base_link", "imu", "gps_antenna"} <= set(used)
+    assert not set(used) & {"kf", "enu", "truth", "daq", "gps"}
+    assert edges["odom"] == "map" and edges["base_link"] == "odom" and edges["map"] == "earth"
+    assert edges["imu"] == "base_link" and edges["gps_antenna"] == "imu"
+
+
+def test_tf_static_odom_and_datum_follow_rep_105(fused) -> None:
+    drive, out = fused
+    msgs = decoded(out)
+    by = lambda topic: [(t, m) for tp, t, m in msgs if tp == topic]   # noqa: E731
+    (static,) = by("/tf_static")
+    tr = {x.child_frame_id: x for x in static[1].transforms}
+    mounting = calib.Calibration.from_toml(read_metadata(drive)["calibration"]["toml"]).mounting
+    lever = tr["gps_antenna"].transform.translation
+    assert np.allclose([lever.x, lever.y, lever.z], mounting.antenna_m)
+    # the datum: one NavSatFix in map, the fusion.map record, and earth -> map at its ECEF position
+    (datum,) = by("/fusion/kf/datum")
+    d = datum[1]
+    meta = read_metadata(out)["fusion.map"]
+    assert d.header.frame_id == "map" and (d.latitude, d.longitude, d.altitude) == \
+        (float(meta["lat_deg"]), float(meta["lon_deg"]), float(meta["h_m"]))
+    em = tr["map"].transform.translation
+    lat0, lon0, h0 = np.radians(d.latitude), np.radians(d.longitude), d.altitude
+    assert np.allclose([em.x, em.y, em.z], earth.lla_to_ecef(lat0, lon0, h0), atol=1e-6)
+    # /tf: map -> odom -> base_link composes to the fused position; odom moves only by the fused velocity
+    tf = by("/tf")
+    p_mo = np.array([[x.transforms[0].transform.translation.x, x.transforms[0].transform.translation.y,
+                      x.transforms[0].transform.translation.z] for _, x in tf])
+    p_ob = np.array([[x.transforms[1].transform.translation.x, x.transforms[1].transform.translation.y,
+                      x.transforms[1].transform.translation.z] for _, x in tf])
+    assert all(x.transforms[0].header.frame_id == "map" and x.transforms[1].child_frame_id == "base_link"
+               for _, x in tf)
+    fix = by("/fusion/kf/fix")
+    vel = by("/fusion/kf/vel")
+    assert len(fix) == len(tf) == len(vel) == len(by("/fusion/kf/odom"))
+    lat = np.radians([m.latitude for _, m in fix])
+    lon = np.radians([m.longitude for _, m in fix])
+    h = np.array([m.altitude for _, m in fix])
+    p_fix = (earth.lla_to_ecef(lat, lon, h) - earth.lla_to_ecef(lat0, lon0, h0)) @ earth.C_en(lat0, lon0).T
+    assert np.allclose(p_mo + p_ob, p_fix, atol=1e-3) or not np.allclose(mounting.imu_position_m, 0)
+    v = np.array([[m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z] for _, m in vel])
+    t = np.array([t for t, _ in fix])
+    dead = 0.5 * (v[1:] + v[:-1]) * (np.diff(t) / 1e9)[:, None]
+    odom_step = np.linalg.norm(np.diff(p_ob, axis=0) - dead, axis=1)
+    map_step = np.linalg.norm(np.diff(p_fix, axis=0) - dead, axis=1)
+    assert odom_step.max() < 1e-5                              # continuous: never jumps (10 um: float rounding)
+    assert map_step.max() > 1000 * max(odom_step.max(), 1e-5)  # the fused position is corrected (GPS updates)
+    assert np.linalg.norm(p_mo[-1]) > 0.01                     # and map -> odom took those corrections up
+    odom = by("/fusion/kf/odom")
+    assert all(m.header.frame_id == "odom" and m.child_frame_id == "base_link" for _, m in odom)
+    p_odom_msg = np.array([[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z]
+                           for _, m in odom])
+    assert np.array_equal(p_odom_msg, p_ob)
