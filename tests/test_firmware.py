@@ -379,8 +379,11 @@ def test_daemon_records_the_emulated_board_as_the_simulated_one(tmp_path: Path) 
     assert len(imu) == len(tru) == 20000
     assert abs(np.median(np.diff(imu)) - 2e6) < 2e6 * 1e-4
     sync = reader.read_topic(f, "/time/sync")
-    assert sync["state"][-1] == SyncState.LOCKED
     lock_ns = sync["log_time_ns"][np.flatnonzero(sync["state"] == SyncState.LOCKED)[0]]
+    states = sync["state"][sync["log_time_ns"] >= lock_ns]
+    print(f"\nafter the first lock: {np.mean(states == SyncState.LOCKED):.3f} locked, states {np.unique(states)}, "
+          f"last {sync['state'][-1]}; pps_edges {c.get('pps_edges')} rejected {c.get('pps_rejected')}")
+    assert np.mean(states == SyncState.LOCKED) > 0.95 and SyncState.FREE not in states
     after = imu >= lock_ns
     assert after.mean() > 0.6
     rms_us = np.sqrt(np.mean(((imu - tru)[after] / 1e3) ** 2))
@@ -394,23 +397,23 @@ def test_daemon_records_the_emulated_board_as_the_simulated_one(tmp_path: Path) 
 @needs_cross
 @needs_qemu
 def test_a_transmit_path_slower_than_the_adc_shows_as_counted_dropped_samples(tmp_path: Path) -> None:
-    """A test build whose transmit path sends at most 400 frames a second against the ADC's 500: the ring
-    overruns, the board drops samples, and every drop is a counter gap that the daemon counts and
-    `fieldlog info` prints; frames plus lost frames account for every sample fed, but for those the ring
-    still held when the drive ended."""
+    """A test build whose link moves at most 800 frames per 1000 samples: the ring overruns, the board drops
+    samples, and every drop is a counter gap that the daemon counts and `fieldlog info` prints; frames plus
+    lost frames account for every sample fed but the last few (the ring still holds 64 when the input
+    stops, covering the last 80 samples)."""
     from fieldlog.tools.rebuild import read_metadata
 
     from test_daemon import run
 
-    cross_build(tmp_path / "fw", "-DFW_TX_MAX_HZ=400")
+    cross_build(tmp_path / "fw", "-DFW_TX_PER_1000=800")
     f, truth, _ = record_emulated(tmp_path, tmp_path / "fw" / "qemu" / "fieldlog-qemu.elf", 8.0, 2)
     fed = int(read_metadata(truth)["serve"]["daq_frames"])
     c = {k: int(v) for k, v in read_metadata(f)["acquire.counters"].items() if k.startswith("daq.")}
     assert fed == 4000 and c["daq.bad_crc"] == 0 and c["daq.bytes_skipped"] == 0
-    assert c["daq.counter_gaps"] > 10 and c["daq.lost_frames"] > 0.05 * fed
-    assert fed - 2 * 64 <= c["daq.frames"] + c["daq.lost_frames"] <= fed
+    assert c["daq.frames"] <= 0.8 * fed and c["daq.counter_gaps"] > 10 and c["daq.lost_frames"] > 0.1 * fed
+    assert fed - 64 * 1000 // 800 - 2 <= c["daq.frames"] + c["daq.lost_frames"] <= fed
     out = run("info", str(f)).stdout
-    print(f"\nTX at 400 Hz: {fed} samples fed, {c['daq.frames']} frames, {c['daq.counter_gaps']} gaps, "
+    print(f"\nlink at 800 frames per 1000 samples: {fed} samples fed, {c['daq.frames']} frames, {c['daq.counter_gaps']} gaps, "
           f"{c['daq.lost_frames']} lost")
     assert f"daq.counter_gaps={c['daq.counter_gaps']}" in out and f"daq.lost_frames={c['daq.lost_frames']}" in out
 

@@ -1,5 +1,6 @@
 /* The emulated board's input: one record per sample period, sent by the simulator (`fieldlog sim --serve
- * --board emulated`) on USART2, standing in for what the real board's ADC and timer captures deliver.
+ * --board emulated`) to QEMU's standard input, standing in for what the real board's ADC and timer
+ * captures deliver.
  * 33 bytes, little-endian:
  *
  *   0 sync 5A A5 | 2 flags: bit0 PPS captured this period (pps_ticks valid), bit1 temperature valid

@@ -3,8 +3,9 @@ by the simulator.
 
 The simulator stands in for what the real board's ADC and timer deliver: one input record per sample period
 (firmware/core/input.h, 33 bytes) with the six ADC counts, the board timer's capture of the sample-clock edge,
-the PPS capture when an edge came in that period, and the temperature. The firmware numbers, latches, frames
-and transmits them; its USART1 is the DAQ pseudo-terminal the daemon reads. Each record is one sample, so the
+the PPS capture when an edge came in that period, and the temperature, written to a pty that is QEMU's
+standard input, which the firmware reads with ARM semihosting. The firmware numbers, latches, frames and
+transmits them; its USART1 is the DAQ pseudo-terminal the daemon reads. Each record is one sample, so the
 emulated board's sample clock is the simulator's (the ``[clock]`` model of ``tools/sim/clock.py``), paced by
 when the records are written.
 
@@ -24,6 +25,7 @@ import termios
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -104,17 +106,17 @@ def input_records(truth: dict) -> np.ndarray:
     return encode_records(truth["counts"], timer_ticks(t_k), truth["pps"], timer_ticks(t_pps), truth["temp_c"])
 
 
-def qemu_command(image: Path, input_tty: str) -> list[str]:
+def qemu_command(image: Path) -> list[str]:
     """qemu-system-arm for the netduinoplus2 (STM32F405): USART1 (the first -serial) on a new pty, the DAQ
-    port; USART2 (the second) on ``input_tty``, the simulator's records."""
+    port; semihosting on, its console being QEMU's stdin (the simulator's records) and stdout."""
     return ["qemu-system-arm", "-M", "netduinoplus2", "-kernel", str(image), "-nodefaults", "-display", "none",
             "-monitor", "none", "-chardev", "pty,id=daq", "-serial", "chardev:daq",
-            "-chardev", f"serial,id=inputs,path={input_tty}", "-serial", "chardev:inputs"]
+            "-semihosting-config", "enable=on,target=native"]
 
 
 class EmulatedBoard:
     """A running QEMU with the firmware: ``daq_path`` is its USART1 pty. ``start`` returns once the firmware
-    has written its ready line on its input port (read from ``input_master``, a pty master in packet mode).
+    has written its ready line (on its semihosting console: QEMU's stdout).
     The DAQ pty is held open here, never read, to see (``FIONREAD``) whether the reader has taken every
     frame: stopping QEMU closes the pty and would discard what is still queued."""
 
@@ -129,27 +131,38 @@ class EmulatedBoard:
         self.daq_fd = -1
         self._empty_since: float | None = None
 
-    def start(self, input_tty: str, input_master: int) -> None:
-        self.proc = subprocess.Popen(qemu_command(self.image, input_tty), stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        line = self.proc.stdout.readline()
-        m = re.search(r"(/dev/pts/\d+) \(label daq\)", line)
+    def start(self, input_fd: int) -> None:
+        """Start QEMU reading the records from ``input_fd`` (a pty slave in raw mode)."""
+        self.proc = subprocess.Popen(qemu_command(self.image), stdin=input_fd, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, bufsize=0)   # unbuffered: select sees every line
+        lines = self._lines_until(lambda line: b"(label daq)" in line)
+        m = re.search(rb"(/dev/pts/\d+) \(label daq\)", lines[-1] if lines else b"")
         if not m:
             self.stop()
-            raise BoardError(f"qemu-system-arm did not start the board: {line.strip() or 'no output'}")
-        self.daq_path = m.group(1)
+            raise BoardError("qemu-system-arm did not start the board: "
+                             f"{b' '.join(lines).decode(errors='replace').strip() or 'no output'}")
+        self.daq_path = m.group(1).decode()
         self.daq_fd = os.open(self.daq_path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
-        threading.Thread(target=self._forward, daemon=True).start()
-        got = b""
-        deadline = time.monotonic() + READY_TIMEOUT_S
-        while READY not in got and time.monotonic() < deadline:
-            if select.select([input_master], [], [], 0.1)[0]:
-                pkt = os.read(input_master, 4096)
-                if pkt[:1] == b"\0":          # TIOCPKT_DATA: the rest is data
-                    got += pkt[1:]
-        if READY not in got:
+        if READY not in self._lines_until(lambda line: line == READY):
             self.stop()
             raise BoardError(f"{self.image}: the firmware sent no ready line in {READY_TIMEOUT_S:g} s")
+        threading.Thread(target=self._forward, daemon=True).start()
+
+    def _lines_until(self, done: Callable[[bytes], bool]) -> list[bytes]:
+        """QEMU's output lines up to the first for which ``done`` holds (all of them if none does within
+        READY_TIMEOUT_S or before QEMU exits)."""
+        out: list[bytes] = []
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if not select.select([self.proc.stdout], [], [], 0.1)[0]:
+                continue
+            line = self.proc.stdout.readline()
+            if not line:
+                break
+            out.append(line)
+            if done(line):
+                break
+        return out
 
     def drained(self) -> bool:
         """True once the DAQ pty's input queue has stayed empty for DRAIN_QUIET_S (call repeatedly)."""
@@ -162,7 +175,7 @@ class EmulatedBoard:
 
     def _forward(self) -> None:
         for line in self.proc.stdout:
-            print(f"qemu: {line.rstrip()}", file=sys.stderr, flush=True)
+            print(f"qemu: {line.decode(errors='replace').rstrip()}", file=sys.stderr, flush=True)
 
     def stop(self) -> None:
         if self.daq_fd >= 0:

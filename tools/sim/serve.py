@@ -44,7 +44,7 @@ sending keep true time; metadata ``gps_clock_jumps`` (``START:LEN:OFFSET;...``) 
 
 The emulated board: with ``board="emulated"`` the DAQ port is not the simulator's frames but the firmware's
 (``tools/sim/board.py``): the serve process starts QEMU with the emulated board's image and writes the board's
-input records (one per sample, at its simulated time) to a pty that QEMU's second USART reads; the printed
+input records (one per sample, at its simulated time) to a pty that is QEMU's standard input; the printed
 ``daq PATH`` is QEMU's pty of the first USART, where the firmware sends its frames. The board always latches
 the PPS (metadata ``pps_mode`` = ``latch``); ``daq_bytes`` and ``daq_frames`` count the input records written,
 one per sample (frames the board drops show as counter gaps on the DAQ port). Unplugging and corruption are
@@ -324,7 +324,7 @@ class Server:
         for p in self.ports.values():
             if p.name == "daq" and self.board is not None:
                 p.open(None)
-                self.board.start(p.path, p.master)
+                self.board.start(p.slave)
                 path = self.board.daq_path
                 if self.link_dir is not None:
                     (self.link_dir / "daq").unlink(missing_ok=True)

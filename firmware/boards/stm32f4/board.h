@@ -7,7 +7,7 @@
 
 #define HSE_HZ 8000000u
 #define CORE_HZ 168000000u     /* SYSCLK = HCLK: PLL from the HSE */
-#define PCLK1_HZ 42000000u     /* APB1 (USART2); its timers (TIM2) run at 2 x PCLK1 = 84 MHz */
+#define PCLK1_HZ 42000000u     /* APB1; its timers (TIM2) run at 2 x PCLK1 = 84 MHz */
 #define PCLK2_HZ 84000000u     /* APB2 (USART1, SPI1, ADC1) */
 #define DAQ_BAUD 921600u       /* the frames, USART1 */
 

@@ -54,7 +54,7 @@ int main(void)
     gpio_write(PIN_ADC_RESET, 1);
     gpio_config(PIN_ADC_CS, GPIO_OUT, 0);
     gpio_config(PIN_ADC_RESET, GPIO_OUT, 0);
-    usart_init(USART1_BASE, PCLK2_HZ, DAQ_BAUD, 0);
+    usart_init(USART1_BASE, PCLK2_HZ, DAQ_BAUD);
     spi_init();
     tempsensor_init();
     capture_init();
@@ -65,5 +65,5 @@ int main(void)
     EXTI_FTSR |= 1u << 1;
     EXTI_IMR |= 1u << 1;
     nvic_enable(IRQ_EXTI1, 0);
-    tx_loop(&daq, CORE_HZ);
+    tx_loop(&daq);
 }

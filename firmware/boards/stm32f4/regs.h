@@ -8,9 +8,6 @@
 #define REG(addr) (*(volatile uint32_t *)(addr))
 
 /* ---- Cortex-M4 core ---- */
-#define SYST_CSR REG(0xE000E010u)           /* SysTick control: ENABLE bit0, TICKINT bit1, CLKSOURCE bit2 */
-#define SYST_RVR REG(0xE000E014u)
-#define SYST_CVR REG(0xE000E018u)
 #define NVIC_ISER(n) REG(0xE000E100u + 4u * (n))
 #define NVIC_IPR(n) (*(volatile uint8_t *)(0xE000E400u + (n)))   /* one byte per IRQ, top 4 bits used */
 
@@ -21,8 +18,6 @@ static inline void nvic_enable(unsigned irq, unsigned prio)
 }
 
 #define IRQ_EXTI1 7u
-#define IRQ_USART1 37u
-#define IRQ_USART2 38u
 
 /* ---- RCC (RM0090 §7.3) ---- */
 #define RCC_BASE 0x40023800u
@@ -39,7 +34,6 @@ static inline void nvic_enable(unsigned irq, unsigned prio)
 #define RCC_AHB1ENR_GPIOA (1u << 0)
 #define RCC_AHB1ENR_GPIOB (1u << 1)
 #define RCC_APB1ENR_TIM2 (1u << 0)
-#define RCC_APB1ENR_USART2 (1u << 17)
 #define RCC_APB2ENR_USART1 (1u << 4)
 #define RCC_APB2ENR_ADC1 (1u << 8)
 #define RCC_APB2ENR_SPI1 (1u << 12)
@@ -60,18 +54,13 @@ static inline void nvic_enable(unsigned irq, unsigned prio)
 
 /* ---- USART (RM0090 §30.6) ---- */
 #define USART1_BASE 0x40011000u
-#define USART2_BASE 0x40004400u
 #define USART_SR(u) REG((u) + 0x00u)
 #define USART_DR(u) REG((u) + 0x04u)
 #define USART_BRR(u) REG((u) + 0x08u)
 #define USART_CR1(u) REG((u) + 0x0Cu)
-#define USART_SR_RXNE (1u << 5)
 #define USART_SR_TC (1u << 6)
 #define USART_SR_TXE (1u << 7)
-#define USART_SR_ORE (1u << 3)
-#define USART_CR1_RE (1u << 2)
 #define USART_CR1_TE (1u << 3)
-#define USART_CR1_RXNEIE (1u << 5)
 #define USART_CR1_UE (1u << 13)
 
 /* ---- SPI1 (RM0090 §28.5) ---- */

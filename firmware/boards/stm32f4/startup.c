@@ -24,8 +24,6 @@ WEAK(debugmon_handler);
 WEAK(pendsv_handler);
 WEAK(systick_handler);
 WEAK(exti1_handler);
-WEAK(usart1_handler);
-WEAK(usart2_handler);
 
 #define N_IRQ 82
 typedef void (*vector)(void);
@@ -44,8 +42,6 @@ __attribute__((section(".isr_vector"), used)) static const vector vectors[16 + N
     [14] = pendsv_handler,
     [15] = systick_handler,
     [16 + 7] = exti1_handler,
-    [16 + 37] = usart1_handler,
-    [16 + 38] = usart2_handler,
 };
 
 void reset_handler(void)

@@ -2,66 +2,43 @@
 
 #include "regs.h"
 #include "usart.h"
-#include "vectors.h"
 
 #define USART_DAQ USART1_BASE
 
-#ifdef FW_TX_MAX_HZ
-static volatile uint32_t credit;     /* in 1/1000 frames: FW_TX_MAX_HZ added each millisecond */
+#ifdef FW_TX_PER_1000
+static uint32_t sent;
 
-void systick_handler(void)
+static int may_send(const fw_daq *d)
 {
-    if (credit < 4000u)
-        credit += FW_TX_MAX_HZ;
-}
-
-static int may_send(void)
-{
-    return credit >= 1000u;
-}
-
-static void spend(void)
-{
-    __asm volatile("cpsid i" ::: "memory");
-    credit -= 1000u;
-    __asm volatile("cpsie i" ::: "memory");
-}
-
-static void pacing_init(uint32_t core_hz)
-{
-    SYST_RVR = core_hz / 1000u - 1u;
-    SYST_CVR = 0;
-    SYST_CSR = 7u;    /* processor clock, interrupt, enable */
+    return (uint64_t)sent * 1000u < (uint64_t)d->c.samples * FW_TX_PER_1000;
 }
 #else
-static int may_send(void)
+static int may_send(const fw_daq *d)
 {
+    (void)d;
     return 1;
-}
-
-static void spend(void)
-{
-}
-
-static void pacing_init(uint32_t core_hz)
-{
-    (void)core_hz;
 }
 #endif
 
-void tx_loop(fw_daq *d, uint32_t core_hz)
+void tx_pump(fw_daq *d)
 {
     uint8_t frame[FW_FRAME_SIZE];
-    pacing_init(core_hz);
+    while (may_send(d) && fw_daq_next_frame(d, frame)) {
+#ifdef FW_TX_PER_1000
+        sent++;
+#endif
+        usart_write(USART_DAQ, frame, sizeof frame);
+    }
+}
+
+void tx_loop(fw_daq *d)
+{
     for (;;) {
         /* sleep with interrupts masked, so that one arriving between the test and the WFI still wakes it */
         __asm volatile("cpsid i" ::: "memory");
-        if (!may_send() || fw_ring_fill(&d->ring) == 0u)
+        if (!may_send(d) || fw_ring_fill(&d->ring) == 0u)
             __asm volatile("wfi" ::: "memory");
         __asm volatile("cpsie i" ::: "memory");
-        if (may_send() && fw_daq_next_frame(d, frame)) {
-            spend();
-            usart_write(USART_DAQ, frame, sizeof frame);
-        }
+        tx_pump(d);
     }
 }

@@ -2,12 +2,12 @@
 
 #include "regs.h"
 
-void usart_init(uint32_t base, uint32_t pclk_hz, uint32_t baud, int rx_irq)
+void usart_init(uint32_t base, uint32_t pclk_hz, uint32_t baud)
 {
     USART_CR1(base) = 0;
     /* BRR = pclk / baud with 4 fraction bits: mantissa << 4 | sixteenths, i.e. round(pclk / baud) */
     USART_BRR(base) = (pclk_hz + baud / 2u) / baud;
-    USART_CR1(base) = USART_CR1_UE | USART_CR1_TE | (rx_irq ? USART_CR1_RE | USART_CR1_RXNEIE : 0u);
+    USART_CR1(base) = USART_CR1_UE | USART_CR1_TE;
 }
 
 void usart_write(uint32_t base, const uint8_t *data, size_t len)

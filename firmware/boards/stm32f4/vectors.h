@@ -15,7 +15,5 @@ void debugmon_handler(void);
 void pendsv_handler(void);
 void systick_handler(void);
 void exti1_handler(void);
-void usart1_handler(void);
-void usart2_handler(void);
 
 #endif
