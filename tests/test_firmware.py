@@ -20,7 +20,6 @@ FIRMWARE = ROOT / "firmware"
 CORE_SOURCES = sorted((FIRMWARE / "core").glob("*.c"))
 TWO32 = 2**32
 
-needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc absent: apt-get install gcc")
 
 
 class Sample(ctypes.Structure):
