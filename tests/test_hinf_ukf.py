@@ -12,6 +12,7 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
+from fieldlog.tools.rebuild import read_metadata
 
 DURATION = 150.0
 OUTAGE = (95.0, 25.0)
@@ -122,9 +123,30 @@ def test_hinf_small_gamma_rides_through_an_outage_with_the_relative_policy(drive
     with pytest.raises(hinf.GammaTooSmall):
         fuse(drive, "hinf", tmp_path / "fixed.mcap", FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=3.0,
                                                                    hinf_min_ratio=0.0))
-    out = fuse(drive, "hinf", tmp_path / "auto.mcap", FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=3.0)).path
-    fix = read_topic(out, "/fusion/hinf/fix")
+    res = fuse(drive, "hinf", tmp_path / "auto.mcap", FusionConfig.from_flat(outages=(OUTAGE,), hinf_gamma=3.0))
+    fix = read_topic(res.path, "/fusion/hinf/fix")
     assert np.isfinite(fix["lat_deg"]).all() and fix["log_time_ns"][-1] - fix["log_time_ns"][0] > 100e9
+    # the record says which gamma ran: raised above 3 in the outage, so the run's largest gamma exceeds it
+    meta = read_metadata(res.path)["fusion.hinf"]
+    assert float(meta["gamma"]) == 3.0 and int(meta["raised"]) == res.gamma_raised > 0
+    assert float(meta["gamma_run_max"]) > 3.0 and int(meta["paper_gamma_exists"]) < int(meta["epochs"])
+    assert meta["equals_kf"] == "false" and float(meta["worst_inflation"]) >= hinf.KF_EQUAL_INFLATION
+
+
+def test_hinf_defaults_say_which_gamma_ran_and_that_it_equals_kf(drive, tmp_path, capsys):
+    """`fieldlog fuse --method hinf` on its defaults prints and records the gamma that ran; there it is the KF."""
+    out = tmp_path / "hinf.mcap"
+    assert cli_main(["fuse", str(drive), "--method", "hinf", "--out", str(out)]) == 0
+    said = capsys.readouterr()
+    line = next(x for x in (said.out + said.err).splitlines() if "hinf: gamma" in x)
+    meta = read_metadata(out)["fusion.hinf"]
+    g = FusionConfig().filter.hinf_gamma
+    assert f"configured {g:g}" in line and "equal to kf here" in line and meta["note"] in line
+    assert float(meta["gamma_run_min"]) >= g and meta["equals_kf"] == "true"
+    assert 1.0 <= float(meta["worst_inflation"]) < hinf.KF_EQUAL_INFLATION
+    kf_fix = read_topic(fuse(drive, "kf", tmp_path / "kf.mcap").path, "/fusion/kf/fix")
+    hinf_fix = read_topic(out, "/fusion/hinf/fix")
+    assert np.abs(hinf_fix["lat_deg"] - kf_fix["lat_deg"]).max() * 111e3 < 0.01  # m: "equal" means to the cm
 
 
 def test_hinf_with_huge_gamma_equals_the_kf_end_to_end(drive, tmp_path):

@@ -303,3 +303,28 @@ def test_other_papers_methods_fuse_and_evaluate_on_every_scenario(scenario, tmp_
     pos = {r["method"]: r["mean"] for r in t.filter(pl.col("quantity") == "latitude").iter_rows(named=True)}
     for m in OTHER_METHODS:
         assert math.isfinite(pos[m]) and pos[m] < 2.0 * pos["kf"] + 1.0, (scenario, pos)
+
+
+def test_laps_that_vary_differ_lap_to_lap_and_stay_on_the_track():
+    """figure8-varied: the same seed gives the same drive, another seed another; its laps' periods differ (a
+    predictor learning the lap in time cannot replay it), its track stays where figure8's is, and its perfect
+    INS reproduces it as figure8's does."""
+    sc = tj.load_scenario("figure8-varied")
+    t = np.arange(0.0, 600.0, 0.5)
+    a, a2, b = (tj.generate(sc, 600.0, seed).evaluate(t) for seed in (1, 1, 2))
+    assert np.array_equal(a.lat, a2.lat) and np.abs(a.lat - b.lat).max() > 1e-6
+    fixed = tj.generate(tj.load_scenario("figure8"), 600.0).evaluate(t)
+
+    def lap_starts(s):  # the car crosses the track centre heading north-east once per lap
+        h = np.degrees(s.heading) % 360.0
+        near = np.abs(((h - 45.0) + 180.0) % 360.0 - 180.0) < 10.0
+        return t[1:][near[1:] & ~near[:-1]]
+
+    period_fixed = np.diff(lap_starts(fixed))
+    period_varied = np.diff(lap_starts(a))
+    assert np.ptp(period_fixed) <= 0.5 + 1e-9 and np.ptp(period_varied) > 3.0  # 0.5 s: the time grid
+    speed = np.linalg.norm(a.v_n, axis=1)
+    assert 7.0 < speed[t > 120].min() and speed.max() < 13.0  # 10 m/s, 1 sigma 10 %, clipped at 30 %
+    truth = tj.generate(sc, 600.0, 1)
+    p, p0 = truth.local_position(t), tj.generate(tj.load_scenario("figure8"), 600.0).local_position(t)
+    assert np.abs(p).max() < 1.3 * np.abs(p0).max()

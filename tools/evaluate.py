@@ -20,8 +20,10 @@ solutions in DIR/fused/ and, per outage length L, DIR/errors_<L>s.png: horizonta
 velocity error magnitude (m/s) against time since the outage start, each window thin, the mean thick.
 
 ``--paper`` runs the paper's own set-up (:func:`paper_config`: GPS only, its distributed filter, networks
-trained in real time; methods ``PAPER_METHODS``, 30 and 60 s outages, 5 simulated figure8 drives when none is
-given) and adds to the report its Table 3 beside ours and a verdict on each of its claims (:func:`paper_report`).
+trained in real time; methods ``PAPER_METHODS``, 30 and 60 s outages, ``PAPER_SEEDS`` simulated drives of
+``PAPER_SCENARIO`` when none is given: the figure-eight with laps that vary, so no predictor learns the track) and
+adds to the report its Table 3 beside ours, a verdict on each of its absolute figures and on each of its claims by
+a paired t test over the drives (:func:`paper_report`). Every report names its route (:func:`route_note`).
 
 Methods: ``fusion.engine.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
 distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
@@ -470,7 +472,9 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                            max(map(len, by.values()))) for L, by in curves.items()]
     for f in figures:
         say(f"wrote {f}")
-    conclusions = paper_report(per) if paper else verdict(per)
+    route = route_note([Path(d) for d in drives])
+    say(route)
+    conclusions = paper_report(per, route) if paper else verdict(per)
     for line in (conclusions if paper else conclusions[2:-1]):
         say(line)
     sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in honesty.items()]
@@ -481,7 +485,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                        "Position error over every solution row (outages included) against the truth, in units of "
                        "the sigma the method printed:", "", *sigma_lines, ""]
     (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
-                                              aids_note(base), conclusions) + heading_markdown(heading))
+                                              route + "\n\n" + aids_note(base), conclusions)
+                            + heading_markdown(heading))
     return table
 
 
@@ -498,6 +503,32 @@ def heading_markdown(heading: pl.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+def route_note(drives: Sequence[Path]) -> str:
+    """One line naming the drives' route: the simulator's scenario of each (``drive`` metadata) and whether its
+    laps vary (``[motion] lap_*_jitter``); drives not simulated are counted as recorded."""
+    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.tools.sim.trajectory import load_scenario
+
+    names: dict[str, int] = {}
+    for d in drives:
+        meta = read_metadata(d).get("drive", {})
+        key = meta.get("scenario", "") if meta.get("source") == "fieldlog sim" else ""
+        names[key] = names.get(key, 0) + 1
+    parts = []
+    for name, n in names.items():
+        if not name:
+            parts.append(f"{n} recorded drive(s)")
+            continue
+        try:
+            sc = load_scenario(name)
+            how = "laps that vary lap to lap (seeded)" if sc.motion.jittered() else \
+                "laps that repeat exactly" if sc.motion.lap else "no laps"
+        except (OSError, ValueError):
+            how = "scenario not found here"
+        parts.append(f"{n} x simulated `{name}` ({how})")
+    return "Route: " + "; ".join(parts) + "."
+
+
 def aids_note(cfg: FusionConfig) -> str:
     """One line on the vehicle-motion aids the filters used (they need no GPS, so they act in the outages)."""
     on = [n for n, flag in (("non-holonomic constraint (NHC)", cfg.aids.nhc), ("ZUPT + zero-rate update when stopped",
@@ -508,32 +539,67 @@ def aids_note(cfg: FusionConfig) -> str:
             "but ins (the free INS); the paper used none. Methods are compared under the same aids.")
 
 
-PAPER_HYBRID_60S_2D_M = 9.3  # the distributed-KF paper: dkf-rbfn 2D RMS in its 60 s outages
+PAPER_HYBRID_60S_2D_M = 9.3  # the distributed-KF paper's conclusion: its hybrid's 2D RMS in 60 s outages
+MIN_PAIRED_DRIVES = 3  # fewer drives than this: a paired difference is "not resolved" whatever its size
+CONFIDENCE = 0.95  # two-sided, of the paired t interval
+
+
+@dataclass(frozen=True)
+class Paired:
+    """A paired comparison over drives: per-drive differences' mean, the half width of its two-sided
+    ``CONFIDENCE`` t interval (t quantile at n - 1 degrees of freedom times the standard error), n."""
+
+    mean: float
+    half: float
+    n: int
+
+    @property
+    def resolved(self) -> bool:
+        return self.n >= MIN_PAIRED_DRIVES and abs(self.mean) > self.half
+
+    def cell(self, unit: str = "m") -> str:
+        return (f"{self.mean:+.2f} ± {self.half:.2f} {unit} ({CONFIDENCE:.0%} paired t, {self.n - 1} dof)"
+                if self.n >= 2 else f"{self.mean:+.2f} {unit} (one drive)")
+
+
+def paired(diff: np.ndarray) -> Paired:
+    """The paired t interval of per-drive differences diff (n,)."""
+    from scipy.stats import t as student_t
+
+    diff = np.asarray(diff, float)
+    n = len(diff)
+    if n < 2:
+        return Paired(float(diff.mean()) if n else math.nan, math.inf, n)
+    half = float(student_t.ppf(0.5 + CONFIDENCE / 2, n - 1) * diff.std(ddof=1) / math.sqrt(n))
+    return Paired(float(diff.mean()), half, n)
+
+
+def _d2(per: dict[tuple[str, float], list[np.ndarray]], L: float, cols: tuple[int, int] = (0, 1)
+        ) -> dict[str, np.ndarray]:
+    """Per method, the per-drive horizontal RMS hypot(col0, col1) at outage length L."""
+    return {m: np.hypot(np.array(v)[:, cols[0]], np.array(v)[:, cols[1]]) for (m, L2), v in per.items() if L2 == L}
 
 
 def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
     """The paper's claim checked on this run: the hybrid (dkf-rbfn) against RBFN-only, TDLN and the plain
-    filter, by 2D position RMS (mean over drives), with whether the difference exceeds the drives' spread;
-    and the 60 s target. Lines of markdown; none when dkf-rbfn was not run."""
+    filter, by 2D position RMS (mean over drives), with whether the paired difference is resolved by a paired
+    t test over the drives (``paired``); and the 60 s target. Lines of markdown; none when dkf-rbfn was not
+    run."""
     lines = []
     for L in sorted({L for _, L in per}):
         if ("dkf-rbfn", L) not in per:
             continue
-        d2 = {m: np.hypot(np.array(v)[:, 0], np.array(v)[:, 1]) for (m, L2), v in per.items() if L2 == L}
+        d2 = _d2(per, L)
         h = d2["dkf-rbfn"]
         parts = []
         for other in ("rbfn", "tdln", "dkf", "kf"):
-            if other not in d2:
+            if other not in d2 or len(d2[other]) != len(h):  # a drive where one of them had no solution
                 continue
             o = d2[other]
-            if len(o) != len(h):  # a drive where one of them had no solution
-                continue
-            diff = o - h  # per drive, > 0: the hybrid is better
-            real = len(diff) > 1 and abs(diff.mean()) > 2 * diff.std(ddof=1) / math.sqrt(len(diff))
-            word = "better" if diff.mean() > 0 else "worse"
-            parts.append(f"{abs(diff.mean()) / o.mean() * 100:.0f} % {word} than {other} ({o.mean():.2f} m)"
-                         + ("" if len(diff) < 2 else ", beyond" if real else ", within") +
-                         ("" if len(diff) < 2 else " twice the standard error of the per-drive difference"))
+            pt = paired(o - h)  # per drive, > 0: the hybrid is better
+            word = "better" if pt.mean > 0 else "worse"
+            parts.append(f"{abs(pt.mean) / o.mean() * 100:.0f} % {word} than {other} ({o.mean():.2f} m, "
+                         + ("resolved" if pt.resolved else "not resolved") + f": {pt.cell()})")
         line = f"- {L:g} s: dkf-rbfn 2D RMS {h.mean():.2f} m; " + "; ".join(parts) + "."
         if L == 60.0:
             line += (f" The paper's figure is {PAPER_HYBRID_60S_2D_M} m: "
@@ -544,7 +610,8 @@ def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
 
 PAPER_METHODS = ("kf", "dkf", "rbfn", "tdln", "dkf-rbfn")
 PAPER_LENGTHS = (30.0, 60.0)
-PAPER_SEEDS = 5
+PAPER_SEEDS = 8
+PAPER_SCENARIO = "figure8-varied"  # the paper's figure-eight with laps that vary (no predictor learns the track)
 # the paper's Table 3: RMS longitude, latitude, altitude (m), east, north, up velocity (m/s) in its outages
 PAPER_TABLE3 = {
     ("tdln", 30.0): (48.8457, 4.8964, 2.837e3, 0.5132, 0.2328, 133.4138),
@@ -566,10 +633,37 @@ def paper_config(cfg: FusionConfig) -> FusionConfig:
                    predictor=replace(cfg.predictor, training="online"))
 
 
-def paper_report(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
-    """Markdown lines: the paper's Table 3 beside ours (mean over drives), then a verdict on each claim by the
-    per-drive 2D position RMS: the mean difference and twice its standard error over the drives."""
+def claim_word(pt: Paired, equality_claim: bool = False) -> str:
+    """The verdict on a claim "difference > 0" from its paired interval: confirmed, contradicted, not resolved
+    (too few drives, or the interval spans 0); an equality claim spanning 0 is consistent."""
+    if pt.n < MIN_PAIRED_DRIVES:
+        return f"not resolved ({pt.n} drive{'s' if pt.n != 1 else ''}: a paired test needs {MIN_PAIRED_DRIVES})"
+    if pt.resolved:
+        return "confirmed" if pt.mean > 0 else "contradicted"
+    return "consistent (the interval spans 0)" if equality_claim else "not resolved (the interval spans 0)"
+
+
+def absolute_word(ours: np.ndarray, paper: float) -> tuple[str, str]:
+    """(verdict, interval text) on a paper's absolute figure against our per-drive values (n,): its t interval
+    of the mean over drives holds the figure (reproduced), lies above it (not reproduced: ours larger), or
+    below it (ours smaller); not resolved with fewer than MIN_PAIRED_DRIVES drives."""
+    pt = paired(ours - paper)
+    text = f"{ours.mean():.2f} ± {pt.half:.2f}"
+    if pt.n < MIN_PAIRED_DRIVES:
+        return f"not resolved ({pt.n} drives)", text
+    if not pt.resolved:
+        return "reproduced (within the interval)", text
+    return ("not reproduced: ours larger" if pt.mean > 0 else "not reproduced: ours smaller"), text
+
+
+def paper_report(per: dict[tuple[str, float], list[np.ndarray]], route: str = "") -> list[str]:
+    """Markdown lines: the paper's Table 3 beside ours (mean over drives); a verdict on each of its absolute 2D
+    figures (position hypot(longitude, latitude), velocity hypot(east, north): its conclusion's "about 9.3 m
+    and 0.45 m/s" is the hybrid's 60 s column) by the t interval of our mean over drives; then a verdict on
+    each relative claim by the paired t test of the per-drive 2D position RMS (``paired``, ``claim_word``).
+    route: one line naming the drives' route."""
     lines = ["## The paper's Table 3 beside ours (GPS only, paper's dkf, online networks)", "",
+             *((route, "") if route else ()),
              "| quantity | unit | " + " | ".join(f"{m} {L:g} s ours | paper" for m in ("tdln", "rbfn", "dkf-rbfn")
                                                 for L in PAPER_LENGTHS) + " |",
              "|---|---|" + "---|---|" * 3 * len(PAPER_LENGTHS)]
@@ -580,30 +674,40 @@ def paper_report(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
                 ours = np.nanmean(np.array(per[(m, L)])[:, i]) if (m, L) in per else math.nan
                 cells.append(f"{ours:.3f} | {PAPER_TABLE3[(m, L)][i]:.4g}")
         lines.append(f"| {q} | {unit} | " + " | ".join(cells) + " |")
-    lines += ["", "## Verdicts on the paper's claims (2D position RMS per drive; difference ± 2 standard errors)",
+    lines += ["", f"## Verdicts on the paper's absolute figures (2D RMS; ours: mean over drives ± {CONFIDENCE:.0%} "
+              "t interval)", "", "| method | outage | quantity | paper | ours | verdict |", "|---|---|---|---|---|---|"]
+    for m in ("tdln", "rbfn", "dkf-rbfn"):
+        for L in PAPER_LENGTHS:
+            if (m, L) not in per:
+                continue
+            t3 = PAPER_TABLE3[(m, L)]
+            for q, unit, cols in (("2D position", "m", (0, 1)), ("2D velocity", "m/s", (3, 4))):
+                ours = _d2(per, L, cols)[m]
+                if not np.isfinite(ours).all():
+                    continue
+                word, text = absolute_word(ours, math.hypot(t3[cols[0]], t3[cols[1]]))
+                lines.append(f"| {m} | {L:g} s | {q} | {math.hypot(t3[cols[0]], t3[cols[1]]):.3g} {unit} | "
+                             f"{text} {unit} | **{word}** |")
+    lines += ["", f"## Verdicts on the paper's claims (2D position RMS per drive; paired t test, {CONFIDENCE:.0%})",
               ""]
     for L in sorted({L for _, L in per}):
-        d2 = {m: np.hypot(np.array(v)[:, 0], np.array(v)[:, 1]) for (m, L2), v in per.items() if L2 == L}
+        d2 = _d2(per, L)
         for better, worse, words in PAPER_CLAIMS:
             if better not in d2 or worse not in d2 or len(d2[better]) != len(d2[worse]):
                 continue
-            diff = d2[worse] - d2[better]  # > 0: the claim's direction
-            n = len(diff)
-            se2 = 2.0 * diff.std(ddof=1) / math.sqrt(n) if n > 1 else math.nan
-            if not n > 1:
-                word = "not resolved (one drive)"
-            elif diff.mean() > se2:
-                word = "confirmed"
-            elif diff.mean() < -se2:
-                word = "contradicted"
-            else:
-                word = "not resolved (within 2 standard errors)" if better != "kf" else \
-                    "consistent (equal within 2 standard errors)"
+            pt = paired(d2[worse] - d2[better])  # > 0: the claim's direction
             lines.append(f"- {L:g} s, {words}: {better} {d2[better].mean():.2f} m, {worse} {d2[worse].mean():.2f} m; "
-                         f"{worse} - {better} = {diff.mean():+.2f} ± {se2:.2f} m over {n} drives: **{word}**.")
+                         f"{worse} - {better} = {pt.cell()} over {pt.n} drives: "
+                         f"**{claim_word(pt, equality_claim=better == 'kf')}**.")
     if len({len(v) for v in per.values()}) == 1 and len(next(iter(per.values()), [])) < PAPER_SEEDS:
         lines.append(f"- Fewer than {PAPER_SEEDS} drives: the paper's set-up asks for at least {PAPER_SEEDS}.")
     return lines + [""]
+
+
+def paper_verdicts(lines: Sequence[str]) -> list[str]:
+    """The bold verdict words of ``paper_report``'s lines, in order (what two runs on different drives must
+    share)."""
+    return [ln.split("**")[1] for ln in lines if ln.count("**") >= 2]
 
 
 def markdown(table: pl.DataFrame, drives: list[str], figures: Sequence[str] = (), note: str = "",

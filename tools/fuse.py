@@ -52,7 +52,7 @@ from fieldlog.acquire import calib, frames, messages
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
-from fieldlog.fusion import imugrade
+from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import Solution
@@ -85,6 +85,7 @@ class FuseResult:
     gamma_raised: int = 0  # hinf: epochs where the existence bound raised gamma
     still_ns: tuple[int, ...] = ()  # GPS epoch times (UTC ns) with a stationary (ZUPT + ZARU) update
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
+    hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
 
 
 class Diverged(ValueError):
@@ -388,6 +389,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     t_last = max(t.last_ns for t in span)
     rows = outages = 0
     stream = InputStream(drive, imap, BLOCK_S)
+    hinf_note: dict[str, str] = {}
     meta = {"source": label(drive), "method": method, "config": repr(cfg.flat()), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
                                                                       "imu_frame"))}
@@ -416,6 +418,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             if progress:
                 progress(min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
         take(*engine.finish())
+        if isinstance(engine.filter, hinf.HInfinityFilter):
+            hinf_note = hinf.summary(engine.filter)
+            rec.add_metadata("fusion.hinf", hinf_note)
         if smooth:
             smoothed = smooth_solution(Solution.concat(kept), log)
             _write(rec, method, smoothed)
@@ -427,4 +432,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
         progress(1.0)
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
-                      getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note)
+                      getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
+                      hinf_note or None)

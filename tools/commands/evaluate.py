@@ -19,15 +19,19 @@ def add_parser(sub) -> None:
     s.add_argument("--methods", default="ins,kf,dkf",
                    help=f"comma separated: {', '.join(METHODS)}")
     add_out_dir(s, "output directory (table.md, table.csv, fused/)", old="--report", required=True)
-    s.add_argument("--seeds", type=int, default=0, help="also simulate this many drives (seeds 1..N) into DIR/drives")
-    s.add_argument("--scenario", default="figure8", help="--seeds: scenario to simulate")
+    s.add_argument("--seeds", type=int, default=0, help="also simulate this many drives (seeds 1..N, or from --first-seed) into DIR/drives")
+    s.add_argument("--first-seed", type=int, default=1, help="--seeds: the first seed (seeds FIRST..FIRST+N-1)")
+    s.add_argument("--scenario", default=None,
+                   help="--seeds: scenario to simulate (default figure8-varied: the figure-eight with laps that "
+                        "vary, so no predictor can learn the track)")
     s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
     s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
     add_input_args(s)
     s.add_argument("--paper", action="store_true",
                    help="the distributed-KF paper's set-up: GPS only, its dkf, online networks, methods "
-                        "kf,dkf,rbfn,tdln,dkf-rbfn, 30 and 60 s outages, 5 simulated drives without DRIVE or "
-                        "--seeds; its Table 3 beside ours and a verdict on each of its claims")
+                        "kf,dkf,rbfn,tdln,dkf-rbfn, 30 and 60 s outages, 8 simulated drives of figure8-varied "
+                        "without DRIVE or --seeds; its Table 3 beside ours, a verdict on each of its absolute "
+                        "figures and (paired t test over the drives) on each of its claims")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys; default: each drive's fusion.config record) "
                         "and/or an [input] table")
@@ -54,10 +58,12 @@ def run(a: argparse.Namespace) -> int:
         if not drives and not a.seeds:
             a.seeds = PAPER_SEEDS
     if a.seeds:
+        from fieldlog.tools.evaluate import PAPER_SCENARIO
         from fieldlog.tools.sim.simulate import simulate
 
+        a.scenario = a.scenario or PAPER_SCENARIO
         (report / "drives").mkdir(parents=True, exist_ok=True)
-        for seed in range(1, a.seeds + 1):
+        for seed in range(a.first_seed, a.first_seed + a.seeds):
             path = report / "drives" / f"{a.scenario}_s{seed}.mcap"
             log.info(f"simulating {a.scenario} {a.duration:g} s seed {seed} -> {path}")
             simulate(a.scenario, a.duration, seed, path, progress=Progress(f"sim {a.scenario} seed {seed}"))

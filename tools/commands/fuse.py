@@ -53,7 +53,7 @@ def run(a: argparse.Namespace) -> int:
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
                    imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
-                   alignment=res.alignment, wall_s=round(time.monotonic() - t0, 3))
+                   alignment=res.alignment, hinf=res.hinf, wall_s=round(time.monotonic() - t0, 3))
     if a.json:
         print(json.dumps(summary))
     else:
@@ -65,6 +65,8 @@ def run(a: argparse.Namespace) -> int:
                  f"wrote {res.path}: {res.rows} solutions in {summary['wall_s']:.1f} s")
         if res.alignment:
             log.info(f"alignment: {res.alignment}")
+        if res.hinf:
+            log.info(f"hinf: {res.hinf['note']}")
     lo, hi = RATE_HZ
     if not lo <= res.imu_rate_hz <= hi:
         log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")

@@ -68,7 +68,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     cal = calib.load_calibration(None)
     host = HostClock()
     t0_ns = ccfg.start_utc_ns
-    truth = trajectory.generate(scenario, duration_s)
+    truth = trajectory.generate(scenario, duration_s, seed)
 
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)

@@ -15,7 +15,8 @@ Scenario file format (TOML):
                                            override it table by table (key by key; arrays replace)
     [origin]  lat_deg, lon_deg, h_m        start position (ellipsoidal height)
     [motion]  initial_heading_deg, static_s, max_accel_mps2, turn_ramp_s, grade_ramp_s, roll_per_g_deg,
-              coordinated_turns (bool, default false)
+              coordinated_turns (bool, default false),
+              lap_speed_jitter_pct, lap_time_jitter_pct, lap_turn_jitter_deg (default 0: laps repeat exactly)
     [[motion.segments]]                    driven once, in order, after static_s
     [[motion.lap]]                         then repeated until the drive ends (optional)
         each: one of duration_s | distance_m | radius_m (with turn_deg), and optionally
@@ -26,6 +27,14 @@ Scenario file format (TOML):
     [imu], [clock], [gps]                  passed through as dicts for the sensor and clock models
     [fusion]                               passed through: the spec-sheet figures of fusion.engine.FusionConfig
                                            that ``fieldlog sim`` stores in the drive (``tools.fuse.drive_config``)
+
+Laps that vary: with the ``lap_*_jitter`` keys each lap is drawn afresh from the drive's seed (``generate``'s
+``seed``): all its speeds scaled by one factor k = 1 + N(0, lap_speed_jitter_pct %) and its durations by 1 / k
+(the same road at another speed, so the lap's period changes), each segment's duration then by its own
+1 + N(0, lap_time_jitter_pct %) (straights longer or shorter, loops wider or tighter: the line moves),
+each turn's angle changed by N(0, lap_turn_jitter_deg) less the lap's mean change (the lap's net heading change
+is kept, so the track does not rotate away). Factors are clipped to [0.7, 1.3]; a segment is lengthened to its
+speed change where that needs it. A predictor that learns the lap as a pattern of time cannot replay it.
 
 Kinematics are exact in a fixed local tangent frame t (ENU at the origin, Earth-fixed): speed, heading, grade
 and their derivatives are analytic; position is integrated with 8-point Gauss-Legendre on a grid (<= 0.1 s,
@@ -44,7 +53,7 @@ Times are seconds since the drive start (t = 0 at the start of the static period
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +101,13 @@ class Motion:
     coordinated_turns: bool = False
     segments: tuple[Segment, ...] = ()
     lap: tuple[Segment, ...] = ()
+    lap_speed_jitter_pct: float = 0.0  # sd of the per-lap speed factor, %
+    lap_time_jitter_pct: float = 0.0  # sd of each lap segment's duration factor, %
+    lap_turn_jitter_deg: float = 0.0  # sd of each lap turn's angle change (zero-sum within the lap), deg
+
+    def jittered(self) -> bool:
+        return bool(self.lap) and (self.lap_speed_jitter_pct > 0.0 or self.lap_time_jitter_pct > 0.0
+                                   or self.lap_turn_jitter_deg > 0.0)
 
 
 @dataclass(frozen=True)
@@ -145,7 +161,8 @@ class TruthSample:
 _SEGMENT_KEYS = {"duration_s", "distance_m", "radius_m", "speed_mps", "turn_deg", "grade_pct", "pitch_deg",
                  "accel_mps2", "ramp_s"}
 _MOTION_KEYS = {"initial_heading_deg", "static_s", "max_accel_mps2", "turn_ramp_s", "grade_ramp_s",
-                "roll_per_g_deg", "coordinated_turns", "segments", "lap"}
+                "roll_per_g_deg", "coordinated_turns", "segments", "lap", "lap_speed_jitter_pct",
+                "lap_time_jitter_pct", "lap_turn_jitter_deg"}
 _TOP_KEYS = {"name", "description", "duration_s", "extends", "origin", "motion", "imu", "clock", "gps", "fusion"}
 
 
@@ -207,6 +224,8 @@ def _parse_motion(raw: dict) -> Motion:
         raise ValueError(f"[motion]: unknown keys {sorted(bad)}")
     defaults = Motion()
     m = {k: float(raw.get(k, getattr(defaults, k))) for k in _MOTION_KEYS - {"segments", "lap", "coordinated_turns"}}
+    if min(m["lap_speed_jitter_pct"], m["lap_time_jitter_pct"], m["lap_turn_jitter_deg"]) < 0.0:
+        raise ValueError("[motion] lap_*_jitter: must be >= 0")
     coordinated = raw.get("coordinated_turns", False)
     if not isinstance(coordinated, bool):
         raise ValueError(f"[motion] coordinated_turns: expected true or false, got {coordinated!r}")
@@ -337,13 +356,44 @@ class _Profiles:
         return np.concatenate([np.concatenate([p.a, p.b]) for p in (self.speed, self.yaw_rate, self.grade)])
 
 
-def _build_profiles(motion: Motion, t_end: float) -> _Profiles:
+JITTER_CLIP = (0.7, 1.3)
+
+
+def _varied_lap(lap: tuple[Segment, ...], motion: Motion, v_prev: float, rng: np.random.Generator) -> list[Segment]:
+    """One lap drawn with the motion's lap jitter (module docstring), entered at speed v_prev (m/s)."""
+    lo, hi = JITTER_CLIP
+    k_v = float(np.clip(1.0 + rng.normal(0.0, motion.lap_speed_jitter_pct / 100.0), lo, hi))
+    k_t = np.clip(1.0 + rng.normal(0.0, motion.lap_time_jitter_pct / 100.0, len(lap)), lo, hi)
+    turns = np.array([s.turn_deg != 0.0 for s in lap])
+    d_turn = np.zeros(len(lap))
+    if turns.sum() > 1:
+        d = rng.normal(0.0, motion.lap_turn_jitter_deg, int(turns.sum()))
+        d_turn[turns] = d - d.mean()
+    out, v, g = [], v_prev, lap[-1].grade_pct
+    for s, kt, dt in zip(lap, k_t, d_turn):
+        v1 = s.speed_mps * k_v
+        need = (s.ramp_s if v1 != v else 0.0) if s.ramp_s else _ramp_time(v1 - v, s.accel_mps2)
+        if s.grade_pct != g:
+            need = max(need, s.ramp_s or motion.grade_ramp_s)
+        dur = max(s.duration_s * float(kt) / k_v, 1.2 * need, 2.0 * motion.turn_ramp_s if s.turn_deg else 0.0)
+        out.append(replace(s, duration_s=dur, speed_mps=v1, turn_deg=s.turn_deg + float(dt)))
+        v, g = v1, s.grade_pct
+    return out
+
+
+def _build_profiles(motion: Motion, t_end: float, seed: int = 0) -> _Profiles:
     speed_r, yaw_r, grade_r = [], [], []
     t, v, g = motion.static_s, 0.0, 0.0
     segs = list(motion.segments)
     if motion.lap:
         lap_s = sum(s.duration_s for s in motion.lap)
-        segs += list(motion.lap) * int(np.ceil((t_end - t - sum(s.duration_s for s in segs)) / lap_s + 1))
+        n_laps = int(np.ceil((t_end - t - sum(s.duration_s for s in segs)) / (lap_s * JITTER_CLIP[0]) + 1))
+        if motion.jittered():
+            rng = np.random.default_rng([seed, 11])
+            for _ in range(n_laps):
+                segs += _varied_lap(motion.lap, motion, segs[-1].speed_mps if segs else 0.0, rng)
+        else:
+            segs += list(motion.lap) * n_laps
     for s in segs:
         if t >= t_end:
             break
@@ -444,14 +494,15 @@ class Truth:
                          self._p[j + 1], self._v[j + 1], self._a[j + 1])
 
 
-def generate(scenario: Scenario, duration_s: float | None = None) -> Truth:
-    """Build the true trajectory of ``scenario`` for ``duration_s`` (default: the scenario's) seconds.
+def generate(scenario: Scenario, duration_s: float | None = None, seed: int = 0) -> Truth:
+    """Build the true trajectory of ``scenario`` for ``duration_s`` (default: the scenario's) seconds; ``seed``
+    draws the laps of a scenario whose laps vary (``[motion] lap_*_jitter``), and is unused otherwise.
 
     The result is defined on [-MARGIN_S, duration_s + MARGIN_S] (the vehicle stands still before t = 0).
     """
     duration = scenario.duration_s if duration_s is None else float(duration_s)
     t_min, t_max = -MARGIN_S, duration + MARGIN_S
-    pr = _build_profiles(scenario.motion, t_max)
+    pr = _build_profiles(scenario.motion, t_max, seed)
     fixed = np.unique(np.concatenate([[t_min, 0.0, t_max], pr.knots()]))
     fixed = fixed[(fixed >= t_min) & (fixed <= t_max)]
     uniform = GRID_STEP_S * np.arange(np.ceil(t_min / GRID_STEP_S), np.floor(t_max / GRID_STEP_S) + 1)
