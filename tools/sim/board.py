@@ -126,7 +126,7 @@ class EmulatedBoard:
             raise BoardError("--board emulated needs qemu-system-arm: apt-get install qemu-system-arm")
         if not self.image.is_file():
             raise BoardError(f"{self.image}: no firmware image; build it with `make firmware`")
-        self.proc: subprocess.Popen[str] | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
         self.daq_path = ""
         self.daq_fd = -1
         self._empty_since: float | None = None
