@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 export RERUN_ANALYTICS ?= 0
 
-.PHONY: setup demo test bench screenshot firmware clean
+.PHONY: setup demo test test-fast bench screenshot firmware clean
 
 setup: $(STAMP)
 
@@ -19,12 +19,19 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(BIN)/fieldlog demo
 
+# The whole suite, slow tests included; test-fast leaves out the tests marked slow.
 # pytest exits 5 when it collected no test: that is a failure here too.
-test: setup
-	@$(BIN)/python -m pytest -q; rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
+define pytest
+$(BIN)/python -m pytest -q $(1); rc=$$?; \
+if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
+endef
 
-# every bench's full output on stderr, then its figures as rows of docs/results.md's table on stdout
+test: setup
+	@$(call pytest,)
+
+test-fast: setup
+	@$(call pytest,-m "not slow")
+
 bench: setup
 	$(BIN)/python -m fieldlog.tools.bench --markdown
 

@@ -36,6 +36,7 @@ def fleet(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_batch_on_two_workers_equals_one_by_one_and_skips_the_garbage(fleet, tmp_path, capsys):
     out = tmp_path / "batch"
     rc = cli_main(["batch", str(fleet / "*.mcap"), "--methods", "kf,dkf", "--outages", "30", "--workers", "2",

@@ -178,6 +178,7 @@ def _on_a_terminal(argv: list[str], timeout_s: float = 300.0) -> tuple[int, str]
     return p.wait(timeout=60), shown.decode(errors="replace")
 
 
+@pytest.mark.slow
 def test_progress_with_eta_on_a_terminal_only(tmp_path):
     rc, shown = _on_a_terminal(["sim", "--duration", "10", "--out", str(tmp_path / "t.mcap")])
     assert rc == 0, shown

@@ -119,6 +119,7 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
         assert fixes == sum(1 for k, fr in gpsport.Framer().feed(want["gps"]) if k == "ubx" and fr[2:4] == b"\x01\x07")
 
 
+@pytest.mark.slow
 def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
     out = tmp_path / "drives"
     serve, paths = start_serve("--scenario", "figure8", "--duration", "80", "--speed", "10", "--hold")

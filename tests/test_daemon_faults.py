@@ -120,6 +120,7 @@ def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame
     assert 0 < int(c["nmea.bad_checksum"]) <= ok.count(False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("receiver", ["nmea", "ublox"])
 def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_path: Path, receiver: str) -> None:
     # the DAQ pty disappears 20 s into the drive for 61 simulated s (3.05 s at x20) and comes back as a new pty.
@@ -181,6 +182,7 @@ def test_unplugged_port_is_retried_its_gap_recorded_and_nothing_else_lost(tmp_pa
     assert reader.read_topic(f, "/time/sync")["state"][-1] == LOCKED
 
 
+@pytest.mark.slow
 def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -> None:
     """ENOSPC cannot be provoked here (no tmpfs to fill); RLIMIT_FSIZE gives EFBIG at the limit, which the
     daemon handles exactly as a full disk."""
@@ -209,6 +211,7 @@ def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -
     assert got == expected_bytes(truth, "figure8", 120.0, 2)["daq"][:len(got)]    # what it kept is intact
 
 
+@pytest.mark.slow
 def test_one_percent_corruption_in_ublox_mode_keeps_every_intact_ubx_message(tmp_path: Path) -> None:
     """u-blox port (GGA + NAV-PVT + TIM-TP) with 1 % of the bytes corrupted: every byte is recorded as sent,
     every UBX message without a corrupt byte is decoded into /gps/receiver, nothing else is (checksums)."""

@@ -286,6 +286,7 @@ OPS = st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from(["flip", "trunca
                          st.integers(0, 2**20)), max_size=12)
 
 
+@pytest.mark.slow
 def test_fuzz_corrupted_streams():
     """10^5 inputs: 500 hypothesis examples, each a corrupted stream of 20..200 frames fed to one decoder in
     random chunks of 1..24 bytes (~300 feed() calls per example); the total count is asserted below."""

@@ -111,6 +111,7 @@ def _rms2d(run, method):
     return float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)))
 
 
+@pytest.mark.slow
 def test_dkf_differs_from_kf_and_is_not_better_on_average(runs):
     diffs, gaps = [], []
     for seed in SEEDS:
@@ -131,6 +132,7 @@ def test_dkf_differs_from_kf_and_is_not_better_on_average(runs):
     assert diffs.mean() > -2.0 * se  # and not better on average
 
 
+@pytest.mark.slow
 def test_local_solutions_exist_and_differ(runs):
     res = runs[SEEDS[0], "dkf"][0]
     fused = read_topic(res.path, "/fusion/dkf/fix")
@@ -149,6 +151,7 @@ def test_local_solutions_exist_and_differ(runs):
     assert s1 > 2.0 * s2 > 0.0
 
 
+@pytest.mark.slow
 def test_local_solution_sigmas_cover_the_truth(runs):
     """The published KF_I and KF_II solutions are honest: from 100 s on, east and north within 3 sigma at >= 90 %
     of the rows of every seed, with GPS and in the outage. KF_II averages the fixes as the fused filter does, so its
@@ -174,6 +177,7 @@ def test_local_solution_sigmas_cover_the_truth(runs):
 
 
 
+@pytest.mark.slow
 def test_accel_bias_sigma_covers_the_truth(runs):
     """kf's printed accelerometer-bias sigma is honest on the horizontal axes, from 100 s on, against the simulator's
     /truth/imu_bias (evaluate.bias_errors): within 3 sigma at >= 90 % of the rows of every seed, and the share within
@@ -198,6 +202,7 @@ def test_accel_bias_sigma_covers_the_truth(runs):
     assert in3.min() >= 0.9
     assert abs(in1.mean() - 0.683) <= 2.0 * se1
 
+@pytest.mark.slow
 def test_hybrid_differs_from_dkf_in_the_outage_only(runs):
     for seed in SEEDS:
         a = read_topic(runs[seed, "dkf"][0].path, "/fusion/dkf/fix")
@@ -223,6 +228,7 @@ def _engine_over(drive, method, cfg, at=None):
     return eng
 
 
+@pytest.mark.slow
 def test_networks_train_online_and_the_hybrid_prediction_part_is_nonzero(runs):
     drive = runs[SEEDS[0], "dkf"][2]
     cfg = FusionConfig.from_flat(outages=(OUTAGE,), **GPS_ONLY)
@@ -247,6 +253,7 @@ def test_networks_train_online_and_the_hybrid_prediction_part_is_nonzero(runs):
     assert np.linalg.norm(innov, axis=1).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_online_and_batch_networks_differ(runs, tmp_path):
     from fieldlog.fusion.predictors import PredictorConfig
 
@@ -260,6 +267,7 @@ def test_online_and_batch_networks_differ(runs, tmp_path):
     assert batch.predicted == 30
 
 
+@pytest.mark.slow
 def test_paper_verdicts_on_real_runs(runs, tmp_path):
     from fieldlog.tools.evaluate import PAPER_METHODS, evaluate
 

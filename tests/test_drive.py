@@ -68,6 +68,7 @@ def test_timestamp_accuracy_latch(tmp_path):
     assert t is not None and t.rms_us <= 5.0, t
 
 
+@pytest.mark.slow
 def test_rebuild_is_bit_for_bit(figure8, tmp_path):
     out = tmp_path / "rebuilt.mcap"
     assert fieldlog(["rebuild", str(figure8), "--out", str(out)]) == 0
@@ -77,6 +78,7 @@ def test_rebuild_is_bit_for_bit(figure8, tmp_path):
         assert a == b, topic
 
 
+@pytest.mark.slow
 def test_rebuild_with_new_calibration_changes_only_imu(figure8, tmp_path):
     cal = tmp_path / "cal.toml"
     from fieldlog.acquire.calib import default_toml
@@ -90,6 +92,7 @@ def test_rebuild_with_new_calibration_changes_only_imu(figure8, tmp_path):
     assert messages_of(figure8, "/gps/fix") == messages_of(out, "/gps/fix")
 
 
+@pytest.mark.slow
 def test_import_raw_captures_with_noise(figure8, tmp_path):
     gps = b"".join(r.data for r in iter_raw(figure8, "gps"))
     daq = b"".join(r.data for r in iter_raw(figure8, "daq"))
@@ -176,6 +179,7 @@ def test_info_and_allan_commands(figure8, capsys):
     assert "/imu" in out and "locked" in out
 
 
+@pytest.mark.slow
 def test_static_drive_allan_arw(tmp_path):
     """A short static drive through the whole chain: ARW and VRW come back (bias instability needs the
     2-hour drive of `make bench`)."""
@@ -194,6 +198,7 @@ def test_static_drive_allan_arw(tmp_path):
     assert p["vrw_ug_rthz"] == pytest.approx(cfg.accel_noise_density_ug_rthz, rel=0.15)
 
 
+@pytest.mark.slow
 def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
     assert fieldlog(["demo", "--out", str(tmp_path), "--duration", "240"]) == 0
     for name in ("figure8.mcap", "dkf-rbfn.mcap", "figure8.rrd", "report/table.md", "report/table.csv"):

@@ -113,6 +113,7 @@ def test_info_counts_the_silence_of_another_loggers_receiver(ros_drive, native):
     assert info.imu_gaps == 0
 
 
+@pytest.mark.slow
 def test_frd_imu_from_tf_static_auto_detected_topics(native, native_gap, tmp_path):
     """FRD IMU on /imu/data and fixes on /ublox/fix, found by message type; the frame comes from /tf_static."""
     spec = Foreign(imu_topic="/imu/data", fix_topic="/ublox/fix", frame="frd", tf_static=True, max_s=300.0)
@@ -158,6 +159,7 @@ def _rrd_geopoints(rrd: Path, entity: str) -> np.ndarray:
     return np.array([r[1:] for r in rows])
 
 
+@pytest.mark.slow
 def test_replay_and_view_read_late_fixes_as_fuse_does(native, tmp_path, capsys):
     """Every fix logged 0.1-0.9 s after its stamp, behind IMU samples later than it (a logger that writes the
     receiver's solution when it has been computed and delivered). `replay` reads 1 s blocks and re-sequences them
@@ -229,6 +231,7 @@ def native_rate_rms(native, work):
     return _rms(native, out, "kf", _window(native, RATE_WIN))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate_hz, jitter_ns", [(100.0, 2_000_000), (1000.0, 200_000)])
 def test_100_and_1000hz_imu_with_irregular_stamps_and_dropped_samples(native, native_rate_rms, tmp_path, rate_hz,
                                                                        jitter_ns):
@@ -264,6 +267,7 @@ distance_m = 130.0
 """
 
 
+@pytest.mark.slow
 def test_creeping_start_from_another_logger(tmp_path):
     """A car that creeps out at 0.2 m/s for 20 s before driving off, logged by another logger (FLU, no
     velocity): kf as accurate as on the native drive (whole drive, after 60 s), within 1.5x + 1 m."""

@@ -213,6 +213,7 @@ def test_aid_to_the_distributed_filter_equals_the_centralised_update():
     assert np.allclose(d.covariance, c.covariance, rtol=1e-7, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
     """Urban 90-degree turns at 6 m/s on a 15 m radius need 22.9 deg/s; the Table 2 gyro clips at 20 deg/s and
     each turn lost 8.3 deg of heading. The clipped rate is rebuilt from the lateral acceleration, and NHC makes
@@ -383,6 +384,7 @@ def test_cli_fuse_writes_the_fusion_topics(drive, tmp_path):
     assert cli_main(["fuse", str(drive), "--outage", "x", "--out", str(out)]) == 2
 
 
+@pytest.mark.slow
 def test_foreign_drive_without_raw_or_truth_fuses(tmp_path):
     """A drive written by another tool with only the data model's /imu, /gps/fix and /gps/vel fuses."""
     from mcap.reader import make_reader

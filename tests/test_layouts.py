@@ -295,6 +295,7 @@ def test_a_rotated_session_fuses_as_one_drive(original, kf_original, session, tm
     assert n_alone < np.count_nonzero((t >= imu[0]) & (t <= imu[-1]))
 
 
+@pytest.mark.slow
 def test_every_command_takes_the_session(original, session, tmp_path):
     """rebuild, export, view, replay, evaluate and batch read the three files as the one drive."""
     files = [str(f) for f in sorted(session.glob("*.mcap"))]

@@ -33,6 +33,7 @@ def _rms(drive, fused, method, window_ns):
     return float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))), float(np.sqrt(np.mean(np.sum(e[:, 3:6] ** 2, 1))))
 
 
+@pytest.mark.slow
 def test_smoother_shrinks_outage_error_and_does_no_harm_with_gps(drive, tmp_path):
     t0 = int(read_topic(drive, "/imu")["log_time_ns"][0])
     win = (t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))
