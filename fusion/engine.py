@@ -184,7 +184,7 @@ class Engine:
         for m in self.measurements:
             if m.stage == "aid" and self._update(self._observe([m], at)):
                 self._feedback(self.filter.state)
-                at.nav = self.nav
+                at.nav, at.P, at.bg, at.ba = self.nav, self.filter.covariance, self.bg, self.ba
         if not usable:
             self.filter.start_outage()
             if self.bridge is not None:
@@ -200,7 +200,7 @@ class Engine:
         vel = kf.stack(*(o.m for o in obs if o.kind == "velocity"))
         if (self._check is not None and vel is not None
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
-            at.nav = self.nav
+            at.nav, at.P = self.nav, self.filter.covariance
             obs = self._observe(fixes, at)
         self._update(obs)
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0

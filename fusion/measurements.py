@@ -38,10 +38,11 @@ _DEG = math.pi / 180.0
 class Moment:
     """What the measurements see at one GPS epoch time. epoch: the GPS epoch; usable: whether its fix is used
     (``fusion.outages.OutageTracker``); t_fix: the fix time, s from the drive's first IMU sample; v_aid (3,) ENU
-    m/s: the GPS velocity the aids test (the receiver's, else differenced fixes; NaN: none); nav: the INS at the
-    epoch's sample (refreshed by the loop after each update); omega_b (3,) rad/s: the bias-corrected rate there,
-    body RFU; interval: the raw IMU sums since the previous epoch; imu_dt: the IMU sample period, s; bg, ba (3,):
-    the bias estimates, rad/s and m/s^2; P (15, 15): the filter's covariance before this epoch's updates."""
+    m/s: the receiver's velocity the aids test (NaN: none); nav: the INS at the epoch's sample; omega_b (3,) rad/s:
+    the rate there, corrected by the bias estimate before this epoch's updates, body RFU; interval: the raw IMU
+    sums since the previous epoch; imu_dt: the IMU sample period, s; bg, ba (3,): the bias estimates, rad/s and
+    m/s^2; P (15, 15): the filter's covariance. The loop refreshes nav, P, bg and ba after each update it feeds
+    back (and nav and P after a re-alignment)."""
 
     epoch: Epoch
     usable: bool

@@ -318,7 +318,8 @@ def test_config_input_table_and_named_lever_arm_frame(ros_drive, tmp_path, capsy
                    "accel_bias_rw_ug_rts = 10.0\ngyro_scale_factor_ppm = 1000.0\ngyro_misalignment_mrad = 1.0\n")
     assert cli_main(["fuse", "-v", str(drive), "--config", str(cfg), "--out", str(tmp_path / "o.mcap")]) == 0
     text = capsys.readouterr()
-    assert f"fusion settings (--config {cfg}): lever_arm_b=(0.5, 0, 1), lever_arm_frame=flu" in text.out
+    given = next(x for x in text.out.splitlines() if x.startswith(f"fusion settings (--config {cfg}): "))
+    assert "lever_arm_b=(0.5, 0, 1)" in given and "lever_arm_frame=flu" in given
     assert f"IMU /sensors/imu ([input] of {cfg}) in flu ([input] of {cfg})" in text.out
     assert "(default)" in text.out and "warning" not in text.err
     flu = FusionConfig.from_flat(lever_arm_b=(0.5, 0.0, 1.0), lever_arm_frame="flu").gps.lever_rfu()
