@@ -46,6 +46,7 @@ MSG_DEFS: dict[str, str] = {
     "geometry_msgs/msg/TwistWithCovarianceStamped": (
         "std_msgs/Header header\ngeometry_msgs/TwistWithCovariance twist\n"
     ),
+    "geometry_msgs/msg/TwistStamped": "std_msgs/Header header\ngeometry_msgs/Twist twist\n",
     "geometry_msgs/msg/QuaternionStamped": (
         "std_msgs/Header header\ngeometry_msgs/Quaternion quaternion\n"
     ),
@@ -181,6 +182,7 @@ RAWBYTES = "fieldlog_msgs/msg/RawBytes"
 OUTAGE = "fieldlog_msgs/msg/Outage"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 ODOMETRY = "nav_msgs/msg/Odometry"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 WHEELSPEEDS = "fieldlog_msgs/msg/WheelSpeeds"
 
 TOPICS: dict[str, str] = {

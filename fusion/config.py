@@ -121,6 +121,9 @@ class AidConfig:
     zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
     zupt_sigma_mps: float = 0.02
     static_speed_mps: float = 0.3  # below this GPS speed the car is slow: no non-holonomic constraint
+    odometer: bool = True  # the wheel speeds (/vehicle/twist or --odom-topic) with the NHC, when the drive has them
+    odometer_lever_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> rear axle centre, body RFU, m
+    odometer_sigma_mps: float = 0.02  # the wheel speed's sigma when the topic gives no variance
 
 
 @dataclass

@@ -36,7 +36,7 @@ from fieldlog.fusion.config import GPS_ERROR_MODELS, METHODS, FusionConfig
 from fieldlog.fusion.filters import make_filter
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import PREDICTOR_NETWORK, OutageTracker, PredictorBridge, Silence
-from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, Outage, Solution
+from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, OdomBlock, Outage, Solution
 
 if TYPE_CHECKING:
     from fieldlog.fusion.smoother import SmootherLog
@@ -89,13 +89,21 @@ class Engine:
 
     def used(self, name: str) -> tuple[int, ...]:
         """The epoch times (UTC ns) at which the measurement class ``name`` (e.g. "Stationary") gave an update."""
-        parts = [p for m in self.measurements for p in getattr(m, "parts", (m,))]
-        return tuple(t for p in parts if p.__class__.__name__ == name for t in p.times)
+        return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in p.times)
+
+    def _parts(self) -> list[measurements.MeasurementModel]:
+        """The measurements, those inside a ``FirstOf`` one by one."""
+        return [p for m in self.measurements for p in getattr(m, "parts", (m,))]
 
     # -- public ---------------------------------------------------------------------------------
 
-    def process(self, imu: ImuBlock, gps: GpsBlock) -> tuple[Solution, list[Outage]]:
-        """Consume the next block; returns the solution rows it produced and the outages that closed."""
+    def process(self, imu: ImuBlock, gps: GpsBlock, odom: OdomBlock | None = None) -> tuple[Solution, list[Outage]]:
+        """Consume the next block (``odom``: its wheel-speed rows, for the measurements that ``feed`` on them);
+        returns the solution rows it produced and the outages that closed."""
+        if odom is not None and len(odom.t_ns):
+            for p in self._parts():
+                if hasattr(p, "feed"):
+                    p.feed(odom)
         ok = np.isfinite(imu.omega_ib_b).all(axis=1) & np.isfinite(imu.f_b).all(axis=1)
         t_ns = np.asarray(imu.t_ns, np.int64)[ok]
         w, f = np.asarray(imu.omega_ib_b, float)[ok], np.asarray(imu.f_b, float)[ok]

@@ -24,12 +24,12 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.fusion import earth, kf
+from fieldlog.fusion import earth, kf, odometer
 from fieldlog.fusion.align import GpsSpeed, ImuSums, StillRun
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.errmodel import BA, BG
 from fieldlog.fusion.ins import NavState
-from fieldlog.fusion.types import Epoch
+from fieldlog.fusion.types import Epoch, OdomBlock
 
 _DEG = math.pi / 180.0
 
@@ -155,6 +155,77 @@ class Stationary:
 
 
 @dataclass
+class Odometer:
+    """The wheel speeds with the NHC's zeros: the rear axle centre's whole body velocity (``fusion.odometer``).
+
+    The wheel speed at the epoch: a straight line fitted to the samples of the last ``window_s`` (at least
+    ``min_samples``, the newest at most ``max_age_s`` before the epoch) and taken at the epoch time, so speed changes
+    do not lag it; its variance is the topic's plus ``sigma_mps`` squared (slip, tyre deformation, stamp error).
+    The scale factor is fitted while GPS is good against the GPS velocity's forward component
+    (``odometer.ScaleEstimator``; not the INS's, which this aid itself corrects). ``feed`` takes the rows as the
+    engine reads them; ``times``: the epochs it gave a measurement at. Without rows near an epoch it gives none
+    (the NHC then, ``FirstOf``)."""
+
+    lever_b: np.ndarray
+    sigma_mps: float
+    nhc_sigma_mps: float
+    window_s: float = 0.3
+    min_samples: int = 3
+    max_age_s: float = 0.1
+    kind = "velocity"
+    stage = "aid"
+    receiver = False
+    times: list[int] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.scale = odometer.ScaleEstimator(min_samples=30, prior_sigma=0.005)
+        self._t = np.zeros(0, np.int64)
+        self._v = np.zeros(0)
+        self._var = np.zeros(0)
+
+    def feed(self, block: OdomBlock) -> None:
+        """More rows (UTC ns, m/s, (m/s)^2); those before the last epoch's window are dropped there, so a block's
+        rows are held until its epochs have passed."""
+        ok = np.isfinite(block.v)
+        self._t = np.concatenate([self._t, np.asarray(block.t_ns, np.int64)[ok]])
+        self._v = np.concatenate([self._v, np.asarray(block.v, float)[ok]])
+        self._var = np.concatenate([self._var, np.asarray(block.var, float)[ok]])
+
+    def speed_at(self, t_ns: int) -> tuple[float, float] | None:
+        """The wheel speed (m/s) at t_ns and its variance, or None (module docstring of the class)."""
+        keep = self._t > t_ns - int(self.window_s * 1e9)
+        if not keep.all():
+            self._t, self._v, self._var = self._t[keep], self._v[keep], self._var[keep]
+        sel = self._t <= t_ns + int(0.02e9)
+        if sel.sum() < self.min_samples or t_ns - int(self._t[sel].max()) > self.max_age_s * 1e9:
+            return None
+        dt = (self._t[sel] - t_ns) * 1e-9
+        v = self._v[sel]
+        A = np.stack([np.ones_like(dt), dt], axis=1)
+        coef = np.linalg.lstsq(A, v, rcond=None)[0] if np.ptp(dt) > 0 else np.array([v.mean(), 0.0])
+        var = self._var[sel]
+        var = float(np.median(var[np.isfinite(var)])) if np.isfinite(var).any() else 0.0
+        return float(coef[0]), var + self.sigma_mps ** 2
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        got = self.speed_at(m.epoch.t_ns)
+        if got is None:
+            return None
+        v_wheel, var = got
+        C_nb = m.nav.C_bn.T
+        if m.usable and np.isfinite(m.epoch.v_n[:2]).all() and np.isfinite(m.epoch.vel_cov[:2, :2]).all():
+            e = C_nb[1]
+            v_gps = m.epoch.v_n.copy()
+            if not np.isfinite(v_gps[2]):
+                v_gps[2] = m.nav.v_n[2]
+            self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2]))
+        omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
+        self.times.append(m.epoch.t_ns)
+        return odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
+                                             self.scale.sigma, self.nhc_sigma_mps)
+
+
+@dataclass
 class FirstOf:
     """The first of the given measurements that gives one (the others are not asked): the vehicle aids of one
     epoch exclude each other (a standing car gets the stationary update, not the non-holonomic constraint).
@@ -178,12 +249,15 @@ class FirstOf:
 
 def for_method(method: str, cfg: FusionConfig) -> list[MeasurementModel]:
     """The measurements a method runs with, in the order the loop applies them: the vehicle aids (not for the
-    free INS, ``ins``; ``[fusion] zupt``, ``nhc``), then the GPS velocity and position."""
+    free INS, ``ins``; ``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), then the GPS velocity
+    and position."""
     if method == "ins":
         return []
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
+        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps)]
+        if a.odometer else []) + (
         [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
     return ([FirstOf(tuple(aids))] if aids else []) + [GpsVelocity(lever, cfg.gps.vel_var_max), GpsPosition(lever)]
 

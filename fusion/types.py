@@ -50,6 +50,16 @@ class GpsBlock:
 
 
 @dataclass
+class OdomBlock:
+    """Wheel-speed odometry rows: t_ns (n,) int64 UTC ns; v (n,) the forward speed, m/s (negative in reverse);
+    var (n,) its variance, (m/s)^2 (NaN: not given)."""
+
+    t_ns: np.ndarray
+    v: np.ndarray
+    var: np.ndarray
+
+
+@dataclass
 class Epoch:
     """One GPS epoch: t_ns UTC of the fix; lat, lon (rad), h (m, ellipsoidal; NaN: a fix without height);
     pos_cov (3, 3) ENU m^2; status (NavSatFix, -1 no fix); v_n (3,) ENU m/s (NaN where missing); vel_cov (3, 3)

@@ -35,13 +35,15 @@ from fieldlog.fusion import earth  # numpy only: reading a drive never loads the
 from fieldlog.replay import reader
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.types import GpsBlock, ImuBlock
+    from fieldlog.fusion.types import GpsBlock, ImuBlock, OdomBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
+ODOM = "/vehicle/twist"  # fieldlog's own wheel-speed odometry (forward speed in base_link, linear.x)
+ODOM_TYPES = (messages.TWIST, messages.ODOMETRY, messages.TWIST_STAMPED)  # what --odom-topic reads: linear.x
 TF_STATIC = "/tf_static"
 HOLD_S = 1.0  # rows held back per block (Resequencer): longer than a fix's logging latency
 RATE_HZ = (100.0, 1000.0)  # the IMU rates fusion is built for
-FIELDS = ("imu_topic", "fix_topic", "vel_topic", "imu_frame")  # of InputSpec
+FIELDS = ("imu_topic", "fix_topic", "vel_topic", "imu_frame", "odom_topic")  # of InputSpec
 
 
 @dataclass
@@ -52,6 +54,7 @@ class InputSpec:
     fix_topic: str | None = None
     vel_topic: str | None = None  # "" or "none": no velocity topic even when the drive has /gps/vel
     imu_frame: str | None = None  # rfu, flu or frd
+    odom_topic: str | None = None  # "" or "none": no odometry even when the drive has /vehicle/twist
 
     def merged(self, over: "InputSpec") -> "InputSpec":
         """This spec with the fields ``over`` sets replacing its own."""
@@ -74,6 +77,7 @@ class InputMap:
     imu_frame: str
     lever_arm_b: np.ndarray | None = None
     sources: dict[str, str] = field(default_factory=dict)
+    odom_topic: str | None = None  # the forward speed (ODOM_TYPES), None: no odometry
 
     @property
     def native(self) -> bool:
@@ -88,8 +92,9 @@ class InputMap:
         """One line: each input and where it came from."""
         s = self.sources
         vel = f"{self.vel_topic} ({s['vel_topic']})" if self.vel_topic else f"none ({s['vel_topic']})"
+        odom = f", odometry {self.odom_topic} ({s['odom_topic']})" if self.odom_topic else ""
         return (f"input: IMU {self.imu_topic} ({s['imu_topic']}) in {self.imu_frame} ({s['imu_frame']}), "
-                f"fixes {self.fix_topic} ({s['fix_topic']}), velocity {vel}")
+                f"fixes {self.fix_topic} ({s['fix_topic']}), velocity {vel}{odom}")
 
 
 def detect(infos: list[reader.TopicInfo], type_name: str, native: str) -> str | None:
@@ -170,6 +175,20 @@ def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None, given: 
         vel, s_vel = NATIVE[2], "fieldlog's own"
     else:
         vel, s_vel = None, "no velocity topic: position-only GPS updates"
+    if spec.odom_topic is not None and spec.odom_topic.lower() in ("", "none"):
+        odom, s_odom = None, f"{where['odom_topic']} none"
+    elif spec.odom_topic:
+        odom = next((t.topic for t in infos if t.topic == spec.odom_topic), None)
+        kind = next((t.type for t in infos if t.topic == spec.odom_topic), None)
+        if odom is None or kind not in ODOM_TYPES:
+            what = "has no such topic" if odom is None else f"has it as {kind}"
+            raise ValueError(f"{where['odom_topic']} {spec.odom_topic}: {os.fspath(path)} {what}; give a "
+                             f"{', '.join(ODOM_TYPES)} topic")
+        s_odom = where["odom_topic"]
+    elif any(t.topic == ODOM and t.type == messages.TWIST for t in infos):
+        odom, s_odom = ODOM, "fieldlog's own"
+    else:
+        odom, s_odom = None, "none"
     tf = tf_static(path) if any(t.topic == TF_STATIC for t in infos) else {}
     lever = None
     if spec.imu_frame:
@@ -189,7 +208,8 @@ def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None, given: 
         else:
             C, frame, s_frame = earth.BODY_FRAMES["flu"], "flu", "REP-103 default for another logger's drive"
     return InputMap(imu, fix, vel, C, frame, lever,
-                    dict(imu_topic=s_imu, fix_topic=s_fix, vel_topic=s_vel, imu_frame=s_frame))
+                    dict(imu_topic=s_imu, fix_topic=s_fix, vel_topic=s_vel, imu_frame=s_frame, odom_topic=s_odom),
+                    odom)
 
 
 def _stamps(d: dict) -> np.ndarray:
@@ -258,6 +278,7 @@ class InputBlock:
     t1_ns: int
     imu: ImuBlock
     gps: GpsBlock
+    odom: OdomBlock | None = None
 
 
 class InputStream:
@@ -270,7 +291,7 @@ class InputStream:
     def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float,
                  extra: tuple[str, ...] = ()) -> None:
         self.path, self.imap, self.block_s = path, imap, block_s
-        self.extra = tuple(t for t in extra if t not in imap.topics)
+        self.extra = tuple(t for t in extra if t not in imap.topics and t != imap.odom_topic)
         self.samples = 0
         self.gaps = 0  # steps longer than 1.5 sample periods (exact while the stamps jitter by < 1/4 period)
         self.missing = 0  # samples those steps lack, at the sample period
@@ -287,11 +308,17 @@ class InputStream:
         """The drive's blocks under fieldlog's names, re-sequenced; a last block (``t0 == t1``, the drive's end)
         with the rows still held."""
         names = dict(zip(self.imap.topics, NATIVE))
+        odom = (self.imap.odom_topic,) if self.imap.odom_topic else ()
+        if odom:
+            names[odom[0]] = ODOM
         seq = Resequencer()
         t1 = None
-        for b in reader.iter_blocks(self.path, (*self.imap.topics, *self.extra), self.block_s):
+        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *self.extra), self.block_s):
             t1 = b.t1_ns
-            yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, b.data), names))
+            data = dict(b.data)
+            if odom and odom[0] in data:
+                data[odom[0]] = odom_rows(data[odom[0]])
+            yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, data), names))
         if t1 is not None:
             yield reader.Block(t1, t1, self._canonical(seq.flush(), names))
 
@@ -299,7 +326,8 @@ class InputStream:
         for b in self.blocks():
             imu = b.data.get(NATIVE[0])
             yield InputBlock(b.t0_ns, b.t1_ns, imu_block(imu), reader.gps_block(b.data.get(NATIVE[1], {}),
-                                                                               b.data.get(NATIVE[2], {})))
+                                                                               b.data.get(NATIVE[2], {})),
+                             odom_block(b.data.get(ODOM)))
 
     def _canonical(self, data: dict[str, dict], names: dict[str, str]) -> dict[str, dict]:
         out = {names.get(k, k): v for k, v in data.items()}
@@ -343,6 +371,35 @@ def imu_block(imu: dict | None) -> ImuBlock:
         return ImuBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
     ok = imu["valid"]
     return ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
+
+
+def odom_rows(d: dict) -> dict:
+    """A decoded odometry batch (``ODOM_TYPES``) as rows: stamp_ns (header), v (forward speed, linear.x, m/s),
+    var (its covariance[0]; NaN when the type has none or it is not positive), valid."""
+    if "v_n" in d:   # TwistWithCovarianceStamped, batch-decoded
+        var = d["covariance"][:, 0].copy()
+        return {"log_time_ns": d["log_time_ns"], "stamp_ns": d["stamp_ns"], "valid": d["valid"],
+                "v": d["v_n"][:, 0].copy(), "var": np.where(var > 0, var, np.nan)}
+    n = len(d["log_time_ns"])
+    stamp, v, var = np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan)
+    for i, m in enumerate(d.get("msgs", [])):
+        if m is None:
+            continue
+        stamp[i] = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        tw = m.twist.twist if hasattr(m.twist, "twist") else m.twist          # Odometry / TwistStamped
+        v[i] = tw.linear.x
+        cov = getattr(m.twist, "covariance", None)
+        var[i] = cov[0] if cov is not None and cov[0] > 0 else np.nan
+    return {"log_time_ns": d["log_time_ns"], "stamp_ns": stamp, "valid": np.asarray(d["valid"], bool) & np.isfinite(v),
+            "v": v, "var": var}
+
+
+def odom_block(rows: dict | None) -> OdomBlock | None:
+    """A block's odometry rows (``odom_rows``, re-sequenced) as the engine's OdomBlock; None without."""
+    from fieldlog.fusion.types import OdomBlock
+    if not rows or not len(rows.get("log_time_ns", ())):
+        return None
+    return OdomBlock(rows["log_time_ns"], rows["v"], rows["var"])
 
 
 def canonical_blocks(path: str | os.PathLike[str], imap: InputMap, block_s: float, extra: tuple[str, ...] = ()

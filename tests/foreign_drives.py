@@ -43,6 +43,21 @@ TF_DEF = _msgdef(
     ("std_msgs/Header", HEADER), ("builtin_interfaces/Time", TIME),
     ("geometry_msgs/Transform", "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n"),
     ("geometry_msgs/Vector3", VECTOR3), ("geometry_msgs/Quaternion", QUAT))
+TWIST = "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n"
+ODOM_DEFS = {
+    "nav_msgs/msg/Odometry": _msgdef(
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
+        "geometry_msgs/TwistWithCovariance twist\n",
+        ("std_msgs/Header", HEADER), ("builtin_interfaces/Time", TIME),
+        ("geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose pose\nfloat64[36] covariance\n"),
+        ("geometry_msgs/Pose", "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n"),
+        ("geometry_msgs/Point", VECTOR3), ("geometry_msgs/Quaternion", QUAT),
+        ("geometry_msgs/TwistWithCovariance", "geometry_msgs/Twist twist\nfloat64[36] covariance\n"),
+        ("geometry_msgs/Twist", TWIST), ("geometry_msgs/Vector3", VECTOR3)),
+    "geometry_msgs/msg/TwistStamped": _msgdef(
+        "std_msgs/Header header\ngeometry_msgs/Twist twist\n", ("std_msgs/Header", HEADER),
+        ("builtin_interfaces/Time", TIME), ("geometry_msgs/Twist", TWIST), ("geometry_msgs/Vector3", VECTOR3)),
+}
 
 # C_x_rfu: body RFU -> the logger's frame
 TO_FRAME = {"rfu": np.eye(3), "flu": np.array([[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]]),
@@ -70,6 +85,8 @@ class Foreign:
     antenna_at: tuple[float, float, float] | None = None  # base_link (FLU), m; None: no antenna transform
     max_s: float | None = None  # only the first max_s seconds
     seed: int = 0
+    odom_topic: str | None = None  # the native /vehicle/twist's forward speed on this topic (None: none)
+    odom_type: str = "nav_msgs/msg/Odometry"  # or geometry_msgs/msg/TwistStamped (no covariance)
 
 
 def _stamp(t_ns: int) -> dict:
@@ -138,8 +155,32 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
             if not any(a <= tj < b for a, b in quiet):
                 events.append((tj + int(rng.uniform(*spec.fix_lag_s) * 1e9), 1, j))
         events.sort()
+        odom = None
+        if spec.odom_topic:
+            s_odom = wr.register_msgdef(spec.odom_type, ODOM_DEFS[spec.odom_type])
+            t_od, _, p_od = reader.read_payloads(native, "/vehicle/twist")
+            from fieldlog.acquire import messages
+
+            odom = messages.decode_twist(p_od)
+            events += [(int(odom["stamp_ns"][j]) + 3_000_000, 2, j) for j in range(len(t_od))
+                       if spec.max_s is None or odom["stamp_ns"][j] < t[-1]]
+            events.sort()
         for log_t, kind, i in events:
-            if kind == 0:
+            if kind == 2:
+                v = {"linear": {"x": float(odom["v_n"][i, 0]), "y": 0.0, "z": 0.0},
+                     "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+                head = {"stamp": _stamp(int(odom["stamp_ns"][i])), "frame_id": "odom"}
+                if spec.odom_type == "nav_msgs/msg/Odometry":
+                    cov = [float(odom["covariance"][i, 0])] + [0.0] * 35
+                    msg = {"header": head, "child_frame_id": "base_link",
+                           "pose": {"pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                             "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                                    "covariance": [0.0] * 36},
+                           "twist": {"twist": v, "covariance": cov}}
+                else:
+                    msg = {"header": {**head, "frame_id": "base_link"}, "twist": v}
+                wr.write_message(spec.odom_topic, s_odom, msg, log_time=log_t, publish_time=log_t)
+            elif kind == 0:
                 msg = {"header": {"stamp": _stamp(int(st[i])), "frame_id": spec.imu_frame_id},
                        "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
                        "orientation_covariance": [-1.0] + [0.0] * 8,

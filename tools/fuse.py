@@ -392,7 +392,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     hinf_note: dict[str, str] = {}
     meta = {"source": label(drive), "method": method, "config": repr(cfg.flat()), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
-                                                                      "imu_frame"))}
+                                                                      "imu_frame", "odom_topic"))}
     with Recorder(out, flush_interval_s=None, fsync=False) as rec:
         rec.add_metadata("fusion", meta)
 
@@ -414,7 +414,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             rows += len(sol.t_ns)
 
         for block in stream:
-            take(*engine.process(block.imu, block.gps))
+            take(*engine.process(block.imu, block.gps, block.odom))
             if progress:
                 progress(min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
         take(*engine.finish())

@@ -90,10 +90,10 @@ def drive_arg(paths: list[str]) -> str | list[str]:
 
 
 def input_spec(a: argparse.Namespace):
-    """``replay.inputs.InputSpec`` of --imu-topic, --fix-topic, --vel-topic, --imu-frame."""
+    """``replay.inputs.InputSpec`` of --imu-topic, --fix-topic, --vel-topic, --imu-frame, --odom-topic."""
     from fieldlog.replay.inputs import InputSpec
 
-    return InputSpec(a.imu_topic, a.fix_topic, a.vel_topic, a.imu_frame)
+    return InputSpec(a.imu_topic, a.fix_topic, a.vel_topic, a.imu_frame, a.odom_topic)
 
 
 def add_input_args(s: argparse.ArgumentParser) -> None:
@@ -106,6 +106,10 @@ def add_input_args(s: argparse.ArgumentParser) -> None:
                    "(default: /gps/vel if present; 'none': position-only updates)")
     s.add_argument("--imu-frame", choices=["rfu", "flu", "frd"], default=None,
                    help="IMU body frame (default: from /tf_static, else rfu for fieldlog drives, flu (REP-103) else)")
+    s.add_argument("--odom-topic", default=None, metavar="T",
+                   help="wheel odometry: its forward speed (linear.x) from a TwistWithCovarianceStamped, "
+                        "nav_msgs/Odometry or TwistStamped topic (default: /vehicle/twist if present; 'none': no "
+                        "odometry)")
 
 
 def parse_lengths(text: str, option: str) -> list[float]:
