@@ -62,7 +62,7 @@ def file_info(path: Path) -> FileInfo:
         schema = summary.schemas.get(ch.schema_id)
         qos = yaml.safe_load(ch.metadata.get("offered_qos_profiles", "") or "[]") or []
         topics.append(TopicInfo(ch.topic, schema.name if schema else "", ch.message_encoding, qos,
-                                ch.metadata.get("type_description_hash", ""),
+                                ch.metadata.get("topic_type_hash", ""),
                                 int(st.channel_message_counts.get(cid, 0))))
     n = int(st.message_count)
     return FileInfo(path, int(st.message_start_time) if n else 0, int(st.message_end_time) if n else 0, n,

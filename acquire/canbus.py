@@ -12,8 +12,8 @@ the speed of the rear axle's centre, which does not slip sideways and is not ste
 ``vehicle``: the vehicle speed signal). Default: ``rear`` when both rear wheels are named, else ``vehicle``,
 else every wheel named. Its sign is negative in reverse (the speed's magnitude: wheel speed sensors do not see
 the direction). Variance: the quantisation of the signals averaged, sum(q_i^2 / 12) / n^2 with q_i the
-signal's resolution in m/s; lateral and vertical speed are not measured (variance ``UNOBSERVED``) and the
-angular velocity is absent (covariance[21] = -1). One message per frame that carries a forward-speed signal,
+signal's resolution in m/s; lateral and vertical speed and the angular velocity are not measured (variance
+``messages.UNKNOWN_VARIANCE``). One message per frame that carries a forward-speed signal,
 once every one of them has been seen.
 
 Stamps (both topics): the host read time of the frame mapped to UTC through the daemon's GPS clock fit
@@ -39,7 +39,6 @@ FORWARD = {"rear": ("wheel_rl", "wheel_rr"), "front": ("wheel_fl", "wheel_fr"), 
            "vehicle": ("vehicle_speed",)}
 SPEED_UNITS = {"km/h": 1 / 3.6, "kph": 1 / 3.6, "kmh": 1 / 3.6, "m/s": 1.0, "mps": 1.0, "mph": 0.44704}
 ANGLE_UNITS = {"deg": math.pi / 180, "°": math.pi / 180, "degree": math.pi / 180, "rad": 1.0}
-UNOBSERVED = 1e4            # (m/s)^2: the variance of a velocity component that is not measured
 MAX_IDS = 256               # frames are counted per id for this many ids (the rest together)
 CLOCK_WINDOW_NS = NS        # the adapter clock's offset: the least delay over this much adapter time
 
@@ -274,7 +273,8 @@ class VehicleDecoder:
                 v = -abs(v)
             self.twists += 1
             cov = np.zeros((1, 36))
-            cov[0, 0], cov[0, 7], cov[0, 14], cov[0, 21] = self.variance, UNOBSERVED, UNOBSERVED, -1.0
+            cov[0, [7, 14, 21, 28, 35]] = messages.UNKNOWN_VARIANCE
+            cov[0, 0] = self.variance
             t = np.array([t_ns], np.int64)
             sink.write_batch("/vehicle/twist", t, messages.encode_twist(t, np.array([[v, 0.0, 0.0]]), None, cov,
                                                                         frame_id="base_link"))

@@ -194,7 +194,7 @@ class Solution:
     utc_ns: the epoch's UTC (ns since the Unix epoch); fix: the receiver has a position fix (gpsd's rules);
     quality: GGA-like quality (0 none, 1 autonomous, 2 differential, 4 RTK fixed, 5 RTK float);
     lat/lon in degrees, h ellipsoidal metres; pos_var (3,) ENU m^2 and whether it is the receiver's own
-    (``pos_var_known``) or approximated; vel_enu (3,) m/s and vel_var (3,) (m/s)^2 (1e4: not observed);
+    (``pos_var_known``) or approximated; vel_enu (3,) m/s and vel_var (3,) (m/s)^2 (``messages.UNKNOWN_VARIANCE``: not observed);
     first_mono_ns: host time of the epoch's first message.
     """
 

@@ -572,8 +572,9 @@ def encode_odometry(
 def encode_time_reference(
     stamp_ns: np.ndarray, time_ref_ns: np.ndarray, source: str = "pps", frame_id: str = "imu"
 ) -> Packed:
-    """``sensor_msgs/msg/TimeReference`` batch: stamp = the PPS edge on the DAQ clock (UTC ns),
-    time_ref = the GPS second the edge marks (UTC ns)."""
+    """``sensor_msgs/msg/TimeReference`` batch (``/pps``): stamp = the edge in UTC ns (the GPS second it marks,
+    or the host's estimate for an edge that could not be labelled), time_ref = the edge on the DAQ clock
+    (k_edge / fs, ns)."""
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(TIMEREF, len(stamp_ns), {"frame_id": frame_id, "source": source}, stamp_ns)
     arr["ref_sec"], arr["ref_nanosec"] = split_stamp(time_ref_ns)
@@ -600,6 +601,12 @@ def encode_time_sync(
 
 TIMESYNC_FREE, TIMESYNC_HOLDOVER, TIMESYNC_LOCKED = 0, 1, 2
 COVARIANCE_TYPE_UNKNOWN, COVARIANCE_TYPE_APPROXIMATED, COVARIANCE_TYPE_DIAGONAL_KNOWN = 0, 1, 2
+# Unknown covariance, one rule (docs/data-model.md, "Covariances"): where the message definition gives a marker
+# it is used (sensor_msgs/Imu: -1 in element 0 of a block without an estimate, REP-145; NavSatFix:
+# position_covariance_type UNKNOWN); the others (TwistWithCovariance, PoseWithCovariance, Odometry) define none,
+# so a component not measured or not estimated has this variance on its diagonal (its unit squared: (m/s)^2,
+# (rad/s)^2, m^2, rad^2) and no correlation. Readers treat any variance above ~1e2 as "no information".
+UNKNOWN_VARIANCE = 1e6
 STATUS_UNKNOWN, STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -2, -1, 0, 1, 2
 
 
@@ -845,7 +852,7 @@ def decode_vector3(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
 
 
 def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
-    """TimeReference batch -> stamp_ns (edge), time_ref_ns (GPS second), valid."""
+    """TimeReference batch -> stamp_ns (the edge in UTC), time_ref_ns (the edge on the DAQ clock), valid."""
     a, ok = _decode_fixed(TIMEREF, msgs)
     return {
         "stamp_ns": join_stamp(a["sec"], a["nanosec"]),

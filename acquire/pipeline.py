@@ -330,7 +330,7 @@ class Pipeline:
         s2 = self.cfg.gps_vel_sigma_mps**2
         self._emit_solution(gpsport.Solution(
             utc_ns, not why, ep.quality, ep.num_sats, ep.lat_deg, ep.lon_deg, ep.alt_ellipsoid_m, var, known, vel,
-            (s2, s2, 1e4), ep.first_mono_ns, "nmea"), why)   # NMEA has no vertical velocity: unobserved
+            (s2, s2, messages.UNKNOWN_VARIANCE), ep.first_mono_ns, "nmea"), why)   # NMEA: no vertical velocity
 
     def _emit_solution(self, sol: gpsport.Solution, why: str = "") -> None:
         """/gps/fix and /gps/vel of one receiver epoch; ``why`` it is not a fix (counted by reason).
@@ -367,7 +367,7 @@ class Pipeline:
             default = (self.cfg.gps_vel_sigma_mps**2,) * 2 + (self.cfg.gps_vvel_sigma_mps**2,)
             cov = np.zeros((1, 36))
             cov[0, [0, 7, 14]] = np.where(np.isfinite(sol.vel_var), sol.vel_var, default)
-            cov[0, [21, 28, 35]] = -1.0  # no angular velocity
+            cov[0, [21, 28, 35]] = messages.UNKNOWN_VARIANCE  # no angular velocity
             self.sink.write_batch("/gps/vel", t_ns, messages.encode_twist(
                 t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))
 
@@ -378,11 +378,11 @@ class Pipeline:
             self.counters.pps_rejected += int(np.count_nonzero(~edges.accepted))
             log = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
             daq_clock_ns = np.round(edges.k_edge / self.fs * NS).astype(np.int64)
-            ref_ns = np.where(edges.accepted, edges.label_s * NS, 0)
             for reason in dict.fromkeys(edges.reason):
                 sel = edges.reason == reason
-                self.sink.write_batch("/pps", log[sel].astype(np.int64), messages.encode_time_reference(
-                    daq_clock_ns[sel], ref_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
+                utc = log[sel].astype(np.int64)
+                self.sink.write_batch("/pps", utc, messages.encode_time_reference(
+                    utc, daq_clock_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
         st = self.sync.pop_status()
         if len(st):
             self.sink.write_batch("/time/sync", st.utc_ns, messages.encode_time_sync(

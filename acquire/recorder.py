@@ -48,7 +48,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER
 
-from fieldlog.acquire import messages, native
+from fieldlog.acquire import messages, native, typehash
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.drivestats import DriveStats
 
@@ -199,7 +199,8 @@ class Recorder:
                 topic=topic,
                 message_encoding=messages.MESSAGE_ENCODING,
                 schema_id=sid,
-                metadata={"offered_qos_profiles": messages.offered_qos_profiles(topic)},
+                metadata={"offered_qos_profiles": messages.offered_qos_profiles(topic),
+                          "topic_type_hash": typehash.rihs01(type_name)},
             )
         )
 

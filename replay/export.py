@@ -22,8 +22,8 @@ type                            further columns
 ``TwistWithCovarianceStamped``  ``v_east``, ``v_north``, ``v_up`` m/s, ``omega_x/y/z`` rad/s, ``covariance`` (36)
 ``QuaternionStamped``           ``q_x``, ``q_y``, ``q_z``, ``q_w`` (body RFU -> ENU)
 ``Vector3Stamped``              ``x``, ``y``, ``z`` (``/fusion/<m>/std``: position sigma E, N, U in m)
-``sensor_msgs/TimeReference``   ``time_ref_ns`` (the GPS second the edge marks), ``source``; ``stamp_ns`` is the edge
-                                on the DAQ clock, k_edge / fs
+``sensor_msgs/TimeReference``   ``stamp_ns`` (the edge in UTC: the GPS second it marks), ``time_ref_ns`` (the edge
+                                on the DAQ clock, k_edge / fs), ``source``
 ``TimeSyncState``               ``state`` (0 free, 1 holdover, 2 locked), ``rate_ppm``, ``residual_us``,
                                 ``edges_used``, ``edges_rejected``
 ``nmea_msgs/Sentence``          ``frame_id``, ``sentence``

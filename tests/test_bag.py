@@ -122,6 +122,18 @@ def test_daemon_session_is_a_rosbag2_directory_rotation_by_rotation(tmp_path: Pa
     info_dir = json.loads(run("info", str(session), "--json").stdout)
     info_files = json.loads(run("info", *map(str, files), "--json").stdout)
     assert info_dir.pop("path") == str(session) and info_dir == {k: v for k, v in info_files.items() if k != "path"}
+    # info gives what `ros2 bag info` gives, computed from the files here
+    chunks = 0
+    for f in files:
+        with open(f, "rb") as fh:
+            chunks += len(make_reader(fh).get_summary().chunk_indexes)
+    assert info_files["size_bytes"] == sum(f.stat().st_size for f in files)
+    assert info_files["message_total"] == meta["message_count"] and info_files["chunks"] == chunks > len(files)
+    assert info_files["start_ns"] == meta["starting_time"]["nanoseconds_since_epoch"]
+    assert info_files["end_ns"] - info_files["start_ns"] == meta["duration"]["nanoseconds"]
+    assert info_files["compression"] == ["zstd"]
+    text = run("info", str(session)).stdout
+    assert f"{meta['message_count']} messages in {chunks} chunks, compression zstd" in text
     one = run("info", str(files[-1]))
     assert one.returncode == 0 and "/imu" in one.stdout
 

@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from fieldlog.acquire import calib, frames, messages
+from fieldlog.acquire import bagdir, calib, frames, messages
 from fieldlog.fusion import earth
 from fieldlog.replay import reader
 from fieldlog.tools.fuse import fuse
@@ -80,6 +80,21 @@ def test_every_channel_offers_rosbag2_qos(fused):
             assert qos.reliability.name == "RELIABLE", ch.topic
             want = "TRANSIENT_LOCAL" if ch.topic == "/tf_static" or ch.topic.endswith("/datum") else "VOLATILE"
             assert qos.durability.name == want, ch.topic
+
+
+def test_every_channel_carries_the_rihs01_type_hash(fused, typestore):
+    """As rosbag2 Jazzy: the channel's topic_type_hash, and metadata.yaml's type_description_hash."""
+    for path in fused:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        for ch in summary.channels.values():
+            want = typestore.hash_rihs01(summary.schemas[ch.schema_id].name)
+            assert ch.metadata["topic_type_hash"] == want, ch.topic
+        meta = bagdir.metadata([bagdir.file_info(path)])["rosbag2_bagfile_information"]
+        for tw in meta["topics_with_message_count"]:
+            tm = tw["topic_metadata"]
+            assert tm["type_description_hash"] == typestore.hash_rihs01(tm["type"]), tm["name"]
+    assert len({typestore.hash_rihs01(t) for t in messages.MSG_DEFS}) == len(messages.MSG_DEFS)
 
 
 def test_drive_has_tf_static_from_the_mounting(fused, typestore):

@@ -240,7 +240,7 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
     pos_cov[:, [0, 4, 8]] = var[:, 0:3]
     vel_cov = np.zeros((len(t), 36))
     vel_cov[:, [0, 7, 14]] = var[:, 3:6]
-    vel_cov[:, [21, 28, 35]] = -1.0  # angular part unused
+    vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE  # angular part: not estimated
     base = f"/fusion/{method}"
     # positions are the IMU's (frame imu); ENU vectors and the attitude body -> ENU are in map's axes
     rec.write_batch(f"{base}/fix", t, messages.encode_navsatfix(
@@ -261,15 +261,12 @@ def _write(rec: Recorder, method: str, s: Solution) -> None:
         pos_cov[:, [0, 4, 8]] = loc[:, 6:9] ** 2
         vel_cov = np.zeros((len(t), 36))
         vel_cov[:, [0, 7, 14]] = loc[:, 9:12] ** 2
-        vel_cov[:, [21, 28, 35]] = -1.0
+        vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE
         rec.write_batch(f"{base}/{name}/fix", t, messages.encode_navsatfix(
             t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov, covariance_type=2,
             frame_id=frames.IMU))
         rec.write_batch(f"{base}/{name}/vel", t, messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov,
                                                                        frame_id=frames.MAP))
-
-
-UNKNOWN_VAR = 1e6   # variance of what the filter does not estimate (the odometry's angular rate), rad^2/s^2
 
 
 class Odometry:
@@ -290,8 +287,8 @@ class Odometry:
     ``map -> odom`` (a translation) absorbs the corrections: map -> odom -> base_link equals the fused pose at
     every row. Pose covariance: position ENU and attitude error (phi E, N, U) of the filter, diagonal. Twist in
     base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the lever-arm
-    term w x r is left out); the angular rate from consecutive attitudes, with the variance UNKNOWN_VAR because
-    the filter does not estimate it.
+    term w x r is left out); the angular rate from consecutive attitudes, with the variance
+    ``messages.UNKNOWN_VARIANCE`` because the filter does not estimate it.
     """
 
     def __init__(self, method: str, mounting: calib.Mounting) -> None:
@@ -354,7 +351,7 @@ class Odometry:
         pose_cov[:, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 4, 5]] = var[:, [0, 1, 2, 6, 7, 8]]
         twist_cov = np.zeros((n, 6, 6))
         twist_cov[:, :3, :3] = C_n_base @ (var[:, 3:6, None] * C_base_n)
-        twist_cov[:, [3, 4, 5], [3, 4, 5]] = UNKNOWN_VAR
+        twist_cov[:, [3, 4, 5], [3, 4, 5]] = messages.UNKNOWN_VARIANCE
         rec.write_batch(self.topic, t, messages.encode_odometry(
             t, p_odom, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
             frame_id=frames.ODOM, child_frame_id=frames.BASE_LINK))

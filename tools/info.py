@@ -35,6 +35,14 @@ class DriveInfo(Quality):
     port_events: list[dict[str, str]] = field(default_factory=list)   # the daemon's lost/back port records
     scanned: bool = False       # figures from reading the messages (no fieldlog.info record)
     files: list[Path] = field(default_factory=list)   # the drive's files (replay.drive)
+    # what `ros2 bag info` shows too: bytes on disk, first and last log time (UTC ns), messages, chunks and their
+    # compression ("" = none; several when the files differ)
+    size_bytes: int = 0
+    start_ns: int = 0
+    end_ns: int = 0
+    message_total: int = 0
+    chunks: int = 0
+    compression: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
         d = asdict(self)
@@ -122,14 +130,26 @@ def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], 
     first = min((t.first_ns for t in tops if t.count), default=0)
     last = max((t.last_ns for t in tops if t.count), default=0)
     given = Path(path) if isinstance(path, (str, os.PathLike)) else Path(path[0])
+    opened = open_drive(path)
+    comps = sorted({f.compressions[i] for f in opened for i in np.unique(f.pieces.comp[f.pieces.chunk])})
     return DriveInfo(**asdict(quality) | {"timing": quality.timing}, path=given, duration_s=(last - first) / NS,
                      topics=tops, counters=meta.get("acquire.counters", {}), drive=meta.get("drive", {}),
                      port_events=[d for name, d in records if name == "acquire.port_event"], scanned=scanned,
-                     files=[f.path for f in open_drive(path)])
+                     files=[f.path for f in opened], size_bytes=sum(f.path.stat().st_size for f in opened),
+                     start_ns=first, end_ns=last, message_total=sum(t.count for t in tops),
+                     chunks=sum(int(f.pieces.chunk.sum()) for f in opened), compression=comps)
+
+
+def _utc(ns: int) -> str:
+    """UTC ns as ISO 8601 with ms, e.g. 2026-11-22T10:15:00.000Z."""
+    return np.datetime_as_string(np.datetime64(int(ns), "ns"), unit="ms") + "Z"
 
 
 def format_info(info: DriveInfo) -> str:
-    lines = [f"drive     {info.path}", f"duration  {info.duration_s:.1f} s"]
+    lines = [f"drive     {info.path}", f"duration  {info.duration_s:.1f} s",
+             f"start     {_utc(info.start_ns)}   end {_utc(info.end_ns)}",
+             f"size      {info.size_bytes / 1e6:.1f} MB ({info.size_bytes} bytes); {info.message_total} messages in "
+             f"{info.chunks} chunks, compression {', '.join(c or 'none' for c in info.compression) or 'none'}"]
     if len(info.files) > 1:
         lines.insert(1, f"files     {len(info.files)}: " + ", ".join(f.name for f in info.files))
     if info.drive:
