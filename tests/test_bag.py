@@ -74,6 +74,7 @@ def wait_for(condition, daemon, timeout_s: float = 60) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.slow
 def test_daemon_session_is_a_rosbag2_directory_rotation_by_rotation(tmp_path: Path) -> None:
     out = tmp_path / "drives"
     serve, d = start_session(tmp_path, out, rotate_s=6.0, duration_s=150, seed=2)
@@ -138,6 +139,7 @@ def test_daemon_session_is_a_rosbag2_directory_rotation_by_rotation(tmp_path: Pa
     assert one.returncode == 0 and "/imu" in one.stdout
 
 
+@pytest.mark.slow
 def test_killed_session_recovered_into_its_metadata(tmp_path: Path) -> None:
     out = tmp_path / "drives"
     serve, d = start_session(tmp_path, out, rotate_s=2.0, duration_s=100, seed=3)
@@ -164,6 +166,7 @@ def test_killed_session_recovered_into_its_metadata(tmp_path: Path) -> None:
     assert got == counts_in_files([*files[:-1], rec]) and got["/imu"] > 0
 
 
+@pytest.mark.slow
 def test_fused_file_as_a_bag_and_metadata_never_follows_a_symlink(tmp_path: Path, figure8_short: Path) -> None:
     out = tmp_path / "fused"
     r = run("fuse", str(figure8_short), "--method", "kf", "--out", str(out), "--bag")

@@ -41,6 +41,7 @@ def tree_edges(msgs) -> dict[str, str]:
     return edges
 
 
+@pytest.mark.slow
 def test_every_frame_id_is_a_frame_of_the_tree(fused) -> None:
     msgs = decoded(fused[0]) + decoded(fused[1])
     edges = tree_edges(msgs)
@@ -70,6 +71,7 @@ def test_every_frame_id_is_a_frame_of_the_tree(fused) -> None:
     assert edges["imu"] == "base_link" and edges["gps_antenna"] == "imu"
 
 
+@pytest.mark.slow
 def test_tf_static_odom_and_datum_follow_rep_105(fused) -> None:
     drive, out = fused
     msgs = decoded(out)

@@ -158,6 +158,7 @@ def _session(tmp_path: Path, gpsd_factory, receiver: str, duration: float, resta
     return f, truth, started[0][1], log
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("receiver", ["nmea", "ublox"])
 def test_daemon_through_a_real_gpsd_records_the_receivers_bytes_and_locks(tmp_path: Path, gpsd_factory,
                                                                           receiver: str) -> None:
@@ -198,6 +199,7 @@ def test_daemon_through_a_real_gpsd_records_the_receivers_bytes_and_locks(tmp_pa
         assert a == b and (len(a) > 0 or topic == "/gps/nmea" and receiver == "ublox"), topic
 
 
+@pytest.mark.slow
 def test_lost_gpsd_is_survived_as_an_unplugged_port(tmp_path: Path, gpsd_factory) -> None:
     f, truth, _, log = _session(tmp_path, gpsd_factory, "nmea", 160.0, restart_at_s=60.0)
     events = [d for name, d in read_metadata_records(f) if name == "acquire.port_event" and d["port"] == "gps"]
