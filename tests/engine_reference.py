@@ -54,14 +54,13 @@ def platform_key() -> str:
 
 
 def simulate(folder: Path) -> dict[str, Path]:
-    """The reference drives, simulated into folder."""
-    from fieldlog.tools.cli import main
+    """The reference drives, simulated into folder (as ``fieldlog sim`` and tests/conftest.py's ``simulated``)."""
+    from fieldlog.tools.sim.simulate import simulate as sim
 
     out = {}
     for name, scenario, seed, _, _ in DRIVES:
         out[name] = folder / f"{name}.mcap"
-        assert main(["sim", "--scenario", scenario, "--duration", f"{DURATION_S:g}", "--seed", str(seed),
-                     "--out", str(out[name])]) == 0
+        sim(scenario, DURATION_S, seed, out[name])
     return out
 
 

@@ -13,10 +13,11 @@ import engine_reference as er
 
 
 @pytest.fixture(scope="module")
-def drives(tmp_path_factory):
-    return er.simulate(tmp_path_factory.mktemp("engine_reference"))
+def drives(simulated):
+    return {name: simulated(scenario, er.DURATION_S, seed) for name, scenario, seed, _, _ in er.DRIVES}
 
 
+@pytest.mark.slow
 def test_every_method_equals_the_reference(drives):
     ref = np.load(er.PATH)
     exact = str(ref["platform"]) == er.platform_key()
