@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
+
+from fieldlog.acquire import outputs
 from mcap.reader import make_reader
 
 METADATA = "metadata.yaml"
@@ -114,10 +116,9 @@ def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str
         tmp.unlink()                  # a leftover of a killed writer with this pid (unlink never follows)
     except FileNotFoundError:
         pass
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with outputs.create(tmp) as f:
+            f.write(text.encode())
             f.flush()
             if fsync:
                 os.fsync(f.fileno())

@@ -57,6 +57,7 @@ import logging
 import os
 import queue
 import select
+import shutil
 import signal
 import socket
 import stat
@@ -71,7 +72,7 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import bagdir, calib, canport, messages, nmea, recorder, recovery, timesync
+from fieldlog.acquire import bagdir, calib, canport, messages, nmea, outputs, recorder, recovery, timesync
 from fieldlog.acquire.config import (AcquireConfig, CanConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name,
                                      session_name)
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink
@@ -79,6 +80,12 @@ from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_or
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
+MAX_SKIPPED = 100_000  # taken file names skipped in a row before the daemon gives up
+# the room a recovery on start needs: the recovered copy is the kept chunks plus the re-derived tail, and a file cut
+# before its /imu (which lags the raw bytes by up to a minute) is mostly tail: /imu takes about twice the raw bytes
+# it is derived from, so a copy takes up to ~3.3x its cut file; and the recording that follows needs room too
+RECOVER_SPACE_FACTOR = 4
+RECOVER_RESERVE_BYTES = 256 << 20
 # A read lands in the reader's own buffer and is copied out at its length: os.read(fd, n) mallocs n bytes and
 # shrinks them to the read, which, for ~1 KiB reads of 64 KiB blocks handed to another thread, fragments the
 # heap: free memory glibc cannot return, and RSS that grows with the drive (docs/results.md, the soak)
@@ -240,8 +247,10 @@ class RotatingSink:
 
     def __init__(self, out_dir: Path, session_wall_ns: int, rcfg: RecorderConfig,
                  headers: Callable[[int, Path | None], dict[str, dict[str, str]]],
-                 publish: Callable[..., None] | None = None) -> None:
+                 publish: Callable[..., None] | None = None,
+                 log: Callable[[str, int], None] = lambda msg, level: None) -> None:
         self.out_dir, self.session_wall_ns, self.rcfg, self.headers = out_dir, session_wall_ns, rcfg, headers
+        self.log = log
         self.publish = publish
         self.read_mono_ns = 0       # host mono of the read being processed (sent with what it publishes)
         self.rec: recorder.Recorder | None = None
@@ -251,14 +260,27 @@ class RotatingSink:
         self.closed: list[bagdir.FileInfo] = []      # what metadata.yaml lists
         self.last_sync: bytes | None = None
         self.last_gga: bytes | None = None
+        self.skipped = 0            # file names found taken (a file or a link there)
 
     def open_next(self, closing: dict[str, dict[str, str]] | None = None) -> Path:
+        """Close the current file and open the next free name of the session: a name that exists is skipped (a
+        symbolic link there is logged, never followed); ``outputs.Refused`` after ``MAX_SKIPPED`` taken names."""
         prev = self.close(closing) if self.rec is not None else None
-        self.index += 1
-        path = self.out_dir / file_name(self.session_wall_ns, self.index)
-        self.rec = recorder.Recorder(path, chunk_size=self.rcfg.chunk_size,
-                                     flush_interval_s=self.rcfg.flush_interval_s,
-                                     compression=self.rcfg.compression, fsync=self.rcfg.fsync)
+        for _ in range(MAX_SKIPPED):
+            self.index += 1
+            path = self.out_dir / file_name(self.session_wall_ns, self.index)
+            try:
+                self.rec = recorder.Recorder(path, chunk_size=self.rcfg.chunk_size,
+                                             flush_interval_s=self.rcfg.flush_interval_s,
+                                             compression=self.rcfg.compression, fsync=self.rcfg.fsync,
+                                             root=self.out_dir)
+                break
+            except outputs.Refused as e:
+                if path.is_symlink():
+                    self.log(f"{e}; recording to the next name instead", logging.WARNING)
+                self.skipped += 1
+        else:
+            raise outputs.Refused(f"{self.out_dir}: the next {MAX_SKIPPED} file names of the session are taken")
         for name, d in self.headers(self.index, prev).items():
             self.rec.add_metadata(name, d)
         self.rec.flush()
@@ -481,15 +503,27 @@ def is_finished(path: Path) -> bool:
 def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[Path, Path]]:
     """Recover every unfinished ``*.mcap`` in ``out_dir`` and its session directories (no summary) into
     ``NAME.recovered.mcap`` next to it, once (``recovery.recover_drive``: the complete chunks and the re-derived
-    tail); the original is left as it is, and a session's ``metadata.yaml`` is written again. A recovery that
-    fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next start tries again.
-    Returns (original, recovered) pairs."""
+    tail); the original is left as it is (a symbolic link is skipped), and a session's ``metadata.yaml`` is written
+    again. A recovery that fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next
+    start tries again; so is one the free space cannot take with room to record left (``RECOVER_SPACE_FACTOR``
+    times the file, plus ``RECOVER_RESERVE_BYTES``), so that the recovery after a full disk does not fill it
+    again. Returns (original, recovered) pairs."""
     done = []
     for p in sorted([*out_dir.glob("*.mcap"), *out_dir.glob("*/*.mcap")]):
-        if p.name.endswith(".recovered.mcap") or is_finished(p):
+        if p.name.endswith(".recovered.mcap") or p.is_symlink() or p.parent.is_symlink() or is_finished(p):
             continue
         dst = p.with_name(p.stem + ".recovered.mcap")
+        if dst.is_symlink():
+            log(f"not recovering unfinished {p.name}: {dst} is a symbolic link (never followed); remove it, or run "
+                f"`fieldlog recover {p} --out FILE`")
+            continue
         if dst.exists():
+            continue
+        need, free = RECOVER_SPACE_FACTOR * p.stat().st_size + RECOVER_RESERVE_BYTES, shutil.disk_usage(out_dir).free
+        if free < need:
+            log(f"not recovering unfinished {p.name} now: that may take {need >> 20} MB with room left to record, "
+                f"{free >> 20} MB are free (the next start tries again, or run `fieldlog recover {p} --out FILE` "
+                f"elsewhere)")
             continue
         try:
             rep = recovery.recover_drive(p, dst)
@@ -508,8 +542,9 @@ def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[
     return done
 
 
-def make_session_dir(out_dir: Path, session_wall_ns: int) -> Path:
-    """``out_dir/<session start>``, new (``-2``, ``-3``, ... appended while that name is taken)."""
+def make_session_dir(out_dir: Path, session_wall_ns: int, log: Callable[[str, int], None]) -> Path:
+    """``out_dir/<session start>``, new (``-2``, ``-3``, ... appended while that name is taken; a symbolic link
+    there is logged and never followed)."""
     name = session_name(session_wall_ns)
     for n in range(1, 1000):
         d = out_dir / (name if n == 1 else f"{name}-{n}")
@@ -517,7 +552,8 @@ def make_session_dir(out_dir: Path, session_wall_ns: int) -> Path:
             d.mkdir()
             return d
         except FileExistsError:
-            continue
+            if d.is_symlink():
+                log(f"{d} is a symbolic link (never followed): the session goes to the next name", logging.WARNING)
     raise FileExistsError(f"{out_dir}: no free session directory name for {name}")
 
 
@@ -571,13 +607,13 @@ class Daemon:
                     s.close()
                 raise PortError(f"[{name}] port: cannot open {pc.port}: {getattr(e, 'strerror', None) or e}") \
                     from None
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        outputs.out_dir(self.out_dir)
         recover_unfinished(self.out_dir, self.log)
         if self.cfg.daemon.bus:
             self.bus = BusServer(self.cfg.daemon.bus)
-        self.session_dir = make_session_dir(self.out_dir, self.session_wall_ns)
+        self.session_dir = make_session_dir(self.out_dir, self.session_wall_ns, self.log)
         self.sink = RotatingSink(self.session_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
-                                 self.bus.publish if self.bus else None)
+                                 self.bus.publish if self.bus else None, self.log)
         self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol,
                                                                                can=self.cfg.can_bus()))
         if self.bus is not None:
@@ -611,6 +647,7 @@ class Daemon:
                 out[f"port.{name}.gpsd_reports"] = str(r.gpsd_reports + live)
         out["daemon.late_reads"] = str(self.late_reads)
         out["daemon.merge_timeouts"] = str(self.merge_timeouts)
+        out["daemon.names_skipped"] = str(self.sink.skipped if self.sink is not None else 0)
         if self.bus is not None:
             out["bus.dropped_clients"] = str(self.bus.dropped_clients)
         return out
@@ -757,7 +794,7 @@ class Daemon:
         try:
             self.sink.close({"acquire.counters": self.counters()})
         except OSError as e:
-            self.error = self.error or f"closing {self.sink.rec.path}: {e}"
+            self.error = self.error or f"closing {self.sink.files[-1]}: {e}"
             self.error += "; the file has no summary: run `fieldlog recover` on it (or restart, which does)"
         finally:
             if self.bus is not None:

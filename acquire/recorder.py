@@ -48,7 +48,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER
 
-from fieldlog.acquire import messages, native, typehash
+from fieldlog.acquire import messages, native, outputs, typehash
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.drivestats import DriveStats
 
@@ -103,6 +103,9 @@ class Recorder:
     "drive" (string values; e.g. scenario, seed, config, calibration TOML, software version).
     stats: gather what ``fieldlog info`` shows while writing and store it at close as the ``fieldlog.info``
     record (``acquire.drivestats``); off for files whose chunks are copied as they are (``recover``).
+    The file is created new (``acquire.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
+    regular file and ``force``; always if it is a symbolic link; ``root``: the output folder ``path`` lies in,
+    walked without following a link).
     """
 
     def __init__(
@@ -115,11 +118,13 @@ class Recorder:
         fsync: bool = True,
         compression_level: int = 1,
         stats: bool = True,
+        force: bool = False,
+        root: str | os.PathLike[str] | None = None,
     ) -> None:
         if compression not in ("zstd", "lz4", ""):
             raise ValueError(f"unknown compression {compression!r}")
         self.path = Path(path)
-        self._f: BinaryIO = open(self.path, "wb")
+        self._f: BinaryIO = outputs.create(self.path, force, root)
         self._chunk_size = chunk_size
         self._flush_interval_s = flush_interval_s
         self._compression = compression
@@ -594,12 +599,44 @@ def decompress(compression: str, data, size: int, crc: int):
 
 
 class ChunkError(ValueError):
-    """A chunk that is not what its record says (it does not decompress, or to another size or CRC);
-    ``index``: its position among the chunks of the ``decompress_many`` call."""
+    """A chunk that is not what its record says (it does not decompress, or to another size or CRC, or it claims
+    more than ``max_chunk_bytes``); ``index``: its position among the chunks of the ``decompress_many`` call."""
 
     def __init__(self, index: int, what: str) -> None:
         super().__init__(what)
         self.index = index
+
+
+MAX_CHUNK_ENV = "FIELDLOG_MAX_CHUNK_BYTES"
+MAX_CHUNK_BYTES = 256 << 20
+
+
+def max_chunk_bytes() -> int:
+    """The most uncompressed bytes one chunk (or one run of messages outside chunks) may hold to be read:
+    ``FIELDLOG_MAX_CHUNK_BYTES`` from the environment, else ``MAX_CHUNK_BYTES`` (256 MiB: 64 times the chunks
+    ``Recorder`` writes, and of any writer we know of; a chunk claiming more is damaged, or a decompression bomb)."""
+    text = os.environ.get(MAX_CHUNK_ENV, "").strip()
+    if not text:
+        return MAX_CHUNK_BYTES
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n <= 0:
+        raise ValueError(f"{MAX_CHUNK_ENV}={text!r}: give the largest chunk to read, in bytes (> 0)")
+    return n
+
+
+def check_sizes(size: np.ndarray) -> None:
+    """``ChunkError`` for the first chunk whose claimed uncompressed ``size`` (int64: one that does not fit is
+    negative) exceeds ``max_chunk_bytes``, before any buffer is sized by it."""
+    limit = max_chunk_bytes()
+    over = np.flatnonzero((size < 0) | (size > limit))
+    if len(over):
+        k = int(over[0])
+        claim = int(size[k]) % (1 << 64)
+        raise ChunkError(k, f"chunk claims {claim} bytes uncompressed, more than the limit of {limit} "
+                            f"({MAX_CHUNK_ENV}): damaged, or a decompression bomb; not read")
 
 
 def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int], length: Sequence[int],
@@ -609,8 +646,10 @@ def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence
     (bytes, mmap, ...), and ``size[i]`` bytes with CRC-32 ``crc[i]`` (0: none) once uncompressed. Raises
     ``ChunkError`` for the first chunk that does not match. Small chunks are many, so each run of zstd chunks is
     decompressed in one call (python-zstandard's ``multi_decompress_to_buffer``: in C, without the GIL, and it
-    checks the sizes) and the CRCs are taken with zlib-ng's SIMD CRC-32."""
+    checks the sizes) and the CRCs are taken with zlib-ng's SIMD CRC-32. No chunk is decompressed past its claimed
+    size, and none claiming more than ``max_chunk_bytes`` is decompressed at all (``check_sizes``)."""
     comp, at, length, size, crc = (np.asarray(x, np.int64) for x in (comp, at, length, size, crc))
+    check_sizes(size)
     mv = memoryview(buf).cast("B")
     parts: list = []
     cut = np.r_[0, np.flatnonzero(np.diff(comp)) + 1, len(comp)].tolist()
@@ -637,14 +676,25 @@ def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence
 
 
 def _one(compression: str, data, size: int, k: int):
-    """Chunk ``k`` of a ``decompress_many`` call (``size`` bytes uncompressed), uncompressed (not checked)."""
+    """Chunk ``k`` of a ``decompress_many`` call (``size`` bytes uncompressed), uncompressed into at most ``size``
+    bytes (python-zstandard sizes its output by the frame's own content size when the frame has one, so that is
+    checked first; an lz4 frame longer than ``size`` is cut there and refused)."""
     try:
         if compression == "zstd":
+            claimed = zstandard.frame_content_size(data)
+            if claimed not in (-1, size):
+                raise ChunkError(k, native.ERRORS[native.SIZE])
             return _zstd().decompress(data, max_output_size=size)
         if compression == "lz4":
             import lz4.frame
 
-            return lz4.frame.decompress(data)
+            d = lz4.frame.LZ4FrameDecompressor()
+            out = d.decompress(data, max_length=size)
+            if not d.eof:
+                raise ChunkError(k, native.ERRORS[native.SIZE])
+            return out
+    except ChunkError:
+        raise
     except Exception as e:  # a damaged frame: the codecs raise their own errors
         raise ChunkError(k, f"chunk does not decompress ({compression}: {e})") from None
     if compression != "":
@@ -722,6 +772,7 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
     staging buffer of ``a`` bytes and the batch's buffer of ``b`` bytes. Else the chunks are decompressed and joined
     (``decompress_many``), walked (``walk_records``) and their messages picked (``messages_of``)."""
     comp, size = np.asarray(comp, np.int64), np.asarray(size, np.int64)
+    check_sizes(size)
     used = {names[c] for c in np.unique(comp).tolist()}
     if "zstd" in used and used <= {"", "zstd"} and (size < 1 << 32).all() and native.ready():
         stage, out = scratch(int(size.max()), int(size.sum()))
@@ -778,34 +829,40 @@ def has_footer(path: str | os.PathLike[str]) -> bool:
     return tail[:9] == struct.pack("<BQ", Opcode.FOOTER, 20) and tail[-len(MAGIC):] == MAGIC
 
 
-def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Extend | None = None) -> RecoverReport:
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Extend | None = None,
+            force: bool = False) -> RecoverReport:
     """Rebuild a valid MCAP from ``src`` (cut short by a kill or power loss) into ``dst``.
 
     Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
     metadata record, every complete chunk whose CRC checks and every message outside chunks (written as
     they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record; a chunk
-    whose record is whole but whose content fails its CRC or codec is skipped and counted, and the walk goes on;
-    writes them to ``dst`` with fresh message indexes and a summary. ``extend`` sees each
-    kept chunk and adds its messages before the summary. ``src`` must start with the MCAP magic (ValueError).
-    ``dst`` appears only complete: it is written as ``dst`` + ``.partial`` and renamed at the end; on any
-    error (a full disk) the partial file is removed and the error raised, so a later attempt starts afresh.
+    whose record is whole but whose content fails its CRC or codec, or claims more than ``limits.chunk_bytes()``
+    uncompressed, is skipped and counted, and the walk goes on; writes them to ``dst`` with fresh message indexes
+    and a summary. ``extend`` sees each kept chunk and adds its messages before the summary. ``src`` must start
+    with the MCAP magic (ValueError). ``dst`` must be a new name (``outputs.Refused`` before any work otherwise,
+    unless it is a regular file and ``force``) and appears only complete: it is written as ``dst`` + ``.partial``
+    (a regular file of that name, left by an interrupted recovery, is replaced; a symbolic link refused) and
+    linked into place at the end; on any error (a full disk) the partial file is removed and the error raised, so
+    a later attempt starts afresh.
     """
     size = os.path.getsize(src)
     with open(src, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise ValueError(f"{src} is not an MCAP file (no MCAP magic at its start): nothing to recover")
     dst = Path(dst)
+    outputs.check_new(dst, force)
     tmp = dst.with_name(dst.name + ".partial")
+    rec = Recorder(tmp, flush_interval_s=None, fsync=False, stats=False, force=True)
     try:
-        report = _recover(src, tmp, size, extend)
-        os.replace(tmp, dst)
+        report = _recover(src, rec, size, extend)
+        outputs.publish(tmp, dst, force)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     return report
 
 
-def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend | None) -> RecoverReport:
+def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Extend | None) -> RecoverReport:
     kept: dict[int, int] = {}
     meta: dict[str, dict[str, str]] = {}
     rederived: dict[str, int] = {}
@@ -814,7 +871,6 @@ def _recover(src: str | os.PathLike[str], dst: Path, size: int, extend: Extend |
     had_summary = False
     loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
     damaged: list[int] = []
-    rec = Recorder(dst, flush_interval_s=None, fsync=False, stats=False)
 
     def keep(cm: ChunkMessages) -> None:
         nonlocal last_t

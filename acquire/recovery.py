@@ -72,13 +72,15 @@ class TailDeriver:
         return out
 
 
-def recover_drive(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> recorder.RecoverReport:
+def recover_drive(src: str | os.PathLike[str], dst: str | os.PathLike[str], force: bool = False
+                  ) -> recorder.RecoverReport:
     """The complete recovery of ``src`` into ``dst``: its complete chunks, then the derived tail. A complete file
     (one with a damaged chunk) has no tail: its chunks are copied without feeding the pipeline (several times
     faster: ``make bench`` recover), unless the walk stops before its data end (a damaged record):
-    then it goes again with the pipeline."""
+    then it goes again with the pipeline (replacing the first copy). ``force``: as ``recorder.recover``."""
     if recorder.has_footer(src):
-        rep = recorder.recover(src, dst)
+        rep = recorder.recover(src, dst, force=force)
         if rep.had_summary:
             return rep
-    return recorder.recover(src, dst, TailDeriver())
+        force = True
+    return recorder.recover(src, dst, TailDeriver(), force=force)

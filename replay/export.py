@@ -45,12 +45,12 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import BinaryIO, Callable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import messages, outputs
 from fieldlog.replay import reader
 from fieldlog.replay.drive import DriveSpec, drive_files
 
@@ -234,12 +234,14 @@ def table_path(out: Path, topic: str, fmt: str) -> Path:
 
 def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            topics: Sequence[str] | None = None,
-           progress: Callable[[float], None] | None = None) -> dict[str, tuple[Path, int]]:
-    """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}."""
+           progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
+    """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}. Every
+    table is a new file (unless ``force``), and ``out`` and the folders made in it are never symbolic links
+    (``acquire.outputs``)."""
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"format must be parquet or csv, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file
-    out = Path(out)
+    out = outputs.out_dir(out)
     todo = _topic_types(path, topics)
     written: dict[str, tuple[Path, int]] = {}
     taken: set[Path] = set()
@@ -250,36 +252,35 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
             n += 1
             dest = table_path(out, f"{topic}~{n}", fmt)
         taken.add(dest)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        written[topic] = (dest, _write(topic_batches(path, topic, type_name), dest, fmt,
-                                       lambda: topic_frame(path, topic, type_name)))
+        with outputs.create(dest, force, root=out) as f:
+            written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
+                                           lambda: topic_frame(path, topic, type_name)))
         if progress:
             progress((i + 1) / len(todo))
     return written
 
 
-def _write(frames: Iterator[pl.DataFrame], dest: Path, fmt: str, empty: Callable[[], pl.DataFrame]) -> int:
-    """Append the frames to one Parquet or CSV file; rows written. ``empty`` gives the (empty) table of a
-    topic without messages, for its schema."""
+def _write(frames: Iterator[pl.DataFrame], f: BinaryIO, fmt: str, empty: Callable[[], pl.DataFrame]) -> int:
+    """Append the frames to one Parquet or CSV file open in ``f``; rows written. ``empty`` gives the (empty) table
+    of a topic without messages, for its schema."""
     import pyarrow.parquet as pq
 
     rows, writer = 0, None
-    with open(dest, "wb") as f:
-        for df in frames:
-            if fmt == "csv":
-                csv_ready(df).write_csv(f, include_header=rows == 0)
-            else:
-                tbl = df.to_arrow()
-                if writer is None:
-                    writer = pq.ParquetWriter(f, tbl.schema, compression="zstd")
-                writer.write_table(tbl.cast(writer.schema))
-            rows += df.height
-        if writer is not None:
-            writer.close()
+    for df in frames:
+        if fmt == "csv":
+            csv_ready(df).write_csv(f, include_header=rows == 0)
+        else:
+            tbl = df.to_arrow()
+            if writer is None:
+                writer = pq.ParquetWriter(f, tbl.schema, compression="zstd")
+            writer.write_table(tbl.cast(writer.schema))
+        rows += df.height
+    if writer is not None:
+        writer.close()
     if rows == 0:
         df = empty()
         if fmt == "parquet":
-            df.write_parquet(dest, compression="zstd")
+            df.write_parquet(f, compression="zstd")
         else:
-            csv_ready(df).write_csv(dest)
+            csv_ready(df).write_csv(f)
     return rows

@@ -19,6 +19,7 @@ cursor.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, fields
@@ -29,6 +30,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import Outage, Solution
@@ -286,20 +288,24 @@ def _open(rrd: str | os.PathLike[str] | None, connect: str | None) -> tuple[rr.R
 def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: Iterable[reader.Block],
                method: str, speed: float, config: FusionConfig | None,
                progress: Callable[[float], None] | None = None,
-               span_ns: tuple[int, int] | None = None) -> ReplayResult:
-    rec, sink = _open(rrd, connect)
-    try:
-        res = play(rec, blocks, method, speed, config, progress, span_ns)
-    finally:
-        rec.flush()
-        rec.disconnect()
-    res.sink = sink
+               span_ns: tuple[int, int] | None = None, force: bool = False) -> ReplayResult:
+    """``play`` into the sink of ``_open``; an ``rrd`` file is a new name unless ``force`` (``outputs.staged``)."""
+    to_file = rrd is not None and connect is None
+    with outputs.staged(rrd, force) if to_file else contextlib.nullcontext() as work:
+        rec, sink = _open(work, connect)
+        try:
+            res = play(rec, blocks, method, speed, config, progress, span_ns)
+        finally:
+            rec.flush()
+            rec.disconnect()
+    res.sink = str(rrd) if to_file else sink
     return res
 
 
 def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[str] | None = None,
            connect: str | None = None, config: FusionConfig | None = None,
-           progress: Callable[[float], None] | None = None, imap: inputs.InputMap | None = None) -> ReplayResult:
+           progress: Callable[[float], None] | None = None, imap: inputs.InputMap | None = None,
+           force: bool = False) -> ReplayResult:
     """Play ``drive`` into a rerun viewer: ``connect`` (a gRPC URL, e.g. ``rerun+http://127.0.0.1:9876/proxy``),
     else the ``rrd`` file, else a spawned viewer. ``imap``: the topics and IMU frame of another logger's drive
     (``replay.inputs.resolve``; None: resolved from the drive). The drive is read as ``fuse`` reads it
@@ -310,7 +316,7 @@ def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[s
     blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])  # as `fuse` reads it
     _check_sink(rrd, connect)
     span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
-    return _play_into(rrd, connect, blocks, method, speed, config, progress, span)
+    return _play_into(rrd, connect, blocks, method, speed, config, progress, span, force)
 
 
 def _stop_on_sigterm() -> None:
@@ -357,7 +363,7 @@ def _drained(blocks: Iterator[reader.Block]) -> Iterator[reader.Block]:
 
 
 def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = None, connect: str | None = None,
-              config: FusionConfig | None = None, wait_s: float = 30.0) -> ReplayResult:
+              config: FusionConfig | None = None, wait_s: float = 30.0, force: bool = False) -> ReplayResult:
     """``fieldlog view --live``: the daemon's live bus at ``address`` (its Unix socket, ``[daemon] bus``) through
     the same incremental fusion and logging as ``replay`` (``play``, unpaced: data comes at the car's pace).
     Waits up to ``wait_s`` for the daemon to open the bus; ends when the daemon closes it, on Ctrl-C or SIGTERM."""
@@ -371,4 +377,4 @@ def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = No
         time.sleep(0.1)
     _stop_on_sigterm()
     blocks = _drained(live.iter_blocks(address, IN_TOPICS, PLAY_BLOCK_S))
-    return _play_into(rrd, connect, _until_interrupted(blocks), method, 0.0, config)
+    return _play_into(rrd, connect, _until_interrupted(blocks), method, 0.0, config, force=force)

@@ -56,6 +56,7 @@ velocity error then: NMEA has none).
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +66,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from fieldlog.acquire import outputs
 from fieldlog.fusion import earth
 from fieldlog.replay import inputs, reader
 from fieldlog.replay.drive import DriveSpec, drive_files, label
@@ -564,8 +566,9 @@ def has_display() -> bool:
 
 def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
          rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None,
-         inputs: InputMap | None = None) -> ViewResult:
-    """Write ``rrd`` (streamed to the file as it is logged), or spawn the rerun viewer when ``rrd`` is None."""
+         inputs: InputMap | None = None, force: bool = False) -> ViewResult:
+    """Write ``rrd`` (streamed to the file as it is logged; a new name unless ``force``: ``outputs.staged``), or
+    spawn the rerun viewer when ``rrd`` is None."""
     drive_files(drive)  # FileNotFoundError naming a missing file
     for p in fused:
         if not Path(p).is_file():
@@ -574,15 +577,16 @@ def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
         raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd")
     rec = rr.RecordingStream("fieldlog")
     bp = blueprint()
-    if rrd is not None:
-        rec.save(rrd, default_blueprint=bp)
-    else:
-        rec.spawn(default_blueprint=bp)
-    try:
-        res = build(rec, drive, fused, progress, inputs)
-    finally:
-        rec.flush()
-        if rrd is not None:
-            rec.disconnect()
+    with outputs.staged(rrd, force) if rrd is not None else contextlib.nullcontext() as work:
+        if work is not None:
+            rec.save(work, default_blueprint=bp)
+        else:
+            rec.spawn(default_blueprint=bp)
+        try:
+            res = build(rec, drive, fused, progress, inputs)
+        finally:
+            rec.flush()
+            if work is not None:
+                rec.disconnect()
     res.rrd = Path(rrd) if rrd is not None else None
     return res

@@ -122,7 +122,7 @@ def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
     for cut in cuts:
         src, dst = tmp_path / "cut.mcap", tmp_path / "rec.mcap"
         src.write_bytes(raw[:cut])
-        rep = recover(src, dst)
+        rep = recover(src, dst, force=True)   # the same names each cut
         complete = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
         expected = {(tp, lt) for tp, lt, _ in full if any(c.message_start_time <= lt <= c.message_end_time for c in complete)}
         got = _all_messages(dst)  # make_reader reads the recovered file completely

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from fieldlog.acquire import outputs
+
 if TYPE_CHECKING:
     from fieldlog.replay.drive import DriveSpec
 
@@ -177,10 +179,12 @@ def report(omega_ib_b: np.ndarray, f_b: np.ndarray, fs_hz: float) -> str:
     return "\n".join(rows) + "\n"
 
 
-def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan deviation", title: str = "") -> str:
+def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan deviation", title: str = "",
+         force: bool = False) -> str:
     """Log-log PNG of an Allan deviation curve, one line per axis when adev is (m,3) (x, y, z).
 
-    taus (m,) s; adev (m,) or (m,k) in the units named by ylabel. Returns path."""
+    taus (m,) s; adev (m,) or (m,k) in the units named by ylabel. ``path`` must be new, unless ``force``
+    (``acquire.outputs``). Returns path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -197,17 +201,18 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
     ax.grid(True, which="minor", alpha=0.15)
     if a.shape[1] > 1:
         ax.legend(title="axis")
-    fig.savefig(path, dpi=110)
+    with outputs.create(path, force) as f:
+        fig.savefig(f, format="png", dpi=110)
     plt.close(fig)
     return path
 
 
-def drive_report(path: DriveSpec, plot_prefix: str | None = None) -> str:
+def drive_report(path: DriveSpec, plot_prefix: str | None = None, force: bool = False) -> str:
     """``report`` of the /imu topic of a recorded drive (meant for a static drive; one file or several:
     ``replay.drive``); rate from the stamps.
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
-    names them at the end of the text."""
+    names them at the end of the text (new files, unless ``force``)."""
     from fieldlog.replay.drive import label
     from fieldlog.replay.reader import read_topic
 
@@ -220,10 +225,12 @@ def drive_report(path: DriveSpec, plot_prefix: str | None = None) -> str:
     text = report(np.asarray(imu["omega_ib_b"]), np.asarray(imu["f_b"]), fs_hz)
     if plot_prefix is None:
         return text
+    for kind in ("gyro", "accel"):
+        outputs.check_new(f"{plot_prefix}_{kind}.png", force)
     taus, adev_g = allan_deviation(np.asarray(imu["omega_ib_b"]), fs_hz)
     _, adev_a = allan_deviation(np.asarray(imu["f_b"]), fs_hz, taus)
     files = [plot(taus, adev_g * _RAD2DEG * 3600.0, f"{plot_prefix}_gyro.png", "gyro Allan deviation (deg/h)",
-                  f"gyro, {name}"),
+                  f"gyro, {name}", force),
              plot(taus, adev_a / G0 * 1e6, f"{plot_prefix}_accel.png", "accel Allan deviation (ug)",
-                  f"accelerometer, {name}")]
+                  f"accelerometer, {name}", force)]
     return text + "".join(f"wrote {f}\n" for f in files)

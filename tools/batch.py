@@ -34,6 +34,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
+from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import IN_TOPICS
 from fieldlog.tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
@@ -77,13 +78,12 @@ def _metrics(err: np.ndarray) -> dict[str, float | int | None]:
 
 
 def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[float], out: str | Path,
-               config: FusionConfig | None = None) -> list[dict]:
+               config: FusionConfig | None = None, force: bool = False) -> list[dict]:
     """All result rows of one drive (raises on a bad drive; ``safe_drive_rows`` turns that into a row).
-    ``config`` None: the drive's own settings (``tools.fuse.drive_config``)."""
+    ``config`` None: the drive's own settings (``tools.fuse.drive_config``). ``force``: replace fused files."""
     drive, out = Path(drive), Path(out)
     cfg = config or drive_config(drive)
-    fused_dir = out / "fused"
-    fused_dir.mkdir(parents=True, exist_ok=True)
+    fused_dir = outputs.out_dir(out, "fused")
     info = drive_info(drive)
     span = [t for t in info.topics if t.topic in IN_TOPICS and t.count]
     if not any(t.topic == "/imu" for t in span):
@@ -99,7 +99,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     rows = []
     for m in methods:
         path = fused_dir / f"{drive.stem}_{m}.mcap"
-        res = fuse(drive, m, path, cfg)
+        res = fuse(drive, m, path, cfg, force=force)
         _, err = outage_error_series(drive, path, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
@@ -113,7 +113,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
                 path = fused_dir / f"{drive.stem}_{m}_{L:g}s.mcap"
-                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)))
+                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force)
                 _, err = outage_error_series(drive, path, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows
@@ -124,10 +124,10 @@ def failed_row(drive: str | Path, error: str) -> dict:
 
 
 def safe_drive_rows(drive: str, methods: Sequence[str], lengths: Sequence[float], out: str,
-                    config: FusionConfig | None = None) -> list[dict]:
+                    config: FusionConfig | None = None, force: bool = False) -> list[dict]:
     """``drive_rows``, or one failed row naming the exception (the task a worker runs)."""
     try:
-        return drive_rows(drive, methods, lengths, out, config)
+        return drive_rows(drive, methods, lengths, out, config, force)
     except Exception as e:  # any bad drive: report it, keep the batch going
         last = traceback.extract_tb(e.__traceback__)[-1]
         return [failed_row(drive, f"{type(e).__name__}: {e} ({Path(last.filename).name}:{last.lineno})")]
@@ -184,9 +184,11 @@ def _line(rows: list[dict]) -> str:
 
 def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Sequence[float], out: str | Path,
               scheduler: str | None = None, workers: int = 2, config: FusionConfig | None = None,
-              say: Callable[[str], None] = print, progress: Callable[[float], None] | None = None) -> BatchResult:
-    """Process ``drives`` on Dask (one task per drive); writes ``out/results.parquet`` and ``out/fused/``.
-    A line per drive goes to ``say`` as the drives complete, and the fraction done to ``progress``."""
+              say: Callable[[str], None] = print, progress: Callable[[float], None] | None = None,
+              force: bool = False) -> BatchResult:
+    """Process ``drives`` on Dask (one task per drive); writes ``out/results.parquet`` and ``out/fused/`` (new
+    files unless ``force``: ``acquire.outputs``). A line per drive goes to ``say`` as the drives complete, and the
+    fraction done to ``progress``."""
     check_methods(list(methods))
     if not drives:
         raise ValueError("no drive to process")
@@ -194,8 +196,8 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise ValueError(f"drive names must be unique (the fused files are named after them): {', '.join(dup)}")
-    out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.out_dir(Path(out).absolute())
+    outputs.check_new(out / "results.parquet", force)
     paths = [str(Path(d).resolve()) for d in drives]
     t0 = time.monotonic()
     rows: list[dict] = []
@@ -204,7 +206,8 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
 
         where = scheduler or f"local cluster, {workers} workers"
         say(f"batch: {len(paths)} drives x {len(methods)} methods on {where}")
-        futures = {client.submit(safe_drive_rows, p, list(methods), list(lengths), str(out), config, pure=False): p
+        futures = {client.submit(safe_drive_rows, p, list(methods), list(lengths), str(out), config, force,
+                                 pure=False): p
                    for p in paths}
         for i, fut in enumerate(as_completed(futures), 1):
             p = futures[fut]
@@ -218,7 +221,8 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
                 progress(i / len(paths))
     table = results_table(rows)
     parquet = out / "results.parquet"
-    table.write_parquet(parquet)
+    with outputs.create(parquet, force, root=out) as f:
+        table.write_parquet(f)
     failed = table.filter(pl.col("status") == "failed")["path"].to_list()
     return BatchResult(table, parquet, time.monotonic() - t0, failed)
 

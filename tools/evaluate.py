@@ -40,6 +40,7 @@ from typing import Callable, Sequence
 import numpy as np
 import polars as pl
 
+from fieldlog.acquire import outputs
 from fieldlog.fusion import earth
 from fieldlog.fusion.config import METHODS, FusionConfig
 from fieldlog.replay import reader
@@ -338,11 +339,12 @@ def window_curves(t_ns: np.ndarray, err: np.ndarray, windows_ns: list[tuple[int,
     return out
 
 
-def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, drives: int) -> Path:
+def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, drives: int, force: bool = False
+                ) -> Path:
     """PNG of the outage error curves of one outage length: curves[method] = (windows, 2, grid) from
     ``window_curves``; each window thin, the mean over windows thick. A method has its own colour and line
     style, the first methods the widest lines (so equal curves, such as kf and dkf, both show), its ``+rts``
-    variant the lighter shade of that colour; log error axes."""
+    variant the lighter shade of that colour; log error axes. ``path``: a new file unless ``force``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -378,7 +380,8 @@ def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, driv
     axes[1].set_xlabel("time since outage start (s)")
     axes[1].set_xlim(0.0, length_s)
     fig.suptitle(f"Errors during {length_s:g} s GPS outages: {n_win} windows over {drives} drive(s)")
-    fig.savefig(path, dpi=110)
+    with outputs.create(path, force) as f:
+        fig.savefig(f, format="png", dpi=110)
     plt.close(fig)
     return path
 
@@ -392,7 +395,7 @@ def rms_columns(e: np.ndarray) -> np.ndarray:
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
              say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False,
-             progress: Callable[[float], None] | None = None) -> pl.DataFrame:
+             progress: Callable[[float], None] | None = None, force: bool = False) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
@@ -400,12 +403,13 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
-    (:func:`paper_report`). progress: called with the fraction of the runs done."""
+    (:func:`paper_report`). progress: called with the fraction of the runs done. Every file is new
+    (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
     report = Path(report)
-    (report / "fused").mkdir(parents=True, exist_ok=True)
+    outputs.out_dir(report, "fused")
     runs = [(m, sm) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
@@ -432,7 +436,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             for m, sm in runs:
                 name = m + ("+rts" if sm else "")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
-                if fuse(drive, m, out, cfg, smooth=sm, inputs=imap).rows == 0:
+                if fuse(drive, m, out, cfg, smooth=sm, inputs=imap, force=force).rows == 0:
                     done += 1
                     progress(done / total)
                     say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
@@ -463,13 +467,15 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                              else None, drives=len(arr), windows=windows[(name, L)]))
     table = pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
                                        "mean": pl.Float64, "std": pl.Float64, "drives": pl.Int64, "windows": pl.Int64})
-    table.write_csv(report / "table.csv")
+    with outputs.create(report / "table.csv", force, root=report) as f:
+        table.write_csv(f)
     heading = pl.DataFrame(headings, schema={"drive": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
                                              "start_s": pl.Float64, "heading_err_deg": pl.Float64,
                                              "heading_sigma_deg": pl.Float64})
-    heading.write_csv(report / "heading.csv")
+    with outputs.create(report / "heading.csv", force, root=report) as f:
+        heading.write_csv(f)
     figures = [plot_errors({m: np.concatenate(c) for m, c in by.items()}, L, report / f"errors_{L:g}s.png",
-                           max(map(len, by.values()))) for L, by in curves.items()]
+                           max(map(len, by.values())), force) for L, by in curves.items()]
     for f in figures:
         say(f"wrote {f}")
     route = route_note([Path(d) for d in drives])
@@ -484,9 +490,9 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         conclusions = [*conclusions, "## Is the printed sigma honest?", "",
                        "Position error over every solution row (outages included) against the truth, in units of "
                        "the sigma the method printed:", "", *sigma_lines, ""]
-    (report / "table.md").write_text(markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
-                                              route + "\n\n" + aids_note(base), conclusions)
-                            + heading_markdown(heading))
+    text = markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
+                    route + "\n\n" + aids_note(base), conclusions) + heading_markdown(heading)
+    outputs.write_bytes(report / "table.md", text.encode(), force, root=report)
     return table
 
 

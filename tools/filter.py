@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 from mcap.records import Channel, Schema
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import messages, outputs
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.replay import reader
@@ -75,7 +75,7 @@ def select_topics(available: list[str], patterns: list[str] | None) -> list[str]
 
 def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None = None,
                  end: str | None = None, topics: list[str] | None = None,
-                 progress: Callable[[float], None] | None = None) -> FilterResult:
+                 progress: Callable[[float], None] | None = None, force: bool = False) -> FilterResult:
     """``src`` (a drive of one or several files, ``replay.drive``) sliced into ``out`` (module docstring). Several
     files: one output, their messages file by file in the drive's order, each topic on one channel (the first
     file's record; renumbered if its id is taken), the metadata records by name as the drive reads them."""
@@ -83,6 +83,7 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
     src = drive_files(src)  # resolved once: the output may land in the drive's directory
     if any(out.resolve() == f.resolve() for f in src):
         raise ValueError("--out must differ from the drive")
+    outputs.check_new(out, force)
     files = open_drive(src)
     for f in files:
         f.channel_stats()  # also defines the channels written only inside chunks
@@ -100,7 +101,7 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
     if "/tf_static" in channels and "/tf_static" not in chosen:
         chosen.insert(0, "/tf_static")
     counts: dict[str, int] = {}
-    with Recorder(out, flush_interval_s=None, fsync=False) as rec:
+    with Recorder(out, flush_interval_s=None, fsync=False, force=force) as rec:
         for name, d in dict(reader.metadata_records(src)).items():  # by name, the last wins
             if name != INFO_RECORD:
                 rec.add_metadata(name, d)

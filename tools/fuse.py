@@ -48,7 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, frames, messages
+from fieldlog.acquire import calib, frames, messages, outputs
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
@@ -369,12 +369,13 @@ def drive_mounting(drive: DriveSpec) -> calib.Mounting:
 
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         smooth: bool = False, inputs: InputMap | None = None) -> FuseResult:
+         smooth: bool = False, inputs: InputMap | None = None, force: bool = False) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
     ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
     boundaries. Raises ``Diverged`` (nothing past the first bad row written) when the
-    solution turns NaN or inf."""
+    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``)."""
+    outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
     log = SmootherLog() if smooth else None
@@ -390,7 +391,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     meta = {"source": label(drive), "method": method, "config": repr(cfg.flat()), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
                                                                       "imu_frame", "odom_topic"))}
-    with Recorder(out, flush_interval_s=None, fsync=False) as rec:
+    with Recorder(out, flush_interval_s=None, fsync=False, force=force) as rec:
         rec.add_metadata("fusion", meta)
 
         def write_outages(items) -> None:

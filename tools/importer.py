@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import can, canbus, daq, gnss, gpsport, nmea, novatel, recorder, timesync, ubx
+from fieldlog.acquire import can, canbus, daq, gnss, gpsport, nmea, novatel, outputs, recorder, timesync, ubx
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
@@ -195,9 +195,10 @@ def can_reads(path: str | Path, start_ns: int | None) -> list[RawRead]:
 
 def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,
                     pps_mode: str = "flag", can_log: str | Path | None = None,
-                    can_bus: canbus.BusConfig | None = None) -> RebuildResult:
+                    can_bus: canbus.BusConfig | None = None, force: bool = False) -> RebuildResult:
     """Build ``out`` from a GPS log, a DAQ capture (needs the GPS log) and a CAN log decoded by ``can_bus``
-    (its ``wire`` is set to ``frames``; None: recorded, not decoded)."""
+    (its ``wire`` is set to ``frames``; None: recorded, not decoded). ``out`` must be new, unless ``force``."""
+    outputs.check_new(out, force)
     reads: list[RawRead] = []
     if gps is not None:
         gps_bytes = Path(gps).read_bytes()
@@ -221,7 +222,7 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
     meta = {"source": "fieldlog import", "gps": str(gps or ""), "daq": str(daq_path or ""), "can": str(can_log or "")}
-    with recorder.Recorder(out, metadata=meta) as rec:
+    with recorder.Recorder(out, metadata=meta, force=force) as rec:
         pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)

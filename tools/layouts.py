@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 from mcap.writer import CompressionType, IndexType, Writer
 
+from fieldlog.acquire import outputs
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
 
@@ -50,7 +51,7 @@ def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], layout: st
             topics: Sequence[str] | None = None) -> Path:
     """``src`` (its ``topics``, default all) rewritten into ``dst`` by mcap's Writer with ``LAYOUTS[layout]``."""
     topics = list(topics) if topics is not None else [t.topic for t in reader.topics(src)]
-    with open(dst, "wb") as out:
+    with outputs.create(dst) as out:
         w = Writer(out, **LAYOUTS[layout])
         w.start("ros2", "mcap python Writer (fieldlog.tools.layouts)")
         for name, d in reader.metadata_records(src):

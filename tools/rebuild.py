@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-from fieldlog.acquire import calib, recorder
+from fieldlog.acquire import calib, outputs, recorder
 from fieldlog.replay import reader
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.acquire.pipeline import PORT_ORDER, Counters, Pipeline, RawRead, read_order
@@ -53,14 +53,15 @@ def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
 
 
 def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = None,
-            progress: Callable[[float], None] | None = None) -> RebuildResult:
+            progress: Callable[[float], None] | None = None, force: bool = False) -> RebuildResult:
+    outputs.check_new(dst, force)
     records = read_metadata_records(src)
     cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
     if calibration is not None:
         cal = calib.load_calibration(calibration)
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
     n = 0
-    with recorder.Recorder(dst) as rec:
+    with recorder.Recorder(dst, force=force) as rec:
         for name, d in records:
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
                 rec.add_metadata(name, d)

@@ -53,8 +53,8 @@ def demo_recording(work: Path, duration_s: float) -> Path:
     from fieldlog.tools.sim.simulate import simulate
 
     drive, fused, rrd = work / "figure8.mcap", work / "dkf-rbfn.mcap", work / "viewer.rrd"
-    simulate("figure8", duration_s, 1, drive)
-    fuse(drive, "dkf-rbfn", fused, FusionConfig.from_flat(outages=(parse_outage("180:30"),)))
+    simulate("figure8", duration_s, 1, drive, force=True)     # its own work folder, redone each time
+    fuse(drive, "dkf-rbfn", fused, FusionConfig.from_flat(outages=(parse_outage("180:30"),)), force=True)
     fix = reader.read_topic(drive, "/gps/fix")
     ok = fix["valid"] & (fix["status"] >= 0)
     rec = rr.RecordingStream("fieldlog")

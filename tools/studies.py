@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 import polars as pl
 
+from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import reader
 from fieldlog.tools.evaluate import outage_error_series, rms_columns
@@ -62,15 +63,15 @@ def simulate_drives(scenario: str, duration_s: float, seeds: int, folder: Path, 
     """Drives seeds 1..N of a scenario in ``folder`` (reused when already there)."""
     from fieldlog.tools.sim.simulate import simulate
 
-    folder.mkdir(parents=True, exist_ok=True)
+    outputs.out_dir(folder)
     out = []
     for seed in range(1, seeds + 1):
         path = folder / f"{scenario}_{duration_s:g}s_s{seed}.mcap"
         if not path.exists():
             say(f"simulating {scenario} {duration_s:g} s seed {seed} -> {path}")
             tmp = path.with_suffix(".part")
-            simulate(scenario, duration_s, seed, tmp)
-            tmp.rename(path)
+            simulate(scenario, duration_s, seed, tmp, force=True)   # a leftover of an interrupted study
+            outputs.publish(tmp, path)
         out.append(path)
     return out
 
@@ -84,7 +85,7 @@ def run(drive: Path, method: str, label: str, cfg: FusionConfig, folder: Path, w
     """Fuse ``drive`` with ``method`` and the study's config; errors against truth inside ``window_s``
     (s from the first IMU sample)."""
     out = folder / f"{drive.stem}_{label.replace(' ', '_').replace('=', '')}.mcap"
-    res = fuse(drive, method, out, cfg)
+    res = fuse(drive, method, out, cfg, force=True)   # the study's own work folder, redone each time
     t0 = _t0_ns(drive)
     t, err = outage_error_series(drive, out, method, [(t0 + int(window_s[0] * 1e9), t0 + int(window_s[1] * 1e9))])
     return Run(drive.name, label, (t - t0) * 1e-9, err, res)
@@ -146,7 +147,8 @@ def _plot(runs: list[Run], cols: tuple[tuple[int, str], ...], title: str, path: 
     axes[0].legend(fontsize=8, ncol=4)
     axes[-1].set_xlabel("time since the first IMU sample (s)")
     fig.suptitle(f"{title} ({first})")
-    fig.savefig(path, dpi=100)
+    with outputs.create(path, force=True) as f:   # the study's own report folder (``study`` checked it)
+        fig.savefig(f, format="png", dpi=100)
     plt.close(fig)
     return path
 
@@ -616,28 +618,31 @@ def hinf_default_lines(summaries: list[dict[str, str]]) -> list[str]:
 
 
 def _finish(out: Path, table: pl.DataFrame, lines: list[str], say: Callable[[str], None]) -> pl.DataFrame:
-    table.write_csv(out / "table.csv")
-    (out / "report.md").write_text("\n".join(lines))
+    with outputs.create(out / "table.csv", force=True, root=out) as f:
+        table.write_csv(f)
+    outputs.write_bytes(out / "report.md", "\n".join(lines).encode(), force=True, root=out)
     say(f"wrote {out / 'report.md'} and {out / 'table.csv'}")
     return table
 
 
-def study(name: str, out: Path, work: Path, seeds: int = 3, runs: int = 5, say: Callable[[str], None] = print
-          ) -> pl.DataFrame:
+def study(name: str, out: Path, work: Path, seeds: int = 3, runs: int = 5, say: Callable[[str], None] = print,
+          force: bool = False) -> pl.DataFrame:
     """Run one of ``STUDIES``: report into ``out``, drives and fused solutions into ``work``; returns its long
-    table. ``runs``: timing repetitions of ``cost``."""
+    table. ``runs``: timing repetitions of ``cost``. A report already in ``out`` is replaced only with ``force``
+    (its files, and the fused solutions in ``work``, are then the study's own and redone); neither folder may be
+    a symbolic link (``acquire.outputs``)."""
     if name not in STUDIES:
         raise ValueError(f"unknown study {name!r}; one of {', '.join(STUDIES)}")
     if seeds < 1:
         raise ValueError("--seeds must be >= 1")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.out_dir(out)
+    outputs.check_new(out / "report.md", force)
     t0 = time.monotonic()
     if name == "cost":
         table = study_cost(out, runs, say)
     else:
         work = Path(work)
-        (work / "fused").mkdir(parents=True, exist_ok=True)
+        outputs.out_dir(work, "fused")
         table = {"kf-ukf": study_kf_ukf, "ssr-sckf": study_ssr_sckf, "hinf": study_hinf}[name](out, work, seeds, say)
     say(f"study {name}: {time.monotonic() - t0:.0f} s")
     return table

@@ -17,5 +17,5 @@ def add_parser(sub) -> None:
 def run(a: argparse.Namespace) -> int:
     from fieldlog.tools.allan import drive_report
 
-    print(drive_report(drive_arg(a.drive), plot_prefix=a.plot))  # the product: printed whatever -q says
+    print(drive_report(drive_arg(a.drive), plot_prefix=a.plot, force=a.force))  # the product: printed whatever -q says
     return 0

@@ -36,7 +36,7 @@ def run(a: argparse.Namespace) -> int:
     if a.workers < 1:
         raise ValueError("--workers must be >= 1")
     res = run_batch(drives, methods, lengths, a.out_dir, scheduler=a.scheduler, workers=a.workers, say=log.info,
-                    progress=Progress("batch"))
+                    progress=Progress("batch"), force=a.force)
     print(summary(res.table))  # the product: printed whatever -q says
     log.info(f"wrote {res.parquet} ({len(res.table)} rows, {len(drives) - len(res.failed)} drives ok, "
              f"{len(res.failed)} failed); batch wall time {res.wall_s:.1f} s")

@@ -22,6 +22,10 @@ EXTRAS = {"numba": "fusion", "llvmlite": "fusion", "rerun": "view", "polars": "e
 NEEDS = {"sim": "fusion", "fuse": "fusion", "evaluate": "fusion,export,plots", "view": "view", "replay": "view",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}
 
+# the commands that write named outputs: they take --force to replace them (acquire/outputs.py)
+WRITERS = ("sim", "recover", "filter", "import", "rebuild", "allan", "fuse", "evaluate", "view", "export", "batch",
+           "replay", "study")
+
 DRIVE_HELP = ("the drive: an MCAP file, several files, a rotated session's directory or a rosbag2 directory (read "
               "as one drive, in log-time order)")
 
@@ -81,6 +85,10 @@ def command_parser(sub, name: str, help: str, quiet_help: str | None = None,
                    help=quiet_help or "warnings and errors only, no progress bar (twice: errors only)")
     s.add_argument("-v", "--verbose", action="count", default=0,
                    help=verbose_help or "more detail: settings, steps (default: a short summary)")
+    if name in WRITERS:
+        s.add_argument("--force", action="store_true",
+                       help="replace output files that exist (default: refuse them; a symbolic link is refused even "
+                            "so: an output is never written through a link)")
     return s
 
 

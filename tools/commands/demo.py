@@ -17,19 +17,21 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    """Each step through ``a.cli_main`` (the CLI's entry, which sets it), as if typed."""
-    out = Path(a.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Each step through ``a.cli_main`` (the CLI's entry, which sets it), as if typed. The folder is the demo's
+    own: each run redoes its files (``--force`` to the steps; never through a link: ``acquire.outputs``)."""
+    from fieldlog.acquire.outputs import out_dir
+
+    out = out_dir(a.out_dir)
     drive, fused, rrd, report = out / "figure8.mcap", out / "dkf-rbfn.mcap", out / "figure8.rrd", out / "report"
     steps = [
         ("simulate a figure8 drive", ["sim", "--scenario", "figure8", "--duration", f"{a.duration:g}", "--seed", "1",
-                                      "--out", str(drive)]),
+                                      "--out", str(drive), "--force"]),
         ("what the drive holds", ["info", str(drive)]),
         ("fuse with the KF+RBFN hybrid through a 30 s GPS outage",
-         ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "180:30", "--out", str(fused)]),
+         ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "180:30", "--out", str(fused), "--force"]),
         ("the outage study", ["evaluate", str(drive), "--outages", "30", "--methods", "ins,dkf,dkf-rbfn",
-                              "--out-dir", str(report)]),
-        ("a rerun recording", ["view", str(drive), str(fused), "--rrd", str(rrd)]),
+                              "--out-dir", str(report), "--force"]),
+        ("a rerun recording", ["view", str(drive), str(fused), "--rrd", str(rrd), "--force"]),
     ]
     flags = ["-v"] * a.verbose + ["-q"] * a.quiet
     for i, (title, argv) in enumerate(steps, 1):

@@ -61,12 +61,15 @@ def run(a: argparse.Namespace) -> int:
         from fieldlog.tools.evaluate import PAPER_SCENARIO
         from fieldlog.tools.sim.simulate import simulate
 
+        from fieldlog.acquire.outputs import out_dir
+
         a.scenario = a.scenario or PAPER_SCENARIO
-        (report / "drives").mkdir(parents=True, exist_ok=True)
+        out_dir(report, "drives")
         for seed in range(a.first_seed, a.first_seed + a.seeds):
             path = report / "drives" / f"{a.scenario}_s{seed}.mcap"
             log.info(f"simulating {a.scenario} {a.duration:g} s seed {seed} -> {path}")
-            simulate(a.scenario, a.duration, seed, path, progress=Progress(f"sim {a.scenario} seed {seed}"))
+            simulate(a.scenario, a.duration, seed, path, progress=Progress(f"sim {a.scenario} seed {seed}"),
+                     force=a.force)
             drives.append(path)
     for d in drives:
         if not d.exists():
@@ -78,7 +81,7 @@ def run(a: argparse.Namespace) -> int:
     table = evaluate(drives, lengths, methods, report, smooth=a.smooth,
                      config=load_fusion_config(a.config) if a.config and "fusion" in read_toml(a.config) else None,
                      spec=load_input_spec(a.config).merged(input_spec(a)), paper=a.paper, say=log.debug,
-                     progress=Progress("evaluate"))
+                     progress=Progress("evaluate"), force=a.force)
     if a.json:
         print(json.dumps({"drives": [str(d) for d in drives], "out_dir": str(report), "rows": table.to_dicts()}))
     else:

@@ -23,7 +23,7 @@ def run(a: argparse.Namespace) -> int:
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
     t0 = time.monotonic()
     try:
-        written = export(drive_arg(a.drive), a.out_dir, a.format, topics, progress=Progress("export"))
+        written = export(drive_arg(a.drive), a.out_dir, a.format, topics, progress=Progress("export"), force=a.force)
     except KeyError as e:
         raise ValueError(e.args[0]) from None
     for topic, (path, rows) in written.items():

@@ -27,7 +27,7 @@ def run(a: argparse.Namespace) -> int:
 
     topics = [t.strip() for t in a.topics.split(",") if t.strip()] if a.topics else None
     out = out_file(a)
-    res = filter_drive(drive_arg(a.drive), out, a.start, a.end, topics, progress=Progress("filter"))
+    res = filter_drive(drive_arg(a.drive), out, a.start, a.end, topics, progress=Progress("filter"), force=a.force)
     log.info(f"wrote {res.path.resolve()}: {sum(res.messages.values())} messages from {res.start_ns} to "
              f"{res.end_ns} ns")
     for topic, n in res.messages.items():

@@ -46,7 +46,7 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     out = out_file(a)
     res = fuse(drive, a.method, out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
-               inputs=st.inputs)
+               inputs=st.inputs, force=a.force)
     imap, forced = st.inputs, st.config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,

@@ -51,7 +51,8 @@ def run(a: argparse.Namespace) -> int:
     if a.can is None and (a.dbc or a.signal):
         raise ValueError("--dbc and --signal decode a CAN log: give it with --can LOG")
     bus = can_config(a) if a.can is not None else None
-    res = import_captures(a.gps, a.daq, a.out, fs_hz=a.fs, pps_mode=a.pps, can_log=a.can, can_bus=bus)
+    res = import_captures(a.gps, a.daq, a.out, fs_hz=a.fs, pps_mode=a.pps, can_log=a.can, can_bus=bus,
+                          force=a.force)
     line = (f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs "
             f"({res.counters.gps_no_fix} without fix), {res.counters.nmea.lines} NMEA lines, "
             f"{res.counters.nmea.bad_checksum} bad checksums")

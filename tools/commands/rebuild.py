@@ -19,7 +19,7 @@ def run(a: argparse.Namespace) -> int:
     from fieldlog.tools.rebuild import rebuild
 
     out = out_file(a)
-    res = rebuild(drive_arg(a.drive), out, calibration=a.calib, progress=Progress("rebuild"))
+    res = rebuild(drive_arg(a.drive), out, calibration=a.calib, progress=Progress("rebuild"), force=a.force)
     log.info(f"wrote {out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs from {res.reads} raw reads")
     finish_out(a, out)
     return 0

@@ -28,7 +28,7 @@ def run(a: argparse.Namespace) -> int:
     from fieldlog.replay.mcapfile import McapFile, TruncatedError
 
     if len(a.drive) == 1 and not Path(a.drive[0]).is_dir():
-        return recover_one(Path(a.drive[0]), Path(a.out) if a.out else None)
+        return recover_one(Path(a.drive[0]), Path(a.out) if a.out else None, a.force)
     if a.out:
         raise ValueError(f"{' '.join(a.drive)}: --out takes one damaged file; a drive of several files is recovered "
                          f"next to them (NAME{RECOVERED})")
@@ -42,11 +42,11 @@ def run(a: argparse.Namespace) -> int:
             try:
                 damaged = McapFile(src).damaged()
             except TruncatedError:
-                recovered = recover_one(src, None) == 0 or recovered
+                recovered = recover_one(src, None, a.force) == 0 or recovered
                 continue
             if damaged:
                 log.info(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
-                recovered = recover_one(src, None) == 0 or recovered
+                recovered = recover_one(src, None, a.force) == 0 or recovered
             else:
                 log.info(f"{src}: complete, nothing to recover")
         if d.is_dir() and (recovered or not (d / METADATA).exists()):
@@ -55,14 +55,14 @@ def run(a: argparse.Namespace) -> int:
     return 0
 
 
-def recover_one(src: Path, out: Path | None) -> int:
+def recover_one(src: Path, out: Path | None, force: bool) -> int:
     from fieldlog.acquire.recovery import recover_drive
     from fieldlog.replay.drive import RECOVERED
 
     out = out or src.with_name(src.stem + RECOVERED)
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from the damaged file (it is kept as it is)")
-    rep = recover_drive(src, out)
+    rep = recover_drive(src, out, force)
     state = "was already complete" if rep.had_summary else f"{rep.bytes_discarded} bytes after the last complete " \
                                                             f"chunk discarded"
     if rep.damaged:

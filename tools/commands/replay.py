@@ -32,7 +32,7 @@ def run(a: argparse.Namespace) -> int:
     st = settings(drive, a.config, input_spec(a))
     output_parent(a.rrd)
     res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
-                 progress=Progress(f"replay {a.method}"), imap=st.inputs)
+                 progress=Progress(f"replay {a.method}"), imap=st.inputs, force=a.force)
     log.info(f"played {res.data_s:.1f} s of {' '.join(a.drive)} in {res.wall_s:.1f} s "
              f"(x{res.data_s / max(res.wall_s, 1e-9):.1f}): {res.solutions} {a.method} solutions, {res.updates} GPS "
              f"updates, {res.gps_fixes} GPS fixes, {res.imu_rows} IMU rows, {res.outages} outages -> {res.sink}")

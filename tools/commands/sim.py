@@ -51,7 +51,7 @@ def run(a: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"),
-                   receiver=a.receiver, can=a.can)
+                   receiver=a.receiver, can=a.can, force=a.force)
     log.info(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial "
              f"reads in {time.monotonic() - t0:.1f} s")
     return 0
@@ -63,4 +63,4 @@ def serve(a: argparse.Namespace) -> int:
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
                  corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
-                 board_image=a.board_image, can=a.can)
+                 board_image=a.board_image, can=a.can, force=a.force)

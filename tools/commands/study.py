@@ -22,5 +22,5 @@ def run(a: argparse.Namespace) -> int:
     from fieldlog.tools.studies import study
 
     study(a.name, Path(a.out_dir or f"docs/studies/{a.name}"), Path(a.work or f"out/studies/{a.name}"), a.seeds,
-          a.runs, say=log.info)
+          a.runs, say=log.info, force=a.force)
     return 0

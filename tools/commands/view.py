@@ -44,7 +44,7 @@ def run_live(a: argparse.Namespace) -> int:
         raise ValueError("no live bus: give its socket path (--live PATH) or a config with [daemon] bus")
     output_parent(a.rrd)
     try:
-        res = live_view(address, a.method, rrd=a.rrd, connect=a.connect)
+        res = live_view(address, a.method, rrd=a.rrd, connect=a.connect, force=a.force)
     except KeyboardInterrupt:
         return 130
     log.info(f"viewed {res.data_s:.1f} s live from {address}: {res.solutions} {a.method} solutions, {res.gps_fixes} "
@@ -75,7 +75,7 @@ def run(a: argparse.Namespace) -> int:
             raise
         imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
     output_parent(a.rrd)
-    res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap)
+    res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap, force=a.force)
     if res.rrd is None:
         log.info(f"sent {' '.join(files)} to the rerun viewer")
         return 0

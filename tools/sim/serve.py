@@ -72,7 +72,7 @@ from typing import Callable, TextIO
 
 import numpy as np
 
-from fieldlog.acquire import daq, recorder
+from fieldlog.acquire import daq, outputs, recorder
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.tools.sim import board as emulated, simulate, trajectory
 from fieldlog.tools.sim.emit import HostClock
@@ -320,7 +320,7 @@ class Server:
         """Open the ptys (and start the emulated board) and print ``daq PATH``, ``gps PATH`` and, with the CAN bus,
         ``can PATH`` (flushed)."""
         if self.link_dir is not None:
-            self.link_dir.mkdir(parents=True, exist_ok=True)
+            outputs.out_dir(self.link_dir)
         for p in self.ports.values():
             if p.name == "daq" and self.board is not None:
                 p.open(None)
@@ -430,9 +430,9 @@ class Server:
                 "can_corrupt_bytes": str(c.corrupt_bytes), "can_replug_mono_ns": ";".join(map(str, c.replugged_mono_ns)),
                 "can_undrained_unplugs": str(c.undrained_unplugs)}
 
-    def write_truth(self, path: str | Path) -> None:
-        """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path``."""
-        with recorder.Recorder(path, flush_interval_s=None, fsync=False,
+    def write_truth(self, path: str | Path, force: bool = False) -> None:
+        """``/truth/*`` and the ``serve`` metadata (what was sent) to ``path`` (new, unless ``force``)."""
+        with recorder.Recorder(path, flush_interval_s=None, fsync=False, force=force,
                                metadata={"source": "fieldlog sim --serve", "scenario": self.scenario,
                                          "seed": str(self.seed)}) as rec:
             rec.add_metadata("serve", self.sent_metadata())
@@ -451,9 +451,12 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
           receiver: str | None = None, truth: str | None = None, unplug: list[Unplug] | None = None,
           link_dir: str | None = None,
           hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None,
-          board: str = "simulated", board_image: str | None = None, can: bool = False) -> int:
+          board: str = "simulated", board_image: str | None = None, can: bool = False,
+          force: bool = False) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
-    streaming (so a test can start the reader first)."""
+    streaming (so a test can start the reader first). ``truth``: a new file unless ``force`` (checked first)."""
+    if truth:
+        outputs.check_new(truth, force)
     srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps,
                  board, board_image, can)
     go = threading.Event()
@@ -482,6 +485,6 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
         log("drive ended" if srv.completed else "stopped")
     finally:
         if truth:
-            srv.write_truth(truth)
+            srv.write_truth(truth, force)
         srv.close()
     return 0

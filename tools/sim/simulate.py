@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, messages, recorder, timesync
+from fieldlog.acquire import calib, daq, messages, outputs, recorder, timesync
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle
@@ -156,10 +156,13 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
-             receiver: str | None = None, sync_settings: dict | None = None, can: bool = False) -> SimResult:
+             receiver: str | None = None, sync_settings: dict | None = None, can: bool = False,
+             force: bool = False) -> SimResult:
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
     more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``); ``can``: with the car's CAN
-    bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``)."""
+    bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``). ``out`` must be new, unless ``force``
+    (``acquire.outputs``)."""
+    outputs.check_new(out, force)
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
     fusion_meta = fusion_metadata(scenario.fusion)
@@ -171,7 +174,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
                                                   **(sync_settings or {})})
-    with recorder.Recorder(out, metadata=meta) as rec:
+    with recorder.Recorder(out, metadata=meta, force=force) as rec:
         pipe = Pipeline(rec, cal, sync_cfg, PipelineConfig(can=vehicle.bus_config() if can else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)

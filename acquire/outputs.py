@@ -1,0 +1,186 @@
+"""Output files are created, never followed: the one way the daemon and the tools make a file or folder.
+
+Every output is opened with ``O_CREAT | O_EXCL | O_NOFOLLOW``, so a name that exists (a file, a directory, a
+symbolic link, dangling or not) is never written through: a planted link cannot redirect a drive, a report or a
+table onto another file. An existing regular file is replaced only when the caller says so (``force``: the
+user's ``--force``), by removing the name and creating it afresh; a symbolic link is refused even then (one
+line naming it: remove it, or choose another name).
+
+Folders: an output folder given by the user may not be a symbolic link; folders made inside it (``create``
+with ``root``) are walked one component at a time through directory file descriptors opened with
+``O_NOFOLLOW``, so a link planted as a subfolder of ``--out`` is refused instead of followed, whatever happens
+between the check and the write.
+
+Libraries that write only by path (rerun's ``save``) write into ``staged``: a fresh private folder (mode 0700,
+random name) next to the destination, whose file is then linked into place (``os.link`` fails on an existing
+name; ``force``: ``os.replace``, which replaces a name without following it).
+
+``Refused`` is a ``ValueError``: every command reports it in one line with exit code 2.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import stat
+import tempfile
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+
+
+class Refused(ValueError):
+    """An output name that is not written: it exists (without ``force``) or it is a symbolic link."""
+
+
+def _link_text(path: Path) -> str:
+    try:
+        return f" (to {os.readlink(path)})"
+    except OSError:
+        return ""
+
+
+def _refuse_link(path: Path, what: str = "") -> None:
+    raise Refused(f"{path} is a symbolic link{_link_text(path)}{what}: refused, an output is never written "
+                  f"through a link; remove it or choose another name")
+
+
+def _may_replace(st_mode: int, path: Path, force: bool) -> None:
+    """Raise unless the existing name ``path`` (of ``st_mode``) may be replaced: a regular file, and ``force``."""
+    if stat.S_ISLNK(st_mode):
+        _refuse_link(path)
+    if stat.S_ISDIR(st_mode):
+        raise IsADirectoryError(21, "Is a directory", str(path))
+    if not force:
+        raise Refused(f"{path} exists: it is left as it is; give --force to replace it, or choose another name")
+
+
+def check_new(path: str | os.PathLike[str], force: bool = False) -> None:
+    """Raise ``Refused`` now (before any work) unless ``path`` can be created: it does not exist, or it is a
+    regular file and ``force``."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    _may_replace(st.st_mode, Path(path), force)
+
+
+def _open(name: str | os.PathLike[str], shown: Path, force: bool, mode: int, dir_fd: int | None) -> int:
+    """``os.open`` of a new file ``name`` (in ``dir_fd``); an existing regular one removed first when ``force``."""
+    try:
+        return os.open(name, CREATE, mode, dir_fd=dir_fd)
+    except FileExistsError:
+        _may_replace(os.lstat(name, dir_fd=dir_fd).st_mode, shown, force)
+    os.unlink(name, dir_fd=dir_fd)
+    return os.open(name, CREATE, mode, dir_fd=dir_fd)
+
+
+def create(path: str | os.PathLike[str], force: bool = False, root: str | os.PathLike[str] | None = None,
+           mode: int = 0o644) -> BinaryIO:
+    """A new file at ``path``, open for binary writing (``Refused`` if the name exists, unless it is a regular
+    file and ``force``; always if it is a symbolic link). ``root``: ``path`` lies inside this output folder
+    (``out_dir``), and the folders between are made as needed, each refused if it is a symbolic link."""
+    p = Path(path)
+    if root is None:
+        return os.fdopen(_open(p, p, force, mode, None), "wb")
+    r = Path(root)
+    rel = p.relative_to(r)
+    fd = _walk(open_dir(r), rel.parts[:-1], r)
+    try:
+        return os.fdopen(_open(rel.parts[-1], p, force, mode, fd), "wb")
+    finally:
+        os.close(fd)
+
+
+def _walk(fd: int, parts: tuple[str, ...], root: Path) -> int:
+    """The folder ``parts`` below the open folder ``fd`` (each made if missing, refused if a symbolic link), open;
+    ``fd`` and the folders on the way are closed."""
+    for name in parts:
+        try:
+            try:
+                os.mkdir(name, 0o755, dir_fd=fd)
+            except FileExistsError:
+                pass
+            try:
+                nxt = os.open(name, DIRECTORY, dir_fd=fd)
+            except OSError:
+                if stat.S_ISLNK(os.lstat(name, dir_fd=fd).st_mode):
+                    raise Refused(f"a folder {name!r} inside the output folder {root} is a symbolic link: refused, "
+                                  f"an output is never written through a link; remove it or choose another "
+                                  f"folder") from None
+                raise
+        finally:
+            os.close(fd)
+        fd = nxt
+    return fd
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes, force: bool = False,
+                root: str | os.PathLike[str] | None = None) -> Path:
+    """``data`` as the new file ``path`` (``create``); returns ``path``."""
+    with create(path, force, root) as f:
+        f.write(data)
+    return Path(path)
+
+
+def open_dir(path: str | os.PathLike[str]) -> int:
+    """A directory file descriptor of the output folder ``path`` (``Refused`` if it is a symbolic link)."""
+    p = Path(path)
+    try:
+        return os.open(p, DIRECTORY)
+    except OSError:
+        if p.is_symlink():
+            _refuse_link(p, " where the output folder should be")
+        raise
+
+
+def out_dir(path: str | os.PathLike[str], *parts: str) -> Path:
+    """The output folder ``path`` (its parents made as needed), and ``parts`` inside it, made if missing;
+    ``Refused`` if ``path`` or one of ``parts`` is a symbolic link (the folders above ``path`` are the user's)."""
+    p = Path(path)
+    if p.is_symlink():
+        _refuse_link(p, " where the output folder should be")
+    p.mkdir(parents=True, exist_ok=True)
+    os.close(_walk(open_dir(p), parts, p))
+    return p.joinpath(*parts)
+
+
+@contextlib.contextmanager
+def staged(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
+    """A path for a writer that takes only a path: in a fresh private folder next to ``path``; when the block
+    ends without an error (or on Ctrl-C: what was written so far is kept), its file is put at ``path``
+    (``Refused`` if the name was taken meanwhile, unless ``force`` and a regular file), and the folder removed in
+    any case."""
+    p = Path(path)
+    check_new(p, force)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.", dir=p.parent))
+    try:
+        work = tmp / p.name
+        try:
+            yield work
+        except KeyboardInterrupt:
+            if work.exists():
+                publish(work, p, force)
+            raise
+        publish(work, p, force)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def publish(tmp: str | os.PathLike[str], path: str | os.PathLike[str], force: bool = False) -> None:
+    """Put the finished file ``tmp`` at ``path`` (same folder): a new name (``os.link``; ``Refused`` if it exists),
+    or with ``force`` in place of a regular file (``os.replace``, which never follows a link at ``path``); ``tmp``
+    is removed."""
+    p = Path(path)
+    if force and os.path.lexists(p):
+        check_new(p, force)
+        os.replace(tmp, p)
+        return
+    try:
+        os.link(tmp, p, follow_symlinks=False)
+    except FileExistsError:
+        check_new(p, force)
+        raise
+    os.unlink(tmp)

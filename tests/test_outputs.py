@@ -1,0 +1,210 @@
+"""Outputs are created, never followed: a planted symbolic link (at a file name or as a folder inside --out) is
+refused in one line and its target left alone; an existing file is replaced only with --force; the daemon skips
+taken names and records on."""
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fieldlog.acquire import outputs
+from fieldlog.acquire.config import NAME_FORMAT
+from fieldlog.acquire.daemon import is_finished
+from fieldlog.tools.sim import simulate
+from test_daemon import raw_stream, start_daemon
+from test_serve import expected_bytes, start_serve
+
+PRECIOUS = b"precious bytes, not an MCAP file\n"
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("drive")
+    path = d / "d.mcap"
+    simulate.simulate("figure8", 20.0, 2, path)
+    return path
+
+
+def plant(link: Path, target: Path) -> None:
+    target.write_bytes(PRECIOUS)
+    link.symlink_to(target)
+
+
+# ------------------------------------------------------------------------------------------- the helper
+
+def test_create_refuses_links_and_existing_names_and_force_replaces_only_files(tmp_path: Path) -> None:
+    target, link, dangling = tmp_path / "target", tmp_path / "link", tmp_path / "dangling"
+    plant(link, target)
+    dangling.symlink_to(tmp_path / "nowhere" / "x")
+    for force in (False, True):
+        for p in (link, dangling):
+            with pytest.raises(outputs.Refused, match="symbolic link"):
+                outputs.create(p, force)
+    assert target.read_bytes() == PRECIOUS and not (tmp_path / "nowhere").exists()
+    f = tmp_path / "file"
+    with outputs.create(f) as out:
+        out.write(b"one")
+    with pytest.raises(outputs.Refused, match="--force"):
+        outputs.create(f)
+    assert f.read_bytes() == b"one"
+    with outputs.create(f, force=True) as out:
+        out.write(b"two")
+    assert f.read_bytes() == b"two"
+    with pytest.raises(IsADirectoryError):
+        outputs.create(tmp_path, force=True)
+
+
+def test_folders_inside_an_output_folder_are_never_links(tmp_path: Path) -> None:
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out.mkdir()
+    (out / "gps").symlink_to(elsewhere)
+    with pytest.raises(outputs.Refused, match="'gps' inside the output folder"):
+        outputs.create(out / "gps" / "fix.csv", root=out)
+    with pytest.raises(outputs.Refused, match="'gps' inside the output folder"):
+        outputs.out_dir(out, "gps")
+    with outputs.create(out / "a" / "b" / "c.csv", root=out) as f:   # folders made as needed
+        f.write(b"x")
+    assert (out / "a" / "b" / "c.csv").read_bytes() == b"x" and list(elsewhere.iterdir()) == []
+    (tmp_path / "linked").symlink_to(out)
+    with pytest.raises(outputs.Refused, match="output folder"):
+        outputs.out_dir(tmp_path / "linked")
+
+
+def test_staged_files_appear_only_complete_and_never_over_a_link(tmp_path: Path) -> None:
+    dst = tmp_path / "x.rrd"
+    with outputs.staged(dst) as work:
+        work.write_bytes(b"data")
+        assert not dst.exists() and work.parent.parent == tmp_path and oct(work.parent.stat().st_mode)[-3:] == "700"
+    assert dst.read_bytes() == b"data" and sorted(tmp_path.iterdir()) == [dst]
+    with pytest.raises(RuntimeError), outputs.staged(tmp_path / "y.rrd") as work:
+        work.write_bytes(b"half")
+        raise RuntimeError
+    assert sorted(tmp_path.iterdir()) == [dst]                  # an error leaves nothing behind
+    target, link = tmp_path / "target", tmp_path / "z.rrd"
+    with pytest.raises(outputs.Refused), outputs.staged(tmp_path / "z.rrd") as work:  # planted meanwhile
+        work.write_bytes(b"data")
+        plant(link, target)
+    assert target.read_bytes() == PRECIOUS and link.is_symlink()
+
+
+# ------------------------------------------------------------------------------------------- the commands
+
+WRITERS = {"rebuild": lambda d, o: ["rebuild", d, "--out", o], "filter": lambda d, o: ["filter", d, "--out", o],
+           "fuse": lambda d, o: ["fuse", d, "--out", o], "recover": lambda d, o: ["recover", d, "--out", o],
+           "view": lambda d, o: ["view", d, "--rrd", o], "export": lambda d, o: ["export", d, "--out", o],
+           "sim": lambda d, o: ["sim", "--duration", "5", "--out", o],
+           "import": lambda d, o: ["import", "--gps", d, "--out", o]}
+
+
+@pytest.mark.parametrize("force", [False, True])
+@pytest.mark.parametrize("command", sorted(WRITERS))
+def test_every_command_refuses_a_symlinked_output_in_one_line(drive, tmp_path, capsys, command, force) -> None:
+    from fieldlog.tools.cli import main
+
+    src = str(drive)
+    if command == "import":
+        src = str(tmp_path / "gps.nmea")
+        Path(src).write_bytes(b"$GPGGA,120000.00,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*5C\r\n")
+    target, link = tmp_path / "target", tmp_path / "out.link"
+    plant(link, target)
+    code = main(WRITERS[command](src, str(link)) + ["--force"] * force)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and str(link) in err[0] and "symbolic link" in err[0], err
+    assert target.read_bytes() == PRECIOUS and link.is_symlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gps.nmea", "out.link", "target"][command != "import":]
+
+
+def test_an_existing_output_is_kept_unless_force(drive, tmp_path, capsys) -> None:
+    from fieldlog.tools.cli import main
+
+    out = tmp_path / "f.mcap"
+    out.write_bytes(PRECIOUS)
+    assert main(["filter", str(drive), "--end", "5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists" in err[0] and "--force" in err[0] and out.read_bytes() == PRECIOUS
+    assert main(["filter", str(drive), "--end", "5", "--out", str(out), "--force"]) == 0
+    assert out.read_bytes()[:8] == b"\x89MCAP0\r\n"
+
+
+def test_export_refuses_a_link_planted_as_a_folder_inside_out(drive, tmp_path, capsys) -> None:
+    from fieldlog.tools.cli import main
+
+    out, elsewhere = tmp_path / "tables", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (out / "gps").symlink_to(elsewhere)                 # /gps/fix would go to tables/gps/fix.csv
+    code = main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "'gps'" in err[0] and str(out) in err[0], err
+    assert list(elsewhere.iterdir()) == []
+    (out / "gps").unlink()
+    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 0
+    assert (out / "gps" / "fix.csv").is_file()
+    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 2
+    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix", "--force"]) == 0
+
+
+# ------------------------------------------------------------------------------------------- the daemon
+
+def test_a_live_daemon_skips_planted_links_under_its_next_names_and_loses_nothing(tmp_path: Path) -> None:
+    """Links (and a few regular files) planted under every file name of the next minute of session starts, for
+    the first 40 files; the daemon rotates every 0.3 s (host), skips each taken name, logs each link it passes
+    in one line, never touches a target, and records every byte the simulator sent."""
+    out, targets = tmp_path / "drives", tmp_path / "targets"
+    out.mkdir()
+    targets.mkdir()
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text("[rotation]\nmax_duration_s = 0.3\n")
+    now = int(time.time())
+    planted: dict[Path, tuple[str, Path | None]] = {}      # name -> (kind, link target)
+    for sec in range(now - 2, now + 60):
+        stamp = _dt.datetime.fromtimestamp(sec, _dt.timezone.utc).strftime(NAME_FORMAT)
+        for i in range(1, 41):
+            name, target = out / f"{stamp}_{i:04d}.mcap", targets / f"{stamp}_{i}"
+            if i % 3 == 1:                              # free
+                continue
+            if i % 9 == 0:                              # a regular file: taken, kept as it is
+                name.write_bytes(PRECIOUS)
+                planted[name] = ("file", None)
+            elif i % 2:                                 # dangling: its target must not appear
+                name.symlink_to(target)
+                planted[name] = ("dangling", target)
+            else:
+                plant(name, target)
+                planted[name] = ("link", target)
+    made = sorted(os.listdir(targets))
+    truth = tmp_path / "truth.mcap"
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "200", "--seed", "6", "--speed", "20",
+                               "--hold", "--truth", str(truth))
+    d, log = start_daemon(out, paths, "--config", str(cfg))
+    serve.send_signal(signal.SIGUSR1)
+    assert serve.wait(120) == 0
+    d.send_signal(signal.SIGTERM)
+    assert d.wait(60) == 0
+    log += d.stderr.read()
+    assert "Traceback" not in log
+    files = sorted(p for p in out.glob("*.mcap") if p not in planted)
+    session = {f.name.rsplit("_", 1)[0] for f in files}
+    assert len(session) == 1 and any(p.name.startswith(next(iter(session))) for p in planted)   # planted for it
+    index = [int(f.stem.rsplit("_", 1)[1]) for f in files]
+    assert len(files) >= 6 and all(i % 3 == 1 for i in index if i <= 40)
+    assert all(is_finished(f) for f in files)
+    for name, (kind, target) in planted.items():        # nothing written through a link or over a file
+        assert name.read_bytes() == PRECIOUS if kind != "dangling" else not target.exists()
+        assert (kind == "file") != name.is_symlink()
+    assert sorted(os.listdir(targets)) == made and all((targets / t).read_bytes() == PRECIOUS for t in made)
+    stamp = next(iter(session))
+    passed = [n for n, (kind, _) in planted.items() if n.name.startswith(stamp) and kind != "file"
+              and int(n.stem.rsplit("_", 1)[1]) < max(index)]
+    assert len(passed) >= 6 and all(log.count(str(n)) == 1 for n in passed), log
+    want = expected_bytes(truth, "figure8", 200.0, 6)
+    assert b"".join(raw_stream(f, "daq")[0] for f in files) == want["daq"]
+    assert b"".join(raw_stream(f, "gps")[0] for f in files) == want["gps"]
+    mono = np.concatenate([raw_stream(f, "daq")[1] for f in files])
+    assert np.all(np.diff(mono) >= 0)
