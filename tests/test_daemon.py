@@ -7,7 +7,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pytest
@@ -32,6 +32,28 @@ def start_daemon(out: Path, paths: dict[str, str], *extra: str, **popen: Any) ->
         lines.append(line)
         if "recording" in line:
             return p, "".join(lines)
+
+
+def wait_until(ready: Callable[[], bool], what: str, timeout_s: float = 120.0) -> None:
+    """Poll ``ready`` until it holds (a generous deadline: the host may be loaded; nothing is asserted on the time
+    it took)."""
+    end = time.monotonic() + timeout_s
+    while not ready():
+        assert time.monotonic() < end, f"{what}: not after {timeout_s:g} s"
+        time.sleep(0.05)
+
+
+def bus_clients(path: Path) -> int:
+    """Connections made to the Unix socket ``path`` (accepted or still queued): /proc/net/unix lists each with
+    the socket's path, beside the listening socket itself."""
+    with open("/proc/net/unix") as f:
+        return sum(1 for line in f if line.rstrip().endswith(" " + str(path))) - 1
+
+
+def wait_for_clients(path: Path, n: int) -> None:
+    """Until ``n`` clients have connected to the live bus at ``path`` (before the drive streams: none misses a
+    read)."""
+    wait_until(lambda: bus_clients(path) >= n, f"{n} client(s) on {path}")
 
 
 def raw_stream(path: Path, port: str) -> tuple[bytes, np.ndarray]:
@@ -70,7 +92,7 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     client = threading.Thread(target=lambda: blocks.extend(live.iter_blocks(str(bus), ["/imu", "/gps/fix"], 1.0,
                                                                             final=True)))
     client.start()
-    time.sleep(0.2)                                     # let the client connect
+    wait_for_clients(bus, 1)
     serve.send_signal(signal.SIGUSR1)
     assert serve.wait(30) == 0                         # the drive ended and the daemon drained the ptys
     d.send_signal(signal.SIGTERM)
@@ -122,11 +144,12 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
 @pytest.mark.slow
 def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
     out = tmp_path / "drives"
-    serve, paths = start_serve("--scenario", "figure8", "--duration", "80", "--speed", "10", "--hold")
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "600", "--speed", "10", "--hold")
     try:
         d, _ = start_daemon(out, paths)
         serve.send_signal(signal.SIGUSR1)
-        time.sleep(4.0)                                  # let it record for a while
+        files = lambda: sorted(out.glob("*/*.mcap"))     # noqa: E731
+        wait_until(lambda: files() and files()[0].stat().st_size > 300_000, "a recording with chunks")
         kill_mono = time.monotonic_ns()
         d.send_signal(signal.SIGKILL)
         d.wait(10)
@@ -139,7 +162,8 @@ def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
         assert (kill_mono - mono[-1]) / 1e9 <= 1.5     # at most 1.5 s of data before the kill is missing
         # a restart notices the unfinished file, recovers it next to the original, and SIGTERM finishes its own
         d2, log = start_daemon(out, paths)
-        time.sleep(1.0)
+        others = lambda: [p for p in files() if p != cut and not p.name.endswith(".recovered.mcap")]  # noqa: E731
+        wait_until(lambda: others() and others()[0].stat().st_size > 100_000, "the restart's own file, with chunks")
         d2.send_signal(signal.SIGTERM)
         assert d2.wait(30) == 0
     finally:

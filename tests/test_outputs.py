@@ -97,7 +97,7 @@ def test_staged_files_appear_only_complete_and_never_over_a_link(tmp_path: Path)
 
 WRITERS = {"rebuild": lambda d, o: ["rebuild", d, "--out", o], "filter": lambda d, o: ["filter", d, "--out", o],
            "fuse": lambda d, o: ["fuse", d, "--out", o], "recover": lambda d, o: ["recover", d, "--out", o],
-           "view": lambda d, o: ["view", d, "--rrd", o], "export": lambda d, o: ["export", d, "--out", o],
+           "view": lambda d, o: ["view", d, "--rrd", o], "export": lambda d, o: ["export", d, "--out-dir", o],
            "sim": lambda d, o: ["sim", "--duration", "5", "--out", o],
            "import": lambda d, o: ["import", "--gps", d, "--out", o]}
 
@@ -139,70 +139,77 @@ def test_export_refuses_a_link_planted_as_a_folder_inside_out(drive, tmp_path, c
     out.mkdir()
     elsewhere.mkdir()
     (out / "gps").symlink_to(elsewhere)                 # /gps/fix would go to tables/gps/fix.csv
-    code = main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"])
+    code = main(["export", str(drive), "--out-dir", str(out), "--format", "csv", "--topics", "/gps/fix"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "'gps'" in err[0] and str(out) in err[0], err
     assert list(elsewhere.iterdir()) == []
     (out / "gps").unlink()
-    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 0
+    assert main(["export", str(drive), "--out-dir", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 0
     assert (out / "gps" / "fix.csv").is_file()
-    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 2
-    assert main(["export", str(drive), "--out", str(out), "--format", "csv", "--topics", "/gps/fix", "--force"]) == 0
+    assert main(["export", str(drive), "--out-dir", str(out), "--format", "csv", "--topics", "/gps/fix"]) == 2
+    assert main(["export", str(drive), "--out-dir", str(out), "--format", "csv", "--topics", "/gps/fix", "--force"]) == 0
 
 
 # ------------------------------------------------------------------------------------------- the daemon
 
 def test_a_live_daemon_skips_planted_links_under_its_next_names_and_loses_nothing(tmp_path: Path) -> None:
-    """Links (and a few regular files) planted under every file name of the next minute of session starts, for
-    the first 40 files; the daemon rotates every 0.3 s (host), skips each taken name, logs each link it passes
-    in one line, never touches a target, and records every byte the simulator sent."""
+    """Links planted under the session directory names of the next minute (to a folder, and dangling), and,
+    once the daemon has started, under its next 40 file names in the session (to files, dangling, and a few
+    regular files); the daemon rotates every second (host), skips each taken name, logs each link it passes in one
+    line, never touches a target, and records every byte the simulator sent."""
     out, targets = tmp_path / "drives", tmp_path / "targets"
     out.mkdir()
     targets.mkdir()
     cfg = tmp_path / "acquire.toml"
     cfg.write_text("[rotation]\nmax_duration_s = 0.3\n")
+    elsewhere = targets / "folder"
+    elsewhere.mkdir()
     now = int(time.time())
-    planted: dict[Path, tuple[str, Path | None]] = {}      # name -> (kind, link target)
-    for sec in range(now - 2, now + 60):
+    for sec in range(now - 2, now + 60):                # the session directory: its name and the next taken
         stamp = _dt.datetime.fromtimestamp(sec, _dt.timezone.utc).strftime(NAME_FORMAT)
-        for i in range(1, 41):
-            name, target = out / f"{stamp}_{i:04d}.mcap", targets / f"{stamp}_{i}"
-            if i % 3 == 1:                              # free
-                continue
-            if i % 9 == 0:                              # a regular file: taken, kept as it is
-                name.write_bytes(PRECIOUS)
-                planted[name] = ("file", None)
-            elif i % 2:                                 # dangling: its target must not appear
-                name.symlink_to(target)
-                planted[name] = ("dangling", target)
-            else:
-                plant(name, target)
-                planted[name] = ("link", target)
-    made = sorted(os.listdir(targets))
+        (out / stamp).symlink_to(elsewhere)
+        (out / f"{stamp}-2").symlink_to(targets / f"{stamp}-2")
     truth = tmp_path / "truth.mcap"
     serve, paths = start_serve("--scenario", "figure8", "--duration", "200", "--seed", "6", "--speed", "20",
                                "--hold", "--truth", str(truth))
     d, log = start_daemon(out, paths, "--config", str(cfg))
+    first = Path(log.split(" to ")[-1].strip())
+    session = first.parent
+    assert session.name.endswith("-3") and not session.is_symlink() and (out / session.name[:-2]).is_symlink()
+    planted: dict[Path, tuple[str, Path | None]] = {}   # name -> (kind, link target)
+    stem = session.name[:-2]
+    for i in range(3, 41):
+        name, target = session / f"{stem}_{i:04d}.mcap", targets / f"file_{i}"
+        if i % 3 == 1:                                  # free
+            continue
+        if i % 9 == 0:                                  # a regular file: taken, kept as it is
+            name.write_bytes(PRECIOUS)
+            planted[name] = ("file", None)
+        elif i % 2:                                     # dangling: its target must not appear
+            name.symlink_to(target)
+            planted[name] = ("dangling", target)
+        else:
+            plant(name, target)
+            planted[name] = ("link", target)
+    made = sorted(os.listdir(targets))
     serve.send_signal(signal.SIGUSR1)
     assert serve.wait(120) == 0
     d.send_signal(signal.SIGTERM)
     assert d.wait(60) == 0
     log += d.stderr.read()
     assert "Traceback" not in log
-    files = sorted(p for p in out.glob("*.mcap") if p not in planted)
-    session = {f.name.rsplit("_", 1)[0] for f in files}
-    assert len(session) == 1 and any(p.name.startswith(next(iter(session))) for p in planted)   # planted for it
+    assert list(elsewhere.iterdir()) == [] and sorted(os.listdir(targets)) == made
+    files = sorted(p for p in session.glob("*.mcap") if p not in planted)
     index = [int(f.stem.rsplit("_", 1)[1]) for f in files]
-    assert len(files) >= 6 and all(i % 3 == 1 for i in index if i <= 40)
+    assert len(files) >= 6 and all(i < 3 or i % 3 == 1 for i in index if i <= 40) and max(index) > 12
     assert all(is_finished(f) for f in files)
     for name, (kind, target) in planted.items():        # nothing written through a link or over a file
         assert name.read_bytes() == PRECIOUS if kind != "dangling" else not target.exists()
         assert (kind == "file") != name.is_symlink()
-    assert sorted(os.listdir(targets)) == made and all((targets / t).read_bytes() == PRECIOUS for t in made)
-    stamp = next(iter(session))
-    passed = [n for n, (kind, _) in planted.items() if n.name.startswith(stamp) and kind != "file"
-              and int(n.stem.rsplit("_", 1)[1]) < max(index)]
-    assert len(passed) >= 6 and all(log.count(str(n)) == 1 for n in passed), log
+    assert all((targets / t).read_bytes() == PRECIOUS for t in made if t != "folder")
+    passed = [n for n, (kind, _) in planted.items() if kind != "file" and int(n.stem.rsplit("_", 1)[1]) < max(index)]
+    assert len(passed) >= 4 and all(log.count(str(n)) == 1 for n in passed), log
+    assert f"{out / stem} is a symbolic link" in log and f"{out / stem}-2 is a symbolic link" in log
     want = expected_bytes(truth, "figure8", 200.0, 6)
     assert b"".join(raw_stream(f, "daq")[0] for f in files) == want["daq"]
     assert b"".join(raw_stream(f, "gps")[0] for f in files) == want["gps"]
