@@ -119,7 +119,8 @@ def test_quiet_and_verbose_on_the_file_commands(figure8_150s_seed3, tmp_path, ca
     drive = str(figure8_150s_seed3)
     out, _ = _run(capsys, ["filter", drive, "--start", "30", "--end", "40", "--out", str(tmp_path / "s.mcap")])
     assert len(out.splitlines()) == 1 and "wrote" in out
-    out, _ = _run(capsys, ["filter", "-v", drive, "--start", "30", "--end", "40", "--out", str(tmp_path / "s.mcap")])
+    out, _ = _run(capsys, ["filter", "-v", drive, "--start", "30", "--end", "40", "--out", str(tmp_path / "s.mcap"),
+                           "--force"])
     assert "/imu" in out and len(out.splitlines()) > 2
     assert _run(capsys, ["filter", "-q", drive, "--end", "40", "--out", str(tmp_path / "q.mcap")]) == ("", "")
     assert _run(capsys, ["rebuild", "-q", str(tmp_path / "q.mcap"), "--out", str(tmp_path / "r.mcap")]) == ("", "")
