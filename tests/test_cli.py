@@ -53,7 +53,7 @@ def test_fuse_prints_a_short_summary_and_keeps_the_settings_in_the_file(figure8_
     n_fix = next(t.count for t in reader.topics(fused) if t.topic == "/fusion/kf/fix")
     assert f"{n_fix} solutions" in line
     # -v: the settings with their sources; they are the ones the fused file's metadata records
-    verbose, _ = _run(capsys, ["fuse", "-v", *argv[1:]])
+    verbose, _ = _run(capsys, ["fuse", "-v", *argv[1:], "--force"])
     assert "fusion settings (--outage): outages=((95, 25))" in verbose
     with open(fused, "rb") as f:
         meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["fusion"]
@@ -63,7 +63,7 @@ def test_fuse_prints_a_short_summary_and_keeps_the_settings_in_the_file(figure8_
         key, value = item.split("=", 1)
         assert key in config, key
     # -q: nothing at all on a clean run
-    assert _run(capsys, ["fuse", "-q", *argv[1:]]) == ("", "")
+    assert _run(capsys, ["fuse", "-q", *argv[1:], "--force"]) == ("", "")
 
 
 def test_fuse_json_summary_parses_and_agrees_with_the_file(figure8_150s_seed3, tmp_path, capsys):
