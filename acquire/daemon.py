@@ -339,7 +339,8 @@ def remove_stale_socket(path: str) -> None:
     except FileNotFoundError:
         return
     if not stat.S_ISSOCK(st.st_mode) or st.st_uid != os.getuid():
-        kind = "a socket of another user" if stat.S_ISSOCK(st.st_mode) else "not a socket"
+        kind = ("a socket of another user" if stat.S_ISSOCK(st.st_mode) else
+                "a symbolic link (never followed), not a socket" if stat.S_ISLNK(st.st_mode) else "not a socket")
         raise BusError(f"[daemon] bus: {path} exists and is {kind}; it is left alone: choose another path")
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:

@@ -215,3 +215,13 @@ def test_a_live_daemon_skips_planted_links_under_its_next_names_and_loses_nothin
     assert b"".join(raw_stream(f, "gps")[0] for f in files) == want["gps"]
     mono = np.concatenate([raw_stream(f, "daq")[1] for f in files])
     assert np.all(np.diff(mono) >= 0)
+
+
+def test_the_bus_socket_is_never_bound_through_a_link(tmp_path: Path) -> None:
+    from fieldlog.acquire.daemon import BusError, BusServer
+
+    link, target = tmp_path / "bus.sock", tmp_path / "elsewhere" / "bus.sock"
+    link.symlink_to(target)
+    with pytest.raises(BusError, match="symbolic link"):
+        BusServer(str(link))
+    assert link.is_symlink() and not target.parent.exists()
