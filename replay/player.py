@@ -58,10 +58,8 @@ class ReplayResult:
 
 
 def live_blueprint() -> rrb.Blueprint:
-    """``replay.view.blueprint`` with the time panel following the newest data on ``gps_time``."""
-    bp = rv.blueprint()
-    return rrb.Blueprint(bp.root_container, rrb.TimePanel(timeline=rv.TIMELINE, play_state="following"),
-                         collapse_panels=False)
+    """``replay.view.blueprint``: its time panel follows the newest data on ``gps_time``."""
+    return rv.blueprint()
 
 
 class _Source:
@@ -94,11 +92,6 @@ class _Source:
 
 def _columns(t: rv.Track) -> list[np.ndarray | None]:
     return [getattr(t, f.name) for f in fields(rv.Track)]
-
-
-def _rows(t: rv.Track, sel) -> rv.Track:
-    """Rows ``sel`` (mask or slice) of a track."""
-    return rv.Track(*(None if v is None else v[sel] for v in _columns(t)))
 
 
 def _cat(a: rv.Track | None, b: rv.Track) -> rv.Track:
@@ -222,8 +215,8 @@ class Player:
             if ref is not None and not ref_is_truth:
                 # GPS epochs are scored once solutions reach them (the engine may lag a block), across blocks
                 trk_e = _cat(self.last_sol, trk)
-                self.gps_pending = _rows(ref, ref.t_ns > trk.t_ns[-1])
-                self.last_sol = _rows(trk, slice(-1, None))
+                self.gps_pending = ref.take(ref.t_ns > trk.t_ns[-1])
+                self.last_sol = trk.take(slice(-1, None))
                 trk = trk_e
             if ref is not None and len(ref.t_ns):
                 rv._log_errors(self.rec, self.method, rv.errors(trk, ref, ref_is_truth, self.origin),

@@ -44,6 +44,23 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       ``/truth/vehicle/twist`` (simulated drives), one row per message
 ``speed/<method>``                    Scalars, m/s: the fused forward speed (``/fusion/<method>/odom`` twist x,
                                       base_link), one row per solution row, beside the wheels'
+``enu/<src>/base_link``               the vehicle's pose (``<src>``: ``truth``, ``fusion/<method>``): Transform3D
+                                      per solution row (truth: per ``TRUTH_DECIMATION``-th row), base_link (REP-103
+                                      FLU) in the view's ENU frame, translation m and rotation x, y, z, w; static
+                                      Boxes3D (``CAR_HALF_SIZES_M``, in base_link) and TransformAxes3D. base_link is
+                                      the IMU's pose through the drive's ``/tf_static`` base_link -> imu (the fused
+                                      files' ``odom``/``base_link`` rule: ``tools/fuse.py``, ``Odometry``); the
+                                      view's ENU axes are taken as map's (0.16 mrad per km apart)
+``attitude/<angle>/<src>``            Scalars, deg (``<angle>``: ``roll``, ``pitch``, ``heading``): the vehicle's
+                                      (base_link in RFU axes, ``fusion.earth.dcm_to_euler``); fused methods
+                                      [angle, +sigma, -sigma] with sigma from ``/fusion/<method>/attitude_std``
+                                      (phi E, N, U turned into the vehicle's pitch and roll axes by the heading;
+                                      heading sigma = phi U); truth [angle]; heading in [0, 360)
+``errors/att/<angle>/<method>``       Scalars [error, +sigma, -sigma], deg: fused minus truth (``/truth/attitude``
+                                      interpolated to the fused times; heading error wrapped to +-180), with truth
+``gps/satellites``, ``gps/hdop``,     Scalars, one row per GGA sentence of ``/gps/nmea``: satellites used, HDOP,
+``gps/fix_type``                      GGA fix quality (0 none, 1 GPS, 2 DGPS, 4 RTK fixed, 5 RTK float,
+                                      6 dead reckoning); a drive without GGA has none
 ``timesync/state``                    Scalars: FREE=0, HOLDOVER=1, LOCKED=2 (``/time/sync``)
 ``timesync/rate_ppm``                 Scalars: DAQ oscillator rate error, ppm
 ``timesync/residual_us``              Scalars: RMS fit residual of the inlier PPS edges, us
@@ -58,7 +75,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -66,7 +83,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import outputs
+from fieldlog.acquire import calib, frames, messages, nmea, outputs
 from fieldlog.fusion import earth
 from fieldlog.replay import inputs, reader
 from fieldlog.replay.drive import DriveSpec, drive_files, label
@@ -77,6 +94,8 @@ IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
 IMU_BLOCK_S = 60.0
 TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
 AXES = ("east", "north", "up")
+ANGLES = ("roll", "pitch", "heading")
+CAR_HALF_SIZES_M = (2.25, 0.9, 0.75)  # a 4.5 x 1.8 x 1.5 m box (base_link FLU), centred 0.75 m above base_link
 
 GPS_COLOR = (255, 140, 0)
 WHEELS_COLOR = (120, 60, 200)
@@ -100,6 +119,10 @@ class Track:
     v_n: np.ndarray | None = None  # (n,3) ENU m/s
     sigma_pos: np.ndarray | None = None  # (n,3) ENU m
     sigma_vel: np.ndarray | None = None  # (n,3) ENU m/s
+
+    def take(self, sel) -> "Track":
+        """Rows ``sel`` (mask or slice) of the track."""
+        return Track(*(None if v is None else v[sel] for v in (getattr(self, f.name) for f in fields(self))))
 
 
 @dataclass
@@ -353,11 +376,136 @@ def _log_bias(rec: rr.RecordingStream, src: str, b: dict[str, np.ndarray], color
                     [f"{src} {kind} bias {a} ({unit})" for a in "xyz"], shades)
 
 
+# ---------------------------------------------------------------------------------------------
+# The vehicle: pose, attitude, GPS quality
+
+
+def mounting(drive: DriveSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(imu position in base_link m (3,), C_imu_base (3,3): IMU axes -> base_link axes) from the drive's
+    ``/tf_static`` base_link -> imu; without one, the default ``[mounting]`` (IMU at base_link, RFU -> FLU)."""
+    if _topic_names(drive).get("/tf_static"):
+        for msg in reader.read_topic(drive, "/tf_static")["msgs"]:
+            for tf in (msg.transforms if msg is not None else ()):
+                if tf.header.frame_id == frames.BASE_LINK and tf.child_frame_id == frames.IMU:
+                    t, r = tf.transform.translation, tf.transform.rotation
+                    return np.array([t.x, t.y, t.z]), earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w]))
+    return np.zeros(3), frames.C_imu_base(calib.Mounting())
+
+
+@dataclass
+class Pose:
+    """base_link's pose in the view's ENU frame: t_ns (n,), p_n (n,3) m, C_base_n (n,3,3) base_link FLU -> ENU."""
+
+    t_ns: np.ndarray
+    p_n: np.ndarray
+    C_base_n: np.ndarray
+
+    def euler_deg(self, unwrap: bool = False) -> np.ndarray:
+        """(n,3) roll, pitch, heading in deg of the vehicle (base_link in RFU axes); heading in [0, 360), or
+        continuous from row to row (``unwrap``: for interpolation)."""
+        heading, pitch, roll = earth.dcm_to_euler(self.C_base_n @ frames.C_RFU_FLU)
+        return np.degrees(np.stack([roll, pitch, np.unwrap(heading) if unwrap else heading], axis=1))
+
+
+def base_pose(trk: Track, q_bn: np.ndarray, mount: tuple[np.ndarray, np.ndarray],
+              origin: tuple[float, float, float]) -> Pose:
+    """base_link's pose from the IMU's position (``trk``) and attitude ``q_bn`` (n,4) x, y, z, w (IMU RFU -> ENU)
+    on the same rows: C_base_n = C_bn C_imu_base^T, p_base = p_imu - C_base_n r_imu."""
+    r_imu, C_imu_base = mount
+    C_base_n = earth.quat_to_dcm(q_bn) @ C_imu_base.T
+    p_n = to_enu(trk.lat_deg, trk.lon_deg, trk.alt_m, origin) - C_base_n @ r_imu
+    return Pose(trk.t_ns, p_n, C_base_n)
+
+
+def attitude_sigma_deg(phi_sigma_n: np.ndarray, heading_deg: np.ndarray) -> np.ndarray:
+    """(n,3) roll, pitch, heading sigmas in deg from the attitude error sigmas phi E, N, U (rad, nav frame):
+    the horizontal tilt turned into the vehicle's forward (roll) and right (pitch) axes by the heading,
+    correlations ignored; heading sigma = phi U."""
+    h = np.radians(heading_deg)
+    s_e2, s_n2 = phi_sigma_n[:, 0] ** 2, phi_sigma_n[:, 1] ** 2
+    roll = np.sqrt(np.sin(h) ** 2 * s_e2 + np.cos(h) ** 2 * s_n2)
+    pitch = np.sqrt(np.cos(h) ** 2 * s_e2 + np.sin(h) ** 2 * s_n2)
+    return np.degrees(np.stack([roll, pitch, phi_sigma_n[:, 2]], axis=1))
+
+
+def wrap_deg(x: np.ndarray) -> np.ndarray:
+    """Angles in deg wrapped to [-180, 180)."""
+    return np.mod(x + 180.0, 360.0) - 180.0
+
+
+def _log_pose(rec: rr.RecordingStream, src: str, pose: Pose, color) -> None:
+    if len(pose.t_ns) == 0:
+        return
+    path = f"enu/{src}/base_link"
+    rr.send_columns(path, indexes=_times(pose.t_ns),
+                    columns=rr.Transform3D.columns(translation=pose.p_n,
+                                                   quaternion=earth.dcm_to_quat(pose.C_base_n)),
+                    recording=rec)
+    rec.log(path, rr.Boxes3D(half_sizes=[CAR_HALF_SIZES_M], centers=[(0.0, 0.0, CAR_HALF_SIZES_M[2])],
+                             colors=[color], fill_mode="solid"), rr.TransformAxes3D(2.0), static=True)
+
+
+def _log_attitude(rec: rr.RecordingStream, src: str, pose: Pose, sigma_deg: np.ndarray | None, color) -> None:
+    """``attitude/<angle>/<src>``: [angle, +sigma, -sigma] (sigma None: [angle])."""
+    light = tuple(int(c + (255 - c) * 0.55) for c in color)
+    euler = pose.euler_deg()
+    for k, angle in enumerate(ANGLES):
+        x = euler[:, k:k + 1]
+        names, colors, widths = [f"{src} {angle} (deg)"], [color], [2.0]
+        if sigma_deg is not None:
+            x = np.hstack([x, x + sigma_deg[:, k:k + 1], x - sigma_deg[:, k:k + 1]])
+            names, colors, widths = names + [f"{src} +σ", f"{src} −σ"], colors + [light, light], widths + [1.0, 1.0]
+        path = f"attitude/{angle}/{src}"
+        rr.send_columns(path, indexes=_times(pose.t_ns), columns=rr.Scalars.columns(scalars=x), recording=rec)
+        rec.log(path, rr.SeriesLines(names=names, colors=colors, widths=widths), static=True)
+
+
+def _log_attitude_errors(rec: rr.RecordingStream, method: str, pose: Pose, sigma_deg: np.ndarray, truth: Pose,
+                         color) -> None:
+    """``errors/att/<angle>/<method>``: fused minus truth (truth interpolated to the fused times)."""
+    ref = _interp(pose.t_ns, truth.t_ns, truth.euler_deg(unwrap=True))
+    err = pose.euler_deg() - ref
+    err[:, 2] = wrap_deg(err[:, 2])
+    ok = np.isfinite(err).all(axis=1)
+    if not ok.any():
+        return
+    light = tuple(int(c + (255 - c) * 0.55) for c in color)
+    for k, angle in enumerate(ANGLES):
+        path = f"errors/att/{angle}/{method}"
+        s = sigma_deg[ok, k]
+        rr.send_columns(path, indexes=_times(pose.t_ns[ok]),
+                        columns=rr.Scalars.columns(scalars=np.stack([err[ok, k], s, -s], axis=1)), recording=rec)
+        rec.log(path, rr.SeriesLines(colors=[color, light, light], widths=[2.0, 1.0, 1.0],
+                                     names=[f"{method} {angle} (deg)", f"{method} +σ", f"{method} −σ"]),
+                static=True)
+
+
+def gga_quality(drive: DriveSpec) -> dict[str, np.ndarray]:
+    """The GGA sentences of ``/gps/nmea``: log_time_ns, satellites, hdop, fix_type (GGA quality), as float
+    (NaN: field empty). Only payloads holding ``GGA,`` are decoded."""
+    t_out, rows = [], []
+    if _topic_names(drive).get("/gps/nmea"):
+        log_ns, _, payloads = reader.read_payloads(drive, "/gps/nmea")
+        dec = messages.decoder_for(messages.SENTENCE)
+        for t, b in zip(log_ns, payloads):
+            if b"GGA," not in bytes(b):
+                continue
+            line = dec(bytes(b)).sentence.strip().encode("ascii", "replace")
+            gga = nmea.decode_body(nmea.split_checksum(line)[0])
+            if isinstance(gga, nmea.Gga):
+                t_out.append(int(t))
+                rows.append([np.nan if v is None else float(v) for v in (gga.num_sats, gga.hdop, gga.quality)])
+    x = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    return {"log_time_ns": np.array(t_out, dtype=np.int64), "satellites": x[:, 0], "hdop": x[:, 1],
+            "fix_type": x[:, 2]}
+
+
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
     "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
     "/gps/vel": ("v_n",),
     "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
     "/truth/vel": ("v_n",),
+    "/truth/attitude": ("q_xyzw",),
     "/truth/imu_bias": ("omega_ib_b", "f_b"),
     "/time/sync": ("state", "rate_ppm", "residual_us"),
     "/vehicle/twist": ("v_n",),
@@ -419,42 +567,75 @@ def _plot(origin: str, name: str) -> rrb.TimeSeriesView:
     return rrb.TimeSeriesView(origin=origin, name=name, axis_x=rrb.TimeAxis(view_range=whole))
 
 
-def blueprint(map_zoom: float | None = None) -> rrb.Blueprint:
-    """Map and 3D trajectory on the left; errors, outages, IMU and time sync on the right.
-    ``map_zoom``: the map's web-mercator zoom level (None: the viewer fits the data)."""
+def _row(plots: Sequence[rrb.TimeSeriesView], name: str) -> rrb.Horizontal:
+    return rrb.Horizontal(*plots, name=name)
+
+
+def blueprint(map_zoom: float | None = None, follow: str | None = None) -> rrb.Blueprint:
+    """Map, the 3D trajectory with the vehicle and a view following it on the left; on the right, rows side by
+    side: position errors E/N/U, attitude with its sigma, attitude errors, then GPS outage/no fix, GPS quality
+    and the time-sync state on one row, and the rest in tabs. Side panels collapsed, the time cursor
+    following the newest data (the whole drive at once, outages in red on the map).
+    ``map_zoom``: the map's web-mercator zoom level (None: the viewer fits the data); ``follow``: the source
+    (``fusion/<method>``, ``truth``) whose ``enu/<follow>/base_link`` is the close-up view's origin (None: no
+    close-up)."""
     up_to_cursor = rrb.VisibleTimeRange(TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                         end=rrb.TimeRangeBoundary.cursor_relative())
-    err = [_plot(f"errors/{kind}/{axis}", f"{label} error {axis}")
-           for kind, label in (("pos", "position"), ("vel", "velocity")) for axis in AXES]
+    err = {kind: [_plot(f"errors/{kind}/{axis}", f"{label} error {axis}") for axis in axes]
+           for kind, label, axes in (("pos", "position", AXES), ("vel", "velocity", AXES),
+                                     ("att", "attitude", ANGLES))}
+    attitude = [_plot(f"attitude/{angle}", f"{angle} ±σ (deg)") for angle in ANGLES]
+    # the close-up's space is base_link's: the view moves with the car, the tracks drawn around it
+    close_up = rrb.Spatial3DView(
+        origin=f"enu/{follow}/base_link", contents="enu/**", name=f"vehicle pose: {follow} base_link",
+        time_ranges=up_to_cursor,
+        eye_controls=rrb.EyeControls3D(position=(-14.0, 9.0, 7.0), look_target=(0.0, 0.0, CAR_HALF_SIZES_M[2]),
+                                       eye_up=(0.0, 0.0, 1.0))) if follow else None
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.MapView(origin="map", name="Map", zoom=map_zoom),
-                rrb.Spatial3DView(origin="enu", name="Local ENU trajectory (m)", time_ranges=up_to_cursor),
+                rrb.Horizontal(*(v for v in (
+                    rrb.Spatial3DView(origin="enu", name="Local ENU trajectory (m)", time_ranges=up_to_cursor),
+                    close_up) if v is not None)),
+                row_shares=[1, 1],
             ),
             rrb.Vertical(
-                rrb.Tabs(*err[:3], name="position error"),
-                rrb.Tabs(*err[3:], name="velocity error"),
-                _plot("status", "GPS outage / no fix (1 = yes)"),
+                _row(err["pos"], "position error"),
+                _row(attitude, "attitude"),
+                _row(err["att"], "attitude error (truth)"),
+                _row([_plot("status", "outage / no fix"), _plot("gps/satellites", "satellites"),
+                      _plot("gps/hdop", "HDOP"), _plot("gps/fix_type", "fix type (1 GPS, 2 DGPS, 4 RTK)"),
+                      _plot("timesync/state", "time sync (2 locked)")], "GPS quality and time sync"),
                 rrb.Tabs(
+                    _row(err["vel"], "velocity error"),
                     _plot("imu/gyro", f"gyro (means of {IMU_DECIMATION} samples)"),
                     _plot("imu/accel", f"accel (means of {IMU_DECIMATION} samples)"),
                     rrb.Vertical(_plot("bias/gyro", "gyro bias estimate (deg/h)"),
                                  _plot("bias/accel", "accel bias estimate (mg)"), name="IMU bias estimates"),
                     _plot("speed", "forward speed: wheels and fused (m/s)"),
                     rrb.Vertical(
-                        _plot("timesync/state", "sync state"),
                         _plot("timesync/rate_ppm", "rate error (ppm)"),
                         _plot("timesync/residual_us", "fit residual (us)"),
                         name="time sync",
                     ),
                 ),
-                row_shares=[3, 2, 1, 2],
+                row_shares=[2, 2, 2, 1.6, 1.8],
             ),
-            column_shares=[1, 1],
+            column_shares=[1, 1.3],
         ),
-        collapse_panels=False,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE, play_state="following"),
     )
+
+
+def follow_source(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]]) -> str | None:
+    """The source the close-up view tracks: the first fused method, else the truth, else none."""
+    methods = discover_methods(fused if not isinstance(drive, (str, os.PathLike)) else [drive, *fused])
+    if methods:
+        return f"fusion/{methods[0][0]}"
+    return "truth" if _topic_names(drive).get("/truth/attitude") else None
 
 
 def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
@@ -493,11 +674,20 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                             columns=rr.GeoPoints.columns(positions=pos), recording=rec)
             rec.log("map/no_fix", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(6.0), colors=[NO_FIX_COLOR]),
                     static=True)
-    truth_map = None
+    truth_map, truth_pose = None, None
+    mount = mounting(drive)
     if truth is not None:
         sl = slice(None, None, TRUTH_DECIMATION)
         truth_map = Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl])
         _log_track(rec, "truth", truth_map, TRUTH_COLOR, origin, 2.0)
+        if "/truth/attitude" in low:
+            att = low["/truth/attitude"]
+            q = _interp(truth.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
+            ok = np.isfinite(q).all(axis=1)
+            truth_pose = base_pose(truth.take(ok), q[ok], mount, origin)
+            dec = Pose(truth_pose.t_ns[sl], truth_pose.p_n[sl], truth_pose.C_base_n[sl])
+            _log_pose(rec, "truth", dec, TRUTH_COLOR)
+            _log_attitude(rec, "truth", dec, None, TRUTH_COLOR)
     if "/truth/imu_bias" in low:
         _log_bias(rec, "truth", {k: v[::TRUTH_DECIMATION] for k, v in low["/truth/imu_bias"].items()}, TRUTH_COLOR)
 
@@ -514,6 +704,21 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                 _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
+        base = f"/fusion/{m.split('@')[0]}"
+        if _topic_names(path).get(f"{base}/attitude"):
+            att = reader.read_topic(path, f"{base}/attitude")
+            q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
+            ok = np.isfinite(q).all(axis=1)
+            pose = base_pose(trk.take(ok), q[ok], mount, origin)
+            _log_pose(rec, f"fusion/{m}", pose, color)
+            sigma = None
+            if _topic_names(path).get(f"{base}/attitude_std"):
+                a = reader.read_topic(path, f"{base}/attitude_std")
+                phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
+                sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
+            _log_attitude(rec, m, pose, sigma, color)
+            if truth_pose is not None and sigma is not None:
+                _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
         if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/imu_bias"):  # fused files before it: none
             _log_bias(rec, m, reader.read_topic(path, f"/fusion/{m.split('@')[0]}/imu_bias"), color)
         if "/vehicle/twist" in low and _topic_names(path).get(f"/fusion/{m.split('@')[0]}/odom"):
@@ -547,6 +752,12 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                 rec.log("map/outage", rr.GeoLineStrings(lat_lon=strips, radii=rr.Radius.ui_points(5.0),
                                                         colors=[OUTAGE_COLOR]), static=True)
 
+    q = gga_quality(drive)
+    if len(q["log_time_ns"]):
+        _log_scalar(rec, "gps/satellites", q["log_time_ns"], q["satellites"], "satellites used", [GPS_COLOR], step=True)
+        _log_scalar(rec, "gps/hdop", q["log_time_ns"], q["hdop"], "HDOP", [GPS_COLOR], step=True)
+        _log_scalar(rec, "gps/fix_type", q["log_time_ns"], q["fix_type"],
+                    "GGA quality", [GPS_COLOR], step=True)
     if "/time/sync" in low:
         ts = low["/time/sync"]
         ok = ts["valid"]
@@ -576,7 +787,7 @@ def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
     if rrd is None and not has_display():
         raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd")
     rec = rr.RecordingStream("fieldlog")
-    bp = blueprint()
+    bp = blueprint(follow=follow_source(drive, fused))
     with outputs.staged(rrd, force) if rrd is not None else contextlib.nullcontext() as work:
         if work is not None:
             rec.save(work, default_blueprint=bp)

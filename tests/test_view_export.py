@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pytest
+import rerun.blueprint as rrb
 from mcap.reader import make_reader
 
 from fieldlog.acquire import messages
@@ -74,6 +75,10 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
     n_kf = len(read_topic(kf, "/fusion/kf/fix")["log_time_ns"])
     n_truth = -(-len(read_topic(sim, "/truth/fix")["log_time_ns"]) // rview.TRUTH_DECIMATION)
     n_sync = len(read_topic(sim, "/time/sync")["log_time_ns"])
+    n_att = int(read_topic(kf, "/fusion/kf/attitude")["valid"].sum())
+    assert n_att == n_kf
+    n_gga = sum(1 for m in read_topic(sim, "/gps/nmea")["msgs"] if m.sentence[3:7] == "GGA,")
+    assert n_gga >= n_fix + n_no_fix - 1  # one GGA per epoch, no-fix epochs too
     reasons = sorted(m.reason for m in read_topic(kf, "/fusion/outage")["msgs"])
     assert reasons == ["injected", "no_fix"]  # the forced outage and the receiver's (disjoint windows)
 
@@ -99,13 +104,85 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
         ("/timesync/state", "Scalars:scalars"): n_sync,
         ("/timesync/rate_ppm", "Scalars:scalars"): n_sync,
         ("/timesync/residual_us", "Scalars:scalars"): n_sync,
+        # the vehicle: pose in base_link, attitude with sigma, attitude errors, GPS quality
+        ("/enu/fusion/kf/base_link", "Transform3D:translation"): n_att,
+        ("/enu/fusion/kf/base_link", "Transform3D:quaternion"): n_att,
+        ("/enu/fusion/kf/base_link", "Boxes3D:half_sizes"): 1,
+        ("/enu/truth/base_link", "Transform3D:translation"): n_truth,
+        ("/attitude/roll/kf", "Scalars:scalars"): n_att,
+        ("/attitude/heading/kf", "Scalars:scalars"): n_att,
+        ("/attitude/pitch/truth", "Scalars:scalars"): n_truth,
+        ("/errors/att/roll/kf", "Scalars:scalars"): n_att,
+        ("/errors/att/heading/kf", "Scalars:scalars"): n_att,
+        ("/gps/satellites", "Scalars:scalars"): n_gga,
+        ("/gps/hdop", "Scalars:scalars"): n_gga,
+        ("/gps/fix_type", "Scalars:scalars"): n_gga,
     }
     got = {k: rows.get(k, 0) for k in expected}
     assert got == expected
     assert n_imu == 60000 // rview.IMU_DECIMATION
     assert rows["/viewport", "ViewportBlueprint:root_container"] == 1  # the default blueprint is in the file
+    # ... with the screenshot's panels: collapsed, the time cursor following the newest data
+    for entity, comp in (("/time_panel", "TimePanelBlueprint:play_state"), ("/blueprint_panel", "PanelBlueprint:state"),
+                         ("/selection_panel", "PanelBlueprint:state")):
+        assert rows[entity, comp] == 1, entity
     stats = _rerun("stats", str(rrd))
     assert "gps_time" in stats
+
+
+def _containers(c) -> list:
+    """Every container under ``c`` (a blueprint container), depth first."""
+    return [c] + [x for v in c.contents if hasattr(v, "contents") for x in _containers(v)]
+
+
+def test_blueprint_shows_error_axes_and_attitude_side_by_side():
+    bp = rview.blueprint(follow="fusion/kf")
+    kinds = {}
+    for c in _containers(bp.root_container):
+        for v in c.contents:
+            if hasattr(v, "origin"):
+                kinds[str(v.origin)] = c.kind
+    horizontal = rrb.Horizontal().kind
+    for group in ("errors/pos", "attitude", "errors/att"):
+        axes = rview.ANGLES if "att" in group else rview.AXES
+        assert {kinds[f"{group}/{a}"] for a in axes} == {horizontal}, group  # not tabs
+    row = {kinds[o] for o in ("status", "gps/satellites", "gps/hdop", "gps/fix_type", "timesync/state")}
+    assert row == {horizontal}  # GPS quality and the sync state on one row
+    views = [v for c in _containers(bp.root_container) for v in c.contents if hasattr(v, "origin")]
+    assert sum(isinstance(v, rrb.Spatial3DView) for v in views) == 2  # the trajectory and the close-up
+
+
+def test_attitude_and_pose_against_truth(drives):
+    """The fused vehicle's roll, pitch and heading against the simulator's, within 3 sigma of the filter; the
+    base_link pose through the drive's /tf_static mounting."""
+    sim, kf = drives
+    truth = rview.truth_track(read_topic(sim, "/truth/fix"), None)
+    origin = (float(truth.lat_deg[0]), float(truth.lon_deg[0]), float(truth.alt_m[0]))
+    mount = rview.mounting(sim)
+    tf = read_topic(sim, "/tf_static")["msgs"][0].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", "imu")
+    att = read_topic(sim, "/truth/attitude")
+    q = rview._interp(truth.t_ns, att["log_time_ns"], att["q_xyzw"])
+    ok = np.isfinite(q).all(axis=1)
+    truth_pose = rview.base_pose(truth.take(ok), q[ok], mount, origin)
+    fused = rview._fused(kf, "kf")
+    pose = rview.base_pose(fused, read_topic(kf, "/fusion/kf/attitude")["q_xyzw"], mount, origin)
+    np.testing.assert_allclose(np.linalg.det(pose.C_base_n), 1.0, atol=1e-9)
+    err = pose.euler_deg() - rview._interp(pose.t_ns, truth_pose.t_ns, truth_pose.euler_deg(unwrap=True))
+    err[:, 2] = rview.wrap_deg(err[:, 2])
+    sigma = rview.attitude_sigma_deg(read_topic(kf, "/fusion/kf/attitude_std")["xyz"], pose.euler_deg()[:, 2])
+    assert np.all(sigma > 0) and np.all(sigma[:, 2] > sigma[:, :2].min())  # heading the least observable
+    inside = np.abs(err) < 3 * sigma
+    assert inside.mean(axis=0).min() > 0.9, inside.mean(axis=0)
+    # base_link is the IMU's point less the lever arm turned into ENU: base_link's forward axis is the heading
+    fwd = pose.C_base_n[:, :, 0]
+    heading = np.degrees(np.arctan2(fwd[:, 0], fwd[:, 1]))
+    np.testing.assert_allclose(rview.wrap_deg(heading - pose.euler_deg()[:, 2]), 0.0, atol=1e-6)
+    lever = np.array([1.2, -0.4, 0.9])  # an IMU off base_link: the same attitude, base_link |lever| away
+    moved = rview.base_pose(fused, read_topic(kf, "/fusion/kf/attitude")["q_xyzw"], (lever, mount[1]), origin)
+    np.testing.assert_allclose(np.linalg.norm(moved.p_n - pose.p_n, axis=1), np.linalg.norm(lever), rtol=1e-9)
+    np.testing.assert_allclose(moved.euler_deg(), pose.euler_deg())
+    np.testing.assert_allclose(rview.wrap_deg(np.array([179.0 + 2.0, -181.0, 360.0])), [-179.0, 179.0, 0.0])
 
 
 def test_errors_against_truth(drives):

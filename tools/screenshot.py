@@ -3,8 +3,9 @@
     python -m fieldlog.tools.screenshot [--out docs/viewer.png] [--duration 300] [--size 1600x1000]
 
 A figure8 drive is simulated, fused with ``dkf-rbfn`` through a 30 s GPS outage (the ``fieldlog demo``
-steps), and logged by ``replay.view.build`` with the blueprint of ``replay.view.blueprint`` (side panels
-collapsed, the time cursor following the newest data, so the whole drive is on screen). The native rerun
+steps), and logged by ``replay.view.build`` with the default blueprint of ``replay.view.blueprint`` (side
+panels collapsed, the time cursor following the newest data, so the whole drive is on screen, the close-up
+view tracking the fused vehicle), the map zoomed to the track. The native rerun
 viewer renders it under Xvfb on the CPU (Vulkan through Mesa's lavapipe) and writes the PNG itself
 (``rerun --screenshot-to``).
 
@@ -23,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from fieldlog.replay import reader
 from fieldlog.replay import view as rv
@@ -39,13 +39,6 @@ def map_zoom(lat_deg: np.ndarray, lon_deg: np.ndarray, points: float = 300.0) ->
     return float(np.log2(156_543.03 * np.cos(lat0) * points / extent_m))  # m per point at zoom 0 / 2**z
 
 
-def screenshot_blueprint(zoom: float | None = None) -> rrb.Blueprint:
-    """``replay.view.blueprint``'s layout, side panels collapsed, the time cursor on the newest data."""
-    return rrb.Blueprint(rv.blueprint(zoom).root_container, rrb.BlueprintPanel(state="collapsed"),
-                         rrb.SelectionPanel(state="collapsed"),
-                         rrb.TimePanel(state="collapsed", timeline=rv.TIMELINE, play_state="following"))
-
-
 def demo_recording(work: Path, duration_s: float) -> Path:
     """Simulate, fuse dkf-rbfn with a 30 s outage at 180 s, write ``work/viewer.rrd``."""
     from fieldlog.fusion.config import FusionConfig
@@ -58,7 +51,7 @@ def demo_recording(work: Path, duration_s: float) -> Path:
     fix = reader.read_topic(drive, "/gps/fix")
     ok = fix["valid"] & (fix["status"] >= 0)
     rec = rr.RecordingStream("fieldlog")
-    rec.save(rrd, default_blueprint=screenshot_blueprint(map_zoom(fix["lat_deg"][ok], fix["lon_deg"][ok])))
+    rec.save(rrd, default_blueprint=rv.blueprint(map_zoom(fix["lat_deg"][ok], fix["lon_deg"][ok]), "fusion/dkf-rbfn"))
     try:
         rv.build(rec, drive, [fused])
     finally:
@@ -75,8 +68,9 @@ def render(rrd: Path, out: Path, size: str, timeout_s: float = 300.0) -> None:
     if not os.environ.get("DISPLAY"):
         if shutil.which("xvfb-run") is None:
             raise SystemExit(f"xvfb-run not found: apt-get install -y {APT}")
-        # a screen larger than the window: the pointer starts at its centre, off the window (no hover tooltip)
-        cmd = ["xvfb-run", "-a", "-s", f"-screen 0 {2 * w + 200}x{2 * h + 200}x24", *cmd]
+        # the window is 2 pixels per point; a screen over twice its size: the pointer starts at the screen's
+        # centre, off the window (no hover tooltip)
+        cmd = ["xvfb-run", "-a", "-s", f"-screen 0 {4 * w + 200}x{4 * h + 200}x24", *cmd]
     env = {**os.environ, "WGPU_BACKEND": os.environ.get("WGPU_BACKEND", "vulkan"), "RERUN_ANALYTICS": "0",
            "CI": "1", "XDG_RUNTIME_DIR": os.environ.get("XDG_RUNTIME_DIR", tempfile.gettempdir())}
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout_s)
