@@ -234,7 +234,7 @@ def test_export_parquet_round_trip(drives, tmp_path):
     sim, kf = drives
     out = tmp_path / "export"
     assert cli_main(["export", str(sim), "--out", str(out)]) == 0
-    assert cli_main(["export", str(kf), "--out", str(out)]) == 0
+    assert cli_main(["export", str(kf), "--out", str(out), "--force"]) == 0  # its /tf_static replaces the drive's
     assert cli_main(["export", str(sim), "--out", str(tmp_path / "sim"), "--topics", "/tf_static"]) == 0
     for drive, where in ((sim, tmp_path / "sim"), (kf, None)):
         truth = _mcap_log_times(drive)
