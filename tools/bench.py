@@ -135,7 +135,7 @@ def bench_recorder(runs: int, tmp: Path) -> None:
     w = np.random.default_rng(1).normal(size=(n, 3))
 
     def write() -> None:
-        with recorder.Recorder(tmp / "rec.mcap") as rec:
+        with recorder.Recorder(tmp / "rec.mcap", force=True) as rec:   # the same file each run
             for topic in ("/imu", "/truth/imu"):
                 for s in range(0, n, 500):
                     sl = slice(s, s + 500)
@@ -205,8 +205,8 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     simulate("figure8", duration_s, 1, path)
     simulate("figure8", 30.0, 2, warm)
     for method in ("ins", "kf", "dkf", "dkf-rbfn"):
-        fuse(warm, method, tmp / "fused_warm.mcap")  # numba compile / cache load outside the timing
-        med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap"), runs)
+        fuse(warm, method, tmp / "fused_warm.mcap", force=True)  # numba compile / cache load outside the timing
+        med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap", force=True), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
         row(f"`fieldlog fuse --method {method}`, figure8 {duration_s:g} s [fusion]",
@@ -253,7 +253,7 @@ _PEAK_MB = "int(re.search(r'VmHWM:\\s+(\\d+) kB', open('/proc/self/status').read
 _FUSE_CHILD = ("import json, re, sys, time\n"
                "from tools.fuse import fuse\n"
                "t0 = time.perf_counter()\n"
-               "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1')\n"
+               "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1', force=True)\n"
                f"print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples, rss_mb={_PEAK_MB})))\n")
 _CLI_CHILD = ("import re, sys\n"
               "from fieldlog.tools.cli import main\n"
@@ -620,8 +620,8 @@ def bench_view(runs: int, tmp: Path) -> None:
     from fieldlog.tools.fuse import fuse
 
     drive, fused, rrd = _hour_drive(tmp), tmp / "hour_kf.mcap", tmp / "hour.rrd"
-    fuse(drive, "kf", fused, FusionConfig())
-    med, ts, _ = timed(lambda: view(drive, [fused], rrd), runs)
+    fuse(drive, "kf", fused, FusionConfig(), force=True)
+    med, ts, _ = timed(lambda: view(drive, [fused], rrd, force=True), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
           f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
     row("`fieldlog view` of a 1-hour drive plus kf to `.rrd` [view]",
@@ -641,7 +641,7 @@ def bench_export(runs: int, tmp: Path) -> None:
 
     def one() -> int:
         out = tmp / "hour_export"
-        r = subprocess.run([sys.executable, "-c", _CLI_CHILD, "export", str(drive), "--out", str(out)],
+        r = subprocess.run([sys.executable, "-c", _CLI_CHILD, "export", str(drive), "--out", str(out), "--force"],
                            capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
         assert r.returncode == 0, r.stderr
         peaks.append(float(r.stdout.split()[-1]))
@@ -788,8 +788,8 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         bad = path.with_name(path.stem + "_bad.mcap")
         bad.write_bytes(raw)
         check, _, _ = timed(lambda: McapFile(path).damaged(), runs)
-        fast, _, _ = timed(lambda: recover_drive(bad, tmp / "r.mcap"), runs)
-        slow, _, _ = timed(lambda: recorder.recover(bad, tmp / "r.mcap", TailDeriver()), runs)
+        fast, _, _ = timed(lambda: recover_drive(bad, tmp / "r.mcap", force=True), runs)
+        slow, _, _ = timed(lambda: recorder.recover(bad, tmp / "r.mcap", TailDeriver(), force=True), runs)
         print(f"{duration_s:.0f} s drive, {path.name} ({path.stat().st_size / 1e6:.1f} MB, {int(p.chunk.sum())} "
               f"chunks, {p.size.sum() / 1e6:.0f} MB uncompressed): open + check every chunk {check * 1e3:.0f} ms; recover with "
               f"one damaged chunk {fast:.2f} s (feeding the pipeline: {slow:.2f} s)")
