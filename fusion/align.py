@@ -78,7 +78,7 @@ if TYPE_CHECKING:
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
 _G = 9.80665
-_GATE = 4.0  # sigmas: a bias's flicker gives the interval means heavier tails than white noise
+GATE = 4.0  # sigmas: a bias's flicker gives the interval means heavier tails than white noise
 
 
 @dataclass
@@ -161,10 +161,10 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_re
         return False
     rn = math.sqrt(interval.n)
     if w_ref is not None and np.linalg.norm(interval.sum_w / interval.n - w_ref) > (
-            _GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still.still_rate_tol_dps * _DEG):
+            GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still.still_rate_tol_dps * _DEG):
         return False
     if f_ref is not None and np.linalg.norm(interval.sum_f / interval.n - f_ref) > (
-            _GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still.still_accel_tol_mps2):
+            GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still.still_accel_tol_mps2):
         return False
     return True
 

@@ -87,9 +87,10 @@ class Engine:
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
 
-    def used(self, name: str) -> tuple[int, ...]:
-        """The epoch times (UTC ns) at which the measurement class ``name`` (e.g. "Stationary") gave an update."""
-        return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in p.times)
+    def used(self, name: str, times: str = "times") -> tuple[int, ...]:
+        """The epoch times (UTC ns) at which the measurement class ``name`` (e.g. "Stationary") gave an update;
+        ``times`` another list of epochs it keeps (e.g. "zaru_skipped")."""
+        return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in getattr(p, times))
 
     def _parts(self) -> list[measurements.MeasurementModel]:
         """The measurements, those inside a ``FirstOf`` one by one."""

@@ -218,21 +218,23 @@ def nhc_measurement(nav: NavState, sigma_mps: float) -> Measurement:
     return C_nb @ nav.v_n, H, np.eye(2) * sigma_mps ** 2
 
 
-def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, seconds: float, sigma_mps: float,
-                           gyro_noise: float) -> Measurement:
-    """Zero-velocity (ZUPT) and zero-angular-rate (ZARU) update of a vehicle standing still.
+def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
+                           sigma_w: np.ndarray | None) -> Measurement:
+    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still.
 
     z = [v_n of the INS (m/s); mean bias-corrected gyro output over the still interval minus the Earth
-    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_mps: ZUPT 1-sigma;
-    gyro_noise rad/s/sqrt(Hz) and seconds (interval) give the ZARU 1-sigma, gyro_noise / sqrt(seconds).
+    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_v (3,) m/s: the ZUPT
+    1-sigma per ENU axis; sigma_w (3,) rad/s: the ZARU 1-sigma per body axis, None: ZUPT alone (3 rows).
     """
     C_nb = nav.C_bn.T
-    H = np.zeros((6, N_STATES))
+    rows = 3 if sigma_w is None else 6
+    H = np.zeros((rows, N_STATES))
     H[0:3, VEL] = np.eye(3)
+    if sigma_w is None:
+        return nav.v_n.copy(), H, np.diag(np.asarray(sigma_v, float) ** 2)
     H[3:6, BG] = np.eye(3)
     z = np.concatenate([nav.v_n, mean_omega_b - C_nb @ earth.omega_ie_n(nav.lat)])
-    R = np.diag(np.repeat([sigma_mps ** 2, gyro_noise ** 2 / max(seconds, 1e-3)], 3))
-    return z, H, R
+    return z, H, np.diag(np.concatenate([sigma_v, sigma_w]) ** 2)
 
 
 def correct_ins(nav: NavState, x: np.ndarray) -> NavState:

@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from fieldlog.fusion import earth, kf, odometer
-from fieldlog.fusion.align import GpsSpeed, ImuSums, StillRun
+from fieldlog.fusion.align import GATE, GpsSpeed, ImuSums, StillRun
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.errmodel import BA, BG
 from fieldlog.fusion.ins import NavState
@@ -124,9 +124,23 @@ class NonHolonomic:
 @dataclass
 class Stationary:
     """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``kf.stationary_measurement``) when the vehicle
-    stood still over the interval since the last epoch and the one before it (``fusion.align.StillRun``): ZUPT
-    1-sigma sigma_mps; ZARU 1-sigma gyro_noise (rad/s/sqrt(Hz)) over the root of the interval's length.
-    ``times``: the epochs (UTC ns) it gave a measurement at."""
+    stood still over the interval since the last epoch and the one before it (``fusion.align.StillRun``).
+
+    A standing car is not still to a good gyro (the engine idles, the body rocks on its springs, people move),
+    so the noise comes from the interval itself and from what the still detector admits, never tighter:
+
+    - ZARU, per body axis: sigma_w^2 = gyro_noise^2 / T (white noise over the interval's T s) + the squared
+      standard error of the interval's mean rate (its samples' spread over sqrt(n)) + (still_rate_tol / gate)^2,
+      the mean rate the detector lets through as "still" (``[fusion] still_rate_tol_dps`` at its gate of
+      ``align.GATE`` sigmas);
+    - ZUPT, per ENU axis: sigma_v^2 = sigma_mps^2 + (still_accel_tol * T / gate)^2, the velocity the admitted
+      mean specific force would build over the interval.
+
+    Before the ZARU is used its residual (the interval's mean bias-corrected rate less the Earth rate) is tested
+    against the bias estimate: chi^2 = r^T (P_bg + R_w)^-1 r over 3 degrees of freedom; above ``ZARU_CHI2``
+    (99.9 %) the rate is not the bias (the car moved on its springs over the interval) and the update is the ZUPT
+    alone. ``times``: the epochs (UTC ns) it gave a measurement at; ``zaru_skipped``: the epochs among them whose
+    ZARU failed the test."""
 
     cfg: FusionConfig
     sigma_mps: float
@@ -135,6 +149,7 @@ class Stationary:
     stage = "aid"
     receiver = False
     times: list[int] = field(default_factory=list)
+    zaru_skipped: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.speed = GpsSpeed(self.cfg)
@@ -150,8 +165,29 @@ class Stationary:
             return None
         self.times.append(m.epoch.t_ns)
         n = m.interval.n
-        return kf.stationary_measurement(m.nav, m.interval.sum_w / n - m.bg, n * m.imu_dt, self.sigma_mps,
-                                         self.gyro_noise)
+        mean_w = m.interval.sum_w / n - m.bg
+        sigma_v, sigma_w = self.noise(m.interval, n * m.imu_dt)
+        r = mean_w - m.nav.C_bn.T @ earth.omega_ie_n(m.nav.lat)
+        S = m.P[BG, BG] + np.diag(sigma_w ** 2)
+        if float(r @ np.linalg.solve(S, r)) > ZARU_CHI2:
+            self.zaru_skipped.append(m.epoch.t_ns)
+            sigma_w = None
+        return kf.stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
+
+    def noise(self, interval: ImuSums, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+        """(sigma_v (3,) m/s, sigma_w (3,) rad/s) of the ZUPT and ZARU from a still interval of ``seconds``
+        (class docstring)."""
+        st = self.cfg.still
+        n = max(interval.n, 1)
+        mean = interval.sum_w / n
+        spread2 = np.maximum(interval.sum_ww / n - mean * mean, 0.0)
+        T = max(seconds, 1e-3)
+        var_w = self.gyro_noise ** 2 / T + spread2 / n + (st.still_rate_tol_dps * _DEG / GATE) ** 2
+        var_v = self.sigma_mps ** 2 + (st.still_accel_tol_mps2 * T / GATE) ** 2
+        return np.full(3, math.sqrt(var_v)), np.sqrt(var_w)
+
+
+ZARU_CHI2 = 16.27  # chi^2 with 3 degrees of freedom, 99.9 %
 
 
 @dataclass

@@ -191,10 +191,12 @@ def test_stationary_measurement_sees_velocity_and_residual_gyro_bias():
     nav = _perturbed(true, x)
     bias = np.radians([0.01, -0.02, 0.03])  # residual bias of the corrected gyro output
     w_mean = true.C_bn.T @ earth.omega_ie_n(true.lat) + bias
-    z, H, R = kf.stationary_measurement(nav, w_mean, 1.0, 0.02, np.radians(0.03))
+    z, H, R = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), np.full(3, np.radians(0.03)))
     x[9:12] = bias
     assert np.allclose(z, H @ x, atol=1e-9)
     assert np.allclose(np.diag(R), np.repeat([0.02 ** 2, np.radians(0.03) ** 2], 3))
+    z3, H3, R3 = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), None)  # ZUPT alone
+    assert np.allclose(z3, z[:3]) and np.array_equal(H3, H[:3]) and np.allclose(R3, R[:3, :3])
 
 
 def test_aid_to_the_distributed_filter_equals_the_centralised_update():

@@ -86,6 +86,7 @@ class FuseResult:
     still_ns: tuple[int, ...] = ()  # GPS epoch times (UTC ns) with a stationary (ZUPT + ZARU) update
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
+    zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
 
 
 class Diverged(ValueError):
@@ -431,4 +432,4 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
-                      hinf_note or None)
+                      hinf_note or None, engine.used("Stationary", "zaru_skipped"))

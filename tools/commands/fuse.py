@@ -53,7 +53,8 @@ def run(a: argparse.Namespace) -> int:
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
                    imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
-                   alignment=res.alignment, hinf=res.hinf, wall_s=round(time.monotonic() - t0, 3))
+                   alignment=res.alignment, hinf=res.hinf, stationary_updates=len(res.still_ns),
+                   zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
     if a.json:
         print(json.dumps(summary))
     else:
@@ -67,6 +68,9 @@ def run(a: argparse.Namespace) -> int:
             log.info(f"alignment: {res.alignment}")
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
+        if res.still_ns:
+            log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
+                     "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")
     lo, hi = RATE_HZ
     if not lo <= res.imu_rate_hz <= hi:
         log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")

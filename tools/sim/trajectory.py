@@ -17,6 +17,7 @@ Scenario file format (TOML):
     [motion]  initial_heading_deg, static_s, max_accel_mps2, turn_ramp_s, grade_ramp_s, roll_per_g_deg,
               coordinated_turns (bool, default false),
               lap_speed_jitter_pct, lap_time_jitter_pct, lap_turn_jitter_deg (default 0: laps repeat exactly)
+    [motion.idle]                          optional: how the car stands while stopped (engine running), below
     [[motion.segments]]                    driven once, in order, after static_s
     [[motion.lap]]                         then repeated until the drive ends (optional)
         each: one of duration_s | distance_m | radius_m (with turn_deg), and optionally
@@ -35,6 +36,14 @@ Laps that vary: with the ``lap_*_jitter`` keys each lap is drawn afresh from the
 each turn's angle changed by N(0, lap_turn_jitter_deg) less the lap's mean change (the lap's net heading change
 is kept, so the track does not rotate away). Factors are clipped to [0.7, 1.3]; a segment is lengthened to its
 speed change where that needs it. A predictor that learns the lap as a pattern of time cannot replay it.
+
+A car that stands (``[motion.idle]``): while the speed is zero (the static start, every stop) the body rocks on
+its springs, roll and pitch rates of sines at ``rock_hz`` (list, Hz) with rate amplitude ``rock_rate_dps``
+each; the engine shakes it at ``engine_hz`` with ``engine_rate_dps``; and ``bumps_per_min`` times a minute on
+average (Poisson, from the seed) someone moves: a Gabor pulse of ``bump_rate_dps`` at ``bump_hz``, width
+``bump_s``. Phases are drawn from the seed. The motion is a perturbation of the true roll and pitch angles
+(analytic, so the true attitude carries it and the error-free IMU sees its rates and the tilted gravity),
+faded in and out over ``fade_s`` inside each stop, so the moving car is untouched.
 
 Kinematics are exact in a fixed local tangent frame t (ENU at the origin, Earth-fixed): speed, heading, grade
 and their derivatives are analytic; position is integrated with 8-point Gauss-Legendre on a grid (<= 0.1 s,
@@ -86,6 +95,33 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class Idle:
+    """The [motion.idle] table: a standing car's motion (module docstring). Rates in deg/s, frequencies in Hz."""
+
+    rock_hz: tuple[float, ...] = (0.7, 1.9)
+    rock_rate_dps: float = 0.03
+    engine_hz: float = 25.0
+    engine_rate_dps: float = 0.01
+    bumps_per_min: float = 1.0
+    bump_rate_dps: float = 0.3
+    bump_hz: float = 1.5
+    bump_s: float = 0.6
+    fade_s: float = 1.0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Idle":
+        bad = set(d) - set(cls.__dataclass_fields__)
+        if bad:
+            raise ValueError(f"[motion.idle]: unknown keys {sorted(bad)}")
+        kw = {k: (tuple(float(x) for x in v) if k == "rock_hz" else float(v)) for k, v in d.items()}
+        out = cls(**kw)
+        if min((out.rock_rate_dps, out.engine_rate_dps, out.bumps_per_min, out.bump_rate_dps)) < 0.0 or \
+                min((out.engine_hz, out.bump_hz, out.bump_s, out.fade_s, *out.rock_hz)) <= 0.0:
+            raise ValueError("[motion.idle]: rates must be >= 0, frequencies and durations > 0")
+        return out
+
+
+@dataclass(frozen=True)
 class Motion:
     """The [motion] table: static start, then ``segments`` once, then ``lap`` repeated to the drive's end.
 
@@ -104,6 +140,7 @@ class Motion:
     lap_speed_jitter_pct: float = 0.0  # sd of the per-lap speed factor, %
     lap_time_jitter_pct: float = 0.0  # sd of each lap segment's duration factor, %
     lap_turn_jitter_deg: float = 0.0  # sd of each lap turn's angle change (zero-sum within the lap), deg
+    idle: "Idle | None" = None  # how the car stands while stopped; None: perfectly still
 
     def jittered(self) -> bool:
         return bool(self.lap) and (self.lap_speed_jitter_pct > 0.0 or self.lap_time_jitter_pct > 0.0
@@ -162,7 +199,7 @@ _SEGMENT_KEYS = {"duration_s", "distance_m", "radius_m", "speed_mps", "turn_deg"
                  "accel_mps2", "ramp_s"}
 _MOTION_KEYS = {"initial_heading_deg", "static_s", "max_accel_mps2", "turn_ramp_s", "grade_ramp_s",
                 "roll_per_g_deg", "coordinated_turns", "segments", "lap", "lap_speed_jitter_pct",
-                "lap_time_jitter_pct", "lap_turn_jitter_deg"}
+                "lap_time_jitter_pct", "lap_turn_jitter_deg", "idle"}
 _TOP_KEYS = {"name", "description", "duration_s", "extends", "origin", "motion", "imu", "clock", "gps", "fusion"}
 
 
@@ -223,7 +260,8 @@ def _parse_motion(raw: dict) -> Motion:
     if bad:
         raise ValueError(f"[motion]: unknown keys {sorted(bad)}")
     defaults = Motion()
-    m = {k: float(raw.get(k, getattr(defaults, k))) for k in _MOTION_KEYS - {"segments", "lap", "coordinated_turns"}}
+    m = {k: float(raw.get(k, getattr(defaults, k))) for k in _MOTION_KEYS - {"segments", "lap", "coordinated_turns",
+                                                                            "idle"}}
     if min(m["lap_speed_jitter_pct"], m["lap_time_jitter_pct"], m["lap_turn_jitter_deg"]) < 0.0:
         raise ValueError("[motion] lap_*_jitter: must be >= 0")
     coordinated = raw.get("coordinated_turns", False)
@@ -233,7 +271,8 @@ def _parse_motion(raw: dict) -> Motion:
     lap, speed_end, grade_end = _resolve_segments(raw.get("lap", []), speed, grade, m, "motion.lap")
     if lap and (speed_end != speed or grade_end != grade):
         raise ValueError("motion.lap must end at the speed and grade it starts with")
-    return Motion(**m, coordinated_turns=coordinated, segments=tuple(segs), lap=tuple(lap))
+    idle = Idle.from_dict(raw["idle"]) if "idle" in raw else None
+    return Motion(**m, coordinated_turns=coordinated, segments=tuple(segs), lap=tuple(lap), idle=idle)
 
 
 def _scenario_path(name_or_path: str | Path) -> Path:
@@ -351,9 +390,80 @@ class _Profiles:
     heading0: float
     roll_k: float  # roll = -roll_k * v * yaw_rate
     coordinated: bool = False  # roll = atan(v * yaw_rate / g) instead
+    stand: "_Stand | None" = None  # the standing car's roll and pitch perturbation
 
     def knots(self) -> np.ndarray:
         return np.concatenate([np.concatenate([p.a, p.b]) for p in (self.speed, self.yaw_rate, self.grade)])
+
+
+@dataclass(frozen=True)
+class _Stand:
+    """Roll and pitch perturbation of a standing car (``Idle``): sines and Gabor pulses, each gated to the stops."""
+
+    stops: np.ndarray  # (k, 2) s: intervals of zero speed (-inf start allowed)
+    fade_s: float
+    freq: np.ndarray  # (m,) Hz of the sines
+    amp: np.ndarray  # (m, 2) rad/s rate amplitudes, roll and pitch
+    phase: np.ndarray  # (m, 2) rad
+    bump_t: np.ndarray  # (b,) s, pulse centres
+    bump_amp: np.ndarray  # (b, 2) rad/s
+    bump_hz: float
+    bump_s: float
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(angles (n, 2) rad, their rates (n, 2) rad/s): roll and pitch added to the moving car's."""
+        g, dg = self._gate(t)
+        w = 2.0 * np.pi * self.freq
+        arg = w[None, :, None] * t[:, None, None] + self.phase[None]
+        a = np.sum(self.amp[None] / w[None, :, None] * np.sin(arg), axis=1)
+        da = np.sum(self.amp[None] * np.cos(arg), axis=1)
+        if len(self.bump_t):
+            x = t[:, None] - self.bump_t[None, :]
+            env = np.exp(-(x / self.bump_s) ** 2)
+            wb = 2.0 * np.pi * self.bump_hz
+            sb, cb = np.sin(wb * x), np.cos(wb * x)
+            a = a + (env * sb / wb) @ self.bump_amp
+            da = da + (env * (cb - 2.0 * x / self.bump_s ** 2 * sb / wb)) @ self.bump_amp
+        return g[:, None] * a, dg[:, None] * a + g[:, None] * da
+
+    def _gate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """1 inside a stop (smootherstep fades of fade_s at its ends), 0 outside; and its time derivative."""
+        g, dg = np.zeros_like(t), np.zeros_like(t)
+        T = self.fade_s
+        for a, b in self.stops:
+            up, dup, _ = _smootherstep((t - a) / T) if np.isfinite(a) else (np.ones_like(t), np.zeros_like(t), None)
+            dn, ddn, _ = _smootherstep((b - t) / T)
+            g += up * dn
+            dg += dup / T * dn - up * ddn / T
+        return g, dg
+
+
+def _stand(idle: Idle, speed_r: list[tuple[float, float, float, float]], t_end: float, seed: int) -> _Stand:
+    """The stops of the speed profile (ramps ending at 0 to the next ramp; the start to the first ramp) longer
+    than two fades, and the idle motion's draws for them."""
+    rng = np.random.default_rng([seed, 13])
+    r = sorted(speed_r)
+    stops, start = [], -np.inf
+    for a, b, y0, y1 in r:
+        if start is not None and y0 == 0.0:
+            stops.append((start, a))
+        start = b if y1 == 0.0 else None
+    if start is not None:
+        stops.append((start, t_end + 1.0))
+    stops = [(a, b) for a, b in stops if b - a > 2.0 * idle.fade_s]
+    freq = np.array([*idle.rock_hz, idle.engine_hz])
+    amp = np.radians(np.array([[idle.rock_rate_dps] * 2] * len(idle.rock_hz) + [[idle.engine_rate_dps] * 2]))
+    phase = rng.uniform(0.0, 2.0 * np.pi, amp.shape)
+    bumps = []
+    for a, b in stops:
+        a = max(a, -MARGIN_S)
+        n = rng.poisson(idle.bumps_per_min * (b - a) / 60.0)
+        bumps += list(rng.uniform(a + idle.fade_s + 2 * idle.bump_s, max(b - idle.fade_s - 2 * idle.bump_s,
+                                                                          a + idle.fade_s + 2 * idle.bump_s), n))
+    bump_amp = np.radians(idle.bump_rate_dps) * rng.choice([-1.0, 1.0], (len(bumps), 2)) * \
+        rng.uniform(0.5, 1.0, (len(bumps), 2))
+    return _Stand(np.array(stops, float).reshape(-1, 2), idle.fade_s, freq, amp, phase, np.array(bumps, float),
+                  bump_amp, idle.bump_hz, idle.bump_s)
 
 
 JITTER_CLIP = (0.7, 1.3)
@@ -407,9 +517,10 @@ def _build_profiles(motion: Motion, t_end: float, seed: int = 0) -> _Profiles:
             r = np.radians(s.turn_deg) / (s.duration_s - tau)
             yaw_r += [(t, t + tau, 0.0, r), (t + s.duration_s - tau, t + s.duration_s, r, 0.0)]
         t, v, g = t + s.duration_s, s.speed_mps, g1
+    stand = _stand(motion.idle, speed_r, t_end, seed) if motion.idle is not None else None
     return _Profiles(_Profile.build(0.0, speed_r), _Profile.build(0.0, yaw_r), _Profile.build(0.0, grade_r),
                      np.radians(motion.initial_heading_deg), np.radians(motion.roll_per_g_deg) / _G_ROLL,
-                     motion.coordinated_turns)
+                     motion.coordinated_turns, stand)
 
 
 # ---------------------------------------------------------------------------------------------- truth
@@ -430,6 +541,11 @@ def _kinematics_t(pr: _Profiles, t: np.ndarray) -> dict[str, np.ndarray]:
     else:
         roll = -pr.roll_k * v * r
         droll = -pr.roll_k * (dv * r + v * dr)
+    if pr.stand is not None:  # the standing car rocks: only while v = 0, so the velocity direction u is moot
+        ang, rate = pr.stand(t)
+        roll, droll = roll + ang[:, 0], droll + rate[:, 0]
+        gam, dgam = gam + ang[:, 1], dgam + rate[:, 1]
+        sg, cg = np.sin(gam), np.cos(gam)
     sr, cr = np.sin(roll), np.cos(roll)
     omega_tb_b = np.stack([r * sr * cg + dgam * cr, -r * sg + droll, -r * cr * cg + dgam * sr], axis=-1)
     return {"v_t": v[:, None] * u, "a_t": dv[:, None] * u + v[:, None] * du, "psi": psi, "pitch": gam,
