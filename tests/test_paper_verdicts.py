@@ -73,6 +73,7 @@ def _verdicts(root: Path, seeds: range) -> list[str]:
     return paper_verdicts([x for x in lines if x.startswith(("- ", "| "))])
 
 
+@pytest.mark.slow
 def test_two_sets_of_drives_give_the_same_verdicts(tmp_path):
     """Short 100 Hz drives of the paper's route with laps that vary, three per set, one 30 s outage each."""
     a = _verdicts(tmp_path / "a", range(1, 4))

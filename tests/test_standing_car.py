@@ -121,6 +121,7 @@ def test_the_stand_rocks_and_the_truth_carries_it(truth):
         assert (speed < 1e-9).sum() >= 30 and (speed > 9.0).sum() >= 40
 
 
+@pytest.mark.slow
 def test_tactical_default_aids_bridge_two_outages_on_a_rocking_stand(truth, tmp_path):
     drive = write_drive(tmp_path / "tactical.mcap", truth, imugrade.grade("tactical"), seed=1)
     rms, inside = outage_scores(drive, truth, "tactical", True, tmp_path / "on.mcap")
@@ -130,6 +131,7 @@ def test_tactical_default_aids_bridge_two_outages_on_a_rocking_stand(truth, tmp_
     assert rms < 0.5 and inside >= 0.9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("grade", ["table2-mems", "s000-mems"])
 def test_mems_default_aids_are_no_worse_than_aids_off(truth, tmp_path, grade):
     on, off = [], []
