@@ -428,3 +428,14 @@ def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom
     assert a[0] < 0.85 * b[0], (a, b)
     with pytest.raises(ValueError, match="NavSatFix"):
         inputs.resolve(foreign, inputs.InputSpec(odom_topic="/sensors/gnss/fix"))
+
+
+def test_evaluate_gives_a_column_without_the_odometer(odo_drive, tmp_path):
+    pl = pytest.importorskip("polars", reason="needs the export extra (polars)")
+    from fieldlog.tools.evaluate import evaluate
+
+    table = evaluate([odo_drive], [60.0], ["kf"], tmp_path / "report", say=lambda s: None)
+    vel = table.filter(pl.col("quantity").is_in(["vE", "vN"]))
+    by = {m: vel.filter(pl.col("method") == m)["mean"].to_numpy() for m in ("kf", "kf-no-odometer")}
+    assert len(by["kf"]) == len(by["kf-no-odometer"]) == 2
+    assert np.hypot(*by["kf"]) < np.hypot(*by["kf-no-odometer"])      # the wheels hold the velocity in outages

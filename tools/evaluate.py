@@ -399,7 +399,9 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
-    smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``). config None: each
+    smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``); a drive with wheel
+    speeds (``replay.inputs``: /vehicle/twist or the spec's odometry topic) fused with the odometer also gets a
+    ``<method>-no-odometer`` column per method, the same run with ``[fusion] odometer = false``. config None: each
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
@@ -410,7 +412,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         raise ValueError("no drive to evaluate")
     report = Path(report)
     outputs.out_dir(report, "fused")
-    runs = [(m, sm) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
+    runs = [(m, sm, True) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
@@ -424,19 +426,23 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             base = paper_config(base)
         imap = resolve_inputs(drive, spec)
         t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
+        drive_runs = runs + ([(m, sm, False) for m, sm, _ in runs if m != "ins"]
+                             if imap.odom_topic and base.aids.odometer else [])
+        total += len(lengths) * (len(drive_runs) - len(runs))
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
             if not win:
                 say(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
-                done += len(runs)
+                done += len(drive_runs)
                 progress(done / total)
                 continue
             win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
             cfg = base.replace(outages=tuple(win))
-            for m, sm in runs:
-                name = m + ("+rts" if sm else "")
+            for m, sm, odo in drive_runs:
+                name = m + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
-                if fuse(drive, m, out, cfg, smooth=sm, inputs=imap, force=force).rows == 0:
+                run_cfg = cfg if odo else cfg.replace(odometer=False)
+                if fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force).rows == 0:
                     done += 1
                     progress(done / total)
                     say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
