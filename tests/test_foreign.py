@@ -16,7 +16,7 @@ from fieldlog.replay import inputs, reader
 from fieldlog.replay import view as rview
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.evaluate import consistency, outage_error_series, position_errors
-from fieldlog.tools.fuse import Diverged, _write, fuse
+from fieldlog.tools.fuse import Diverged, fuse, write_solution
 from fieldlog.tools.sim.simulate import simulate
 
 from foreign_drives import Foreign, write_foreign
@@ -333,7 +333,7 @@ def test_nan_is_never_written():
     bad = Solution(np.array([1, 2], np.int64), np.array([0.5, np.nan]), np.zeros(2), np.zeros(2),
                    np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.ones((2, 15)), np.zeros((2, 6)))
     with pytest.raises(Diverged, match="diverged"):
-        _write(None, "kf", bad)
+        write_solution(None, "kf", bad)
 
 
 def test_printed_sigma_is_honest_and_the_solution_unchanged(native, tmp_path):

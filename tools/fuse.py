@@ -227,7 +227,8 @@ def drive_config(drive: DriveSpec) -> FusionConfig:
     return fusion_config({k: ast.literal_eval(v) for k, v in meta.items()})
 
 
-def _write(rec: Recorder, method: str, s: Solution) -> None:
+def write_solution(rec: Recorder, method: str, s: Solution) -> None:
+    """The ``/fusion/<method>/*`` rows of ``s`` into ``rec`` (a Recorder, or anything with its ``write_batch``)."""
     if len(s.t_ns) == 0:
         return
     bad = ~(np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
@@ -407,7 +408,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             if smooth:
                 kept.append(sol)
             else:
-                _write(rec, method, sol)
+                write_solution(rec, method, sol)
                 odom.write(rec, sol)
             write_outages(done)
             rows += len(sol.t_ns)
@@ -422,7 +423,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             rec.add_metadata("fusion.hinf", hinf_note)
         if smooth:
             smoothed = smooth_solution(Solution.concat(kept), log)
-            _write(rec, method, smoothed)
+            write_solution(rec, method, smoothed)
             odom.write(rec, smoothed)
             log.close()
         if odom.origin is not None:

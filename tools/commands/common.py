@@ -16,7 +16,7 @@ METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sc
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.
 EXTRAS = {"numba": "fusion", "llvmlite": "fusion", "rerun": "view", "polars": "export", "pyarrow": "export",
-          "matplotlib": "plots", "dask": "batch", "distributed": "batch"}
+          "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
 NEEDS = {"sim": "fusion", "fuse": "fusion", "evaluate": "fusion,export,plots", "view": "view", "replay": "view",

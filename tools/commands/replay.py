@@ -18,6 +18,9 @@ def add_parser(sub) -> None:
     sink.add_argument("--connect", default=None, metavar="URL",
                       help="a running viewer or `rerun --serve-grpc`, e.g. rerun+http://127.0.0.1:9876/proxy "
                            "(default: spawn a viewer)")
+    sink.add_argument("--foxglove", default=None, metavar="[HOST:]PORT",
+                      help="serve the drive and the live fusion over the Foxglove WebSocket protocol instead of "
+                           "rerun (HOST default 127.0.0.1, PORT 0: any free port; needs fieldlog[foxglove])")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="fusion TOML ([fusion] table; default: the drive's own, else the defaults)")
     add_input_args(s)
@@ -30,6 +33,14 @@ def run(a: argparse.Namespace) -> int:
 
     drive = drive_arg(a.drive)
     st = settings(drive, a.config, input_spec(a))
+    if a.foxglove is not None:
+        from fieldlog.tools.foxglove_live import serve
+
+        res = serve(drive, a.method, a.speed, a.foxglove, st.inputs, st.config,
+                    on_ready=lambda url: print(f"foxglove: serving {url}", flush=True))
+        log.info(f"served {res.blocks} blocks, {res.solutions} {a.method} solutions, {res.published} messages "
+                 f"-> {res.address}")
+        return 0
     output_parent(a.rrd)
     res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
                  progress=Progress(f"replay {a.method}"), imap=st.inputs, force=a.force)
