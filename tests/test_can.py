@@ -199,6 +199,7 @@ def _twists(path, topic):
     return d["stamp_ns"], d["v_n"][:, 0], d["covariance"][:, 0]
 
 
+@pytest.mark.slow
 def test_sim_can_twist_at_the_bus_rate_with_stamps_and_speeds_near_truth(can_drive):
     ts, v, var = _twists(can_drive, "/vehicle/twist")
     tt, vt, _ = _twists(can_drive, "/truth/vehicle/twist")
@@ -218,6 +219,7 @@ def test_sim_can_twist_at_the_bus_rate_with_stamps_and_speeds_near_truth(can_dri
     assert np.all(np.abs(v - vt) < 0.02 * np.abs(vt) + 0.01)
 
 
+@pytest.mark.slow
 def test_rebuild_reproduces_the_vehicle_topics_bit_for_bit(can_drive, tmp_path):
     out = tmp_path / "rebuilt.mcap"
     rebuild(can_drive, out)
@@ -331,6 +333,7 @@ def test_acquire_with_a_bad_can_config_is_one_line_exit_2(tmp_path):
         assert r.returncode == 2 and len(lines) == 1 and name in lines[0], r.stderr
 
 
+@pytest.mark.slow
 def test_view_shows_the_wheel_speed_beside_the_fused_forward_speed(can_drive, tmp_path):
     pytest.importorskip("rerun", reason="needs the view extra (rerun-sdk)")
     from test_view_export import _rerun, _rows
@@ -379,6 +382,7 @@ def _drift(drive, fused, method):
     return float(np.sqrt(np.mean(growth ** 2))), float(np.mean(within))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["kf", "dkf"])
 def test_the_odometer_cuts_the_outage_drift_and_keeps_sigma_honest(odo_drive, tmp_path, method):
     from fieldlog.fusion.engine import Engine
@@ -408,6 +412,7 @@ def test_the_odometer_cuts_the_outage_drift_and_keeps_sigma_honest(odo_drive, tm
     assert abs(odo.scale.scale - ratio) < 3 * odo.scale.sigma + 5e-4, (odo.scale.scale, ratio, odo.scale.sigma)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("odom_type", ["nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped"])
 def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom_type):
     from foreign_drives import Foreign, write_foreign
@@ -430,6 +435,7 @@ def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom
         inputs.resolve(foreign, inputs.InputSpec(odom_topic="/sensors/gnss/fix"))
 
 
+@pytest.mark.slow
 def test_evaluate_gives_a_column_without_the_odometer(odo_drive, tmp_path):
     pl = pytest.importorskip("polars", reason="needs the export extra (polars)")
     from fieldlog.tools.evaluate import evaluate

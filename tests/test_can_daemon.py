@@ -39,6 +39,7 @@ def _start(args: list[str], until: str, lines_out: int = 0) -> tuple[subprocess.
             return p, got
 
 
+@pytest.mark.slow
 def test_daemon_records_every_slcan_byte_decodes_rebuilds_and_survives_an_unplug(tmp_path: Path) -> None:
     truth, ports = tmp_path / "truth.mcap", tmp_path / "ports"
     serve, lines = _start(["sim", "--serve", "--scenario", "figure8", "--duration", "40", "--seed", "5", "--speed",
