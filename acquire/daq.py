@@ -115,7 +115,8 @@ def encode_frames(counter: np.ndarray, counts: np.ndarray, pps: np.ndarray, latc
 class DaqFrames:
     """Decoded frames, one row per frame, in stream order.
 
-    k: int64 sample index (counter unwrapped). counts: (n, 6) int32 raw ADC counts. pps: bool.
+    k: int64 sample index as the counter says (unwrapped, steps taken in [-2**31, 2**31)); the sample index the
+    pipeline uses is judged from it by ``counterjudge.CounterJudge``. counts: (n, 6) int32 raw ADC counts. pps: bool.
     latch: uint16 PPS latch (0 where not valid), latch_valid: bool. temperature_c: float64 degC (NaN where
     not valid). end_offset: int64 offset just after the frame's last byte, relative to the start of the chunk
     passed to the ``feed`` call that returned it (>= 1 even when the frame began in an earlier chunk).
@@ -135,7 +136,8 @@ class DaqFrames:
 
 @dataclass
 class DaqStats:
-    """Running decoder counters (see docs/daq-protocol.md, "Counters")."""
+    """Running decoder counters (see docs/daq-protocol.md, "Counters"). The ``counter_*`` and ``lost_frames``
+    fields are kept by ``counterjudge.CounterJudge`` over the judged k."""
 
     frames: int = 0
     bytes_in: int = 0
@@ -147,6 +149,7 @@ class DaqStats:
     lost_frames: int = 0
     counter_repeats: int = 0
     counter_backwards: int = 0
+    counter_implausible: int = 0
 
 
 def _residue_tables() -> np.ndarray:
@@ -284,12 +287,6 @@ class DaqDecoder:
         d[0] = 1 if first else counter[0] - self._last_counter
         d[1:] = counter[1:] - counter[:-1]
         d = (d + 2**31) % 2**32 - 2**31
-        st = self.stats
-        gaps = d[d > 1]
-        st.counter_gaps += gaps.size
-        st.lost_frames += int(gaps.sum()) - gaps.size
-        st.counter_repeats += int(np.count_nonzero(d == 0))
-        st.counter_backwards += int(np.count_nonzero(d < 0))
         return (counter[0] - 1 if first else self._last_k) + np.cumsum(d)
 
     def _decode(self, raw: bytes, pos: int, nf: int, end: np.ndarray) -> DaqFrames:

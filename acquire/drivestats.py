@@ -29,12 +29,15 @@ Memory is bounded, whatever the drive's length (the daemon's RSS stays flat):
 """
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from fieldlog.acquire import messages
+from fieldlog.acquire import messages, metavalue
+
+log = logging.getLogger(__name__)
 
 NS = 1_000_000_000
 RECORD = "fieldlog.info"
@@ -373,24 +376,42 @@ class DriveStats:
         return q
 
     def record(self) -> dict[str, str]:
-        """The ``fieldlog.info`` metadata record: Python literals, one key each (no ``timing`` when /imu came
-        before /truth/imu: ``info`` scans for it)."""
-        out = {f"span.{topic}": repr(tuple(s)) for topic, s in self.span.items()}
+        """The ``fieldlog.info`` metadata record: JSON values (``acquire.metavalue``), one key each (no ``timing``
+        when /imu came before /truth/imu: ``info`` scans for it)."""
+        out = {f"span.{topic}": metavalue.dump(list(s)) for topic, s in self.span.items()}
         d = asdict(self.quality())
         if self._timing.incomplete and self._timing.n_truth:
             d.pop("timing")
-        out.update({k: repr(v) for k, v in d.items()})
+        out.update({k: metavalue.dump(v) for k, v in d.items()})
         return out
 def quality_from_record(rec: dict[str, str]) -> Quality | None:
-    """The inverse of ``DriveStats.record`` (None when the record lacks a figure: scan the file instead)."""
-    import ast
-
+    """The inverse of ``DriveStats.record`` (also of older drives' Python literals); None when the record lacks a
+    figure or holds one that is not what ``record`` writes: scan the file instead."""
     names = set(Quality.__dataclass_fields__)
     if not names <= set(rec):
         return None
-    vals = {k: ast.literal_eval(rec[k].replace("nan", "None")) for k in names}
-    for k in ("rate_ppm", "residual_us"):
-        vals[k] = float("nan") if vals[k] is None else vals[k]
-    if vals["timing"] is not None:
-        vals["timing"] = TimingError(**vals["timing"])
-    return Quality(**vals)
+    try:
+        v = {k: metavalue.load(rec[k]) for k in names}
+        states = v["sync_states"]
+        if not isinstance(states, dict):
+            raise ValueError("sync_states: not a table")
+        timing = v["timing"]
+        if timing is not None:
+            if not isinstance(timing, dict) or set(timing) != set(TimingError.__dataclass_fields__):
+                raise ValueError("timing: not a timing table")
+            timing = TimingError(metavalue.whole(timing["samples"], "timing.samples"),
+                                 *(metavalue.number(timing[k], f"timing.{k}") for k in ("rms_us", "max_abs_us",
+                                                                                          "mean_us")))
+        lock = v["first_lock_ns"]
+        return Quality(
+            sync_states={str(k): metavalue.number(x, "sync_states") for k, x in states.items()},
+            rate_ppm=metavalue.number(v["rate_ppm"], "rate_ppm"),
+            residual_us=metavalue.number(v["residual_us"], "residual_us"),
+            first_lock_ns=None if lock is None else metavalue.whole(lock, "first_lock_ns"), timing=timing,
+            imu_gaps=metavalue.whole(v["imu_gaps"], "imu_gaps"),
+            imu_longest_gap_s=metavalue.number(v["imu_longest_gap_s"], "imu_longest_gap_s"),
+            gps_missing_epochs=metavalue.whole(v["gps_missing_epochs"], "gps_missing_epochs"),
+            gps_no_fix=metavalue.whole(v["gps_no_fix"], "gps_no_fix"))
+    except ValueError as e:
+        log.warning("the fieldlog.info record is damaged (%s): its figures are computed from the messages", e)
+        return None

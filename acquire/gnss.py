@@ -9,6 +9,8 @@ from __future__ import annotations
 from datetime import date as Date
 from datetime import timedelta
 
+from fieldlog.acquire import numbers
+
 YEAR_MIN = 1980          # GPS time starts 1980-01-06
 YEAR_MAX = 2200
 HALF_DAY_S = 43_200.0
@@ -22,16 +24,7 @@ _UNIX_ORDINAL = Date(1970, 1, 1).toordinal()
 def make_date(year: int | str, month: int | str, day: int | str) -> Date | None:
     """The calendar date, or None when a field is not a number, the date does not exist or the year is
     outside YEAR_MIN..YEAR_MAX. Never raises."""
-    try:
-        y, m, d = int(year), int(month), int(day)
-    except (TypeError, ValueError):
-        return None
-    if not YEAR_MIN <= y <= YEAR_MAX:
-        return None
-    try:
-        return Date(y, m, d)
-    except ValueError:
-        return None
+    return numbers.day(year, month, day, YEAR_MIN, YEAR_MAX)
 
 
 def in_range(day: Date | None) -> Date | None:

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from datetime import date as Date
 
-from fieldlog.acquire import gnss
+from fieldlog.acquire import gnss, numbers
 
 KNOT_MPS = 1852.0 / 3600.0
 MAX_LINE = 256          # NMEA allows 82 characters; proprietary lines run longer
@@ -229,50 +229,32 @@ def _decimal(s: str) -> bool:
     return s.replace(".", "", 1).isdigit() and s.isascii()
 
 
-class _Fields:
-    """Field access that turns malformed values into NaN/None and counts them."""
+class _Fields(numbers.Tally):
+    """Field access that turns malformed values into NaN/None and counts them (``bad``)."""
 
-    __slots__ = ("f", "bad")
+    __slots__ = ("f",)
 
     def __init__(self, fields: list[str]) -> None:
+        super().__init__()
         self.f = fields
-        self.bad = 0
 
     def s(self, i: int) -> str:
         return self.f[i] if i < len(self.f) else ""
 
     def num(self, i: int) -> float:
-        s = self.s(i)
-        if not s:
-            return math.nan
-        try:
-            v = float(s)
-        except ValueError:
-            v = math.nan
-        if not math.isfinite(v) or "_" in s:
-            self.bad += 1
-            return math.nan
-        return v
+        return self.real(self.s(i))
 
     def int(self, i: int) -> int | None:
-        s = self.s(i)
-        if not s:
-            return None
-        if not s.isdigit():
-            self.bad += 1
-            return None
-        return int(s)
+        return self.whole(self.s(i), 0, 10**9)
 
     def time(self, i: int) -> float | None:
         """hhmmss[.ss] -> seconds of the day."""
         s = self.s(i)
         if not s:
             return None
-        if len(s) < 6 or not s[:4].isdigit() or not _decimal(s[4:]):
-            self.bad += 1
-            return None
-        h, m, sec = int(s[:2]), int(s[2:4]), float(s[4:])
-        if h > 23 or m > 59 or sec >= 61:
+        h, m = numbers.whole(s[:2], 0, 23), numbers.whole(s[2:4], 0, 59)
+        sec = numbers.real(s[4:], 0.0, 61.0)
+        if len(s) < 6 or not s[:4].isdigit() or h is None or m is None or not sec < 61:
             self.bad += 1
             return None
         return h * 3600 + m * 60 + sec
@@ -284,14 +266,12 @@ class _Fields:
             return math.nan
         dot = s.find(".")
         dot = len(s) if dot < 0 else dot
-        if dot < 3 or not _decimal(s) or h not in (neg, pos):
+        deg = numbers.whole(s[:dot - 2], 0, 180) if dot >= 3 and s[:dot - 2].isdigit() else None
+        minutes = numbers.real(s[dot - 2:], 0.0, 60.0) if dot >= 3 and _decimal(s) else math.nan
+        if deg is None or not minutes < 60 or h not in (neg, pos):
             self.bad += 1
             return math.nan
-        minutes = float(s[dot - 2:])
-        if minutes >= 60:
-            self.bad += 1
-            return math.nan
-        v = int(s[:dot - 2]) + minutes / 60.0
+        v = deg + minutes / 60.0
         return -v if h == neg else v
 
     def course(self, i: int) -> float | None:
@@ -299,11 +279,7 @@ class _Fields:
         return None if math.isnan(v) else math.radians(v % 360.0)
 
     def date(self, day: str, month: str, year: str) -> Date | None:
-        if not (day or month or year):
-            return None
-        d = gnss.make_date(year, month, day)
-        self.bad += d is None
-        return d
+        return self.day(year, month, day, gnss.YEAR_MIN, gnss.YEAR_MAX)
 
 
 def _gga(t: str, f: _Fields, raw: bytes) -> Gga:

@@ -21,7 +21,7 @@ import math
 import struct
 from dataclasses import dataclass, field
 
-from fieldlog.acquire import gnss, gpsport
+from fieldlog.acquire import gnss, gpsport, numbers
 
 NS = 1_000_000_000
 BESTPOS_ID, BESTVEL_ID, TIME_ID = 42, 99, 101
@@ -45,6 +45,7 @@ class NovatelStats:
     by_type: dict[str, int] = field(default_factory=dict)
     undecodable: int = 0
     no_time: int = 0
+    bad_fields: int = 0       # values refused by the range checks (acquire/numbers.py)
 
 
 @dataclass
@@ -71,10 +72,12 @@ class NovatelDecoder:
     def decode(self, kind: str, frame: bytes, mono_ns: int) -> tuple[str, list]:
         """(log name, records) of one frame: the solutions it completes, and an ``EpochTime`` when it starts an
         epoch; ``kind`` is 'novatel' (ASCII) or 'novatel_bin'."""
+        t = numbers.Tally()
         try:
-            parsed = _ascii(frame) if kind == "novatel" else _binary(frame)
+            parsed = _ascii(frame, t) if kind == "novatel" else _binary(frame, t)
         except (ValueError, IndexError, struct.error, UnicodeDecodeError):
             parsed = None
+        self.stats.bad_fields += t.bad
         if parsed is None:
             self.stats.undecodable += 1
             return "?", []
@@ -87,7 +90,7 @@ class NovatelDecoder:
             return name, []
         if name not in ("BESTPOS", "BESTVEL") or body is None:
             return name, []
-        if status == UNKNOWN_TIME or not (0 < week < 10_000 and 0 <= ms < gpsport.WEEK_S * 1000):
+        if status == UNKNOWN_TIME or week is None or ms is None:
             self.stats.no_time += 1
             return name, []
         out: list = []
@@ -113,11 +116,13 @@ class NovatelDecoder:
         week, ms = key
         leap = self.leap_s
         utc_ns = utc_ns_of(week, ms, self.leap_s)
-        fix = not gnss.no_fix_reason(pos.quality, pos.sats, None) and math.isfinite(pos.lat)
+        fix = (not gnss.no_fix_reason(pos.quality, pos.sats, None)
+               and all(math.isfinite(x) for x in (pos.lat, pos.lon, pos.h)))
         nan = math.nan
         return [gpsport.Solution(
             utc_ns=utc_ns, fix=fix, quality=pos.quality if fix else 0, num_sats=pos.sats, lat_deg=pos.lat,
-            lon_deg=pos.lon, h_m=pos.h, pos_var=tuple(s * s for s in pos.sd), pos_var_known=True,
+            lon_deg=pos.lon, h_m=pos.h, pos_var=tuple(s * s for s in pos.sd),
+            pos_var_known=all(math.isfinite(s) for s in pos.sd),
             vel_enu=vel if fix else None, vel_var=(nan, nan, nan), first_mono_ns=self._mono, source="novatel")]
 
 
@@ -132,72 +137,91 @@ def utc_ns_of(week: int, ms: int, leap_s: int | None) -> int:
 def log_time_ns(kind: str, frame: bytes, leap_s: int | None = None) -> int | None:
     """UTC of a BESTPOS/BESTVEL frame's header time, or None (another log, unknown time, unreadable)."""
     try:
-        name, status, week, ms, _ = _ascii(frame) if kind == "novatel" else _binary(frame)
+        name, status, week, ms, _ = (_ascii if kind == "novatel" else _binary)(frame, numbers.Tally())
     except (ValueError, IndexError, struct.error, UnicodeDecodeError):
         return None
-    if name not in ("BESTPOS", "BESTVEL") or status == UNKNOWN_TIME or not (0 < week < 10_000 and 0 <= ms < gpsport.WEEK_S * 1000):
+    if name not in ("BESTPOS", "BESTVEL") or status == UNKNOWN_TIME or week is None or ms is None:
         return None
     return utc_ns_of(week, ms, leap_s)
 
 
-def _pos_ok(sol_stat: bool, quality: int, lat: float, lon: float, hgt: float, und: float,
-            sd: tuple[float, float, float], sats: int) -> _Pos:
-    if not sol_stat:
-        quality = 0
-    return _Pos(quality, lat, lon, hgt + und, sd, sats)
+MAX_LEAP_S = 1000           # |GPS - UTC| beyond this is not a leap-second count (18 s since 2017)
 
 
-def _vel(sol_stat: bool, hor: float, trk_deg: float, vert: float) -> tuple[float, float, float] | None:
+def _week_ms(week: object, seconds: object, t: numbers.Tally) -> tuple[int | None, int | None]:
+    """The header's GPS week (1..9999) and milliseconds of week, None where out of range."""
+    sec = t.real(seconds, 0.0, gpsport.WEEK_S - 0.001)
+    return t.whole(week, 1, 9999), None if sec != sec else round(sec * 1000)
+
+
+def _pos(sol_stat: bool, quality: int, lat: object, lon: object, hgt: object, und: object,
+         sd: tuple[object, object, object], sats: object, t: numbers.Tally) -> _Pos:
+    """BESTPOS fields, range-checked (NaN / 0 where not); quality 0 unless the solution was computed."""
+    lat_deg, lon_deg = t.real(lat, -90, 90), t.real(lon, -180, 180)
+    h = t.real(hgt, -1e5, 1e8) + t.real(und, -1e3, 1e3)
+    return _Pos(quality if sol_stat else 0, lat_deg, lon_deg, h, tuple(t.real(x, 0, 1e7) for x in sd),
+                t.whole(sats, 0, 255) or 0)
+
+
+def _vel(sol_stat: bool, hor: object, trk_deg: object, vert: object,
+         t: numbers.Tally) -> tuple[float, float, float] | None:
     if not sol_stat:
         return None
-    trk = math.radians(trk_deg)
-    return (hor * math.sin(trk), hor * math.cos(trk), vert)
+    speed, trk = t.real(hor, -1e5, 1e5), math.radians(t.real(trk_deg, -360, 360))
+    return (speed * math.sin(trk), speed * math.cos(trk), t.real(vert, -1e5, 1e5))
 
 
-def _ascii(frame: bytes):
-    """(name, time status, week, ms of week, body) of an ASCII log; body None when the log is not valid."""
+def _leap(utc_offset: object, valid: bool, t: numbers.Tally) -> int | None:
+    """GPS - UTC (s) from the TIME log's UTC offset, None when not valid or out of range."""
+    off = t.real(utc_offset, -MAX_LEAP_S, MAX_LEAP_S)
+    return -round(off) if valid and off == off else None
+
+
+def _ascii(frame: bytes, t: numbers.Tally):
+    """(name, time status, week, ms of week, body) of an ASCII log; body None when the log is not valid;
+    week and ms None when out of range. Values are range-checked (``t`` counts the bad ones)."""
     text = frame[1:frame.rindex(b"*")].decode("ascii")
     header, _, rest = text.partition(";")
     h = header.split(",")
     name = h[0][:-1] if h[0].endswith("A") else h[0]
     status = _TIME_STATUS.get(h[4], 0)
-    week, ms = int(h[5]), round(float(h[6]) * 1000)
+    week, ms = _week_ms(h[5], h[6], t)
     f = rest.split(",")
     body = None
     if name == "BESTPOS":
         q = POS_TYPES.get(f[1], (0, 0))[1]
-        body = _pos_ok(f[0] == "SOL_COMPUTED", q, float(f[2]), float(f[3]), float(f[4]), float(f[5]),
-                       (float(f[8]), float(f[7]), float(f[9])), int(f[14]))
+        body = _pos(f[0] == "SOL_COMPUTED", q, f[2], f[3], f[4], f[5], (f[8], f[7], f[9]), f[14], t)
     elif name == "BESTVEL":
-        body = _vel(f[0] == "SOL_COMPUTED", float(f[4]), float(f[5]), float(f[6]))
+        body = _vel(f[0] == "SOL_COMPUTED", f[4], f[5], f[6], t)
     elif name == "TIME":
-        body = -round(float(f[3])) if f[10] == "VALID" else None
+        body = _leap(f[3], f[10] == "VALID", t)
     return name, status, week, ms, body
 
 
 _NAMES = {BESTPOS_ID: "BESTPOS", BESTVEL_ID: "BESTVEL", TIME_ID: "TIME"}
 
 
-def _binary(frame: bytes):
+def _binary(frame: bytes, t: numbers.Tally):
     """As ``_ascii`` for a binary log."""
     hl = frame[3]
     msg_id, = struct.unpack_from("<H", frame, 4)
     status = frame[13]
     week, ms = struct.unpack_from("<HI", frame, 14)
+    week, ms = _week_ms(week, ms / 1000, t)
     name = _NAMES.get(msg_id, "other")
     b = hl
     body = None
     if msg_id == BESTPOS_ID:
         sol, ptype, lat, lon, hgt, und, _datum, sd_lat, sd_lon, sd_h = struct.unpack_from("<IIdddfIfff", frame, b)
         sats = frame[b + 65]
-        body = _pos_ok(sol == 0, _QUALITY_BY_NUMBER.get(ptype, 0), lat, lon, hgt, und, (sd_lon, sd_lat, sd_h), sats)
+        body = _pos(sol == 0, _QUALITY_BY_NUMBER.get(ptype, 0), lat, lon, hgt, und, (sd_lon, sd_lat, sd_h), sats, t)
     elif msg_id == BESTVEL_ID:
         sol, _vt, _lat, _age, hor, trk, vert = struct.unpack_from("<IIffddd", frame, b)
-        body = _vel(sol == 0, hor, trk, vert)
+        body = _vel(sol == 0, hor, trk, vert, t)
     elif msg_id == TIME_ID:
         _cs, _off, _std, utc_off = struct.unpack_from("<Iddd", frame, b)
         utc_status, = struct.unpack_from("<I", frame, b + 40)
-        body = -round(utc_off) if utc_status == 1 else None
+        body = _leap(utc_off, utc_status == 1, t)
     return name, status, week, ms, body
 
 

@@ -6,7 +6,6 @@ the reads, so re-running on ``/raw/*`` reproduces the derived topics bit for bit
 """
 from __future__ import annotations
 
-import ast
 import datetime as _dt
 import logging
 from collections import deque
@@ -16,7 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, canbus, daq, frames, gnss, gpsport, messages, nmea, novatel, timesync, ubx
+from fieldlog.acquire import (calib, canbus, counterjudge, daq, frames, gnss, gpsport, messages, metavalue, nmea,
+                              novatel, timesync, ubx)
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +98,9 @@ class Pipeline:
         self.sync = timesync.TimeSync(sync_cfg or timesync.TimeSyncConfig())
         self.fs = self.sync.cfg.fs_hz
         self._daq = daq.DaqDecoder()
+        self._judge = counterjudge.CounterJudge(self._daq.stats, counterjudge.JudgeConfig(
+            fs_hz=self.fs, host_time_scale=self.sync.cfg.host_time_scale))
+        self._last_daq_read = (0, 0)      # (mono_ns, wall_ns) of the last DAQ read
         self._nmea = nmea.NmeaDecoder()
         self._port = gpsport.Framer()
         self._ubx = ubx.UbxDecoder()
@@ -175,7 +178,7 @@ class Pipeline:
     def metadata(self) -> dict[str, dict[str, str]]:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
         out = {"calibration": {"toml": self.cal.to_toml()},
-               "timesync": {k: repr(v) for k, v in asdict(self.sync.cfg).items()},
+               "timesync": {k: metavalue.dump(v) for k, v in asdict(self.sync.cfg).items()},
                "gps": {"protocol": self.cfg.gps_protocol}}
         if self.cfg.can is not None:
             out["can"] = self.cfg.can.metadata()
@@ -184,13 +187,26 @@ class Pipeline:
     @staticmethod
     def settings_from_metadata(meta: dict[str, dict[str, str]]) -> tuple[calib.Calibration,
                                                                         timesync.TimeSyncConfig, PipelineConfig]:
-        """The inverse of ``metadata``; defaults for what a drive does not record."""
+        """The inverse of ``metadata``; defaults for what a drive does not record. ValueError when a recorded
+        setting is not one (damaged metadata)."""
         cal = calib.Calibration.from_toml(meta["calibration"]["toml"]) if "calibration" in meta else \
             calib.load_calibration(None)
-        sync = {k: ast.literal_eval(v) for k, v in meta.get("timesync", {}).items()}
+        sync = {}
+        for k, v in meta.get("timesync", {}).items():
+            try:
+                x = metavalue.load(v)
+            except ValueError as e:
+                raise ValueError(f"metadata timesync.{k}: {e}") from None
+            if isinstance(x, (list, dict)):
+                raise ValueError(f"metadata timesync.{k}: {v[:40]!r} is not a setting")
+            sync[k] = x
+        try:
+            sync_cfg = timesync.TimeSyncConfig.from_dict(sync)
+        except TypeError as e:
+            raise ValueError(f"metadata timesync: {e}") from None
         protocol = meta.get("gps", {}).get("protocol", "auto")
         can = canbus.BusConfig.from_metadata(meta["can"]) if "can" in meta else None
-        return cal, timesync.TimeSyncConfig.from_dict(sync), PipelineConfig(
+        return cal, sync_cfg, PipelineConfig(
             gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto", can=can)
 
     def counters_metadata(self) -> dict[str, str]:
@@ -215,16 +231,29 @@ class Pipeline:
         return out
 
     def finish(self) -> None:
-        for ep in self._epochs.flush():
-            self._emit_epoch(ep)
-        for sol in self._oem.flush():
-            self._emit_solution(sol)
-        self.sync.finish()
-        self._emit_sync()
-        self._emit_imu(final=True)
+        """End of the reads: everything pending is written. Under the same guard as ``feed``."""
+        mono_ns, wall_ns = self._last_daq_read
+        try:
+            self._add_frames(self._judge.flush(), mono_ns, wall_ns)
+            for ep in self._epochs.flush():
+                self._emit_epoch(ep)
+            for sol in self._oem.flush():
+                self._emit_solution(sol)
+            self.sync.finish()
+            self._emit_sync()
+            self._emit_imu(final=True)
+        except OSError:
+            raise
+        except Exception as e:  # noqa: BLE001 - as in feed
+            self._processing_error(e, "daq", mono_ns, wall_ns)
 
     def _feed_daq(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
-        fr = self._daq.feed(data)
+        self._last_daq_read = (mono_ns, wall_ns)
+        base = self._daq.stats.bytes_in
+        self._add_frames(self._judge.judge(self._daq.feed(data), base, mono_ns), mono_ns, wall_ns)
+
+    def _add_frames(self, fr: daq.DaqFrames, mono_ns: int, wall_ns: int) -> None:
+        """Judged frames of one read to time sync, the /imu queue and ``on_frames``."""
         if len(fr.k) == 0:
             return
         self.sync.add_frames(fr.k, fr.pps, fr.latch, fr.latch_valid, mono_ns, wall_ns)

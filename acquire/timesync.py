@@ -52,6 +52,8 @@ import numpy as np
 
 from fieldlog.acquire.tables import from_table
 
+FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
+
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:
     """Running maximum of r = stamp - k (ns) from ``floor`` (the last one of the previous batch, or None), so
@@ -572,7 +574,8 @@ class TimeSync:
         fu = min(fu, end)
         # host-clock stamps (no knot yet) are finalised in steps of >= 1 s, not on every read
         if fu > self._final and (self._knot_k or self._finished or fu - self._final >= self._bin):
-            self._finalise(self._final, fu)
+            while self._final < fu:       # in blocks: memory stays bounded across a long frame gap
+                self._finalise(self._final, min(fu, self._final + FINALISE_BLOCK))
 
     def _raw(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unclamped stamp (int64 ns), state (uint8) and governing knot (-1: host clock) of samples k."""

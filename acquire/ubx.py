@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pyubx2 import UBXReader
 from pyubx2.ubxtypes_core import UBX_MSGIDS
 
-from fieldlog.acquire import gnss, gpsport
+from fieldlog.acquire import gnss, gpsport, numbers
 
 NS = 1_000_000_000
 # UBX NAV-PVT fixType -> GGA-like quality: 0 no fix, 1 dead reckoning only, 2 2-D, 3 3-D, 4 GNSS + dead
@@ -37,6 +37,7 @@ class UbxStats:
     by_type: dict[str, int] = field(default_factory=dict)
     undecodable: int = 0
     no_time: int = 0
+    bad_fields: int = 0       # values refused by the range checks (acquire/numbers.py)
 
 
 class UbxDecoder:
@@ -65,42 +66,64 @@ class UbxDecoder:
         return name, []
 
     def _pvt(self, m, mono_ns: int) -> list:
+        t = numbers.Tally()
+        try:
+            return self._pvt_checked(m, mono_ns, t)
+        finally:
+            self.stats.bad_fields += t.bad
+
+    def _pvt_checked(self, m, mono_ns: int, t: numbers.Tally) -> list:
         if not (m.validDate and m.validTime):
             self.stats.no_time += 1
             return []
-        day = gnss.make_date(m.year, m.month, m.day)
-        if day is None or not (m.hour < 24 and m.min < 60 and m.second < 61):
+        day = t.day(m.year, m.month, m.day, gnss.YEAR_MIN, gnss.YEAR_MAX)
+        hour, minute, sec = t.whole(m.hour, 0, 23), t.whole(m.min, 0, 59), t.whole(m.second, 0, 60)
+        nano = t.whole(m.nano, -10**9, 10**9)
+        if day is None or hour is None or minute is None or sec is None or nano is None:
             self.stats.no_time += 1
             return []
-        utc_ns = gnss.utc_ns(day, m.hour * 3600 + m.min * 60 + m.second) + int(m.nano)
+        utc_ns = gnss.utc_ns(day, hour * 3600 + minute * 60 + sec) + nano
         utc_ns = round(utc_ns / 1e6) * 1_000_000     # the epoch, to the ms (nano holds the clock bias)
         tow_utc = (utc_ns / NS - gpsport.GPS_EPOCH_S) % gpsport.WEEK_S
-        self.leap_s = round((m.iTOW / 1000.0 - tow_utc) % gpsport.WEEK_S) % gpsport.WEEK_S
-        quality = _FIX_QUALITY.get(int(m.fixType), 0)
-        if quality == 1 and int(m.diffSoln):
+        itow = t.real(m.iTOW, 0, gpsport.WEEK_S * 1000)
+        if itow == itow:
+            self.leap_s = round((itow / 1000.0 - tow_utc) % gpsport.WEEK_S) % gpsport.WEEK_S
+        quality = _FIX_QUALITY.get(t.whole(m.fixType, 0, 255), 0)
+        if quality == 1 and t.whole(m.diffSoln, 0, 1):
             quality = 2
-        if quality and int(m.carrSoln):
-            quality = 4 if int(m.carrSoln) == 2 else 5
-        fix = not gnss.no_fix_reason(quality, int(m.numSV), None) and bool(m.gnssFixOk) and not int(m.invalidLlh)
-        h_var = (m.hAcc / 1000.0) ** 2
-        v_var = (m.vAcc / 1000.0) ** 2
-        s_var = (m.sAcc / 1000.0) ** 2
-        vel = (m.velE / 1000.0, m.velN / 1000.0, -m.velD / 1000.0)
+        carr = t.whole(m.carrSoln, 0, 3)
+        if quality and carr:
+            quality = 4 if carr == 2 else 5
+        sats = t.whole(m.numSV, 0, 255)
+        fix = (not gnss.no_fix_reason(quality, sats, None) and bool(m.gnssFixOk)
+               and not t.whole(m.invalidLlh, 0, 1))
+        mm = 1 / 1000.0
+        h_var = (t.real(m.hAcc, 0) * mm) ** 2
+        v_var = (t.real(m.vAcc, 0) * mm) ** 2
+        s_var = (t.real(m.sAcc, 0) * mm) ** 2
+        vel = (t.real(m.velE) * mm, t.real(m.velN) * mm, -t.real(m.velD) * mm)
+        lat, lon = t.real(m.lat, -90, 90), t.real(m.lon, -180, 180)
+        fix = fix and lat == lat and lon == lon
         return [gpsport.Solution(
-            utc_ns=utc_ns, fix=fix, quality=quality if fix else 0, num_sats=int(m.numSV),
-            lat_deg=float(m.lat), lon_deg=float(m.lon), h_m=m.height / 1000.0, pos_var=(h_var, h_var, v_var),
+            utc_ns=utc_ns, fix=fix, quality=quality if fix else 0, num_sats=sats or 0,
+            lat_deg=lat, lon_deg=lon, h_m=t.real(m.height) * mm, pos_var=(h_var, h_var, v_var),
             pos_var_known=True, vel_enu=vel if fix else None, vel_var=(s_var, s_var, s_var),
             first_mono_ns=mono_ns, source="ubx")]
 
     def _tp(self, m) -> list:
         if getattr(m, "qErrInvalid", 0):
             return []
-        tow_s = m.towMS / 1000.0 + m.towSubMS / 1000.0
-        if int(m.timeBase) == 1:             # the pulse is on UTC: tow is UTC already
+        t = numbers.Tally()
+        tow_s = t.real(m.towMS, 0, gpsport.WEEK_S * 1000) / 1000.0 + t.real(m.towSubMS, 0) / 1000.0
+        week, qerr = t.whole(m.week, 0, 10_000), t.real(m.qErr)
+        self.stats.bad_fields += t.bad
+        if tow_s != tow_s or week is None or qerr != qerr:
+            return []
+        if t.whole(m.timeBase, 0, 255) == 1:    # the pulse is on UTC: tow is UTC already
             leap = 0
         elif self.leap_s is not None:
             leap = self.leap_s
         else:
             return []
-        utc_s = round(gpsport.gps_to_utc_s(int(m.week), tow_s, leap))
-        return [Pulse(int(utc_s), m.qErr * 1e-12)]
+        utc_s = round(gpsport.gps_to_utc_s(week, tow_s, leap))
+        return [Pulse(utc_s, qerr * 1e-12)]

@@ -38,6 +38,7 @@ reports them in one line.
 from __future__ import annotations
 
 import io
+import logging
 import mmap
 import os
 import struct
@@ -55,6 +56,7 @@ from zlib_ng.zlib_ng import crc32
 
 from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
 
+log = logging.getLogger(__name__)
 MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
@@ -172,8 +174,16 @@ class McapFile:
         (self.schemas if isinstance(r, Schema) else self.channels).setdefault(r.id, r)
 
     def metadata(self) -> list[Metadata]:
-        """The metadata records in file order."""
-        return [self._record(Opcode.METADATA, s, n) for s, n in self._metadata]
+        """The metadata records in file order; a damaged one (its fields overrun it, a name or value is not
+        UTF-8) is left out with a warning naming it: the messages can still be read."""
+        out = []
+        for s, n in self._metadata:
+            try:
+                out.append(self._record(Opcode.METADATA, s, n))
+            except Exception as e:  # noqa: BLE001 - the mcap library's EndOfFile, UnicodeDecodeError, struct.error
+                log.warning("warning: %s: damaged metadata record at byte %d (%s: %s) left out", self.path, s - 9,
+                            type(e).__name__, e)
+        return out
 
     def type_of(self, cid: int) -> str:
         schema = self.schemas.get(self.channels[cid].schema_id)

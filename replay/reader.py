@@ -63,6 +63,8 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
         out: dict[str, object] = {"log_time_ns": log_time_ns}
         out.update(batch(payloads))
         return out
+    if type_name not in messages.MSG_DEFS:
+        raise ValueError(f"messages of type {type_name[:80]!r}: not a type fieldlog decodes")
     dec = messages.decoder_for(type_name)
     msgs, ok = [], []
     for b in payloads:

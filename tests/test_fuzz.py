@@ -1,17 +1,22 @@
-"""Property-based fuzzing (hypothesis) of the NMEA and DAQ decoders and the pipeline's GPS path: valid checksums
-and CRCs around hostile field values (dates, times, huge numbers, 'nan', text). Over 10^5 sentences and frames
-per run, in well under two minutes; tools/fuzz.py (atheris) is for long coverage-guided runs."""
+"""Fuzzing in CI. Property-based (hypothesis) tests of the NMEA and DAQ decoders and the pipeline's GPS path: valid
+checksums and CRCs around hostile field values (dates, times, huge numbers, 'nan', text), over 10^5 sentences
+and frames. Then tools/fuzz.py's mutators (checksums and CRCs rewritten after mutating) in its fast seeded loop,
+over 10^5 inputs for the NMEA, UBX and NovAtel decoders, the DAQ decoder with the counter judge and the MCAP
+reader, and every crash the long campaigns found (tests/data/fuzz/) replayed through the full targets."""
 from __future__ import annotations
 
 import math
 import struct
+from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fieldlog.acquire import daq, gnss, nmea
 from fieldlog.acquire.pipeline import Pipeline
+from fieldlog.tools import fuzz
 
 NS = 1_000_000_000
 COUNT = {"nmea": 0, "daq": 0, "pipeline": 0}    # inputs fed, printed by test_inputs_fed
@@ -130,3 +135,40 @@ def test_inputs_fed() -> None:
     print(f"\nfuzzed inputs: {COUNT}")
     if all(COUNT.values()):
         assert sum(COUNT.values()) >= 100_000
+
+
+MUTATED_RUNS = {"nmea": 30_000, "ubx": 15_000, "novatel": 30_000, "daq": 25_000, "mcap": 2_000}
+CRASHES = sorted((Path(__file__).parent / "data" / "fuzz").glob("*.bin"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", list(MUTATED_RUNS))
+def test_mutated_inputs_with_rewritten_checksums_never_crash_a_decoder(target: str) -> None:
+    r = fuzz.campaign(target, MUTATED_RUNS[target], seed=2026, fast=True)
+    assert r.inputs == MUTATED_RUNS[target] and not r.crashes, dict(r.crashes)
+    assert sum(MUTATED_RUNS.values()) >= 100_000
+
+
+def test_checksum_rewriters_make_mutated_frames_pass_the_checks() -> None:
+    from fieldlog.acquire import daq as daq_mod, gpsport
+
+    rng = np.random.default_rng(3)
+    for name in ("nmea", "ubx", "novatel"):
+        t = fuzz.make_target(name, fast=True)
+        framer = gpsport.Framer()
+        for s in t.seeds[:200]:
+            framer.feed(fuzz.FIXES[name](fuzz.mutate(s, rng)))
+        assert sum(framer.stats.frames.values()) > 10      # mutated frames pass their checksums and are framed
+        assert sum(framer.stats.bad_checksum.values()) <= 0.5 * sum(framer.stats.frames.values())
+    frames = daq_mod.encode_frames(np.arange(50), np.zeros((50, 6), int), np.zeros(50, bool))
+    damaged = bytearray(frames)
+    damaged[5::38] = b"\x77" * 50                       # every counter's second byte changed
+    dec = daq_mod.DaqDecoder()
+    assert len(dec.feed(fuzz.fix_daq(bytes(damaged))).k) == 50 and dec.stats.bad_crc == 0
+
+
+@pytest.mark.parametrize("path", CRASHES, ids=[p.name for p in CRASHES])
+def test_every_crash_the_campaigns_found_is_fixed(path: Path) -> None:
+    name = path.name.split("-")[0]
+    fuzz.replay(name, path.read_bytes())
+    fuzz.replay(name, path.read_bytes(), fast=True)

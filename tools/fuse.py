@@ -39,7 +39,6 @@ a whole; ``--outage`` replaces the outages of either.
 
 from __future__ import annotations
 
-import ast
 import math
 import os
 from dataclasses import dataclass
@@ -48,7 +47,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, frames, messages, outputs
+from fieldlog.acquire import calib, frames, messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import earth
@@ -203,11 +202,16 @@ def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None
     imap = input_map(drive, config_path, spec)
     table = read_toml(config_path).get("fusion") if config_path else None
     if table is None:
-        table = {k: ast.literal_eval(v) for k, v in read_metadata(drive).get("fusion.config", {}).items()}
+        table = drive_table(drive)
         where = "the drive's record"
     else:
         where = f"--config {config_path}"
-    cfg = fusion_config(table)
+    try:
+        cfg = fusion_config(table)
+    except (ValueError, TypeError) as e:
+        if config_path:
+            raise
+        raise ValueError(f"{label(drive)}: its fusion.config record: {e}") from None
     given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
     sources = {f: (where if f in given else "default") for f in FLAT_KEYS}
     sources["predictor"] = where if "predictor" in given else "default"
@@ -223,8 +227,23 @@ def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None
 def drive_config(drive: DriveSpec) -> FusionConfig:
     """The drive's ``fusion.config`` metadata record (a simulated drive's scenario [fusion] table) as a
     FusionConfig; the defaults when the drive has none."""
-    meta = read_metadata(drive).get("fusion.config", {})
-    return fusion_config({k: ast.literal_eval(v) for k, v in meta.items()})
+    table = drive_table(drive)
+    try:
+        return fusion_config(table)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{label(drive)}: its fusion.config record: {e}") from None
+
+
+def drive_table(drive: DriveSpec) -> dict[str, Any]:
+    """The drive's ``fusion.config`` metadata record as a [fusion] table; ValueError naming the drive when a
+    value is not one (damaged metadata)."""
+    out = {}
+    for k, v in read_metadata(drive).get("fusion.config", {}).items():
+        try:
+            out[k] = metavalue.load(v)
+        except ValueError as e:
+            raise ValueError(f"{label(drive)}: its fusion.config record, {k}: {e}") from None
+    return out
 
 
 def write_solution(rec: Recorder, method: str, s: Solution) -> None:

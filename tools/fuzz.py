@@ -1,22 +1,169 @@
-"""Coverage-guided fuzzing of the acquisition path with atheris (long runs; tests/test_fuzz.py is the CI part).
+"""Fuzzing that gets past the checks: mutated inputs whose checksums and CRCs are rewritten after mutating, so
+that they reach the field decoders, the counter judge, the time sync and the MCAP reader's record parsing.
 
-    pip install atheris
-    python -m fieldlog.tools.fuzz -max_total_time=3600 out/fuzz-corpus     # any libFuzzer flags
+    python -m fieldlog.tools.fuzz --target nmea --runs 1000000            # one decoder
+    python -m fieldlog.tools.fuzz --target all --runs 1000000 --crashes out/fuzz-crashes
+    python -m fieldlog.tools.fuzz --target ubx --atheris -max_total_time=3600 out/corpus   # coverage-guided
 
-Each input is split in two by its first byte: a GPS byte stream (a few sentences are re-checksummed, so that the
-fuzzer gets past the checksum into the field decoding) and a DAQ byte stream, fed as reads through the whole
-``Pipeline`` (decoders, epoch assembly, time sync, GPS fix and IMU output) into a sink that drops everything. The
-harness fails on any exception escaping ``Pipeline.feed`` and on any processing error the pipeline counted
-(``processing_errors``: it would have been caught in the daemon, but it is a bug).
+Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary) through the pipeline's GPS path (framer, decoders,
+epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one read per input
+of a continuous simulated stream with valid GPS beside it; ``mcap`` through the reader (summary, chunks,
+metadata, every topic). Inputs start from valid bytes of the simulator's encoders (and mcap's own Writer),
+are mutated (bit flips, interesting bytes, hostile numbers in text fields, spans inserted, deleted,
+duplicated, spliced) and re-checksummed: NMEA ``*HH``, UBX Fletcher, NovAtel CRC-32 (ASCII and binary), DAQ
+CRC-16, MCAP chunk CRC-32 (data section and summary CRCs set to 0, "not computed"). A *crash* is any exception
+escaping the target: for the pipeline, any processing error it would have counted; for the reader, any
+exception but the ValueError that commands report as bad input. Each crash is written to ``--crashes`` as
+``TARGET-KIND-HASH.bin`` (tests/test_fuzz.py replays the ones kept in tests/data/fuzz/). Without atheris the
+loop is a plain seeded random one (reproducible from ``--seed``).
 """
 from __future__ import annotations
 
+import argparse
+import hashlib
+import io
 import re
+import struct
 import sys
+import tempfile
+import time
+import zlib
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
 
 NS = 1_000_000_000
-_SENTENCE = re.compile(rb"\$([^*$\r\n]{0,120})\*")
+TARGETS = ("nmea", "ubx", "novatel", "daq", "mcap")
+HOSTILE = [b"inf", b"-inf", b"nan", b"1e999", b"9" * 20, b"9" * 400, b"-1", b"", b"1_0", b"0x10", b"999999",
+           b"240000", b"-0", b"4294967296", b"\xff"]
+INTERESTING = [0x00, 0xFF, 0x7F, 0x80, 0x01, 0xA5, 0x5A, 0x2C, 0x2A, 0x24, 0x23, 0x0A, 0x0D, 0x39, 0x2E, 0x2D]
+_SENTENCE = re.compile(rb"\$([^*$\r\n]{0,160})\*[0-9A-Fa-f]{0,2}")
+_NOVATEL_ASCII = re.compile(rb"#([^*#\r\n]{0,600})\*[0-9A-Fa-f]{0,8}")
+_FIELD = re.compile(rb"[^,;*$#\r\n]+")
 
+
+# ------------------------------------------------------------------------------------------ checksums
+
+def fix_nmea(data: bytes) -> bytes:
+    from fieldlog.acquire import nmea
+
+    return _SENTENCE.sub(lambda m: b"$" + m.group(1) + b"*%02X" % nmea.checksum(m.group(1)), data)
+
+
+def fix_novatel(data: bytes) -> bytes:
+    """NovAtel ASCII '*crc' and binary CRC-32s (frames found by their sync and lengths) rewritten."""
+    from fieldlog.acquire import gpsport
+
+    data = bytearray(_NOVATEL_ASCII.sub(lambda m: b"#" + m.group(1) + b"*%08x" % gpsport.crc32(m.group(1)), data))
+    for m in re.finditer(rb"\xaa\x44\x12", bytes(data)):
+        p = m.start()
+        if p + 10 > len(data):
+            break
+        total = data[p + 3] + int.from_bytes(data[p + 8:p + 10], "little") + 4
+        if data[p + 3] >= 28 and p + total <= len(data):
+            data[p + total - 4:p + total] = gpsport.crc32(bytes(data[p:p + total - 4])).to_bytes(4, "little")
+    return bytes(data)
+
+
+def fix_ubx(data: bytes) -> bytes:
+    from fieldlog.acquire import gpsport
+
+    data = bytearray(data)
+    for m in re.finditer(rb"\xb5\x62", bytes(data)):
+        p = m.start()
+        if p + 6 > len(data):
+            break
+        ln = int.from_bytes(data[p + 4:p + 6], "little")
+        if p + 8 + ln <= len(data):
+            data[p + 6 + ln:p + 8 + ln] = gpsport.ubx_checksum(bytes(data[p + 2:p + 6 + ln]))
+    return bytes(data)
+
+
+def fix_daq(data: bytes) -> bytes:
+    """Every 38 bytes that start with the sync pair get the CRC-16 of their bytes 2..35."""
+    from fieldlog.acquire import daq
+
+    b = np.frombuffer(data, np.uint8).copy()
+    at = np.flatnonzero((b[:-1] == daq.SYNC0) & (b[1:] == daq.SYNC1))
+    at = at[at + daq.FRAME_SIZE <= b.size]
+    if at.size:
+        rows = b[at[:, None] + np.arange(daq.FRAME_SIZE)]
+        crc = daq.crc16_frames(rows[:, 2:36])
+        b[at + 36], b[at + 37] = crc & 0xFF, crc >> 8
+    return b.tobytes()
+
+
+def fix_mcap(data: bytes) -> bytes:
+    """Uncompressed chunks' CRC-32 recomputed, compressed ones' set to 0; the Data End and Footer CRCs set to 0
+    (MCAP: not computed). Records found by walking the lengths from the magic."""
+    data = bytearray(data)
+    pos = 8
+    while pos + 9 <= len(data):
+        op, n = data[pos], int.from_bytes(data[pos + 1:pos + 9], "little")
+        body = pos + 9
+        if n > len(data) - body:
+            break
+        if op == 0x06 and n >= 40:      # Chunk: start, end, uncompressed size, CRC, compression, records
+            comp_len = int.from_bytes(data[body + 28:body + 32], "little")
+            rec_at = body + 32 + comp_len
+            if rec_at + 8 <= body + n:
+                rec_len = int.from_bytes(data[rec_at:rec_at + 8], "little")
+                recs = bytes(data[rec_at + 8:min(rec_at + 8 + rec_len, body + n)])
+                crc = zlib.crc32(recs) if comp_len == 0 else 0
+                data[body + 24:body + 28] = crc.to_bytes(4, "little")
+        elif op == 0x0F and n >= 4:                                  # Data End
+            data[body:body + 4] = b"\0\0\0\0"
+        elif op == 0x02 and n >= 20:                                 # Footer
+            data[body + 16:body + 20] = b"\0\0\0\0"
+        pos = body + n
+    return bytes(data)
+
+
+FIXES: dict[str, Callable[[bytes], bytes]] = {
+    "nmea": fix_nmea, "ubx": lambda d: fix_nmea(fix_ubx(d)), "novatel": lambda d: fix_nmea(fix_novatel(d)),
+    "daq": fix_daq, "mcap": fix_mcap}
+
+
+# ------------------------------------------------------------------------------------------ mutation
+
+def mutate(data: bytes, rng: np.random.Generator, other: bytes = b"") -> bytes:
+    """1..8 random edits of ``data``; ``other`` (another seed) for splices."""
+    b = bytearray(data)
+    for _ in range(int(rng.integers(1, 9))):
+        op = int(rng.integers(0, 9))
+        n = len(b)
+        p = int(rng.integers(0, n)) if n else 0
+        if op == 0 and n:
+            b[p] ^= 1 << int(rng.integers(0, 8))
+        elif op == 1 and n:
+            b[p] = INTERESTING[int(rng.integers(0, len(INTERESTING)))]
+        elif op == 2 and n:
+            b[p] = int(rng.integers(0, 256))
+        elif op == 3:                                   # a text field replaced by a hostile number
+            fields = list(_FIELD.finditer(bytes(b)))
+            if fields:
+                m = fields[int(rng.integers(0, len(fields)))]
+                b[m.start():m.end()] = HOSTILE[int(rng.integers(0, len(HOSTILE)))]
+        elif op == 4 and n:
+            del b[p:p + int(rng.integers(1, 40))]
+        elif op == 5 and n:
+            q = int(rng.integers(0, n))
+            b[p:p] = b[q:q + int(rng.integers(1, 80))]
+        elif op == 6 and other:
+            q = int(rng.integers(0, len(other)))
+            b[p:p] = other[q:q + int(rng.integers(1, 200))]
+        elif op == 7 and n >= 4:                        # a little-endian integer field set to an extreme
+            v = int(rng.choice([0, 1, 2**31 - 1, 2**31, 2**32 - 1, 2**16 - 1, int(rng.integers(0, 2**32))]))
+            b[p:p + 4] = v.to_bytes(4, "little")
+        elif op == 8 and n >= 8:                        # a double set to inf / nan / huge
+            b[p:p + 8] = struct.pack("<d", float(rng.choice([np.inf, -np.inf, np.nan, 1e308, -1e308, 0.0])))
+    return bytes(b)
+
+
+# ------------------------------------------------------------------------------------------ targets
 
 class _Drop:
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
@@ -26,44 +173,271 @@ class _Drop:
         pass
 
 
-def _with_checksums(gps: bytes) -> bytes:
-    from fieldlog.acquire import nmea
-
-    return _SENTENCE.sub(lambda m: b"$" + m.group(1) + b"*%02X" % nmea.checksum(m.group(1)), gps)
-
-
-def one_input(data: bytes) -> None:
-    """Feed one fuzzer input through the pipeline; raise on any error."""
+def _strict_pipeline():
+    """A Pipeline whose processing errors raise (the daemon would count them; here they are crashes)."""
     from fieldlog.acquire.pipeline import Pipeline
 
-    if not data:
-        return
-    cut = 1 + data[0] * max(len(data) - 1, 0) // 255
-    gps, daq = _with_checksums(data[1:cut]), data[cut:]
-    pipe = Pipeline(_Drop())
-    mono, wall = 10 * NS, 1_700_000_000 * NS
-    for i in range(0, max(len(gps), len(daq)), 64):
-        pipe.feed("daq", mono + i * 1_000_000, wall + i * 1_000_000, daq[i:i + 64])
-        pipe.feed("gps", mono + i * 1_000_000 + 1, wall + i * 1_000_000 + 1, gps[i:i + 64])
-    pipe.finish()
-    if pipe.counters.processing_errors:
-        raise RuntimeError(f"{pipe.counters.processing_errors} processing errors (see the log above)")
+    class Strict(Pipeline):
+        def _processing_error(self, e: Exception, port: str, mono_ns: int, wall_ns: int) -> None:
+            raise e
+
+    return Strict(_Drop())
 
 
-def main(argv: list[str] | None = None) -> None:
+@dataclass
+class Target:
+    """A target's seeds and its state between inputs (a pipeline lives for many inputs, as in a drive; without
+    ``pipe`` in ``state`` the next input starts a new one)."""
+
+    name: str
+    seeds: list[bytes]
+    run: Callable[["Target", bytes], None]
+    state: dict = field(default_factory=dict)
+
+
+def _gps_run(t: Target, data: bytes) -> None:
+    st = t.state
+    if "pipe" not in st or st["n"] >= 200:
+        if "pipe" in st:
+            st["pipe"].finish()
+        st["pipe"], st["mono"], st["n"] = _strict_pipeline(), 10 * NS, 0
+    st["n"] += 1
+    st["mono"] += NS // 50
+    st["pipe"].feed("gps", st["mono"], 1_700_000_000 * NS + st["mono"], data)
+
+
+def _daq_run(t: Target, data: bytes) -> None:
+    """One mutated DAQ read of a continuous simulated drive (its GPS reads fed in between, valid)."""
+    st = t.state
+    reads = st["reads"]
+    if "pipe" not in st or st["i"] >= len(reads):
+        if "pipe" in st:
+            st["pipe"].finish()
+        st["pipe"], st["i"] = _strict_pipeline(), 0
+    while st["i"] < len(reads) and reads[st["i"]].port != "daq":
+        r = reads[st["i"]]
+        st["pipe"].feed(r.port, r.mono_ns, r.wall_ns, r.data)
+        st["i"] += 1
+    if st["i"] < len(reads):
+        r = reads[st["i"]]
+        st["pipe"].feed("daq", r.mono_ns, r.wall_ns, data)
+        st["i"] += 1
+
+
+def _gps_decoders_run(t: Target, data: bytes) -> None:
+    """The GPS decoders alone (framer, NMEA with epochs, UBX, NovAtel): the fast loop of the CI tests."""
+    from fieldlog.acquire import gpsport, nmea, novatel, ubx
+
+    st = t.state
+    if "framer" not in st or st["n"] >= 200:
+        st.update(framer=gpsport.Framer(), nmea=nmea.NmeaDecoder(), epochs=nmea.EpochAssembler(),
+                  ubx=ubx.UbxDecoder(), oem=novatel.NovatelDecoder(), n=0)
+    st["n"] += 1
+    for kind, frame in st["framer"].feed(data):
+        if kind == "nmea":
+            s = st["nmea"].decode_line(frame)
+            if s is not None:
+                for ep in st["epochs"].add(s, st["n"]):
+                    ep.utc_ns
+        elif kind == "ubx":
+            st["ubx"].decode(frame, st["n"])
+        else:
+            st["oem"].decode(kind, frame, st["n"])
+
+
+def _daq_decoder_run(t: Target, data: bytes) -> None:
+    """The DAQ decoder and the counter judge alone, checking the judge's contract: k strictly increases."""
+    from fieldlog.acquire import counterjudge, daq
+
+    st = t.state
+    if "dec" not in st or st["n"] >= 200:
+        dec = daq.DaqDecoder()
+        st.update(dec=dec, judge=counterjudge.CounterJudge(dec.stats), n=0, last=None)
+    st["n"] += 1
+    base = st["dec"].stats.bytes_in
+    k = st["judge"].judge(st["dec"].feed(data), base, st["n"] * NS // 10).k
+    if k.size:
+        if np.any(np.diff(k) < 1) or (st["last"] is not None and k[0] <= st["last"]):
+            raise AssertionError("judged k does not increase")
+        st["last"] = int(k[-1])
+
+
+def _mcap_run(t: Target, data: bytes) -> None:
+    from fieldlog.replay import reader
+
+    path = t.state["path"]
+    path.write_bytes(data)
+    try:
+        for topic in reader.topics(path):
+            reader.read_topic(path, topic.topic)
+        reader.metadata_records(path)
+    except ValueError:
+        pass                                          # bad input, reported in one line by every command
+
+
+def _sim_reads(receiver: str, duration: float = 12.0):
+    from fieldlog.tools.sim import simulate, trajectory
+
+    return simulate.make_reads(trajectory.load_scenario("figure8"), duration, 5, receiver=receiver)[0]
+
+
+def _novatel_binary(week: int, ms: int) -> bytes:
+    """A binary BESTPOS and TIME (OEM7 layouts) with their CRC-32s."""
+    from fieldlog.acquire import gpsport, novatel
+
+    def log(msg_id: int, body: bytes) -> bytes:
+        head = struct.pack("<3sBHbBHHBBHIIHH", b"\xaa\x44\x12", 28, msg_id, 0, 32, len(body), 0, 0, 180, week, ms,
+                           0, 0, 0)
+        return head + body + gpsport.crc32(head + body).to_bytes(4, "little")
+
+    pos = struct.pack("<IIdddfIfff", 0, 16, 48.1, 11.5, 500.0, 47.0, 61, 1.0, 1.0, 2.0) + bytes(72 - 48)
+    pos = pos[:65] + bytes([12]) + pos[66:]
+    return log(novatel.BESTPOS_ID, pos) + log(novatel.TIME_ID, struct.pack("<Iddd", 0, 0.0, 0.0, -18.0) +
+                                              struct.pack("<I", 1) + bytes(4))
+
+
+def _mcap_seed() -> bytes:
+    """A small drive written by mcap's own Writer, uncompressed chunks of a few messages, with metadata."""
+    from mcap.writer import CompressionType, Writer
+
+    from fieldlog.acquire import messages
+
+    buf = io.BytesIO()
+    w = Writer(buf, chunk_size=600, compression=CompressionType.NONE)
+    w.start(profile="ros2", library="mcap writer")
+    sid = w.register_schema("sensor_msgs/msg/Imu", "ros2msg", messages.schema_text("sensor_msgs/msg/Imu").encode())
+    cid = w.register_channel("/imu", "cdr", sid)
+    t = np.arange(40, dtype=np.int64) * 2_000_000 + 1_700_000_000 * NS
+    payloads = messages.encode_imu(t, np.zeros((40, 3)), np.tile([0, 0, 9.8], (40, 1)), np.zeros(9), np.zeros(9))
+    for i, p in enumerate(payloads.to_list()):
+        w.add_message(cid, int(t[i]), bytes(p), int(t[i]))
+    w.add_metadata("fieldlog.info", {"span./imu": f"[{t[0]}, {t[-1]}]", "rate_ppm": "NaN"})
+    w.add_metadata("timesync", {"window_s": "120.0"})
+    w.finish()
+    return buf.getvalue()
+
+
+def make_target(name: str, fast: bool = False) -> Target:
+    """Target ``name``; ``fast``: the decoders without the pipeline (nmea, ubx, novatel), the decoder and the
+    counter judge without the time sync (daq)."""
+    if name in ("nmea", "ubx", "novatel"):
+        from fieldlog.acquire import gpsport
+
+        gps = b"".join(r.data for r in _sim_reads({"ubx": "ublox"}.get(name, name)) if r.port == "gps")
+        frames = [f if k in ("ubx", "novatel_bin") else f.rstrip(b"\r\n") + b"\r\n" for k, f in gpsport.Framer().feed(gps)]
+        group = 1 if fast else 4                        # whole frames: a UBX NAV-PVT is 100 bytes
+        seeds = [b"".join(frames[i:i + group]) for i in range(0, len(frames), group)]
+        if name == "novatel":
+            seeds += [_novatel_binary(2300, 1000 * k) for k in range(4)]
+        return Target(name, seeds, _gps_decoders_run if fast else _gps_run)
+    if name == "daq":
+        reads = _sim_reads("nmea", 20.0)
+        seeds = [r.data for r in reads if r.port == "daq"][:200]
+        return Target(name, seeds, _daq_decoder_run) if fast else Target(name, seeds, _daq_run, {"reads": reads})
+    if name == "mcap":
+        tmp = Path(tempfile.mkdtemp(prefix="fieldlog-fuzz-"))
+        return Target(name, [_mcap_seed()], _mcap_run, {"path": tmp / "input.mcap"})
+    raise ValueError(f"unknown target {name!r}; one of {', '.join(TARGETS)}")
+
+
+def one_input(target: Target, data: bytes) -> None:
+    """Re-checksum ``data`` and run it through ``target``; raises on a crash."""
+    target.run(target, FIXES[target.name](data))
+
+
+def replay(name: str, data: bytes, fast: bool = False) -> None:
+    """Run one saved input (already mutated) through a fresh target; raises on a crash."""
+    one_input(make_target(name, fast), data)
+
+
+# ------------------------------------------------------------------------------------------ the loop
+
+@dataclass
+class Campaign:
+    inputs: int = 0
+    crashes: Counter = field(default_factory=Counter)     # kind -> count
+    seconds: float = 0.0
+
+
+def kind_of(e: BaseException) -> str:
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    where = f"{Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}" if tb is not None else "?"
+    return f"{type(e).__name__}@{where}"
+
+
+def campaign(name: str, runs: int, seed: int = 1, crashes: Path | None = None,
+             progress: Callable[[Campaign], None] | None = None, fast: bool = False) -> Campaign:
+    """``runs`` mutated, re-checksummed inputs through target ``name`` (``make_target``); crashes counted by kind
+    and (one file per kind) saved to ``crashes``."""
+    rng = np.random.default_rng([seed, TARGETS.index(name)])
+    t = make_target(name, fast)
+    res = Campaign()
+    t0 = time.monotonic()
+    for i in range(runs):
+        a, b = (t.seeds[int(j)] for j in rng.integers(0, len(t.seeds), 2))
+        data = mutate(a, rng, b)
+        try:
+            one_input(t, data)
+        except Exception as e:  # noqa: BLE001 - every exception is a finding
+            kind = kind_of(e)
+            if res.crashes[kind] == 0 and crashes is not None:
+                crashes.mkdir(parents=True, exist_ok=True)
+                tag = hashlib.sha1(data).hexdigest()[:10]
+                (crashes / f"{name}-{re.sub(r'[^A-Za-z0-9_.]+', '_', kind)}-{tag}.bin").write_bytes(
+                    FIXES[name](data))
+            res.crashes[kind] += 1
+            for key in ("pipe", "framer", "dec"):      # fresh decoders after a crash
+                t.state.pop(key, None)
+        res.inputs = i + 1
+        if progress and (i + 1) % 10_000 == 0:
+            res.seconds = time.monotonic() - t0
+            progress(res)
+    res.seconds = time.monotonic() - t0
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m fieldlog.tools.fuzz", description=__doc__.splitlines()[0])
+    p.add_argument("--target", choices=[*TARGETS, "all"], required=True)
+    p.add_argument("--runs", type=int, default=1_000_000, help="inputs per target (default 10^6)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--crashes", type=Path, default=Path("out/fuzz-crashes"), help="one input per crash kind")
+    p.add_argument("--atheris", action="store_true", help="coverage-guided (pip install atheris); libFuzzer "
+                                                          "flags follow")
+    a, rest = p.parse_known_args(argv)
+    names = TARGETS if a.target == "all" else (a.target,)
+    if a.atheris:
+        return _atheris(names[0], rest)
+    for name in names:
+        def show(r: Campaign, name: str = name) -> None:
+            print(f"{name}: {r.inputs} inputs, {sum(r.crashes.values())} crashes in {len(r.crashes)} kinds, "
+                  f"{r.seconds:.0f} s", file=sys.stderr, flush=True)
+
+        r = campaign(name, a.runs, a.seed, a.crashes, show)
+        show(r)
+        for kind, n in r.crashes.most_common():
+            print(f"  {n:8d}  {kind}")
+    return 0
+
+
+def _atheris(name: str, flags: list[str]) -> int:
     try:
         import atheris
     except ImportError:
-        sys.exit("fieldlog fuzz: atheris is not installed: pip install atheris")
-    with atheris.instrument_imports():
-        import fieldlog.acquire.daq  # noqa: F401
-        import fieldlog.acquire.gnss  # noqa: F401
-        import fieldlog.acquire.nmea  # noqa: F401
-        import fieldlog.acquire.pipeline  # noqa: F401
-        import fieldlog.acquire.timesync  # noqa: F401
-    atheris.Setup(sys.argv if argv is None else argv, one_input)
+        sys.exit("fieldlog fuzz: atheris is not installed: pip install atheris (or run without --atheris)")
+    t = make_target(name)
+    rng = np.random.default_rng(0)
+
+    def custom_mutator(data: bytes, max_size: int, seed: int) -> bytes:
+        return FIXES[name](mutate(data or t.seeds[seed % len(t.seeds)], np.random.default_rng(seed),
+                                  t.seeds[int(rng.integers(0, len(t.seeds)))]))[:max_size]
+
+    atheris.Setup([sys.argv[0], *flags], lambda d: t.run(t, d), custom_mutator=custom_mutator)
     atheris.Fuzz()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import can, canbus, daq, gnss, gpsport, nmea, novatel, outputs, recorder, timesync, ubx
+from fieldlog.acquire import (can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, outputs, recorder,
+                              timesync, ubx)
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
@@ -121,13 +122,15 @@ def _first_date(frames: list[tuple[str, bytes]]) -> _dt.date | None:
 
 
 def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
-    """Cut a DAQ capture into reads of DAQ_READ_BYTES, timed by the rule above."""
+    """Cut a DAQ capture into reads of DAQ_READ_BYTES, timed by the rule above (by the judged sample index, as
+    the pipeline will judge it: a wrong counter does not move the reads' times)."""
     dec = daq.DaqDecoder()
+    judge = counterjudge.CounterJudge(dec.stats, counterjudge.JudgeConfig(fs_hz=fs_hz))
     ends: list[int] = []
     k_pps = None
     k_first = None
     for off in range(0, len(data), DAQ_READ_BYTES):
-        fr = dec.feed(data[off:off + DAQ_READ_BYTES])
+        fr = judge.judge(dec.feed(data[off:off + DAQ_READ_BYTES]), off)
         ends.append(int(fr.k[-1]) if len(fr.k) else -1)
         if len(fr.k) and k_first is None:
             k_first = int(fr.k[0])

@@ -8,7 +8,6 @@ several files (a rotated session, a rosbag2 directory: ``replay.drive``) is scan
 """
 from __future__ import annotations
 
-import ast
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -17,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import drivestats, messages
+from fieldlog.acquire import drivestats, messages, metavalue
 from fieldlog.acquire.drivestats import Quality
 from fieldlog.replay import inputs, reader
 from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
@@ -66,6 +65,18 @@ def _nan_to_none(d):
 def _rate(t: reader.TopicInfo) -> float:
     span = (t.last_ns - t.first_ns) / NS
     return (t.count - 1) / span if t.count > 1 and span > 0 else 0.0
+
+
+def _spans(rec: dict[str, str]) -> dict[str, tuple[int, int]] | None:
+    """The record's per-topic (first, last) log times; None when one is damaged (the file is scanned)."""
+    try:
+        out = {}
+        for k, v in rec.items():
+            if k.startswith("span."):
+                out[k[len("span."):]] = metavalue.wholes(metavalue.load(v), k, 2)
+        return out
+    except ValueError:
+        return None
 
 
 def _summary_topics(path: Path, spans: dict[str, tuple[int, int]]) -> list[reader.TopicInfo] | None:
@@ -119,9 +130,9 @@ def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], 
     rec = meta.get(drivestats.RECORD) if len(files) == 1 else None  # its figures are per file: a session is scanned
     quality = tops = None
     if rec is not None and not scan:
-        spans = {k[len("span."):]: ast.literal_eval(v) for k, v in rec.items() if k.startswith("span.")}
+        spans = _spans(rec)
         quality = drivestats.quality_from_record(rec)
-        tops = _summary_topics(files[0], spans)
+        tops = None if spans is None else _summary_topics(files[0], spans)
     scanned = quality is None or tops is None
     if tops is None:
         tops = reader.topics(path)

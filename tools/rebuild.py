@@ -56,7 +56,10 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
             progress: Callable[[float], None] | None = None, force: bool = False) -> RebuildResult:
     outputs.check_new(dst, force)
     records = read_metadata_records(src)
-    cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
+    try:
+        cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
+    except ValueError as e:
+        raise ValueError(f"{label(src)}: {e}: the drive's recorded settings are damaged") from None
     if calibration is not None:
         cal = calib.load_calibration(calibration)
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)

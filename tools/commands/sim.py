@@ -31,6 +31,9 @@ def add_parser(sub) -> None:
     s.add_argument("--hold", action="store_true", help="--serve: wait for SIGUSR1 before streaming")
     s.add_argument("--corrupt", type=float, default=0.0, metavar="FRACTION",
                    help="--serve: corrupt this fraction of the bytes of both ports (e.g. 0.01)")
+    s.add_argument("--corrupt-counters", type=float, default=0.0, metavar="FRACTION",
+                   help="--serve: give this fraction of the DAQ frames a wrong counter with a matching CRC, so that "
+                        "they pass the decoder's checks (e.g. 0.001; applied before --corrupt)")
     s.add_argument("--clock-jump", action="append", default=[], metavar="START:LEN:OFFSET",
                    help="--serve: the receiver writes its time OFFSET s off for LEN s from START s of the drive, "
                         "e.g. 900:30:3600 (repeatable; default: never)")
@@ -63,4 +66,5 @@ def serve(a: argparse.Namespace) -> int:
     return serve(a.scenario, a.duration, a.seed, a.speed, pps_mode=a.pps, receiver=a.receiver, truth=a.truth,
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
                  corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
-                 board_image=a.board_image, can=a.can, force=a.force)
+                 board_image=a.board_image, can=a.can, force=a.force,
+                 corrupt_counters_frac=a.corrupt_counters)

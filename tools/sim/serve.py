@@ -52,7 +52,10 @@ for the simulated board only.
 
 Corruption: ``corrupt`` > 0 replaces that fraction of the bytes of both streams with other values
 (``corrupt_stream``: deterministic from the seed and the port, so a test can redo it and know every
-corrupted position); metadata ``daq_corrupt_bytes`` / ``gps_corrupt_bytes`` count them.
+corrupted position); metadata ``daq_corrupt_bytes`` / ``gps_corrupt_bytes`` count them. ``corrupt_counters``
+> 0 first gives that fraction of the DAQ frames a wrong sample counter with a recomputed CRC, so that they pass
+every check of the decoder (``corrupt_counters``: deterministic from the seed, returning the frames changed;
+metadata ``daq_counter_corrupt_frames``), as a CRC collision or a board glitch would.
 """
 from __future__ import annotations
 
@@ -96,6 +99,23 @@ def corrupt_stream(data: bytes, fraction: float, seed: int, port: str) -> tuple[
     pos = np.sort(rng.choice(b.size, size=int(round(fraction * b.size)), replace=False))
     b[pos] ^= rng.integers(1, 256, pos.size, dtype=np.uint8)
     return b.tobytes(), pos
+
+
+def corrupt_counters(data: bytes, fraction: float, seed: int) -> tuple[bytes, np.ndarray]:
+    """``data`` (whole DAQ frames) with round(fraction * frames) distinct frames given another counter and a
+    matching CRC; also returns their sorted indices. A third of them repeat the previous frame's counter, a
+    third jump by 2..1000 and a third by any other amount modulo 2**32. Deterministic from ``seed``."""
+    rng = np.random.default_rng([seed, 0xC7])
+    rec = np.frombuffer(data[:len(data) - len(data) % daq.FRAME_SIZE], daq.FRAME_DTYPE).copy()
+    idx = np.sort(rng.choice(np.arange(1, rec.size), size=int(round(fraction * rec.size)), replace=False))
+    kind = rng.integers(0, 3, idx.size)
+    c = rec["counter"].astype(np.int64)
+    new = np.where(kind == 0, c[idx - 1], np.where(kind == 1, c[idx] + rng.integers(2, 1001, idx.size),
+                                                    c[idx] + rng.integers(1001, 2**32 - 1, idx.size)))
+    rec["counter"][idx] = new % 2**32
+    raw = rec.view(np.uint8).reshape(rec.size, daq.FRAME_SIZE)
+    rec["crc"][idx] = daq.crc16_frames(raw[idx, 2:36])
+    return rec.tobytes() + data[rec.size * daq.FRAME_SIZE:], idx
 
 
 @dataclass
@@ -266,7 +286,8 @@ class Server:
                  pps_mode: str | None = None, unplug: list[Unplug] | None = None,
                  link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None,
                  clock_jumps: list[list[float]] | None = None, board: str = "simulated",
-                 board_image: str | Path | None = None, can: bool = False) -> None:
+                 board_image: str | Path | None = None, can: bool = False,
+                 corrupt_counters_frac: float = 0.0) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
@@ -278,6 +299,8 @@ class Server:
         self.board = emulated.EmulatedBoard(board_image) if board == "emulated" else None
         if self.board is not None:
             pps_mode = "latch"          # the board latches; the simulator's latches place its glitch edges
+        if not 0 <= corrupt_counters_frac < 1:
+            raise ValueError(f"--corrupt-counters {corrupt_counters_frac}: must be in [0, 1)")
         sc = trajectory.load_scenario(scenario)
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
         sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()},
@@ -299,15 +322,20 @@ class Server:
             reads.sort(key=lambda r: r.mono_ns)
         m0 = reads[0].mono_ns
         self.ports = {}
+        self.counter_corrupt_frames = np.zeros(0, np.int64)
         for name in ALL_PORTS if can else PORTS:
             rs = [r for r in reads if r.port == name]
             data = [r.data for r in rs]
             n_corrupt = 0
+            whole = b"".join(data)
+            if name == "daq" and corrupt_counters_frac > 0:
+                whole, self.counter_corrupt_frames = corrupt_counters(whole, corrupt_counters_frac, seed)
             if corrupt > 0:
-                whole, pos = corrupt_stream(b"".join(data), corrupt, seed, name)
+                whole, pos = corrupt_stream(whole, corrupt, seed, name)
+                n_corrupt = pos.size
+            if corrupt > 0 or (name == "daq" and corrupt_counters_frac > 0):
                 ends = np.cumsum([len(d) for d in data])
                 data = [whole[e - len(d):e] for d, e in zip(data, ends)]
-                n_corrupt = pos.size
             self.ports[name] = _Port(name, np.array([(r.mono_ns - m0) / NS for r in rs]), data,
                                      corrupt_bytes=n_corrupt)
         self.corrupt = corrupt
@@ -408,6 +436,7 @@ class Server:
                 "daq_gaps": ";".join(f"{a}:{n}" for a, n in d.gaps),
                 "gps_gaps": ";".join(f"{a}:{n}" for a, n in g.gaps), "corrupt": repr(self.corrupt),
                 "daq_corrupt_bytes": str(d.corrupt_bytes), "gps_corrupt_bytes": str(g.corrupt_bytes),
+                "daq_counter_corrupt_frames": str(self.counter_corrupt_frames.size),
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
                 "daq_replug_mono_ns": ";".join(map(str, d.replugged_mono_ns)),
                 "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
@@ -452,13 +481,13 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
           link_dir: str | None = None,
           hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None,
           board: str = "simulated", board_image: str | None = None, can: bool = False,
-          force: bool = False) -> int:
+          force: bool = False, corrupt_counters_frac: float = 0.0) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first). ``truth``: a new file unless ``force`` (checked first)."""
     if truth:
         outputs.check_new(truth, force)
     srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps,
-                 board, board_image, can)
+                 board, board_image, can, corrupt_counters_frac)
     go = threading.Event()
     if not hold:
         go.set()

@@ -151,7 +151,7 @@ def fusion_metadata(table: dict) -> dict[str, str]:
     from fieldlog.tools.fuse import fusion_config
 
     fusion_config(table)
-    return {k: repr(v) for k, v in table.items()}
+    return {k: metavalue.dump(v) for k, v in table.items()}
 
 
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
