@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire import can, messages
+from fieldlog.acquire import can, messages, metavalue
 
 NS = 1_000_000_000
 SIGNAL_KEYS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr", "vehicle_speed", "gear", "reverse", "steering")
@@ -61,18 +61,20 @@ class BusConfig:
     latency_s: float = 0.0               # subtracted from the read time (adapter and bus delay)
 
     def metadata(self) -> dict[str, str]:
-        return {"wire": self.wire, "dbc": self.dbc, "dbc_name": self.dbc_name, "signals": repr(self.signals),
-                "forward": self.forward, "reverse_gear": self.reverse_gear, "speed_unit": self.speed_unit,
-                "latency_s": repr(self.latency_s)}
+        return {"wire": self.wire, "dbc": self.dbc, "dbc_name": self.dbc_name,
+                "signals": metavalue.dump(self.signals), "forward": self.forward, "reverse_gear": self.reverse_gear,
+                "speed_unit": self.speed_unit, "latency_s": metavalue.dump(self.latency_s)}
 
     @classmethod
     def from_metadata(cls, d: dict[str, str]) -> "BusConfig":
-        import ast
-
+        """The inverse of ``metadata`` (also of older drives' Python literals); ValueError when damaged."""
+        signals = metavalue.load(d.get("signals", "{}"))
+        if not isinstance(signals, dict) or not all(isinstance(v, str) for v in signals.values()):
+            raise ValueError("metadata can.signals: not a table of signal names")
         return cls(wire=d.get("wire", "slcan"), dbc=d.get("dbc", ""), dbc_name=d.get("dbc_name", ""),
-                   signals=ast.literal_eval(d.get("signals", "{}")), forward=d.get("forward", ""),
+                   signals={str(k): v for k, v in signals.items()}, forward=d.get("forward", ""),
                    reverse_gear=d.get("reverse_gear", "R"), speed_unit=d.get("speed_unit", ""),
-                   latency_s=float(ast.literal_eval(d.get("latency_s", "0.0"))))
+                   latency_s=metavalue.number(metavalue.load(d.get("latency_s", "0.0")), "metadata can.latency_s"))
 
 
 def load_dbc(text: str, name: str) -> Any:
