@@ -67,7 +67,7 @@ def raw_stream(path: Path, port: str) -> tuple[bytes, np.ndarray]:
 
 def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "fieldlog", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=60)
+                          timeout=300)
 
 
 def gps_frames(data: bytes) -> dict[str, int]:
@@ -94,10 +94,10 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     client.start()
     wait_for_clients(bus, 1)
     serve.send_signal(signal.SIGUSR1)
-    assert serve.wait(30) == 0                         # the drive ended and the daemon drained the ptys
+    assert serve.wait(300) == 0                         # the drive ended and the daemon drained the ptys
     d.send_signal(signal.SIGTERM)
-    assert d.wait(30) == 0, d.stderr.read()
-    client.join(10)
+    assert d.wait(300) == 0, d.stderr.read()
+    client.join(60)
     files = sorted((tmp_path / "drives").glob("*/*.mcap"))
     assert len(files) >= 2 and all(is_finished(f) for f in files)
     metas = [read_metadata(f) for f in files]
@@ -152,7 +152,7 @@ def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
         wait_until(lambda: files() and files()[0].stat().st_size > 300_000, "a recording with chunks")
         kill_mono = time.monotonic_ns()
         d.send_signal(signal.SIGKILL)
-        d.wait(10)
+        d.wait(300)
         (cut,) = sorted(out.glob("*/*.mcap"))
         assert not is_finished(cut)
         r = run("recover", str(cut), "--out", str(tmp_path / "rescued.mcap"))
@@ -165,10 +165,10 @@ def test_kill9_then_recover_and_restart(tmp_path: Path) -> None:
         others = lambda: [p for p in files() if p != cut and not p.name.endswith(".recovered.mcap")]  # noqa: E731
         wait_until(lambda: others() and others()[0].stat().st_size > 100_000, "the restart's own file, with chunks")
         d2.send_signal(signal.SIGTERM)
-        assert d2.wait(30) == 0
+        assert d2.wait(300) == 0
     finally:
         serve.send_signal(signal.SIGTERM)
-        serve.wait(10)
+        serve.wait(300)
     assert f"recovered unfinished {cut.name}" in log
     rec = cut.with_name(cut.stem + ".recovered.mcap")
     assert is_finished(rec) and not is_finished(cut)

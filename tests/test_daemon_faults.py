@@ -43,12 +43,12 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int, daemon_
         serve.send_signal(signal.SIGUSR1)
         if during is not None:
             during()
-        assert serve.wait(60) == 0                  # the drive ended and the daemon drained the ptys
+        assert serve.wait(300) == 0                  # the drive ended and the daemon drained the ptys
     finally:
         if serve.poll() is None:
             serve.kill()
     d.send_signal(signal.SIGTERM)
-    code, log = d.wait(30), d.stderr.read()
+    code, log = d.wait(300), d.stderr.read()
     assert code == 0, log
     (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     assert is_finished(f)
@@ -196,10 +196,10 @@ def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -
     try:
         d, _ = start_daemon(out, paths, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
         serve.send_signal(signal.SIGUSR1)
-        code, log = d.wait(60), d.stderr.read()
+        code, log = d.wait(300), d.stderr.read()
     finally:
         serve.send_signal(signal.SIGTERM)
-        serve.wait(10)
+        serve.wait(300)
     assert code == 1, log
     assert "Traceback" not in log and "Exception" not in log
     (err,) = [line for line in log.splitlines() if "error:" in line]

@@ -61,7 +61,7 @@ def test_serve_streams_exactly_the_simulated_bytes(tmp_path: Path) -> None:
                 if not data:
                     del open_fds[name]
                 got[name] += data
-    assert p.wait(10) == 0
+    assert p.wait(300) == 0
     for fd in fds.values():
         os.close(fd)
     want = expected_bytes(truth, "figure8", 6.0, 3)
@@ -81,7 +81,7 @@ def test_serve_stops_on_sigterm_and_writes_truth(tmp_path: Path) -> None:
     tty.setraw(fd)
     assert select.select([fd], [], [], 10.0)[0]          # it streams
     p.send_signal(signal.SIGTERM)
-    assert p.wait(10) == 0
+    assert p.wait(300) == 0
     os.close(fd)
     meta = read_metadata(truth)["serve"]
     assert meta["completed"] == "False"
