@@ -1,9 +1,8 @@
 """The fusion loop every method runs in: blocks of IMU samples and GPS epochs in, a solution out.
 
 Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only the navigation state, the
-filter and the IMU samples of the covariance cycle still open at the block's end (under ``cov_step_s``; their rows
-come with the next block, or :meth:`Engine.finish`), so memory does not grow with the drive and the solution does
-not depend on where the blocks end (fuse, replay and the live view give the same rows).
+filter and the samples of the covariance cycle still open (their rows come with the next block, or
+:meth:`Engine.finish`): memory does not grow with the drive, and the rows do not depend on where blocks end.
 
 Per block: the INS (``fusion.ins.integrate``) runs over the bias-corrected samples up to each GPS epoch, the yaw
 rate rebuilt where the gyro clipped (``fusion.clipgyro``); the error covariance is propagated in filter cycles of
@@ -18,10 +17,9 @@ epoch (``fusion.outages`` classifies it, a GPS silence gives no-fix epochs):
 3. at a usable fix the fix's measurements (stage "fix") are one update, after the heading check
    (``fusion.align.HeadingCheck``, which may re-align), then fed back.
 
-The filter (:func:`make_filter`) is told what it declares it needs (``fusion.kf.KalmanFilter``'s attributes) and
-routes the observations by their kind. The listeners (``fusion.listeners``: the consider analysis, the correlated
-GPS error, the smoother's records) are called at each cycle, update, fix and feedback. The loop itself names no
-sensor and no filter type.
+The filter (:func:`make_filter`) gets what it declares it needs (``fusion.kf.KalmanFilter``) and routes the
+observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback.
+The loop names no sensor and no filter type.
 """
 
 from __future__ import annotations
@@ -45,10 +43,9 @@ _DEG = math.pi / 180.0
 
 
 class Engine:
-    """One fusion run (a method of ``METHODS``) over a stream of blocks. ``measurements``: what the method updates
-    with (``fusion.measurements.for_method``); ``updates``: fixes used; ``predicted``: outage epochs bridged by a
-    predictor; ``hybrid_parts`` (``dkf-rbfn``): per outage epoch t (s), the fused state prediction and the change
-    the predicted innovations made, position and velocity (6,) each."""
+    """One fusion run (a method of ``METHODS``) over a stream of blocks. ``measurements``: ``for_method``'s;
+    ``updates``: fixes used; ``predicted``: outage epochs bridged; ``hybrid_parts`` (``dkf-rbfn``): per outage
+    epoch t (s), the fused state prediction and the predicted innovations' change, position and velocity (6,)."""
 
     def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
         """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
@@ -88,19 +85,15 @@ class Engine:
         self._history = any(x.records_history for x in self.listeners)
 
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
-        """The epoch times (UTC ns) at which the measurement class ``name`` (e.g. "Stationary") gave an update;
-        ``times`` another list of epochs it keeps (e.g. "zaru_skipped")."""
+        """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
         return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in getattr(p, times))
 
     def _parts(self) -> list[measurements.MeasurementModel]:
         """The measurements, those inside a ``FirstOf`` one by one."""
         return [p for m in self.measurements for p in getattr(m, "parts", (m,))]
 
-    # -- public ---------------------------------------------------------------------------------
-
     def process(self, imu: ImuBlock, gps: GpsBlock, odom: OdomBlock | None = None) -> tuple[Solution, list[Outage]]:
-        """Consume the next block (``odom``: its wheel-speed rows, for the measurements that ``feed`` on them);
-        returns the solution rows it produced and the outages that closed."""
+        """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages."""
         if odom is not None and len(odom.t_ns):
             for p in self._parts():
                 if hasattr(p, "feed"):
@@ -148,8 +141,7 @@ class Engine:
         return Solution.concat(out), self.outages.take()
 
     def finish(self) -> tuple[Solution, list[Outage]]:
-        """End of the drive: the rows of the samples held back for their covariance cycle (under ``cov_step_s``),
-        and the outages not yet returned (one still open is closed)."""
+        """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed)."""
         sol = Solution.concat([])
         if self._carry is not None and self.nav is not None:
             t_ns, w, f = self._carry

@@ -28,9 +28,9 @@ def test_each_method_gets_its_list():
     assert measurements.for_method("ins", FusionConfig()) == []
     ms = measurements.for_method("kf", FusionConfig())
     assert [type(m).__name__ for m in ms] == ["FirstOf", "GpsVelocity", "GpsPosition"]
-    assert [type(p).__name__ for p in ms[0].parts] == ["Stationary", "NonHolonomic"]
+    assert [type(p).__name__ for p in ms[0].parts] == ["Stationary", "Odometer", "NonHolonomic"]
     assert [(m.kind, m.stage) for m in ms] == [("velocity", "aid"), ("velocity", "fix"), ("position", "fix")]
-    bare = measurements.for_method("dkf", FusionConfig.from_flat(nhc=False, zupt=False))
+    bare = measurements.for_method("dkf", FusionConfig.from_flat(nhc=False, zupt=False, odometer=False))
     assert [type(m).__name__ for m in bare] == ["GpsVelocity", "GpsPosition"]
 
 
