@@ -13,7 +13,7 @@ import os
 import sys
 
 from fieldlog.tools.commands import COMMANDS
-from fieldlog.tools.commands.common import METHODS, HelpFormatter, log
+from fieldlog.tools.commands.common import METHODS, HelpFormatter
 
 __all__ = ["METHODS", "build_parser", "main", "setup_logging"]
 

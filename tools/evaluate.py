@@ -395,7 +395,8 @@ def rms_columns(e: np.ndarray) -> np.ndarray:
 def evaluate(drives: list[Path], lengths: list[float], methods: list[str], report: Path, smooth: bool = False,
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
              say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False,
-             progress: Callable[[float], None] | None = None, force: bool = False) -> pl.DataFrame:
+             progress: Callable[[float], None] | None = None, force: bool = False,
+             note: Callable[[str], None] | None = None) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
@@ -406,7 +407,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
     (:func:`paper_report`). progress: called with the fraction of the runs done. Every file is new
-    (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links."""
+    (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
+    runs that could not be scored (default: ``say``)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
@@ -420,6 +422,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     headings: list[dict] = []
     total, done = len(drives) * len(lengths) * len(runs), 0
     progress = progress or (lambda fraction: None)
+    note = note or say
     for drive in map(Path, drives):
         base = config or drive_config(drive)
         if paper:
@@ -432,7 +435,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         for L in lengths:
             win = place_outages(t_fix, good, L, study)
             if not win:
-                say(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
+                note(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
                 done += len(drive_runs)
                 progress(done / total)
                 continue
@@ -445,7 +448,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 if fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force).rows == 0:
                     done += 1
                     progress(done / total)
-                    say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
+                    note(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
                     continue
                 t_err, err = outage_error_series(drive, out, m, win_ns, imap.fix_topic, imap.vel_topic)
                 rms = rms_columns(err)

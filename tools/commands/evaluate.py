@@ -81,7 +81,7 @@ def run(a: argparse.Namespace) -> int:
     table = evaluate(drives, lengths, methods, report, smooth=a.smooth,
                      config=load_fusion_config(a.config) if a.config and "fusion" in read_toml(a.config) else None,
                      spec=load_input_spec(a.config).merged(input_spec(a)), paper=a.paper, say=log.debug,
-                     progress=Progress("evaluate"), force=a.force)
+                     note=log.info, progress=Progress("evaluate"), force=a.force)
     if a.json:
         print(json.dumps({"drives": [str(d) for d in drives], "out_dir": str(report), "rows": table.to_dicts()}))
     else:
