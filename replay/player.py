@@ -12,7 +12,9 @@ The entities and colours are those of ``replay.view`` (its module docstring), wi
 ``enu/gps``, ``map/truth`` and ``enu/truth`` (every ``TRUTH_DECIMATION``-th row), ``map/fusion/<method>``,
 ``enu/fusion/<method>`` (one row per solution row; ENU origin: the first GPS fix, else the first truth
 point), ``errors/{pos,vel}/<axis>/<method>`` (against the truth when the drive has it, else the GPS),
-``status/no_fix``, ``status/outage``, ``imu/gyro``, ``imu/accel`` (decimated by ``IMU_DECIMATION`` block means).
+``status/no_fix``, ``status/outage``, ``imu/gyro``, ``imu/accel`` (decimated by ``IMU_DECIMATION`` block means),
+``enu/fusion/<method>/base_link`` and ``attitude/<angle>/<method>`` with its sigma (the vehicle; base_link
+through the drive's ``/tf_static``, live from the bus the default mounting).
 The whole-track GeoLineStrings of ``fieldlog view`` are not logged: the track grows in the 3D view up to the
 cursor.
 """
@@ -57,9 +59,10 @@ class ReplayResult:
     wall_s: float = 0.0
 
 
-def live_blueprint() -> rrb.Blueprint:
-    """``replay.view.blueprint``: its time panel follows the newest data on ``gps_time``."""
-    return rv.blueprint()
+def live_blueprint(method: str) -> rrb.Blueprint:
+    """``replay.view.blueprint`` (its time panel follows the newest data on ``gps_time``), the close-up view
+    on ``method``'s vehicle."""
+    return rv.blueprint(follow=f"fusion/{method}")
 
 
 class _Source:
@@ -115,8 +118,10 @@ def _fused_track(s: Solution) -> rv.Track:
 class Player:
     """Logs blocks and their fusion output into ``rec``; state carried between blocks."""
 
-    def __init__(self, rec: rr.RecordingStream, method: str, config: FusionConfig | None = None) -> None:
+    def __init__(self, rec: rr.RecordingStream, method: str, config: FusionConfig | None = None,
+                 mount: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.rec, self.method = rec, method
+        self.mount = mount if mount is not None else rv.mounting(None)  # base_link -> imu (view.mounting)
         self.engine = Engine(method, config)
         self.origin: tuple[float, float, float] | None = None
         self.gps = _Source(rec, "gps", rv.GPS_COLOR, 3.0)
@@ -212,6 +217,11 @@ class Player:
         if len(sol.t_ns) and self.origin is not None:
             trk = _fused_track(sol)
             self.fused.log(trk, self.origin)
+            pose = rv.base_pose(trk, sol.q, self.mount, self.origin)
+            color, first = rv.method_color(self.method, 0), self.res.solutions == 0
+            rv._log_pose(self.rec, f"fusion/{self.method}", pose, color, style=first)
+            sigma = rv.attitude_sigma_deg(sol.sigma[:, 6:9], pose.euler_deg()[:, 2])
+            rv._log_attitude(self.rec, self.method, pose, sigma, color, style=first)
             if ref is not None and not ref_is_truth:
                 # GPS epochs are scored once solutions reach them (the engine may lag a block), across blocks
                 trk_e = _cat(self.last_sol, trk)
@@ -233,10 +243,12 @@ class Player:
 
 def play(rec: rr.RecordingStream, blocks: Iterable[reader.Block], method: str, speed: float,
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         span_ns: tuple[int, int] | None = None) -> ReplayResult:
+         span_ns: tuple[int, int] | None = None, mount: tuple[np.ndarray, np.ndarray] | None = None
+         ) -> ReplayResult:
     """Fuse and log ``blocks`` into ``rec``, paced at ``speed`` times real time (``speed <= 0``: no pacing).
-    ``span_ns`` (first, last data time) only drives ``progress``."""
-    player = Player(rec, method, config)
+    ``span_ns`` (first, last data time) only drives ``progress``; ``mount``: the drive's base_link -> imu
+    (``view.mounting``; None: the default mounting)."""
+    player = Player(rec, method, config, mount)
     t_wall0 = time.monotonic()
     t_data0: int | None = None
     t_end = 0
@@ -263,11 +275,11 @@ def _check_sink(rrd: str | os.PathLike[str] | None, connect: str | None) -> None
         raise ValueError("no display to open the viewer on: pass --rrd OUT.rrd or --connect URL")
 
 
-def _open(rrd: str | os.PathLike[str] | None, connect: str | None) -> tuple[rr.RecordingStream, str]:
+def _open(rrd: str | os.PathLike[str] | None, connect: str | None, method: str) -> tuple[rr.RecordingStream, str]:
     """A recording with the live blueprint, sent to ``connect`` (a gRPC URL, e.g.
     ``rerun+http://127.0.0.1:9876/proxy``), else streamed into the ``rrd`` file, else to a spawned viewer."""
     rec = rr.RecordingStream("fieldlog")
-    bp = live_blueprint()
+    bp = live_blueprint(method)
     if connect is not None:
         rec.connect_grpc(connect, default_blueprint=bp)
         return rec, connect
@@ -281,13 +293,14 @@ def _open(rrd: str | os.PathLike[str] | None, connect: str | None) -> tuple[rr.R
 def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: Iterable[reader.Block],
                method: str, speed: float, config: FusionConfig | None,
                progress: Callable[[float], None] | None = None,
-               span_ns: tuple[int, int] | None = None, force: bool = False) -> ReplayResult:
+               span_ns: tuple[int, int] | None = None, force: bool = False,
+               mount: tuple[np.ndarray, np.ndarray] | None = None) -> ReplayResult:
     """``play`` into the sink of ``_open``; an ``rrd`` file is a new name unless ``force`` (``outputs.staged``)."""
     to_file = rrd is not None and connect is None
     with outputs.staged(rrd, force) if to_file else contextlib.nullcontext() as work:
-        rec, sink = _open(work, connect)
+        rec, sink = _open(work, connect, method)
         try:
-            res = play(rec, blocks, method, speed, config, progress, span_ns)
+            res = play(rec, blocks, method, speed, config, progress, span_ns, mount)
         finally:
             rec.flush()
             rec.disconnect()
@@ -309,7 +322,7 @@ def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[s
     blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])  # as `fuse` reads it
     _check_sink(rrd, connect)
     span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
-    return _play_into(rrd, connect, blocks, method, speed, config, progress, span, force)
+    return _play_into(rrd, connect, blocks, method, speed, config, progress, span, force, rv.mounting(drive))
 
 
 def _stop_on_sigterm() -> None:

@@ -380,10 +380,11 @@ def _log_bias(rec: rr.RecordingStream, src: str, b: dict[str, np.ndarray], color
 # The vehicle: pose, attitude, GPS quality
 
 
-def mounting(drive: DriveSpec) -> tuple[np.ndarray, np.ndarray]:
+def mounting(drive: DriveSpec | None) -> tuple[np.ndarray, np.ndarray]:
     """(imu position in base_link m (3,), C_imu_base (3,3): IMU axes -> base_link axes) from the drive's
-    ``/tf_static`` base_link -> imu; without one, the default ``[mounting]`` (IMU at base_link, RFU -> FLU)."""
-    if _topic_names(drive).get("/tf_static"):
+    ``/tf_static`` base_link -> imu; without one (or a drive), the default ``[mounting]`` (IMU at base_link,
+    RFU -> FLU)."""
+    if drive is not None and _topic_names(drive).get("/tf_static"):
         for msg in reader.read_topic(drive, "/tf_static")["msgs"]:
             for tf in (msg.transforms if msg is not None else ()):
                 if tf.header.frame_id == frames.BASE_LINK and tf.child_frame_id == frames.IMU:
@@ -433,7 +434,8 @@ def wrap_deg(x: np.ndarray) -> np.ndarray:
     return np.mod(x + 180.0, 360.0) - 180.0
 
 
-def _log_pose(rec: rr.RecordingStream, src: str, pose: Pose, color) -> None:
+def _log_pose(rec: rr.RecordingStream, src: str, pose: Pose, color, style: bool = True) -> None:
+    """``enu/<src>/base_link``: the rows of ``pose``, and (``style``) the static box and axes."""
     if len(pose.t_ns) == 0:
         return
     path = f"enu/{src}/base_link"
@@ -441,12 +443,15 @@ def _log_pose(rec: rr.RecordingStream, src: str, pose: Pose, color) -> None:
                     columns=rr.Transform3D.columns(translation=pose.p_n,
                                                    quaternion=earth.dcm_to_quat(pose.C_base_n)),
                     recording=rec)
-    rec.log(path, rr.Boxes3D(half_sizes=[CAR_HALF_SIZES_M], centers=[(0.0, 0.0, CAR_HALF_SIZES_M[2])],
-                             colors=[color], fill_mode="solid"), rr.TransformAxes3D(2.0), static=True)
+    if style:
+        rec.log(path, rr.Boxes3D(half_sizes=[CAR_HALF_SIZES_M], centers=[(0.0, 0.0, CAR_HALF_SIZES_M[2])],
+                                 colors=[color], fill_mode="solid"), rr.TransformAxes3D(2.0), static=True)
 
 
-def _log_attitude(rec: rr.RecordingStream, src: str, pose: Pose, sigma_deg: np.ndarray | None, color) -> None:
-    """``attitude/<angle>/<src>``: [angle, +sigma, -sigma] (sigma None: [angle])."""
+def _log_attitude(rec: rr.RecordingStream, src: str, pose: Pose, sigma_deg: np.ndarray | None, color,
+                  style: bool = True) -> None:
+    """``attitude/<angle>/<src>``: [angle, +sigma, -sigma] (sigma None: [angle]); ``style``: the series' names
+    and colours too (static)."""
     light = tuple(int(c + (255 - c) * 0.55) for c in color)
     euler = pose.euler_deg()
     for k, angle in enumerate(ANGLES):
@@ -457,7 +462,8 @@ def _log_attitude(rec: rr.RecordingStream, src: str, pose: Pose, sigma_deg: np.n
             names, colors, widths = names + [f"{src} +σ", f"{src} −σ"], colors + [light, light], widths + [1.0, 1.0]
         path = f"attitude/{angle}/{src}"
         rr.send_columns(path, indexes=_times(pose.t_ns), columns=rr.Scalars.columns(scalars=x), recording=rec)
-        rec.log(path, rr.SeriesLines(names=names, colors=colors, widths=widths), static=True)
+        if style:
+            rec.log(path, rr.SeriesLines(names=names, colors=colors, widths=widths), static=True)
 
 
 def _log_attitude_errors(rec: rr.RecordingStream, method: str, pose: Pose, sigma_deg: np.ndarray, truth: Pose,

@@ -88,6 +88,10 @@ def _check_recording(rrd: Path, drive: Path, tmp_path: Path) -> None:
     assert rows["/map/truth", "GeoPoints:positions"] == -(-len(read_topic(drive, "/truth/fix")["log_time_ns"])
                                                            // rview.TRUTH_DECIMATION)
     assert fused.rows * 0.9 < rows["/errors/pos/east/kf", "Scalars:scalars"] <= fused.rows
+    for entity, comp in (("/enu/fusion/kf/base_link", "Transform3D:translation"),
+                         ("/attitude/heading/kf", "Scalars:scalars")):  # the vehicle, every solution row
+        assert rows[entity, comp] == fused.rows, entity
+    assert rows["/enu/fusion/kf/base_link", "Boxes3D:half_sizes"] == 1
     assert any(e == "/time_panel" for e, _ in rows)  # the blueprint's time panel follows the newest data
 
 
