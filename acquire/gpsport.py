@@ -16,7 +16,6 @@ raises. CR, LF and bytes of no frame are counted in ``bytes_discarded``.
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import zlib
 from dataclasses import dataclass, field
 

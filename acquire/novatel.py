@@ -114,7 +114,6 @@ class NovatelDecoder:
         if key is None or pos is None:
             return []
         week, ms = key
-        leap = self.leap_s
         utc_ns = utc_ns_of(week, ms, self.leap_s)
         fix = (not gnss.no_fix_reason(pos.quality, pos.sats, None)
                and all(math.isfinite(x) for x in (pos.lat, pos.lon, pos.h)))

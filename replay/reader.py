@@ -19,7 +19,6 @@ generic types carry ``msgs`` (a list of decoded message objects).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 

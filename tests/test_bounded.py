@@ -3,7 +3,6 @@ by its byte offset, by every command, in bounded memory; ``recover`` skips it an
 about its input's size plus the re-derived tail."""
 from __future__ import annotations
 
-import io
 import json
 import os
 import subprocess

@@ -6,7 +6,6 @@ reader, and every crash the long campaigns found (tests/data/fuzz/) replayed thr
 from __future__ import annotations
 
 import math
-import struct
 from pathlib import Path
 
 import numpy as np

@@ -3,7 +3,6 @@ user types."""
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from fieldlog.tools.commands.common import add_out_dir, command_parser, needs_extras
 from fieldlog.tools.commands.view import rerun_exe

@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, messages, outputs, recorder, timesync
+from fieldlog.acquire import calib, daq, messages, metavalue, outputs, recorder, timesync
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle
