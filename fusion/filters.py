@@ -16,9 +16,14 @@ from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.outages import PREDICTOR_NETWORK
 
 
+def has_local_filters(method: str) -> bool:
+    """Whether the method's filter is the distributed one, whose local filters' solutions are written too."""
+    return method == "dkf" or method in PREDICTOR_NETWORK
+
+
 def make_filter(method: str, P0: np.ndarray, q: np.ndarray, cfg: FusionConfig) -> kf.KalmanFilter | DistributedKF:
     """The filter object of a method, started at P0 (15, 15) with noise PSD q (12, 12)."""
-    if method == "dkf" or method in PREDICTOR_NETWORK:
+    if has_local_filters(method):
         return DistributedKF(P0, q, cfg.filter.dkf_fusion)
     if method == "hinf":
         return hinf.HInfinityFilter(P0, q, cfg.filter.hinf_gamma, min_ratio=cfg.filter.hinf_min_ratio)

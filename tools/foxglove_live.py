@@ -9,7 +9,8 @@ publishes, in log-time order within the block, the drive's own messages of the b
 their ROS 2 Jazzy schemas, so Foxglove's 3D, Map, Plot and Raw Messages panels show them. Messages go to
 every connected client that subscribed to the channel; a client that connects late starts from then, one that
 disconnects does not stop the others or the replay (the SDK's server runs in its own threads and never
-blocks ``log``). Bound to 127.0.0.1 unless another address is given.
+blocks ``log``). At the end the server stays up while a client is subscribed, for at most ``DRAIN_S``, so what
+is queued for it is sent before the connection closes. Bound to 127.0.0.1 unless another address is given.
 """
 from __future__ import annotations
 
@@ -23,12 +24,19 @@ from mcap.reader import make_reader
 from fieldlog.acquire import messages
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.filters import has_local_filters
 from fieldlog.replay.drive import DriveSpec, drive_files
 from fieldlog.replay.inputs import InputMap, InputStream
 from fieldlog.tools.fuse import BLOCK_S, Odometry, drive_config, drive_mounting, write_solution
 
 DEFAULT_HOST = "127.0.0.1"
 PLAY_BLOCK_S = 1.0
+# Outgoing messages buffered per client before the oldest is dropped: several seconds of a 500 Hz drive at
+# speed 8 with its fused topics (about 100 bytes each, so a few MB per client at most).
+BACKLOG_MESSAGES = 1 << 16
+# Wall seconds the server stays up after the last message while a client is subscribed, so that what is
+# queued for it is sent before the connection closes (the SDK offers no flush).
+DRAIN_S = 2.0
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -76,6 +84,19 @@ class FoxgloveSink:
         """(No metadata in the live protocol.)"""
 
 
+class _Subscriptions:
+    """ServerListener counting live subscriptions (a disconnect unsubscribes every channel of the client)."""
+
+    def __init__(self) -> None:
+        self.live: set[tuple[int, int]] = set()
+
+    def on_subscribe(self, client, channel) -> None:
+        self.live.add((client.id, channel.id))
+
+    def on_unsubscribe(self, client, channel) -> None:
+        self.live.discard((client.id, channel.id))
+
+
 @dataclass
 class ServeResult:
     address: str
@@ -93,6 +114,26 @@ def _drive_messages(drive: DriveSpec):
                     yield ch.topic, schema.name if schema else "", schema.data if schema else b"", m.log_time, m.data
 
 
+def _advertise(sink: FoxgloveSink, drive: DriveSpec, method: str, has_locals: bool) -> None:
+    """Create every channel the replay will publish on before a client can connect: the drive's topics (from
+    the files' summaries) and the fused ones. A client then subscribes from the first advertisement, and never
+    to a channel the server advertised a moment before it registered it (which it refuses)."""
+    for path in drive_files(drive):
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is None:
+            continue
+        for ch in summary.channels.values():
+            schema = summary.schemas.get(ch.schema_id)
+            if not ch.topic.startswith("/raw/") and schema is not None:
+                sink.channel(ch.topic, schema.name, schema.data)
+    base = f"/fusion/{method}"
+    fused = ["fix", "vel", "attitude", "std", "attitude_std", "imu_bias", "datum", "odom"]
+    fused += ["kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel"] if has_locals else []
+    for topic in [f"{base}/{name}" for name in fused] + ["/tf", "/tf_static"]:
+        sink.channel(topic)
+
+
 def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: InputMap,
           config: FusionConfig | None = None, on_ready: Callable[[str], None] = print) -> ServeResult:
     """Play ``drive`` with live ``method`` fusion to Foxglove clients at ``address`` ([HOST:]PORT); ``on_ready``
@@ -101,12 +142,15 @@ def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: Input
 
     host, port = parse_address(address)
     context = foxglove.Context()
-    server = foxglove.start_server(name="fieldlog", host=host, port=port, context=context)
+    subs = _Subscriptions()
+    server = foxglove.start_server(name="fieldlog", host=host, port=port, context=context, server_listener=subs,
+                                   message_backlog_size=BACKLOG_MESSAGES)
     res = ServeResult(f"ws://{host}:{server.port}")
     try:
-        on_ready(res.address)
         sink = FoxgloveSink(context)
         engine = Engine(method, config or drive_config(drive))
+        _advertise(sink, drive, method, has_local_filters(method))
+        on_ready(res.address)
         odom = Odometry(method, drive_mounting(drive))
         own = _drive_messages(drive)
         pending = next(own, None)
@@ -133,6 +177,9 @@ def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: Input
         odom.write(sink, sol)
         res.solutions += len(sol.t_ns)
         res.published = sink.published
+        drain_end = time.monotonic() + DRAIN_S
+        while subs.live and time.monotonic() < drain_end:
+            time.sleep(0.05)
     finally:
         server.stop()
     return res
