@@ -107,6 +107,18 @@ def test_evaluate_names_the_unknown_methods(drive, tmp_path, capsys):
     assert not (tmp_path / "table.md").exists()
 
 
+def test_evaluate_refuses_two_drives_of_one_name_before_writing(tmp_path, capsys):
+    """The fused files are named after the drive: two drives.mcap in different directories would share them."""
+    drives = [tmp_path / d / "drive.mcap" for d in ("a", "b")]
+    for d in drives:
+        d.parent.mkdir()
+        d.touch()  # never read: the names are checked first
+    rep = tmp_path / "report"
+    assert cli_main(["evaluate", *map(str, drives), "--methods", "kf", "--report", str(rep)]) == 2
+    assert "drive names must be unique (the fused files are named after them): drive" in capsys.readouterr().err
+    assert not rep.exists()
+
+
 def test_evaluate_writes_one_error_figure_per_outage_length(drive, tmp_path, capsys):
     rep = tmp_path / "report"
     assert cli_main(["evaluate", str(drive), "--outages", "20,30", "--methods", "ins,kf", "--report", str(rep)]) == 0

@@ -37,7 +37,8 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import IN_TOPICS
-from fieldlog.tools.evaluate import QUANTITIES, check_methods, fix_quality, outage_error_series, place_outages, rms_columns
+from fieldlog.tools.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality, outage_error_series,
+                                     place_outages, rms_columns)
 from fieldlog.tools.fuse import drive_config, fuse
 from fieldlog.tools.info import drive_info
 
@@ -192,10 +193,7 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
     check_methods(list(methods))
     if not drives:
         raise ValueError("no drive to process")
-    stems = [Path(d).stem for d in drives]
-    dup = sorted({s for s in stems if stems.count(s) > 1})
-    if dup:
-        raise ValueError(f"drive names must be unique (the fused files are named after them): {', '.join(dup)}")
+    check_drive_names(drives)
     out = outputs.out_dir(Path(out).absolute())
     outputs.check_new(out / "results.parquet", force)
     paths = [str(Path(d).resolve()) for d in drives]

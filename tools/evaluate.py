@@ -67,6 +67,15 @@ def check_methods(methods: list[str]) -> None:
         raise ValueError(f"unknown method(s): {', '.join(unknown)} (available: {', '.join(METHODS)})")
 
 
+def check_drive_names(drives: Sequence[str | Path]) -> None:
+    """Raise ValueError naming the drive names (file or directory stems) given more than once: the fused files
+    of a drive are named after it, so two drives of one name (in different directories) would share them."""
+    stems = [Path(d).stem for d in drives]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise ValueError(f"drive names must be unique (the fused files are named after them): {', '.join(dup)}")
+
+
 def place_outages(t_fix_s: np.ndarray, good: np.ndarray, length_s: float, cfg: StudyConfig = StudyConfig()
                   ) -> list[tuple[float, float]]:
     """Outage windows (start_s, length_s) of one length in good GPS.
@@ -405,13 +414,15 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     ``<method>-no-odometer`` column per method, the same run with ``[fusion] odometer = false``. config None: each
     drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
-    drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its claims
-    (:func:`paper_report`). progress: called with the fraction of the runs done. Every file is new
+    drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its absolute figures and
+    each of its claims (:func:`paper_report`). Drive names (stems) must be unique (:func:`check_drive_names`),
+    checked before anything is written. progress: called with the fraction of the runs done. Every file is new
     (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
     runs that could not be scored (default: ``say``)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
+    check_drive_names(drives)
     report = Path(report)
     outputs.out_dir(report, "fused")
     runs = [(m, sm, True) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
