@@ -22,7 +22,16 @@ throws the time sync's fit away, so the counter is checked before anyone sees k 
     (a board reset, a counter register that jumped) is counted as implausible and the new counter is *re-based*
     onto k at the slot its byte distance gives, so k never goes back and never jumps by more than time allows;
   - neither: the frame is dropped and counted.
+  A frame *continues* another when its counter steps forward by no more than the bytes between them explain or
+  the host clock allows (the same bound as a gap): a board whose transmit path is slower than its ADC drops
+  samples itself (its ring overruns) and sends the rest back to back, so its gaps leave no bytes missing and
+  come close together; a genuine gap must not need gap-free frames after it to be believed. The first reference
+  is the first frame one of whose next two frames it explains, or whose next two frames continue it.
 So k strictly increases, and a step of k is bounded by the bytes and the host time, whatever the counter says.
+
+Counting: ``counter_gaps`` is the times the judged k advanced by more than 1; ``lost_frames`` the sample slots
+such gaps skipped less the frames received inside them that the judge dropped (those arrived and are counted
+in ``frames`` and ``counter_implausible``), so no sample is counted in both ``frames`` and ``lost_frames``.
 """
 from __future__ import annotations
 
@@ -89,6 +98,7 @@ class CounterJudge:
         self._held_mono: int | None = None
         self._base = 0
         self._last_out: int | None = None     # k of the last frame returned
+        self._dropped = 0                     # frames decided and dropped since the last frame returned
 
     @property
     def held(self) -> int:
@@ -134,20 +144,29 @@ class CounterJudge:
         res = _select(fr, keep)
         res.k = out_k[keep]
         res.end_offset = start[keep] + FRAME_SIZE - self._base
-        self._count_gaps(res.k)
+        # frames dropped between each frame returned and the one before it (held frames are not decided yet)
+        dropped = np.diff(keep, prepend=-1) - 1
+        if keep.size:
+            dropped[0] += self._dropped
+            self._dropped = i - 1 - int(keep[-1])
+        else:
+            self._dropped += i
+        self._count_gaps(res.k, dropped)
         return res
 
     def _start(self, counter: np.ndarray, start: np.ndarray, mono_ns: int | None, final: bool,
                out_k: np.ndarray) -> int:
-        """The first reference: the first frame one of whose next two frames continues it (k = its counter)."""
+        """The first reference: the first frame one of whose next two frames it explains, or whose next two
+        frames continue it (k = its counter)."""
         n = counter.size
         for i in range(n):
             if i + 2 >= n and not final:
                 return i
-            if i + 1 >= n or any(_explained(int(counter[i]), int(start[i]), int(counter[j]), int(start[j]))
-                                 for j in range(i + 1, min(n, i + 3))):
-                out_k[i] = counter[i]
-                self._ref = _Ref(int(counter[i]), int(counter[i]), int(start[i]), mono_ns)
+            nxt = [(int(counter[j]), int(start[j])) for j in range(i + 1, min(n, i + 3))]
+            c, s = int(counter[i]), int(start[i])
+            if any(_explained(c, s, *f) for f in nxt) or self._corroborated(c, s, nxt, mono_ns):
+                out_k[i] = c
+                self._ref = _Ref(c, c, s, mono_ns)
                 return i + 1
             self.stats.counter_implausible += 1
         return n
@@ -211,12 +230,11 @@ class CounterJudge:
             if k is not None and ref.k < k < k1:
                 out_k[i] = k
             return i + 1
-        corroborated = not nxt or (_explained(c, s, *nxt[0]) and (len(nxt) < 2 or _explained(*nxt[0], *nxt[1])))
-        if not corroborated:
+        if not self._corroborated(c, s, nxt, mono_ns):
             st.counter_implausible += 1             # no neighbour agrees with it either: dropped
             return i + 1
-        if step < _BACK and step <= self._allowed(s, mono_ns):
-            k = ref.k + step                        # a real gap: frames lost with their bytes
+        if step < _BACK and step <= self._allowed(ref.start, s, mono_ns):
+            k = ref.k + step                        # a real gap: frames lost with their bytes, or never sent
         else:
             st.counter_implausible += 1             # the counter was re-based (board reset, jumped register)
             k = ref.k + max(1, -(-(s - ref.start) // FRAME_SIZE))
@@ -224,20 +242,34 @@ class CounterJudge:
         self._ref = _Ref(c, k, s, mono_ns)
         return i + 1
 
-    def _allowed(self, s: int, mono_ns: int | None) -> float:
-        """The largest counter step the bytes and the host clock allow from the reference to a frame at ``s``."""
+    def _allowed(self, s_from: int, s_to: int, mono_ns: int | None) -> float:
+        """The largest counter step the bytes and the host clock allow from a frame at stream offset ``s_from``
+        to one at ``s_to`` (both at or after the reference's), read at ``mono_ns``: frames whose bytes lie
+        between them, or the frames the host time since the reference's read holds (``max_gap_s`` of them
+        without host times or a reference)."""
         cfg, ref = self.cfg, self._ref
-        by_bytes = -(-(s - ref.start) // FRAME_SIZE)
-        if mono_ns is None or ref.mono_ns is None:
+        by_bytes = -(-(s_to - s_from) // FRAME_SIZE)
+        if mono_ns is None or ref is None or ref.mono_ns is None:
             return max(by_bytes, cfg.max_gap_s * cfg.fs_hz)
         host_s = max(0, mono_ns - ref.mono_ns) / 1e9 * cfg.host_time_scale
         return max(by_bytes, math.ceil((host_s * 1.001 + cfg.slack_s) * cfg.fs_hz))
 
-    def _count_gaps(self, k: np.ndarray) -> None:
+    def _corroborated(self, c: int, s: int, nxt: list[tuple[int, int]], mono_ns: int | None) -> bool:
+        """The next frames ``nxt`` ((counter, stream offset), up to two) each continue the one before them,
+        starting from the frame (``c``, ``s``): every counter step forward and within ``_allowed``. Not only
+        within the bytes: a board that drops samples itself sends the frames around the gaps back to back."""
+        chain = [(c, s), *nxt]
+        return all(1 <= (c1 - c0) & _M32 <= self._allowed(s0, s1, mono_ns)
+                   for (c0, s0), (c1, s1) in zip(chain, chain[1:]))
+
+    def _count_gaps(self, k: np.ndarray, dropped: np.ndarray) -> None:
+        """``counter_gaps`` and ``lost_frames`` for the frames returned, k in order. ``dropped[j]``: frames received
+        between frame j and the one returned before it that the judge dropped. Such a frame arrived (it is in
+        ``frames``) and its slot lies in the gap around it, so it is not a lost frame too."""
         if not k.size:
             return
         d = np.diff(k, prepend=k[0] - 1 if self._last_out is None else self._last_out)
-        gaps = d[d > 1]
-        self.stats.counter_gaps += gaps.size
-        self.stats.lost_frames += int(gaps.sum()) - gaps.size
+        gap = d > 1
+        self.stats.counter_gaps += int(gap.sum())
+        self.stats.lost_frames += int(np.maximum(0, d[gap] - 1 - dropped[gap]).sum())
         self._last_out = int(k[-1])

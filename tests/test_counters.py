@@ -109,6 +109,33 @@ def test_truncated_frame_loss_is_a_gap() -> None:
     assert (st_.counter_gaps, st_.lost_frames, st_.counter_implausible) == (1, 1, 0)
 
 
+@pytest.mark.parametrize("chunk", [L, 7 * L + 5, 500, 10**6])
+@pytest.mark.parametrize("frame_mono_ns", [None, 2.5e6])
+def test_samples_the_board_dropped_itself_are_gaps_counted_once(chunk: int, frame_mono_ns: float | None) -> None:
+    # a link slower than the ADC: the board's ring overruns and it skips about one sample in five, its frames
+    # still back to back, so the gaps are close together (several in a row) and no byte is missing for them
+    rng = np.random.default_rng(3)
+    counter = 7000 + np.flatnonzero(rng.random(2500) >= 0.2)
+    assert np.any((np.diff(counter)[:-1] > 1) & (np.diff(counter)[1:] > 1))
+    k, st_ = judged(bytes(frames(counter)), chunk, frame_mono_ns)
+    assert st_.frames + st_.lost_frames == counter[-1] - counter[0] + 1      # each sample counted once
+    assert (st_.counter_gaps, st_.counter_implausible) == (int((np.diff(counter) > 1).sum()), 0)
+    np.testing.assert_array_equal(k, counter)          # every frame at its own index: none judged wrong
+
+
+def test_a_wrong_counter_frame_dropped_inside_a_gap_is_not_also_a_lost_frame() -> None:
+    # two wrong counters in a row: the first agrees with no neighbour and is dropped, the second is placed by
+    # the next frame; the sample slot of the dropped frame arrived (it is a frame), so nothing was lost
+    counter = np.arange(300)
+    s = frames(counter)
+    set_counter(s, 100, 10**9)
+    set_counter(s, 101, 2 * 10**9)
+    k, st_ = judged(bytes(s), 500)
+    np.testing.assert_array_equal(k, np.delete(counter, 100))
+    assert (st_.counter_implausible, st_.lost_frames) == (2, 0)
+    assert st_.frames + st_.lost_frames == counter.size
+
+
 @settings(max_examples=200, deadline=None, derandomize=True)
 @given(st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=80), st.integers(20, 2000),
        st.integers(0, 2**32 - 1))
