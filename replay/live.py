@@ -23,14 +23,25 @@ API (stable; ``fieldlog view --live`` and live fusion use it):
     which are dropped by default because their time base is not the fixes' UTC.
 ``iter_batches(path)``
     yields every published ``Batch`` (one topic, n messages, both streams) as received.
+``batch_blocks(batches, topics, block_s, ...)``
+    ``iter_blocks`` of batches already read (e.g. from ``follow``).
+``in_stream(batch, final=False, host_clock=False)``
+    whether a batch is part of the stream ``iter_blocks`` reads (one stamp base per topic, never both).
+``follow(path, wait_s=30.0, tap=None)``
+    a viewer's batches: waits for the bus, drains it in a background thread (``tap`` sees each batch there as
+    it arrives), ends when the daemon closes the bus, on Ctrl-C or on SIGTERM.
 """
 from __future__ import annotations
 
+import queue
+import signal
 import socket
 import struct
+import threading
 import time
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -118,8 +129,24 @@ def _concat(parts: list[tuple[np.ndarray, messages.Packed, np.ndarray]]
     return t, p, np.concatenate([st for _, _, st in parts])
 
 
+def in_stream(b: Batch, final: bool = False, host_clock: bool = False) -> bool:
+    """Whether ``b`` belongs to the stream ``iter_blocks`` reads: ``/imu`` from the provisional stream (its
+    pre-lock host-clock rows only with ``host_clock``) unless ``final``, every other topic as written to the
+    file. Each topic then has one stamp base and its stamps never go backwards (the provisional ``/imu`` steps
+    once, from the host clock to GPS time, when ``host_clock`` keeps the pre-lock rows)."""
+    if b.topic == "/imu" and not final:
+        return b.provisional and (host_clock or not b.host_clock)
+    return not b.provisional
+
+
 def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: float | None = None,
                 final: bool = False, host_clock: bool = False) -> Iterator[LiveBlock]:
+    """``batch_blocks`` of the bus at ``path`` (``iter_batches``)."""
+    return batch_blocks(iter_batches(path), topics, block_s, max_lag_s, final, host_clock)
+
+
+def batch_blocks(batches: Iterable[Batch], topics: Sequence[str], block_s: float, max_lag_s: float | None = None,
+                 final: bool = False, host_clock: bool = False) -> Iterator[LiveBlock]:
     """Consecutive blocks of ``block_s`` seconds of log time, from the first message of ``topics``.
 
     ``final=False`` (default): ``/imu`` from the provisional stream (host-clock rows before the first lock
@@ -158,13 +185,8 @@ def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: flo
         return LiveBlock(t0, t1, data, provisional=worst is not None,
                          sync_state=worst, read_mono_ns=read_mono, recv_mono_ns=recv_mono)
 
-    for b in iter_batches(path):
-        if b.topic not in wanted or len(b.log_time_ns) == 0:
-            continue
-        if b.topic == "/imu" and not final:
-            if not b.provisional or (b.host_clock and not host_clock):
-                continue
-        elif b.provisional:
+    for b in batches:
+        if b.topic not in wanted or len(b.log_time_ns) == 0 or not in_stream(b, final, host_clock):
             continue
         t = b.log_time_ns
         pending.setdefault(b.topic, []).append((t, b.payloads, b.state))
@@ -178,3 +200,60 @@ def iter_blocks(path: str, topics: Sequence[str], block_s: float, max_lag_s: flo
     while t0 is not None and any(pending.values()):
         yield block(t0 + step)
         t0 += step
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM ends a live viewer like Ctrl-C (KeyboardInterrupt in the main thread; elsewhere nothing is set)."""
+
+    def stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
+
+
+def _drained(items: Iterator, tap: Callable[[Batch], None] | None) -> Iterator:
+    """``items`` read by a background thread (started at once) into an unbounded queue, so the bus socket is
+    always drained: the daemon gives a slow client little time when it stops (and drops one that falls 16 MB
+    behind). ``tap`` is called in that thread with each item as it arrives; an exception there, or in reading,
+    is raised in the consumer."""
+    q: queue.Queue = queue.Queue()
+    done = object()
+
+    def pump() -> None:
+        try:
+            for item in items:
+                if tap is not None:
+                    tap(item)
+                q.put(item)
+        except Exception as e:  # noqa: BLE001  (re-raised in the consumer)
+            q.put(e)
+        q.put(done)
+
+    threading.Thread(target=pump, name="live-bus", daemon=True).start()
+
+    def consume() -> Iterator:
+        try:
+            while (item := q.get()) is not done:
+                if isinstance(item, Exception):
+                    raise item
+                yield item
+        except KeyboardInterrupt:
+            return
+
+    return consume()
+
+
+def follow(path: str, wait_s: float = 30.0, tap: Callable[[Batch], None] | None = None) -> Iterator[Batch]:
+    """Every batch of the bus at ``path`` (``iter_batches``), for a live viewer: waits up to ``wait_s`` for the
+    daemon to open the bus (FileNotFoundError after that), connects at once and drains the socket in a
+    background thread (``tap`` sees each batch there, as it arrives, before the consumer does: it must be
+    quick). Ends when the daemon closes the bus, or on Ctrl-C or SIGTERM (``stop_on_sigterm``) while the
+    consumer waits for the next batch."""
+    end = time.monotonic() + wait_s
+    while not Path(path).exists():
+        if time.monotonic() > end:
+            raise FileNotFoundError(f"no live bus at {path} (is `fieldlog acquire` running with [daemon] bus?)")
+        time.sleep(0.1)
+    stop_on_sigterm()
+    return _drained(iter_batches(path), tap)

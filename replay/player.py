@@ -25,8 +25,7 @@ import contextlib
 import os
 import time
 from dataclasses import dataclass, fields
-from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 import rerun as rr
@@ -325,49 +324,6 @@ def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[s
     return _play_into(rrd, connect, blocks, method, speed, config, progress, span, force, rv.mounting(drive))
 
 
-def _stop_on_sigterm() -> None:
-    """SIGTERM ends a live view like Ctrl-C: the recording is finished and flushed (the main thread only)."""
-    import signal
-    import threading
-
-    def stop(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, stop)
-
-
-def _until_interrupted(blocks: Iterable[reader.Block]) -> Iterator[reader.Block]:
-    try:
-        yield from blocks
-    except KeyboardInterrupt:
-        return
-
-
-def _drained(blocks: Iterator[reader.Block]) -> Iterator[reader.Block]:
-    """``blocks`` read by a background thread into an unbounded queue, so the bus socket is always drained: the
-    daemon gives a slow client little time when it stops (and drops one that falls 16 MB behind)."""
-    import queue
-    import threading
-
-    q: queue.Queue = queue.Queue()
-    done = object()
-
-    def pump() -> None:
-        try:
-            for b in blocks:
-                q.put(b)
-        except Exception as e:  # noqa: BLE001  (re-raised in the consumer)
-            q.put(e)
-        q.put(done)
-
-    threading.Thread(target=pump, name="live-bus", daemon=True).start()
-    while (item := q.get()) is not done:
-        if isinstance(item, Exception):
-            raise item
-        yield item
-
-
 def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = None, connect: str | None = None,
               config: FusionConfig | None = None, wait_s: float = 30.0, force: bool = False) -> ReplayResult:
     """``fieldlog view --live``: the daemon's live bus at ``address`` (its Unix socket, ``[daemon] bus``) through
@@ -376,11 +332,5 @@ def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = No
     from fieldlog.replay import live
 
     _check_sink(rrd, connect)
-    end = time.monotonic() + wait_s
-    while not Path(address).exists():
-        if time.monotonic() > end:
-            raise FileNotFoundError(f"no live bus at {address} (is `fieldlog acquire` running with [daemon] bus?)")
-        time.sleep(0.1)
-    _stop_on_sigterm()
-    blocks = _drained(live.iter_blocks(address, IN_TOPICS, PLAY_BLOCK_S))
-    return _play_into(rrd, connect, _until_interrupted(blocks), method, 0.0, config, force=force)
+    blocks = live.batch_blocks(live.follow(address, wait_s), IN_TOPICS, PLAY_BLOCK_S)
+    return _play_into(rrd, connect, blocks, method, 0.0, config, force=force)

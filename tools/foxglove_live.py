@@ -1,33 +1,62 @@
-"""``fieldlog replay DRIVE --foxglove [HOST:]PORT``: a drive and its live fusion served over the Foxglove
-WebSocket protocol (``foxglove.websocket.v1``, through foxglove-sdk: the ``[foxglove]`` extra).
+"""A drive, or the car live, and its live fusion served over the Foxglove WebSocket protocol
+(``foxglove.websocket.v1``, through foxglove-sdk: the ``[foxglove]`` extra), so that Foxglove's 3D, Map, Plot and
+Raw Messages panels show them: ``fieldlog replay DRIVE --foxglove [HOST:]PORT`` (``serve``) and ``fieldlog
+acquire --foxglove [HOST:]PORT``, whose child ``fieldlog view --live BUS --foxglove [HOST:]PORT`` serves the
+daemon's live bus (``serve_live``).
 
-The drive is played as ``fuse`` reads it (``replay.inputs.InputStream`` blocks, the incremental
+Both publish the live ``method`` fusion's ``/fusion/<method>/*``, ``/tf``, ``/tf_static`` and datum exactly as
+``fuse`` writes them (``tools.fuse.write_solution``, ``Odometry``), with their ROS 2 Jazzy schemas, and the
+source's own topics as CDR with their ROS 2 schemas. Every channel they will publish on is created before the
+address is announced (``announce``: one line, ``foxglove: serving ws://HOST:PORT``), so a client subscribes
+from the first advertisement and never to a channel the server advertised a moment before it registered it
+(which the SDK refuses). Messages go to every connected client that subscribed to the channel; a client that
+connects late starts from then, one that disconnects does not stop the others (the SDK's server runs in its
+own threads and never blocks ``log``; each client has ``BACKLOG_MESSAGES`` queued at most, the oldest dropped
+beyond). At the end the server stays up while a client is subscribed, for at most ``DRAIN_S``, so what is
+queued for it is sent before the connection closes. Bound to 127.0.0.1 unless another host is given; port 0
+picks a free port.
+
+Replay. The drive is played as ``fuse`` reads it (``replay.inputs.InputStream`` blocks, the incremental
 ``fusion.engine.Engine``), paced so that data time runs ``speed`` times faster than the wall clock. Each block
 publishes, in log-time order within the block, the drive's own messages of the block's span (every topic but
-``/raw/*``, as recorded: CDR with the file's ROS 2 schema) and the live fusion's ``/fusion/<method>/*``, ``/tf``,
-``/tf_static`` and datum, exactly as ``fuse`` writes them (``tools.fuse.write_solution``, ``Odometry``), with
-their ROS 2 Jazzy schemas, so Foxglove's 3D, Map, Plot and Raw Messages panels show them. Messages go to
-every connected client that subscribed to the channel; a client that connects late starts from then, one that
-disconnects does not stop the others or the replay (the SDK's server runs in its own threads and never
-blocks ``log``). At the end the server stays up while a client is subscribed, for at most ``DRAIN_S``, so what
-is queued for it is sent before the connection closes. Bound to 127.0.0.1 unless another address is given.
+``/raw/*``, as recorded, with the file's schema), then the block's fused rows.
+
+Live. The daemon's live bus (``replay.live``) is drained by a background thread (``replay.live.follow``),
+which publishes each batch of the daemon's derived topics the moment the bus delivers it, so neither the
+fusion nor a slow client delays them, and the recorder never waits for this process (the bus drops a client
+that falls far behind, it never blocks). ``/imu`` carries the provisional stamps of the causal time fit, from
+the first PPS lock on (the file's final stamps come about half a time-sync window later and are not sent
+again, so its stamps only increase); every other topic is sent as written to the file (``replay.live
+.in_stream``). The fusion runs in the main thread on ``PLAY_BLOCK_S`` blocks of the same batches
+(``replay.live.batch_blocks``). A fusion error (e.g. a diverged solution) is logged once and stops the fused
+topics only; the daemon's go on. The channels of ``LIVE_TOPICS`` and the fused topics are created up front; a
+topic outside them gets its channel when it first comes. base_link (``/tf``, odom) follows the daemon's
+calibration's mounting when given, else base_link is the IMU. Ends when the daemon closes the bus (it stops),
+or on Ctrl-C or SIGTERM.
+
+The fusion stack is imported by the functions that fuse, so that ``fieldlog acquire --foxglove`` checks its
+address (``parse_address``) without loading it into the recorder's process.
 """
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Iterable, Iterator
 
 import numpy as np
 from mcap.reader import make_reader
 
-from fieldlog.acquire import messages
-from fieldlog.fusion.config import FusionConfig
-from fieldlog.fusion.engine import Engine
-from fieldlog.fusion.filters import has_local_filters
+from fieldlog.acquire import calib, messages
 from fieldlog.replay.drive import DriveSpec, drive_files
 from fieldlog.replay.inputs import InputMap, InputStream
-from fieldlog.tools.fuse import BLOCK_S, Odometry, drive_config, drive_mounting, write_solution
+
+if TYPE_CHECKING:
+    from fieldlog.fusion.config import FusionConfig
+    from fieldlog.fusion.types import GpsBlock, ImuBlock, Solution
+
+log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
 PLAY_BLOCK_S = 1.0
@@ -37,6 +66,12 @@ BACKLOG_MESSAGES = 1 << 16
 # Wall seconds the server stays up after the last message while a client is subscribed, so that what is
 # queued for it is sent before the connection closes (the SDK offers no flush).
 DRAIN_S = 2.0
+# The daemon's derived topics (acquire.pipeline, acquire.canbus with [can]): what its live bus carries.
+LIVE_TOPICS = ("/imu", "/gps/fix", "/gps/vel", "/gps/nmea", "/gps/receiver", "/pps", "/time/sync", "/tf_static",
+               "/vehicle/twist", "/vehicle/wheel_speeds")
+
+# (topic, schema name, ros2msg schema text); None, None: the contract's schema of the topic (acquire.messages)
+ChannelSpec = tuple[str, str | None, bytes | None]
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -48,9 +83,23 @@ def parse_address(text: str) -> tuple[str, int]:
     return host or DEFAULT_HOST, int(port)
 
 
+def announce(url: str) -> None:
+    """The one line that says where the server listens (stdout, at once: a supervisor or a test reads it)."""
+    print(f"foxglove: serving {url}", flush=True)
+
+
+def fused_topics(method: str) -> list[str]:
+    """The topics the live ``method`` fusion publishes (``write_solution``, ``Odometry``)."""
+    from fieldlog.fusion.filters import has_local_filters
+
+    names = ["fix", "vel", "attitude", "std", "attitude_std", "imu_bias", "datum", "odom"]
+    names += ["kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel"] if has_local_filters(method) else []
+    return [f"/fusion/{method}/{name}" for name in names] + ["/tf", "/tf_static"]
+
+
 class FoxgloveSink:
     """Publishes what a Recorder would write (``write``, ``write_batch``, ``add_metadata``) on Foxglove channels,
-    one per topic, CDR with the ROS 2 schema (``ros2msg``)."""
+    one per topic, CDR with the ROS 2 schema (``ros2msg``). Safe to call from several threads."""
 
     def __init__(self, context) -> None:
         import foxglove
@@ -58,27 +107,35 @@ class FoxgloveSink:
         self._fg, self.context = foxglove, context
         self.channels: dict[str, object] = {}
         self.published = 0
+        self._lock = threading.Lock()
 
     def channel(self, topic: str, schema_name: str | None = None, schema_data: bytes | None = None):
-        ch = self.channels.get(topic)
-        if ch is None:
-            if schema_name is None:
-                schema_name = messages.topic_type(topic)
-                schema_data = messages.schema_text(schema_name).encode()
-            ch = self.channels[topic] = self._fg.Channel(
-                topic, schema=self._fg.Schema(name=schema_name, encoding="ros2msg", data=schema_data),
-                message_encoding="cdr", context=self.context)
-        return ch
+        """The channel of ``topic``, created on first use with this schema (default: the contract's)."""
+        with self._lock:
+            ch = self.channels.get(topic)
+            if ch is None:
+                if schema_name is None:
+                    schema_name = messages.topic_type(topic)
+                    schema_data = messages.schema_text(schema_name).encode()
+                ch = self.channels[topic] = self._fg.Channel(
+                    topic, schema=self._fg.Schema(name=schema_name, encoding="ros2msg", data=schema_data),
+                    message_encoding="cdr", context=self.context)
+            return ch
 
-    def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        self.channel(topic).log(data, log_time=int(log_time_ns))
-        self.published += 1
+    def _count(self, n: int) -> None:
+        with self._lock:
+            self.published += n
+
+    def write(self, topic: str, log_time_ns: int, data: bytes, schema_name: str | None = None,
+              schema_data: bytes | None = None) -> None:
+        self.channel(topic, schema_name, schema_data).log(data, log_time=int(log_time_ns))
+        self._count(1)
 
     def write_batch(self, topic: str, log_time_ns, data) -> None:
         ch = self.channel(topic)
         for t, d in zip(np.asarray(log_time_ns).tolist(), messages.as_packed(data)):
             ch.log(d, log_time=int(t))
-        self.published += len(log_time_ns)
+        self._count(len(log_time_ns))
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """(No metadata in the live protocol.)"""
@@ -97,6 +154,71 @@ class _Subscriptions:
         self.live.discard((client.id, channel.id))
 
 
+class _Server:
+    """A WebSocket server at ``address`` on a Context of its own, with the channels of ``own`` and of the live
+    ``method`` fusion created (a context manager: the server stops on exit)."""
+
+    def __init__(self, address: str, method: str, own: Iterable[ChannelSpec]) -> None:
+        import foxglove    # (missing: the command says which extra to install)
+
+        host, port = parse_address(address)
+        context = foxglove.Context()
+        self.subs = _Subscriptions()
+        try:
+            self.server = foxglove.start_server(name="fieldlog", host=host, port=port, context=context,
+                                                server_listener=self.subs, message_backlog_size=BACKLOG_MESSAGES)
+        except RuntimeError as e:      # FoxgloveError: the address cannot be resolved or bound
+            raise ValueError(f"--foxglove {address}: {e}") from None
+        self.address = f"ws://{host}:{self.server.port}"
+        try:
+            self.sink = FoxgloveSink(context)
+            for topic, schema_name, schema_data in own:
+                self.sink.channel(topic, schema_name, schema_data)
+            for topic in fused_topics(method):
+                self.sink.channel(topic)
+        except BaseException:
+            self.server.stop()
+            raise
+
+    def __enter__(self) -> _Server:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.stop()
+
+    def drain(self) -> None:
+        """Stay up while a client is subscribed, for at most ``DRAIN_S``."""
+        end = time.monotonic() + DRAIN_S
+        while self.subs.live and time.monotonic() < end:
+            time.sleep(0.05)
+
+
+class _Fusion:
+    """The incremental ``method`` fusion onto a sink: each step's solution rows as ``fuse`` writes them, with
+    their REP-105 frames (``Odometry``, base_link placed by ``mounting``)."""
+
+    def __init__(self, sink: FoxgloveSink, method: str, config: FusionConfig | None,
+                 mounting: calib.Mounting) -> None:
+        from fieldlog.fusion.engine import Engine
+        from fieldlog.tools.fuse import Odometry, write_solution
+
+        self.sink, self.method, self._write_solution = sink, method, write_solution
+        self.engine = Engine(method, config)
+        self.odom = Odometry(method, mounting)
+        self.solutions = 0
+
+    def step(self, imu: ImuBlock, gps: GpsBlock) -> None:
+        self._publish(self.engine.process(imu, gps)[0])
+
+    def finish(self) -> None:
+        self._publish(self.engine.finish()[0])
+
+    def _publish(self, sol: Solution) -> None:
+        self._write_solution(self.sink, self.method, sol)
+        self.odom.write(self.sink, sol)
+        self.solutions += len(sol.t_ns)
+
+
 @dataclass
 class ServeResult:
     address: str
@@ -105,19 +227,8 @@ class ServeResult:
     published: int = 0
 
 
-def _drive_messages(drive: DriveSpec):
-    """The drive's messages but /raw/*, file by file in log-time order: (topic, schema name, schema, t, data)."""
-    for path in drive_files(drive):
-        with open(path, "rb") as f:
-            for schema, ch, m in make_reader(f).iter_messages(log_time_order=True):
-                if not ch.topic.startswith("/raw/"):
-                    yield ch.topic, schema.name if schema else "", schema.data if schema else b"", m.log_time, m.data
-
-
-def _advertise(sink: FoxgloveSink, drive: DriveSpec, method: str, has_locals: bool) -> None:
-    """Create every channel the replay will publish on before a client can connect: the drive's topics (from
-    the files' summaries) and the fused ones. A client then subscribes from the first advertisement, and never
-    to a channel the server advertised a moment before it registered it (which it refuses)."""
+def _drive_channels(drive: DriveSpec) -> Iterator[ChannelSpec]:
+    """The drive's topics but /raw/*, with their schemas, from the files' summaries."""
     for path in drive_files(drive):
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
@@ -126,60 +237,89 @@ def _advertise(sink: FoxgloveSink, drive: DriveSpec, method: str, has_locals: bo
         for ch in summary.channels.values():
             schema = summary.schemas.get(ch.schema_id)
             if not ch.topic.startswith("/raw/") and schema is not None:
-                sink.channel(ch.topic, schema.name, schema.data)
-    base = f"/fusion/{method}"
-    fused = ["fix", "vel", "attitude", "std", "attitude_std", "imu_bias", "datum", "odom"]
-    fused += ["kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel"] if has_locals else []
-    for topic in [f"{base}/{name}" for name in fused] + ["/tf", "/tf_static"]:
-        sink.channel(topic)
+                yield ch.topic, schema.name, schema.data
+
+
+def _drive_messages(drive: DriveSpec):
+    """The drive's messages but /raw/*, file by file in log-time order: (topic, t, data, schema name, schema)."""
+    for path in drive_files(drive):
+        with open(path, "rb") as f:
+            for schema, ch, m in make_reader(f).iter_messages(log_time_order=True):
+                if not ch.topic.startswith("/raw/"):
+                    yield ch.topic, m.log_time, m.data, schema.name if schema else "", schema.data if schema else b""
 
 
 def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: InputMap,
-          config: FusionConfig | None = None, on_ready: Callable[[str], None] = print) -> ServeResult:
+          config: FusionConfig | None = None, on_ready: Callable[[str], None] = announce) -> ServeResult:
     """Play ``drive`` with live ``method`` fusion to Foxglove clients at ``address`` ([HOST:]PORT); ``on_ready``
-    gets ``ws://HOST:PORT`` once the server listens. ``speed <= 0``: as fast as possible."""
-    import foxglove    # (missing: the command says which extra to install)
+    gets ``ws://HOST:PORT`` once the server listens with every channel. ``speed <= 0``: as fast as possible."""
+    from fieldlog.tools.fuse import BLOCK_S, drive_config, drive_mounting
 
-    host, port = parse_address(address)
-    context = foxglove.Context()
-    subs = _Subscriptions()
-    server = foxglove.start_server(name="fieldlog", host=host, port=port, context=context, server_listener=subs,
-                                   message_backlog_size=BACKLOG_MESSAGES)
-    res = ServeResult(f"ws://{host}:{server.port}")
-    try:
-        sink = FoxgloveSink(context)
-        engine = Engine(method, config or drive_config(drive))
-        _advertise(sink, drive, method, has_local_filters(method))
-        on_ready(res.address)
-        odom = Odometry(method, drive_mounting(drive))
+    with _Server(address, method, _drive_channels(drive)) as srv:
+        fusion = _Fusion(srv.sink, method, config or drive_config(drive), drive_mounting(drive))
+        res = ServeResult(srv.address)
+        on_ready(srv.address)
         own = _drive_messages(drive)
         pending = next(own, None)
         wall0 = t0 = None
         for block in InputStream(drive, imap, PLAY_BLOCK_S if speed > 0 else BLOCK_S):
-            while pending is not None and pending[3] < block.t1_ns:
-                topic, name, data_schema, t, data = pending
-                sink.channel(topic, name, data_schema).log(data, log_time=t)
-                sink.published += 1
+            while pending is not None and pending[1] < block.t1_ns:
+                srv.sink.write(*pending)
                 pending = next(own, None)
-            sol, _done = engine.process(block.imu, block.gps)
-            write_solution(sink, method, sol)
-            odom.write(sink, sol)
+            fusion.step(block.imu, block.gps)
             res.blocks += 1
-            res.solutions += len(sol.t_ns)
             if speed > 0:
                 wall0 = time.monotonic() if wall0 is None else wall0
                 t0 = block.t0_ns if t0 is None else t0
                 wait = (block.t1_ns - t0) / 1e9 / speed - (time.monotonic() - wall0)
                 if wait > 0:
                     time.sleep(wait)
-        sol, _done = engine.finish()
-        write_solution(sink, method, sol)
-        odom.write(sink, sol)
-        res.solutions += len(sol.t_ns)
-        res.published = sink.published
-        drain_end = time.monotonic() + DRAIN_S
-        while subs.live and time.monotonic() < drain_end:
-            time.sleep(0.05)
-    finally:
-        server.stop()
+        fusion.finish()
+        res.solutions, res.published = fusion.solutions, srv.sink.published
+        srv.drain()
     return res
+
+
+def serve_live(bus: str, method: str, address: str, config: FusionConfig | None = None,
+               mounting: calib.Mounting | None = None, wait_s: float = 30.0,
+               on_ready: Callable[[str], None] = announce) -> ServeResult:
+    """Serve the running daemon's live bus at ``bus`` (its Unix socket) with live ``method`` fusion to Foxglove
+    clients at ``address`` ([HOST:]PORT) until the daemon closes the bus (module docstring); waits up to
+    ``wait_s`` for the bus to appear. ``on_ready`` gets ``ws://HOST:PORT`` once the server listens with every
+    channel and the bus is being read. ``mounting``: the daemon's calibration's (None: base_link is the IMU)."""
+    from fieldlog.replay import live
+    from fieldlog.replay.inputs import imu_block
+    from fieldlog.replay.reader import IN_TOPICS, gps_block
+
+    with _Server(address, method, [(topic, None, None) for topic in LIVE_TOPICS]) as srv:
+        fusion = _Fusion(srv.sink, method, config, mounting or calib.Mounting())
+        res = ServeResult(srv.address)
+
+        def relay(b: live.Batch) -> None:
+            if live.in_stream(b):
+                srv.sink.write_batch(b.topic, b.log_time_ns, b.payloads)
+
+        batches = live.follow(bus, wait_s, tap=relay)
+        on_ready(srv.address)
+        failed = False
+        for block in live.batch_blocks(batches, IN_TOPICS, PLAY_BLOCK_S):
+            res.blocks += 1
+            d = block.data
+            failed = failed or _failed(method, fusion.step, imu_block(d.get("/imu", {})),
+                                       gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {})))
+        if not failed:
+            _failed(method, fusion.finish)
+        res.solutions, res.published = fusion.solutions, srv.sink.published
+        srv.drain()
+    return res
+
+
+def _failed(method: str, step: Callable[..., None], *args) -> bool:
+    """``step(*args)``, one live fusion step; True, logged, if it raised: the fused topics stop there, the
+    daemon's go on."""
+    try:
+        step(*args)
+        return False
+    except Exception as e:  # noqa: BLE001  (any fusion error: the car's own topics are still worth serving)
+        log.error(f"live {method} fusion stopped: {type(e).__name__}: {e}; the daemon's topics are still served")
+        return True

@@ -1,12 +1,15 @@
-"""``fieldlog acquire``: the acquisition daemon (serial ports -> crash-safe MCAP), optionally with a live view."""
+"""``fieldlog acquire``: the acquisition daemon (serial ports -> crash-safe MCAP), optionally with a live view in
+rerun and a live Foxglove server (child processes on the daemon's live bus)."""
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
+import threading
 from pathlib import Path
 
-from fieldlog.tools.commands.common import METHODS, add_out_dir, command_parser, needs_extras
+from fieldlog.tools.commands.common import METHODS, add_out_dir, command_parser, needs_extras, require_extras
 
 
 def add_parser(sub) -> None:
@@ -34,36 +37,74 @@ def add_parser(sub) -> None:
                    help="also show the car live in rerun (a child `fieldlog view --live` on the live bus)")
     s.add_argument("--view-rrd", default=None, metavar="FILE",
                    help="--view into this .rrd instead of a viewer (default: a viewer)")
-    s.add_argument("--view-method", choices=METHODS, default="kf", help="--view: fusion method")
+    s.add_argument("--foxglove", default=None, metavar="[HOST:]PORT",
+                   help="also serve the car live over the Foxglove WebSocket protocol: the derived topics as on the "
+                        "live bus (/imu with its live stamps) and the live fusion's /fusion/<method>/*, /tf, "
+                        "/tf_static (a child `fieldlog view --live BUS --foxglove`; HOST default 127.0.0.1, PORT 0: "
+                        "any free port; prints 'foxglove: serving ws://HOST:PORT'; needs fieldlog[foxglove])")
+    s.add_argument("--view-method", choices=METHODS, default="kf", help="--view and --foxglove: fusion method")
     s.set_defaults(func=needs_extras(run))
 
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire import config, daemon
 
+    if a.foxglove is not None:
+        from fieldlog.tools.foxglove_live import parse_address   # (the fusion stack stays out of this process)
+
+        parse_address(a.foxglove)
+        require_extras("foxglove", "numba")
     daemon.setup_logging(a.verbose - a.quiet)  # the daemon's own format: timestamped lines for the journal
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "can": a.can, "dbc": a.dbc, "out": a.out_dir,
                                  "time_scale": a.time_scale})
-    if not (a.view or a.view_rrd):
+    view = a.view or a.view_rrd
+    if not view and a.foxglove is None:
         return daemon.run_daemon(cfg, quiet=a.quiet > 0)
-    import subprocess
     import tempfile
 
-    from fieldlog.replay.view import has_display
+    if view:
+        from fieldlog.replay.view import has_display
 
-    if not a.view_rrd and not has_display():
-        raise ValueError("--view: no display to open the viewer on (use --view-rrd FILE)")
-    if not cfg.daemon.bus:  # the view needs the live bus
+        if not a.view_rrd and not has_display():
+            raise ValueError("--view: no display to open the viewer on (use --view-rrd FILE)")
+    if not cfg.daemon.bus:  # the viewers need the live bus
         cfg.daemon.bus = str(Path(tempfile.gettempdir()) / f"fieldlog-{os.getpid()}.sock")
-    # the view runs as a child process, so fusion and rendering never take the GIL from the acquisition threads
-    viewer = subprocess.Popen([sys.executable, "-m", "fieldlog", "view", "--live", cfg.daemon.bus, "--method",
-                               a.view_method, *(["--rrd", a.view_rrd] if a.view_rrd else [])])
+    # The viewers run as child processes reading the live bus, so fusion, rendering and their clients never take
+    # the GIL from the acquisition threads, and a slow or failed viewer never stalls the recording (the bus drops
+    # a client that falls behind). Each ends when the daemon closes the bus.
+    live = [sys.executable, "-m", "fieldlog", "view", "--live", cfg.daemon.bus, "--method", a.view_method]
+    argvs = []
+    if view:
+        argvs.append(("view", [*live, *(["--rrd", a.view_rrd] if a.view_rrd else [])]))
+    if a.foxglove is not None:
+        argvs.append(("foxglove", [*live, "--foxglove", a.foxglove, *(["--config", a.config] if a.config else [])]))
+    stopping = threading.Event()
+    children: list[subprocess.Popen] = []
     try:
+        for name, argv in argvs:
+            children.append(subprocess.Popen(argv))
+            threading.Thread(target=_watch, args=(name, children[-1], stopping), daemon=True).start()
         rc = daemon.run_daemon(cfg, quiet=a.quiet > 0)
+    except BaseException:
+        stopping.set()
+        for child in children:
+            child.terminate()  # the daemon did not run to its end: there may be no bus to wait for
+        raise
     finally:
-        try:
-            viewer.wait(timeout=30)  # it ends when the daemon closes the bus
-        except subprocess.TimeoutExpired:
-            viewer.terminate()
-            viewer.wait(timeout=10)
+        stopping.set()
+        for child in children:
+            try:
+                child.wait(timeout=30)  # it ends when the daemon closes the bus
+            except subprocess.TimeoutExpired:
+                child.terminate()
+                child.wait(timeout=10)
     return rc
+
+
+def _watch(name: str, child: subprocess.Popen, stopping: threading.Event) -> None:
+    """Log a viewer child that fails while the daemon records (the recording goes on without it)."""
+    from fieldlog.acquire.daemon import log
+
+    rc = child.wait()
+    if rc and not stopping.is_set():
+        log.warning(f"--{name}: the child `fieldlog view --live` ended with exit code {rc}; recording continues")

@@ -42,6 +42,21 @@ class MissingExtra(ValueError):
     """An optional dependency of the command is not installed (reported like a bad argument: one line, exit 2)."""
 
 
+def missing_extra(module: str) -> MissingExtra:
+    """The error for the optional dependency ``module`` (a key of ``EXTRAS``), naming its extra."""
+    return MissingExtra(f"{module} is not installed: pip install 'fieldlog[{EXTRAS[module]}]' (or 'fieldlog[all]')")
+
+
+def require_extras(*modules: str) -> None:
+    """``MissingExtra`` for the first of ``modules`` (keys of ``EXTRAS``) that is not installed, checked without
+    importing it (for a process that only starts another one that needs them)."""
+    import importlib.util
+
+    for module in modules:
+        if importlib.util.find_spec(module) is None:
+            raise missing_extra(module)
+
+
 def needs_extras(func: Command) -> Command:
     """Wrap a command so that an ImportError of an optional dependency becomes ``MissingExtra``."""
 
@@ -52,8 +67,7 @@ def needs_extras(func: Command) -> Command:
             root = (e.name or "").split(".")[0]
             if root not in EXTRAS:
                 raise
-            raise MissingExtra(f"{root} is not installed: pip install 'fieldlog[{EXTRAS[root]}]' "
-                               f"(or 'fieldlog[all]')") from None
+            raise missing_extra(root) from None
 
     return run
 

@@ -36,8 +36,7 @@ def run(a: argparse.Namespace) -> int:
     if a.foxglove is not None:
         from fieldlog.tools.foxglove_live import serve
 
-        res = serve(drive, a.method, a.speed, a.foxglove, st.inputs, st.config,
-                    on_ready=lambda url: print(f"foxglove: serving {url}", flush=True))
+        res = serve(drive, a.method, a.speed, a.foxglove, st.inputs, st.config)
         log.info(f"served {res.blocks} blocks, {res.solutions} {a.method} solutions, {res.published} messages "
                  f"-> {res.address}")
         return 0

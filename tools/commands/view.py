@@ -1,4 +1,5 @@
-"""``fieldlog view``: show a drive and fused solutions in rerun, or write an .rrd; or the daemon's live bus."""
+"""``fieldlog view``: show a drive and fused solutions in rerun, or write an .rrd; or the daemon's live bus (in
+rerun, or served to Foxglove)."""
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,14 @@ def add_parser(sub) -> None:
     s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
     s.add_argument("--connect", default=None, metavar="URL",
                    help="--live: a running viewer, as for `fieldlog replay` (default: spawn one)")
+    s.add_argument("--foxglove", default=None, metavar="[HOST:]PORT",
+                   help="--live: serve the bus's derived topics (/imu with its live stamps) and the live fusion's "
+                        "/fusion/<method>/*, /tf, /tf_static over the Foxglove WebSocket protocol instead of rerun "
+                        "(HOST default 127.0.0.1, PORT 0: any free port; prints 'foxglove: serving ws://HOST:PORT'; "
+                        "needs fieldlog[foxglove]; what `fieldlog acquire --foxglove` runs)")
     s.add_argument("--config", default=None, metavar="FILE",
-                   help="--live: the daemon's config, for [daemon] bus; else its [input] (default: none)")
+                   help="--live: the daemon's config, for [daemon] bus and (--foxglove) its calibration's mounting; "
+                        "else its [input] (default: none)")
     add_input_args(s)
     s.set_defaults(func=needs_extras(run))
 
@@ -36,12 +43,27 @@ def rerun_exe() -> str:
 
 
 def run_live(a: argparse.Namespace) -> int:
-    from fieldlog.acquire import config
-    from fieldlog.replay.player import live_view
+    from fieldlog.acquire import calib, config
 
-    address = a.live or config.load(a.config, {"daq": "-", "gps": "--"}).daemon.bus
+    cfg = config.load(a.config, {"daq": "-", "gps": "--"}) if a.config or not a.live else None
+    address = a.live or cfg.daemon.bus
     if not address:
         raise ValueError("no live bus: give its socket path (--live PATH) or a config with [daemon] bus")
+    if a.foxglove is not None:
+        from fieldlog.tools.foxglove_live import serve_live
+
+        if a.rrd or a.connect:
+            raise ValueError("--foxglove serves instead of rerun: it takes no --rrd or --connect")
+        mounting = calib.load_calibration(cfg.calibration_file or None).mounting if cfg else None
+        try:
+            res = serve_live(address, a.method, a.foxglove, mounting=mounting)
+        except KeyboardInterrupt:
+            return 130
+        log.info(f"served {res.blocks} blocks live from {address}, {res.solutions} {a.method} solutions, "
+                 f"{res.published} messages -> {res.address}")
+        return 0
+    from fieldlog.replay.player import live_view
+
     output_parent(a.rrd)
     try:
         res = live_view(address, a.method, rrd=a.rrd, connect=a.connect, force=a.force)
@@ -53,12 +75,14 @@ def run_live(a: argparse.Namespace) -> int:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.replay.view import split_fused, view
-
     if a.live is not None:
         if a.drive or a.fused:
             raise ValueError("--live takes no drive files")
         return run_live(a)
+    if a.foxglove is not None:
+        raise ValueError("--foxglove is for --live (and `fieldlog replay`)")
+    from fieldlog.replay.view import split_fused, view
+
     if a.drive is None:
         raise ValueError("a drive is required (or --live)")
     if a.connect:
