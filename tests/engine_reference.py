@@ -11,6 +11,7 @@ engine. Regenerate it (only after checking that a change of the solutions is mea
 from __future__ import annotations
 
 import hashlib
+import os
 import platform
 import sys
 from pathlib import Path
@@ -45,12 +46,15 @@ def digest(a: np.ndarray) -> str:
 
 
 def platform_key() -> str:
-    """What decides the last bits of the floats: the machine, numpy and the CPU features it dispatches to."""
+    """What decides the last bits of the floats: the machine, numpy and the CPU features it dispatches to, and
+    OpenBLAS's kernel when ``OPENBLAS_CORETYPE`` forces one other than the CPU's own (some hosts set it)."""
     try:
         from numpy._core._multiarray_umath import __cpu_features__ as feats
     except ImportError:  # numpy 1.x
         from numpy.core._multiarray_umath import __cpu_features__ as feats
-    return f"{platform.machine()} numpy {np.__version__} " + ",".join(sorted(k for k, v in feats.items() if v))
+    key = f"{platform.machine()} numpy {np.__version__} " + ",".join(sorted(k for k, v in feats.items() if v))
+    coretype = os.environ.get("OPENBLAS_CORETYPE", "").strip()
+    return f"{key} openblas {coretype}" if coretype else key
 
 
 def simulate(folder: Path) -> dict[str, Path]:
