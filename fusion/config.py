@@ -8,8 +8,10 @@ flat key is a field of exactly one section (``FLAT_KEYS``), so :meth:`FusionConf
 
 Sensor figures default to the distributed-KF paper's Table 2 class of MEMS IMU (gyro 0.01 deg/s/sqrt(Hz), bias
 stability 0.02 deg/s; accel 5 ug/sqrt(Hz)), the noise densities inflated to absorb the scale-factor and
-misalignment errors the 15-state model does not carry; the gyro bias random walk is Table 2's bias stability as a
-random walk over a minute (``fusion.imugrade``).
+misalignment errors the 15-state model does not carry (``scale_factor_model = "consider"``); the gyro bias random
+walk is Table 2's bias stability as a random walk over a minute (``fusion.imugrade``). An IMU grade
+(``imu = NAME``) or datasheet keys give the sensor's own figures instead, with ``scale_factor_model =
+"bias-steps"``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from fieldlog.fusion.predictors import PredictorConfig
 
 METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 GPS_ERROR_MODELS = ("consider", "gm-states")
+SCALE_FACTOR_MODELS = ("consider", "bias-steps")
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
 
@@ -40,8 +43,14 @@ class SensorConfig:
     accel_noise_ug_rthz: float = 300.0
     gyro_bias_rw_dps_rts: float = 0.02 * math.sqrt(2.0 / 60.0)  # deg/s/sqrt(s): B sqrt(2 / 60 s) (fusion.imugrade)
     accel_bias_rw_ug_rts: float = 10.0  # ug/sqrt(s)
-    gyro_scale_factor_ppm: float = 1000.0  # 1-sigma per axis, not a state: its consider variance is added to the
-    gyro_misalignment_mrad: float = 1.0  # printed accelerometer-bias sigma (fusion.consider); 0 and 0: none
+    gyro_scale_factor_ppm: float = 1000.0  # 1-sigma per axis, not a state (scale_factor_model says how it counts);
+    gyro_misalignment_mrad: float = 1.0  # 0 and 0: none
+    accel_scale_factor_ppm: float = 1000.0  # the same for the accelerometers (bias-steps only: the consider
+    accel_misalignment_mrad: float = 1.0  # analysis leaves them to the bias states, fusion.consider)
+    scale_factor_model: str = "consider"  # "consider": the noise figures are inflated to absorb the scale factors
+    # and misalignments, whose consider variance joins the printed accel-bias sigma (fusion.consider);
+    # "bias-steps": the noise figures are the sensor's own, and the scale factors and misalignments are the bias
+    # steps (S + M) dx of each cycle's change of rate and specific force (fusion.errmodel.scale_factor_steps)
     gyro_range_dps: float = 20.0  # a gyro flat at this rate (or beyond) is clipped (Table 2: +-20 deg/s)
     clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
 
@@ -203,6 +212,13 @@ class FusionConfig:
         for key in ("init_position_sigma_m", "init_vel_sigma_mps", "init_level_sigma_deg", "init_heading_sigma_deg"):
             if not getattr(i, key) > 0:
                 raise ValueError(f"[fusion] {key}: must be > 0")
+        if self.sensor.scale_factor_model not in SCALE_FACTOR_MODELS:
+            raise ValueError(f"[fusion] scale_factor_model: {self.sensor.scale_factor_model!r}; one of "
+                             f"{', '.join(SCALE_FACTOR_MODELS)}")
+        for key in ("gyro_scale_factor_ppm", "gyro_misalignment_mrad", "accel_scale_factor_ppm",
+                    "accel_misalignment_mrad"):
+            if not getattr(self.sensor, key) >= 0:
+                raise ValueError(f"[fusion] {key}: must be >= 0")
         if g.gps_error_model not in GPS_ERROR_MODELS:
             raise ValueError(f"[fusion] gps_error_model: {g.gps_error_model!r}; one of {', '.join(GPS_ERROR_MODELS)}")
         for n, o in enumerate(g.outages):

@@ -1,8 +1,10 @@
 """What the gyros' scale-factor and misalignment errors do to the estimate: a consider (sensitivity) analysis.
 
 The 15-state model (``fusion.errmodel``) has no states for the gyro triad's scale-factor errors s_i and
-misalignments m_ij (i != j): the measured rate is (I + S)(I + M) omega_ib_b + bias + noise, and the filter takes
-the S and M part as noise (its gyro noise and bias walk are inflated for them). That part is not noise: it is
+misalignments m_ij (i != j): the measured rate is (I + S)(I + M) omega_ib_b + bias + noise, and with
+``scale_factor_model = "consider"`` (FusionConfig's default) the filter takes the S and M part as noise (its gyro
+noise and bias walk are inflated for them). With ``"bias-steps"`` (an IMU grade, ``fusion.imugrade``) the filter
+models that part as steps of its bias states, and this analysis is not run. That part is not noise: it is
 the constant c = [s_x, s_y, s_z, m_xy, m_xz, m_yx, m_yz, m_zx, m_zy] times the rate, so in a figure-eight its
 sign follows the turn. Its tilt error comes and goes with the turns, which in the body frame is what a
 horizontal accelerometer bias looks like, and the filter's accelerometer bias estimate takes it in while its

@@ -83,6 +83,7 @@ class Engine:
         self._imu_dt = 0.002  # median IMU sample period, s
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
+        self._steps = errmodel.BiasSteps.of(self.cfg.sensor)  # scale factors as bias steps, or None
 
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
         """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
@@ -165,7 +166,7 @@ class Engine:
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
         self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
         s = self.cfg.sensor
-        if s.gyro_scale_factor_ppm > 0.0 or s.gyro_misalignment_mrad > 0.0:
+        if s.scale_factor_model == "consider" and (s.gyro_scale_factor_ppm > 0.0 or s.gyro_misalignment_mrad > 0.0):
             self.listeners.append(listeners.GyroConsider(s.gyro_scale_factor_ppm * 1e-6,
                                                          s.gyro_misalignment_mrad * 1e-3, self.log))
         self._check = None if self._history else align.HeadingCheck(self.cfg, t_k)
@@ -298,7 +299,7 @@ class Engine:
         ends = self._slot_starts(tt)
         if len(ends) == 0 or ends[-1] != len(tt) - 1:
             ends = np.append(ends, len(tt) - 1)
-        c = errmodel.segment_cycles(sol, ends, wc, fc, self.q)
+        c = errmodel.segment_cycles(sol, ends, wc, fc, self.q, self._steps)
         Q = c.Q
         if clip.any():  # the rebuilt rate scales with the INS forward speed: its error counts too
             fwd = c.C_bn[0, :, 1]

@@ -119,6 +119,17 @@ def noise_psd(gyro_noise: float, accel_noise: float, gyro_bias_rw: float, accel_
     return np.diag(d)
 
 
+def scale_factor_steps(x: np.ndarray, x_prev: np.ndarray, scale_factor: float, misalignment: float) -> np.ndarray:
+    """Variance (m, 3) of the step of a triad's effective bias (S + M) x over cycles whose mean signals are x (m, 3),
+    the mean before the first being x_prev (3,); S = diag(s_i), M the misalignments m_ij (i != j), independent
+    1-sigma ``scale_factor`` (fraction) and ``misalignment`` (rad) per entry, in the signal's unit (rad/s, m/s^2).
+
+    The step of axis i is s_i dx_i + sum_j m_ij dx_j with dx = x_k - x_{k-1}: variance s^2 dx_i^2 + m^2 (|dx|^2 -
+    dx_i^2), independent across the axes (each axis has its own s_i and m_ij)."""
+    dx2 = np.diff(np.vstack([np.asarray(x_prev, float)[None, :], x]), axis=0) ** 2
+    return scale_factor ** 2 * dx2 + misalignment ** 2 * (dx2.sum(axis=1, keepdims=True) - dx2)
+
+
 def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """``(Phi, Q)`` over a filter cycle of dt seconds (module docstring: hybrid KF-UKF paper eq. 13 + dT^3).
 
@@ -151,10 +162,41 @@ class Cycles:
     Q: np.ndarray
 
 
-def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: np.ndarray) -> Cycles:
+class BiasSteps:
+    """The scale factors and misalignments of both triads as steps of the bias states (``scale_factor_model =
+    "bias-steps"``, ``fusion.imugrade``): each cycle's bias step (S + M) dx (``scale_factor_steps``), dx the change
+    of the cycle's mean rate and specific force from the cycle before (from 0 before the filter's first cycle: the
+    first step is (S + M) x_0), taken as a step at the cycle's start and carried through its Phi. Scale factors
+    (fractions) and misalignments (rad), 1-sigma per entry."""
+
+    def __init__(self, gyro_sf: float, gyro_ma: float, accel_sf: float, accel_ma: float) -> None:
+        self.gyro, self.accel = (gyro_sf, gyro_ma), (accel_sf, accel_ma)
+        self.ref = np.zeros(6)  # the last cycle's mean rate (rad/s) and specific force (m/s^2), body RFU
+
+    @classmethod
+    def of(cls, sensor) -> BiasSteps | None:
+        """From a ``fusion.config.SensorConfig``; None unless its scale_factor_model is "bias-steps" with a
+        figure above 0."""
+        f = (sensor.gyro_scale_factor_ppm * 1e-6, sensor.gyro_misalignment_mrad * 1e-3,
+             sensor.accel_scale_factor_ppm * 1e-6, sensor.accel_misalignment_mrad * 1e-3)
+        return cls(*f) if sensor.scale_factor_model == "bias-steps" and max(f) > 0.0 else None
+
+    def noise(self, Phi: np.ndarray, w_mean: np.ndarray, f_mean: np.ndarray) -> np.ndarray:
+        """The covariance (m, 15, 15) the steps of cycles Phi (m, 15, 15) with mean bias-corrected rate w_mean and
+        specific force f_mean (m, 3) add; the last cycle's means become the reference."""
+        var = np.hstack([scale_factor_steps(w_mean, self.ref[:3], *self.gyro),
+                         scale_factor_steps(f_mean, self.ref[3:], *self.accel)])
+        self.ref = np.concatenate([w_mean[-1], f_mean[-1]])
+        Phi_b = Phi[:, :, BG.start:BA.stop]
+        return (Phi_b * var[:, None, :]) @ np.swapaxes(Phi_b, 1, 2)
+
+
+def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: np.ndarray,
+                   steps: BiasSteps | None = None) -> Cycles:
     """The cycles of an INS solution ``sol`` (``fusion.ins.NavSolution``: t, lat, h, v_n, q per sample) over
     bias-corrected samples w_b, f_b (n, 3), each cycle ending at a sample of ``ends`` (the first cycle starts at
-    sample 0); F taken at each cycle's middle sample with its mean specific force, noise PSD q (12, 12)."""
+    sample 0); F taken at each cycle's middle sample with its mean specific force, noise PSD q (12, 12), and the
+    scale factors' bias ``steps`` (``BiasSteps``) added to Q when given."""
     starts = np.concatenate([[0], ends[:-1]])
     mid = (starts + ends) // 2
     dt = sol.t[ends] - sol.t[starts]
@@ -165,4 +207,6 @@ def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: n
     C = earth.quat_to_dcm(sol.q[mid])
     F, G = system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean))
     Phi, Q = discretise(F, G, q, dt)
+    if steps is not None:
+        Q = Q + steps.noise(Phi, w_mean, f_mean)
     return Cycles(starts, mid, ends, dt, f_mean, w_mean, C, Phi, Q)

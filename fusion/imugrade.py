@@ -3,15 +3,17 @@
 A grade (``GRADES``) is a datasheet: angle and velocity random walk, bias instability with its correlation
 time, turn-on (run-to-run) bias, scale-factor and misalignment residuals. The simulator draws its IMU errors
 from the same figures (``tools.sim.sensors.ImuErrorConfig``, ``[imu] grade = NAME``); the filter takes them as
-``[fusion] imu = NAME``, or as the datasheet keys below, one by one (``DATASHEET_KEYS``).
+``[fusion] imu = NAME``, or as the datasheet keys below, one by one (``DATASHEET_KEYS``, and the scale-factor and
+misalignment keys, which are FusionConfig keys of the same name): the two give the same settings. A grade gives
+the sensor's own figures, never figures inflated to cover an error the filter does not model.
 
 Datasheet units and their conversion into ``FusionConfig`` (``settings``):
 
 ==============================  =========================  ===========================================
 key                             unit                       FusionConfig
 ==============================  =========================  ===========================================
-gyro_arw_deg_rth                deg/sqrt(h)                gyro_noise_dps_rthz = ARW / 60
-accel_vrw_mps_rth               m/s/sqrt(h)                accel_noise_ug_rthz = VRW / 60 / 1 ug
+gyro_arw_deg_rth                deg/sqrt(h)                gyro_noise_dps_rthz = hypot(ARW / 60, n(B))
+accel_vrw_mps_rth               m/s/sqrt(h)                accel_noise_ug_rthz = hypot(VRW / 60 / 1 ug, n(B))
 gyro_bias_instability_dph       deg/h, with                gyro_bias_rw_dps_rts = q(B, T),
 gyro_bias_corr_time_s           T in s                     init_gyro_bias_sigma_dps = B (the floor of
                                                            the bias after a static mean)
@@ -19,9 +21,10 @@ accel_bias_instability_ug       ug, with                   accel_bias_rw_ug_rts 
 accel_bias_corr_time_s          T in s
 gyro_turn_on_bias_dph           deg/h                      gyro_bias_prior_sigma_dps = hypot(turn-on, s(B, T))
 accel_turn_on_bias_ug           ug                         init_accel_bias_sigma_ug = hypot(turn-on, s(B, T))
-gyro_scale_factor_ppm,          ppm, mrad                  the same keys: not states; their consider
-gyro_misalignment_mrad                                     variance (``fusion.consider``) joins the
-                                                           printed accelerometer-bias sigma
+gyro_scale_factor_ppm,          ppm, mrad                  the same keys, with scale_factor_model =
+gyro_misalignment_mrad,                                    "bias-steps" (below); any datasheet key sets
+accel_scale_factor_ppm,                                    that model
+accel_misalignment_mrad
 ==============================  =========================  ===========================================
 
 Bias instability B is the flicker floor of the Allan deviation (0.664 B, IEEE 952), which the simulator draws
@@ -34,6 +37,10 @@ read two ways, and the filter takes the more conservative (``flicker_bias``):
   s = B sqrt(ln(T_f / 1 s) / pi) (1.7 B) and whose change over a time tau has the variance
   D(tau) = (2 B^2 / pi) integral over ln T' in [0, ln T_f] of (1 - exp(-tau / T')).
 
+The components faster than 1 s are white noise to the filter: a Gauss-Markov component of variance s_i^2 and
+correlation time T_i integrates like white noise of density sqrt(2 s_i^2 T_i), so the components from 0 to 1 s
+add the density n(B) = B sqrt(2 x 1 s / pi) (0.8 B per sqrt(Hz)) to the random walk of the datasheet.
+
 The 15-state model (``fusion.errmodel``) carries random-walk biases, so B and T become **an equivalent random
 walk**: q(B, T) = max(B sqrt(2 / T), sqrt(D(60 s) / 60 s)), the Gauss-Markov driving noise or the random walk
 that changes the bias over a minute (the time over which the filter leans on its bias estimate: a tilt or a
@@ -42,16 +49,28 @@ the more conservative (its variance grows with the time, the flicker's with its 
 reading alone (walk B sqrt(2 / T), prior B) is well below the change and the spread of the flicker the
 simulator draws (test_bias_instability_covers_the_simulated_flicker).
 
-The scale-factor and misalignment residuals are not states of the filter. For the grades where they are
-large against the noise (the MEMS ones), the grade carries the noise figures a 15-state filter needs to
-absorb them (``fusion``: they replace the conversion); ``table2-mems`` keeps the figures this project was
-tuned on, which are the defaults of ``FusionConfig``.
+**Scale factors and misalignments** are not states of the filter, nor white noise. A triad measures
+(I + S)(I + M) x + b for the true rate or specific force x, so its error (S + M) x is, to the filter, a bias
+that moves with the signal: when x changes by dx over a cycle, the effective bias steps by (S + M) dx, of
+variance s^2 dx_i^2 + m^2 (|dx|^2 - dx_i^2) per axis i, from the grade's 1-sigma s and m and the cycle's own
+measured rate and specific force (``scale_factor_model = "bias-steps"``: ``fusion.errmodel.scale_factor_steps``
+and ``BiasSteps``, which add it to the bias states' process noise; the first step, from 0, is the (S + M) x of
+the start: mostly M g and s_z g on the accelerometers). This is the error's physical form: its size is known
+each cycle (a straight drive adds nothing; a turn opens the gyro bias by s times the turn rate, which turns the
+solution for as long as the turn lasts), while inflated white noise adds the same uncertainty whether the car
+turns or not. The filter does not keep s and m, so it does not know that the bias comes back when the signal
+does: the steps' variance adds up over the drive where the true bias stays within (S + M) x, which is
+conservative; the GPS re-estimates the bias after each turn. The consider analysis (``fusion.consider``) is the
+other model (``scale_factor_model = "consider"``, FusionConfig's default): the noise is inflated to absorb the
+scale factors and misalignments, and their consider variance joins the printed accelerometer-bias sigma; it is
+kept for the defaults, the figures this project was tuned on, and is not used with a grade. Figures:
+docs/results.md, "IMU grades".
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 DATASHEET_KEYS = ("gyro_arw_deg_rth", "gyro_bias_instability_dph", "gyro_bias_corr_time_s", "gyro_turn_on_bias_dph",
                   "accel_vrw_mps_rth", "accel_bias_instability_ug", "accel_bias_corr_time_s", "accel_turn_on_bias_ug")
@@ -61,8 +80,7 @@ _UG = _G0 * 1e-6
 
 @dataclass(frozen=True)
 class ImuGrade:
-    """A datasheet, per axis and 1-sigma (units in the names: deg/sqrt(h), deg/h, m/s/sqrt(h), ug, s, ppm, mrad).
-    ``fusion``: FusionConfig figures that replace the conversion (unmodelled scale factor and misalignment)."""
+    """A datasheet, per axis and 1-sigma (units in the names: deg/sqrt(h), deg/h, m/s/sqrt(h), ug, s, ppm, mrad)."""
 
     description: str
     gyro_arw_deg_rth: float
@@ -77,7 +95,6 @@ class ImuGrade:
     accel_turn_on_bias_ug: float
     accel_scale_factor_ppm: float
     accel_misalignment_mrad: float
-    fusion: dict = field(default_factory=dict)
 
     def simulator(self) -> dict[str, float]:
         """The grade as the simulator's ``[imu]`` keys (``tools.sim.sensors.ImuErrorConfig``)."""
@@ -93,18 +110,21 @@ class ImuGrade:
                     accel_misalignment_mrad=self.accel_misalignment_mrad)
 
     def filter_settings(self) -> dict[str, float]:
-        """The datasheet converted into FusionConfig keys (module docstring), then ``fusion`` on top."""
-        s_g, q_g = flicker_bias(self.gyro_bias_instability_dph / 3600.0, self.gyro_bias_corr_time_s)
-        s_a, q_a = flicker_bias(self.accel_bias_instability_ug, self.accel_bias_corr_time_s)
-        out = dict(gyro_noise_dps_rthz=self.gyro_arw_deg_rth / 60.0,
-                   accel_noise_ug_rthz=self.accel_vrw_mps_rth / 60.0 / _UG,
+        """The datasheet converted into FusionConfig keys (module docstring)."""
+        s_g, q_g, n_g = flicker_bias(self.gyro_bias_instability_dph / 3600.0, self.gyro_bias_corr_time_s)
+        s_a, q_a, n_a = flicker_bias(self.accel_bias_instability_ug, self.accel_bias_corr_time_s)
+        out = dict(gyro_noise_dps_rthz=math.hypot(self.gyro_arw_deg_rth / 60.0, n_g),
+                   accel_noise_ug_rthz=math.hypot(self.accel_vrw_mps_rth / 60.0 / _UG, n_a),
                    gyro_bias_rw_dps_rts=q_g, accel_bias_rw_ug_rts=q_a,
                    init_gyro_bias_sigma_dps=self.gyro_bias_instability_dph / 3600.0,
                    gyro_bias_prior_sigma_dps=math.hypot(self.gyro_turn_on_bias_dph / 3600.0, s_g),
                    init_accel_bias_sigma_ug=math.hypot(self.accel_turn_on_bias_ug, s_a),
                    gyro_scale_factor_ppm=self.gyro_scale_factor_ppm,
-                   gyro_misalignment_mrad=self.gyro_misalignment_mrad)
-        return {**out, **self.fusion}
+                   gyro_misalignment_mrad=self.gyro_misalignment_mrad,
+                   accel_scale_factor_ppm=self.accel_scale_factor_ppm,
+                   accel_misalignment_mrad=self.accel_misalignment_mrad,
+                   scale_factor_model="bias-steps")
+        return out
 
 
 FLICKER_FROM_S = 1.0  # s: bias-instability components faster than this are noise to the filter
@@ -112,42 +132,39 @@ FLICKER_TO_S = 1.0e4  # s: ... and slower than this (or the datasheet's T) const
 BIAS_LEAN_S = 60.0  # s: the time over which the filter leans on its bias estimate
 
 
-def flicker_bias(b: float, t_corr: float) -> tuple[float, float]:
-    """Standard deviation (b's unit) and equivalent random walk (b's unit per sqrt(s)) of a bias instability b
-    with correlation time t_corr (s): the more conservative of the Gauss-Markov and the flicker readings (module
-    docstring): (max(b, s), max(b sqrt(2 / T), sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S)))."""
+def flicker_bias(b: float, t_corr: float) -> tuple[float, float, float]:
+    """Standard deviation (b's unit), equivalent random walk (b's unit per sqrt(s)) and white-noise density of the
+    fast part (b's unit per sqrt(Hz)) of a bias instability b with correlation time t_corr (s): the more
+    conservative of the Gauss-Markov and the flicker readings (module docstring): (max(b, s), max(b sqrt(2 / T),
+    sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S)), b sqrt(2 FLICKER_FROM_S / pi))."""
     span = math.log(max(t_corr, FLICKER_TO_S) / FLICKER_FROM_S)
     n = 200  # midpoint rule in ln T': the integrand is smooth
     change = sum(1.0 - math.exp(-BIAS_LEAN_S / (FLICKER_FROM_S * math.exp((k + 0.5) * span / n)))
                  for k in range(n)) * span / n
     return (max(b, b * math.sqrt(span / math.pi)),
-            max(b * math.sqrt(2.0 / t_corr), b * math.sqrt(2.0 * change / math.pi / BIAS_LEAN_S)))
+            max(b * math.sqrt(2.0 / t_corr), b * math.sqrt(2.0 * change / math.pi / BIAS_LEAN_S)),
+            b * math.sqrt(2.0 * FLICKER_FROM_S / math.pi))
 
 
 GRADES: dict[str, ImuGrade] = {
     # The distributed-KF paper's Table 2 MEMS (gyro 0.01 deg/s/sqrt(Hz) = 0.6 deg/sqrt(h), bias stability
-    # 0.02 deg/s; accel 5 ug/sqrt(Hz)); the rest are our choices (tools.sim.sensors). The filter keeps the
-    # figures it was tuned on, which absorb the 1000 ppm and 1 mrad residuals: FusionConfig's defaults. Its gyro
-    # bias walk is B sqrt(2 / 60 s) = 3.65e-3 deg/s/sqrt(s) (flicker_bias gives 4.45e-3), Table 2's bias
-    # stability over the minute the filter leans on its bias estimate (docs/results.md, "IMU grades").
+    # 0.02 deg/s; accel 5 ug/sqrt(Hz)); the rest are our choices (tools.sim.sensors). FusionConfig's defaults are
+    # this IMU with its noise inflated to absorb the 1000 ppm and 1 mrad residuals (scale_factor_model =
+    # "consider"); the preset models them instead (module docstring; docs/results.md, "IMU grades").
     "table2-mems": ImuGrade(
         "distributed-KF paper, Table 2 MEMS (the simulator's default IMU)",
         gyro_arw_deg_rth=0.6, gyro_bias_instability_dph=72.0, gyro_bias_corr_time_s=1000.0,
         gyro_turn_on_bias_dph=180.0, gyro_scale_factor_ppm=1000.0, gyro_misalignment_mrad=1.0,
         accel_vrw_mps_rth=5.0 * _UG * 60.0, accel_bias_instability_ug=20.0, accel_bias_corr_time_s=1000.0,
-        accel_turn_on_bias_ug=1000.0, accel_scale_factor_ppm=1000.0, accel_misalignment_mrad=1.0,
-        fusion=dict(gyro_noise_dps_rthz=0.03, accel_noise_ug_rthz=300.0,
-                    gyro_bias_rw_dps_rts=0.02 * math.sqrt(2.0 / 60.0), accel_bias_rw_ug_rts=10.0,
-                    init_gyro_bias_sigma_dps=0.02, gyro_bias_prior_sigma_dps=0.1, init_accel_bias_sigma_ug=2000.0)),
+        accel_turn_on_bias_ug=1000.0, accel_scale_factor_ppm=1000.0, accel_misalignment_mrad=1.0),
     # An industrial MEMS unit (our figures for the grade, not a named unit): 0.2 deg/sqrt(h),
-    # 5 deg/h, 300 ppm, 0.5 mrad. The filter's noise is inflated as for table2-mems (x3 gyro, x~20 accel).
+    # 5 deg/h, 300 ppm, 0.5 mrad.
     "s000-mems": ImuGrade(
         "industrial MEMS: 0.2 deg/sqrt(h), 5 deg/h; 0.05 m/s/sqrt(h), 20 ug",
         gyro_arw_deg_rth=0.2, gyro_bias_instability_dph=5.0, gyro_bias_corr_time_s=600.0,
         gyro_turn_on_bias_dph=20.0, gyro_scale_factor_ppm=300.0, gyro_misalignment_mrad=0.5,
         accel_vrw_mps_rth=0.05, accel_bias_instability_ug=20.0, accel_bias_corr_time_s=600.0,
-        accel_turn_on_bias_ug=500.0, accel_scale_factor_ppm=300.0, accel_misalignment_mrad=0.5,
-        fusion=dict(gyro_noise_dps_rthz=0.01, accel_noise_ug_rthz=100.0)),
+        accel_turn_on_bias_ug=500.0, accel_scale_factor_ppm=300.0, accel_misalignment_mrad=0.5),
     # A Leador-A15-class FOG unit: ARW 0.003 deg/sqrt(h), VRW 0.03 m/s/sqrt(h), gyro
     # bias 0.027 deg/h, accel bias 15 mGal (15 ug); turn-on biases and T are our choices; calibrated, so the
     # scale-factor and misalignment residuals are taken as 0 (the truth IMU plus the datasheet's errors).
@@ -199,15 +216,15 @@ def settings(table: dict) -> dict:
         both = sorted(k for k in derived if k in table)
         if both:
             raise ValueError(f"{', '.join(both)}: also set by the datasheet key(s) given; give one or the other")
-        g = replace(grade(name or "table2-mems"), **{k: float(v) for k, v in sheet.items()}, fusion={})
+        g = replace(grade(name or "table2-mems"), **{k: float(v) for k, v in sheet.items()})
         conv = g.filter_settings()
-        out.update({k: conv[k] for k in derived})
+        out.update({k: conv[k] for k in derived}, scale_factor_model=conv["scale_factor_model"])
     return {**out, **{k: v for k, v in table.items() if k not in sheet}}
 
 
 def _derived(sheet: dict) -> set[str]:
     """The FusionConfig keys the given datasheet keys set."""
-    probe = ImuGrade(**{**asdict(GRADES["tactical"]), "fusion": {}})
+    probe = ImuGrade(**asdict(GRADES["tactical"]))
     base = probe.filter_settings()
     out = set()
     for k in sheet:

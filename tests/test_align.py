@@ -378,22 +378,30 @@ def test_still_detector_creep_and_stops(creep, tmp_path):
 
 
 def test_datasheet_units_and_grades():
-    """ARW deg/sqrt(h) / 60 = deg/s/sqrt(Hz); VRW m/s/sqrt(h) / 60 = m/s^2/sqrt(Hz); bias instability B with
-    correlation time T -> the random walk B sqrt(2/T); table2-mems is the filter's defaults and the simulator's;
-    a datasheet key and the setting it derives cannot both be given; an unknown grade is named."""
+    """ARW deg/sqrt(h) / 60 = deg/s/sqrt(Hz); VRW m/s/sqrt(h) / 60 = m/s^2/sqrt(Hz), each with the white noise of
+    the bias instability's components faster than FLICKER_FROM_S, B sqrt(2 FLICKER_FROM_S / pi); bias instability
+    B with correlation time T -> the random walk B sqrt(2/T); table2-mems is the simulator's defaults, and as the
+    filter's preset the datasheet given key by key (the defaults keep the inflated figures); a datasheet key and
+    the setting it derives cannot both be given; an unknown grade is named."""
+    fast = math.sqrt(2.0 * imugrade.FLICKER_FROM_S / math.pi)
     c = fusion_config({"gyro_arw_deg_rth": 0.6, "accel_vrw_mps_rth": 0.06, "gyro_bias_instability_dph": 36.0,
                        "gyro_bias_corr_time_s": 200.0})
-    assert c.sensor.gyro_noise_dps_rthz == pytest.approx(0.01)
-    assert c.sensor.accel_noise_ug_rthz == pytest.approx(0.001 / (G * 1e-6))
+    assert c.sensor.gyro_noise_dps_rthz == pytest.approx(math.hypot(0.01, 0.01 * fast))
+    table2_accel_b = imugrade.grade("table2-mems").accel_bias_instability_ug  # the companion of the VRW given alone
+    assert c.sensor.accel_noise_ug_rthz == pytest.approx(math.hypot(0.001 / (G * 1e-6), table2_accel_b * fast))
+    assert c.sensor.scale_factor_model == "bias-steps" and fusion_config({}).sensor.scale_factor_model == "consider"
     assert c.sensor.gyro_bias_rw_dps_rts >= 0.01 * math.sqrt(2.0 / 200.0)  # the Gauss-Markov reading, or the flicker's
     assert c.init.init_gyro_bias_sigma_dps == pytest.approx(0.01)
     assert c.sensor.accel_bias_rw_ug_rts == fusion_config({}).sensor.accel_bias_rw_ug_rts  # not given: the default stays
-    table2 = fusion_config({"imu": "table2-mems"})
-    assert table2.replace(imu="") == fusion_config({})
+    table2, g = fusion_config({"imu": "table2-mems"}), imugrade.grade("table2-mems")
+    keys = ("gyro_scale_factor_ppm", "gyro_misalignment_mrad", "accel_scale_factor_ppm", "accel_misalignment_mrad")
+    assert table2.replace(imu="") == fusion_config({k: getattr(g, k) for k in (*imugrade.DATASHEET_KEYS, *keys)})
+    assert table2.sensor.gyro_noise_dps_rthz < fusion_config({}).sensor.gyro_noise_dps_rthz  # not inflated
     assert ImuErrorConfig.from_dict({"grade": "table2-mems"}) == ImuErrorConfig()
     tac = ImuErrorConfig.from_dict({"grade": "tactical", "rate_hz": 200})
     assert tac.gyro_noise_density_dps_rthz == pytest.approx(0.003 / 60) and tac.rate_hz == 200.0
-    assert fusion_config({"imu": "tactical"}).sensor.gyro_noise_dps_rthz == pytest.approx(tac.gyro_noise_density_dps_rthz)
+    assert fusion_config({"imu": "tactical"}).sensor.gyro_noise_dps_rthz == pytest.approx(
+        math.hypot(tac.gyro_noise_density_dps_rthz, tac.gyro_bias_instability_dps * fast))
     rtk = GpsConfig.from_dict({"quality": "rtk"})
     assert (rtk.white_h_m, rtk.gm_h_m, rtk.vel_noise_mps) == (0.02, 0.0, 0.01)
     assert GpsConfig.from_dict({"quality": "standalone"}) == GpsConfig()
