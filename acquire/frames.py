@@ -15,8 +15,9 @@ corrections) and ``/fusion/<method>/odom`` in odom (tools/fuse.py, ``Odometry``)
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fieldlog.acquire import calib, messages
 
@@ -29,14 +30,49 @@ C_RFU_FLU = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 def C_imu_base(mounting: calib.Mounting) -> np.ndarray:
     """DCM IMU axes -> base_link axes (v_base = C @ v_imu): RFU -> FLU after the triad's mounting rotation
     (fixed-axis roll, then pitch, then yaw, as REP-103 RPY)."""
+    if not any(mounting.imu_rpy_deg):  # scipy's rotation of zero angles is the identity exactly
+        return C_RFU_FLU @ np.eye(3)
+    from scipy.spatial.transform import Rotation  # only here: importing scipy.spatial is slow, and fuse needs none
+
     return C_RFU_FLU @ Rotation.from_euler("xyz", mounting.imu_rpy_deg, degrees=True).as_matrix()
 
 
 def quat_xyzw(C: np.ndarray) -> np.ndarray:
     """Unit quaternion x, y, z, w (w >= 0) of rotation matrices (..., 3, 3)."""
     C = np.asarray(C, dtype=float)
-    q = Rotation.from_matrix(C.reshape(-1, 3, 3)).as_quat().reshape(C.shape[:-2] + (4,))
+    flat = C.reshape(-1, 3, 3)
+    if len(flat) <= 16 and all(_orthonormal(m) for m in flat):
+        q = np.array([_quat_of_rotation(m) for m in flat]).reshape(C.shape[:-2] + (4,))
+    else:
+        from scipy.spatial.transform import Rotation  # only here: importing scipy.spatial is slow
+
+        q = Rotation.from_matrix(flat).as_quat().reshape(C.shape[:-2] + (4,))
     return q * np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
+
+
+def _orthonormal(m: np.ndarray) -> bool:
+    """A proper rotation to 1e-12, the tolerance under which scipy's ``Rotation.from_matrix`` takes the matrix as
+    it is (no SVD)."""
+    return bool(np.linalg.det(m) > 0.0) and float(np.max(np.abs(m @ m.T - np.eye(3)))) <= 1e-12
+
+
+def _quat_of_rotation(m: np.ndarray) -> np.ndarray:
+    """x, y, z, w of one rotation matrix, by the same operations as scipy's ``Rotation.from_matrix`` (Shepperd's
+    choice of the largest of the diagonal and the trace), so the same floats."""
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    choice = int(np.argmax([m[0, 0], m[1, 1], m[2, 2], tr]))
+    q = [0.0, 0.0, 0.0, 0.0]
+    if choice == 3:
+        q = [m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1 + tr]
+    else:
+        i = choice
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[i] = 1 - tr + 2 * m[i, i]
+        q[j] = m[j, i] + m[i, j]
+        q[k] = m[k, i] + m[i, k]
+        q[3] = m[k, j] - m[j, k]
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return np.array(q) / n
 
 
 def static_transforms(mounting: calib.Mounting) -> list[tuple[str, str, np.ndarray, np.ndarray]]:

@@ -83,7 +83,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.cluster.vq import kmeans2
 
 N_CHANNELS = 6  # position E, N, U (m), velocity E, N, U (m/s)
 _STD_FLOOR = 1e-3  # m or m/s: a constant input is not stretched into noise
@@ -142,6 +141,8 @@ def kmeans_centres(x: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     """Sorted distinct 1-D k-means centres (at most k) of samples x (n,)."""
     x = np.asarray(x, dtype=float)
     k = max(1, min(k, len(np.unique(x))))
+    from scipy.cluster.vq import kmeans2  # only here: a method without a predictor never imports scipy.cluster
+
     c, _ = kmeans2(x[:, None], k, minit="++", rng=np.random.default_rng(seed))
     c = np.sort(c[:, 0])
     keep = np.concatenate([[True], np.diff(c) > 1e-9 * max(1.0, float(np.ptp(x)))])

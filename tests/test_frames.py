@@ -119,3 +119,22 @@ def test_tf_static_odom_and_datum_follow_rep_105(fused) -> None:
     p_odom_msg = np.array([[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z]
                            for _, m in odom])
     assert np.array_equal(p_odom_msg, p_ob)
+
+
+def test_quaternions_and_mounting_are_scipy_s_floats() -> None:
+    """``frames`` computes the quaternions of rotations (and the zero mounting) without scipy on the fuse path:
+    the same floats as ``scipy.spatial.transform.Rotation``, which it still uses otherwise."""
+    from scipy.spatial.transform import Rotation
+
+    from fieldlog.acquire import frames
+
+    rng = np.random.default_rng(7)
+    mats = list(Rotation.random(2000, rng=rng).as_matrix())
+    mats += [earth.C_en(lat, lon).T for lat, lon in rng.uniform([-1.5, -3.1], [1.5, 3.1], (2000, 2))]
+    mats += [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    for C in mats:
+        q = Rotation.from_matrix(C).as_quat()
+        assert np.array_equal(frames.quat_xyzw(C), q * (-1.0 if q[3] < 0 else 1.0)), C
+    zero = calib.Mounting()
+    assert np.array_equal(frames.C_imu_base(zero),
+                          frames.C_RFU_FLU @ Rotation.from_euler("xyz", zero.imu_rpy_deg, degrees=True).as_matrix())

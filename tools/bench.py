@@ -798,10 +798,222 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
             f"{check * 1e3:.0f} ms; {fast:.2f} / {slow:.2f} s")
 
 
+def _rerun_exe() -> str:
+    """The rerun CLI of this Python's environment (the ``rerun-sdk`` wheel's), else the one on PATH."""
+    import shutil
+
+    here = Path(sys.executable).with_name("rerun")
+    return str(here) if here.exists() else (shutil.which("rerun") or "rerun")
+
+
+def _run_s(cmd: list[str], cwd: Path) -> float:
+    """Wall seconds of one command as a user types it (its output discarded; a failure raises)."""
+    env = {**os.environ, "RERUN_ANALYTICS": "0"}
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    s = time.perf_counter() - t0
+    assert r.returncode == 0, f"{' '.join(cmd)}: {r.stderr[-2000:]}"
+    return s
+
+
+def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
+    """fieldlog against the rerun CLI on one simulated 600 s figure8 drive: fuse kf / dkf-rbfn, view --rrd, sim,
+    info, each as a ratio to `rerun mcap convert` (`rerun mcap info` for info) run just before it, and a warm
+    fuse of a 60 s drive."""
+    fl, rr = [sys.executable, "-m", "fieldlog"], _rerun_exe()
+    drive, short = tmp / "rr_drive.mcap", tmp / "rr_short.mcap"
+    _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
+    _run_s([*fl, "sim", "--duration", "60", "--seed", "2", "--out", str(short), "-q"], tmp)
+    convert = [rr, "mcap", "convert", str(drive), "-o", str(tmp / "rr_convert.rrd")]
+    fused = tmp / "rr_kf.mcap"
+    cmds = {  # name: (fieldlog command, reference command, target)
+        "fuse --method kf": ([*fl, "fuse", str(drive), "--method", "kf", "--out", str(fused), "--force", "-q"],
+                             convert, "≤ ×1.0"),
+        "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", "dkf-rbfn", "--out",
+                                    str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×1.5"),
+        "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
+                                    "--force", "-q"], convert, "≤ ×1.0"),
+        f"sim --duration {duration_s:g}": ([*fl, "sim", "--duration", str(duration_s), "--seed", "3", "--out",
+                                           str(tmp / "rr_sim.mcap"), "--force", "-q"], convert, "≤ ×4"),
+        "info": ([*fl, "info", str(drive)], [rr, "mcap", "info", str(drive)], ""),
+    }
+    warm60 = [*fl, "fuse", str(short), "--method", "kf", "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
+    for name in ("fuse --method kf", "fuse --method dkf-rbfn"):
+        _run_s(cmds[name][0], tmp)  # numba's on-disk cache filled outside the figures; kf's output feeds view
+    _run_s(warm60, tmp)
+    ratios: dict[str, list[float]] = {k: [] for k in cmds}
+    secs: dict[str, list[float]] = {k: [] for k in cmds}
+    refs: dict[str, list[float]] = {k: [] for k in cmds}
+    short_s: list[float] = []
+    loads = []
+    for _ in range(runs):  # alternated: each command right after its reference, so a change of load hits both
+        for name, (cmd, ref, _t) in cmds.items():
+            r = _run_s(ref, tmp)
+            s = _run_s(cmd, tmp)
+            refs[name].append(r)
+            secs[name].append(s)
+            ratios[name].append(s / r)
+        short_s.append(_run_s(warm60, tmp))
+        loads.append(os.getloadavg()[0])
+    load = f"load {min(loads):.1f}–{max(loads):.1f}"
+    print(f"{drive.stat().st_size / 1e6:.0f} MB drive, {runs} alternated rounds, {load} (1 min, after each round)")
+    for name, (cmd, ref, target) in cmds.items():
+        q = statistics.median(ratios[name])
+        print(f"fieldlog {name:24s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` "
+              f"(fieldlog {fmt_times(secs[name])} s; rerun {fmt_times(refs[name])} s)  target {target or '-'}")
+        row(f"`fieldlog {name}`, figure8 {duration_s:g} s, against `rerun {' '.join(ref[1:3])}` of the same drive "
+            f"[rerun]", f"×{q:.2f} ({statistics.median(secs[name]):.2f} s against {statistics.median(refs[name]):.2f}"
+            f" s; {load})", target)
+    med = statistics.median(short_s)
+    print(f"fieldlog fuse --method kf, 60 s drive, warm: median {med:.2f} s (runs: {fmt_times(short_s)})  "
+          "target <= 0.6 s")
+    row("`fieldlog fuse --method kf` of a 60 s drive, warm [rerun]", f"{med:.2f} s ({load})", "≤ 0.6 s")
+
+
+# The stages of `make bench --only profile`: a profiled function's own time goes to the stage of its file (and, in
+# acquire/recorder.py, of its name); a library function's (numpy, numba, zstd ...) to its callers' stages.
+_STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
+           "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
+_WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
+          "flush", "_write_chunk", "_write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
+          "close", "__enter__", "__exit__", "add"}
+_CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_matrices", "discretise"}
+
+
+def _stage_of(path: str, name: str) -> str | None:
+    """The stage of a project function (file, name), None for a library one."""
+    p = Path(path)
+    root = Path(__file__).resolve().parents[1]
+    try:
+        rel = p.resolve().relative_to(root).as_posix()
+    except (ValueError, OSError):
+        return None
+    if ".venv" in rel or rel.startswith("tools/bench"):
+        return None
+    if rel == "acquire/recorder.py":
+        return "output encoding and writing" if name in _WRITE else "reading and decoding"
+    if rel in ("acquire/messages.py", "fusion/output.py", "tools/fuse.py", "acquire/outputs.py", "fusion/smoother.py"):
+        return "output encoding and writing" if rel != "tools/fuse.py" or name not in ("fuse", "settings",
+                                                                                      "input_map") else "other"
+    if rel == "replay/inputs.py":
+        return "input mapping and resequencing"
+    if rel.startswith("replay/") or rel in ("acquire/native.py", "acquire/bagdir.py"):
+        return "reading and decoding"
+    if rel in ("fusion/ins.py", "fusion/errmodel.py", "fusion/clipgyro.py", "fusion/earth.py"):
+        return "INS and covariance cycles"
+    if rel == "fusion/predictors.py" or name in ("PredictorBridge", "train", "prediction", "input"):
+        return "predictors"
+    if rel in ("fusion/kf.py", "fusion/dkf.py", "fusion/ukf.py", "fusion/sckf.py", "fusion/hinf.py"):
+        if name in _CYCLE:
+            return "INS and covariance cycles"
+        return "measurement updates" if "update" in name or "measurement" in name else None  # helpers: callers'
+    if rel in ("fusion/measurements.py", "fusion/gpserror.py", "fusion/listeners.py", "fusion/align.py",
+               "fusion/outages.py", "fusion/odometer.py", "fusion/consider.py"):
+        return "measurement updates"
+    if rel == "fusion/engine.py":
+        return "INS and covariance cycles" if name in ("_cycles", "_integrate") else "fusion loop (engine)"
+    return "other"
+
+
+def stage_times(stats) -> dict[str, float]:
+    """Seconds per stage of a ``pstats.Stats``: every function's own time, a library function's split over its
+    callers in proportion to the time spent under each."""
+    st = stats.stats
+    memo: dict[tuple, dict[str, float]] = {}
+
+    def dist(f: tuple, seen: frozenset) -> dict[str, float]:
+        if f in memo:
+            return memo[f]
+        own = _stage_of(f[0], f[2]) if not f[0].startswith("~") else None
+        if own is not None:
+            out = {own: 1.0}
+        else:
+            callers = st.get(f, (0, 0, 0, 0, {}))[4]
+            tot = sum(c[3] for c in callers.values())
+            out: dict[str, float] = {}
+            for c, v in callers.items():
+                if c in seen or tot <= 0:
+                    continue
+                for k, w in dist(c, seen | {f}).items():
+                    out[k] = out.get(k, 0.0) + w * v[3] / tot
+            out = out or {"other": 1.0}
+        if not seen:
+            memo[f] = out
+        return out
+
+    res = dict.fromkeys(_STAGES, 0.0)
+    for f, (_cc, _nc, tt, _ct, _callers) in st.items():
+        for k, w in dist(f, frozenset()).items():
+            res[k] += tt * w
+    return res
+
+
+def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
+    """Where `fieldlog fuse` spends its time on a 600 s figure8 drive, per stage, for kf and dkf-rbfn (cProfile of
+    a warm in-process run; start-up measured in fresh processes)."""
+    import cProfile
+    import pstats
+
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.sim.simulate import simulate
+
+    drive, warm = tmp / "prof_drive.mcap", tmp / "prof_warm.mcap"
+    simulate("figure8", duration_s, 1, drive)
+    simulate("figure8", 30.0, 2, warm)
+    # start-up: the import of the fuse path, and numba's first cache load, each in a fresh process
+    w, o = str(warm), str(tmp / "prof_warm_kf.mcap")
+    code = (f"import time\nt0 = time.perf_counter()\nimport fieldlog.tools.fuse as f\nt1 = time.perf_counter()\n"
+            f"f.fuse({w!r}, 'kf', {o!r}, force=True)\nt2 = time.perf_counter()\n"
+            f"f.fuse({w!r}, 'kf', {o!r}, force=True)\nprint(t1 - t0, t2 - t1, time.perf_counter() - t2)\n")
+    start = []
+    for _ in range(max(runs, 3)):
+        out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+        start.append([float(x) for x in out.stdout.split()])
+    imp = statistics.median(s[0] for s in start)
+    first = statistics.median(s[1] - s[2] for s in start)   # the first fuse's excess over a second one
+    load = os.getloadavg()[0]
+    print(f"start-up of a fuse process (medians of {len(start)}): import {imp:.2f} s, first call's excess (lazy "
+          f"imports, numba cache load) {first:.2f} s; load {load:.1f}")
+    table = {}
+    for method in ("kf", "dkf-rbfn"):
+        fuse(warm, method, tmp / "prof_w.mcap", force=True)
+        walls = []
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            fuse(drive, method, tmp / "prof_out.mcap", force=True)
+            walls.append(time.perf_counter() - t0)
+        prof = cProfile.Profile()
+        t0 = time.perf_counter()
+        prof.runcall(fuse, drive, method, tmp / "prof_out.mcap", force=True)
+        pwall = time.perf_counter() - t0
+        stages = stage_times(pstats.Stats(prof))
+        table[method] = (statistics.median(walls), pwall, stages)
+        print(f"fuse {method}: {statistics.median(walls):.2f} s unprofiled (runs {fmt_times(walls)}), "
+              f"{pwall:.2f} s profiled; load {os.getloadavg()[0]:.1f}")
+        top = pstats.Stats(prof, stream=sys.stdout)
+        top.sort_stats("tottime").print_stats(12)
+    load = os.getloadavg()[0]
+    print(f"\n| stage | kf, s (share) | dkf-rbfn, s (share) |\n|---|---|---|")
+    print(f"| start-up: imports | {imp:.2f} | {imp:.2f} |")
+    print(f"| start-up: the first call's excess (lazy imports, numba cache load) | {first:.2f} | {first:.2f} |")
+    for s in _STAGES:
+        cells = [f"{table[m][2][s]:.2f} ({table[m][2][s] / sum(table[m][2].values()):.0%})" for m in table]
+        print(f"| {s} | {' | '.join(cells)} |")
+    print(f"| whole run, profiled / unprofiled | {table['kf'][1]:.2f} / {table['kf'][0]:.2f} | "
+          f"{table['dkf-rbfn'][1]:.2f} / {table['dkf-rbfn'][0]:.2f} |")
+    print(f"(load {load:.1f}, 1 min, at the end)")
+    for m, (wall, pwall, stages) in table.items():
+        big = max(stages, key=stages.get)
+        row(f"`fieldlog fuse --method {m}`, figure8 {duration_s:g} s: the largest stage, profiled [profile]",
+            f"{big}, {stages[big] / sum(stages.values()):.0%} of {pwall:.1f} s (unprofiled {wall:.2f} s; "
+            f"start-up {imp + first:.2f} s; load {load:.1f})")
+
+
 BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "soak": bench_soak, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
-           "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long, "recover": bench_recover}
+           "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long, "recover": bench_recover,
+           "rerun": bench_rerun, "profile": bench_profile}
 
 
 def main() -> None:

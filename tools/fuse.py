@@ -59,8 +59,7 @@ from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
-from fieldlog.replay.reader import topics as reader_topics
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import metadata_records, topics as reader_topics
 
 BLOCK_S = 10.0
 
@@ -380,6 +379,12 @@ class Odometry:
         rec.write_batch("/tf", t, [messages.encode_tf(int(ti), [(frames.MAP, frames.ODOM, mi, identity),
                                                               (frames.ODOM, frames.BASE_LINK, pi, qi)])
                                    for ti, mi, pi, qi in zip(t.tolist(), p_map_odom, p_odom, q_base)])
+
+
+def read_metadata(drive: DriveSpec) -> dict[str, dict[str, str]]:
+    """Metadata by name, the last record of a repeated name (``tools.rebuild.read_metadata``, without importing
+    the acquisition pipeline)."""
+    return dict(metadata_records(drive))
 
 
 def drive_mounting(drive: DriveSpec) -> calib.Mounting:
