@@ -28,7 +28,7 @@ from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
 from fieldlog.acquire.pipeline import Pipeline, read_order
 from fieldlog.acquire import native
-from fieldlog.acquire.recorder import walk_records
+from fieldlog.acquire.chunks import walk_records
 from fieldlog.replay import reader
 from fieldlog.replay.drive import drive_files, open_drive
 from fieldlog.replay.mcapfile import McapFile, TruncatedError, le
@@ -559,8 +559,7 @@ def test_recover_rederives_the_tail_of_a_complete_file_whose_walk_stops(session,
     import filecmp
     import struct
 
-    from fieldlog.acquire.recorder import recover
-    from fieldlog.acquire.recovery import TailDeriver, recover_drive
+    from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
 
     src = sorted(session.glob("*.mcap"))[1]
     p = McapFile(src).pieces

@@ -770,8 +770,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """``recover DIR``'s check of a complete file (every chunk's CRC), and the recovery of one with a damaged chunk."""
-    from fieldlog.acquire import recorder
-    from fieldlog.acquire.recovery import TailDeriver, recover_drive
+    from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
     from fieldlog.replay.mcapfile import McapFile
     from fieldlog.tools.layouts import rewrite
     from fieldlog.tools.sim.simulate import simulate
@@ -789,7 +788,7 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         bad.write_bytes(raw)
         check, _, _ = timed(lambda: McapFile(path).damaged(), runs)
         fast, _, _ = timed(lambda: recover_drive(bad, tmp / "r.mcap", force=True), runs)
-        slow, _, _ = timed(lambda: recorder.recover(bad, tmp / "r.mcap", TailDeriver(), force=True), runs)
+        slow, _, _ = timed(lambda: recover(bad, tmp / "r.mcap", TailDeriver(), force=True), runs)
         print(f"{duration_s:.0f} s drive, {path.name} ({path.stat().st_size / 1e6:.1f} MB, {int(p.chunk.sum())} "
               f"chunks, {p.size.sum() / 1e6:.0f} MB uncompressed): open + check every chunk {check * 1e3:.0f} ms; recover with "
               f"one damaged chunk {fast:.2f} s (feeding the pipeline: {slow:.2f} s)")
