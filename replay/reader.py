@@ -204,9 +204,15 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
             yield dec(p[i])
 
 
-def metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
-    """Every metadata record of the drive: file by file (in log-time order), in file order."""
+def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
+    """Every metadata record of the drive, in file order (names may repeat, e.g. ``acquire.port_event``); a drive
+    of several files: file by file, in log-time order."""
     return [(m.name, dict(m.metadata)) for f in open_drive(path) for m in f.metadata()]
+
+
+def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
+    """The drive's metadata records by name; for a repeated name, the last record."""
+    return dict(read_metadata_records(path))
 
 
 def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Iterator[Block]:

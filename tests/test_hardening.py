@@ -15,7 +15,7 @@ import pytest
 from fieldlog.acquire import gnss, messages, nmea, recorder, recovery, timesync
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.replay import reader
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from fieldlog.tools.sim.serve import Server
 from test_daemon import run, start_daemon

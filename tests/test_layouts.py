@@ -38,7 +38,8 @@ from fieldlog.tools.evaluate import outage_error_series
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.info import drive_info
 from fieldlog.tools.layouts import LAYOUTS, merged, rewrite, schema_of
-from fieldlog.tools.rebuild import iter_raw, read_metadata_records
+from fieldlog.replay.reader import read_metadata_records
+from fieldlog.tools.rebuild import iter_raw
 from fieldlog.tools.sim.simulate import simulate
 
 DURATION_S = 150.0

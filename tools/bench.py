@@ -328,7 +328,7 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
     from fieldlog.acquire.timesync import SyncState
     from fieldlog.replay import reader
-    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.replay.reader import read_metadata
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
@@ -382,7 +382,7 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     from fieldlog.acquire import daq
     from fieldlog.acquire.messages import STATUS_NO_FIX
     from fieldlog.replay import reader
-    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.replay.reader import read_metadata
     from fieldlog.tools.sim.serve import PORTS, corrupt_stream, delivered, simulated_streams
 
     out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"

@@ -532,12 +532,11 @@ def heading_markdown(heading: pl.DataFrame) -> str:
 def route_note(drives: Sequence[Path]) -> str:
     """One line naming the drives' route: the simulator's scenario of each (``drive`` metadata) and whether its
     laps vary (``[motion] lap_*_jitter``); drives not simulated are counted as recorded."""
-    from fieldlog.tools.rebuild import read_metadata
     from fieldlog.tools.sim.trajectory import load_scenario
 
     names: dict[str, int] = {}
     for d in drives:
-        meta = read_metadata(d).get("drive", {})
+        meta = reader.read_metadata(d).get("drive", {})
         key = meta.get("scenario", "") if meta.get("source") == "fieldlog sim" else ""
         names[key] = names.get(key, 0) + 1
     parts = []

@@ -59,8 +59,8 @@ from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
+from fieldlog.replay.reader import read_metadata
 from fieldlog.replay.reader import topics as reader_topics
-from fieldlog.tools.rebuild import read_metadata
 
 BLOCK_S = 10.0
 

@@ -270,7 +270,7 @@ def _mcap_run(t: Target, data: bytes) -> None:
     try:
         for topic in reader.topics(path):
             reader.read_topic(path, topic.topic)
-        reader.metadata_records(path)
+        reader.read_metadata_records(path)
     except ValueError:
         pass                                          # bad input, reported in one line by every command
 
