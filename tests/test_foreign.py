@@ -14,9 +14,10 @@ import pytest
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import inputs, reader
 from fieldlog.replay import view as rview
+from fieldlog.replay.solutions import Diverged, write_solution
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.evaluate import consistency, outage_error_series, position_errors
-from fieldlog.tools.fuse import Diverged, fuse, write_solution
+from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
 
 from foreign_drives import Foreign, write_foreign

@@ -43,7 +43,7 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion import earth
 from fieldlog.fusion.config import METHODS, FusionConfig
-from fieldlog.replay import reader
+from fieldlog.replay import reader, solutions
 from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
@@ -127,8 +127,8 @@ def _quat_interp(t: np.ndarray, tr: np.ndarray, q: np.ndarray) -> np.ndarray:
 def attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns, C_bn of the solution, C_bn of ``/truth/attitude``, the printed attitude sigma (n, 3) rad: phi E, N,
     U) at every solution row within the truth."""
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
-    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std")
+    a = solutions.read(fused, method, "attitude")
+    sd = solutions.read(fused, method, "attitude_std")
     ta = reader.read_topic(drive, "/truth/attitude")
     ts = a["log_time_ns"]
     ok = (ts >= ta["log_time_ns"][0]) & (ts <= ta["log_time_ns"][-1])
@@ -156,9 +156,9 @@ def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[
                         ) -> tuple[np.ndarray, np.ndarray]:
     """``outage_errors`` with the times of its rows: (t_ns (n,), errors (n, 9)). Without truth the reference is
     ``fix_topic`` and ``vel_topic`` (None: no velocity errors), timed by their header stamps."""
-    s = reader.read_topic(fused, f"/fusion/{method}/fix")
-    v = reader.read_topic(fused, f"/fusion/{method}/vel")
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    s = solutions.read(fused, method, "fix")
+    v = solutions.read(fused, method, "vel")
+    a = solutions.read(fused, method, "attitude")
     ts = s["log_time_ns"]
     names = {t.topic for t in reader.topics(drive) if t.count}
     truth = "/truth/fix" in names
@@ -239,10 +239,10 @@ def bias_errors(drive: Path, fused: Path, method: str, sensor: str = "gyro", mea
     ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth to its end. None when either topic is missing (a
     drive not simulated, a fused file written before the estimate was published)."""
     have = {t.topic for t in reader.topics(drive) if t.count} | {t.topic for t in reader.topics(fused) if t.count}
-    if not {"/truth/imu_bias", f"/fusion/{method}/imu_bias"} <= have:
+    if not {"/truth/imu_bias", solutions.topic(method, "imu_bias")} <= have:
         return None
     value, cov = BIAS_FIELDS[sensor]
-    b, tr = reader.read_topic(fused, f"/fusion/{method}/imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
+    b, tr = solutions.read(fused, method, "imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
     tt = tr["log_time_ns"]
     t = b["log_time_ns"]
     m = (t >= tt[0] + int(mean_s * 1e9)) & (t <= tt[-1])
@@ -256,8 +256,8 @@ def bias_errors(drive: Path, fused: Path, method: str, sensor: str = "gyro", mea
 def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
     """The method's position error (solution - ``/truth/fix``, ENU m) and its printed sigma (m), (n, 3) each, at
     every solution row within the truth."""
-    s = reader.read_topic(fused, f"/fusion/{method}/fix")
-    sd = reader.read_topic(fused, f"/fusion/{method}/std")
+    s = solutions.read(fused, method, "fix")
+    sd = solutions.read(fused, method, "std")
     ref = reader.read_topic(drive, "/truth/fix")
     t, tr = s["log_time_ns"], ref["log_time_ns"]
     m = (t >= tr[0]) & (t <= tr[-1])
@@ -293,9 +293,9 @@ def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tu
     ``/fusion/<method>/attitude_std``: phi up) at the first solution row of each window, (w,) each; NaN where
     the drive has no ``/truth/attitude`` or the window no row."""
     err, sig = np.full(len(windows_ns), np.nan), np.full(len(windows_ns), np.nan)
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    a = solutions.read(fused, method, "attitude")
     names = {t.topic for t in reader.topics(fused) if t.count}
-    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std") if f"/fusion/{method}/attitude_std" in names \
+    sd = solutions.read(fused, method, "attitude_std") if solutions.topic(method, "attitude_std") in names \
         else None
     truth = "/truth/attitude" in {t.topic for t in reader.topics(drive) if t.count}
     ta = reader.read_topic(drive, "/truth/attitude") if truth else None

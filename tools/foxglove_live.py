@@ -5,7 +5,7 @@ The drive is played as ``fuse`` reads it (``replay.inputs.InputStream`` blocks, 
 ``fusion.engine.Engine``), paced so that data time runs ``speed`` times faster than the wall clock. Each block
 publishes, in log-time order within the block, the drive's own messages of the block's span (every topic but
 ``/raw/*``, as recorded: CDR with the file's ROS 2 schema) and the live fusion's ``/fusion/<method>/*``, ``/tf``,
-``/tf_static`` and datum, exactly as ``fuse`` writes them (``tools.fuse.write_solution``, ``Odometry``), with
+``/tf_static`` and datum, exactly as ``fuse`` writes them (``replay.solutions.write_solution``, ``Odometry``), with
 their ROS 2 Jazzy schemas, so Foxglove's 3D, Map, Plot and Raw Messages panels show them. Messages go to
 every connected client that subscribed to the channel; a client that connects late starts from then, one that
 disconnects does not stop the others or the replay (the SDK's server runs in its own threads and never
@@ -27,7 +27,8 @@ from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.filters import has_local_filters
 from fieldlog.replay.drive import DriveSpec, drive_files
 from fieldlog.replay.inputs import InputMap, InputStream
-from fieldlog.tools.fuse import BLOCK_S, Odometry, drive_config, drive_mounting, write_solution
+from fieldlog.replay.solutions import Odometry, topics, write_solution
+from fieldlog.tools.fuse import BLOCK_S, drive_config, drive_mounting
 
 DEFAULT_HOST = "127.0.0.1"
 PLAY_BLOCK_S = 1.0
@@ -127,10 +128,7 @@ def _advertise(sink: FoxgloveSink, drive: DriveSpec, method: str, has_locals: bo
             schema = summary.schemas.get(ch.schema_id)
             if not ch.topic.startswith("/raw/") and schema is not None:
                 sink.channel(ch.topic, schema.name, schema.data)
-    base = f"/fusion/{method}"
-    fused = ["fix", "vel", "attitude", "std", "attitude_std", "imu_bias", "datum", "odom"]
-    fused += ["kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel"] if has_locals else []
-    for topic in [f"{base}/{name}" for name in fused] + ["/tf", "/tf_static"]:
+    for topic in topics(method, has_locals):
         sink.channel(topic)
 
 
