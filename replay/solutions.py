@@ -6,7 +6,7 @@ sigmas, the IMU bias estimate and, for the distributed methods, the local soluti
 REP-105 frames (``odom``, ``datum``, ``/tf``, ``/tf_static``). Both write into a ``Recorder`` (``fieldlog fuse``) or
 anything with its ``write`` and ``write_batch`` (the Foxglove sink of ``fieldlog replay --foxglove``). ``topics``
 lists every topic they write for a method (a live server advertises them before the first row), ``topic`` names
-one for the readers (``replay.view``, ``tools.evaluate``), and ``read`` reads one back as arrays.
+one for the readers (``replay.view``, ``tools.evaluation.evaluate``), and ``read`` reads one back as arrays.
 """
 
 from __future__ import annotations

@@ -438,7 +438,7 @@ def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom
 @pytest.mark.slow
 def test_evaluate_gives_a_column_without_the_odometer(odo_drive, tmp_path):
     pl = pytest.importorskip("polars", reason="needs the export extra (polars)")
-    from fieldlog.tools.evaluate import evaluate
+    from fieldlog.tools.evaluation.evaluate import evaluate
 
     table = evaluate([odo_drive], [60.0], ["kf"], tmp_path / "report", say=lambda s: None)
     vel = table.filter(pl.col("quantity").is_in(["vE", "vN"]))

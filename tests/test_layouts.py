@@ -1,7 +1,7 @@
 """Every valid MCAP layout and every multi-file drive reads as the same drive.
 
 The corpus is written here by third-party writers from one simulated drive: the mcap library's ``Writer``
-(``tools.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
+(``tools.dev.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
 attachment and the metadata records) and rosbags (a rosbag2 directory, and one split into two files under one
 metadata.yaml). Each must give the original's ``info`` counts and its
 ``kf`` solution (2D RMS against the truth within 1 mm). A rotated session (the daemon's ``RotatingSink``
@@ -34,10 +34,10 @@ from fieldlog.replay.drive import drive_files, open_drive
 from fieldlog.replay.mcapfile import McapFile, TruncatedError, le
 from fieldlog.tools.allan import drive_report
 from fieldlog.tools.cli import main as fieldlog
-from fieldlog.tools.evaluate import outage_error_series
+from fieldlog.tools.evaluation.evaluate import outage_error_series
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.info import drive_info
-from fieldlog.tools.layouts import LAYOUTS, merged, rewrite, schema_of
+from fieldlog.tools.dev.layouts import LAYOUTS, merged, rewrite, schema_of
 from fieldlog.replay.reader import read_metadata_records
 from fieldlog.tools.rebuild import iter_raw
 from fieldlog.tools.sim.simulate import simulate

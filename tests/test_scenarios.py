@@ -13,7 +13,7 @@ from fieldlog.acquire.config import ConfigError
 from fieldlog.fusion import earth, ins
 from fieldlog.replay import reader
 from fieldlog.tools.cli import main as fieldlog
-from fieldlog.tools.evaluate import outage_error_series
+from fieldlog.tools.evaluation.evaluate import outage_error_series
 from fieldlog.tools.fuse import drive_config, fusion_config
 from fieldlog.tools.info import drive_info, format_info
 from fieldlog.replay.reader import read_metadata

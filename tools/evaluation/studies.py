@@ -39,7 +39,7 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import reader
-from fieldlog.tools.evaluate import outage_error_series, rms_columns
+from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import FuseResult, drive_config, fuse
 
 # Columns of ``outage_error_series``: position E, N, U (m); velocity E, N, U (m/s); roll, pitch, heading (deg).
