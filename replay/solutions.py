@@ -6,7 +6,8 @@ sigmas, the IMU bias estimate and, for the distributed methods, the local soluti
 REP-105 frames (``odom``, ``datum``, ``/tf``, ``/tf_static``). Both write into a ``Recorder`` (``fieldlog fuse``) or
 anything with its ``write`` and ``write_batch`` (the Foxglove sink of ``fieldlog replay --foxglove``). ``topics``
 lists every topic they write for a method (a live server advertises them before the first row), ``topic`` names
-one for the readers (``replay.view``, ``tools.evaluation.evaluate``), and ``read`` reads one back as arrays.
+one for the readers (``replay.view``, ``tools.evaluation.evaluate``), and ``read`` reads one back as arrays, from
+a fused file or from the rows in memory.
 """
 
 from __future__ import annotations
@@ -46,9 +47,22 @@ def method_of(name: str) -> str | None:
     return parts[2] if len(parts) == 4 and parts[1] == "fusion" and parts[3] == "fix" else None
 
 
-def read(path: DriveSpec, method: str, name: str) -> dict[str, object]:
-    """The ``/fusion/<method>/<name>`` messages of a fused file as arrays (``replay.reader.read_topic``)."""
-    return reader.read_topic(path, topic(method, name))
+def has(fused: DriveSpec | Solution, method: str, name: str) -> bool:
+    """Whether ``fused`` (a fused file, or the solution rows in memory) holds messages of
+    ``/fusion/<method>/<name>``."""
+    if isinstance(fused, Solution):
+        return len(fused.t_ns) > 0 and (name in SOLUTION or (name in LOCALS and fused.local is not None))
+    return any(t.topic == topic(method, name) and t.count for t in reader.topics(fused))
+
+
+def read(fused: DriveSpec | Solution, method: str, name: str) -> dict[str, object]:
+    """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``replay.reader.read_topic``): a fused
+    file, or the solution rows in memory (``tools.fuse.fuse(..., keep=True)``; ``name`` of ``SOLUTION`` or
+    ``LOCALS``), whose messages are those ``write_solution`` writes, decoded as the file's are, so both give the
+    same arrays to the bit."""
+    if isinstance(fused, Solution):
+        return reader.decode(messages.topic_type(topic(method, name)), fused.t_ns, _payloads(fused, name))
+    return reader.read_topic(fused, topic(method, name))
 
 
 class Diverged(ValueError):
@@ -64,40 +78,49 @@ def write_solution(rec: Recorder, method: str, s: Solution) -> None:
     if bad.any():
         raise Diverged(f"the {method} solution diverged (NaN or inf) at UTC {int(s.t_ns[np.argmax(bad)]) * 1e-9:.3f} s; "
                        "nothing from there on was written: check the IMU frame (--imu-frame) and units")
+    for name in (*SOLUTION, *(LOCALS if s.local is not None else ())):
+        rec.write_batch(topic(method, name), s.t_ns, _payloads(s, name))
+
+
+def _payloads(s: Solution, name: str) -> messages.Packed:
+    """The messages of ``/fusion/<method>/<name>`` (a name of ``SOLUTION``, or of ``LOCALS`` when ``s`` has local
+    solutions) for the rows of ``s``: positions are the IMU's (frame imu); ENU vectors and the attitude body -> ENU
+    are in map's axes."""
     t = s.t_ns
     var = s.sigma ** 2
-    pos_cov = np.zeros((len(t), 9))
-    pos_cov[:, [0, 4, 8]] = var[:, 0:3]
-    vel_cov = np.zeros((len(t), 36))
-    vel_cov[:, [0, 7, 14]] = var[:, 3:6]
-    vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE  # angular part: not estimated
-    # positions are the IMU's (frame imu); ENU vectors and the attitude body -> ENU are in map's axes
-    rec.write_batch(topic(method, "fix"), t, messages.encode_navsatfix(
-        t, np.degrees(s.lat), np.degrees(s.lon), s.h, pos_cov, covariance_type=2, frame_id=frames.IMU))
-    rec.write_batch(topic(method, "vel"), t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id=frames.MAP))
-    rec.write_batch(topic(method, "attitude"), t, messages.encode_quaternion(t, s.q, frame_id=frames.MAP))
-    rec.write_batch(topic(method, "std"), t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id=frames.MAP))
-    rec.write_batch(topic(method, "attitude_std"), t, messages.encode_vector3(t, s.sigma[:, 6:9],
-                                                                            frame_id=frames.MAP))
-    bias_cov = np.zeros((len(t), 2, 9))
-    bias_cov[:, :, [0, 4, 8]] = var[:, 9:15].reshape(-1, 2, 3)
-    rec.write_batch(topic(method, "imu_bias"), t, messages.encode_imu(t, s.bias[:, 0:3], s.bias[:, 3:6],
-                                                                      bias_cov[:, 0], bias_cov[:, 1],
-                                                                      frame_id=frames.IMU))
-    if s.local is None:
-        return
-    for i, name in enumerate(("kf1", "kf2")):
-        loc = s.local[:, i]
-        pos_cov = np.zeros((len(t), 9))
-        pos_cov[:, [0, 4, 8]] = loc[:, 6:9] ** 2
+    if name in LOCALS:
+        loc = s.local[:, LOCALS.index(name) // 2]
+        if name.endswith("/fix"):
+            pos_cov = np.zeros((len(t), 9))
+            pos_cov[:, [0, 4, 8]] = loc[:, 6:9] ** 2
+            return messages.encode_navsatfix(t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov,
+                                             covariance_type=2, frame_id=frames.IMU)
         vel_cov = np.zeros((len(t), 36))
         vel_cov[:, [0, 7, 14]] = loc[:, 9:12] ** 2
         vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE
-        rec.write_batch(topic(method, f"{name}/fix"), t, messages.encode_navsatfix(
-            t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov, covariance_type=2,
-            frame_id=frames.IMU))
-        rec.write_batch(topic(method, f"{name}/vel"), t, messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov,
-                                                                               frame_id=frames.MAP))
+        return messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov, frame_id=frames.MAP)
+    if name == "fix":
+        pos_cov = np.zeros((len(t), 9))
+        pos_cov[:, [0, 4, 8]] = var[:, 0:3]
+        return messages.encode_navsatfix(t, np.degrees(s.lat), np.degrees(s.lon), s.h, pos_cov, covariance_type=2,
+                                         frame_id=frames.IMU)
+    if name == "vel":
+        vel_cov = np.zeros((len(t), 36))
+        vel_cov[:, [0, 7, 14]] = var[:, 3:6]
+        vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE  # angular part: not estimated
+        return messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id=frames.MAP)
+    if name == "attitude":
+        return messages.encode_quaternion(t, s.q, frame_id=frames.MAP)
+    if name == "std":
+        return messages.encode_vector3(t, s.sigma[:, 0:3], frame_id=frames.MAP)
+    if name == "attitude_std":
+        return messages.encode_vector3(t, s.sigma[:, 6:9], frame_id=frames.MAP)
+    if name == "imu_bias":
+        bias_cov = np.zeros((len(t), 2, 9))
+        bias_cov[:, :, [0, 4, 8]] = var[:, 9:15].reshape(-1, 2, 3)
+        return messages.encode_imu(t, s.bias[:, 0:3], s.bias[:, 3:6], bias_cov[:, 0], bias_cov[:, 1],
+                                   frame_id=frames.IMU)
+    raise KeyError(f"not a topic of write_solution: {name!r}")
 
 
 class Odometry:

@@ -100,8 +100,8 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     rows = []
     for m in methods:
         path = fused_dir / f"{drive.stem}_{m}.mcap"
-        res = fuse(drive, m, path, cfg, force=force)
-        _, err = outage_error_series(drive, path, m, whole)
+        res = fuse(drive, m, path, cfg, force=force, keep=True)
+        _, err = outage_error_series(drive, res.solution, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
         t_fix, good, t0 = fix_quality(drive, cfg.gps.max_fix_sigma_m)
@@ -114,8 +114,8 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
                 path = fused_dir / f"{drive.stem}_{m}_{L:g}s.mcap"
-                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force)
-                _, err = outage_error_series(drive, path, m, win_ns)
+                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force, keep=True)
+                _, err = outage_error_series(drive, res.solution, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows
 

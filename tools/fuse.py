@@ -85,6 +85,7 @@ class FuseResult:
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
+    solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -249,12 +250,15 @@ def drive_mounting(drive: DriveSpec) -> calib.Mounting:
 
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         smooth: bool = False, inputs: InputMap | None = None, force: bool = False) -> FuseResult:
+         smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False
+         ) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
     ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
     boundaries. Raises ``replay.solutions.Diverged`` (nothing past the first bad row written) when the
-    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``)."""
+    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``). ``keep``: the rows
+    written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
+    back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``."""
     outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
@@ -283,9 +287,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
 
         def take(sol: Solution, done) -> None:
             nonlocal rows
-            if smooth:
+            if smooth or keep:
                 kept.append(sol)
-            else:
+            if not smooth:
                 write_solution(rec, method, sol)
                 odom.write(rec, sol)
             write_outages(done)
@@ -311,4 +315,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
-                      hinf_note or None, engine.used("Stationary", "zaru_skipped"))
+                      hinf_note or None, engine.used("Stationary", "zaru_skipped"),
+                      (smoothed if smooth else Solution.concat(kept)) if keep else None)
