@@ -33,7 +33,7 @@ test-fast: setup
 	@$(call pytest,-m "not slow")
 
 bench: setup
-	$(BIN)/python -m fieldlog.tools.bench --markdown
+	$(BIN)/python -m fieldlog.tools.dev.bench --markdown
 
 # the DAQ board's firmware images (firmware/README.md); needs `apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi`
 firmware:
@@ -41,7 +41,7 @@ firmware:
 
 # docs/viewer.png; needs `apt-get install -y xvfb xauth mesa-vulkan-drivers` (not part of `make test`)
 screenshot: setup
-	$(BIN)/python -m fieldlog.tools.screenshot
+	$(BIN)/python -m fieldlog.tools.dev.screenshot
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis firmware/build

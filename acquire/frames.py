@@ -11,7 +11,7 @@ drive:
 
 ``fieldlog fuse`` adds REP-105's world frames: ``earth -> map`` (``/tf_static``: ECEF to a local ENU frame at
 the alignment point), ``map -> odom -> base_link`` (``/tf``; odom continuous, map -> odom absorbing the GPS
-corrections) and ``/fusion/<method>/odom`` in odom (tools/fuse.py, ``Odometry``).
+corrections) and ``/fusion/<method>/odom`` in odom (``replay.solutions.Odometry``).
 """
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ for copied out, so the batch holds what will be read, packed (as in our own file
 
 The C functions are the ones the two packages already ship: the shared objects of zstandard's cffi backend and of
 zlib_ng export their C API. ``ready()`` is False without numba, or when an installed build does not export them;
-the callers then take the python-zstandard path (``recorder.decompress_many``, ``recorder.messages_of``).
+the callers then take the python-zstandard path (``chunks.decompress_many``, ``chunks.messages_of``).
 """
 from __future__ import annotations
 

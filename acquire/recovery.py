@@ -1,24 +1,210 @@
 """A drive cut short, made complete: ``fieldlog recover`` and the daemon's recovery on start.
 
-``recorder.recover`` keeps every complete chunk. The derived topics lag the raw reads (``/imu`` by about half the
-time-sync window, a minute with a sampled PPS), so a crash leaves the tail's raw bytes without their derived
-messages. ``TailDeriver`` re-derives them as ``fieldlog rebuild`` does: every kept raw read goes through the
-pipeline, in file order (the order the daemon processed them), with the drive's calibration and time-sync
-settings, and of what the pipeline writes only the messages later than the last kept one of their topic are
-added. The tail is then stamped as at the end of a drive (``Pipeline.finish``).
+``recover`` keeps every complete chunk: it walks the file record by record with mcap's StreamReader, keeps every
+schema, channel and metadata record and every chunk whose content checks (``acquire.chunks``), and writes them
+with fresh message indexes and a summary (``acquire.recorder.Recorder``). The derived topics lag the raw reads
+(``/imu`` by about half the time-sync window, a minute with a sampled PPS), so a crash leaves the tail's raw bytes
+without their derived messages. ``TailDeriver`` re-derives them as ``fieldlog rebuild`` does: every kept raw read
+goes through the pipeline, in file order (the order the daemon processed them), with the drive's calibration and
+time-sync settings, and of what the pipeline writes only the messages later than the last kept one of their
+topic are added. The tail is then stamped as at the end of a drive (``Pipeline.finish``).
 """
 from __future__ import annotations
 
 import os
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, Protocol
 
 import numpy as np
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 
-from fieldlog.acquire import messages, recorder
+from fieldlog.acquire import messages, outputs
+from fieldlog.acquire.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
 from fieldlog.acquire.pipeline import Pipeline
+from fieldlog.acquire.recorder import MAGIC, Recorder
+
+
+@dataclass
+class RecoverReport:
+    """messages: kept per topic; chunks: complete chunks kept; bytes_discarded: source bytes
+    after the last complete record; last_log_time_ns: latest log time kept (0 if none);
+    had_summary: the source was already complete (footer read); damaged: byte offsets of whole chunk records whose
+    content failed its CRC or codec, skipped (their messages are lost; every other chunk is kept)."""
+
+    messages: dict[str, int]
+    chunks: int
+    bytes_discarded: int
+    last_log_time_ns: int
+    had_summary: bool
+    rederived: dict[str, int] = field(default_factory=dict)   # tail messages re-derived per topic
+    damaged: list[int] = field(default_factory=list)
+
+
+class Extend(Protocol):
+    """What ``recover`` can add to the kept chunks (``TailDeriver``)."""
+
+    def chunk(self, rec: Recorder, cm: ChunkMessages, metadata: dict[str, dict[str, str]]) -> None: ...
+
+    def finish(self, rec: Recorder) -> dict[str, int]: ...
+
+
+def has_footer(path: str | os.PathLike[str]) -> bool:
+    """``path`` ends with a Footer record and the magic, as a complete MCAP file does."""
+    n = 9 + 20 + len(MAGIC)
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size < len(MAGIC) + n:
+            return False
+        f.seek(-n, os.SEEK_END)
+        tail = f.read(n)
+    return tail[:9] == struct.pack("<BQ", Opcode.FOOTER, 20) and tail[-len(MAGIC):] == MAGIC
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Extend | None = None,
+            force: bool = False) -> RecoverReport:
+    """Rebuild a valid MCAP from ``src`` (cut short by a kill or power loss) into ``dst``.
+
+    Reads ``src`` record by record with mcap's StreamReader and keeps every schema, channel,
+    metadata record, every complete chunk whose CRC checks and every message outside chunks (written as
+    they come, in runs of up to 4 MB, each as a new chunk), up to the first truncated or invalid record; a chunk
+    whose record is whole but whose content fails its CRC or codec, or claims more than ``limits.chunk_bytes()``
+    uncompressed, is skipped and counted, and the walk goes on; writes them to ``dst`` with fresh message indexes
+    and a summary. ``extend`` sees each kept chunk and adds its messages before the summary. ``src`` must start
+    with the MCAP magic (ValueError). ``dst`` must be a new name (``outputs.Refused`` before any work otherwise,
+    unless it is a regular file and ``force``) and appears only complete: it is written as ``dst`` + ``.partial``
+    (a regular file of that name, left by an interrupted recovery, is replaced; a symbolic link refused) and
+    linked into place at the end; on any error (a full disk) the partial file is removed and the error raised, so
+    a later attempt starts afresh.
+    """
+    size = os.path.getsize(src)
+    with open(src, "rb") as f:
+        if f.read(len(MAGIC)) != MAGIC:
+            raise ValueError(f"{src} is not an MCAP file (no MCAP magic at its start): nothing to recover")
+    dst = Path(dst)
+    outputs.check_new(dst, force)
+    tmp = dst.with_name(dst.name + ".partial")
+    rec = Recorder(tmp, flush_interval_s=None, fsync=False, stats=False, force=True)
+    try:
+        report = _recover(src, rec, size, extend)
+        outputs.publish(tmp, dst, force)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return report
+
+
+def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Extend | None) -> RecoverReport:
+    kept: dict[int, int] = {}
+    meta: dict[str, dict[str, str]] = {}
+    rederived: dict[str, int] = {}
+    last_t = 0
+    good_end = 0
+    had_summary = False
+    loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
+    damaged: list[int] = []
+
+    def keep(cm: ChunkMessages) -> None:
+        nonlocal last_t
+        _copy_chunk(rec, cm)
+        if extend is not None:
+            extend.chunk(rec, cm, meta)
+        for cid, cnt in zip(*np.unique(cm.channel_id, return_counts=True)):
+            kept[int(cid)] = kept.get(int(cid), 0) + int(cnt)
+        if len(cm.log_time):
+            last_t = max(last_t, int(cm.log_time.max()))
+
+    def keep_loose(f: BinaryIO) -> None:
+        """The pending messages outside chunks (their records as they are in src) kept as one chunk."""
+        if loose[1] > loose[0]:
+            keep(chunk_messages(os.pread(f.fileno(), loose[1] - loose[0], loose[0])))
+        loose[0] = loose[1]
+
+    try:
+        with open(src, "rb") as f:
+            reader = StreamReader(f, emit_chunks=True, record_size_limit=size)
+            it = reader.records
+            while True:
+                start = f.tell()
+                try:
+                    record = next(it)
+                except StopIteration:
+                    had_summary = True
+                    break
+                except Exception:  # truncated or corrupt record: stop here
+                    break
+                if isinstance(record, Chunk):
+                    try:
+                        data = decompress_chunk(record)
+                        cm = chunk_messages(data)
+                        inner = chunk_definitions(record, data)
+                    except Exception:  # a whole record with damaged content: skip it, go on
+                        damaged.append(start)
+                        keep_loose(f)
+                        loose[0] = loose[1] = good_end = f.tell()
+                        continue
+                if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
+                    if record.channel_id not in rec._channels:
+                        break
+                    loose[1] = good_end = f.tell()
+                    if loose[1] - loose[0] >= 4 << 20:
+                        keep_loose(f)
+                    continue
+                keep_loose(f)
+                loose[0] = loose[1] = f.tell()
+                if isinstance(record, Schema):
+                    rec.add_schema(record)
+                elif isinstance(record, Channel):
+                    rec.add_channel(record)
+                elif isinstance(record, Metadata):
+                    rec.add_metadata(record.name, record.metadata)
+                    meta[record.name] = dict(record.metadata)
+                elif isinstance(record, Chunk):
+                    for r in inner:
+                        (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
+                    if not set(np.unique(cm.channel_id).tolist()) <= set(rec._channels):
+                        break
+                    keep(cm)
+                elif isinstance(record, (DataEnd, Footer)):
+                    good_end = f.tell()
+                    had_summary = True
+                    break
+                good_end = f.tell()
+            keep_loose(f)
+        if extend is not None and not had_summary:
+            rederived = extend.finish(rec)
+            if rederived:
+                rec.add_metadata("recover", {"source": str(src), **{f"rederived.{k}": str(v)
+                                                                     for k, v in rederived.items()}})
+    finally:
+        rec.close()
+    topics = {rec._channels[cid].topic: n for cid, n in kept.items()}
+    return RecoverReport(
+        messages=topics,
+        chunks=rec._chunks,
+        bytes_discarded=size - good_end if not had_summary else 0,
+        last_log_time_ns=last_t,
+        had_summary=had_summary,
+        rederived=rederived,
+        damaged=damaged,
+    )
+
+
+def _copy_chunk(rec: Recorder, cm: ChunkMessages) -> None:
+    """Write the message records of one chunk as one new chunk (offsets kept)."""
+    index: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for cid in np.unique(cm.channel_id).tolist():
+        sel = cm.channel_id == cid
+        index[cid] = [(cm.log_time[sel].astype(np.uint64), cm.offset[sel].astype(np.uint64))]
+    if len(cm.log_time) == 0:
+        return
+    rec._write_chunk(cm.data.tobytes(), int(cm.log_time.min()), int(cm.log_time.max()), index)
 
 
 class TailDeriver:
-    """``recorder.recover``'s ``extend``: a Pipeline fed the kept raw reads, whose output is held per topic and
+    """``recover``'s ``extend``: a Pipeline fed the kept raw reads, whose output is held per topic and
     kept only past the last message of that topic in the kept chunks."""
 
     def __init__(self) -> None:
@@ -37,7 +223,7 @@ class TailDeriver:
         if len(keep):
             self.held.setdefault(topic, []).append((t[keep], messages.as_packed(data).take(keep)))
 
-    def chunk(self, rec: recorder.Recorder, cm: recorder.ChunkMessages, metadata: dict[str, dict[str, str]]) -> None:
+    def chunk(self, rec: Recorder, cm: ChunkMessages, metadata: dict[str, dict[str, str]]) -> None:
         topics = {cid: ch.topic for cid, ch in rec._channels.items()}
         raw = np.array([topics.get(int(c), "").startswith("/raw/") for c in cm.channel_id], bool)
         if raw.any():
@@ -58,7 +244,7 @@ class TailDeriver:
             kept = [(t[t > lim], p.take(np.flatnonzero(t > lim))) for t, p in parts if t[-1] > lim]
             self.held[topic] = [(t, p) for t, p in kept if len(t)]
 
-    def finish(self, rec: recorder.Recorder) -> dict[str, int]:
+    def finish(self, rec: Recorder) -> dict[str, int]:
         """Finish the pipeline and write what it derived past the kept chunks; messages per topic."""
         if self.pipe is None:
             return {}
@@ -73,14 +259,14 @@ class TailDeriver:
 
 
 def recover_drive(src: str | os.PathLike[str], dst: str | os.PathLike[str], force: bool = False
-                  ) -> recorder.RecoverReport:
+                  ) -> RecoverReport:
     """The complete recovery of ``src`` into ``dst``: its complete chunks, then the derived tail. A complete file
     (one with a damaged chunk) has no tail: its chunks are copied without feeding the pipeline (several times
     faster: ``make bench`` recover), unless the walk stops before its data end (a damaged record):
-    then it goes again with the pipeline (replacing the first copy). ``force``: as ``recorder.recover``."""
-    if recorder.has_footer(src):
-        rep = recorder.recover(src, dst, force=force)
+    then it goes again with the pipeline (replacing the first copy). ``force``: as ``recover``."""
+    if has_footer(src):
+        rep = recover(src, dst, force=force)
         if rep.had_summary:
             return rep
         force = True
-    return recorder.recover(src, dst, TailDeriver(), force=force)
+    return recover(src, dst, TailDeriver(), force=force)

@@ -16,7 +16,7 @@ and must agree with the summary), and the few records of the data section betwee
 the listed chunks (header, schemas, channels, metadata, attachments, data end) are walked: a message, chunk or
 message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
 Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
-top-level records are walked once (``acquire.recorder.walk_records``: it reads only each record's 9-byte head,
+top-level records are walked once (``acquire.chunks.walk_records``: it reads only each record's 9-byte head,
 so it jumps over chunk bodies; the first ``WALK_PLAIN`` records without numba, so ``info`` on a chunked file
 never loads it). Both give the same table, so a file with or without a summary, indexes, statistics or summary
 offsets reads the same; a file of many small chunks opens faster from its summary than walked. A *piece*
@@ -25,7 +25,7 @@ or the headers of loose messages), the channels inside it. The pieces are held a
 per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
 walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (a group's
 chunks are decompressed, checked against their CRC-32s and walked in one compiled pass that keeps the records of
-the topics asked for: ``recorder.read_chunks``).
+the topics asked for: ``chunks.read_chunks``).
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
@@ -54,7 +54,7 @@ from mcap.records import Channel, Metadata, Schema
 
 from zlib_ng.zlib_ng import crc32
 
-from fieldlog.acquire.recorder import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
+from fieldlog.acquire.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
 
 log = logging.getLogger(__name__)
 MAGIC = b"\x89MCAP0\r\n"
@@ -83,7 +83,7 @@ SCRATCH_MAX = 64 << 20  # a read needing more gets buffers of its own, not kept
 
 
 def _scratch(stage: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
-    """Buffers of ``stage`` and ``batch`` bytes for ``recorder.read_chunks``: this thread's, reused, so their pages
+    """Buffers of ``stage`` and ``batch`` bytes for ``chunks.read_chunks``: this thread's, reused, so their pages
     are touched once (a fresh 4 MB buffer per read costs as much in page faults as decompressing 4 KiB chunks)."""
     if stage + batch > SCRATCH_MAX:
         return np.empty(stage, np.uint8), np.empty(batch, np.uint8)
@@ -404,7 +404,7 @@ class McapFile:
         return self._chunks(decompress_many, idx)
 
     def _chunks(self, read: Callable, idx: np.ndarray, *args: object):
-        """``read`` (``recorder.decompress_many`` or ``read_chunks``) over pieces ``idx``; ``ValueError`` naming
+        """``read`` (``chunks.decompress_many`` or ``read_chunks``) over pieces ``idx``; ``ValueError`` naming
         the first damaged chunk."""
         try:
             return self._call(read, idx, *args)
@@ -445,7 +445,7 @@ class McapFile:
 
     def read(self, idx: np.ndarray | list[int], topics: Collection[str] | None = None) -> ChunkMessages:
         """The messages of pieces ``idx`` (of this file) as one batch (only those on ``topics``, when given):
-        their records walked once (``recorder.read_chunks``); schema and channel records found inside are added to
+        their records walked once (``chunks.read_chunks``); schema and channel records found inside are added to
         the file's tables (and the pieces read again when they define a channel on ``topics``). The batch's
         ``data`` may be this thread's read buffer (``_scratch``): it holds until the next read in the thread, so
         take what you keep (``ChunkMessages.packed`` copies) before the next."""

@@ -6,7 +6,7 @@ without summary and indexes, messages in or outside chunks) into *pieces* (chunk
 outside chunks), which are read in one log-time order across the files. The hot path never decodes
 one message at a time: consecutive pieces are read together (``READ_BYTES`` at a time, so small chunks
 cost little more than large ones), decompressed, walked and the records of the topics asked for kept in one
-pass (``acquire.recorder.read_chunks``), and the payloads of each topic decoded as one batch by the
+pass (``acquire.chunks.read_chunks``), and the payloads of each topic decoded as one batch by the
 vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA sentences,
 outages) are decoded per message with mcap_ros2's decoder; they are low rate. ``/raw/*``
 (``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 import numpy as np
 
 from fieldlog.acquire import messages
-from fieldlog.acquire.recorder import ChunkMessages
+from fieldlog.acquire.chunks import ChunkMessages
 from fieldlog.replay.drive import DriveSpec, label, open_drive
 from fieldlog.replay.mcapfile import McapFile, le
 
@@ -204,9 +204,15 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
             yield dec(p[i])
 
 
-def metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
-    """Every metadata record of the drive: file by file (in log-time order), in file order."""
+def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
+    """Every metadata record of the drive, in file order (names may repeat, e.g. ``acquire.port_event``); a drive
+    of several files: file by file, in log-time order."""
     return [(m.name, dict(m.metadata)) for f in open_drive(path) for m in f.metadata()]
+
+
+def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
+    """The drive's metadata records by name; for a repeated name, the last record."""
+    return dict(read_metadata_records(path))
 
 
 def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Iterator[Block]:

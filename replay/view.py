@@ -49,7 +49,7 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       FLU) in the view's ENU frame, translation m and rotation x, y, z, w; static
                                       Boxes3D (``CAR_HALF_SIZES_M``, in base_link) and TransformAxes3D. base_link is
                                       the IMU's pose through the drive's ``/tf_static`` base_link -> imu (the fused
-                                      files' ``odom``/``base_link`` rule: ``tools/fuse.py``, ``Odometry``); the
+                                      files' ``odom``/``base_link`` rule: ``replay/solutions.py``, ``Odometry``); the
                                       view's ENU axes are taken as map's (0.16 mrad per km apart)
 ``attitude/<angle>/<src>``            Scalars, deg (``<angle>``: ``roll``, ``pitch``, ``heading``): the vehicle's
                                       (base_link in RFU axes, ``fusion.earth.dcm_to_euler``); fused methods
@@ -85,7 +85,7 @@ import rerun.blueprint as rrb
 
 from fieldlog.acquire import calib, frames, messages, nmea, outputs
 from fieldlog.fusion import earth
-from fieldlog.replay import inputs, reader
+from fieldlog.replay import inputs, reader, solutions
 from fieldlog.replay.drive import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 
@@ -209,17 +209,16 @@ def truth_track(fix: dict, vel: dict | None) -> Track:
 
 
 def _fused(path: str | os.PathLike[str], method: str) -> Track:
-    base = f"/fusion/{method}"
-    f = reader.read_topic(path, f"{base}/fix")
+    f = solutions.read(path, method, "fix")
     ok = f["valid"]
     t = f["log_time_ns"][ok]
     trk = Track(t, f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
     names = _topic_names(path)
-    if names.get(f"{base}/std"):
-        s = reader.read_topic(path, f"{base}/std")
+    if names.get(solutions.topic(method, "std")):
+        s = solutions.read(path, method, "std")
         trk.sigma_pos = _interp(t, s["log_time_ns"][s["valid"]], s["xyz"][s["valid"]])
-    if names.get(f"{base}/vel"):
-        v = reader.read_topic(path, f"{base}/vel")
+    if names.get(solutions.topic(method, "vel")):
+        v = solutions.read(path, method, "vel")
         vok = v["valid"]
         trk.v_n = _interp(t, v["log_time_ns"][vok], v["v_n"][vok])
         var = v["covariance"][vok][:, [0, 7, 14]]
@@ -243,8 +242,8 @@ def _interp(t: np.ndarray, tp: np.ndarray, xp: np.ndarray) -> np.ndarray:
 def _outages(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[int, int]]:
     windows = []
     for p in paths:
-        if _topic_names(p).get("/fusion/outage"):
-            d = reader.read_topic(p, "/fusion/outage")
+        if _topic_names(p).get(solutions.OUTAGE):
+            d = reader.read_topic(p, solutions.OUTAGE)
             windows += [(int(m.start_ns), int(m.end_ns)) for m in d["msgs"] if m is not None]
     return merge_windows(windows)
 
@@ -254,7 +253,8 @@ def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
     drive's files (a directory is one of them); files with fused solutions are the fused ones."""
     drive, fused = [paths[0]], []
     for p in paths[1:]:
-        is_fused = Path(p).is_file() and any(t.startswith("/fusion/") and t.endswith("/fix") for t in _topic_names(p))
+        is_fused = Path(p).is_file() and any(t.startswith(solutions.PREFIX) and t.endswith("/fix")
+                                             for t in _topic_names(p))
         (fused if is_fused else drive).append(p)
     return drive, fused
 
@@ -265,10 +265,10 @@ def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str,
     seen: set[str] = set()
     for p in paths:
         for topic in _topic_names(p):
-            parts = topic.split("/")
-            if len(parts) == 4 and parts[1] == "fusion" and parts[3] == "fix":
-                label = parts[2] if parts[2] not in seen else f"{parts[2]}@{Path(p).stem}"
-                seen.add(parts[2])
+            method = solutions.method_of(topic)
+            if method is not None:
+                label = method if method not in seen else f"{method}@{Path(p).stem}"
+                seen.add(method)
                 out.append((label, Path(p)))
     return out
 
@@ -699,36 +699,36 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
 
     ref = truth if truth is not None else gps
     for i, (m, trk) in enumerate(fused_trk):
-        color = method_color(m.split("@")[0], i)
+        method = m.split("@")[0]
+        color = method_color(method, i)
         _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
         path = dict(methods)[m]
         for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
-            if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/{k}/fix"):
-                f = reader.read_topic(path, f"/fusion/{m.split('@')[0]}/{k}/fix")
+            if _topic_names(path).get(solutions.topic(method, f"{k}/fix")):
+                f = solutions.read(path, method, f"{k}/fix")
                 ok = f["valid"]
                 local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
                 _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
-        base = f"/fusion/{m.split('@')[0]}"
-        if _topic_names(path).get(f"{base}/attitude"):
-            att = reader.read_topic(path, f"{base}/attitude")
+        if _topic_names(path).get(solutions.topic(method, "attitude")):
+            att = solutions.read(path, method, "attitude")
             q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
             ok = np.isfinite(q).all(axis=1)
             pose = base_pose(trk.take(ok), q[ok], mount, origin)
             _log_pose(rec, f"fusion/{m}", pose, color)
             sigma = None
-            if _topic_names(path).get(f"{base}/attitude_std"):
-                a = reader.read_topic(path, f"{base}/attitude_std")
+            if _topic_names(path).get(solutions.topic(method, "attitude_std")):
+                a = solutions.read(path, method, "attitude_std")
                 phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
                 sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
             _log_attitude(rec, m, pose, sigma, color)
             if truth_pose is not None and sigma is not None:
                 _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
-        if _topic_names(path).get(f"/fusion/{m.split('@')[0]}/imu_bias"):  # fused files before it: none
-            _log_bias(rec, m, reader.read_topic(path, f"/fusion/{m.split('@')[0]}/imu_bias"), color)
-        if "/vehicle/twist" in low and _topic_names(path).get(f"/fusion/{m.split('@')[0]}/odom"):
-            od = reader.read_topic(path, f"/fusion/{m.split('@')[0]}/odom")
+        if _topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
+            _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
+        if "/vehicle/twist" in low and _topic_names(path).get(solutions.topic(method, "odom")):
+            od = solutions.read(path, method, "odom")
             keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
             fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
             _log_scalar(rec, f"speed/{m}", od["log_time_ns"][keep], fwd, f"{m} forward speed (m/s)", [color])

@@ -18,7 +18,8 @@ from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.errmodel import BG
 from fieldlog.replay import reader
 from fieldlog.replay.inputs import InputSpec, InputStream, resolve
-from fieldlog.tools.evaluate import attitude_errors, attitudes, heading_at_starts, outage_error_series, rms_columns
+from fieldlog.tools.evaluation.evaluate import (attitude_errors, attitudes, heading_at_starts, outage_error_series,
+                                                rms_columns)
 from fieldlog.tools.fuse import BLOCK_S, drive_config, fuse, fusion_config
 from fieldlog.tools.sim.emit import GpsConfig
 from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise

@@ -17,7 +17,7 @@ from mcap.opcode import Opcode
 from mcap.records import Chunk, DataEnd, Footer, Metadata, MessageIndex
 from mcap.stream_reader import StreamReader
 
-from fieldlog.acquire import recorder
+from fieldlog.acquire import chunks, recorder, recovery
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
 from fieldlog.replay import reader
 from fieldlog.tools.sim import simulate
@@ -125,7 +125,7 @@ def test_a_zip_bomb_chunk_is_refused_in_bounded_memory(bombs, tmp_path: Path, co
     assert r.returncode == 2 and len(err) == 1 and f"chunk at byte {offset}" in err[0], r.stderr
     assert str(path) in err[0] and "fieldlog recover" in err[0]
     if bomb == "honest":
-        assert "limit" in err[0] and recorder.MAX_CHUNK_ENV in err[0]
+        assert "limit" in err[0] and chunks.MAX_CHUNK_ENV in err[0]
     assert not (tmp_path / "x.mcap").exists() or command not in ("rebuild", "filter")   # no empty drive
 
 
@@ -142,13 +142,13 @@ def test_the_chunk_limit_is_configurable_and_applies_to_lz4(bombs, tmp_path: Pat
                data=lz4.frame.compress(zstandard.ZstdDecompressor().decompress(ok.data, max_output_size=size)))
     path = tmp_path / "lz4.mcap"
     at = with_bomb(base, path, lz)
-    small = {recorder.MAX_CHUNK_ENV: str(16 << 20)}
+    small = {chunks.MAX_CHUNK_ENV: str(16 << 20)}
     r, rss = peak_run("info", str(path), "--scan", env=small)
     assert r.returncode == 2 and f"chunk at byte {at}" in r.stderr and str(16 << 20) in r.stderr, r.stderr
     r, _ = peak_run("info", str(base), "--scan", env=small)
     assert r.returncode == 0, r.stderr
-    r, _ = peak_run("info", str(path), "--scan", env={recorder.MAX_CHUNK_ENV: "lots"})
-    assert r.returncode == 2 and recorder.MAX_CHUNK_ENV in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r, _ = peak_run("info", str(path), "--scan", env={chunks.MAX_CHUNK_ENV: "lots"})
+    assert r.returncode == 2 and chunks.MAX_CHUNK_ENV in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_a_frame_larger_than_its_chunk_claims_is_never_decompressed_past_the_claim() -> None:
@@ -156,7 +156,7 @@ def test_a_frame_larger_than_its_chunk_claims_is_never_decompressed_past_the_cla
     chunk claiming 4 KiB stops at the claim (the decoders would otherwise size their output by the header)."""
     probe = """
 import resource, zstandard, lz4.frame
-from fieldlog.acquire import recorder
+from fieldlog.acquire import chunks
 big = bytes(256 << 20)
 frames = {"zstd": zstandard.ZstdCompressor(level=1).compress(big),
           "zstd-stream": zstandard.ZstdCompressor(level=1).compressobj().compress(big),
@@ -166,7 +166,7 @@ del big
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 for name, data in frames.items():
     try:
-        recorder.decompress(name.split("-")[0], data, 4096, 0)
+        chunks.decompress(name.split("-")[0], data, 4096, 0)
         print(name, "read")
     except ValueError as e:
         print(name, "refused:", e)
@@ -184,7 +184,6 @@ def test_recover_writes_about_its_input_plus_the_rederived_tail(tmp_path: Path) 
     more than its re-derived messages take in the drive itself (per message of each topic), give or take the
     summary; a daemon file cut before its /imu (which lags the raw bytes) is mostly tail: /imu takes about twice
     the raw bytes it comes from, hence the daemon's free-space check before recovering (``recover_unfinished``)."""
-    from fieldlog.acquire.recovery import recover_drive
     from fieldlog.tools.filter import filter_drive
 
     full = tmp_path / "full.mcap"
@@ -193,10 +192,10 @@ def test_recover_writes_about_its_input_plus_the_rederived_tail(tmp_path: Path) 
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[:len(data) * 6 // 10])
     plain = tmp_path / "plain.mcap"
-    rep = recorder.recover(cut, plain)
+    rep = recovery.recover(cut, plain)
     assert plain.stat().st_size <= cut.stat().st_size + (64 << 10)
     out = tmp_path / "rec.mcap"
-    rep2 = recover_drive(cut, out)
+    rep2 = recovery.recover_drive(cut, out)
     assert rep2.messages == rep.messages and sum(rep2.rederived.values()) > 1000
     allowance = 0.0
     for topic, n in rep2.rederived.items():             # what n messages of the topic take in the drive itself

@@ -211,7 +211,7 @@ def test_sim_can_twist_at_the_bus_rate_with_stamps_and_speeds_near_truth(can_dri
     # the adapter's ms stamps on its clock (AdapterClock): the bus jitter and the ms floor are left, and the
     # host clock's offset to UTC (the PPS read with the least delay is still late by about a millisecond)
     assert -3.0 < np.mean(err_ms) < 0.0 and np.std(err_ms) < 1.2, (np.mean(err_ms), np.std(err_ms))
-    meta = reader.metadata_records(can_drive)
+    meta = reader.read_metadata_records(can_drive)
     assert any(name == "can" for name, _ in meta)
     moving = vt > 2.0
     ratio = v[moving] / vt[moving]
@@ -277,7 +277,7 @@ def test_import_of_can_logs_written_by_python_can(tmp_path, suffix):
     if suffix != ".asc":     # ASC: the header's date is local time, python-can's reading of it
         np.testing.assert_allclose(ts / 1e9, t_w, atol=2e-6)
     assert np.all(np.diff(ts) > 0)
-    meta = dict(reader.metadata_records(out))
+    meta = reader.read_metadata(out)
     counters = meta["acquire.counters"]
     assert int(counters["can.ids"]) >= 3 and int(counters["can.twists"]) == len(written)
     # rebuild gives the same from /raw/can
@@ -438,7 +438,7 @@ def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom
 @pytest.mark.slow
 def test_evaluate_gives_a_column_without_the_odometer(odo_drive, tmp_path):
     pl = pytest.importorskip("polars", reason="needs the export extra (polars)")
-    from fieldlog.tools.evaluate import evaluate
+    from fieldlog.tools.evaluation.evaluate import evaluate
 
     table = evaluate([odo_drive], [60.0], ["kf"], tmp_path / "report", say=lambda s: None)
     vel = table.filter(pl.col("quantity").is_in(["vE", "vN"]))

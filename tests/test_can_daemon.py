@@ -13,7 +13,8 @@ import pytest
 
 from fieldlog.acquire import can, messages
 from fieldlog.replay import reader
-from fieldlog.tools.rebuild import iter_raw, read_metadata, read_metadata_records, rebuild
+from fieldlog.replay.reader import read_metadata, read_metadata_records
+from fieldlog.tools.rebuild import iter_raw, rebuild
 from fieldlog.tools.sim import vehicle
 from fieldlog.tools.sim.serve import corrupt_stream, delivered, simulated_streams
 

@@ -16,7 +16,7 @@ from fieldlog.acquire import gpsport, messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import live, reader
 from test_serve import ROOT, expected_bytes, start_serve
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 
 
 def start_daemon(out: Path, paths: dict[str, str], *extra: str, **popen: Any) -> tuple[subprocess.Popen, str]:

@@ -15,7 +15,7 @@ from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import reader
 from test_daemon import gps_frames, raw_stream, run, start_daemon
 from test_serve import expected_bytes, start_serve
-from fieldlog.tools.rebuild import read_metadata, read_metadata_records
+from fieldlog.replay.reader import read_metadata, read_metadata_records
 from fieldlog.tools.sim.serve import PORTS, corrupt_stream
 
 SPEED = 20

@@ -13,7 +13,7 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import ImuBlock
 from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks, read_topic
-from fieldlog.tools.evaluate import outage_errors
+from fieldlog.tools.evaluation.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
 
 SEEDS = (1, 2, 3)
@@ -188,7 +188,7 @@ def test_accel_bias_sigma_covers_the_truth(runs):
     misalignment leak a turn-following tilt error into it (fusion.consider); without their consider variance
     (gyro_scale_factor_ppm = gyro_misalignment_mrad = 0, the filter before) the shares here were 0.66/0.97/1.00
     within 3 sigma and 0.00/0.12/0.53 within 1 sigma."""
-    from fieldlog.tools.evaluate import bias_errors
+    from fieldlog.tools.evaluation.evaluate import bias_errors
 
     in1, in3 = [], []
     for seed in SEEDS:
@@ -275,8 +275,8 @@ def test_paper_verdicts_on_real_runs(runs, tmp_path):
     """``evaluate --paper`` on two drives: the paper's Table 3 beside ours, a verdict on each of its absolute 30 s
     figures and on each of its claims; two drives are too few for the paired test (1 dof), so nothing is
     resolved."""
-    from fieldlog.tools.evaluate import (MIN_PAIRED_DRIVES, PAPER_METHODS, PAPER_SEEDS, PAPER_TABLE3, QUANTITIES,
-                                         evaluate)
+    from fieldlog.tools.evaluation.evaluate import (MIN_PAIRED_DRIVES, PAPER_METHODS, PAPER_SEEDS, PAPER_TABLE3,
+                                                    QUANTITIES, evaluate)
 
     drives = []
     for s in SEEDS[:2]:  # the shared drives are all figure8.mcap; evaluate wants unique drive names

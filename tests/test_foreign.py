@@ -14,9 +14,10 @@ import pytest
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import inputs, reader
 from fieldlog.replay import view as rview
+from fieldlog.replay.solutions import Diverged, write_solution
 from fieldlog.tools.cli import main as cli_main
-from fieldlog.tools.evaluate import consistency, outage_error_series, position_errors
-from fieldlog.tools.fuse import Diverged, fuse, write_solution
+from fieldlog.tools.evaluation.evaluate import consistency, outage_error_series, position_errors
+from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
 
 from foreign_drives import Foreign, write_foreign
@@ -284,7 +285,7 @@ def test_creeping_start_from_another_logger(tmp_path):
 
 def test_evaluate_on_another_loggers_drive_without_truth(ros_drive, tmp_path):
     """The outage study runs on a mapped drive scored against its own fixes (no velocity: position only)."""
-    from fieldlog.tools.evaluate import evaluate
+    from fieldlog.tools.evaluation.evaluate import evaluate
 
     said: list[str] = []
     table = evaluate([ros_drive], [30.0], ["kf"], tmp_path / "rep", spec=inputs.InputSpec(imu_frame="flu"),

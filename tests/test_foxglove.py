@@ -23,7 +23,7 @@ from mcap_ros2.decoder import DecoderFactory
 from fieldlog.replay import reader
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 from fieldlog.tools.sim.simulate import simulate
 from test_daemon import start_daemon, wait_for_clients, wait_until
 from test_serve import start_serve

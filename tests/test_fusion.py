@@ -295,7 +295,7 @@ def test_gyro_bias_estimate_is_published_and_its_sigma_covers_the_truth(drive, t
     rows on every axis, and closer to it than no estimate is (here 0.42 of it overall; the forward axis, the least
     observable, 0.7). (Horizontal accelerometer biases are not checked: the truth holds misalignment x g, which
     the 15 states cannot tell from tilt.)"""
-    from fieldlog.tools.evaluate import bias_errors, consistency, consistency_line
+    from fieldlog.tools.evaluation.evaluate import bias_errors, consistency, consistency_line
 
     out = fuse(drive, "kf", tmp_path / "kf.mcap")
     b, fix = read_topic(out.path, "/fusion/kf/imu_bias"), read_topic(out.path, "/fusion/kf/fix")

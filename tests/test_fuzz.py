@@ -1,6 +1,6 @@
 """Fuzzing in CI. Property-based (hypothesis) tests of the NMEA and DAQ decoders and the pipeline's GPS path: valid
 checksums and CRCs around hostile field values (dates, times, huge numbers, 'nan', text), over 10^5 sentences
-and frames. Then tools/fuzz.py's mutators (checksums and CRCs rewritten after mutating) in its fast seeded loop,
+and frames. Then tools/dev/fuzz.py's mutators (checksums and CRCs rewritten after mutating) in its fast seeded loop,
 over 10^5 inputs for the NMEA, UBX and NovAtel decoders, the DAQ decoder with the counter judge and the MCAP
 reader, and every crash the long campaigns found (tests/data/fuzz/) replayed through the full targets."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from fieldlog.acquire import daq, gnss, nmea
 from fieldlog.acquire.pipeline import Pipeline
-from fieldlog.tools import fuzz
+from fieldlog.tools.dev import fuzz
 
 NS = 1_000_000_000
 COUNT = {"nmea": 0, "daq": 0, "pipeline": 0}    # inputs fed, printed by test_inputs_fed

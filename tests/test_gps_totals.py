@@ -15,7 +15,7 @@ import pytest
 from fieldlog.acquire import gpsport, nmea, novatel, numbers, recorder, ubx
 from fieldlog.acquire.pipeline import Pipeline, RawRead
 from fieldlog.replay import reader
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 
 HUGE = "9" * 20

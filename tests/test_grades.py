@@ -20,7 +20,7 @@ import pytest
 
 from fieldlog.fusion import imugrade
 from fieldlog.replay import reader
-from fieldlog.tools.evaluate import outage_error_series, rms_columns
+from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import fuse, fusion_config
 from fieldlog.tools.sim.simulate import simulate
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import gnss, messages, nmea, recorder, timesync
+from fieldlog.acquire import gnss, messages, nmea, recorder, recovery, timesync
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
 from fieldlog.replay import reader
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from fieldlog.tools.sim.serve import Server
 from test_daemon import run, start_daemon
@@ -392,7 +392,7 @@ def test_recover_after_kill9_gives_imu_to_the_cut_and_a_full_disk_leaves_the_ori
     (cut,) = sorted(out.glob("*/*.mcap"))
     before = cut.read_bytes()
     plain = tmp_path / "plain.mcap"
-    recorder.recover(cut, plain)                                     # the chunks alone
+    recovery.recover(cut, plain)                                     # the chunks alone
     n_plain = next((t.count for t in reader.topics(plain) if t.topic == "/imu"), 0)
     # a full disk (here: a file size limit) during recovery: one line, nothing left behind, original intact
     limit = len(before) // 2

@@ -12,7 +12,7 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.tools.rebuild import read_metadata
+from fieldlog.replay.reader import read_metadata
 
 DURATION = 150.0
 OUTAGE = (95.0, 25.0)

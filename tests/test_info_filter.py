@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from fieldlog.acquire import recorder
+from fieldlog.acquire import recovery
 from fieldlog.replay import reader
 from fieldlog.tools.cli import build_parser, main
 from fieldlog.tools.filter import filter_drive
@@ -40,7 +40,7 @@ def test_info_from_the_record_equals_the_scan(drive, tmp_path, capsys):
     # a file cut short and recovered has no record: info scans it
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(drive.read_bytes()[: drive.stat().st_size // 2])
-    recorder.recover(cut, tmp_path / "rec.mcap")
+    recovery.recover(cut, tmp_path / "rec.mcap")
     rec = drive_info(tmp_path / "rec.mcap")
     assert rec.scanned and rec.topics and rec.imu_gaps == drive_info(tmp_path / "rec.mcap", scan=True).imu_gaps
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import recorder
+from fieldlog.acquire import chunks
 from fieldlog.acquire.recovery import recover_drive
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
@@ -109,9 +109,9 @@ def test_walk_without_numba_matches_numba(drive):
     (f,) = open_drive(drive)
     for piece in np.flatnonzero(f.pieces.chunk)[:3].tolist():
         buf = np.frombuffer(f.records(piece), np.uint8)
-        a, b = recorder._walk(buf), recorder._walk_python(buf, 0, 16)
+        a, b = chunks._walk(buf), chunks._walk_python(buf, 0, 16)
         for x, y in zip(a[:3], b[:3]):
             np.testing.assert_array_equal(x, y)
         assert a[3] == b[3]
         cut = buf[: len(buf) - 7]     # a record cut short: both stop before it
-        assert recorder._walk(cut)[3] == recorder._walk_python(cut, 0, 16)[3] < len(cut)
+        assert chunks._walk(cut)[3] == chunks._walk_python(cut, 0, 16)[3] < len(cut)

@@ -1,7 +1,7 @@
 """Every valid MCAP layout and every multi-file drive reads as the same drive.
 
 The corpus is written here by third-party writers from one simulated drive: the mcap library's ``Writer``
-(``tools.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
+(``tools.dev.layouts``: unchunked, lz4, uncompressed, no summary/indexes/statistics, 4 KiB chunks; each with an
 attachment and the metadata records) and rosbags (a rosbag2 directory, and one split into two files under one
 metadata.yaml). Each must give the original's ``info`` counts and its
 ``kf`` solution (2D RMS against the truth within 1 mm). A rotated session (the daemon's ``RotatingSink``
@@ -28,17 +28,18 @@ from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
 from fieldlog.acquire.pipeline import Pipeline, read_order
 from fieldlog.acquire import native
-from fieldlog.acquire.recorder import walk_records
+from fieldlog.acquire.chunks import walk_records
 from fieldlog.replay import reader
 from fieldlog.replay.drive import drive_files, open_drive
 from fieldlog.replay.mcapfile import McapFile, TruncatedError, le
 from fieldlog.tools.allan import drive_report
 from fieldlog.tools.cli import main as fieldlog
-from fieldlog.tools.evaluate import outage_error_series
+from fieldlog.tools.evaluation.evaluate import outage_error_series
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.info import drive_info
-from fieldlog.tools.layouts import LAYOUTS, merged, rewrite, schema_of
-from fieldlog.tools.rebuild import iter_raw, read_metadata_records
+from fieldlog.tools.dev.layouts import LAYOUTS, merged, rewrite, schema_of
+from fieldlog.replay.reader import read_metadata_records
+from fieldlog.tools.rebuild import iter_raw
 from fieldlog.tools.sim.simulate import simulate
 
 DURATION_S = 150.0
@@ -559,8 +560,7 @@ def test_recover_rederives_the_tail_of_a_complete_file_whose_walk_stops(session,
     import filecmp
     import struct
 
-    from fieldlog.acquire.recorder import recover
-    from fieldlog.acquire.recovery import TailDeriver, recover_drive
+    from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
 
     src = sorted(session.glob("*.mcap"))[1]
     p = McapFile(src).pieces

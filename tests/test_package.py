@@ -1,4 +1,6 @@
-"""One distribution, one import name: the wheel holds only `fieldlog`, and both installs import it from outside."""
+"""One distribution, one import name: the wheel holds only `fieldlog` (not the development tools of
+`fieldlog.tools.dev`), and both installs import it from outside."""
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -14,7 +16,12 @@ def _run(args, cwd, **env):
 
 
 def test_wheel_holds_only_fieldlog(tmp_path):
-    r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(ROOT)],
+    # built from a copy without the checkout's build/ (setuptools' build/lib keeps the files of earlier builds,
+    # moved or deleted ones too, and packs them into the next wheel)
+    src = tmp_path / "src"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".git", ".venv", "build", "dist", "*.egg-info", "out",
+                                                              "__pycache__", ".pytest_cache", ".hypothesis"))
+    r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(src)],
              tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     (wheel,) = (tmp_path / "dist").glob("fieldlog-*.whl")
@@ -22,6 +29,10 @@ def test_wheel_holds_only_fieldlog(tmp_path):
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == {"fieldlog"}
     assert "fieldlog/tools/sim/scenarios/figure8.toml" in names   # scenario data travels with the code
+    assert "fieldlog/tools/evaluation/evaluate.py" in names
+    dev = [n for n in names if n.startswith("fieldlog/tools/dev/")
+           or n.rpartition("/")[2] in ("bench.py", "fuzz.py", "layouts.py", "screenshot.py")]
+    assert not dev, dev                                           # the development tools stay in the checkout
 
     # the wheel, unpacked on its own path, imported from a directory outside the checkout
     site = tmp_path / "site"

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.tools.evaluate import (MIN_PAIRED_DRIVES, PAPER_TABLE3, StudyConfig, claim_word, evaluate, paired,
-                                     paper_report, paper_verdicts)
+from fieldlog.tools.evaluation.evaluate import (MIN_PAIRED_DRIVES, PAPER_TABLE3, StudyConfig, claim_word, evaluate,
+                                                paired, paper_report, paper_verdicts)
 from fieldlog.tools.sim.simulate import simulate
 
 

@@ -1,4 +1,4 @@
-"""acquire.recorder (write, flush, recover) and replay.reader, checked with mcap's own readers
+"""acquire.recorder (write, flush), acquire.recovery (recover) and replay.reader, checked with mcap's own readers
 and with rerun's MCAP importer."""
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
 from fieldlog.acquire import messages as m
-from fieldlog.acquire.recorder import Recorder, recover
+from fieldlog.acquire.recorder import Recorder
+from fieldlog.acquire.recovery import recover
 from fieldlog.replay import reader
 
 T0 = 1_700_000_000 * 10**9
@@ -220,7 +221,7 @@ def test_decompress_many_takes_empty_and_lying_chunks():
 
     import zstandard
 
-    from fieldlog.acquire.recorder import ChunkError, decompress_many
+    from fieldlog.acquire.chunks import ChunkError, decompress_many
 
     rng = np.random.default_rng(3)
     raws = [b"", *(rng.integers(0, 4, n, dtype=np.uint8).tobytes() for n in (4096, 1, 5000))]
@@ -255,7 +256,7 @@ def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch)
     import zstandard
 
     from fieldlog.acquire import native
-    from fieldlog.acquire.recorder import ChunkError, read_chunks
+    from fieldlog.acquire.chunks import ChunkError, read_chunks
 
     if not compiled:
         monkeypatch.setitem(native._state, "ok", False)

@@ -7,7 +7,7 @@ import pytest
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
-from fieldlog.tools.evaluate import (
+from fieldlog.tools.evaluation.evaluate import (
     PLOT_DT_S,
     QUANTITIES,
     StudyConfig,
@@ -173,7 +173,7 @@ def test_smoother_treats_a_predicted_correction_as_an_input_not_an_estimate():
 
 
 def test_verdict_says_whether_the_hybrid_beats_rbfn_and_the_paper_figure():
-    from fieldlog.tools.evaluate import verdict
+    from fieldlog.tools.evaluation.evaluate import verdict
 
     def runs(e_n: list[float]) -> list[np.ndarray]:  # per-drive RMS rows, E = N = e
         return [np.r_[e, e, np.zeros(7)] for e in e_n]

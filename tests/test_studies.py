@@ -2,7 +2,7 @@
 
 import polars as pl
 
-from fieldlog.tools import studies
+from fieldlog.tools.evaluation import studies
 from fieldlog.tools.cli import build_parser, main
 
 

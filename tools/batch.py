@@ -2,7 +2,7 @@
 
 Reprocesses a fleet's drives on Dask distributed, one task per drive (``drive_rows``): ``tools.info`` (duration,
 time-sync quality, time-stamp error against ``/truth/imu`` when present), ``tools.fuse`` per method and the
-error maths of ``tools.evaluate`` (reference: ``/truth`` when the drive has it, else the GPS fixes).
+error maths of ``tools.evaluation.evaluate`` (reference: ``/truth`` when the drive has it, else the GPS fixes).
 
 Per drive and method:
 
@@ -14,7 +14,7 @@ Per drive and method:
 Everything lands in one polars table, ``DIR/results.parquet``, one row per (drive, method, outage_s); a drive
 that fails (unreadable, truncated, no IMU, ...) gives one row with ``status = "failed"`` and its ``error``,
 and never stops the others. Columns (``RESULT_SCHEMA``): drive info first, then ``rms_<quantity>`` in
-``tools.evaluate.QUANTITIES`` order (m, m/s, deg; attitude null against GPS), ``pos_2d_m`` (horizontal,
+``tools.evaluation.evaluate.QUANTITIES`` order (m, m/s, deg; attitude null against GPS), ``pos_2d_m`` (horizontal,
 hypot of the east and north RMS) and ``vel_3d_mps`` (norm of the three velocity RMS).
 
 The cluster is a ``LocalCluster`` on 127.0.0.1 (processes, one thread each, no dashboard) unless a scheduler
@@ -37,8 +37,8 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay.reader import IN_TOPICS
-from fieldlog.tools.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality, outage_error_series,
-                                     place_outages, rms_columns)
+from fieldlog.tools.evaluation.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality,
+                                                outage_error_series, place_outages, rms_columns)
 from fieldlog.tools.fuse import drive_config, fuse
 from fieldlog.tools.info import drive_info
 
@@ -65,7 +65,7 @@ RESULT_SCHEMA: dict[str, pl.DataType] = {
 
 
 def _metrics(err: np.ndarray) -> dict[str, float | int | None]:
-    """RMS columns from an (n, 9) error array (``tools.evaluate`` quantity order)."""
+    """RMS columns from an (n, 9) error array (``tools.evaluation.evaluate`` quantity order)."""
     rms = rms_columns(err) if len(err) else np.full(len(QUANTITIES), np.nan)
 
     def f(x: float) -> float | None:
@@ -100,8 +100,8 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     rows = []
     for m in methods:
         path = fused_dir / f"{drive.stem}_{m}.mcap"
-        res = fuse(drive, m, path, cfg, force=force)
-        _, err = outage_error_series(drive, path, m, whole)
+        res = fuse(drive, m, path, cfg, force=force, keep=True)
+        _, err = outage_error_series(drive, res.solution, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
         t_fix, good, t0 = fix_quality(drive, cfg.gps.max_fix_sigma_m)
@@ -114,8 +114,8 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
                 path = fused_dir / f"{drive.stem}_{m}_{L:g}s.mcap"
-                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force)
-                _, err = outage_error_series(drive, path, m, win_ns)
+                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force, keep=True)
+                _, err = outage_error_series(drive, res.solution, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows
 

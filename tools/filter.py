@@ -102,7 +102,7 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
         chosen.insert(0, "/tf_static")
     counts: dict[str, int] = {}
     with Recorder(out, flush_interval_s=None, fsync=False, force=force) as rec:
-        for name, d in dict(reader.metadata_records(src)).items():  # by name, the last wins
+        for name, d in reader.read_metadata(src).items():  # by name, the last wins
             if name != INFO_RECORD:
                 rec.add_metadata(name, d)
         rec.add_metadata("filter", {"source": " ".join(str(f.path.resolve()) for f in files), "start_ns": str(t0),

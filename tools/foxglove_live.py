@@ -5,7 +5,7 @@ acquire --foxglove [HOST:]PORT``, whose child ``fieldlog view --live BUS --foxgl
 daemon's live bus (``serve_live``).
 
 Both publish the live ``method`` fusion's ``/fusion/<method>/*``, ``/tf``, ``/tf_static`` and datum exactly as
-``fuse`` writes them (``tools.fuse.write_solution``, ``Odometry``), with their ROS 2 Jazzy schemas, and the
+``fuse`` writes them (``replay.solutions.write_solution``, ``Odometry``), with their ROS 2 Jazzy schemas, and the
 source's own topics as CDR with their ROS 2 schemas. Every channel they will publish on is created before the
 address is announced (``announce``: one line, ``foxglove: serving ws://HOST:PORT``), so a client subscribes
 from the first advertisement and never to a channel the server advertised a moment before it registered it
@@ -89,12 +89,11 @@ def announce(url: str) -> None:
 
 
 def fused_topics(method: str) -> list[str]:
-    """The topics the live ``method`` fusion publishes (``write_solution``, ``Odometry``)."""
+    """The topics the live ``method`` fusion publishes (``replay.solutions.topics``)."""
     from fieldlog.fusion.filters import has_local_filters
+    from fieldlog.replay.solutions import topics
 
-    names = ["fix", "vel", "attitude", "std", "attitude_std", "imu_bias", "datum", "odom"]
-    names += ["kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel"] if has_local_filters(method) else []
-    return [f"/fusion/{method}/{name}" for name in names] + ["/tf", "/tf_static"]
+    return topics(method, has_local_filters(method))
 
 
 class FoxgloveSink:
@@ -200,7 +199,7 @@ class _Fusion:
     def __init__(self, sink: FoxgloveSink, method: str, config: FusionConfig | None,
                  mounting: calib.Mounting) -> None:
         from fieldlog.fusion.engine import Engine
-        from fieldlog.tools.fuse import Odometry, write_solution
+        from fieldlog.replay.solutions import Odometry, write_solution
 
         self.sink, self.method, self._write_solution = sink, method, write_solution
         self.engine = Engine(method, config)

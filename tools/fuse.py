@@ -1,7 +1,7 @@
 """``fieldlog fuse DRIVE --method ins|kf|dkf|rbfn|tdln|dkf-rbfn [--outage START:LEN ...] --out FUSED.mcap``.
 
 Streams the drive in blocks (``replay.reader.iter_blocks``: vectorised decode, no per-message Python on the
-IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md:
+IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md (``replay.solutions``):
 
 - ``/fusion/<method>/fix`` NavSatFix: position, covariance ENU m^2 (diagonal known); 10 Hz by default
   (``[fusion] output_hz``), stamped with the IMU sample time of the state;
@@ -14,7 +14,8 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
 - ``/fusion/<method>/attitude_std`` Vector3Stamped: attitude sigma (phi E, N, U: ~pitch, roll, heading), rad;
 - ``/fusion/<method>/odom`` nav_msgs/Odometry (odom -> base_link), ``/tf`` map -> odom -> base_link,
   ``/tf_static`` (earth -> map, base_link -> imu -> gps_antenna) and ``/fusion/<method>/datum`` (map's origin)
-  (REP-105, ``Odometry`` below): the same rows for ROS tools, with the vehicle frame of the drive's mounting;
+  (REP-105, ``replay.solutions.Odometry``): the same rows for ROS tools, with the vehicle frame of the drive's
+  mounting;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
@@ -45,12 +46,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
-from fieldlog.acquire import calib, frames, messages, metavalue, outputs
+from fieldlog.acquire import calib, messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
-from fieldlog.fusion import earth
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
@@ -59,7 +57,9 @@ from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
-from fieldlog.replay.reader import metadata_records, topics as reader_topics
+from fieldlog.replay.reader import read_metadata
+from fieldlog.replay.reader import topics as reader_topics
+from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution
 
 BLOCK_S = 10.0
 
@@ -85,10 +85,7 @@ class FuseResult:
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
-
-
-class Diverged(ValueError):
-    """The solution became NaN or inf: nothing from that row on is written."""
+    solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -245,148 +242,6 @@ def drive_table(drive: DriveSpec) -> dict[str, Any]:
     return out
 
 
-def write_solution(rec: Recorder, method: str, s: Solution) -> None:
-    """The ``/fusion/<method>/*`` rows of ``s`` into ``rec`` (a Recorder, or anything with its ``write_batch``)."""
-    if len(s.t_ns) == 0:
-        return
-    bad = ~(np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
-            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
-    if bad.any():
-        raise Diverged(f"the {method} solution diverged (NaN or inf) at UTC {int(s.t_ns[np.argmax(bad)]) * 1e-9:.3f} s; "
-                       "nothing from there on was written: check the IMU frame (--imu-frame) and units")
-    t = s.t_ns
-    var = s.sigma ** 2
-    pos_cov = np.zeros((len(t), 9))
-    pos_cov[:, [0, 4, 8]] = var[:, 0:3]
-    vel_cov = np.zeros((len(t), 36))
-    vel_cov[:, [0, 7, 14]] = var[:, 3:6]
-    vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE  # angular part: not estimated
-    base = f"/fusion/{method}"
-    # positions are the IMU's (frame imu); ENU vectors and the attitude body -> ENU are in map's axes
-    rec.write_batch(f"{base}/fix", t, messages.encode_navsatfix(
-        t, np.degrees(s.lat), np.degrees(s.lon), s.h, pos_cov, covariance_type=2, frame_id=frames.IMU))
-    rec.write_batch(f"{base}/vel", t, messages.encode_twist(t, s.v_n, covariance=vel_cov, frame_id=frames.MAP))
-    rec.write_batch(f"{base}/attitude", t, messages.encode_quaternion(t, s.q, frame_id=frames.MAP))
-    rec.write_batch(f"{base}/std", t, messages.encode_vector3(t, s.sigma[:, 0:3], frame_id=frames.MAP))
-    rec.write_batch(f"{base}/attitude_std", t, messages.encode_vector3(t, s.sigma[:, 6:9], frame_id=frames.MAP))
-    bias_cov = np.zeros((len(t), 2, 9))
-    bias_cov[:, :, [0, 4, 8]] = var[:, 9:15].reshape(-1, 2, 3)
-    rec.write_batch(f"{base}/imu_bias", t, messages.encode_imu(t, s.bias[:, 0:3], s.bias[:, 3:6], bias_cov[:, 0],
-                                                               bias_cov[:, 1], frame_id=frames.IMU))
-    if s.local is None:
-        return
-    for i, name in enumerate(("kf1", "kf2")):
-        loc = s.local[:, i]
-        pos_cov = np.zeros((len(t), 9))
-        pos_cov[:, [0, 4, 8]] = loc[:, 6:9] ** 2
-        vel_cov = np.zeros((len(t), 36))
-        vel_cov[:, [0, 7, 14]] = loc[:, 9:12] ** 2
-        vel_cov[:, [21, 28, 35]] = messages.UNKNOWN_VARIANCE
-        rec.write_batch(f"{base}/{name}/fix", t, messages.encode_navsatfix(
-            t, np.degrees(loc[:, 0]), np.degrees(loc[:, 1]), loc[:, 2], pos_cov, covariance_type=2,
-            frame_id=frames.IMU))
-        rec.write_batch(f"{base}/{name}/vel", t, messages.encode_twist(t, loc[:, 3:6], covariance=vel_cov,
-                                                                       frame_id=frames.MAP))
-
-
-class Odometry:
-    """The REP-105 frames of a fused solution: ``/tf_static``, ``/tf`` map -> odom -> base_link,
-    ``/fusion/<method>/odom`` (nav_msgs/Odometry in odom / base_link) and ``/fusion/<method>/datum``.
-
-    ``map`` is a local ENU frame whose origin is the first solution row (the alignment point, in geodetic
-    coordinates of the IMU): ``/fusion/<method>/datum`` (NavSatFix, once, latched) and the ``fusion.map``
-    metadata record give it, and ``/tf_static`` holds ``earth -> map`` (ECEF, REP-105) with the drive's
-    ``base_link -> imu -> gps_antenna``. The filter's state is the IMU (RFU axes, ``C_bn``); base_link follows
-    from the calibration's mounting (``acquire.frames``): C_base_n = C_bn C_imu_base^T, origin = IMU - C_base_n
-    imu_position_m; the local ENU axes at the vehicle are taken as map's (they differ by the meridian
-    convergence and the tilt of the vertical: about 0.16 mrad per km from the origin).
-
-    ``odom`` is continuous as robot_localization's odom frame: base_link's odom position is the fused velocity
-    integrated (trapezoid, row to row), so it never jumps when a GPS update or the end of an outage corrects the
-    fused position; its orientation is the fused attitude (map and odom axes stay parallel), and
-    ``map -> odom`` (a translation) absorbs the corrections: map -> odom -> base_link equals the fused pose at
-    every row. Pose covariance: position ENU and attitude error (phi E, N, U) of the filter, diagonal. Twist in
-    base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the lever-arm
-    term w x r is left out); the angular rate from consecutive attitudes, with the variance
-    ``messages.UNKNOWN_VARIANCE`` because the filter does not estimate it.
-    """
-
-    def __init__(self, method: str, mounting: calib.Mounting) -> None:
-        self.method = method
-        self.topic = f"/fusion/{method}/odom"
-        self.mounting = mounting
-        self.C_imu_base = frames.C_imu_base(mounting)
-        self.imu_position_m = np.asarray(mounting.imu_position_m, float)
-        self.origin: tuple[float, float, float] | None = None
-        self._last: tuple[int, np.ndarray, np.ndarray] | None = None   # t_ns, v_n, odom position of the last row
-
-    def _start(self, rec: Recorder, s: Solution) -> None:
-        """The origin of map from the first row: datum, /tf_static."""
-        self.origin = (float(s.lat[0]), float(s.lon[0]), float(s.h[0]))
-        lat0, lon0, h0 = self.origin
-        t0 = s.t_ns[:1]
-        rec.write_batch(f"/fusion/{self.method}/datum", t0, messages.encode_navsatfix(
-            t0, [np.degrees(lat0)], [np.degrees(lon0)], [h0], np.zeros(9), covariance_type=2,
-            frame_id=frames.MAP))   # (the origin is defined, not measured: zero covariance, known)
-        earth_map = (frames.EARTH, frames.MAP, earth.lla_to_ecef(lat0, lon0, h0),
-                     frames.quat_xyzw(earth.C_en(lat0, lon0).T))
-        rec.write("/tf_static", int(t0[0]), messages.encode_tf(
-            int(t0[0]), [*frames.static_transforms(self.mounting), earth_map]))
-
-    def metadata(self) -> dict[str, str]:
-        """The ``fusion.map`` record: map's geodetic origin (deg, deg, m above the WGS-84 ellipsoid)."""
-        lat0, lon0, h0 = self.origin
-        return {"frame": frames.MAP, "datum_topic": f"/fusion/{self.method}/datum", "lat_deg": repr(float(np.degrees(lat0))),
-                "lon_deg": repr(float(np.degrees(lon0))), "h_m": repr(h0)}
-
-    def write(self, rec: Recorder, s: Solution) -> None:
-        n = len(s.t_ns)
-        if n == 0:
-            return
-        if self.origin is None:
-            self._start(rec, s)
-        lat0, lon0, h0 = self.origin
-        dr_e = earth.lla_to_ecef(s.lat, s.lon, s.h) - earth.lla_to_ecef(lat0, lon0, h0)
-        p_imu = dr_e @ earth.C_en(lat0, lon0).T
-        C_base_n = earth.quat_to_dcm(s.q) @ self.C_imu_base.T
-        p_base = p_imu - C_base_n @ self.imu_position_m
-        q_base = earth.dcm_to_quat(C_base_n)
-        C_n_base = np.swapaxes(C_base_n, 1, 2)
-        v_base = np.einsum("nij,nj->ni", C_n_base, s.v_n)
-        if n > 1:
-            dt = np.diff(s.t_ns) / 1e9
-            w = earth.dcm_to_rotvec(C_n_base[:-1] @ C_base_n[1:]) / dt[:, None]
-            omega = np.vstack([w, w[-1:]])
-        else:
-            omega = np.zeros((1, 3))
-        t = s.t_ns
-        t_prev, v_prev, p_prev = self._last or (int(t[0]), s.v_n[0], p_base[0])
-        dt_s = np.diff(np.concatenate(([t_prev], t))) / 1e9
-        v_before = np.vstack([v_prev[None], s.v_n[:-1]])
-        p_odom = p_prev + np.cumsum(0.5 * (v_before + s.v_n) * dt_s[:, None], axis=0)
-        self._last = (int(t[-1]), s.v_n[-1].copy(), p_odom[-1].copy())
-        p_map_odom = p_base - p_odom
-        var = s.sigma ** 2
-        pose_cov = np.zeros((n, 6, 6))
-        pose_cov[:, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 4, 5]] = var[:, [0, 1, 2, 6, 7, 8]]
-        twist_cov = np.zeros((n, 6, 6))
-        twist_cov[:, :3, :3] = C_n_base @ (var[:, 3:6, None] * C_base_n)
-        twist_cov[:, [3, 4, 5], [3, 4, 5]] = messages.UNKNOWN_VARIANCE
-        rec.write_batch(self.topic, t, messages.encode_odometry(
-            t, p_odom, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
-            frame_id=frames.ODOM, child_frame_id=frames.BASE_LINK))
-        identity = np.array([0.0, 0.0, 0.0, 1.0])
-        rec.write_batch("/tf", t, [messages.encode_tf(int(ti), [(frames.MAP, frames.ODOM, mi, identity),
-                                                              (frames.ODOM, frames.BASE_LINK, pi, qi)])
-                                   for ti, mi, pi, qi in zip(t.tolist(), p_map_odom, p_odom, q_base)])
-
-
-def read_metadata(drive: DriveSpec) -> dict[str, dict[str, str]]:
-    """Metadata by name, the last record of a repeated name (``tools.rebuild.read_metadata``, without importing
-    the acquisition pipeline)."""
-    return dict(metadata_records(drive))
-
-
 def drive_mounting(drive: DriveSpec) -> calib.Mounting:
     """The mounting in the drive's calibration record (zeros when the drive has none, e.g. a foreign bag)."""
     toml = read_metadata(drive).get("calibration", {}).get("toml")
@@ -395,12 +250,15 @@ def drive_mounting(drive: DriveSpec) -> calib.Mounting:
 
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         smooth: bool = False, inputs: InputMap | None = None, force: bool = False) -> FuseResult:
+         smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False
+         ) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
     ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
-    boundaries. Raises ``Diverged`` (nothing past the first bad row written) when the
-    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``)."""
+    boundaries. Raises ``replay.solutions.Diverged`` (nothing past the first bad row written) when the
+    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``). ``keep``: the rows
+    written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
+    back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``."""
     outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
@@ -423,15 +281,15 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
         def write_outages(items) -> None:
             nonlocal outages
             for o in items:
-                rec.write("/fusion/outage", max(o.start_ns, 1), messages.encode_outage(
+                rec.write(OUTAGE, max(o.start_ns, 1), messages.encode_outage(
                     o.start_ns, o.start_ns, o.end_ns, o.reason))
                 outages += 1
 
         def take(sol: Solution, done) -> None:
             nonlocal rows
-            if smooth:
+            if smooth or keep:
                 kept.append(sol)
-            else:
+            if not smooth:
                 write_solution(rec, method, sol)
                 odom.write(rec, sol)
             write_outages(done)
@@ -457,4 +315,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     return FuseResult(Path(out), method, rows, engine.updates, outages, stream.samples, engine.predicted,
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
-                      hinf_note or None, engine.used("Stationary", "zaru_skipped"))
+                      hinf_note or None, engine.used("Stationary", "zaru_skipped"),
+                      (smoothed if smooth else Solution.concat(kept)) if keep else None)

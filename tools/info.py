@@ -125,7 +125,7 @@ def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], 
     """What ``fieldlog info`` prints. ``scan``: read the messages even when the ``fieldlog.info`` record is there.
     ``path``: one MCAP, several files, a session or rosbag2 directory (``replay.drive``)."""
     files = drive_files(path)
-    records = reader.metadata_records(path)
+    records = reader.read_metadata_records(path)
     meta = dict(records)
     rec = meta.get(drivestats.RECORD) if len(files) == 1 else None  # its figures are per file: a session is scanned
     quality = tops = None

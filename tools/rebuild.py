@@ -30,17 +30,6 @@ class RebuildResult:
     vehicle_twists: int = 0
 
 
-def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
-    """Every metadata record, in file order (names may repeat, e.g. ``acquire.port_event``); a drive of several
-    files: file by file (``replay.reader.metadata_records``)."""
-    return reader.metadata_records(path)
-
-
-def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
-    """Metadata by name; for a repeated name, the last record."""
-    return dict(read_metadata_records(path))
-
-
 def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
     """The reads of one port in the order they were recorded (file order, not log-time order), decoded a
     chunk at a time (``replay.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
@@ -55,7 +44,7 @@ def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
 def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = None,
             progress: Callable[[float], None] | None = None, force: bool = False) -> RebuildResult:
     outputs.check_new(dst, force)
-    records = read_metadata_records(src)
+    records = reader.read_metadata_records(src)
     try:
         cal, sync_cfg, pipe_cfg = Pipeline.settings_from_metadata(dict(records))
     except ValueError as e:

@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.tools.batch import run_batch, summary
-    from fieldlog.tools.evaluate import check_methods
+    from fieldlog.tools.evaluation.evaluate import check_methods
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     check_methods(methods)

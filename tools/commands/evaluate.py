@@ -1,4 +1,4 @@
-"""``fieldlog evaluate``: the outage study (the distributed-KF paper's Table 3), ``tools.evaluate``."""
+"""``fieldlog evaluate``: the outage study (the distributed-KF paper's Table 3), ``tools.evaluation.evaluate``."""
 from __future__ import annotations
 
 import argparse
@@ -42,7 +42,7 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.tools.evaluate import check_methods, evaluate
+    from fieldlog.tools.evaluation.evaluate import check_methods, evaluate
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     check_methods(methods)
@@ -52,13 +52,13 @@ def run(a: argparse.Namespace) -> int:
     report = Path(a.out_dir)
     drives = [Path(d) for d in a.drive]
     if a.paper:
-        from fieldlog.tools.evaluate import PAPER_LENGTHS, PAPER_METHODS, PAPER_SEEDS
+        from fieldlog.tools.evaluation.evaluate import PAPER_LENGTHS, PAPER_METHODS, PAPER_SEEDS
 
         methods, lengths = list(PAPER_METHODS), list(PAPER_LENGTHS)
         if not drives and not a.seeds:
             a.seeds = PAPER_SEEDS
     if a.seeds:
-        from fieldlog.tools.evaluate import PAPER_SCENARIO
+        from fieldlog.tools.evaluation.evaluate import PAPER_SCENARIO
         from fieldlog.tools.sim.simulate import simulate
 
         from fieldlog.acquire.outputs import out_dir

@@ -1,4 +1,4 @@
-"""``fieldlog study``: one of the other papers' studies, with its report (``tools.studies``)."""
+"""``fieldlog study``: one of the other papers' studies, with its report (``tools.evaluation.studies``)."""
 from __future__ import annotations
 
 import argparse
@@ -8,7 +8,7 @@ from fieldlog.tools.commands.common import add_out_dir, command_parser, log, nee
 
 
 def add_parser(sub) -> None:
-    s = command_parser(sub, "study", "one of the other papers' studies, with its report (tools/studies.py)")
+    s = command_parser(sub, "study", "one of the other papers' studies, with its report (tools/evaluation/studies.py)")
     s.add_argument("name", choices=["kf-ukf", "cost", "ssr-sckf", "hinf"], help="which study")
     s.add_argument("--seeds", type=int, default=3, help="simulated drives per case (seeds 1..N)")
     s.add_argument("--runs", type=int, default=5, help="cost: timing repetitions")
@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.tools.studies import study
+    from fieldlog.tools.evaluation.studies import study
 
     study(a.name, Path(a.out_dir or f"docs/studies/{a.name}"), Path(a.work or f"out/studies/{a.name}"), a.seeds,
           a.runs, say=log.info, force=a.force)

@@ -1,6 +1,6 @@
 """``make screenshot``: docs/viewer.png, the default rerun layout of ``fieldlog view`` on a simulated drive.
 
-    python -m fieldlog.tools.screenshot [--out docs/viewer.png] [--duration 300] [--size 1600x1000]
+    python -m fieldlog.tools.dev.screenshot [--out docs/viewer.png] [--duration 300] [--size 1600x1000]
 
 A figure8 drive is simulated, fused with ``dkf-rbfn`` through a 30 s GPS outage (the ``fieldlog demo``
 steps), and logged by ``replay.view.build`` with the default blueprint of ``replay.view.blueprint`` (side
@@ -28,7 +28,7 @@ import rerun as rr
 from fieldlog.replay import reader
 from fieldlog.replay import view as rv
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 APT = "xvfb xauth mesa-vulkan-drivers"
 
 

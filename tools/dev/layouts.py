@@ -53,8 +53,8 @@ def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], layout: st
     topics = list(topics) if topics is not None else [t.topic for t in reader.topics(src)]
     with outputs.create(dst) as out:
         w = Writer(out, **LAYOUTS[layout])
-        w.start("ros2", "mcap python Writer (fieldlog.tools.layouts)")
-        for name, d in reader.metadata_records(src):
+        w.start("ros2", "mcap python Writer (fieldlog.tools.dev.layouts)")
+        for name, d in reader.read_metadata_records(src):
             w.add_metadata(name, d)
         w.add_attachment(1, 2, "notes.txt", "text/plain", b"an attachment the reader must step over")
         cids = []

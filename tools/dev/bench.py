@@ -1,6 +1,6 @@
 """``make bench``: speed and accuracy figures. Medians of several runs; ratios where two things are compared.
 
-    python -m fieldlog.tools.bench [--only NAME ...] [--runs N] [--markdown]
+    python -m fieldlog.tools.dev.bench [--only NAME ...] [--runs N] [--markdown]
 
 Each bench prints its full figures; ``--markdown`` prints, instead (the full output goes to stderr), the headline
 figures as rows of docs/results.md's "From make bench" table, so that table is refreshed from a run.
@@ -219,7 +219,7 @@ def bench_grades(runs: int, tmp: Path) -> None:
     the MEMS grades, RTK for the others."""
     from fieldlog.fusion import imugrade
     from fieldlog.replay import reader
-    from fieldlog.tools.evaluate import heading_at_starts, outage_error_series
+    from fieldlog.tools.evaluation.evaluate import heading_at_starts, outage_error_series
     from fieldlog.tools.fuse import drive_config, fuse
     from fieldlog.tools.sim.simulate import simulate
 
@@ -251,7 +251,7 @@ def bench_grades(runs: int, tmp: Path) -> None:
 # bench's own simulated drive, several GB.
 _PEAK_MB = "int(re.search(r'VmHWM:\\s+(\\d+) kB', open('/proc/self/status').read()).group(1)) / 1024"
 _FUSE_CHILD = ("import json, re, sys, time\n"
-               "from tools.fuse import fuse\n"
+               "from fieldlog.tools.fuse import fuse\n"
                "t0 = time.perf_counter()\n"
                "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1', force=True)\n"
                f"print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples, rss_mb={_PEAK_MB})))\n")
@@ -267,7 +267,7 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> di
     import json
 
     res = subprocess.run([sys.executable, "-c", _FUSE_CHILD, str(drive), method, str(out), "1" if smooth else "0"],
-                         check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+                         check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
@@ -328,7 +328,7 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
     from fieldlog.acquire.timesync import SyncState
     from fieldlog.replay import reader
-    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.replay.reader import read_metadata
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
@@ -382,7 +382,7 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     from fieldlog.acquire import daq
     from fieldlog.acquire.messages import STATUS_NO_FIX
     from fieldlog.replay import reader
-    from fieldlog.tools.rebuild import read_metadata
+    from fieldlog.replay.reader import read_metadata
     from fieldlog.tools.sim.serve import PORTS, corrupt_stream, delivered, simulated_streams
 
     out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"
@@ -642,7 +642,7 @@ def bench_export(runs: int, tmp: Path) -> None:
     def one() -> int:
         out = tmp / "hour_export"
         r = subprocess.run([sys.executable, "-c", _CLI_CHILD, "export", str(drive), "--out", str(out), "--force"],
-                           capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+                           capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
         assert r.returncode == 0, r.stderr
         peaks.append(float(r.stdout.split()[-1]))
         return sum(f.stat().st_size for f in out.rglob("*.parquet"))
@@ -673,7 +673,7 @@ def bench_batch(runs: int, tmp: Path) -> None:
 
 def bench_cycle(runs: int, tmp: Path) -> None:
     """Per-cycle cost at n = 15 of kf, kf-ukf (outage), sckf, ssr-sckf, hinf: prediction alone and with a GPS update."""
-    from fieldlog.tools.studies import CYCLE_REPS, cycle_costs, cycle_flops
+    from fieldlog.tools.evaluation.studies import CYCLE_REPS, cycle_costs, cycle_flops
 
     n = 15
     med = cycle_costs(runs)
@@ -734,7 +734,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     # Wall and CPU time both: under contention the wall ratio is not the CPU ratio. The 4 KiB-chunk file is the
     # hard case: every chunk holds /imu, so every chunk is decompressed (about 2.3x the own file's bytes).
     from fieldlog.replay import drive, reader
-    from fieldlog.tools.layouts import LAYOUTS, rewrite
+    from fieldlog.tools.dev.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
 
     own = tmp / "reader_own.mcap"
@@ -770,10 +770,9 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """``recover DIR``'s check of a complete file (every chunk's CRC), and the recovery of one with a damaged chunk."""
-    from fieldlog.acquire import recorder
-    from fieldlog.acquire.recovery import TailDeriver, recover_drive
+    from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
     from fieldlog.replay.mcapfile import McapFile
-    from fieldlog.tools.layouts import rewrite
+    from fieldlog.tools.dev.layouts import rewrite
     from fieldlog.tools.sim.simulate import simulate
 
     own = tmp / "recover_own.mcap"
@@ -789,7 +788,7 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         bad.write_bytes(raw)
         check, _, _ = timed(lambda: McapFile(path).damaged(), runs)
         fast, _, _ = timed(lambda: recover_drive(bad, tmp / "r.mcap", force=True), runs)
-        slow, _, _ = timed(lambda: recorder.recover(bad, tmp / "r.mcap", TailDeriver(), force=True), runs)
+        slow, _, _ = timed(lambda: recover(bad, tmp / "r.mcap", TailDeriver(), force=True), runs)
         print(f"{duration_s:.0f} s drive, {path.name} ({path.stat().st_size / 1e6:.1f} MB, {int(p.chunk.sum())} "
               f"chunks, {p.size.sum() / 1e6:.0f} MB uncompressed): open + check every chunk {check * 1e3:.0f} ms; recover with "
               f"one damaged chunk {fast:.2f} s (feeding the pipeline: {slow:.2f} s)")
@@ -993,7 +992,7 @@ def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
         top = pstats.Stats(prof, stream=sys.stdout)
         top.sort_stats("tottime").print_stats(12)
     load = os.getloadavg()[0]
-    print(f"\n| stage | kf, s (share) | dkf-rbfn, s (share) |\n|---|---|---|")
+    print("\n| stage | kf, s (share) | dkf-rbfn, s (share) |\n|---|---|---|")
     print(f"| start-up: imports | {imp:.2f} | {imp:.2f} |")
     print(f"| start-up: the first call's excess (lazy imports, numba cache load) | {first:.2f} | {first:.2f} |")
     for s in _STAGES:
@@ -1034,7 +1033,7 @@ def main() -> None:
         print("| what [bench] | figure | target |\n|---|---|---|")
         for what, figure, target in ROWS:
             print(f"| {what} | {figure} | {target} |")
-        print(f"\n`python -m fieldlog.tools.bench --runs {a.runs} --markdown"
+        print(f"\n`python -m fieldlog.tools.dev.bench --runs {a.runs} --markdown"
               + (f" --only {' '.join(a.only)}" if a.only else "") + f"`, load average {os.getloadavg()[0]:.1f} "
               "(1 min) at the end")
 

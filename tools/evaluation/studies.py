@@ -39,7 +39,7 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.replay import reader
-from fieldlog.tools.evaluate import outage_error_series, rms_columns
+from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import FuseResult, drive_config, fuse
 
 # Columns of ``outage_error_series``: position E, N, U (m); velocity E, N, U (m/s); roll, pitch, heading (deg).
@@ -85,9 +85,10 @@ def run(drive: Path, method: str, label: str, cfg: FusionConfig, folder: Path, w
     """Fuse ``drive`` with ``method`` and the study's config; errors against truth inside ``window_s``
     (s from the first IMU sample)."""
     out = folder / f"{drive.stem}_{label.replace(' ', '_').replace('=', '')}.mcap"
-    res = fuse(drive, method, out, cfg, force=True)   # the study's own work folder, redone each time
+    res = fuse(drive, method, out, cfg, force=True, keep=True)   # the study's own work folder, redone each time
     t0 = _t0_ns(drive)
-    t, err = outage_error_series(drive, out, method, [(t0 + int(window_s[0] * 1e9), t0 + int(window_s[1] * 1e9))])
+    t, err = outage_error_series(drive, res.solution, method,
+                                 [(t0 + int(window_s[0] * 1e9), t0 + int(window_s[1] * 1e9))])
     return Run(drive.name, label, (t - t0) * 1e-9, err, res)
 
 

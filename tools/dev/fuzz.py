@@ -1,9 +1,9 @@
 """Fuzzing that gets past the checks: mutated inputs whose checksums and CRCs are rewritten after mutating, so
 that they reach the field decoders, the counter judge, the time sync and the MCAP reader's record parsing.
 
-    python -m fieldlog.tools.fuzz --target nmea --runs 1000000            # one decoder
-    python -m fieldlog.tools.fuzz --target all --runs 1000000 --crashes out/fuzz-crashes
-    python -m fieldlog.tools.fuzz --target ubx --atheris -max_total_time=3600 out/corpus   # coverage-guided
+    python -m fieldlog.tools.dev.fuzz --target nmea --runs 1000000            # one decoder
+    python -m fieldlog.tools.dev.fuzz --target all --runs 1000000 --crashes out/fuzz-crashes
+    python -m fieldlog.tools.dev.fuzz --target ubx --atheris -max_total_time=3600 out/corpus   # coverage-guided
 
 Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary) through the pipeline's GPS path (framer, decoders,
 epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one read per input
@@ -270,7 +270,7 @@ def _mcap_run(t: Target, data: bytes) -> None:
     try:
         for topic in reader.topics(path):
             reader.read_topic(path, topic.topic)
-        reader.metadata_records(path)
+        reader.read_metadata_records(path)
     except ValueError:
         pass                                          # bad input, reported in one line by every command
 
@@ -399,7 +399,7 @@ def campaign(name: str, runs: int, seed: int = 1, crashes: Path | None = None,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m fieldlog.tools.fuzz", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m fieldlog.tools.dev.fuzz", description=__doc__.splitlines()[0])
     p.add_argument("--target", choices=[*TARGETS, "all"], required=True)
     p.add_argument("--runs", type=int, default=1_000_000, help="inputs per target (default 10^6)")
     p.add_argument("--seed", type=int, default=1)

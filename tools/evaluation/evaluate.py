@@ -25,6 +25,10 @@ trained in real time; methods ``PAPER_METHODS``, 30 and 60 s outages, ``PAPER_SE
 adds to the report its Table 3 beside ours, a verdict on each of its absolute figures and on each of its claims by
 a paired t test over the drives (:func:`paper_report`). Every report names its route (:func:`route_note`).
 
+The scoring functions take the fused solution as a fused file or as its rows in memory (``fuse(..., keep=True)``,
+read through ``replay.solutions.read``: the same arrays), so a study scores the runs it fuses without reading its
+fused files back.
+
 Methods: ``fusion.engine.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
 distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
 """
@@ -43,7 +47,8 @@ import polars as pl
 from fieldlog.acquire import outputs
 from fieldlog.fusion import earth
 from fieldlog.fusion.config import METHODS, FusionConfig
-from fieldlog.replay import reader
+from fieldlog.fusion.types import Solution
+from fieldlog.replay import reader, solutions
 from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
@@ -124,11 +129,12 @@ def _quat_interp(t: np.ndarray, tr: np.ndarray, q: np.ndarray) -> np.ndarray:
     return qi / np.linalg.norm(qi, axis=1, keepdims=True)
 
 
-def attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def attitudes(drive: Path, fused: Path | Solution, method: str
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns, C_bn of the solution, C_bn of ``/truth/attitude``, the printed attitude sigma (n, 3) rad: phi E, N,
     U) at every solution row within the truth."""
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
-    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std")
+    a = solutions.read(fused, method, "attitude")
+    sd = solutions.read(fused, method, "attitude_std")
     ta = reader.read_topic(drive, "/truth/attitude")
     ts = a["log_time_ns"]
     ok = (ts >= ta["log_time_ns"][0]) & (ts <= ta["log_time_ns"][-1])
@@ -136,7 +142,7 @@ def attitudes(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.nda
             earth.quat_to_dcm(_quat_interp(ts[ok], ta["log_time_ns"], ta["q_xyzw"])), sd["xyz"][ok])
 
 
-def attitude_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def attitude_errors(drive: Path, fused: Path | Solution, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns, attitude error phi E, N, U (n, 3) rad, its printed sigma (n, 3) rad) at every solution row within the
     truth: C_solution = (I - [phi x]) C_truth (``fusion.errmodel``), phi from the skew part of
     I - C_solution C_truth^T."""
@@ -145,20 +151,20 @@ def attitude_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, 
     return t, 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1), sd
 
 
-def outage_errors(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]) -> np.ndarray:
+def outage_errors(drive: Path, fused: Path | Solution, method: str, windows_ns: list[tuple[int, int]]) -> np.ndarray:
     """Errors (n, 9) in QUANTITIES order (m, m/s, deg) of the rows inside the windows: against /truth
     when the drive has it, else against the withheld GPS fixes (attitude NaN)."""
     return outage_error_series(drive, fused, method, windows_ns)[1]
 
 
-def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]],
+def outage_error_series(drive: Path, fused: Path | Solution, method: str, windows_ns: list[tuple[int, int]],
                         fix_topic: str = "/gps/fix", vel_topic: str | None = "/gps/vel"
                         ) -> tuple[np.ndarray, np.ndarray]:
     """``outage_errors`` with the times of its rows: (t_ns (n,), errors (n, 9)). Without truth the reference is
     ``fix_topic`` and ``vel_topic`` (None: no velocity errors), timed by their header stamps."""
-    s = reader.read_topic(fused, f"/fusion/{method}/fix")
-    v = reader.read_topic(fused, f"/fusion/{method}/vel")
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
+    s = solutions.read(fused, method, "fix")
+    v = solutions.read(fused, method, "vel")
+    a = solutions.read(fused, method, "attitude")
     ts = s["log_time_ns"]
     names = {t.topic for t in reader.topics(drive) if t.count}
     truth = "/truth/fix" in names
@@ -205,7 +211,7 @@ def outage_error_series(drive: Path, fused: Path, method: str, windows_ns: list[
     return t, np.hstack([dpos, dv, datt])
 
 
-def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | None:
+def consistency(drive: Path, fused: Path | Solution, method: str) -> dict[str, float] | None:
     """How honest the printed sigma is, over every solution row of the drive against ``/truth/fix`` (None
     without truth): ``nees`` the mean normalised estimation error squared of the position (E, N, U with their
     sigmas; 3 when honest), and per axis e, n, u the shares of rows within 1 sigma (0.683 when honest) and
@@ -231,18 +237,18 @@ def consistency(drive: Path, fused: Path, method: str) -> dict[str, float] | Non
 BIAS_FIELDS = {"gyro": ("omega_ib_b", "gyro_cov"), "accel": ("f_b", "accel_cov")}  # imu_bias message fields
 
 
-def bias_errors(drive: Path, fused: Path, method: str, sensor: str = "gyro", mean_s: float = 10.0
+def bias_errors(drive: Path, fused: Path | Solution, method: str, sensor: str = "gyro", mean_s: float = 10.0
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(t_ns (n,), error, sigma): the method's ``sensor`` ("gyro" rad/s, "accel" m/s^2) bias estimate minus the
     simulator's (``/truth/imu_bias``, its mean over the last ``mean_s``: the truth holds the fast part of the
     flicker too) and the estimate's printed sigma, body RFU, (n, 3) each, at the rows of
     ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth to its end. None when either topic is missing (a
     drive not simulated, a fused file written before the estimate was published)."""
-    have = {t.topic for t in reader.topics(drive) if t.count} | {t.topic for t in reader.topics(fused) if t.count}
-    if not {"/truth/imu_bias", f"/fusion/{method}/imu_bias"} <= have:
+    if not (any(t.topic == "/truth/imu_bias" and t.count for t in reader.topics(drive))
+            and solutions.has(fused, method, "imu_bias")):
         return None
     value, cov = BIAS_FIELDS[sensor]
-    b, tr = reader.read_topic(fused, f"/fusion/{method}/imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
+    b, tr = solutions.read(fused, method, "imu_bias"), reader.read_topic(drive, "/truth/imu_bias")
     tt = tr["log_time_ns"]
     t = b["log_time_ns"]
     m = (t >= tt[0] + int(mean_s * 1e9)) & (t <= tt[-1])
@@ -253,11 +259,11 @@ def bias_errors(drive: Path, fused: Path, method: str, sensor: str = "gyro", mea
     return t[m], b[value][m] - truth, np.sqrt(np.maximum(b[cov][m][:, [0, 4, 8]], 0.0))
 
 
-def position_errors(drive: Path, fused: Path, method: str) -> tuple[np.ndarray, np.ndarray]:
+def position_errors(drive: Path, fused: Path | Solution, method: str) -> tuple[np.ndarray, np.ndarray]:
     """The method's position error (solution - ``/truth/fix``, ENU m) and its printed sigma (m), (n, 3) each, at
     every solution row within the truth."""
-    s = reader.read_topic(fused, f"/fusion/{method}/fix")
-    sd = reader.read_topic(fused, f"/fusion/{method}/std")
+    s = solutions.read(fused, method, "fix")
+    sd = solutions.read(fused, method, "std")
     ref = reader.read_topic(drive, "/truth/fix")
     t, tr = s["log_time_ns"], ref["log_time_ns"]
     m = (t >= tr[0]) & (t <= tr[-1])
@@ -287,16 +293,14 @@ def consistency_line(method: str, c: dict[str, float]) -> str:
                       for k, name in (("bg", "gyro"), ("ba", "accel")) if f"in3_{k}" in c))
 
 
-def heading_at_starts(drive: Path, fused: Path, method: str, windows_ns: list[tuple[int, int]]
+def heading_at_starts(drive: Path, fused: Path | Solution, method: str, windows_ns: list[tuple[int, int]]
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Heading error (solution - truth, deg, wrapped to +-180) and the filter's heading sigma (deg, from
     ``/fusion/<method>/attitude_std``: phi up) at the first solution row of each window, (w,) each; NaN where
     the drive has no ``/truth/attitude`` or the window no row."""
     err, sig = np.full(len(windows_ns), np.nan), np.full(len(windows_ns), np.nan)
-    a = reader.read_topic(fused, f"/fusion/{method}/attitude")
-    names = {t.topic for t in reader.topics(fused) if t.count}
-    sd = reader.read_topic(fused, f"/fusion/{method}/attitude_std") if f"/fusion/{method}/attitude_std" in names \
-        else None
+    a = solutions.read(fused, method, "attitude")
+    sd = solutions.read(fused, method, "attitude_std") if solutions.has(fused, method, "attitude_std") else None
     truth = "/truth/attitude" in {t.topic for t in reader.topics(drive) if t.count}
     ta = reader.read_topic(drive, "/truth/attitude") if truth else None
     ts = a["log_time_ns"]
@@ -456,17 +460,18 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 name = m + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
                 out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
                 run_cfg = cfg if odo else cfg.replace(odometer=False)
-                if fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force).rows == 0:
+                res = fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force, keep=True)
+                if res.rows == 0:
                     done += 1
                     progress(done / total)
                     note(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
                     continue
-                t_err, err = outage_error_series(drive, out, m, win_ns, imap.fix_topic, imap.vel_topic)
+                t_err, err = outage_error_series(drive, res.solution, m, win_ns, imap.fix_topic, imap.vel_topic)
                 rms = rms_columns(err)
-                c = consistency(drive, out, m)
+                c = consistency(drive, res.solution, m)
                 if c is not None:
                     honesty.setdefault((name, L), []).append(c)
-                h_err, h_sig = heading_at_starts(drive, out, m, win_ns)
+                h_err, h_sig = heading_at_starts(drive, res.solution, m, win_ns)
                 headings += [dict(drive=drive.name, method=name, outage_s=float(L), start_s=s0, heading_err_deg=e,
                                   heading_sigma_deg=sg) for (s0, _), e, sg in zip(win, h_err, h_sig)]
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
@@ -532,12 +537,11 @@ def heading_markdown(heading: pl.DataFrame) -> str:
 def route_note(drives: Sequence[Path]) -> str:
     """One line naming the drives' route: the simulator's scenario of each (``drive`` metadata) and whether its
     laps vary (``[motion] lap_*_jitter``); drives not simulated are counted as recorded."""
-    from fieldlog.tools.rebuild import read_metadata
     from fieldlog.tools.sim.trajectory import load_scenario
 
     names: dict[str, int] = {}
     for d in drives:
-        meta = read_metadata(d).get("drive", {})
+        meta = reader.read_metadata(d).get("drive", {})
         key = meta.get("scenario", "") if meta.get("source") == "fieldlog sim" else ""
         names[key] = names.get(key, 0) + 1
     parts = []
