@@ -218,3 +218,19 @@ def test_drive_report_reads_the_imu_topic(tmp_path):
     assert text == allan.report(omega_m, f_m, (n - 1) / ((stamp_ns[-1] - stamp_ns[0]) * 1e-9))
     arw_x = float(text.splitlines()[2].split()[1])  # deg/sqrt(h), gyro x
     assert arw_x == pytest.approx(0.6, rel=0.1)
+
+
+def test_compiled_first_order_filter_equals_scipy_lfilter_to_the_bit():
+    """The flicker noise's Gauss-Markov levels are filtered by a compiled recursion instead of scipy's lfilter
+    (whose import costs the simulator a second); the numbers must be lfilter's own."""
+    from scipy.signal import lfilter
+
+    from fieldlog.tools.sim.sensors import _ar1
+
+    rng = np.random.default_rng(5)
+    for phi in (0.0, 0.3, 0.999, 0.9999999):
+        z = rng.standard_normal((2001, 6)) * rng.choice([1e-3, 1.0, 1e3])
+        y_prev = rng.standard_normal(6)
+        b0 = math.sqrt(1.0 - phi * phi)
+        want, _ = lfilter([b0], [1.0, -phi], z, axis=0, zi=phi * y_prev[None, :])
+        np.testing.assert_array_equal(_ar1(b0, phi, z, y_prev), want)

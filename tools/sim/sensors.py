@@ -52,7 +52,6 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
@@ -133,6 +132,21 @@ def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
     return x
 
 
+@njit(cache=True)
+def _ar1(b0: float, phi: float, z: np.ndarray, y_prev: np.ndarray) -> np.ndarray:
+    """y_k = b0 z_k + phi y_{k-1} along axis 0 of z (n, m), y_{-1} = y_prev (m,): the recursion of
+    ``scipy.signal.lfilter([b0], [1, -phi], z, axis=0, zi=phi * y_prev)``, with its operations in its order, so
+    the same numbers to the bit without importing scipy.signal (a second of start-up)."""
+    y = np.empty_like(z)
+    for c in range(z.shape[1]):
+        state = phi * y_prev[c]
+        for k in range(z.shape[0]):
+            yk = state + b0 * z[k, c]
+            y[k, c] = yk
+            state = 0.0 * z[k, c] - yk * -phi
+    return y
+
+
 def gauss_markov(t_s: np.ndarray, tau_s: float, z: np.ndarray) -> np.ndarray:
     """Unit-variance first-order Gauss-Markov process at times t_s (n,) s from standard normal draws z (n, m).
 
@@ -190,8 +204,7 @@ def flicker_noise(
             phi = math.exp(-h / Ti)
             z = rng.standard_normal((grid.size, n_channels))
             x_prev = rng.standard_normal(n_channels)  # stationary start
-            y, _ = lfilter([math.sqrt(1.0 - phi * phi)], [1.0, -phi], z, axis=0, zi=phi * x_prev[None, :])
-            acc += y
+            acc += _ar1(math.sqrt(1.0 - phi * phi), phi, z, x_prev)
     return _lerp_uniform(acc, h0, t_rel_s) * math.sqrt(s2)
 
 
