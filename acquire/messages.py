@@ -385,16 +385,21 @@ _FIELDS: dict[str, list[_Field]] = {
 }
 
 
-@lru_cache(maxsize=256)
 def _layout(type_name: str, string_lengths: tuple[int, ...]) -> np.dtype:
     """Structured dtype for one fixed layout; ``string_lengths`` are byte lengths without NUL.
 
     String ``s`` becomes fields ``s_len`` (uint32, length incl. NUL) and ``s`` (bytes incl. NUL).
     """
+    return _dtype(tuple(_FIELDS[type_name]), string_lengths)
+
+
+@lru_cache(maxsize=256)
+def _dtype(fields: tuple[_Field, ...], string_lengths: tuple[int, ...]) -> np.dtype:
+    """``_layout`` of a field list."""
     names, formats, offsets = ["enc"], [np.dtype(("u1", (4,)))], [0]
     pos = 0  # CDR alignment counts from the end of the encapsulation header
     strings = iter(string_lengths)
-    for name, fmt, shape in _FIELDS[type_name]:
+    for name, fmt, shape in fields:
         if fmt == "string":
             pos = -(-pos // 4) * 4
             names += [name + "_len", name]
@@ -709,6 +714,31 @@ def encode_tf(stamp_ns: int, transforms: Sequence[tuple[str, str, Sequence[float
     for parent, child, xyz, q_xyzw in transforms:
         w.header(stamp_ns, parent).string(child).put("ddd", *map(float, xyz)).put("dddd", *map(float, q_xyzw))
     return w.bytes()
+
+
+def encode_tf_rows(stamp_ns: np.ndarray, transforms: Sequence[tuple[str, str, np.ndarray, np.ndarray]]) -> Packed:
+    """``encode_tf`` of n rows at once: row i holds every transform (parent frame, child frame, translations
+    (n, 3) m, rotations x, y, z, w (n, 4)) at its row i, stamped ``stamp_ns[i]``. The same bytes as
+    ``encode_tf`` row by row."""
+    stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
+    fields: list[_Field] = [("count", "<u4", ())]
+    lengths = []
+    for i, (parent, child, _, _) in enumerate(transforms):
+        fields += [(f"sec{i}", "<i4", ()), (f"nanosec{i}", "<u4", ()), (f"parent{i}", "string", None),
+                   (f"child{i}", "string", None), (f"xyz{i}", "<f8", (3,)), (f"q{i}", "<f8", (4,))]
+        lengths += [len(parent.encode()), len(child.encode())]
+    arr = np.zeros(len(stamp_ns), dtype=_dtype(tuple(fields), tuple(lengths)))
+    arr["enc"] = np.frombuffer(CDR_LE_HEADER, dtype=np.uint8)
+    arr["count"] = len(transforms)
+    sec, nsec = split_stamp(stamp_ns)
+    for i, (parent, child, xyz, q_xyzw) in enumerate(transforms):
+        arr[f"sec{i}"], arr[f"nanosec{i}"] = sec, nsec
+        for name, text in ((f"parent{i}", parent), (f"child{i}", child)):
+            arr[name + "_len"] = len(text.encode()) + 1
+            arr[name] = text.encode()
+        arr[f"xyz{i}"] = xyz
+        arr[f"q{i}"] = q_xyzw
+    return _pack(arr)
 
 
 def encode_outage(stamp_ns: int, start_ns: int, end_ns: int, reason: str, frame_id: str = "") -> bytes:

@@ -209,7 +209,6 @@ class Odometry:
         rec.write_batch(self.topic, t, messages.encode_odometry(
             t, p_odom, q_base, pose_cov.reshape(n, 36), v_base, omega, twist_cov.reshape(n, 36),
             frame_id=frames.ODOM, child_frame_id=frames.BASE_LINK))
-        identity = np.array([0.0, 0.0, 0.0, 1.0])
-        rec.write_batch(TF, t, [messages.encode_tf(int(ti), [(frames.MAP, frames.ODOM, mi, identity),
-                                                              (frames.ODOM, frames.BASE_LINK, pi, qi)])
-                                   for ti, mi, pi, qi in zip(t.tolist(), p_map_odom, p_odom, q_base)])
+        identity = np.broadcast_to([0.0, 0.0, 0.0, 1.0], (n, 4))
+        rec.write_batch(TF, t, messages.encode_tf_rows(t, [(frames.MAP, frames.ODOM, p_map_odom, identity),
+                                                           (frames.ODOM, frames.BASE_LINK, p_odom, q_base)]))

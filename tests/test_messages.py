@@ -232,3 +232,16 @@ def test_packed_take_gathers_any_order():
         p = m.Packed.from_list(batch)
         assert p.take(idx).to_list() == [batch[i] for i in idx]
         assert p.take(np.zeros(0, np.int64)).to_list() == []
+
+
+def test_tf_rows_are_encode_tf_row_by_row():
+    rng = np.random.default_rng(3)
+    n = 7
+    t = 1_700_000_000_123_456_789 + np.arange(n, dtype=np.int64) * 4_999_999
+    xyz, q = rng.standard_normal((n, 3)) * 1e3, rng.standard_normal((n, 4))
+    xyz2 = rng.standard_normal((n, 3))
+    names = [("map", "odom"), ("odom", "base_link_with_a_longer_name")]
+    packed = m.encode_tf_rows(t, [(*names[0], xyz, q), (*names[1], xyz2, q[::-1])])
+    want = [m.encode_tf(int(t[i]), [(*names[0], xyz[i], q[i]), (*names[1], xyz2[i], q[::-1][i])])
+            for i in range(n)]
+    assert packed.to_list() == want
