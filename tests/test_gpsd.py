@@ -20,7 +20,7 @@ from fieldlog.replay import reader
 from fieldlog.replay.reader import read_metadata, read_metadata_records
 from test_daemon import raw_stream, run
 from test_daemon_faults import LOCKED, SPEED, record
-from test_drive import messages_of
+from test_drive import messages_by_topic
 from test_serve import expected_bytes
 
 LOOPBACK = {"127.0.0.1", "::1"}
@@ -194,8 +194,10 @@ def test_daemon_through_a_real_gpsd_records_the_receivers_bytes_and_locks(tmp_pa
     out = tmp_path / "rebuilt.mcap"
     r = run("rebuild", str(f), "--out", str(out))
     assert r.returncode == 0, r.stderr
-    for topic in ("/imu", "/gps/fix", "/gps/nmea", "/pps", "/time/sync", "/raw/daq", "/raw/gps"):
-        a, b = messages_of(f, topic), messages_of(out, topic)
+    topics = ["/imu", "/gps/fix", "/gps/nmea", "/pps", "/time/sync", "/raw/daq", "/raw/gps"]
+    written, rebuilt = messages_by_topic(f, topics), messages_by_topic(out, topics)
+    for topic in topics:
+        a, b = written[topic], rebuilt[topic]
         assert a == b and (len(a) > 0 or topic == "/gps/nmea" and receiver == "ublox"), topic
 
 
