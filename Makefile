@@ -19,7 +19,8 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(BIN)/fieldlog demo
 
-# The whole suite, slow tests included; test-fast leaves out the tests marked slow.
+# The whole suite, slow tests included, on every core (pytest-xdist; the workers share the simulated drives,
+# tests/conftest.py); test-fast leaves out the tests marked slow.
 # pytest exits 5 when it collected no test: that is a failure here too.
 define pytest
 $(BIN)/python -m pytest -q $(1); rc=$$?; \
@@ -27,10 +28,10 @@ if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
 endef
 
 test: setup
-	@$(call pytest,)
+	@$(call pytest,-n auto --dist worksteal)
 
 test-fast: setup
-	@$(call pytest,-m "not slow")
+	@$(call pytest,-n auto --dist worksteal -m "not slow")
 
 bench: setup
 	$(BIN)/python -m fieldlog.tools.dev.bench --markdown

@@ -24,7 +24,6 @@ from fieldlog.replay import reader
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
 from fieldlog.replay.reader import read_metadata
-from fieldlog.tools.sim.simulate import simulate
 from test_daemon import start_daemon, wait_for_clients, wait_until
 from test_serve import start_serve
 
@@ -41,10 +40,9 @@ SUBPROTOCOL = "foxglove.sdk.v1"
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory) -> tuple[Path, list[tuple[int, bytes]]]:
+def drive(tmp_path_factory, simulated) -> tuple[Path, list[tuple[int, bytes]]]:
     d = tmp_path_factory.mktemp("fox")
-    path = d / "drive.mcap"
-    simulate("figure8", 90, 1, path)
+    path = simulated("figure8", 90, 1)
     fuse(path, "kf", d / "kf.mcap")
     with open(d / "kf.mcap", "rb") as f:
         ref = [(m.log_time, m.data) for _s, _c, m in make_reader(f).iter_messages(topics=["/fusion/kf/fix"])]

@@ -17,7 +17,6 @@ from fieldlog.acquire import chunks
 from fieldlog.acquire.recovery import recover_drive
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
-from fieldlog.tools.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "numba", "matplotlib")
@@ -44,11 +43,8 @@ def core(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    d = tmp_path_factory.mktemp("drive")
-    path = d / "drive.mcap"
-    simulate("figure8", 90, 1, path)
-    return path
+def drive(simulated):
+    return simulated("figure8", 90, 1)
 
 
 def test_core_install_has_no_optional_dependency(core, tmp_path):
