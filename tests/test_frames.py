@@ -20,7 +20,7 @@ from fieldlog.tools.sim.simulate import simulate
 def fused(tmp_path_factory) -> tuple[Path, Path]:
     d = tmp_path_factory.mktemp("frames")
     drive, out = d / "drive.mcap", d / "kf.mcap"
-    simulate("figure8", 150, 2, drive)
+    simulate("figure8", 100, 2, drive)     # the outage (60 s to 90 s) and GPS again after it
     assert fieldlog(["fuse", str(drive), "--method", "kf", "--outage", "60:30", "--out", str(out)]) == 0
     return drive, out
 
