@@ -106,20 +106,21 @@ class CounterJudge:
         return 0 if self._held is None else len(self._held)
 
     def judge(self, fr: DaqFrames, stream_base: int, mono_ns: int | None = None) -> DaqFrames:
-        start = stream_base + fr.end_offset - FRAME_SIZE
         ref, n = self._ref, len(fr)
-        if (n and self._held is None and ref is not None and self._dropped == 0 and self._last_out == ref.k
-                and int(start[0]) == ref.start + FRAME_SIZE and int(start[-1]) == ref.start + n * FRAME_SIZE
-                and int(fr.k[0]) & _M32 == (ref.counter + 1) & _M32 and (n == 1 or (
-                    (np.diff(start) == FRAME_SIZE).all() and (np.diff(fr.k & _M32) & _M32 == 1).all()))):
+        if n and self._held is None and ref is not None and self._dropped == 0 and self._last_out == ref.k:
             # the usual read: every frame steps 1 from the one before, back to back in the bytes, so each is
             # taken as it is (what _run decides for such frames, without its per-frame bookkeeping)
-            k = np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64)
-            self._ref = _Ref(int(fr.k[-1]) & _M32, ref.k + n, int(start[-1]), mono_ns)
-            self._base = stream_base
-            self._last_out = ref.k + n
-            return DaqFrames(k, fr.counts, fr.pps, fr.latch, fr.latch_valid, fr.temperature_c,
-                             start + FRAME_SIZE - stream_base)
+            counters, ends = fr.k.tolist(), fr.end_offset.tolist()
+            first = stream_base + ends[0] - FRAME_SIZE
+            if first == ref.start + FRAME_SIZE and all(
+                    (c - ref.counter) & _M32 == i and e - ends[0] == (i - 1) * FRAME_SIZE
+                    for i, (c, e) in enumerate(zip(counters, ends), 1)):
+                self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
+                self._base = stream_base
+                self._last_out = ref.k + n
+                return DaqFrames(np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64), fr.counts, fr.pps, fr.latch,
+                                 fr.latch_valid, fr.temperature_c, fr.end_offset)
+        start = stream_base + fr.end_offset - FRAME_SIZE
         if self._held is not None:
             fr = _concat([self._held, fr])
             start = np.concatenate([self._held_start, start])

@@ -292,11 +292,11 @@ class DaqDecoder:
     def _decode(self, raw: bytes, pos: int, nf: int, end: np.ndarray) -> DaqFrames:
         rec = np.frombuffer(raw, FRAME_DTYPE, count=nf, offset=pos)
         counter = rec["counter"]
+        last = self._last_counter
         if nf == 0:
             k = np.zeros(0, np.int64)
-        elif (self._last_counter is not None and counter[0] == (self._last_counter + 1) & 0xFFFFFFFF
-              and ((counter[1:] - counter[:-1]) == 1).all()):    # the usual case; uint32 steps wrap by themselves
-            k = np.arange(self._last_k + 1, self._last_k + nf + 1, dtype=np.int64)
+        elif last is not None and all(c == (last + i) & 0xFFFFFFFF for i, c in enumerate(counter.tolist(), 1)):
+            k = np.arange(self._last_k + 1, self._last_k + nf + 1, dtype=np.int64)   # the usual read
         else:
             k = self._unwrap(counter.astype(np.int64))
         if nf:

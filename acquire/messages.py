@@ -672,8 +672,17 @@ def encode_sentence(stamp_ns: int, sentence: str, frame_id: str = "gps") -> byte
 
 def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: str = "") -> bytes:
     """``fieldlog_msgs/msg/RawBytes``: bytes exactly as read; stamp = host wall clock at read,
-    mono_ns = host monotonic clock at read, port = the port's role ("daq" or "gps")."""
-    return _Cdr().header(stamp_ns, frame_id).put("q", mono_ns).string(port).octets(data).bytes()
+    mono_ns = host monotonic clock at read, port = the port's role ("daq" or "gps").
+
+    Every read of the daemon is one: laid out here in one go rather than field by field (``_Cdr``), the same
+    bytes (CDR alignment counts from the end of the encapsulation header)."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    f, p = frame_id.encode() + b"\x00", port.encode() + b"\x00"
+    pad_mono = -(12 + len(f)) % 8                       # int64 mono_ns after sec, nanosec and the frame id
+    pad_data = -len(p) % 4                              # the data's uint32 length after the port string
+    return b"".join((CDR_LE_HEADER, struct.pack("<iII", sec, nsec, len(f)), f, bytes(pad_mono),
+                     struct.pack("<qI", mono_ns, len(p)), p, bytes(pad_data), struct.pack("<I", len(data)),
+                     bytes(data)))
 
 
 def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:

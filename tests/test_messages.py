@@ -245,3 +245,14 @@ def test_tf_rows_are_encode_tf_row_by_row():
     want = [m.encode_tf(int(t[i]), [(*names[0], xyz[i], q[i]), (*names[1], xyz2[i], q[::-1][i])])
             for i in range(n)]
     assert packed.to_list() == want
+
+
+def test_raw_bytes_laid_out_in_one_go_equal_the_field_by_field_writer():
+    for frame_id in ("", "a", "gps", "imu_link", "x" * 13):
+        for port in ("daq", "gps", "can", "p", "portname"):
+            for n in (0, 1, 3, 38, 114):
+                data = bytes(range(n))
+                for stamp, mono in ((1_700_000_000_999_999_999, 5), (-1, 2**62), (0, -7)):
+                    want = m._Cdr().header(stamp, frame_id).put("q", mono).string(port).octets(data).bytes()
+                    assert m.encode_raw(stamp, mono, port, data, frame_id) == want
+                    assert m.decode_raw(want) == (stamp, mono, port, data)
