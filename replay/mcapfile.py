@@ -55,9 +55,9 @@ from mcap.records import Channel, Metadata, Schema
 from zlib_ng.zlib_ng import crc32
 
 from fieldlog.acquire.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
+from fieldlog.acquire.recorder import MAGIC
 
 log = logging.getLogger(__name__)
-MAGIC = b"\x89MCAP0\r\n"
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
