@@ -50,6 +50,7 @@ def test_daemon_records_every_slcan_byte_decodes_rebuilds_and_survives_an_unplug
     cfg = tmp_path / "acquire.toml"
     cfg.write_text("[can]\nlatency_s = 0.005\n[can.signals]\n" +
                    "".join(f'{k} = "{v}"\n' for k, v in vehicle.SIGNALS.items()))
+    d = None
     try:
         d, _ = _start(["acquire", "--daq", str(ports / "daq"), "--gps", str(ports / "gps"), "--can",
                        f"slcan://{ports / 'can'}@500000", "--dbc", str(vehicle.DBC_PATH), "--config", str(cfg),
@@ -60,7 +61,7 @@ def test_daemon_records_every_slcan_byte_decodes_rebuilds_and_survives_an_unplug
         assert d.wait(30) == 0, d.stderr.read()
     finally:
         for p in (serve, d):
-            if p.poll() is None:
+            if p is not None and p.poll() is None:
                 p.kill()
     (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     meta = read_metadata(truth)["serve"]
@@ -106,6 +107,7 @@ def test_socketcan_vcan_records_frames_sent_by_python_can(tmp_path: Path) -> Non
                        "--link-dir", str(ports)], "", lines_out=2)
     sent = [pycan.Message(arbitration_id=0x100 + i, data=bytes([i % 256] * (i % 9)), is_extended_id=i % 4 == 0)
             for i in range(300)]
+    d = None
     try:
         d, _ = _start(["acquire", "--daq", str(ports / "daq"), "--gps", str(ports / "gps"), "--can",
                        "socketcan://vcan0", "--out", str(tmp_path / "drives"), "--quiet"], "recording")
@@ -118,7 +120,7 @@ def test_socketcan_vcan_records_frames_sent_by_python_can(tmp_path: Path) -> Non
     finally:
         sender.shutdown()
         for p in (serve, d):
-            if p.poll() is None:
+            if p is not None and p.poll() is None:
                 p.kill()
     (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     assert read_metadata(f)["can"]["wire"] == "frames"

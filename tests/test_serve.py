@@ -6,6 +6,7 @@ import select
 import signal
 import subprocess
 import sys
+import tempfile
 import tty
 from pathlib import Path
 
@@ -19,13 +20,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def start_serve(*args: str) -> tuple[subprocess.Popen, dict[str, str]]:
-    """Start ``fieldlog sim --serve`` and return it with its ``{port: pty path}`` lines."""
+    """Start ``fieldlog sim --serve`` and return it with ``{port: path}``: the links of a ``--link-dir`` of its own
+    (a new temporary folder) unless ``args`` name one, else its ``{port: pty path}`` lines.
+
+    Through the links, a reader that outlives its drive (a daemon or gpsd retrying a lost port) finds no file
+    once the serve has closed its ptys; given the pty path itself it could open the next pty of that number,
+    which a test running beside it may have been given (ptys are numbered lowest free first)."""
+    links = None
+    if "--link-dir" not in args:
+        links = Path(tempfile.mkdtemp(prefix="serve-")) / "ports"
+        args = (*args, "--link-dir", str(links))
     p = subprocess.Popen([sys.executable, "-m", "fieldlog", "sim", "--serve", *args], cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     paths = {}
     for _ in range(2):
         name, path = p.stdout.readline().split()
-        paths[name] = path
+        paths[name] = str(links / name) if links is not None else path
     return p, paths
 
 
@@ -41,7 +51,7 @@ def test_serve_streams_exactly_the_simulated_bytes(tmp_path: Path) -> None:
     truth = tmp_path / "truth.mcap"
     p, paths = start_serve("--scenario", "figure8", "--duration", "6", "--seed", "3", "--speed", "20",
                            "--hold", "--truth", str(truth))
-    assert set(paths) == {"daq", "gps"} and all(v.startswith("/dev/pts/") for v in paths.values())
+    assert set(paths) == {"daq", "gps"} and all(os.path.realpath(v).startswith("/dev/pts/") for v in paths.values())
     fds = {}
     for name, path in paths.items():
         fds[name] = os.open(path, os.O_RDONLY | os.O_NOCTTY)
