@@ -222,7 +222,7 @@ def test_drive_report_reads_the_imu_topic(tmp_path):
 
 def test_compiled_first_order_filter_equals_scipy_lfilter_to_the_bit():
     """The flicker noise's Gauss-Markov levels are filtered by a compiled recursion instead of scipy's lfilter
-    (whose import costs the simulator a second); the numbers must be lfilter's own."""
+    (scipy.signal is slow to import); the numbers must be lfilter's own."""
     from scipy.signal import lfilter
 
     from fieldlog.tools.sim.sensors import _ar1

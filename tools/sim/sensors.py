@@ -136,7 +136,7 @@ def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
 def _ar1(b0: float, phi: float, z: np.ndarray, y_prev: np.ndarray) -> np.ndarray:
     """y_k = b0 z_k + phi y_{k-1} along axis 0 of z (n, m), y_{-1} = y_prev (m,): the recursion of
     ``scipy.signal.lfilter([b0], [1, -phi], z, axis=0, zi=phi * y_prev)``, with its operations in its order, so
-    the same numbers to the bit without importing scipy.signal (a second of start-up)."""
+    the same numbers to the bit without importing scipy.signal, which is slow to import."""
     y = np.empty_like(z)
     for c in range(z.shape[1]):
         state = phi * y_prev[c]
