@@ -1,6 +1,6 @@
 """Shared fixtures: the simulated drives several modules read, each built once per run (the pytest-xdist workers
-share them: one builds, the others wait for it). The ``slow`` marker (pyproject.toml) marks the long tests: ``make test`` runs them all,
-``make test-fast`` leaves them out.
+share them: one builds, the others wait for it). The ``slow`` marker (pyproject.toml) marks the long tests:
+``make test`` runs them all, ``make test-fast`` leaves them out.
 
 A shared drive is read-only: tests write their outputs under their own ``tmp_path`` (or a directory of their
 module's own), never beside the drive, and never change it."""

@@ -66,16 +66,15 @@ def test_preset_equals_datasheet_keys_and_models_the_scale_factors(grade, tmp_pa
               "datasheet": {k: getattr(g, k) for k in (*imugrade.DATASHEET_KEYS, *SCALE_KEYS)}}
     if grade in INFLATED:
         tables["inflated"] = INFLATED[grade]
-    preset, datasheet = fusion_config(tables["preset"]), fusion_config(tables.pop("datasheet"))
-    assert preset.sensor.imu == grade and preset.replace(imu="") == datasheet
+    datasheet = tables.pop("datasheet")
+    preset = fusion_config(tables["preset"])
+    assert preset.sensor.imu == grade and preset.replace(imu="") == fusion_config(datasheet)
     rms = {k: [] for k in tables}
     inside = []
     for seed in SEEDS:
         drive = _drive(tmp_path, grade, seed)
         if seed == SEEDS[0]:
-            r, _ = _scores(drive, {k: getattr(g, k) for k in (*imugrade.DATASHEET_KEYS, *SCALE_KEYS)},
-                           tmp_path / f"datasheet_{seed}.mcap")
-            datasheet_rms = r
+            datasheet_rms, _ = _scores(drive, datasheet, tmp_path / f"datasheet_{seed}.mcap")
         for name, table in tables.items():
             r, ins = _scores(drive, table, tmp_path / f"{name}_{seed}.mcap")
             rms[name].append(r)
