@@ -488,18 +488,24 @@ class McapFile:
         cid, off, n = cid[keep], off[keep], n[keep]
         first = np.cumsum(n) - n
         pos = np.repeat(off - 16 * first, n) + 16 * np.arange(int(n.sum()), dtype=np.int64)
-        cids, times = [np.repeat(cid, n)], [le(self.buf, pos, "<i8")]
+        t = le(self.buf, pos, "<i8")
+        # a message index is one channel's entries in one chunk: count, first and last per index, then per
+        # channel over its indexes (no sort of every message)
+        groups = [(cid, n, np.minimum.reduceat(t, first), np.maximum.reduceat(t, first))] if len(t) else []
         p = self.pieces
         todo = np.flatnonzero(~p.chunk | ~p.indexed)
         for g in self.groups(todo, p.size[todo]):
             cm = self.read(g)
-            cids.append(cm.channel_id.astype(np.int64))
-            times.append(cm.log_time)
-        c, t = np.concatenate(cids), np.concatenate(times)
-        order = np.lexsort((t, c))
-        c, t = c[order], t[order]
-        cut = np.flatnonzero(np.diff(c)) + 1
-        a, b = np.r_[0, cut], np.r_[cut, len(c)]
-        self._topics = {k: (m, lo, hi) for k, m, lo, hi in
-                        zip(c[a].tolist(), (b - a).tolist(), t[a].tolist(), t[b - 1].tolist())} if len(c) else {}
+            c = cm.channel_id.astype(np.int64)
+            if len(c):
+                order = np.argsort(c, kind="stable")
+                c, t = c[order], cm.log_time[order]
+                a = np.r_[0, np.flatnonzero(np.diff(c)) + 1]
+                groups.append((c[a], np.diff(np.r_[a, len(c)]), np.minimum.reduceat(t, a), np.maximum.reduceat(t, a)))
+        stats: dict[int, tuple[int, int, int]] = {}
+        for c, m, lo, hi in groups:
+            for k, mk, lk, hk in zip(c.tolist(), m.tolist(), lo.tolist(), hi.tolist()):
+                was = stats.get(k)
+                stats[k] = (mk, lk, hk) if was is None else (was[0] + mk, min(was[1], lk), max(was[2], hk))
+        self._topics = dict(sorted(stats.items()))
         return self._topics
