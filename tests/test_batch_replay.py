@@ -17,6 +17,7 @@ from fieldlog.replay import view as rview
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.batch import RESULT_SCHEMA, drive_rows, results_table
 from fieldlog.tools.cli import main as cli_main
+from fieldlog.tools.dev.cluster import loopback_cluster
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
 
@@ -72,6 +73,34 @@ def test_batch_on_two_workers_equals_one_by_one_and_skips_the_garbage(fleet, tmp
         rows += drive_rows(fleet / f"drive{s}.mcap", ["kf", "dkf"], [30.0], tmp_path / "one_by_one")
     ref = results_table(rows)
     assert ok.drop("path").equals(ref.drop("path"))
+
+
+@pytest.mark.slow
+def test_batch_on_a_scheduler_reuses_warm_workers(fleet, tmp_path, capsys):
+    """`--scheduler` on a cluster started as machines start one (a `dask scheduler` and two `dask worker`
+    processes on 127.0.0.1): the rows equal the in-process ones, and a worker that ran several drives loaded the
+    INS kernel once: imports and compiled kernels stay warm from drive to drive."""
+    from distributed import Client
+
+    def worker_state(dask_worker) -> tuple[int, int, int]:  # local, so it is sent by value to the workers
+        """(drives run, loads of the INS kernel from numba's cache or compilations, pid) of a Dask worker."""
+        from fieldlog.fusion import ins
+
+        s = ins._integrate.stats  # the compiled INS loop (a numba dispatcher): a load counts once per signature
+        return dask_worker.state.executed_count, sum(s.cache_hits.values()) + sum(s.cache_misses.values()), os.getpid()
+
+    drives = [str(fleet / f"drive{s}.mcap") for s in SEEDS]
+    with loopback_cluster(2, tmp_path / "cluster") as address:
+        rc = cli_main(["batch", *drives, "--methods", "kf", "--scheduler", address, "--out", str(tmp_path / "b")])
+        with Client(address) as client:
+            workers = list(client.run(worker_state).values())
+    assert rc == 0 and f"on {address}" in capsys.readouterr().out
+    runs = [n for n, _, _ in workers]
+    assert sum(runs) == len(SEEDS) and max(runs) >= 2 and len({pid for _, _, pid in workers}) == 2
+    assert all(loads == (1 if n else 0) for n, loads, _ in workers), workers
+    table = pl.read_parquet(tmp_path / "b" / "results.parquet")
+    ref = results_table([r for d in drives for r in drive_rows(d, ["kf"], [], tmp_path / "one_by_one")])
+    assert (table["status"] == "ok").all() and table.drop("path").equals(ref.drop("path"))
 
 
 def _check_recording(rrd: Path, drive: Path, tmp_path: Path) -> None:

@@ -654,21 +654,39 @@ def bench_export(runs: int, tmp: Path) -> None:
     row("`fieldlog export` of a 1-hour drive to Parquet: time, peak RSS [export]", f"{med:.0f} s, {rss:.0f} MB")
 
 
-def bench_batch(runs: int, tmp: Path) -> None:
-    """fieldlog batch of 4 drives (300 s; kf, dkf; 30 s outages): 2 Dask workers against one by one in-process."""
+def bench_batch(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
+    """fieldlog batch of 4 drives (300 s; kf, dkf; 30 s outages) in drive-hours per core-hour: one by one
+    in-process (one core, the reference), a local cluster of 2 workers (started by each batch), and 2 ``dask
+    worker`` processes of a scheduler on 127.0.0.1 (``tools.dev.cluster``: started before, as a cluster runs)."""
     from fieldlog.tools.batch import drive_rows, run_batch
+    from fieldlog.tools.dev.cluster import loopback_cluster
     from fieldlog.tools.sim.simulate import simulate
 
     drives = []
     for seed in range(1, 5):
         drives.append(tmp / f"b{seed}.mcap")
-        simulate("figure8", 300, seed, drives[-1])
-    t_one, _, _ = timed(lambda: [drive_rows(d, ["kf", "dkf"], [30.0], tmp / "one") for d in drives], 1)
-    t_batch, _, _ = timed(lambda: run_batch(drives, ["kf", "dkf"], [30.0], tmp / "batch", workers=2,
-                                            say=lambda _m: None), 1)
-    print(f"batch 4 drives: one by one {t_one:.1f} s, Dask 2 workers {t_batch:.1f} s (cluster start included) "
-          f"-> speed-up {t_one / t_batch:.2f}x")
-    row("`fieldlog batch` of 4 drives, 2 Dask workers against one by one [batch]", f"×{t_one / t_batch:.2f}")
+        simulate("figure8", duration_s, seed, drives[-1])
+    hours = len(drives) * duration_s / 3600.0
+
+    def batch(**where) -> None:
+        run_batch(drives, ["kf", "dkf"], [30.0], tmp / "batch", say=lambda _m: None, force=True, **where)
+
+    t_one, w_one, _ = timed(lambda: [drive_rows(d, ["kf", "dkf"], [30.0], tmp / "one", force=True) for d in drives],
+                            runs)
+    t_local, w_local, _ = timed(lambda: batch(workers=2), runs)
+    with loopback_cluster(2, tmp / "cluster") as address:
+        t_sched, w_sched, _ = timed(lambda: batch(scheduler=address), runs)
+    rate = {"one by one, in-process": hours / (t_one / 3600.0),
+            "local cluster, 2 workers": hours / (2 * t_local / 3600.0),
+            "scheduler on 127.0.0.1, 2 workers": hours / (2 * t_sched / 3600.0)}
+    load = os.getloadavg()[0]
+    for (what, r), ts in zip(rate.items(), (w_one, w_local, w_sched)):
+        print(f"batch of {len(drives)} x {duration_s:g} s drives, {what}: {r:.0f} drive-hours per core-hour "
+              f"(runs {fmt_times(ts)} s)")
+    print(f"load {load:.1f}")
+    row("`fieldlog batch`, 4 drives of 300 s, kf + dkf with 30 s outages: drive-hours per core-hour, one by one / "
+        "local cluster / scheduler on 127.0.0.1 (2 workers each) [batch]",
+        " / ".join(f"{r:.0f}" for r in rate.values()) + f" (load {load:.1f})")
 
 
 def bench_cycle(runs: int, tmp: Path) -> None:
@@ -948,8 +966,8 @@ def stage_times(stats) -> dict[str, float]:
 
 
 def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
-    """Where `fieldlog fuse` spends its time on a 600 s figure8 drive, per stage, for kf and dkf-rbfn (cProfile of
-    a warm in-process run; start-up measured in fresh processes)."""
+    """Where `fieldlog fuse` spends its time, per stage, for kf and dkf-rbfn, on the 600 s figure8 drive and on the
+    1-hour one (cProfile of a warm in-process run; start-up measured in fresh processes)."""
     import cProfile
     import pstats
 
@@ -974,36 +992,39 @@ def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     print(f"start-up of a fuse process (medians of {len(start)}): import {imp:.2f} s, first call's excess (lazy "
           f"imports, numba cache load) {first:.2f} s; load {load:.1f}")
     table = {}
-    for method in ("kf", "dkf-rbfn"):
-        fuse(warm, method, tmp / "prof_w.mcap", force=True)
-        walls = []
-        for _ in range(runs):
+    for (label, path, n) in ((f"{duration_s:g} s", drive, runs), ("1 h", _hour_drive(tmp), 1)):
+        for method in ("kf", "dkf-rbfn"):
+            fuse(warm, method, tmp / "prof_w.mcap", force=True)
+            walls = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                fuse(path, method, tmp / "prof_out.mcap", force=True)
+                walls.append(time.perf_counter() - t0)
+            prof = cProfile.Profile()
             t0 = time.perf_counter()
-            fuse(drive, method, tmp / "prof_out.mcap", force=True)
-            walls.append(time.perf_counter() - t0)
-        prof = cProfile.Profile()
-        t0 = time.perf_counter()
-        prof.runcall(fuse, drive, method, tmp / "prof_out.mcap", force=True)
-        pwall = time.perf_counter() - t0
-        stages = stage_times(pstats.Stats(prof))
-        table[method] = (statistics.median(walls), pwall, stages)
-        print(f"fuse {method}: {statistics.median(walls):.2f} s unprofiled (runs {fmt_times(walls)}), "
-              f"{pwall:.2f} s profiled; load {os.getloadavg()[0]:.1f}")
-        top = pstats.Stats(prof, stream=sys.stdout)
-        top.sort_stats("tottime").print_stats(12)
+            prof.runcall(fuse, path, method, tmp / "prof_out.mcap", force=True)
+            pwall = time.perf_counter() - t0
+            stages = stage_times(pstats.Stats(prof))
+            table[method, label] = (statistics.median(walls), pwall, stages)
+            print(f"fuse {method}, {label}: {statistics.median(walls):.2f} s unprofiled (runs {fmt_times(walls)}), "
+                  f"{pwall:.2f} s profiled; load {os.getloadavg()[0]:.1f}")
+            top = pstats.Stats(prof, stream=sys.stdout)
+            top.sort_stats("tottime").print_stats(12)
     load = os.getloadavg()[0]
-    print("\n| stage | kf, s (share) | dkf-rbfn, s (share) |\n|---|---|---|")
-    print(f"| start-up: imports | {imp:.2f} | {imp:.2f} |")
-    print(f"| start-up: the first call's excess (lazy imports, numba cache load) | {first:.2f} | {first:.2f} |")
+    print("\n| stage | " + " | ".join(f"{m} {label}, s (share)" for m, label in table) + " |")
+    print("|---|" + "---|" * len(table))
+    print("| start-up: imports | " + " | ".join(f"{imp:.2f}" for _ in table) + " |")
+    print("| start-up: the first call's excess (lazy imports, numba cache load) | "
+          + " | ".join(f"{first:.2f}" for _ in table) + " |")
     for s in _STAGES:
-        cells = [f"{table[m][2][s]:.2f} ({table[m][2][s] / sum(table[m][2].values()):.0%})" for m in table]
+        cells = [f"{st[s]:.2f} ({st[s] / sum(st.values()):.0%})" for _, _, st in table.values()]
         print(f"| {s} | {' | '.join(cells)} |")
-    print(f"| whole run, profiled / unprofiled | {table['kf'][1]:.2f} / {table['kf'][0]:.2f} | "
-          f"{table['dkf-rbfn'][1]:.2f} / {table['dkf-rbfn'][0]:.2f} |")
+    print("| whole run, profiled / unprofiled | "
+          + " | ".join(f"{pwall:.2f} / {wall:.2f}" for wall, pwall, _ in table.values()) + " |")
     print(f"(load {load:.1f}, 1 min, at the end)")
-    for m, (wall, pwall, stages) in table.items():
+    for (m, label), (wall, pwall, stages) in table.items():
         big = max(stages, key=stages.get)
-        row(f"`fieldlog fuse --method {m}`, figure8 {duration_s:g} s: the largest stage, profiled [profile]",
+        row(f"`fieldlog fuse --method {m}`, figure8 {label}: the largest stage, profiled [profile]",
             f"{big}, {stages[big] / sum(stages.values()):.0%} of {pwall:.1f} s (unprofiled {wall:.2f} s; "
             f"start-up {imp + first:.2f} s; load {load:.1f})")
 
