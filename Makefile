@@ -20,7 +20,10 @@ demo: setup
 	$(BIN)/fieldlog demo
 
 # The whole suite, slow tests included, on every core (pytest-xdist; the workers share the simulated drives,
-# tests/conftest.py); test-fast leaves out the tests marked slow.
+# tests/conftest.py); test-fast leaves out the tests marked slow. One worker more than the cores: many tests
+# wait on the clock (real-time runs of the daemon, the emulated board, gpsd), and the extra worker computes
+# meanwhile.
+WORKERS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) + 1 )))
 # pytest exits 5 when it collected no test: that is a failure here too.
 define pytest
 $(BIN)/python -m pytest -q $(1); rc=$$?; \
@@ -28,10 +31,10 @@ if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; fi; exit $$rc
 endef
 
 test: setup
-	@$(call pytest,-n auto --dist worksteal)
+	@$(call pytest,-n $(WORKERS) --dist worksteal)
 
 test-fast: setup
-	@$(call pytest,-n auto --dist worksteal -m "not slow")
+	@$(call pytest,-n $(WORKERS) --dist worksteal -m "not slow")
 
 bench: setup
 	$(BIN)/python -m fieldlog.tools.dev.bench --markdown
