@@ -24,7 +24,8 @@ import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Sequence
+from types import MappingProxyType
+from typing import BinaryIO, Mapping, Sequence
 
 import numpy as np
 import zstandard
@@ -157,6 +158,16 @@ class Recorder:
         data = rb.end()
         self._f.write(data)
         return len(data)
+
+    @property
+    def channels(self) -> Mapping[int, Channel]:
+        """The channels defined so far, by id (read only)."""
+        return MappingProxyType(self._channels)
+
+    @property
+    def chunk_count(self) -> int:
+        """Chunks written so far."""
+        return self._chunks
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a Metadata record (string keys and values)."""
@@ -327,7 +338,7 @@ class Recorder:
         t0 = time.perf_counter()
         c = self._chunk
         if c.count:
-            self._write_chunk(b"".join(c.parts), c.start, c.end, c.index)
+            self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
             self._chunk = _OpenChunk()
         self._f.flush()
         if self._fsync:
@@ -335,9 +346,12 @@ class Recorder:
         self._last_flush = time.monotonic()
         self.flush_seconds += time.perf_counter() - t0
 
-    def _write_chunk(
+    def write_chunk(
         self, data: bytes, start: int, end: int, index: dict[int, list[tuple[np.ndarray, np.ndarray]]]
     ) -> None:
+        """Write message records as one chunk with its message indexes: ``data`` the records (a chunk's
+        content), log times from ``start`` to ``end`` (ns), ``index`` channel id -> pieces of (log times, offsets
+        into ``data``) (uint64 arrays). The open chunk's flush, and recovery's copy of a file's chunks."""
         if self._compression == "zstd":
             compressed = self._zstd.compress(data)
         elif self._compression == "lz4":

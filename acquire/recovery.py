@@ -146,7 +146,7 @@ def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Exte
                         loose[0] = loose[1] = good_end = f.tell()
                         continue
                 if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
-                    if record.channel_id not in rec._channels:
+                    if record.channel_id not in rec.channels:
                         break
                     loose[1] = good_end = f.tell()
                     if loose[1] - loose[0] >= 4 << 20:
@@ -164,7 +164,7 @@ def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Exte
                 elif isinstance(record, Chunk):
                     for r in inner:
                         (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
-                    if not set(np.unique(cm.channel_id).tolist()) <= set(rec._channels):
+                    if not set(np.unique(cm.channel_id).tolist()) <= set(rec.channels):
                         break
                     keep(cm)
                 elif isinstance(record, (DataEnd, Footer)):
@@ -180,10 +180,10 @@ def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Exte
                                                                      for k, v in rederived.items()}})
     finally:
         rec.close()
-    topics = {rec._channels[cid].topic: n for cid, n in kept.items()}
+    topics = {rec.channels[cid].topic: n for cid, n in kept.items()}
     return RecoverReport(
         messages=topics,
-        chunks=rec._chunks,
+        chunks=rec.chunk_count,
         bytes_discarded=size - good_end if not had_summary else 0,
         last_log_time_ns=last_t,
         had_summary=had_summary,
@@ -200,7 +200,7 @@ def _copy_chunk(rec: Recorder, cm: ChunkMessages) -> None:
         index[cid] = [(cm.log_time[sel].astype(np.uint64), cm.offset[sel].astype(np.uint64))]
     if len(cm.log_time) == 0:
         return
-    rec._write_chunk(cm.data.tobytes(), int(cm.log_time.min()), int(cm.log_time.max()), index)
+    rec.write_chunk(cm.data.tobytes(), int(cm.log_time.min()), int(cm.log_time.max()), index)
 
 
 class TailDeriver:
@@ -224,7 +224,7 @@ class TailDeriver:
             self.held.setdefault(topic, []).append((t[keep], messages.as_packed(data).take(keep)))
 
     def chunk(self, rec: Recorder, cm: ChunkMessages, metadata: dict[str, dict[str, str]]) -> None:
-        topics = {cid: ch.topic for cid, ch in rec._channels.items()}
+        topics = {cid: ch.topic for cid, ch in rec.channels.items()}
         raw = np.array([topics.get(int(c), "").startswith("/raw/") for c in cm.channel_id], bool)
         if raw.any():
             if self.pipe is None:

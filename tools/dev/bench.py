@@ -892,7 +892,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
 _WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
-          "flush", "_write_chunk", "_write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
+          "flush", "write_chunk", "_write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
           "close", "__enter__", "__exit__", "add"}
 _CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_matrices", "discretise"}
 
