@@ -223,10 +223,14 @@ def by_stamp(d: dict) -> dict:
     if not len(d.get("log_time_ns", ())):
         return {}
     ok = np.asarray(d["valid"], bool)
-    t = _stamps(d)[ok]
-    order = np.argsort(t, kind="stable")
-    out = {k: np.asarray(v)[ok][order] for k, v in d.items() if isinstance(v, np.ndarray) and len(v) == len(ok)}
-    out["log_time_ns"] = t[order]
+    t = _stamps(d)
+    if ok.all():  # the usual block: every row valid and in stamp order, taken as it is
+        sel = None if np.all(t[1:] >= t[:-1]) else np.argsort(t, kind="stable")
+    else:
+        sel = np.flatnonzero(ok)
+        sel = sel[np.argsort(t[sel], kind="stable")]
+    out = {k: v if sel is None else v[sel] for k, v in d.items() if isinstance(v, np.ndarray) and len(v) == len(ok)}
+    out["log_time_ns"] = t if sel is None else t[sel]
     return out
 
 
@@ -268,6 +272,9 @@ def _join(a: dict, b: dict) -> dict:
     if not a or not b:
         return a or b
     d = {f: np.concatenate([a[f], b[f]]) for f in a if f in b}
+    ta, tb = a["log_time_ns"], b["log_time_ns"]
+    if not len(ta) or not len(tb) or ta[-1] <= tb[0]:  # b follows a: already the stable order
+        return d
     order = np.argsort(d["log_time_ns"], kind="stable")
     return {f: v[order] for f, v in d.items()}
 
@@ -347,8 +354,9 @@ class InputStream:
         keep[1:] = t[1:] > t[:-1]
         if self._last_t is not None:
             keep &= t > self._last_t
-        self.repeated += int((~keep).sum())
-        imu = {k: v[keep] for k, v in imu.items()}
+        if not keep.all():
+            self.repeated += int((~keep).sum())
+            imu = {k: v[keep] for k, v in imu.items()}
         t = imu["log_time_ns"]
         steps = np.diff(t if self._last_t is None else np.concatenate([[self._last_t], t]))
         if self._period_ns is None and len(steps) >= 100:
