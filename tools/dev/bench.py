@@ -900,12 +900,12 @@ _CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_ma
 def _stage_of(path: str, name: str) -> str | None:
     """The stage of a project function (file, name), None for a library one."""
     p = Path(path)
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]  # the checkout: tools/dev/bench.py
     try:
         rel = p.resolve().relative_to(root).as_posix()
     except (ValueError, OSError):
         return None
-    if ".venv" in rel or rel.startswith("tools/bench"):
+    if ".venv" in rel or rel.startswith("tools/dev/"):
         return None
     if rel == "acquire/recorder.py":
         return "output encoding and writing" if name in _WRITE else "reading and decoding"
