@@ -60,6 +60,7 @@ from fieldlog.acquire.recorder import MAGIC
 log = logging.getLogger(__name__)
 WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
+STATS_ENTRIES = 1 << 18  # message index entries read at a time by ``channel_stats``
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
 _CHUNK_HEAD = np.dtype({"names": ["start", "end", "size", "crc", "comp_len"],
                         "formats": ["<u8", "<u8", "<u8", "<u4", "<u4"], "offsets": [0, 8, 16, 24, 28], "itemsize": 32})
@@ -416,8 +417,19 @@ class McapFile:
         """``read`` over pieces ``idx`` (``ChunkError``: the first damaged one's position in ``idx``)."""
         p = self.pieces
         comp = np.where(p.chunk[idx], p.comp[idx], len(self.compressions))  # "": loose runs
-        return read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
-                    np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
+        out = read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
+                   np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
+        if len(idx):
+            self._drop(int(p.body[idx].min()), int((p.body[idx] + p.body_len[idx]).max()))
+        return out
+
+    def _drop(self, lo: int, hi: int) -> None:
+        """Hand the mapped pages of bytes [lo, hi) back: a drive is read once, front to back, so its pages need
+        not stay in this process's resident memory (the page cache keeps them, and a later read faults them in
+        again); reading a drive of any length then takes the same memory."""
+        start = lo - lo % mmap.PAGESIZE
+        if hi > start:
+            self._mm.madvise(mmap.MADV_DONTNEED, start, hi - start)
 
     def damaged(self) -> list[int]:
         """Byte offsets of the chunks whose content does not decompress to its size and CRC-32 (what ``fieldlog
@@ -486,12 +498,17 @@ class McapFile:
         owner, cid, off, n = self._index
         keep = n > 0
         cid, off, n = cid[keep], off[keep], n[keep]
-        first = np.cumsum(n) - n
-        pos = np.repeat(off - 16 * first, n) + 16 * np.arange(int(n.sum()), dtype=np.int64)
-        t = le(self.buf, pos, "<i8")
-        # a message index is one channel's entries in one chunk: count, first and last per index, then per
-        # channel over its indexes (no sort of every message)
-        groups = [(cid, n, np.minimum.reduceat(t, first), np.maximum.reduceat(t, first))] if len(t) else []
+        # a message index is one channel's entries in one chunk: count, first and last per index (in batches of
+        # about STATS_ENTRIES entries, so memory does not grow with the drive), then per channel over its indexes
+        groups = []
+        batch = np.searchsorted(np.cumsum(n), np.arange(1, 1 + int(n.sum()) // STATS_ENTRIES) * STATS_ENTRIES)
+        for a, b in zip(np.r_[0, batch], np.r_[batch, len(n)]):
+            if b > a:
+                first = np.cumsum(n[a:b]) - n[a:b]
+                pos = np.repeat(off[a:b] - 16 * first, n[a:b]) + 16 * np.arange(int(n[a:b].sum()), dtype=np.int64)
+                t = le(self.buf, pos, "<i8")
+                groups.append((cid[a:b], n[a:b], np.minimum.reduceat(t, first), np.maximum.reduceat(t, first)))
+                self._drop(int(pos.min()), int(pos.max()) + 8)
         p = self.pieces
         todo = np.flatnonzero(~p.chunk | ~p.indexed)
         for g in self.groups(todo, p.size[todo]):

@@ -205,3 +205,35 @@ def test_recover_writes_about_its_input_plus_the_rederived_tail(tmp_path: Path) 
     print(f"\ncut {cut.stat().st_size} B -> chunks {plain.stat().st_size} B + tail {extra} B "
           f"({sum(rep2.rederived.values())} messages; as in the drive: {allowance:.0f} B)")
     assert extra <= 1.1 * allowance + (64 << 10)
+
+
+_RSS_PROBE = """import sys
+import numpy as np
+from fieldlog.replay.mcapfile import McapFile
+
+def peak():  # this process's own high-water mark (ru_maxrss would start from the parent's, as exec keeps it)
+    return next(int(x.split()[1]) for x in open("/proc/self/status") if x.startswith("VmHWM:")) * 1024
+
+f = McapFile(sys.argv[1])
+every = np.arange(len(f.pieces.size))
+f.read(every[:1])
+before = peak()
+f.channel_stats()
+for g in f.groups(every, f.pieces.size):
+    f.read(g)
+print(peak() - before)
+"""
+
+
+def test_reading_a_drive_through_takes_the_same_memory_for_any_length(simulated, figure8_600s_seed1) -> None:
+    """Reading every chunk of a drive and its message indexes (the topic table) hands the file's mapped pages
+    back as it goes: the reader's peak resident memory grows by the same amount for a 400 s and a 600 s drive,
+    not by the 200 s of file between them."""
+    grown = {}
+    for path in (simulated("figure8", 400.0, 1), figure8_600s_seed1):
+        p = subprocess.run([sys.executable, "-c", _RSS_PROBE, str(path)], capture_output=True, text=True,
+                           timeout=300, check=True)
+        grown[path] = int(p.stdout)
+    short, long = grown
+    more_file = long.stat().st_size - short.stat().st_size
+    assert more_file > 15e6 and grown[long] - grown[short] < 0.25 * more_file, (grown, more_file)
