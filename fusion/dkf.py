@@ -117,9 +117,8 @@ class DistributedKF:
             self.local_states = np.zeros((m, 2, N_STATES))
             self.local_diag = np.stack([d1, d1], axis=1)
             return BETA * d1
-        out = np.empty((m, N_STATES))
         xs = np.empty((m, 2, N_STATES))
-        ds = np.empty((m, 2, N_STATES))
+        Ps = np.empty((3, m, N_STATES, N_STATES))  # P1, P2, P12 after each cycle
         x1, x2 = self.kf_vel.x, self.kf_pos.x
         P1, P2, P12 = self.kf_vel.P, self.kf_pos.P, self.P12
         for i in range(m):
@@ -127,13 +126,14 @@ class DistributedKF:
             P1 = _sym(Phi[i] @ P1 @ Phi[i].T + Q[i])
             P2 = _sym(Phi[i] @ P2 @ Phi[i].T + Q[i])
             P12 = Phi[i] @ P12 @ Phi[i].T + Q[i]
-            out[i] = np.diag(_fused_error_cov(P1, P2, P12)[1])
             xs[i] = x1, x2
-            ds[i] = np.diag(P1), np.diag(P2)
+            Ps[:, i] = P1, P2, P12
         self.kf_vel.x, self.kf_vel.P, self.kf_pos.x, self.kf_pos.P, self.P12 = x1, P1, x2, P2, P12
         self._fuse()
-        self.local_states, self.local_diag = xs, ds
-        return out
+        self.local_states = xs
+        self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
+        # every cycle's fused error covariance at once: the same per-matrix LAPACK and BLAS calls as one by one
+        return np.diagonal(_fused_error_cov(*Ps)[1], axis1=1, axis2=2).copy()
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """A measurement of the shared interface: to KF_II when it observes position, else to KF_I; then fusion.
@@ -220,20 +220,26 @@ def fuse(filters) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fused_error_cov(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(eq. 4's P, the covariance of the eqs. 3-4 estimate's error given the cross-covariance P12)."""
+    """(eq. 4's P, the covariance of the eqs. 3-4 estimate's error given the cross-covariance P12); of one
+    cycle's (15, 15) matrices or of a stack of them (m, 15, 15)."""
     I1, I2 = _inv_spd(P1), _inv_spd(P2)
     P = _inv_spd(I1 + I2)
     W1, W2 = P @ I1, P @ I2
-    C = W1 @ P12 @ W2.T
-    return P, _sym(W1 @ P1 @ W1.T + W2 @ P2 @ W2.T + C + C.T)
+    C = W1 @ P12 @ _t(W2)
+    return P, _sym(W1 @ P1 @ _t(W1) + W2 @ P2 @ _t(W2) + C + _t(C))
+
+
+def _t(A: np.ndarray) -> np.ndarray:
+    """The transpose of a matrix, or of each of a stack."""
+    return np.swapaxes(A, -1, -2)
 
 
 def _sym(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
+    return 0.5 * (P + _t(P))
 
 
 def _inv_spd(P: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix through Cholesky, symmetrised."""
+    """Inverse of a symmetric positive definite matrix (or of each of a stack) through Cholesky, symmetrised."""
     L = np.linalg.cholesky(P)
-    Li = np.linalg.solve(L, np.eye(len(P)))
-    return Li.T @ Li
+    Li = np.linalg.solve(L, np.broadcast_to(np.eye(P.shape[-1]), P.shape))
+    return _t(Li) @ Li
