@@ -498,31 +498,29 @@ class McapFile:
         owner, cid, off, n = self._index
         keep = n > 0
         cid, off, n = cid[keep], off[keep], n[keep]
-        # a message index is one channel's entries in one chunk: count, first and last per index (in batches of
-        # about STATS_ENTRIES entries, so memory does not grow with the drive), then per channel over its indexes
-        groups = []
+        # (channel, count, first, last) per message index (one channel's entries in one chunk), read in batches of
+        # about STATS_ENTRIES entries so that memory does not grow with the drive, and per loose message
+        parts = []
         batch = np.searchsorted(np.cumsum(n), np.arange(1, 1 + int(n.sum()) // STATS_ENTRIES) * STATS_ENTRIES)
         for a, b in zip(np.r_[0, batch], np.r_[batch, len(n)]):
             if b > a:
                 first = np.cumsum(n[a:b]) - n[a:b]
                 pos = np.repeat(off[a:b] - 16 * first, n[a:b]) + 16 * np.arange(int(n[a:b].sum()), dtype=np.int64)
                 t = le(self.buf, pos, "<i8")
-                groups.append((cid[a:b], n[a:b], np.minimum.reduceat(t, first), np.maximum.reduceat(t, first)))
+                parts.append((cid[a:b], n[a:b], np.minimum.reduceat(t, first), np.maximum.reduceat(t, first)))
                 self._drop(int(pos.min()), int(pos.max()) + 8)
         p = self.pieces
         todo = np.flatnonzero(~p.chunk | ~p.indexed)
         for g in self.groups(todo, p.size[todo]):
             cm = self.read(g)
-            c = cm.channel_id.astype(np.int64)
-            if len(c):
-                order = np.argsort(c, kind="stable")
-                c, t = c[order], cm.log_time[order]
-                a = np.r_[0, np.flatnonzero(np.diff(c)) + 1]
-                groups.append((c[a], np.diff(np.r_[a, len(c)]), np.minimum.reduceat(t, a), np.maximum.reduceat(t, a)))
-        stats: dict[int, tuple[int, int, int]] = {}
-        for c, m, lo, hi in groups:
-            for k, mk, lk, hk in zip(c.tolist(), m.tolist(), lo.tolist(), hi.tolist()):
-                was = stats.get(k)
-                stats[k] = (mk, lk, hk) if was is None else (was[0] + mk, min(was[1], lk), max(was[2], hk))
-        self._topics = dict(sorted(stats.items()))
+            parts.append((cm.channel_id, np.ones(len(cm.channel_id), np.int64), cm.log_time, cm.log_time))
+        self._topics = {}
+        c, m, lo, hi = (np.concatenate([np.asarray(x, np.int64) for x in col]) for col in zip(*parts, ((), (), (), ())))
+        if len(c):  # per channel: the sum of its counts, the least first and the greatest last time
+            order = np.argsort(c, kind="stable")
+            c, m, lo, hi = c[order], m[order], lo[order], hi[order]
+            at = np.r_[0, np.flatnonzero(np.diff(c)) + 1]
+            self._topics = dict(zip(c[at].tolist(), zip(np.add.reduceat(m, at).tolist(),
+                                                        np.minimum.reduceat(lo, at).tolist(),
+                                                        np.maximum.reduceat(hi, at).tolist())))
         return self._topics

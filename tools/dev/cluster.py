@@ -18,7 +18,8 @@ def _wait(what: str, ready, procs: list[subprocess.Popen], timeout_s: float) -> 
     end = time.monotonic() + timeout_s
     while not ready():
         if any(p.poll() is not None for p in procs):
-            raise RuntimeError(f"{what}: a dask process exited ({[p.args[1:3] for p in procs if p.poll() is not None]})")
+            dead = [p.args[2] for p in procs if p.poll() is not None]
+            raise RuntimeError(f"{what}: a dask process exited ({', '.join(dead)})")
         if time.monotonic() > end:
             raise TimeoutError(f"{what}: not ready after {timeout_s:g} s")
         time.sleep(0.1)
@@ -30,7 +31,6 @@ def loopback_cluster(workers: int, folder: Path, timeout_s: float = 60.0) -> Ite
     process is stopped on exit. ``folder``: where the scheduler file and the processes' logs go."""
     from distributed import Client
 
-    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
     folder.mkdir(parents=True, exist_ok=True)
     sched_file = folder / "scheduler.json"
     sched_file.unlink(missing_ok=True)
@@ -41,8 +41,8 @@ def loopback_cluster(workers: int, folder: Path, timeout_s: float = 60.0) -> Ite
             procs.append(subprocess.Popen(args, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL))
 
     try:
-        start([*dask, "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--no-show",
-               "--scheduler-file", str(sched_file)], "scheduler.log")
+        start([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+               "--no-dashboard", "--no-show", "--scheduler-file", str(sched_file)], "scheduler.log")
         _wait("dask scheduler", sched_file.exists, procs, timeout_s)
         _wait("dask scheduler", lambda: "address" in sched_file.read_text(), procs, timeout_s)
         address = json.loads(sched_file.read_text())["address"]
