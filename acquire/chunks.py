@@ -2,7 +2,7 @@
 
 Every reader of the project goes through these kernels: ``replay.mcapfile`` (any file layout, complete or cut
 short), ``replay.reader`` and ``acquire.recovery``. A chunk is walked record by record in one compiled pass
-(``walk_records``: numba when it is installed, plain Python otherwise), decompressed in runs
+(``walk_records``, acquire/_chunks.c), decompressed in runs
 (``decompress_many``: python-zstandard's batch call, zlib-ng's CRC-32; ``read_chunks``: the compiled kernels of
 ``acquire.native`` when they are ready) and its Message records gathered as arrays (``ChunkMessages``), so no
 per-message Python runs on a whole drive. No chunk is decompressed past its claimed size, and none claiming more
@@ -11,8 +11,8 @@ than ``max_chunk_bytes`` (``FIELDLOG_MAX_CHUNK_BYTES``) is decompressed at all.
 
 from __future__ import annotations
 
+import ctypes
 import os
-import struct
 import threading
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -27,86 +27,30 @@ from mcap.stream_reader import breakup_chunk
 from fieldlog.acquire import messages, native
 
 
-def _walk_records(buf: np.ndarray, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Records in ``buf`` from byte ``pos`` on (a chunk's content, or a whole file after its magic): opcode,
-    start of the record body, body length; and the end of the last complete record. ``cap``: the number of
-    records expected (the arrays grow past it). Compiled by numba when it is installed (fieldlog[fusion]);
-    plain Python otherwise (several times slower)."""
-    n = len(buf)
-    cap = max(cap, 16)
-    ops = np.empty(cap, np.uint8)
-    starts = np.empty(cap, np.int64)
-    lengths = np.empty(cap, np.int64)
-    k = 0
-    while pos + 9 <= n:
-        length = 0
-        for b in range(8):
-            length |= np.int64(buf[pos + 1 + b]) << (8 * b)
-        if length < 0 or pos + 9 + length > n:
-            break
-        if k == cap:
-            cap *= 2
-            ops2 = np.empty(cap, np.uint8)
-            s2 = np.empty(cap, np.int64)
-            l2 = np.empty(cap, np.int64)
-            ops2[:k] = ops[:k]
-            s2[:k] = starts[:k]
-            l2[:k] = lengths[:k]
-            ops, starts, lengths = ops2, s2, l2
-        ops[k] = buf[pos]
-        starts[k] = pos + 9
-        lengths[k] = length
-        k += 1
-        pos += 9 + length
-    return ops[:k], starts[:k], lengths[:k], pos
-
-
-_walk_impl = None
-
-
 def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The records of an uncompressed chunk (``walk_records`` from its start)."""
     return walk_records(buf, 0, len(buf) // 31 + 1)
 
 
-def walk_records(buf: np.ndarray, pos: int, cap: int, jit: bool = True, limit: int | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """``_walk_records``, numba-compiled on first use when numba is installed (so importing this module, as
-    ``fieldlog acquire`` and ``info`` do, never loads numba); ``jit`` False: the plain walk, stopping after
-    ``limit`` records (a file's top level: a few records, where compiling would cost more than it saves), unless
-    the compiled walk is loaded already: then that, to the end."""
-    global _walk_impl
-    if not jit and (_walk_impl is None or _walk_impl is _walk_python):
-        return _walk_python(buf, pos, cap, limit)
-    if _walk_impl is None:
-        try:
-            import numba
-        except ImportError:
-            _walk_impl = _walk_python
-        else:
-            _walk_impl = numba.njit(cache=True)(_walk_records)
-    return _walk_impl(buf, pos, cap)
-
-
-def _walk_python(buf: np.ndarray, pos: int, cap: int, limit: int | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """``_walk_records`` without numba: the same walk over the bytes with ``struct`` (indexing numpy scalars in
-    an interpreted loop is much slower than unpacking from a buffer)."""
-    data = buf if isinstance(buf, (bytes, memoryview)) else memoryview(buf)
-    n = len(data)
-    ops: list[int] = []
-    starts: list[int] = []
-    lengths: list[int] = []
-    unpack = struct.Struct("<BQ").unpack_from
-    while pos + 9 <= n and (limit is None or len(ops) < limit):
-        op, length = unpack(data, pos)
-        if length >= 1 << 63 or pos + 9 + length > n:
+def walk_records(buf, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Records in ``buf`` (a uint8 array or a bytes-like object) from byte ``pos`` on (a chunk's content, or a
+    whole file after its magic): opcode, start of the record body, body length; and the end of the last complete
+    record. ``cap``: the number of records expected (the arrays grow past it). Compiled (acquire/_chunks.c)."""
+    data = np.frombuffer(buf, np.uint8) if not isinstance(buf, np.ndarray) else np.ascontiguousarray(buf, np.uint8)
+    n, walk = len(data), native.library("fieldlog.acquire._chunks").fieldlog_walk
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    cap, end = max(int(cap), 16), ctypes.c_int64(pos)
+    while True:
+        ops, starts, lengths = np.empty(cap, np.uint8), np.empty(cap, np.int64), np.empty(cap, np.int64)
+        k = walk(data.ctypes.data, n, end.value, cap, ops.ctypes.data, starts.ctypes.data, lengths.ctypes.data,
+                 ctypes.byref(end))
+        parts.append((ops[:k], starts[:k], lengths[:k]))
+        if k < cap:
             break
-        ops.append(op)
-        starts.append(pos + 9)
-        lengths.append(length)
-        pos += 9 + length
-    return (np.array(ops, np.uint8), np.array(starts, np.int64), np.array(lengths, np.int64), pos)
+        cap *= 2
+    if len(parts) == 1:
+        return (*parts[0], end.value)
+    return (*(np.concatenate(x) for x in zip(*parts)), end.value)
 
 
 @dataclass(frozen=True)
@@ -272,7 +216,7 @@ def _one(compression: str, data, size: int, k: int):
 
 
 def chunk_messages(data: bytes) -> ChunkMessages:
-    """Parse the Message records of an uncompressed chunk, vectorised (numba record walk)."""
+    """Parse the Message records of an uncompressed chunk, vectorised (compiled record walk)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     return messages_of(buf, *_walk(buf)[:3])
 

@@ -1,21 +1,25 @@
-"""Compiled kernels for reading many small chunks: libzstd and zlib-ng called from numba loops.
+"""Compiled kernels for reading many small chunks: libzstd and zlib-ng called from one C loop.
 
 python-zstandard decompresses a batch of frames in one call, but hands the output back in pieces of 128 frames
 that must be joined, and its CRC-32 check is one Python call per chunk; the joined buffer is then walked record
 by record and the payloads gathered from it, long after it left the cache (in a file of 4 KiB chunks, where
 every chunk holds a little of every topic, this cost more than the decompression). ``read_chunks`` calls
-libzstd's ``ZSTD_decompressDCtx`` and zlib-ng's ``zng_crc32`` from one compiled loop instead: each chunk is
-decompressed into a small buffer that stays in the cache, checked, its records walked, and only the records asked
-for copied out, so the batch holds what will be read, packed (as in our own files, whose chunks hold few topics).
+libzstd's ``ZSTD_decompressDCtx`` and zlib-ng's ``zng_crc32`` from one compiled loop instead (acquire/_chunks.c):
+each chunk is decompressed into a small buffer that stays in the cache, checked, its records walked, and only
+the records asked for copied out, so the batch holds what will be read, packed (as in our own files, whose
+chunks hold few topics).
 
 The C functions are the ones the two packages already ship: the shared objects of zstandard's cffi backend and of
-zlib_ng export their C API. ``ready()`` is False without numba, or when an installed build does not export them;
-the callers then take the python-zstandard path (``chunks.decompress_many``, ``chunks.messages_of``).
+zlib_ng export their C API, and their addresses are passed to the kernel. ``ready()`` is False when an installed
+build does not export them; the callers then take the python-zstandard path (``chunks.decompress_many``,
+``chunks.messages_of``). ``library`` loads the package's compiled kernels (setup.py), which need no Python
+headers and are called through ctypes.
 """
 from __future__ import annotations
 
 import ctypes
 import importlib.machinery
+import importlib.util
 import os
 
 import numpy as np
@@ -28,7 +32,33 @@ ERRORS = {CODEC: "chunk does not decompress (zstd)", SIZE: "chunk size mismatch"
 _state: dict[str, object] = {}
 
 
-def _libraries() -> dict[str, ctypes.CDLL]:
+_libs: dict[str, ctypes.CDLL] = {}
+_P, _I64 = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {  # the kernels' C signatures (acquire/_chunks.c, tools/sim/_sensors.c): name -> (restype, argtypes)
+    "fieldlog_walk": (_I64, [_P, _I64, _I64, _I64, _P, _P, _P, _P]),
+    "fieldlog_read_chunks": (None, [_P] * 6 + [_I64] + [_P] * 11),
+    "fieldlog_gm_recursion": (None, [_I64, _I64, _P, _P, _P]),
+    "fieldlog_ar1": (None, [_I64, _I64, ctypes.c_double, ctypes.c_double, _P, _P, _P]),
+}
+
+
+def library(module: str) -> ctypes.CDLL:
+    """The compiled kernels of extension ``module`` (``fieldlog.acquire._chunks``, ...), loaded once per process
+    with their signatures set. ImportError, naming the fix, when the package was installed without them."""
+    if module not in _libs:
+        spec = importlib.util.find_spec(module)
+        if spec is None or spec.origin is None:
+            raise ImportError(f"fieldlog's compiled kernels ({module}) are not built: reinstall fieldlog "
+                              "(pip install -e . builds them; needs a C compiler)")
+        lib = ctypes.CDLL(spec.origin)
+        for name, (restype, argtypes) in _SIGNATURES.items():
+            if hasattr(lib, name):
+                getattr(lib, name).restype, getattr(lib, name).argtypes = restype, argtypes
+        _libs[module] = lib
+    return _libs[module]
+
+
+def _shipped() -> dict[str, ctypes.CDLL]:
     import zlib_ng.zlib_ng
     import zstandard
 
@@ -38,82 +68,22 @@ def _libraries() -> dict[str, ctypes.CDLL]:
 
 
 def ready() -> bool:
-    """Whether the kernels can run (numba installed, the C functions found): decided once per process, which
-    then imports numba and compiles the kernels (or loads them from numba's cache)."""
+    """Whether ``read_chunks`` can run (the C functions of zstandard and zlib_ng found): decided once per
+    process."""
     if "ok" not in _state:
         _state["ok"] = False
         try:
-            import llvmlite.binding
-            import numba
-            from numba import types
-
-            libs = _libraries()
-            for lib, names in _SYMBOLS.items():
-                for name in names:
-                    llvmlite.binding.add_symbol(name, ctypes.cast(getattr(libs[lib], name), ctypes.c_void_p).value)
+            libs = _shipped()
+            fns = [ctypes.cast(getattr(libs[lib], name), ctypes.c_void_p).value
+                   for lib, names in _SYMBOLS.items() for name in names]
         except (ImportError, StopIteration, OSError, AttributeError):
             return False
         create = libs["zstd"].ZSTD_createDCtx
         create.restype = ctypes.c_void_p
-        ptr = types.uintp
-        g = globals()  # the kernels call these by symbol name, so their cached machine code stays valid
-        g["_zstd_decompress"] = types.ExternalFunction("ZSTD_decompressDCtx", ptr(ptr, ptr, ptr, ptr, ptr))
-        g["_zstd_is_error"] = types.ExternalFunction("ZSTD_isError", types.uint32(ptr))
-        g["_crc32"] = types.ExternalFunction("zng_crc32", types.uint64(types.uint64, ptr, types.uint64))
-        for name in ("_u64", "_read"):
-            g[name] = numba.njit(cache=True)(g[name])
-        _state["dctx"] = int(create())  # this process's context (the kernels hold the GIL)
+        _state["fns"] = (fns[1], fns[2], fns[3])  # ZSTD_decompressDCtx, ZSTD_isError, zng_crc32
+        _state["dctx"] = create()  # this process's context (ctypes calls hold the GIL)
         _state["ok"] = True
     return bool(_state["ok"])
-
-
-def _u64(buf, at, width):
-    v = np.int64(0)
-    for b in range(width):
-        v |= np.int64(buf[at + b]) << (8 * b)
-    return v
-
-
-def _read(dctx, src, comp, at, length, size, crc, stage, out, want, rec, ch, defs):
-    src_at, stage_at = src.ctypes.data, stage.ctypes.data
-    k = nd = o = 0
-    for j in range(len(at)):
-        if comp[j] == ZSTD:
-            r = _zstd_decompress(dctx, stage_at, size[j], src_at + at[j], length[j])
-            if _zstd_is_error(r) != 0:
-                return j, CODEC, o, k, nd
-            n = np.int64(r)
-        else:
-            n = length[j]
-            if n == size[j]:
-                stage[:n] = src[at[j]:at[j] + n]
-        if n != size[j]:
-            return j, SIZE, o, k, nd
-        if crc[j] != 0 and (_crc32(0, stage_at, n) & 0xFFFFFFFF) != crc[j]:
-            return j, CRC, o, k, nd
-        pos = 0
-        while pos + 9 <= n:  # the chunk's records, while they are in the cache
-            body = _u64(stage, pos + 1, 8)
-            if body < 0 or pos + 9 + body > n:
-                break
-            op = stage[pos]
-            keep = (op == 3 or op == 4) and body >= 14  # Schema, Channel (14, 16 bytes at least): defined inside
-            if op == 5 and body >= 22:  # Message: channel u16, sequence u32, log_time, publish_time
-                c = _u64(stage, pos + 9, 2)
-                if want[c]:
-                    keep = True
-                    rec[k, 0], rec[k, 1] = o, body
-                    rec[k, 2], rec[k, 3] = _u64(stage, pos + 15, 8), _u64(stage, pos + 23, 8)
-                    ch[k] = c
-                    k += 1
-            elif keep:
-                defs[nd, 0], defs[nd, 1], defs[nd, 2] = op, o + 9, body
-                nd += 1
-            if keep:
-                out[o:o + 9 + body] = stage[pos:pos + 9 + body]
-                o += 9 + body
-            pos += 9 + body
-    return -1, OK, o, k, nd
 
 
 def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size: np.ndarray, crc: np.ndarray,
@@ -129,10 +99,21 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     ``out``, body length)), or the first bad chunk and what is wrong with it (``CODEC``, ``SIZE``, ``CRC``). Only
     when ``ready()``."""
     n = int(size.sum())
-    # rows for as many records as the bytes could hold (compiled code checks no bounds): a message record is 31
-    # bytes at least, a schema or channel record kept 23
+    # rows for as many records as the bytes could hold: a message record is 31 bytes at least, a schema or
+    # channel record kept 23
     rec, ch = np.empty((n // 31 + 1, 4), np.int64), np.empty(n // 31 + 1, np.uint16)
     defs = np.empty((n // 23 + 1, 3), np.int64)
-    j, what, used, k, nd = _read(_state["dctx"], np.frombuffer(buf, np.uint8), comp, at, length, size, crc, stage,
-                                 out, want, rec, ch, defs)
-    return int(j), int(what), int(used), rec[:k], ch[:k], defs[:nd]
+    src = np.frombuffer(buf, np.uint8)
+    arrays = [np.ascontiguousarray(a, np.int64) for a in (at, length, size, crc)]
+    comp, want = np.ascontiguousarray(comp, np.uint8), np.ascontiguousarray(want, np.uint8)
+    a, b = arrays[0], arrays[0] + arrays[1]
+    if (len(want) != 1 << 16 or stage.nbytes < int(size.max(initial=0)) or out.nbytes < n
+            or len(a) and (a.min() < 0 or b.max() > len(src) or arrays[1].min() < 0)):
+        raise ValueError("read_chunks: chunks outside the buffer, or want, stage or out of the wrong size")
+    res = np.zeros(5, np.int64)
+    library("fieldlog.acquire._chunks").fieldlog_read_chunks(
+        *_state["fns"], _state["dctx"], src.ctypes.data, len(comp), comp.ctypes.data,
+        *(a.ctypes.data for a in arrays), stage.ctypes.data, out.ctypes.data, want.ctypes.data, rec.ctypes.data,
+        ch.ctypes.data, defs.ctypes.data, res.ctypes.data)
+    j, what, used, k, nd = res.tolist()
+    return j, what, used, rec[:k], ch[:k], defs[:nd]

@@ -14,7 +14,8 @@ Rotation conventions
 - A rotation vector r (axis * angle) corresponds to ``exp([r x])``.
 
 All functions are vectorised over leading axes: vectors are (..., 3), quaternions (..., 4), DCMs (..., 3, 3).
-``principal_radii`` and ``gravity`` use only ufuncs so that numba can compile them for the INS kernel.
+``principal_radii`` and ``gravity`` are written out again, operation for operation, in the INS kernel
+(fusion/_ins.c), which takes the constants from here.
 """
 
 from __future__ import annotations

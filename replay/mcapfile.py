@@ -17,8 +17,7 @@ the listed chunks (header, schemas, channels, metadata, attachments, data end) a
 message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
 Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
 top-level records are walked once (``acquire.chunks.walk_records``: it reads only each record's 9-byte head,
-so it jumps over chunk bodies; the first ``WALK_PLAIN`` records without numba, so ``info`` on a chunked file
-never loads it). Both give the same table, so a file with or without a summary, indexes, statistics or summary
+so it jumps over chunk bodies). Both give the same table, so a file with or without a summary, indexes, statistics or summary
 offsets reads the same; a file of many small chunks opens faster from its summary than walked. A *piece*
 is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
 or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
@@ -58,7 +57,6 @@ from fieldlog.acquire.chunks import ChunkError, ChunkMessages, decompress_many, 
 from fieldlog.acquire.recorder import MAGIC
 
 log = logging.getLogger(__name__)
-WALK_PLAIN = 20_000  # top-level records walked without numba before the compiled walk takes over
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
 STATS_ENTRIES = 1 << 18  # message index entries read at a time by ``channel_stats``
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
@@ -193,14 +191,8 @@ class McapFile:
     # -- pieces ------------------------------------------------------------------------------
 
     def _walk(self, pos: int, end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """The records from ``pos`` up to ``end``: the first ``WALK_PLAIN`` without numba, the rest compiled."""
-        buf = self.buf[:end]
-        ops, starts, lengths, stop = walk_records(buf, pos, 1024, jit=False, limit=WALK_PLAIN)
-        if len(ops) == WALK_PLAIN:
-            more = walk_records(buf, stop, (end - stop) // 64 + 1)
-            ops, starts, lengths = (np.concatenate(x) for x in zip((ops, starts, lengths), more[:3]))
-            stop = more[3]
-        return ops, starts, lengths, stop
+        """The records from ``pos`` up to ``end``."""
+        return walk_records(self.buf[:end], pos, (end - pos) // 64 + 1)
 
     def _from_walk(self, size: int) -> tuple:
         """The layout from one walk over every top-level record: (the records (ops, starts, lengths): every one
@@ -304,7 +296,7 @@ class McapFile:
         for a, b in zip(lo[hi > lo].tolist(), hi[hi > lo].tolist()):
             if len(parts) >= MAX_GAPS:
                 return None
-            ops, starts, lengths, end = walk_records(self.buf[:b], a, 64, jit=False, limit=WALK_PLAIN)
+            ops, starts, lengths, end = walk_records(self.buf[:b], a, 64)
             if end != b or np.isin(ops, _NOT_IN_GAPS).any():
                 return None
             parts.append((ops, starts, lengths))

@@ -152,7 +152,7 @@ def test_the_chunk_limit_is_configurable_and_applies_to_lz4(bombs, tmp_path: Pat
 
 
 def test_a_frame_larger_than_its_chunk_claims_is_never_decompressed_past_the_claim() -> None:
-    """The python-zstandard and lz4 paths (no numba kernel): a frame whose header, or content, says 256 MiB in a
+    """The python-zstandard and lz4 paths (no compiled kernel): a frame whose header, or content, says 256 MiB in a
     chunk claiming 4 KiB stops at the claim (the decoders would otherwise size their output by the header)."""
     probe = """
 import resource, zstandard, lz4.frame

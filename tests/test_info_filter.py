@@ -85,7 +85,7 @@ def test_filter_slices_by_time_and_topic(drive, tmp_path, capsys):
         assert len(err) == 1 and err[0].startswith("fieldlog filter: error:")
 
 
-def test_cli_starts_without_numba_rerun_polars(drive):
+def test_cli_starts_without_rerun_polars(drive):
     """`fieldlog --help`, `info` and `acquire --help` import none of the heavy optional modules."""
     probe = ("import sys, contextlib, io\n"
              "from fieldlog.tools.cli import main\n"
@@ -93,7 +93,7 @@ def test_cli_starts_without_numba_rerun_polars(drive):
              "    with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
              "        main(argv)\n"
              "import fieldlog.acquire.daemon, fieldlog.tools.info, fieldlog.tools.filter, fieldlog.tools.rebuild\n"
-             "print(' '.join(m for m in ('numba', 'rerun', 'polars', 'pyarrow', 'dask', 'matplotlib', "
+             "print(' '.join(m for m in ('rerun', 'polars', 'pyarrow', 'dask', 'matplotlib', "
              "'fieldlog.fusion.engine') if m in sys.modules))\n")
     r = subprocess.run([sys.executable, "-c", probe, str(drive)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

@@ -1,10 +1,12 @@
 """A core install (`pip install fieldlog`, no extras) in a fresh venv: what a car PC gets.
 
-It must hold none of the optional dependencies (rerun, dask, polars, numba, matplotlib), run the commands the
-car needs (acquire, info, recover, rebuild) on a drive, and name the extra for a command that needs one. The
-drive is simulated here with the full test environment; the core venv only reads and rewrites it.
+It must hold none of the optional dependencies (rerun, dask, polars, matplotlib), build the compiled kernels from
+the sources (setup.py), run the commands the car needs (acquire, info, recover, rebuild, fuse) on a drive, and name
+the extra for a command that needs one. The drive is simulated here with the full test environment; the core venv
+reads, rewrites and fuses it, to the same bytes as the test environment.
 """
 import os
+import struct
 import subprocess
 import sys
 import venv
@@ -17,9 +19,10 @@ from fieldlog.acquire import chunks
 from fieldlog.acquire.recovery import recover_drive
 from fieldlog.replay import reader
 from fieldlog.replay.drive import open_drive
+from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
-OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "numba", "matplotlib")
+OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib")
 
 
 def _run(args, cwd, timeout=600):
@@ -55,7 +58,7 @@ def test_core_install_has_no_optional_dependency(core, tmp_path):
     assert r.stdout.strip() == ""
     r = _run([core / "python", "-m", "pip", "list", "--format=freeze"], tmp_path)
     names = {line.split("==")[0].lower() for line in r.stdout.split()}
-    assert not names & {"rerun-sdk", "dask", "distributed", "polars", "pyarrow", "numba", "matplotlib"}, names
+    assert not names & {"rerun-sdk", "dask", "distributed", "polars", "pyarrow", "matplotlib", "numba"}, names
     assert {"numpy", "mcap", "pyserial", "fieldlog"} <= names
 
 
@@ -69,8 +72,7 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
     assert "/imu" in r.stdout and "sensor_msgs/msg/Imu" in r.stdout
 
     # a drive cut short mid-chunk: recover keeps exactly the messages of the complete chunks and re-derives the
-    # same tail (the core build walks chunks without numba; the numba walk of the test environment must find the
-    # same records)
+    # same tail as the test environment's reader
     cut = tmp_path / "cut.mcap"
     data = drive.read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -89,10 +91,15 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
     for topic in ("/imu", "/gps/fix", "/raw/daq"):
         assert got[topic] == want[topic], topic
 
+    # the car can fuse too: the core wheel's kernels, built here from the sources, give the same bytes
+    r = _run([fl, "fuse", drive, "--method", "kf", "--out", tmp_path / "kf.mcap"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    fuse(drive, "kf", tmp_path / "kf_ref.mcap")
+    assert (tmp_path / "kf.mcap").read_bytes() == (tmp_path / "kf_ref.mcap").read_bytes()
+
 
 def test_core_install_names_the_missing_extra(core, drive, tmp_path):
     for argv, extra in ((["view", drive, "--rrd", tmp_path / "x.rrd"], "view"),
-                        (["fuse", drive, "--out", tmp_path / "f.mcap"], "fusion"),
                         (["export", drive, "--out", tmp_path / "tables"], "export")):
         r = _run([core / "fieldlog", *argv], tmp_path)
         assert r.returncode == 2, (argv, r.stderr)
@@ -100,14 +107,27 @@ def test_core_install_names_the_missing_extra(core, drive, tmp_path):
         assert len(lines) == 1 and f"fieldlog[{extra}]" in lines[0], r.stderr
 
 
-def test_walk_without_numba_matches_numba(drive):
-    """The plain-Python chunk walk (core installs) finds the same records as the numba one."""
+def _walk_reference(buf: bytes) -> tuple[list, list, list, int]:
+    """The MCAP record walk written plainly (opcode, u64 length, body), the compiled walk's oracle."""
+    ops, starts, lengths, pos = [], [], [], 0
+    while pos + 9 <= len(buf):
+        op, length = struct.unpack_from("<BQ", buf, pos)
+        if pos + 9 + length > len(buf):
+            break
+        ops.append(op), starts.append(pos + 9), lengths.append(length)
+        pos += 9 + length
+    return ops, starts, lengths, pos
+
+
+def test_the_compiled_walk_matches_a_plain_one(drive):
+    """The compiled record walk (acquire/_chunks.c) finds the records a plain walk finds, in whole chunks, in
+    chunks cut short, and up to a length whose top bit is set; its arrays grow past the capacity it is given."""
     (f,) = open_drive(drive)
     for piece in np.flatnonzero(f.pieces.chunk)[:3].tolist():
-        buf = np.frombuffer(f.records(piece), np.uint8)
-        a, b = chunks._walk(buf), chunks._walk_python(buf, 0, 16)
-        for x, y in zip(a[:3], b[:3]):
-            np.testing.assert_array_equal(x, y)
-        assert a[3] == b[3]
-        cut = buf[: len(buf) - 7]     # a record cut short: both stop before it
-        assert chunks._walk(cut)[3] == chunks._walk_python(cut, 0, 16)[3] < len(cut)
+        raw = bytes(f.records(piece))
+        at = _walk_reference(raw)[1][4] - 9                     # the fifth record: its length's top bit set
+        for buf in (raw, raw[: len(raw) - 7], raw[:at + 1] + b"\xff" * 8 + raw[at + 9:]):
+            ops, starts, lengths, end = chunks.walk_records(np.frombuffer(buf, np.uint8), 0, 1)
+            want = _walk_reference(buf)
+            assert (ops.tolist(), starts.tolist(), lengths.tolist(), end) == want
+            assert len(want[0]) > 1 and (end < len(buf)) == (buf is not raw)

@@ -193,7 +193,7 @@ def test_the_summary_gives_the_walks_table_and_a_bad_summary_falls_back(layout, 
     bad_crc.write_bytes(raw)
     raw[foot + 25:foot + 29] = bytes(4)                                  # no CRC, and a chunk index off by one
     start = int.from_bytes(raw[foot + 9:foot + 17], "little")
-    ops, starts, _, _ = walk_records(np.frombuffer(bytes(raw), np.uint8), start, 64, jit=False)
+    ops, starts, _, _ = walk_records(np.frombuffer(bytes(raw), np.uint8), start, 64)
     at = int(starts[np.flatnonzero(ops == Opcode.CHUNK_INDEX)[0]]) + 16
     raw[at:at + 8] = (int.from_bytes(raw[at:at + 8], "little") + 1).to_bytes(8, "little")
     bad_index = tmp_path / "bad_index.mcap"
@@ -356,7 +356,7 @@ def _damaged(src, tmp_path, k: int):
 @pytest.fixture(params=["compiled", "numpy"])
 def read_path(request, monkeypatch) -> str:
     """The reader's two paths for chunks: ``acquire.native``'s compiled pass (zstd, uncompressed), or
-    python-zstandard and the numpy walk (what runs without numba, and for lz4)."""
+    python-zstandard and the walk (what runs when zstandard exports no C API, and for lz4)."""
     if request.param == "numpy":
         monkeypatch.setitem(native._state, "ok", False)
     else:
@@ -415,7 +415,7 @@ def test_a_bad_record_inside_a_chunk_is_one_line(read_path, corpus, tmp_path, ca
     f = McapFile(src)
     p = f.pieces
     for i in np.flatnonzero(p.chunk).tolist():
-        ops, starts, _, _ = walk_records(np.frombuffer(f.records(i), np.uint8), 0, 64, jit=False)
+        ops, starts, _, _ = walk_records(np.frombuffer(f.records(i), np.uint8), 0, 64)
         if (ops == Opcode.CHANNEL).any():
             break
     raw = bytearray(src.read_bytes())

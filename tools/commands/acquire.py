@@ -53,7 +53,7 @@ def run(a: argparse.Namespace) -> int:
         from fieldlog.tools.foxglove_live import parse_address   # (the fusion stack stays out of this process)
 
         parse_address(a.foxglove)
-        require_extras("foxglove", "numba")
+        require_extras("foxglove")
     daemon.setup_logging(a.verbose - a.quiet)  # the daemon's own format: timestamped lines for the journal
     cfg = config.load(a.config, {"daq": a.daq, "gps": a.gps, "can": a.can, "dbc": a.dbc, "out": a.out_dir,
                                  "time_scale": a.time_scale})

@@ -15,11 +15,11 @@ METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sc
 
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.
-EXTRAS = {"numba": "fusion", "llvmlite": "fusion", "rerun": "view", "polars": "export", "pyarrow": "export",
+EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export",
           "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
-NEEDS = {"sim": "fusion", "fuse": "fusion", "evaluate": "fusion,export,plots", "view": "view", "replay": "view",
+NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}
 
 # the commands that write named outputs: they take --force to replace them (acquire/outputs.py)

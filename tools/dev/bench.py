@@ -148,7 +148,7 @@ def bench_recorder(runs: int, tmp: Path) -> None:
 
 
 def bench_ins(runs: int, tmp: Path) -> None:
-    """Strapdown INS over 300k samples (numba), and the truth it is fed from."""
+    """Strapdown INS over 300k samples (the C kernel), and the truth it is fed from."""
     from fieldlog.fusion import ins
     from fieldlog.tools.sim import trajectory
 
@@ -156,7 +156,7 @@ def bench_ins(runs: int, tmp: Path) -> None:
     t = np.arange(300_000) / 500.0
     med_eval, _, ts = timed(lambda: truth.evaluate(t), runs)
     s0 = ins.NavState(t[0], ts.lat[0], ts.lon[0], ts.h[0], ts.v_n[0], ts.q[0])
-    ins.integrate(s0, t[:10], ts.omega_ib_b[:10], ts.f_b[:10])      # compile outside the timing
+    ins.integrate(s0, t[:10], ts.omega_ib_b[:10], ts.f_b[:10])      # the kernel loaded outside the timing
     med, _, sol = timed(lambda: ins.integrate(s0, t, ts.omega_ib_b, ts.f_b), runs)
     print(f"truth evaluate 300k samples:  median {med_eval:6.3f} s")
     print(f"INS integrate 300k samples:   median {med:6.3f} s  ({300_000 / med / 1e6:.1f} M samples/s)")
@@ -205,7 +205,7 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     simulate("figure8", duration_s, 1, path)
     simulate("figure8", 30.0, 2, warm)
     for method in ("ins", "kf", "dkf", "dkf-rbfn"):
-        fuse(warm, method, tmp / "fused_warm.mcap", force=True)  # numba compile / cache load outside the timing
+        fuse(warm, method, tmp / "fused_warm.mcap", force=True)  # kernels loaded, caches warm outside the timing
         med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap", force=True), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
               f"{res.imu_samples / med / 1e3:7.1f} k samples/s, real-time factor x{duration_s / med:.0f}")
@@ -290,7 +290,7 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     warm = tmp / "fuse_warm.mcap"
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
-    _fuse_child(warm, "kf", tmp / "fused_warm.mcap")  # numba cache filled outside the figures
+    _fuse_child(warm, "kf", tmp / "fused_warm.mcap")  # a warm run outside the figures
     for method, smooth in (("kf", False), ("dkf-rbfn", False), ("kf", True)):
         name = method + (" --smooth" if smooth else "")
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth) for d in drives]
@@ -767,7 +767,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
         return sum(len(b.data["/imu"]["log_time_ns"]) for b in reader.iter_blocks(path, reader.IN_TOPICS, 10.0)
                    if "/imu" in b.data)
 
-    read(own)  # numba compile / cache load outside the timing
+    read(own)  # kernels loaded, caches warm outside the timing
     wall: dict[str, list[float]] = {k: [] for k in files}
     cpu: dict[str, list[float]] = {k: [] for k in files}
     n = {}
@@ -800,7 +800,7 @@ def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     simulate("figure8", duration_s, 1, own)
     for path in (own, rewrite(own, tmp / "recover_4k.mcap", "chunks-4k")):
         f = McapFile(path)
-        f.damaged()  # numba compile / cache load outside the timing
+        f.damaged()  # kernels loaded, caches warm outside the timing
         p = f.pieces
         i = int(np.flatnonzero(p.chunk)[int(p.chunk.sum()) // 2])
         raw = bytearray(path.read_bytes())
@@ -859,7 +859,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     }
     warm60 = [*fl, "fuse", str(short), "--method", "kf", "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
     for name in ("fuse --method kf", "fuse --method dkf-rbfn"):
-        _run_s(cmds[name][0], tmp)  # numba's on-disk cache filled outside the figures; kf's output feeds view
+        _run_s(cmds[name][0], tmp)  # a warm run outside the figures (page cache); kf's output feeds view
     _run_s(warm60, tmp)
     ratios: dict[str, list[float]] = {k: [] for k in cmds}
     secs: dict[str, list[float]] = {k: [] for k in cmds}
@@ -891,7 +891,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
 
 # The stages of `make bench --only profile`: a profiled function's own time goes to the stage of its file (and, in
-# acquire/recorder.py, of its name); a library function's (numpy, numba, zstd ...) to its callers' stages.
+# acquire/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
 _WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
@@ -980,7 +980,7 @@ def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     drive, warm = tmp / "prof_drive.mcap", tmp / "prof_warm.mcap"
     simulate("figure8", duration_s, 1, drive)
     simulate("figure8", 30.0, 2, warm)
-    # start-up: the import of the fuse path, and numba's first cache load, each in a fresh process
+    # start-up: the import of the fuse path, and the kernels' first load, each in a fresh process
     w, o = str(warm), str(tmp / "prof_warm_kf.mcap")
     code = (f"import time\nt0 = time.perf_counter()\nimport fieldlog.tools.fuse as f\nt1 = time.perf_counter()\n"
             f"f.fuse({w!r}, 'kf', {o!r}, force=True)\nt2 = time.perf_counter()\n"
@@ -993,7 +993,7 @@ def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     first = statistics.median(s[1] - s[2] for s in start)   # the first fuse's excess over a second one
     load = os.getloadavg()[0]
     print(f"start-up of a fuse process (medians of {len(start)}): import {imp:.2f} s, first call's excess (lazy "
-          f"imports, numba cache load) {first:.2f} s; load {load:.1f}")
+          f"imports, kernel load) {first:.2f} s; load {load:.1f}")
     table = {}
     for (label, path, n) in ((f"{duration_s:g} s", drive, runs), ("1 h", _hour_drive(tmp), 1)):
         for method in ("kf", "dkf-rbfn"):
@@ -1017,7 +1017,7 @@ def bench_profile(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     print("\n| stage | " + " | ".join(f"{m} {label}, s (share)" for m, label in table) + " |")
     print("|---|" + "---|" * len(table))
     print("| start-up: imports | " + " | ".join(f"{imp:.2f}" for _ in table) + " |")
-    print("| start-up: the first call's excess (lazy imports, numba cache load) | "
+    print("| start-up: the first call's excess (lazy imports, kernel load) | "
           + " | ".join(f"{first:.2f}" for _ in table) + " |")
     for s in _STAGES:
         cells = [f"{st[s]:.2f} ({st[s] / sum(st.values()):.0%})" for _, _, st in table.values()]

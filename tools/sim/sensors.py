@@ -51,8 +51,8 @@ import math
 from dataclasses import dataclass, fields
 
 import numpy as np
-from numba import njit
 
+from fieldlog.acquire import native
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.fusion import imugrade
@@ -123,28 +123,29 @@ def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, floa
     return T, math.log(T[1] / T[0]) / math.pi
 
 
-@njit(cache=True)
 def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """x_0 = z_0, x_k = phi_{k-1} x_{k-1} + sqrt(1 - phi_{k-1}^2) z_k along axis 0 of z (n, m) (tools/sim/_sensors.c)."""
+    z = np.ascontiguousarray(z, np.float64)
+    phi = np.ascontiguousarray(phi, np.float64)
     x = np.empty_like(z)
-    x[0] = z[0]
-    for k in range(1, z.shape[0]):
-        x[k] = phi[k - 1] * x[k - 1] + math.sqrt(1.0 - phi[k - 1] * phi[k - 1]) * z[k]
+    _lib().fieldlog_gm_recursion(z.shape[0], int(np.prod(z.shape[1:])), phi.ctypes.data, z.ctypes.data,
+                                 x.ctypes.data)
     return x
 
 
-@njit(cache=True)
 def _ar1(b0: float, phi: float, z: np.ndarray, y_prev: np.ndarray) -> np.ndarray:
     """y_k = b0 z_k + phi y_{k-1} along axis 0 of z (n, m), y_{-1} = y_prev (m,): the recursion of
     ``scipy.signal.lfilter([b0], [1, -phi], z, axis=0, zi=phi * y_prev)``, with its operations in its order, so
-    the same numbers to the bit without importing scipy.signal, which is slow to import."""
+    the same numbers to the bit without importing scipy.signal, which is slow to import (tools/sim/_sensors.c)."""
+    z = np.ascontiguousarray(z, np.float64)
+    y_prev = np.ascontiguousarray(y_prev, np.float64)
     y = np.empty_like(z)
-    for c in range(z.shape[1]):
-        state = phi * y_prev[c]
-        for k in range(z.shape[0]):
-            yk = state + b0 * z[k, c]
-            y[k, c] = yk
-            state = 0.0 * z[k, c] - yk * -phi
+    _lib().fieldlog_ar1(z.shape[0], z.shape[1], b0, phi, z.ctypes.data, y_prev.ctypes.data, y.ctypes.data)
     return y
+
+
+def _lib():
+    return native.library("fieldlog.tools.sim._sensors")
 
 
 def gauss_markov(t_s: np.ndarray, tau_s: float, z: np.ndarray) -> np.ndarray:
