@@ -200,29 +200,34 @@ class DistributedKF:
         return dx
 
     def _fuse(self) -> None:
-        self.x, self.P4 = fuse(self.locals)
+        infos = [_inv_spd(f.covariance) for f in self.locals]  # each local information matrix, once
+        self.x, self.P4 = fuse(self.locals, infos)
         if self.P12 is None:
             self.P = self.P4
         else:
-            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12)[1]
+            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12, *infos)[1]
 
 
-def fuse(filters) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse-covariance fusion of local estimates (paper eqs. 3-4): returns (x, P)."""
+def fuse(filters, infos: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-covariance fusion of local estimates (paper eqs. 3-4): returns (x, P). ``infos``: the filters'
+    inverse covariances when the caller has them."""
     info = np.zeros_like(filters[0].covariance)
     vec = np.zeros_like(filters[0].state)
-    for f in filters:
-        Pi = _inv_spd(f.covariance)
+    for i, f in enumerate(filters):
+        Pi = infos[i] if infos is not None else _inv_spd(f.covariance)
         info += Pi
         vec += Pi @ f.state
     P = _inv_spd(info)
     return P @ vec, P
 
 
-def _fused_error_cov(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _fused_error_cov(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray, I1: np.ndarray | None = None,
+                     I2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(eq. 4's P, the covariance of the eqs. 3-4 estimate's error given the cross-covariance P12); of one
-    cycle's (15, 15) matrices or of a stack of them (m, 15, 15)."""
-    I1, I2 = _inv_spd(P1), _inv_spd(P2)
+    cycle's (15, 15) matrices or of a stack of them (m, 15, 15). I1, I2: the inverses of P1, P2 when the caller
+    has them. P is inverted again from I1 + I2 rather than taken from ``fuse``, whose sum starts from zeros."""
+    I1 = _inv_spd(P1) if I1 is None else I1
+    I2 = _inv_spd(P2) if I2 is None else I2
     P = _inv_spd(I1 + I2)
     W1, W2 = P @ I1, P @ I2
     C = W1 @ P12 @ _t(W2)
