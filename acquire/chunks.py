@@ -37,6 +37,8 @@ def walk_records(buf, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.nd
     whole file after its magic): opcode, start of the record body, body length; and the end of the last complete
     record. ``cap``: the number of records expected (the arrays grow past it). Compiled (acquire/_chunks.c)."""
     data = np.frombuffer(buf, np.uint8) if not isinstance(buf, np.ndarray) else np.ascontiguousarray(buf, np.uint8)
+    if pos < 0:
+        raise ValueError(f"walk_records: pos {pos} < 0")
     n, walk = len(data), native.library("fieldlog.acquire._chunks").fieldlog_walk
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     cap, end = max(int(cap), 16), ctypes.c_int64(pos)

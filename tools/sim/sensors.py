@@ -127,6 +127,8 @@ def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
     """x_0 = z_0, x_k = phi_{k-1} x_{k-1} + sqrt(1 - phi_{k-1}^2) z_k along axis 0 of z (n, m) (tools/sim/_sensors.c)."""
     z = np.ascontiguousarray(z, np.float64)
     phi = np.ascontiguousarray(phi, np.float64)
+    if phi.shape != (max(z.shape[0] - 1, 0),):
+        raise ValueError("_gm_recursion: phi needs one factor per step of z")
     x = np.empty_like(z)
     _lib().fieldlog_gm_recursion(z.shape[0], int(np.prod(z.shape[1:])), phi.ctypes.data, z.ctypes.data,
                                  x.ctypes.data)
@@ -139,6 +141,8 @@ def _ar1(b0: float, phi: float, z: np.ndarray, y_prev: np.ndarray) -> np.ndarray
     the same numbers to the bit without importing scipy.signal, which is slow to import (tools/sim/_sensors.c)."""
     z = np.ascontiguousarray(z, np.float64)
     y_prev = np.ascontiguousarray(y_prev, np.float64)
+    if z.ndim != 2 or y_prev.shape != (z.shape[1],):
+        raise ValueError("_ar1: z must be (n, m) and y_prev (m,)")
     y = np.empty_like(z)
     _lib().fieldlog_ar1(z.shape[0], z.shape[1], b0, phi, z.ctypes.data, y_prev.ctypes.data, y.ctypes.data)
     return y
