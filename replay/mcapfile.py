@@ -59,6 +59,9 @@ from fieldlog.acquire.recorder import MAGIC
 log = logging.getLogger(__name__)
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
 STATS_ENTRIES = 1 << 18  # message index entries read at a time by ``channel_stats``
+PEEK_BATCH = 64  # scattered reads (one per chunk or index) gathered at a time while a file is opened
+WALK_WINDOW = 1 << 26  # bytes of file a walk over a file's top-level records takes at a time
+FAULT_AROUND = 1 << 16  # bytes the kernel may map around a byte read through the file's mapping (fault-around)
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
 _CHUNK_HEAD = np.dtype({"names": ["start", "end", "size", "crc", "comp_len"],
                         "formats": ["<u8", "<u8", "<u8", "<u4", "<u4"], "offsets": [0, 8, 16, 24, 28], "itemsize": 32})
@@ -160,6 +163,7 @@ class McapFile:
         self.compressions: list[str] = []
         self.pieces = self._pieces(*chunks, *index, loose)
         self._topics: dict[int, tuple[int, int, int]] | None = None
+        self._drop(0, size)  # what the layout read (summary, definitions): its pages go back too
 
     # -- records -----------------------------------------------------------------------------
 
@@ -191,8 +195,19 @@ class McapFile:
     # -- pieces ------------------------------------------------------------------------------
 
     def _walk(self, pos: int, end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """The records from ``pos`` up to ``end``."""
-        return walk_records(self.buf[:end], pos, (end - pos) // 64 + 1)
+        """The records from ``pos`` up to ``end``, ``WALK_WINDOW`` bytes of file at a time, each window's pages
+        handed back (``_drop``): the walk reads each record's head, and the kernel maps the pages around it."""
+        parts = []
+        while True:
+            hi = min(end, pos + WALK_WINDOW)
+            if end - pos >= 9:  # a record longer than the window: the window takes it whole
+                hi = max(hi, min(end, pos + 9 + int(le(self.buf, np.array([pos + 1]), "<u8")[0])))
+            ops, starts, lengths, stop = walk_records(self.buf[:hi], pos, (hi - pos) // 64 + 1)
+            parts.append((ops, starts, lengths))
+            self._drop(pos - FAULT_AROUND, stop + FAULT_AROUND)
+            if hi == end or stop == pos:
+                return (*(np.concatenate(x) for x in zip(*parts)), stop)
+            pos = stop
 
     def _from_walk(self, size: int) -> tuple:
         """The layout from one walk over every top-level record: (the records (ops, starts, lengths): every one
@@ -248,7 +263,7 @@ class McapFile:
         iv_end = co + clen + mil.astype(np.int64)  # the chunk record and its message indexes
         if ((co < len(MAGIC)) | (clen < 49) | (iv_end > start)).any() or (co[1:] < iv_end[:-1]).any():
             return None
-        rec = le(buf, co, _RECORD_HEAD)
+        rec = self._peek(co, _RECORD_HEAD)
         if (rec["op"] != Opcode.CHUNK).any() or (rec["length"] != (clen - 9).astype(np.uint64)).any():
             return None
         index = self._summary_index(s, mlen // 10, co + clen, iv_end, crc != 0)
@@ -282,9 +297,9 @@ class McapFile:
         if (rec_end - off < 15).any() or (off[first_of] != a[owner[first_of]]).any() or (a[bare] != b[bare]).any():
             return None
         if checked:
-            ok = self.buf[off] == Opcode.MESSAGE_INDEX
+            ok = self._peek(off, np.uint8) == Opcode.MESSAGE_INDEX
         else:
-            rec = le(self.buf, off, _INDEX_HEAD)
+            rec = self._peek(off, _INDEX_HEAD)
             ok = (rec["op"] == Opcode.MESSAGE_INDEX) & (rec["length"] == (rec_end - off - 9).astype(np.uint64)) & (
                 rec["channel"] == cid)
         return (owner, cid, off + 9, rec_end - off - 9) if ok.all() else None
@@ -311,10 +326,10 @@ class McapFile:
         bad = clen_rec < 40
         if bad.any():
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
-        head = le(self.buf, cs, _CHUNK_HEAD)
+        head = self._peek(cs, _CHUNK_HEAD)
         t0, t1, usize, crc, clen = (head[k].astype(np.int64) for k in _CHUNK_HEAD.names)
         bad = clen > clen_rec - 40
-        rlen = le(self.buf, np.where(bad, cs, cs + 32 + clen), "<u8")
+        rlen = self._peek(np.where(bad, cs, cs + 32 + clen), "<u8")
         bad |= rlen > (clen_rec - 40 - clen).clip(0).astype(np.uint64)
         if bad.any():
             raise ValueError(f"{self.path}: corrupt chunk at byte {int(cs[bad][0]) - 9}")
@@ -342,7 +357,8 @@ class McapFile:
             raise ValueError(f"{self.path}: unknown chunk compression at byte {int(at[np.argmax(n)]) - 41}")
         j = np.arange(max(w, 1))
         take = j < n[:, None]
-        raw = np.ascontiguousarray(np.where(take, self.buf[np.where(take, at[:, None] + j, 0)], 0).astype(np.uint8))
+        pos = np.where(take, at[:, None] + j, at[:, None])
+        raw = np.ascontiguousarray(np.where(take, self._peek(pos.ravel(), np.uint8).reshape(pos.shape), 0))
         raw = raw.view(f"S{max(w, 1)}").ravel()
         if len(raw) and (raw == raw[0]).all():  # the usual file: one compression
             names, inv = raw[:1], np.zeros(len(raw), np.int64)
@@ -412,16 +428,30 @@ class McapFile:
         out = read(self._mm, [*self.compressions, ""], comp, p.body[idx], p.body_len[idx],
                    np.where(p.chunk[idx], p.size[idx], p.body_len[idx]), p.crc[idx], *args)
         if len(idx):
-            self._drop(int(p.body[idx].min()), int((p.body[idx] + p.body_len[idx]).max()))
+            lo, hi = int(p.body[idx].min()), int((p.body[idx] + p.body_len[idx]).max())
+            self._drop(lo - FAULT_AROUND, hi + FAULT_AROUND)
         return out
 
     def _drop(self, lo: int, hi: int) -> None:
         """Hand the mapped pages of bytes [lo, hi) back: a drive is read once, front to back, so its pages need
         not stay in this process's resident memory (the page cache keeps them, and a later read faults them in
         again); reading a drive of any length then takes the same memory."""
+        lo, hi = max(lo, 0), min(hi, len(self._mm))
         start = lo - lo % mmap.PAGESIZE
         if hi > start:
             self._mm.madvise(mmap.MADV_DONTNEED, start, hi - start)
+
+    def _peek(self, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
+        """``le(self.buf, pos, dtype)`` at positions scattered over the file (in file order), ``PEEK_BATCH`` at a
+        time, each batch's pages handed back (``_drop``): the kernel maps up to ``FAULT_AROUND`` bytes around
+        each byte read, so gathering one value per chunk of a long drive at once would map much of it."""
+        pos = np.asarray(pos, np.int64)
+        parts = [le(self.buf, pos[:0], dtype)]
+        for i in range(0, len(pos), PEEK_BATCH):
+            p = pos[i:i + PEEK_BATCH]
+            parts.append(le(self.buf, p, dtype))
+            self._drop(int(p.min()) - FAULT_AROUND, int(p.max()) + FAULT_AROUND)
+        return np.concatenate(parts)
 
     def damaged(self) -> list[int]:
         """Byte offsets of the chunks whose content does not decompress to its size and CRC-32 (what ``fieldlog
@@ -500,7 +530,7 @@ class McapFile:
                 pos = np.repeat(off[a:b] - 16 * first, n[a:b]) + 16 * np.arange(int(n[a:b].sum()), dtype=np.int64)
                 t = le(self.buf, pos, "<i8")
                 parts.append((cid[a:b], n[a:b], np.minimum.reduceat(t, first), np.maximum.reduceat(t, first)))
-                self._drop(int(pos.min()), int(pos.max()) + 8)
+                self._drop(int(pos.min()) - FAULT_AROUND, int(pos.max()) + FAULT_AROUND)
         p = self.pieces
         todo = np.flatnonzero(~p.chunk | ~p.indexed)
         for g in self.groups(todo, p.size[todo]):
