@@ -9,8 +9,9 @@ from __future__ import annotations
 import datetime as _dt
 import logging
 from collections import deque
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+import itertools
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Protocol
 
 import numpy as np
@@ -22,6 +23,7 @@ log = logging.getLogger(__name__)
 
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
+READ_BLOCK = 2048          # reads feed_reads takes at a time (the DAQ port's decoded ahead in one call)
 MAX_HDOP = 99.0             # NMEA's largest HDOP; a larger, missing or non-positive one is taken as this
 MAX_SIGMA_M = 1e6           # a GST standard deviation beyond this (or NaN) falls back on HDOP
 
@@ -134,17 +136,62 @@ class Pipeline:
             self.sink.write("/tf_static", wall_ns, frames.tf_static_message(self.cal.mounting, wall_ns))
 
     # -- input ---------------------------------------------------------------------------------------
-    def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+    def feed_reads(self, reads: Iterable[RawRead], progress: Callable[[int], None] | None = None) -> int:
+        """``feed`` each read (``RawRead``-like: port, mono_ns, wall_ns, data) in turn, with the same outputs,
+        ``READ_BLOCK`` reads at a time: each block's DAQ reads are decoded ahead in one call of the decoder (the
+        frames it finds, and its counts, do not depend on how the bytes are split into reads), so a read costs no
+        decoder call of its own. For a recorded or simulated stream (``sim``, ``rebuild``, ``import``); the
+        daemon feeds each read as it comes. ``progress``: called with the reads fed so far after each block.
+        Returns the number of reads."""
+        n, it = 0, iter(reads)
+        while block := list(itertools.islice(it, READ_BLOCK)):
+            ahead = iter(self._decode_ahead([r.data for r in block if r.port == "daq"]))
+            for r in block:
+                self.feed(r.port, r.mono_ns, r.wall_ns, r.data, next(ahead, None) if r.port == "daq" else None)
+            n += len(block)
+            if progress is not None:
+                progress(n)
+        return n
+
+    def _decode_ahead(self, datas: list[bytes]) -> list[tuple[daq.DaqFrames, int]]:
+        """The frames each of these consecutive DAQ reads completes, and the decoder's byte count before it, from
+        one decoder call over their bytes; [] (each read then decoded as it is fed) if that call fails, the
+        decoder put back as it was."""
+        if not datas:
+            return []
+        dec = self._daq
+        saved, stats = dict(vars(dec)), asdict(dec.stats)
+        base = dec.stats.bytes_in
+        try:
+            fr = dec.feed(b"".join(datas))
+        except Exception:  # noqa: BLE001 - the reads are then decoded one by one, under feed's guard
+            vars(dec).update(saved)
+            for k, v in stats.items():
+                setattr(dec.stats, k, v)
+            return []
+        ends = np.cumsum([len(d) for d in datas])
+        read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
+        cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
+        out = []
+        for a, b, s in zip(cuts[:-1].tolist(), cuts[1:].tolist(), (ends - [len(d) for d in datas]).tolist()):
+            piece = daq.DaqFrames(*(getattr(fr, f.name)[a:b] for f in fields(daq.DaqFrames)))
+            piece.end_offset = piece.end_offset - s  # relative to the read, as feed gives it
+            out.append((piece, base + s))
+        return out
+
+    def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes,
+             decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
         """Record one read in ``/raw/<port>`` and process it. Processing never raises for any data: an
         exception (a decoder bug a byte sequence reaches) is counted in ``processing_errors``, logged once per
         kind with where the read is, and the next read is processed as usual. Sink errors (OSError: a full
-        disk) are raised."""
+        disk) are raised. ``decoded``: a DAQ read's frames and the decoder's byte count before it, when
+        ``feed_reads`` decoded them ahead."""
         self._write_tf_static(wall_ns)
         self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
         self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
         try:
             if port == "daq":
-                self._feed_daq(mono_ns, wall_ns, data)
+                self._feed_daq(mono_ns, wall_ns, data, decoded)
             elif port == "gps":
                 self._feed_gps(mono_ns, wall_ns, data)
             elif port == "can" and self.vehicle is not None:
@@ -247,10 +294,14 @@ class Pipeline:
         except Exception as e:  # noqa: BLE001 - as in feed
             self._processing_error(e, "daq", mono_ns, wall_ns)
 
-    def _feed_daq(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
+    def _feed_daq(self, mono_ns: int, wall_ns: int, data: bytes,
+                  decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
         self._last_daq_read = (mono_ns, wall_ns)
-        base = self._daq.stats.bytes_in
-        self._add_frames(self._judge.judge(self._daq.feed(data), base, mono_ns), mono_ns, wall_ns)
+        if decoded is None:
+            base = self._daq.stats.bytes_in
+            decoded = self._daq.feed(data), base
+        fr, base = decoded
+        self._add_frames(self._judge.judge(fr, base, mono_ns), mono_ns, wall_ns)
 
     def _add_frames(self, fr: daq.DaqFrames, mono_ns: int, wall_ns: int) -> None:
         """Judged frames of one read to time sync, the /imu queue and ``on_frames``."""

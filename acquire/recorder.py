@@ -71,14 +71,24 @@ _MSG_INDEX_HDR = struct.Struct("<BQHI")
 
 @dataclass
 class _OpenChunk:
-    """Uncompressed chunk being built: parts joined on close; message index per channel."""
+    """Uncompressed chunk being built: parts joined on close; message index per channel, as pieces of (log
+    times, offsets): uint64 arrays from batches, ints from single messages (``index_column`` joins them)."""
 
     parts: list = field(default_factory=list)
     size: int = 0
     count: int = 0
     start: int = 0
     end: int = 0
-    index: dict[int, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    index: dict[int, list[tuple[np.ndarray | int, np.ndarray | int]]] = field(default_factory=dict)
+
+    def add_one(self, channel_id: int, log_time: int, data: bytes) -> None:
+        """One message record ``data`` logged at ``log_time`` (the single-message path: no arrays)."""
+        self.start = log_time if self.count == 0 else min(self.start, log_time)
+        self.end = max(self.end, log_time)
+        self.count += 1
+        self.index.setdefault(channel_id, []).append((log_time, self.size))
+        self.parts.append(data)
+        self.size += len(data)
 
     def add(self, channel_id: int, log_times: np.ndarray, offsets: np.ndarray, data, nbytes: int) -> None:
         lo, hi = int(log_times.min()), int(log_times.max())
@@ -88,6 +98,23 @@ class _OpenChunk:
         self.index.setdefault(channel_id, []).append((log_times, offsets))
         self.parts.append(data)
         self.size += nbytes
+
+
+def _index_column(pieces: list, i: int) -> np.ndarray:
+    """Column ``i`` of a channel's index pieces (``_OpenChunk.index``) as one uint64 array, in order."""
+    out, run = [], []
+    for p in pieces:
+        x = p[i]
+        if isinstance(x, int):
+            run.append(x)
+            continue
+        if run:
+            out.append(np.array(run, np.uint64))
+            run = []
+        out.append(x)
+    if run:
+        out.append(np.array(run, np.uint64))
+    return np.concatenate(out)
 
 
 class Recorder:
@@ -222,15 +249,15 @@ class Recorder:
 
     def write(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
         """Write one message. log_time_ns: int64 UTC ns (> 0)."""
+        log_time_ns = int(log_time_ns)
         if log_time_ns <= 0:
             raise ValueError("log_time must be > 0")
         cid = self.channel_id(topic)
         if self.stats is not None:
             self.stats.observe_message(topic, log_time_ns, data)
         pub = log_time_ns if publish_time_ns is None else publish_time_ns
-        hdr = _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns, pub)
-        c = self._chunk
-        c.add(cid, np.array([log_time_ns], np.uint64), np.array([c.size], np.uint64), hdr + data, 31 + len(data))
+        self._chunk.add_one(cid, log_time_ns, _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns,
+                                                                   pub) + data)
         self._after_write()
 
     def write_batch(
@@ -351,7 +378,8 @@ class Recorder:
     ) -> None:
         """Write message records as one chunk with its message indexes: ``data`` the records (a chunk's
         content), log times from ``start`` to ``end`` (ns), ``index`` channel id -> pieces of (log times, offsets
-        into ``data``) (uint64 arrays). The open chunk's flush, and recovery's copy of a file's chunks."""
+        into ``data``) (uint64 arrays, or ints: ``_OpenChunk``). The open chunk's flush, and recovery's copy of a
+        file's chunks."""
         if self._compression == "zstd":
             compressed = self._zstd.compress(data)
         elif self._compression == "lz4":
@@ -374,8 +402,7 @@ class Recorder:
         parts = []
         pos = chunk_offset + chunk_length
         for cid, pieces in index.items():
-            t = np.concatenate([a for a, _ in pieces])
-            o = np.concatenate([b for _, b in pieces])
+            t, o = _index_column(pieces, 0), _index_column(pieces, 1)
             entries = np.empty((len(t), 2), dtype="<u8")
             entries[:, 0], entries[:, 1] = t, o
             rec = _MSG_INDEX_HDR.pack(Opcode.MESSAGE_INDEX, 6 + 16 * len(t), cid, 16 * len(t)) + entries.tobytes()

@@ -229,8 +229,7 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
         pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
-        for r in reads:
-            pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+        pipe.feed_reads(reads)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     v = pipe.vehicle

@@ -52,7 +52,6 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
     if calibration is not None:
         cal = calib.load_calibration(calibration)
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
-    n = 0
     with recorder.Recorder(dst, flush_interval_s=None, force=force) as rec:
         for name, d in records:
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
@@ -65,11 +64,7 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
             t, pub, p = reader.read_payloads(src, topic, file_order=True)   # first: drivestats pairs /imu with it
             rec.write_batch(topic, t, p, pub)
         merged = heapq.merge(*(iter_raw(src, port) for port in RAW_PORTS), key=lambda r: read_order(r.port, r.mono_ns))
-        for r in merged:
-            pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
-            n += 1
-            if progress and n % 2000 == 0:
-                progress(n / total)
+        n = pipe.feed_reads(merged, (lambda i: progress(i / total)) if progress else None)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     if progress:

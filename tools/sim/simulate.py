@@ -181,11 +181,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
         if fusion_meta:
             rec.add_metadata("fusion.config", fusion_meta)
         write_truth(rec, truth_data, duration_s)   # before /imu: drivestats pairs /imu with it as /imu comes
-        step = max(len(reads) // 100, 1)
-        for i, r in enumerate(reads):
-            pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
-            if progress and i % step == 0:
-                progress(i / len(reads))
+        pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
     if progress:
