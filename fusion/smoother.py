@@ -231,9 +231,15 @@ def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q:
 
 def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
     """The forward solution rows of a whole drive, smoothed with the records of the same run."""
-    if len(sol.t_ns) == 0 or len(log) < 2:
+    return smooth_rows(sol, rts(log) if len(log) >= 2 else None, log)
+
+
+def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:
+    """Forward solution rows (any block of them) smoothed with ``sm`` (``rts`` of ``log``, None: too few records
+    to smooth: the rows as they are); row by row, so a drive's rows can be smoothed a block at a time."""
+    if len(sol.t_ns) == 0 or sm is None:
         return sol
-    e, var = row_errors(rts(log), sol.t_ns)
+    e, var = row_errors(sm, sol.t_ns)
     lat, lon, h, v_n, q = correct(sol.lat, sol.lon, sol.h, sol.v_n, sol.q, e)
     var = np.maximum(var, 0.0)
     if log.gps_var:  # the correlated GPS error no smoothing removes either

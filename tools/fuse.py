@@ -18,9 +18,10 @@ IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model
   mounting;
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
-With ``smooth`` (``--smooth``) the solution rows are kept and written after the drive, smoothed by the
-RTS backward pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB per 0.1 s) go to
-a temporary file, so memory grows only by the rows and the smoothed errors (about 15 MB per hour).
+With ``smooth`` (``--smooth``) the solution rows are written after the drive, smoothed by the RTS backward
+pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB per 0.1 s) and the forward rows
+go to temporary files and the rows are smoothed and written back a block at a time, so memory grows only by
+the smoothed errors (about 15 MB per hour).
 
 Settings (``FusionConfig``): ``--config FILE`` reads the ``[fusion]`` table of a TOML file (other tables are
 ignored, so a scenario file works too), e.g.::
@@ -42,9 +43,12 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+import tempfile
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Callable
+
+import numpy as np
 
 from fieldlog.acquire import calib, messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
@@ -53,7 +57,7 @@ from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import Solution
-from fieldlog.fusion.smoother import SmootherLog, smooth_solution
+from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
@@ -62,6 +66,32 @@ from fieldlog.replay.reader import topics as reader_topics
 from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution
 
 BLOCK_S = 10.0
+
+
+class _RowSpill:
+    """The forward solution rows of a smoothed run, spilled block by block to an anonymous temporary file as they
+    come and read back in the same blocks (``Solution`` without ``local``, which smoothing drops)."""
+
+    _FIELDS = [f.name for f in fields(Solution) if f.name != "local"]
+
+    def __init__(self) -> None:
+        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the spill; close())
+        self._blocks = 0
+
+    def add(self, sol: Solution) -> None:
+        if len(sol.t_ns):
+            for name in self._FIELDS:
+                np.save(self._file, getattr(sol, name), allow_pickle=False)
+            self._blocks += 1
+
+    def blocks(self):
+        """The blocks added, in order."""
+        self._file.seek(0)
+        for _ in range(self._blocks):
+            yield Solution(*(np.load(self._file, allow_pickle=False) for _ in self._FIELDS))
+
+    def close(self) -> None:
+        self._file.close()
 
 
 NO_ALIGNMENT = ("no solution: the filter never aligned, which needs a GPS speed of align_speed_mps ([fusion]) for "
@@ -263,6 +293,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
     log = SmootherLog() if smooth else None
+    spill = _RowSpill() if smooth else None
     engine = Engine(method, cfg, log=log)
     odom = Odometry(method, drive_mounting(drive))
     kept: list[Solution] = []
@@ -287,9 +318,11 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
 
         def take(sol: Solution, done) -> None:
             nonlocal rows
-            if smooth or keep:
-                kept.append(sol)
-            if not smooth:
+            if smooth:
+                spill.add(sol)
+            else:
+                if keep:
+                    kept.append(sol)
                 write_solution(rec, method, sol)
                 odom.write(rec, sol)
             write_outages(done)
@@ -304,10 +337,15 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             hinf_note = hinf.summary(engine.filter)
             rec.add_metadata("fusion.hinf", hinf_note)
         if smooth:
-            smoothed = smooth_solution(Solution.concat(kept), log)
-            write_solution(rec, method, smoothed)
-            odom.write(rec, smoothed)
+            sm = rts(log) if len(log) >= 2 else None
+            for block in spill.blocks():
+                smoothed = smooth_rows(block, sm, log)
+                if keep:
+                    kept.append(smoothed)
+                write_solution(rec, method, smoothed)
+                odom.write(rec, smoothed)
             log.close()
+            spill.close()
         if odom.origin is not None:
             rec.add_metadata("fusion.map", odom.metadata())
     if progress:
@@ -316,4 +354,4 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      (smoothed if smooth else Solution.concat(kept)) if keep else None)
+                      Solution.concat(kept) if keep else None)
