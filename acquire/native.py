@@ -49,7 +49,7 @@ def library(module: str) -> ctypes.CDLL:
         spec = importlib.util.find_spec(module)
         if spec is None or spec.origin is None:
             raise ImportError(f"fieldlog's compiled kernels ({module}) are not built: reinstall fieldlog "
-                              "(pip install -e . builds them; needs a C compiler)")
+                              "(pip install -e . builds them; needs a C compiler)", name=module)
         lib = ctypes.CDLL(spec.origin)
         for name, (restype, argtypes) in _SIGNATURES.items():
             if hasattr(lib, name):

@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 NS = 1_000_000_000
 EMIT_PERIOD_NS = NS // 4   # derived output is collected every quarter second of reads, not after every read
 READ_BLOCK = 2048          # reads feed_reads takes at a time (the DAQ port's decoded ahead in one call)
+_FRAME_FIELDS = tuple(f.name for f in fields(daq.DaqFrames))
 MAX_HDOP = 99.0             # NMEA's largest HDOP; a larger, missing or non-positive one is taken as this
 MAX_SIGMA_M = 1e6           # a GST standard deviation beyond this (or NaN) falls back on HDOP
 
@@ -174,7 +175,7 @@ class Pipeline:
         cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
         out = []
         for a, b, s in zip(cuts[:-1].tolist(), cuts[1:].tolist(), (ends - [len(d) for d in datas]).tolist()):
-            piece = daq.DaqFrames(*(getattr(fr, f.name)[a:b] for f in fields(daq.DaqFrames)))
+            piece = daq.DaqFrames(*(getattr(fr, f)[a:b] for f in _FRAME_FIELDS))
             piece.end_offset = piece.end_offset - s  # relative to the read, as feed gives it
             out.append((piece, base + s))
         return out

@@ -79,8 +79,8 @@ def _kernel() -> ctypes.CDLL:
     if "lib" not in _lib:
         spec = importlib.util.find_spec("fieldlog.fusion._ins")
         if spec is None or spec.origin is None:
-            raise ImportError("fieldlog's compiled INS kernel is not built: reinstall fieldlog "
-                              "(pip install -e . builds it; needs a C compiler)")
+            raise ImportError("fieldlog's compiled INS kernel (fieldlog.fusion._ins) is not built: reinstall "
+                              "fieldlog (pip install -e . builds it; needs a C compiler)", name="fieldlog.fusion._ins")
         lib = ctypes.CDLL(spec.origin)
         lib.fieldlog_ins_integrate.restype = None
         lib.fieldlog_ins_integrate.argtypes = [ctypes.c_int64] + [ctypes.c_void_p] * 10

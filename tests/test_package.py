@@ -6,6 +6,10 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
+from fieldlog.tools.commands.common import KERNELS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -33,6 +37,8 @@ def test_wheel_holds_only_fieldlog(tmp_path):
     dev = [n for n in names if n.startswith("fieldlog/tools/dev/")
            or n.rpartition("/")[2] in ("bench.py", "fuzz.py", "layouts.py", "screenshot.py")]
     assert not dev, dev                                           # the development tools stay in the checkout
+    built = {n.split(".")[0].replace("/", ".") for n in names if n.endswith(".so")}
+    assert built == set(KERNELS), built                           # the compiled kernels setup.py builds
 
     # the wheel, unpacked on its own path, imported from a directory outside the checkout
     site = tmp_path / "site"
@@ -63,3 +69,25 @@ def test_editable_install_imports_fieldlog_only(tmp_path):
     exe = Path(sys.executable).parent / "fieldlog"
     r = _run([str(exe), "--version"], tmp_path)
     assert r.returncode == 0 and r.stdout.startswith("fieldlog "), r.stderr
+
+
+@pytest.mark.parametrize("kernel, argv", [("fieldlog.acquire._chunks", ["info"]),
+                                          ("fieldlog.fusion._ins", ["fuse", "--out", "{tmp}/f.mcap"])])
+def test_an_install_without_its_kernels_says_to_reinstall(simulated, monkeypatch, capsys, tmp_path, kernel, argv):
+    """A checkout used without `pip install -e .` (or a build that lost a kernel): one line naming the kernel and
+    what to do, exit code 2."""
+    import importlib.util
+
+    from fieldlog.acquire import native
+    from fieldlog.fusion import ins
+    from fieldlog.tools.cli import main
+
+    drive = simulated("figure8", 60, 1)
+    find = importlib.util.find_spec
+    monkeypatch.setattr(native, "_libs", {})
+    monkeypatch.setattr(ins, "_lib", {})
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == kernel else find(name, *a))
+    capsys.readouterr()
+    rc = main([argv[0], str(drive), *(x.format(tmp=tmp_path) for x in argv[1:])])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and kernel in err[0] and "reinstall" in err[0], err

@@ -13,7 +13,7 @@ import os
 import sys
 
 from fieldlog.tools.commands import COMMANDS
-from fieldlog.tools.commands.common import METHODS, HelpFormatter
+from fieldlog.tools.commands.common import KERNELS, METHODS, HelpFormatter
 
 __all__ = ["METHODS", "build_parser", "main", "setup_logging"]
 
@@ -108,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as e:  # noqa: BLE001 - the contract: one line, exit 1
+        if isinstance(e, ImportError) and e.name in KERNELS:  # installed without them: what to do, not a bug
+            print(f"{prefix} {e}", file=sys.stderr)
+            return 2
         if os.environ.get("FIELDLOG_TRACEBACK"):
             raise
         print(f"{prefix} internal error: {type(e).__name__}: {e} (please report it; FIELDLOG_TRACEBACK=1 shows "

@@ -18,6 +18,10 @@ METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sc
 EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export",
           "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
 
+# the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
+# them is told to reinstall, in one line
+KERNELS = ("fieldlog.fusion._ins", "fieldlog.acquire._chunks", "fieldlog.tools.sim._sensors")
+
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
 NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}

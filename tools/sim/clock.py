@@ -100,7 +100,7 @@ def pps_frames(t_s: np.ndarray, cfg: ClockConfig, rng: np.random.Generator, firs
     latch = np.zeros(n, np.uint16)
     kk = k[k >= 0]
     pps[kk] = True
-    free = np.setdiff1d(np.arange(1, n), kk)
+    free = np.flatnonzero(~pps[1:]) + 1  # the samples after the first without a pulse (kk has them set)
     glitch = np.sort(rng.choice(free, size=min(cfg.glitch_pps, free.size), replace=False))
     pps[glitch] = True
     latch_valid = pps.copy() if cfg.pps_mode == "latch" else np.zeros(n, bool)
