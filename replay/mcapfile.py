@@ -59,7 +59,7 @@ from fieldlog.acquire.recorder import MAGIC
 log = logging.getLogger(__name__)
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes
 STATS_ENTRIES = 1 << 18  # message index entries read at a time by ``channel_stats``
-PEEK_BATCH = 64  # scattered reads (one per chunk or index) gathered at a time while a file is opened
+PEEK_SPAN = 1 << 24  # bytes of file whose scattered reads (one per chunk or index) are gathered at a time
 WALK_WINDOW = 1 << 26  # bytes of file a walk over a file's top-level records takes at a time
 FAULT_AROUND = 1 << 16  # bytes the kernel may map around a byte read through the file's mapping (fault-around)
 READ_BYTES = 4 << 20  # consecutive pieces (small chunks, loose runs) are read together up to about this many bytes
@@ -442,13 +442,14 @@ class McapFile:
             self._mm.madvise(mmap.MADV_DONTNEED, start, hi - start)
 
     def _peek(self, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
-        """``le(self.buf, pos, dtype)`` at positions scattered over the file (in file order), ``PEEK_BATCH`` at a
-        time, each batch's pages handed back (``_drop``): the kernel maps up to ``FAULT_AROUND`` bytes around
-        each byte read, so gathering one value per chunk of a long drive at once would map much of it."""
+        """``le(self.buf, pos, dtype)`` at positions scattered over the file (in file order), those within each
+        ``PEEK_SPAN`` of file at a time, each span's pages handed back (``_drop``): the kernel maps up to
+        ``FAULT_AROUND`` bytes around each byte read, so gathering one value per chunk of a long drive at once
+        would map much of it."""
         pos = np.asarray(pos, np.int64)
+        cuts = np.flatnonzero(np.diff(pos // PEEK_SPAN)) + 1
         parts = [le(self.buf, pos[:0], dtype)]
-        for i in range(0, len(pos), PEEK_BATCH):
-            p = pos[i:i + PEEK_BATCH]
+        for p in np.split(pos, cuts) if len(pos) else []:
             parts.append(le(self.buf, p, dtype))
             self._drop(int(p.min()) - FAULT_AROUND, int(p.max()) + FAULT_AROUND)
         return np.concatenate(parts)
