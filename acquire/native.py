@@ -33,27 +33,23 @@ _state: dict[str, object] = {}
 
 
 _libs: dict[str, ctypes.CDLL] = {}
-_P, _I64 = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {  # the kernels' C signatures (acquire/_chunks.c, tools/sim/_sensors.c): name -> (restype, argtypes)
-    "fieldlog_walk": (_I64, [_P, _I64, _I64, _I64, _P, _P, _P, _P]),
-    "fieldlog_read_chunks": (None, [_P] * 6 + [_I64] + [_P] * 11),
-    "fieldlog_gm_recursion": (None, [_I64, _I64, _P, _P, _P]),
-    "fieldlog_ar1": (None, [_I64, _I64, ctypes.c_double, ctypes.c_double, _P, _P, _P]),
-}
+P, I64 = ctypes.c_void_p, ctypes.c_int64  # a pointer (an array's ``ctypes.data``), an int64_t
+CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # acquire/_chunks.c: name -> (restype, argtypes)
+          "fieldlog_read_chunks": (None, [P] * 6 + [I64] + [P] * 11)}
 
 
-def library(module: str) -> ctypes.CDLL:
-    """The compiled kernels of extension ``module`` (``fieldlog.acquire._chunks``, ...), loaded once per process
-    with their signatures set. ImportError, naming the fix, when the package was installed without them."""
+def library(module: str, signatures: dict[str, tuple[object, list]]) -> ctypes.CDLL:
+    """The compiled kernels of extension ``module`` (``fieldlog.acquire._chunks``, ...), loaded once per process,
+    with the C ``signatures`` of its functions (name -> (restype, argtypes)) set. ImportError, naming the fix,
+    when the package was installed without them."""
     if module not in _libs:
         spec = importlib.util.find_spec(module)
         if spec is None or spec.origin is None:
             raise ImportError(f"fieldlog's compiled kernels ({module}) are not built: reinstall fieldlog "
                               "(pip install -e . builds them; needs a C compiler)", name=module)
         lib = ctypes.CDLL(spec.origin)
-        for name, (restype, argtypes) in _SIGNATURES.items():
-            if hasattr(lib, name):
-                getattr(lib, name).restype, getattr(lib, name).argtypes = restype, argtypes
+        for name, (restype, argtypes) in signatures.items():
+            getattr(lib, name).restype, getattr(lib, name).argtypes = restype, argtypes
         _libs[module] = lib
     return _libs[module]
 
@@ -111,7 +107,7 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
             or len(a) and (a.min() < 0 or b.max() > len(src) or arrays[1].min() < 0)):
         raise ValueError("read_chunks: chunks outside the buffer, or want, stage or out of the wrong size")
     res = np.zeros(5, np.int64)
-    library("fieldlog.acquire._chunks").fieldlog_read_chunks(
+    library("fieldlog.acquire._chunks", CHUNKS).fieldlog_read_chunks(
         *_state["fns"], _state["dctx"], src.ctypes.data, len(comp), comp.ctypes.data,
         *(a.ctypes.data for a in arrays), stage.ctypes.data, out.ctypes.data, want.ctypes.data, rec.ctypes.data,
         ch.ctypes.data, defs.ctypes.data, res.ctypes.data)

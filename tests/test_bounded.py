@@ -215,7 +215,7 @@ from fieldlog.replay.mcapfile import McapFile
 def status(key):  # this process's own figures (ru_maxrss would start from the parent's, as exec keeps it)
     return next(int(x.split()[1]) for x in open("/proc/self/status") if x.startswith(key)) * 1024
 
-native.ready(), native.library("fieldlog.acquire._chunks")
+native.ready(), native.library("fieldlog.acquire._chunks", native.CHUNKS)
 before = status("VmRSS:")
 f = McapFile(sys.argv[1])
 every = np.arange(len(f.pieces.size))

@@ -47,6 +47,7 @@ that datasheet (``fusion.imugrade``, the same figures the filter takes as ``[fus
 
 from __future__ import annotations
 
+import ctypes
 import math
 from dataclasses import dataclass, fields
 
@@ -148,8 +149,13 @@ def _ar1(b0: float, phi: float, z: np.ndarray, y_prev: np.ndarray) -> np.ndarray
     return y
 
 
+_SIGNATURES = {"fieldlog_gm_recursion": (None, [native.I64, native.I64, native.P, native.P, native.P]),
+               "fieldlog_ar1": (None, [native.I64, native.I64, ctypes.c_double, ctypes.c_double, native.P, native.P,
+                                       native.P])}  # tools/sim/_sensors.c
+
+
 def _lib():
-    return native.library("fieldlog.tools.sim._sensors")
+    return native.library("fieldlog.tools.sim._sensors", _SIGNATURES)
 
 
 def gauss_markov(t_s: np.ndarray, tau_s: float, z: np.ndarray) -> np.ndarray:
