@@ -17,10 +17,10 @@ the listed chunks (header, schemas, channels, metadata, attachments, data end) a
 message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
 Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
 top-level records are walked once (``acquire.chunks.walk_records``: it reads only each record's 9-byte head,
-so it jumps over chunk bodies). Both give the same table, so a file with or without a summary, indexes, statistics or summary
-offsets reads the same; a file of many small chunks opens faster from its summary than walked. A *piece*
-is a chunk or a run of loose messages, with its log-time bounds and, when the file says so (message indexes,
-or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
+so it jumps over chunk bodies). Both give the same table, so a file with or without a summary, indexes,
+statistics or summary offsets reads the same; a file of many small chunks opens faster from its summary than
+walked. A *piece* is a chunk or a run of loose messages, with its log-time bounds and, when the file says so
+(message indexes, or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
 per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
 walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (a group's
 chunks are decompressed, checked against their CRC-32s and walked in one compiled pass that keeps the records of

@@ -125,7 +125,8 @@ def flicker_corr_times(t_min_s: float, t_max_s: float) -> tuple[np.ndarray, floa
 
 
 def _gm_recursion(phi: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """x_0 = z_0, x_k = phi_{k-1} x_{k-1} + sqrt(1 - phi_{k-1}^2) z_k along axis 0 of z (n, m) (tools/sim/_sensors.c)."""
+    """x_0 = z_0, x_k = phi_{k-1} x_{k-1} + sqrt(1 - phi_{k-1}^2) z_k along axis 0 of z (n, m)
+    (tools/sim/_sensors.c)."""
     z = np.ascontiguousarray(z, np.float64)
     phi = np.ascontiguousarray(phi, np.float64)
     if phi.shape != (max(z.shape[0] - 1, 0),):
