@@ -9,22 +9,21 @@ what it holds, whatever the writer chose to write:
   chunk is read);
 - metadata records (``metadata()``); attachments are skipped.
 
-When the file has a summary with chunk indexes, the chunk table comes from them, as every MCAP reader does:
-the summary's CRC (when the footer has one) is checked, each chunk index must point at a chunk record, its
-message index offsets must tile the bytes after that chunk (without a CRC, each message index record is read
-and must agree with the summary), and the few records of the data section between
-the listed chunks (header, schemas, channels, metadata, attachments, data end) are walked: a message, chunk or
-message index among them (messages outside chunks, which no chunk index lists) sends the file to the walk.
-Otherwise (no summary or no chunk indexes, a summary that does not check out, a truncated file) the file's
-top-level records are walked once (``acquire.chunks.walk_records``: it reads only each record's 9-byte head,
-so it jumps over chunk bodies). Both give the same table, so a file with or without a summary, indexes,
-statistics or summary offsets reads the same; a file of many small chunks opens faster from its summary than
-walked. A *piece* is a chunk or a run of loose messages, with its log-time bounds and, when the file says so
-(message indexes, or the headers of loose messages), the channels inside it. The pieces are held as arrays (``Pieces``, one row
-per piece), never as one Python object each: a file of 4 KiB chunks has tens of thousands of them, and the
-walk, the choice of pieces for some topics and the reading of a group of them are all vectorised (a group's
-chunks are decompressed, checked against their CRC-32s and walked in one compiled pass that keeps the records of
-the topics asked for: ``chunks.read_chunks``).
+When the file has a summary with chunk indexes, the chunk table comes from them, as every MCAP reader does: the
+summary's CRC (when the footer has one) is checked, each chunk index must point at a chunk record, its message index
+offsets must tile the bytes after that chunk (without a CRC, each message index record is read and must agree with
+the summary), and the few records of the data section between the listed chunks (header, schemas, channels,
+metadata, attachments, data end) are walked: a message, chunk or message index among them (messages outside chunks,
+which no chunk index lists) sends the file to the walk. Otherwise (no summary or no chunk indexes, a summary that
+does not check out, a truncated file) the file's top-level records are walked once (``acquire.chunks.walk_records``:
+it reads only each record's 9-byte head, so it jumps over chunk bodies). Both give the same table, so a file with or
+without a summary, indexes, statistics or summary offsets reads the same; a file of many small chunks opens faster
+from its summary than walked. A *piece* is a chunk or a run of loose messages, with its log-time bounds and, when
+the file says so (message indexes, or the headers of loose messages), the channels inside it. The pieces are held as
+arrays (``Pieces``, one row per piece), never as one Python object each: a file of 4 KiB chunks has tens of
+thousands of them, and the walk, the choice of pieces for some topics and the reading of a group of them are all
+vectorised (a group's chunks are decompressed, checked against their CRC-32s and walked in one compiled pass that
+keeps the records of the topics asked for: ``chunks.read_chunks``).
 
 Complete vs truncated: a valid file starts with the magic and ends with a Footer record followed by the
 magic. Anything else (the walk stops before the end, no footer, no closing magic) is ``TruncatedError``:
