@@ -21,6 +21,7 @@ import ctypes
 import importlib.machinery
 import importlib.util
 import os
+import threading
 
 import numpy as np
 
@@ -30,6 +31,7 @@ OK, CODEC, SIZE, CRC = 0, 1, 2, 3  # what it finds wrong with a chunk
 ERRORS = {CODEC: "chunk does not decompress (zstd)", SIZE: "chunk size mismatch", CRC: "chunk CRC mismatch"}
 
 _state: dict[str, object] = {}
+_thread = threading.local()  # each thread's zstd context: a ctypes call releases the GIL, so threads run at once
 
 
 _libs: dict[str, ctypes.CDLL] = {}
@@ -77,7 +79,7 @@ def ready() -> bool:
         create = libs["zstd"].ZSTD_createDCtx
         create.restype = ctypes.c_void_p
         _state["fns"] = (fns[1], fns[2], fns[3])  # ZSTD_decompressDCtx, ZSTD_isError, zng_crc32
-        _state["dctx"] = create()  # this process's context (ctypes calls hold the GIL)
+        _state["create_dctx"] = create
         _state["ok"] = True
     return bool(_state["ok"])
 
@@ -102,13 +104,15 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     src = np.frombuffer(buf, np.uint8)
     arrays = [np.ascontiguousarray(a, np.int64) for a in (at, length, size, crc)]
     comp, want = np.ascontiguousarray(comp, np.uint8), np.ascontiguousarray(want, np.uint8)
-    a, b = arrays[0], arrays[0] + arrays[1]
+    first, last = arrays[0], arrays[0] + arrays[1]
     if (len(want) != 1 << 16 or stage.nbytes < int(size.max(initial=0)) or out.nbytes < n
-            or len(a) and (a.min() < 0 or b.max() > len(src) or arrays[1].min() < 0)):
+            or len(first) and (first.min() < 0 or last.max() > len(src) or arrays[1].min() < 0)):
         raise ValueError("read_chunks: chunks outside the buffer, or want, stage or out of the wrong size")
+    if getattr(_thread, "dctx", None) is None:
+        _thread.dctx = _state["create_dctx"]()
     res = np.zeros(5, np.int64)
     library("fieldlog.acquire._chunks", CHUNKS).fieldlog_read_chunks(
-        *_state["fns"], _state["dctx"], src.ctypes.data, len(comp), comp.ctypes.data,
+        *_state["fns"], _thread.dctx, src.ctypes.data, len(comp), comp.ctypes.data,
         *(a.ctypes.data for a in arrays), stage.ctypes.data, out.ctypes.data, want.ctypes.data, rec.ctypes.data,
         ch.ctypes.data, defs.ctypes.data, res.ctypes.data)
     j, what, used, k, nd = res.tolist()

@@ -7,9 +7,9 @@ the reads, so re-running on ``/raw/*`` reproduces the derived topics bit for bit
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import logging
 from collections import deque
-import itertools
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Protocol
@@ -170,11 +170,12 @@ class Pipeline:
             for k, v in stats.items():
                 setattr(dec.stats, k, v)
             return []
-        ends = np.cumsum([len(d) for d in datas])
+        lengths = np.array([len(d) for d in datas], np.int64)
+        ends = np.cumsum(lengths)
         read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
         cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
         out = []
-        for a, b, s in zip(cuts[:-1].tolist(), cuts[1:].tolist(), (ends - [len(d) for d in datas]).tolist()):
+        for a, b, s in zip(cuts[:-1].tolist(), cuts[1:].tolist(), (ends - lengths).tolist()):
             piece = daq.DaqFrames(*(getattr(fr, f)[a:b] for f in _FRAME_FIELDS))
             piece.end_offset = piece.end_offset - s  # relative to the read, as feed gives it
             out.append((piece, base + s))

@@ -72,7 +72,7 @@ _MSG_INDEX_HDR = struct.Struct("<BQHI")
 @dataclass
 class _OpenChunk:
     """Uncompressed chunk being built: parts joined on close; message index per channel, as pieces of (log
-    times, offsets): uint64 arrays from batches, ints from single messages (``index_column`` joins them)."""
+    times, offsets): uint64 arrays from batches, ints from single messages (``_index_column`` joins them)."""
 
     parts: list = field(default_factory=list)
     size: int = 0

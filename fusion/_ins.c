@@ -1,6 +1,6 @@
 /* The strapdown INS step of fusion/ins.py (its module docstring gives the algorithm, units and frames), in C.
  *
- * Built with the package (pyproject.toml, ext-modules) and called through ctypes by ins.integrate; it needs no
+ * Built with the package (setup.py) and called through ctypes by ins.integrate; it needs no
  * Python headers. Compiled without floating-point contraction (-ffp-contract=off) and evaluated in the order
  * the Python source of the algorithm writes it, so the results are the same to the bit on every machine with
  * IEEE-754 doubles and the same libm. The Earth constants come from fusion/earth.py, passed in by the caller

@@ -213,8 +213,9 @@ def fuse(filters, infos: list[np.ndarray] | None = None) -> tuple[np.ndarray, np
     inverse covariances when the caller has them."""
     info = np.zeros_like(filters[0].covariance)
     vec = np.zeros_like(filters[0].state)
-    for i, f in enumerate(filters):
-        Pi = infos[i] if infos is not None else _inv_spd(f.covariance)
+    if infos is None:
+        infos = [_inv_spd(f.covariance) for f in filters]
+    for f, Pi in zip(filters, infos):
         info += Pi
         vec += Pi @ f.state
     P = _inv_spd(info)

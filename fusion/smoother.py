@@ -153,9 +153,12 @@ class Smoothed:
     dx: np.ndarray
 
 
-def rts(log: SmootherLog) -> Smoothed:
-    """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time."""
+def rts(log: SmootherLog) -> Smoothed | None:
+    """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time; None
+    with fewer than two records (nothing to smooth)."""
     n = len(log)
+    if n < 2:
+        return None
     t_ns = np.zeros(n, np.int64)
     y = np.zeros((n, N_STATES))
     d = np.zeros((n, N_STATES))
@@ -231,7 +234,7 @@ def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q:
 
 def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
     """The forward solution rows of a whole drive, smoothed with the records of the same run."""
-    return smooth_rows(sol, rts(log) if len(log) >= 2 else None, log)
+    return smooth_rows(sol, rts(log), log)
 
 
 def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:

@@ -200,7 +200,7 @@ class McapFile:
         while True:
             hi = min(end, pos + WALK_WINDOW)
             if end - pos >= 9:  # a record longer than the window: the window takes it whole
-                hi = max(hi, min(end, pos + 9 + int(le(self.buf, np.array([pos + 1]), "<u8")[0])))
+                hi = max(hi, min(end, pos + 9 + int.from_bytes(self._mm[pos + 1:pos + 9], "little")))
             ops, starts, lengths, stop = walk_records(self.buf[:hi], pos, (hi - pos) // 64 + 1)
             parts.append((ops, starts, lengths))
             self._drop(pos - FAULT_AROUND, stop + FAULT_AROUND)

@@ -87,6 +87,26 @@ def test_rebuild_is_bit_for_bit(figure8, tmp_path):
         assert a[topic] == b[topic], topic
 
 
+def test_rebuild_decodes_read_by_read_when_a_block_does_not_decode(tmp_path, monkeypatch):
+    """``Pipeline.feed_reads`` decodes each block of DAQ reads in one decoder call; if that call raises, the
+    decoder is put back and every read is decoded on its own: the same drive, byte for byte."""
+    from fieldlog.acquire import daq
+
+    src = tmp_path / "src.mcap"
+    simulate("figure8", 60.0, 2, src)
+    assert rebuild(src, tmp_path / "ahead.mcap").imu_samples > 0
+    feed = daq.DaqDecoder.feed
+
+    def small_reads_only(self, data):
+        if len(data) > 4096:  # a block decoded ahead; single reads are a few frames
+            raise RuntimeError("a decoder bug this block reaches")
+        return feed(self, data)
+
+    monkeypatch.setattr(daq.DaqDecoder, "feed", small_reads_only)
+    rebuild(src, tmp_path / "one_by_one.mcap")
+    assert (tmp_path / "ahead.mcap").read_bytes() == (tmp_path / "one_by_one.mcap").read_bytes()
+
+
 @pytest.mark.slow
 def test_rebuild_with_new_calibration_changes_only_imu(figure8, tmp_path):
     cal = tmp_path / "cal.toml"

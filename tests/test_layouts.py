@@ -392,6 +392,30 @@ def test_the_compiled_read_equals_the_numpy_read(layout, original, corpus, monke
     assert sum(len(a[0]) for a in compiled) > 0
 
 
+def test_threads_reading_at_once_read_what_one_reads(original, corpus):
+    """The compiled read releases the GIL: two threads reading the 4 KiB-chunk file at once (each with its own
+    zstd context and buffers) get the messages one thread gets."""
+    import concurrent.futures
+
+    def read() -> list:
+        f = McapFile(corpus["chunks-4k"])
+        out = []
+        for g in f.groups(np.arange(len(f.pieces)), f.pieces.size):
+            cm = f.read(g, ["/imu", "/gps/fix"])
+            out.append((cm.log_time.copy(), cm.packed().buf.copy()))
+        return out
+
+    assert native.ready()
+    one = read()
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        both = [job.result() for job in [pool.submit(read) for _ in range(2)]]
+    for got in both:
+        assert len(got) == len(one) > 1
+        for (t, b), (t1, b1) in zip(got, one):
+            np.testing.assert_array_equal(t, t1)
+            np.testing.assert_array_equal(b, b1)
+
+
 @pytest.mark.parametrize("layout", ["original", "chunks-4k", "lz4", "uncompressed"])
 def test_a_damaged_chunk_is_reported_never_read(layout, read_path, original, corpus, tmp_path, capsys):
     """One byte flipped inside a chunk holding /imu (zstd, 4 KiB zstd, lz4, uncompressed; both read paths):

@@ -46,7 +46,7 @@ import os
 import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -84,7 +84,7 @@ class _RowSpill:
                 np.save(self._file, getattr(sol, name), allow_pickle=False)
             self._blocks += 1
 
-    def blocks(self):
+    def blocks(self) -> Iterator[Solution]:
         """The blocks added, in order."""
         self._file.seek(0)
         for _ in range(self._blocks):
@@ -337,7 +337,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             hinf_note = hinf.summary(engine.filter)
             rec.add_metadata("fusion.hinf", hinf_note)
         if smooth:
-            sm = rts(log) if len(log) >= 2 else None
+            sm = rts(log)
             for block in spill.blocks():
                 smoothed = smooth_rows(block, sm, log)
                 if keep:
