@@ -4,7 +4,8 @@ Built without floating-point contraction, so they give the same numbers to the b
 from setuptools import Extension, setup
 
 FLAGS = ["-O2", "-ffp-contract=off", "-fno-math-errno"]
-KERNELS = {"fieldlog.fusion._ins": "fusion/_ins.c", "fieldlog.acquire._chunks": "acquire/_chunks.c",
+KERNELS = {"fieldlog.fusion._ins": "fusion/_ins.c", "fieldlog.fusion._cycles": "fusion/_cycles.c",
+           "fieldlog.acquire._chunks": "acquire/_chunks.c",
            "fieldlog.tools.sim._sensors": "tools/sim/_sensors.c"}
 
 setup(ext_modules=[Extension(name, [src], extra_compile_args=FLAGS) for name, src in KERNELS.items()])

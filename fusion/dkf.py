@@ -49,9 +49,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fieldlog.fusion.errmodel import N_STATES
+from fieldlog.fusion.errmodel import N_STATES, propagate_covariance
 from fieldlog.fusion.ins import NavState
-from fieldlog.fusion.kf import KalmanFilter, Measurement, Observation, cycle_matrices, gps_observations, stack
+from fieldlog.fusion.kf import (KalmanFilter, Measurement, Observation, cycle_matrices, gps_observations,
+                                propagate_state, stack)
 
 BETA = 0.5  # information share of each local filter (federated)
 FUSIONS = ("paper", "federated")
@@ -117,18 +118,12 @@ class DistributedKF:
             self.local_states = np.zeros((m, 2, N_STATES))
             self.local_diag = np.stack([d1, d1], axis=1)
             return BETA * d1
-        xs = np.empty((m, 2, N_STATES))
-        Ps = np.empty((3, m, N_STATES, N_STATES))  # P1, P2, P12 after each cycle
-        x1, x2 = self.kf_vel.x, self.kf_pos.x
-        P1, P2, P12 = self.kf_vel.P, self.kf_pos.P, self.P12
-        for i in range(m):
-            x1, x2 = Phi[i] @ x1, Phi[i] @ x2
-            P1 = _sym(Phi[i] @ P1 @ Phi[i].T + Q[i])
-            P2 = _sym(Phi[i] @ P2 @ Phi[i].T + Q[i])
-            P12 = Phi[i] @ P12 @ Phi[i].T + Q[i]
-            xs[i] = x1, x2
-            Ps[:, i] = P1, P2, P12
-        self.kf_vel.x, self.kf_vel.P, self.kf_pos.x, self.kf_pos.P, self.P12 = x1, P1, x2, P2, P12
+        xs = np.stack([propagate_state(Phi, self.kf_vel.x), propagate_state(Phi, self.kf_pos.x)], axis=1)
+        Ps = np.stack([propagate_covariance(Phi, Q, self.kf_vel.P), propagate_covariance(Phi, Q, self.kf_pos.P),
+                       propagate_covariance(Phi, Q, self.P12, sym=False)])  # P1, P2, P12 after each cycle
+        if m:
+            self.kf_vel.x, self.kf_pos.x = xs[-1, 0], xs[-1, 1]
+            self.kf_vel.P, self.kf_pos.P, self.P12 = Ps[0, -1].copy(), Ps[1, -1].copy(), Ps[2, -1].copy()
         self._fuse()
         self.local_states = xs
         self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()

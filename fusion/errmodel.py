@@ -37,17 +37,20 @@ Eq. 13 alone stops at dT^2; that Q is indefinite (the position block gets cross 
 but no diagonal, since position has no direct noise), which can cost the covariance its positive
 definiteness. The dT^3 term gives position its diagonal and makes Q positive semi-definite.
 
-Every function is vectorised over leading axes (a stack of filter cycles is built in one call).
+Every function is vectorised over leading axes (a stack of filter cycles is built in one call). The filter loop
+builds its cycles with :func:`discrete_cycles`, the same numbers as ``discretise(*system_matrices(...))`` computed
+by a compiled kernel (fusion/_cycles.c); the numpy functions are the reference it is tested against.
 """
 
 from __future__ import annotations
 
+import ctypes
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fieldlog.fusion import earth
+from fieldlog.fusion import earth, kernels
 
 N_STATES = 15
 N_NOISE = 12
@@ -145,6 +148,50 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
     return Phi, Q
 
 
+def cycle_kernel() -> ctypes.CDLL:
+    """The compiled cycle matrices and covariance cycles (fusion/_cycles.c)."""
+    p, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+    return kernels.load("fieldlog.fusion._cycles", {
+        "fieldlog_cycle_matrices": [i64, f64] + [p] * 8,
+        "fieldlog_propagate_cov": [i64, p, p, f64, ctypes.c_int32, p, p],
+        "fieldlog_consider_cycles": [i64, p, p, p, p]})
+
+
+def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.ndarray, f_n: np.ndarray,
+                    q: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Phi, Q)`` (m, 15, 15) of m cycles: ``discretise(*system_matrices(lat, h, v_n, C_bn, f_n), q, dt)`` to the
+    bit (on a machine whose BLAS sums a matrix product as sequential fused multiply-adds), compiled.
+
+    lat (m,) rad, h (m,) m, v_n (m, 3) ENU m/s, C_bn (m, 3, 3), f_n (m, 3) ENU m/s^2, q (12, 12), dt (m,) s."""
+    lat, h = np.asarray(lat, dtype=float), np.asarray(h, dtype=float)
+    v = np.ascontiguousarray(v_n, dtype=float)
+    rm, rn = earth.principal_radii(lat, h)
+    # the terms the kernel takes in its T_* order: the transcendental functions stay numpy's
+    terms = np.column_stack([rm, rn, np.sin(lat), np.cos(lat), earth.gravity(lat, h), earth.omega_ie_n(lat),
+                             earth.omega_en_n(lat, h, v)])
+    m = len(lat)
+    Phi, Q = np.empty((m, N_STATES, N_STATES)), np.empty((m, N_STATES, N_STATES))
+    args = (terms, v, np.asarray(C_bn, dtype=float), np.asarray(f_n, dtype=float), np.asarray(dt, dtype=float),
+            np.asarray(q, dtype=float))
+    args = tuple(np.ascontiguousarray(a) for a in args)
+    cycle_kernel().fieldlog_cycle_matrices(m, earth.OMEGA_IE, *(a.ctypes.data for a in (*args, Phi, Q)))
+    return Phi, Q
+
+
+def propagate_covariance(Phi: np.ndarray, Q: np.ndarray, P: np.ndarray, q_scale: float = 1.0, sym: bool = True
+                         ) -> np.ndarray:
+    """P (15, 15) through the cycles Phi, Q (m, 15, 15): P <- Phi_i P Phi_i^T + q_scale Q_i, made symmetric
+    (0.5 (P + P^T)) after each when ``sym``; returns P after each cycle (m, 15, 15), compiled (fusion/_cycles.c;
+    the same numbers as numpy's ``Phi[i] @ P @ Phi[i].T + q_scale * Q[i]`` under the condition of
+    :func:`discrete_cycles`). P itself is left alone."""
+    Phi, Q = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Q, dtype=float)
+    work = np.array(P, dtype=float, order="C")
+    hist = np.empty((len(Phi), N_STATES, N_STATES))
+    cycle_kernel().fieldlog_propagate_cov(len(Phi), Phi.ctypes.data, Q.ctypes.data, float(q_scale), int(sym),
+                                          work.ctypes.data, hist.ctypes.data)
+    return hist
+
+
 @dataclass
 class Cycles:
     """The filter cycles of an INS segment: sample indices of each cycle's start, middle and end (m,), lengths dt
@@ -205,8 +252,7 @@ def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: n
     wsum = np.cumsum(np.vstack([np.zeros(3), w_b[1:]]), axis=0)
     w_mean = (wsum[ends] - wsum[starts]) / (ends - starts)[:, None]
     C = earth.quat_to_dcm(sol.q[mid])
-    F, G = system_matrices(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean))
-    Phi, Q = discretise(F, G, q, dt)
+    Phi, Q = discrete_cycles(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean), q, dt)
     if steps is not None:
         Q = Q + steps.noise(Phi, w_mean, f_mean)
     return Cycles(starts, mid, ends, dt, f_mean, w_mean, C, Phi, Q)

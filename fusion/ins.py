@@ -25,15 +25,13 @@ first pass's result. Every error term is then third order in dt per step.
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
-from fieldlog.fusion import earth
+from fieldlog.fusion import earth, kernels
 
 # the constants the kernel takes, in its EARTH_* order
 _EARTH = np.array([earth.A, earth.E2, earth.F, earth._M, earth._K_SOMIGLIANA, earth.GAMMA_E, earth.OMEGA_IE])
-_lib: dict[str, ctypes.CDLL] = {}
 
 
 @dataclass
@@ -75,17 +73,8 @@ class NavSolution:
 
 
 def _kernel() -> ctypes.CDLL:
-    """The compiled step (fusion/_ins.c), loaded once per process."""
-    if "lib" not in _lib:
-        spec = importlib.util.find_spec("fieldlog.fusion._ins")
-        if spec is None or spec.origin is None:
-            raise ImportError("fieldlog's compiled INS kernel (fieldlog.fusion._ins) is not built: reinstall "
-                              "fieldlog (pip install -e . builds it; needs a C compiler)", name="fieldlog.fusion._ins")
-        lib = ctypes.CDLL(spec.origin)
-        lib.fieldlog_ins_integrate.restype = None
-        lib.fieldlog_ins_integrate.argtypes = [ctypes.c_int64] + [ctypes.c_void_p] * 10
-        _lib["lib"] = lib
-    return _lib["lib"]
+    """The compiled step (fusion/_ins.c)."""
+    return kernels.load("fieldlog.fusion._ins", {"fieldlog_ins_integrate": [ctypes.c_int64] + [ctypes.c_void_p] * 10})
 
 
 def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.ndarray) -> NavSolution:

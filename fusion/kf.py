@@ -85,15 +85,11 @@ class KalmanFilter:
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Apply a sequence of discrete cycles: Phi, Q (m, 15, 15). Returns diag(P) after each, (m, 15)."""
-        out = np.empty((len(Phi), len(self.x)))
-        x, P = self.x, self.P
-        for i in range(len(Phi)):
-            x = Phi[i] @ x
-            P = Phi[i] @ P @ Phi[i].T + self.q_scale * Q[i]
-            P = 0.5 * (P + P.T)
-            out[i] = np.diag(P)
-        self.x, self.P = x, P
-        return out
+        self.x = propagate_state(Phi, self.x)[-1] if len(Phi) else self.x
+        hist = errmodel.propagate_covariance(Phi, Q, self.P, self.q_scale)
+        if len(hist):
+            self.P = hist[-1].copy()
+        return np.diagonal(hist, axis1=1, axis2=2).copy()
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Measurement update (Joseph form). z (m,), H (m, 15), R (m, m).
@@ -131,6 +127,18 @@ class KalmanFilter:
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)
+
+
+def propagate_state(Phi: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The error state x (15,) through the cycles Phi (m, 15, 15): x after each, (m, 15). A zero state (the closed
+    loop's, between updates) stays zero without a product."""
+    if not x.any():
+        return np.zeros((len(Phi), len(x)))
+    out = np.empty((len(Phi), len(x)))
+    for i in range(len(Phi)):
+        x = Phi[i] @ x
+        out[i] = x
+    return out
 
 
 def cycle_matrices(dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray], q: np.ndarray

@@ -84,9 +84,9 @@ def test_batch_on_a_scheduler_reuses_warm_workers(fleet, tmp_path, capsys):
 
     def worker_state(dask_worker) -> tuple[int, int, int]:  # local, so it is sent by value to the workers
         """(drives run, INS kernels loaded (0 or 1: once per process), pid) of a Dask worker."""
-        from fieldlog.fusion import ins
+        from fieldlog.fusion import kernels
 
-        return dask_worker.state.executed_count, len(ins._lib), os.getpid()
+        return dask_worker.state.executed_count, int("fieldlog.fusion._ins" in kernels._loaded), os.getpid()
 
     drives = [str(fleet / f"drive{s}.mcap") for s in SEEDS]
     with loopback_cluster(2, tmp_path / "cluster") as address:

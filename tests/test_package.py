@@ -72,20 +72,21 @@ def test_editable_install_imports_fieldlog_only(tmp_path):
 
 
 @pytest.mark.parametrize("kernel, argv", [("fieldlog.acquire._chunks", ["info"]),
-                                          ("fieldlog.fusion._ins", ["fuse", "--out", "{tmp}/f.mcap"])])
+                                          ("fieldlog.fusion._ins", ["fuse", "--out", "{tmp}/f.mcap"]),
+                                          ("fieldlog.fusion._cycles", ["fuse", "--out", "{tmp}/f.mcap"])])
 def test_an_install_without_its_kernels_says_to_reinstall(simulated, monkeypatch, capsys, tmp_path, kernel, argv):
     """A checkout used without `pip install -e .` (or a build that lost a kernel): one line naming the kernel and
     what to do, exit code 2."""
     import importlib.util
 
     from fieldlog.acquire import native
-    from fieldlog.fusion import ins
+    from fieldlog.fusion import kernels
     from fieldlog.tools.cli import main
 
     drive = simulated("figure8", 60, 1)
     find = importlib.util.find_spec
     monkeypatch.setattr(native, "_libs", {})
-    monkeypatch.setattr(ins, "_lib", {})
+    monkeypatch.setattr(kernels, "_loaded", {})
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == kernel else find(name, *a))
     capsys.readouterr()
     rc = main([argv[0], str(drive), *(x.format(tmp=tmp_path) for x in argv[1:])])

@@ -20,7 +20,7 @@ EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export",
 
 # the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
 # them is told to reinstall, in one line
-KERNELS = ("fieldlog.fusion._ins", "fieldlog.acquire._chunks", "fieldlog.tools.sim._sensors")
+KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.acquire._chunks", "fieldlog.tools.sim._sensors")
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
 NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",

@@ -1,0 +1,178 @@
+/* The filter cycles' matrices of fusion/errmodel.py and the covariance propagation of fusion/kf.py, in C.
+ *
+ * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and
+ * KalmanFilter.propagate; it needs no Python headers. It evaluates errmodel.system_matrices (from the
+ * Earth terms on), errmodel.discretise and the P cycle of KalmanFilter.propagate in the order their numpy
+ * source writes them, so the results equal numpy's to the bit where numpy's matrix products are the
+ * sequential fused multiply-add sums of an optimised BLAS (OpenBLAS): each product element c_ij is
+ * fma(a_i,k-1, b_k-1,j, ... fma(a_i0, b_0j, +0.0)), in k order. Elementwise steps are plain IEEE-754
+ * operations, compiled without contraction (-ffp-contract=off).
+ *
+ * Matrices are row-major doubles; a stack of m 15x15 matrices is (m, 15, 15). Frames and units are those of
+ * fusion/errmodel.py: ENU navigation frame, body RFU, SI.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
+/* fma() is a library call unless the target has the instruction: build a clone for it, chosen at load */
+#define KERNEL __attribute__((target_clones("fma", "default")))
+#else
+#define KERNEL
+#endif
+
+#define N 15  /* error states */
+#define W 12  /* noise inputs */
+
+enum { T_RM, T_RN, T_SL, T_CL, T_G, T_WIE, T_WEN = T_WIE + 3, T_N = T_WEN + 3 };
+
+/* c (n x p) = a (n x k) @ b (k x p), with row strides lda, ldb, ldc; b read as its transpose when bt */
+static inline void matmul(int n, int k, int p, const double *a, int lda, const double *b, int ldb, int bt,
+                          double *c, int ldc)
+{
+    for (int i = 0; i < n; i++) {
+        double *ci = c + i * ldc;
+        for (int j = 0; j < p; j++)
+            ci[j] = 0.0;
+        for (int l = 0; l < k; l++) {
+            double ail = a[i * lda + l];
+            if (bt)
+                for (int j = 0; j < p; j++)
+                    ci[j] = fma(ail, b[j * ldb + l], ci[j]);
+            else
+                for (int j = 0; j < p; j++)
+                    ci[j] = fma(ail, b[l * ldb + j], ci[j]);
+        }
+    }
+}
+
+/* out = [v x] (3 x 3, row stride ld) with +0.0 off the skew entries, as earth.skew; negated when neg */
+static inline void skew(const double v[3], int neg, double *out, int ld)
+{
+    double s[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            out[r * ld + c] = neg ? -s[r * 3 + c] : s[r * 3 + c];
+}
+
+/* F and G of errmodel.system_matrices for one cycle: omega the Earth rate (rad/s, earth.OMEGA_IE), terms (T_N)
+ * from the numpy Earth functions, v (3) m/s,
+ * C (3 x 3) C_bn, f (3) the cycle's mean specific force in ENU m/s^2 */
+static void system(double omega, const double *t, const double *v, const double *C, const double *f,
+                   double F[N * N], double G[N * W])
+{
+    const double rm = t[T_RM], rn = t[T_RN], sl = t[T_SL], cl = t[T_CL], g = t[T_G];
+    const double *w_ie = t + T_WIE, *w_en = t + T_WEN;
+    const double tl = sl / cl, ve = v[0], vn = v[1];
+    double d_ie_r[9] = {0.0}, d_en_r[9] = {0.0}, d_en_v[9] = {0.0}, sv[9], m[9], pr[9], tmp[3];
+    d_ie_r[4] = -omega * sl / rm;
+    d_ie_r[7] = omega * cl / rm;
+    d_en_r[7] = ve / (cl * cl * rn * rm);
+    d_en_r[2] = vn / (rm * rm);
+    d_en_r[5] = -ve / (rn * rn);
+    d_en_r[8] = -ve * tl / (rn * rn);
+    d_en_v[3] = 1.0 / rn + 0.0;
+    d_en_v[6] = tl / rn + 0.0;
+    d_en_v[1] = -1.0 / rm + 0.0;
+    skew(v, 0, sv, 3);
+    memset(F, 0, sizeof(double) * N * N);
+    memset(G, 0, sizeof(double) * N * W);
+    skew(w_en, 1, F + 0 * N + 0, N);  /* F[POS, POS] = -[w_en x] */
+    for (int i = 0; i < 3; i++)
+        F[i * N + 3 + i] = 1.0;  /* F[POS, VEL] = I */
+    for (int i = 0; i < 9; i++)
+        m[i] = 2.0 * d_ie_r[i] + d_en_r[i];
+    matmul(3, 3, 3, sv, 3, m, 3, 0, pr, 3);
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            F[(3 + r) * N + c] = pr[r * 3 + c];  /* F[VEL, POS] */
+    F[5 * N + 2] += 2.0 * g / sqrt(rm * rn);
+    for (int i = 0; i < 3; i++)
+        tmp[i] = 2.0 * w_ie[i] + w_en[i];
+    skew(tmp, 1, m, 3);
+    matmul(3, 3, 3, sv, 3, d_en_v, 3, 0, pr, 3);
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            F[(3 + r) * N + 3 + c] = m[r * 3 + c] + pr[r * 3 + c];  /* F[VEL, VEL] */
+    skew(f, 0, F + 3 * N + 6, N);  /* F[VEL, ATT] = [f x] */
+    for (int i = 0; i < 3; i++)
+        tmp[i] = w_ie[i] + w_en[i];
+    skew(tmp, 1, F + 6 * N + 6, N);  /* F[ATT, ATT] = -[(w_ie + w_en) x] */
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++) {
+            F[(3 + r) * N + 12 + c] = C[r * 3 + c];                  /* F[VEL, BA] = C */
+            F[(6 + r) * N + c] = d_ie_r[r * 3 + c] + d_en_r[r * 3 + c];  /* F[ATT, POS] */
+            F[(6 + r) * N + 3 + c] = d_en_v[r * 3 + c];              /* F[ATT, VEL] */
+            F[(6 + r) * N + 9 + c] = -C[r * 3 + c];                  /* F[ATT, BG] = -C */
+            G[(6 + r) * W + c] = -C[r * 3 + c];                      /* G[ATT, 0:3] = -C */
+            G[(3 + r) * W + 3 + c] = C[r * 3 + c];                   /* G[VEL, 3:6] = C */
+        }
+    for (int i = 0; i < 3; i++) {
+        G[(9 + i) * W + 6 + i] = 1.0;
+        G[(12 + i) * W + 9 + i] = 1.0;
+    }
+}
+
+/* Phi, Q (m, 15, 15) of m cycles (errmodel.system_matrices then errmodel.discretise): omega as system's,
+ * terms (m, T_N) as errmodel.cycle_terms gives them, v (m, 3), C (m, 3, 3), f (m, 3), dt (m) s, q (12, 12) the noise PSD */
+KERNEL void fieldlog_cycle_matrices(int64_t m, double omega, const double *terms, const double *v,
+                                    const double *C, const double *f, const double *dt, const double *q,
+                                    double *Phi, double *Q)
+{
+    double F[N * N], G[N * W], Fdt[N * N], FF[N * N], Gq[N * W], GqG[N * N], FGqG[N * N], FGqGF[N * N];
+    for (int64_t k = 0; k < m; k++) {
+        double *P = Phi + k * N * N, *Qk = Q + k * N * N, d = dt[k];
+        system(omega, terms + k * T_N, v + 3 * k, C + 9 * k, f + 3 * k, F, G);
+        for (int i = 0; i < N * N; i++)
+            Fdt[i] = F[i] * d;
+        matmul(N, N, N, Fdt, N, Fdt, N, 0, FF, N);
+        for (int i = 0; i < N; i++)
+            for (int j = 0; j < N; j++)
+                P[i * N + j] = ((i == j ? 1.0 : 0.0) + Fdt[i * N + j]) + 0.5 * FF[i * N + j];
+        matmul(N, W, W, G, W, q, W, 0, Gq, W);
+        matmul(N, W, N, Gq, W, G, W, 1, GqG, N);
+        matmul(N, N, N, F, N, GqG, N, 0, FGqG, N);
+        matmul(N, N, N, FGqG, N, F, N, 1, FGqGF, N);
+        const double d3 = d * d * d / 3.0;
+        for (int i = 0; i < N; i++)
+            for (int j = 0; j < N; j++)
+                Qk[i * N + j] = (GqG[i * N + j] * d + 0.5 * (FGqG[i * N + j] + FGqG[j * N + i]) * d * d)
+                                + FGqGF[i * N + j] * d3;
+    }
+}
+
+/* The covariance cycles of KalmanFilter.propagate: P <- Phi_i P Phi_i^T + q_scale Q_i for i < m, made symmetric
+ * (0.5 (P + P^T)) when sym; P (15, 15) in place, hist (m, 15, 15) gets P after each cycle */
+KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q, double q_scale, int32_t sym,
+                                   double *P, double *hist)
+{
+    double A[N * N], B[N * N];
+    for (int64_t k = 0; k < m; k++) {
+        const double *F = Phi + k * N * N, *Qk = Q + k * N * N;
+        matmul(N, N, N, F, N, P, N, 0, A, N);
+        matmul(N, N, N, A, N, F, N, 1, B, N);
+        for (int i = 0; i < N * N; i++)
+            B[i] = B[i] + q_scale * Qk[i];
+        for (int i = 0; i < N; i++)
+            for (int j = 0; j < N; j++)
+                P[i * N + j] = sym ? 0.5 * (B[i * N + j] + B[j * N + i]) : B[i * N + j];
+        memcpy(hist + k * N * N, P, sizeof(double) * N * N);
+    }
+}
+
+/* The consider sensitivity of fusion/consider.GyroConsider.propagate: S <- Phi_i S + 1/2 (Bdt_i + Phi_i Bdt_i) for
+ * i < m, S (15, 9) in place, Bdt (m, 15, 9); hist (m, 15, 9) gets S after each cycle */
+KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double *Bdt, double *S, double *hist)
+{
+    enum { K = 9 };
+    double A[N * K], B[N * K];
+    for (int64_t k = 0; k < m; k++) {
+        const double *F = Phi + k * N * N, *Bk = Bdt + k * N * K;
+        matmul(N, N, K, F, N, S, K, 0, A, K);
+        matmul(N, N, K, F, N, Bk, K, 0, B, K);
+        for (int i = 0; i < N * K; i++)
+            S[i] = A[i] + 0.5 * (Bk[i] + B[i]);
+        memcpy(hist + k * N * K, S, sizeof(double) * N * K);
+    }
+}

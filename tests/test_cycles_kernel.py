@@ -1,0 +1,96 @@
+"""The compiled filter cycles (fusion/_cycles.c) against their numpy reference (fusion/errmodel.py, the loops of
+fusion/kf.py and fusion/consider.py): the same numbers to the bit where numpy's BLAS sums a matrix product as
+sequential fused multiply-adds (OpenBLAS on an FMA machine, which the probe below checks); within rounding
+elsewhere."""
+import numpy as np
+import pytest
+
+from fieldlog.fusion import consider, earth, errmodel, kf
+
+
+def _blas_is_sequential_fma() -> bool:
+    """Whether numpy's matrix product of a (2, 2) pair keeps the low bits an FMA chain keeps (2**-54 here) and a
+    multiply-then-add loses."""
+    x = 1.0 + 2.0 ** -27
+    a = np.array([[-(1.0 + 2.0 ** -26), x], [0.0, 1.0]])
+    b = np.array([[1.0, 0.0], [x, 1.0]])
+    return float((a @ b)[0, 0]) == 2.0 ** -54
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> None:
+    if _blas_is_sequential_fma():
+        assert a.shape == b.shape and np.array_equal(a.view(np.int64), b.view(np.int64))  # signs of zero too
+    else:
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300)
+
+
+def _cycles(rng: np.random.Generator, m: int):
+    lat = rng.uniform(-1.4, 1.4, m)
+    lat[0] = -0.0  # a signed zero through tan and the transport rate
+    h = rng.uniform(-100.0, 3000.0, m)
+    v = rng.normal(0.0, 15.0, (m, 3))
+    v[-1] = 0.0  # standing still: zero rows in the products
+    C = earth.quat_to_dcm(rng.normal(size=(m, 4)))
+    f_n = rng.normal(0.0, 2.0, (m, 3)) + [0.0, 0.0, 9.8]
+    dt = rng.uniform(0.002, 0.5, m)
+    return lat, h, v, C, f_n, dt
+
+
+@pytest.mark.parametrize("m", [1, 7, 40])
+def test_compiled_cycle_matrices_equal_numpy(m):
+    rng = np.random.default_rng(m)
+    lat, h, v, C, f_n, dt = _cycles(rng, m)
+    q = np.diag(rng.uniform(1e-9, 1e-4, 12))
+    q[0, 5] = q[5, 0] = 1e-7  # a full PSD is taken as given, not as its diagonal
+    Phi, Q = errmodel.discrete_cycles(lat, h, v, C, f_n, q, dt)
+    want = errmodel.discretise(*errmodel.system_matrices(lat, h, v, C, f_n), q, dt)
+    _same(Phi, want[0])
+    _same(Q, want[1])
+
+
+@pytest.mark.parametrize("sym, q_scale", [(True, 1.0), (True, 2.5), (False, 1.0)])
+def test_compiled_covariance_cycles_equal_numpy(sym, q_scale):
+    rng = np.random.default_rng(7)
+    Phi, Q = errmodel.discrete_cycles(*_cycles(rng, 12)[:5], np.eye(12) * 1e-6, np.full(12, 0.1))
+    A = rng.normal(size=(15, 15))
+    P0 = A @ A.T if sym else A  # P12 of the distributed filter is not symmetric
+    P0[3] = 0.0
+    P0[:, 3] = -0.0
+    hist = errmodel.propagate_covariance(Phi, Q, P0, q_scale, sym)
+    P = P0
+    for i in range(len(Phi)):
+        P = Phi[i] @ P @ Phi[i].T + q_scale * Q[i]
+        P = 0.5 * (P + P.T) if sym else P
+        _same(hist[i], P)
+    assert np.array_equal(P0[3], np.zeros(15)), "the caller's P is left alone"
+
+
+def test_the_filter_cycles_keep_a_zero_state_zero_and_move_a_nonzero_one():
+    rng = np.random.default_rng(3)
+    Phi, Q = errmodel.discrete_cycles(*_cycles(rng, 5)[:5], np.eye(12) * 1e-6, np.full(5, 0.1))
+    f = kf.KalmanFilter(np.eye(15), np.eye(12))
+    f.x = -np.zeros(15)
+    f.propagate(Phi, Q)
+    assert np.array_equal(f.x, np.zeros(15)) and not np.signbit(f.x).any()  # numpy's Phi @ -0 is +0
+    x0 = rng.normal(size=15)
+    f.x = x0
+    f.propagate(Phi, Q)
+    want = x0
+    for P in Phi:
+        want = P @ want
+    assert np.array_equal(f.x, want)
+
+
+def test_compiled_consider_cycles_equal_numpy():
+    rng = np.random.default_rng(11)
+    lat, h, v, C, f_n, dt = _cycles(rng, 9)
+    Phi, _ = errmodel.discrete_cycles(lat, h, v, C, f_n, np.eye(12) * 1e-6, dt)
+    Bdt = consider.gyro_sensitivity(C, rng.normal(0.0, 0.3, (9, 3)), dt)
+    c = consider.GyroConsider(1e-3, 1e-3)
+    c.S = rng.normal(size=(15, 9))
+    S = c.S.copy()
+    out = c.propagate(Phi, Bdt)
+    for i in range(len(Phi)):
+        S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
+        _same(out[i], S)
+    _same(c.S, S)
