@@ -20,6 +20,8 @@ All functions are vectorised over leading axes: vectors are (..., 3), quaternion
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -122,6 +124,15 @@ def omega_en_n(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike) -> np.ndarray:
     return np.stack([-vn / rm, ve / rn, ve * np.tan(lat) / rn], axis=-1)
 
 
+def cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """a x b over the last axis (broadcast): np.cross's numbers, without its axis handling (most of its time on
+    a few vectors)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def skew(v: ArrayLike) -> np.ndarray:
     """Cross-product matrix ``[v x]`` of (..., 3) vectors, shape (..., 3, 3)."""
     v = np.asarray(v, dtype=float)
@@ -163,19 +174,25 @@ def dcm_to_euler(C_bn: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def quat_to_dcm(q: ArrayLike) -> np.ndarray:
     """DCM of a Hamilton quaternion ``[x, y, z, w]`` (need not be exactly unit; it is normalised)."""
     q = np.asarray(q, dtype=float)
+    if q.shape == (4,):  # one quaternion, in floats: numpy's operations without its per-call cost
+        x, y, z, w = q.tolist()
+        n = math.sqrt(((x * x + y * y) + z * z) + w * w)  # the order of numpy's sum of 4 elements
+        if n > 0.0:
+            return np.array(_dcm_rows(x / n, y / n, z / n, w / n))
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = _dcm_rows(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
     out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    out[..., 0, 1] = 2.0 * (x * y - z * w)
-    out[..., 0, 2] = 2.0 * (x * z + y * w)
-    out[..., 1, 0] = 2.0 * (x * y + z * w)
-    out[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    out[..., 1, 2] = 2.0 * (y * z - x * w)
-    out[..., 2, 0] = 2.0 * (x * z - y * w)
-    out[..., 2, 1] = 2.0 * (y * z + x * w)
-    out[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    for i in range(3):
+        for j in range(3):
+            out[..., i, j] = rows[i][j]
     return out
+
+
+def _dcm_rows(x, y, z, w):
+    """The DCM of a unit quaternion as rows of entries (floats or arrays)."""
+    return ((1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)),
+            (2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)),
+            (2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)))
 
 
 def dcm_to_quat(C: ArrayLike) -> np.ndarray:
@@ -205,7 +222,7 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> np.ndarray:
     p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
     pv, pw = p[..., :3], p[..., 3:]
     qv, qw = q[..., :3], q[..., 3:]
-    v = pw * qv + qw * pv + np.cross(pv, qv)
+    v = pw * qv + qw * pv + cross(pv, qv)
     w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
     return np.concatenate([v, w], axis=-1)
 

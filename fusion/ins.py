@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from fieldlog.fusion import earth, kernels
@@ -45,9 +46,9 @@ class NavState:
     v_n: np.ndarray
     q: np.ndarray
 
-    @property
+    @cached_property
     def C_bn(self) -> np.ndarray:
-        """DCM body RFU -> ENU."""
+        """DCM body RFU -> ENU (computed once: a state is replaced, never changed in place)."""
         return earth.quat_to_dcm(self.q)
 
 

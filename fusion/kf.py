@@ -203,7 +203,7 @@ def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omeg
     if len(keep) == 0:
         return None
     C = nav.C_bn
-    arm_v = C @ np.cross(omega_ib_b, lever_b)
+    arm_v = C @ earth.cross(omega_ib_b, lever_b)
     z = nav.v_n + arm_v - v_gps
     H = np.zeros((3, N_STATES))
     H[:, VEL] = np.eye(3)

@@ -35,7 +35,7 @@ Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def body_velocity_at(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray) -> np.ndarray:
     """The INS's velocity of the point ``r_b`` (body RFU axes from the IMU, m), in body axes, m/s."""
-    return nav.C_bn.T @ nav.v_n + np.cross(omega_nb_b, r_b)
+    return nav.C_bn.T @ nav.v_n + earth.cross(omega_nb_b, r_b)
 
 
 def odometer_measurement(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray, v_wheel: float,

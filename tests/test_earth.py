@@ -105,3 +105,17 @@ def test_quaternion_dcm_rotvec_consistency():
     small = np.array([[1e-9, -2e-9, 3e-10], [0.0, 0.0, 0.0], [0.0, 0.0, np.pi - 1e-9]])
     np.testing.assert_allclose(earth.quat_to_rotvec(earth.rotvec_to_quat(small)), small, atol=1e-15, rtol=1e-12)
     np.testing.assert_allclose(earth.rotvec_to_dcm(small[0]), np.eye(3) + earth.skew(small[0]), atol=1e-17)
+
+
+def test_one_quaternion_and_cross_products_give_numpys_numbers():
+    """The float paths (one quaternion's DCM, ``cross``) equal numpy's stacked arithmetic to the bit."""
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(2000, 4)) * rng.choice([1e-3, 1.0, 1e3], size=(2000, 1))
+    stacked = earth.quat_to_dcm(q)
+    one = np.array([earth.quat_to_dcm(x) for x in q])
+    assert np.array_equal(one.view(np.int64), stacked.view(np.int64))
+    with np.errstate(invalid="ignore"):
+        assert np.isnan(earth.quat_to_dcm(np.zeros(4))).all()  # numpy's 0/0, not an exception
+    a, b = rng.normal(size=(2000, 3)), rng.normal(size=(2000, 3))
+    assert np.array_equal(earth.cross(a, b).view(np.int64), np.cross(a, b).view(np.int64))
+    assert np.array_equal(earth.cross(a[0], b).view(np.int64), np.cross(a[0], b).view(np.int64))
