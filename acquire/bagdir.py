@@ -20,10 +20,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from fieldlog.acquire import outputs
-from mcap.reader import make_reader
 
 METADATA = "metadata.yaml"
 RECOVERED = ".recovered.mcap"     # ``fieldlog recover``'s output stands in for the cut-short NAME.mcap
@@ -54,6 +51,9 @@ class FileInfo:
 
 def file_info(path: Path) -> FileInfo:
     """What the metadata says of one finished MCAP file, from its summary; ValueError when it has none."""
+    import yaml  # here, not at the top: yaml and mcap's reader would add to every command's start-up
+    from mcap.reader import make_reader
+
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     if summary is None or summary.statistics is None:
@@ -109,6 +109,8 @@ def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str
                    fsync: bool = True) -> Path:
     """Write ``directory/metadata.yaml`` for ``files`` atomically: a new file (never an existing path or a
     symlink: O_EXCL | O_NOFOLLOW), fsynced, renamed over the old one. Returns its path."""
+    import yaml
+
     text = yaml.safe_dump(metadata(files, custom_data), sort_keys=False, default_flow_style=False)
     dst = directory / METADATA
     tmp = directory / f".{METADATA}.{os.getpid()}.tmp"

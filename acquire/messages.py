@@ -24,7 +24,6 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 from mcap.records import Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap_ros2.decoder import DecoderFactory
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 SCHEMA_ENCODING = SchemaEncoding.ROS2  # "ros2msg"
@@ -923,7 +922,6 @@ BATCH_DECODERS: dict[str, Callable[["Packed | Sequence[bytes]"], dict[str, np.nd
 # ---------------------------------------------------------------------------------------------
 # Generic decode (any registered type, per message) through mcap_ros2's own decoder.
 
-_factory = DecoderFactory()
 _schema_ids = {name: i + 1 for i, name in enumerate(MSG_DEFS)}
 
 
@@ -937,9 +935,17 @@ def schema_record(type_name: str) -> Schema:
     )
 
 
+@lru_cache(maxsize=None)
+def _factory():
+    """mcap_ros2's decoder factory, imported on first use (not by every command's start)."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    return DecoderFactory()
+
+
 def decoder_for(type_name: str) -> Callable[[bytes], Any]:
     """mcap_ros2's decoder for one registered type: bytes -> message object."""
-    dec = _factory.decoder_for(MESSAGE_ENCODING, schema_record(type_name))
+    dec = _factory().decoder_for(MESSAGE_ENCODING, schema_record(type_name))
     assert dec is not None
     return dec
 

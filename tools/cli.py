@@ -34,12 +34,24 @@ marked [extra] need `pip install 'fieldlog[extra]'`; `make setup` installs them 
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from fieldlog import __version__
+class _Version(argparse.Action):
+    """``--version``: the installed version, looked up only when asked for."""
 
+    def __init__(self, option_strings, dest, **kwargs) -> None:
+        super().__init__(option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, nargs=0,
+                         help="show the version and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from fieldlog import __version__
+
+        print(f"fieldlog {__version__}")
+        parser.exit()
+
+
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fieldlog", description="GPS/INS field logging, fusion and replay",
                                 epilog=EXAMPLES, formatter_class=HelpFormatter)
-    p.add_argument("--version", action="version", version=f"fieldlog {__version__}")
+    p.add_argument("--version", action=_Version)
     p.set_defaults(cli_main=main)  # for `demo`, which runs the other commands as typed
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for command in COMMANDS:
