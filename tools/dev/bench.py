@@ -8,6 +8,7 @@ figures as rows of docs/results.md's "From make bench" table, so that table is r
 from __future__ import annotations
 
 import argparse
+import compileall
 import contextlib
 import math
 import os
@@ -1047,6 +1048,11 @@ def main() -> None:
     p.add_argument("--markdown", action="store_true",
                    help="print the headline figures as rows of docs/results.md's table (the full output to stderr)")
     a = p.parse_args()
+    # the commands are timed as an installed wheel runs them, with their bytecode compiled (pip compiles it at
+    # install); a checkout with PYTHONDONTWRITEBYTECODE set would otherwise compile every module in every run
+    root = Path(__file__).resolve().parents[2]
+    for folder in ("acquire", "fusion", "replay", "tools", "src"):
+        compileall.compile_dir(root / folder, quiet=1)
     full = contextlib.redirect_stdout(sys.stderr) if a.markdown else contextlib.nullcontext()
     with tempfile.TemporaryDirectory() as d, full:
         for name in a.only or BENCHES:
