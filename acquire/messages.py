@@ -820,8 +820,7 @@ def _u32_at(buf: np.ndarray, pos: np.ndarray) -> np.ndarray:
     if len(buf) < 4:
         return np.zeros(len(pos), dtype=np.int64)
     pos = np.clip(np.asarray(pos, dtype=np.int64), 0, len(buf) - 4)
-    b = buf[pos[:, None] + np.arange(4)].astype(np.int64)
-    return b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16) | (b[:, 3] << 24)
+    return buf[pos[:, None] + np.arange(4)].view("<u4").ravel().astype(np.int64)
 
 
 @lru_cache(maxsize=None)

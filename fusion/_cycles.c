@@ -4,9 +4,11 @@
  * KalmanFilter.propagate; it needs no Python headers. It evaluates errmodel.system_matrices (from the
  * Earth terms on), errmodel.discretise and the P cycle of KalmanFilter.propagate in the order their numpy
  * source writes them, so the results equal numpy's to the bit where numpy's matrix products are the
- * sequential fused multiply-add sums of an optimised BLAS (OpenBLAS): each product element c_ij is
- * fma(a_i,k-1, b_k-1,j, ... fma(a_i0, b_0j, +0.0)), in k order. Elementwise steps are plain IEEE-754
- * operations, compiled without contraction (-ffp-contract=off).
+ * sequential fused multiply-add sums of an optimised BLAS: each product element c_ij is
+ * fma(a_i,k-1, b_k-1,j, ... fma(a_i0, b_0j, +0.0)), in k order. OpenBLAS on x86-64 sums so for the sizes taken
+ * here (15 x 15, 15 x 12, 15 x 9 and 3 x 3 results; not for every size: 18 x 18, for one, differs), which
+ * tests/test_cycles_kernel.py checks. Elementwise steps are plain IEEE-754 operations, compiled without
+ * contraction (-ffp-contract=off).
  *
  * Matrices are row-major doubles; a stack of m 15x15 matrices is (m, 15, 15). Frames and units are those of
  * fusion/errmodel.py: ENU navigation frame, body RFU, SI.

@@ -76,6 +76,8 @@ class GyroConsider:
     def propagate(self, Phi: np.ndarray, Bdt: np.ndarray) -> np.ndarray:
         """Cycles Phi (m, 15, 15) with their ``gyro_sensitivity`` Bdt (m, 15, 9); S after each (m, 15, 9)."""
         Phi, Bdt = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Bdt, dtype=float)
+        if Phi.shape[1:] != (N_STATES, N_STATES) or Bdt.shape != (len(Phi), N_STATES, N_PARAMS):
+            raise ValueError(f"consider cycles need Phi (m, 15, 15) and Bdt (m, 15, 9): {Phi.shape}, {Bdt.shape}")
         S = np.array(self.S, dtype=float, order="C")
         out = np.empty((len(Phi), N_STATES, N_PARAMS))
         # compiled (fusion/_cycles.c): per cycle S <- Phi S + 0.5 (Bdt + Phi Bdt), numpy's numbers (errmodel's note)

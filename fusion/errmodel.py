@@ -171,22 +171,31 @@ def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.nd
                              earth.omega_en_n(lat, h, v)])
     m = len(lat)
     Phi, Q = np.empty((m, N_STATES, N_STATES)), np.empty((m, N_STATES, N_STATES))
-    args = (terms, v, np.asarray(C_bn, dtype=float), np.asarray(f_n, dtype=float), np.asarray(dt, dtype=float),
-            np.asarray(q, dtype=float))
-    args = tuple(np.ascontiguousarray(a) for a in args)
+    args = tuple(np.ascontiguousarray(a, dtype=float) for a in (terms, v, C_bn, f_n, dt, q))
+    shapes = ((m, 11), (m, 3), (m, 3, 3), (m, 3), (m,), (N_NOISE, N_NOISE))
+    if tuple(a.shape for a in args) != shapes:
+        raise ValueError(f"cycle matrices need lat, h, dt (m,), v_n, f_n (m, 3), C_bn (m, 3, 3), q (12, 12): "
+                         f"{[a.shape for a in args[1:]]}")
     cycle_kernel().fieldlog_cycle_matrices(m, earth.OMEGA_IE, *(a.ctypes.data for a in (*args, Phi, Q)))
     return Phi, Q
 
 
 def propagate_covariance(Phi: np.ndarray, Q: np.ndarray, P: np.ndarray, q_scale: float = 1.0, sym: bool = True
                          ) -> np.ndarray:
-    """P (15, 15) through the cycles Phi, Q (m, 15, 15): P <- Phi_i P Phi_i^T + q_scale Q_i, made symmetric
-    (0.5 (P + P^T)) after each when ``sym``; returns P after each cycle (m, 15, 15), compiled (fusion/_cycles.c;
-    the same numbers as numpy's ``Phi[i] @ P @ Phi[i].T + q_scale * Q[i]`` under the condition of
-    :func:`discrete_cycles`). P itself is left alone."""
+    """P (n, n) through the cycles Phi, Q (m, n, n): P <- Phi_i P Phi_i^T + q_scale Q_i, made symmetric
+    (0.5 (P + P^T)) after each when ``sym``; returns P after each cycle (m, n, n). P itself is left alone.
+
+    15 states: compiled (fusion/_cycles.c), the same numbers as the numpy loop under the condition of
+    :func:`discrete_cycles`. A filter with more states (the GPS error's, ``fusion.gpserror``) runs the numpy loop:
+    OpenBLAS sums products of some other sizes (17 to 20 rows, for one) in another order."""
     Phi, Q = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Q, dtype=float)
     work = np.array(P, dtype=float, order="C")
-    hist = np.empty((len(Phi), N_STATES, N_STATES))
+    hist = np.empty(Phi.shape)
+    if work.shape != (N_STATES, N_STATES) or Phi.shape[1:] != work.shape or Q.shape != Phi.shape:
+        for i in range(len(Phi)):
+            work = Phi[i] @ work @ Phi[i].T + q_scale * Q[i]
+            hist[i] = work = 0.5 * (work + work.T) if sym else work
+        return hist
     cycle_kernel().fieldlog_propagate_cov(len(Phi), Phi.ctypes.data, Q.ctypes.data, float(q_scale), int(sym),
                                           work.ctypes.data, hist.ctypes.data)
     return hist

@@ -48,11 +48,16 @@ def test_compiled_cycle_matrices_equal_numpy(m):
     _same(Q, want[1])
 
 
-@pytest.mark.parametrize("sym, q_scale", [(True, 1.0), (True, 2.5), (False, 1.0)])
-def test_compiled_covariance_cycles_equal_numpy(sym, q_scale):
+@pytest.mark.parametrize("sym, q_scale, n", [(True, 1.0, 15), (True, 2.5, 15), (False, 1.0, 15), (True, 1.0, 18)])
+def test_compiled_covariance_cycles_equal_numpy(sym, q_scale, n):
+    """n = 18: a filter with states beyond the 15 (the GPS error's, fusion.gpserror), which takes numpy's loop."""
     rng = np.random.default_rng(7)
     Phi, Q = errmodel.discrete_cycles(*_cycles(rng, 12)[:5], np.eye(12) * 1e-6, np.full(12, 0.1))
-    A = rng.normal(size=(15, 15))
+    if n > 15:
+        Phi = np.stack([np.block([[F, np.zeros((15, n - 15))], [np.zeros((n - 15, 15)), 0.99 * np.eye(n - 15)]])
+                        for F in Phi])
+        Q = np.stack([np.block([[q, np.zeros((15, n - 15))], [np.zeros((n - 15, 15)), np.eye(n - 15)]]) for q in Q])
+    A = rng.normal(size=(n, n))
     P0 = A @ A.T if sym else A  # P12 of the distributed filter is not symmetric
     P0[3] = 0.0
     P0[:, 3] = -0.0
@@ -62,7 +67,17 @@ def test_compiled_covariance_cycles_equal_numpy(sym, q_scale):
         P = Phi[i] @ P @ Phi[i].T + q_scale * Q[i]
         P = 0.5 * (P + P.T) if sym else P
         _same(hist[i], P)
-    assert np.array_equal(P0[3], np.zeros(15)), "the caller's P is left alone"
+    assert np.array_equal(P0[3], np.zeros(n)), "the caller's P is left alone"
+
+
+def test_the_kernels_refuse_shapes_they_do_not_take():
+    rng = np.random.default_rng(2)
+    lat, h, v, C, f_n, dt = _cycles(rng, 4)
+    with pytest.raises(ValueError):
+        errmodel.discrete_cycles(lat, h, v[:3], C, f_n, np.eye(12), dt)
+    Phi, Q = errmodel.discrete_cycles(lat, h, v, C, f_n, np.eye(12), dt)
+    with pytest.raises(ValueError):
+        consider.GyroConsider(1e-3, 1e-3).propagate(Phi, np.zeros((4, 15, 8)))
 
 
 def test_the_filter_cycles_keep_a_zero_state_zero_and_move_a_nonzero_one():
