@@ -47,6 +47,8 @@ innovation (:meth:`DistributedKF.predicted_update`).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from fieldlog.fusion.errmodel import N_STATES, propagate_covariance
@@ -242,5 +244,11 @@ def _sym(P: np.ndarray) -> np.ndarray:
 def _inv_spd(P: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive definite matrix (or of each of a stack) through Cholesky, symmetrised."""
     L = np.linalg.cholesky(P)
-    Li = np.linalg.solve(L, np.broadcast_to(np.eye(P.shape[-1]), P.shape))
+    Li = np.linalg.solve(L, _identity(P.shape))
     return _t(Li) @ Li
+
+
+@lru_cache(maxsize=32)
+def _identity(shape: tuple[int, ...]) -> np.ndarray:
+    """The identity broadcast to a matrix's or a stack's shape (read-only; shared, as it is asked for per cycle)."""
+    return np.broadcast_to(np.eye(shape[-1]), shape)
