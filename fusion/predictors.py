@@ -366,7 +366,7 @@ class OutagePredictor:
             if not np.isfinite(Y[-1, i]) or not np.isfinite(U[-1, i]):
                 continue
             ok = np.isfinite(Y[:, i]) & np.isfinite(U[:, i])
-            self._lo[i], self._hi[i] = np.nanmin(Y[ok, i]), np.nanmax(Y[ok, i])
+            self._lo[i], self._hi[i] = Y[ok, i].min(), Y[ok, i].max()  # finite rows: no NaN to skip
             if ch.rls is None and ok.sum() < c.min_train:
                 continue
             if ch.rls is None or ch.since >= c.refresh or ch.stale(U[-1, i]):
