@@ -1,20 +1,34 @@
 """The compiled filter cycles (fusion/_cycles.c) against their numpy reference (fusion/errmodel.py, the loops of
 fusion/kf.py and fusion/consider.py): the same numbers to the bit where numpy's BLAS sums a matrix product as
-sequential fused multiply-adds (OpenBLAS on an FMA machine, which the probe below checks); within rounding
-elsewhere."""
+sequential fused multiply-adds (OpenBLAS on x86-64 with FMA; the probe below checks the sizes taken); within
+rounding elsewhere."""
+import functools
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
 from fieldlog.fusion import consider, earth, errmodel, kf
 
 
+@functools.lru_cache(maxsize=1)
 def _blas_is_sequential_fma() -> bool:
-    """Whether numpy's matrix product of a (2, 2) pair keeps the low bits an FMA chain keeps (2**-54 here) and a
-    multiply-then-add loses."""
-    x = 1.0 + 2.0 ** -27
-    a = np.array([[-(1.0 + 2.0 ** -26), x], [0.0, 1.0]])
-    b = np.array([[1.0, 0.0], [x, 1.0]])
-    return float((a @ b)[0, 0]) == 2.0 ** -54
+    """Whether numpy's products of the sizes the kernel takes (15 x 15 by 15 x 15 and 3 x 3) are, element by
+    element, the exact fused multiply-add chain over the inner index from +0 (computed here in rationals)."""
+    rng = np.random.default_rng(0)
+
+    def chain(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        out = np.empty((a.shape[0], b.shape[1]))
+        for i in range(a.shape[0]):
+            for j in range(b.shape[1]):
+                acc = 0.0
+                for k in range(a.shape[1]):
+                    acc = float(Fraction(a[i, k]) * Fraction(b[k, j]) + Fraction(acc))  # one rounding: an FMA
+                out[i, j] = acc
+        return out
+
+    pairs = [(rng.normal(size=(n, n)), rng.normal(size=(n, n))) for n in (15, 3)]
+    return all(np.array_equal(a @ b, chain(a, b)) for a, b in pairs)
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> None:
