@@ -28,6 +28,7 @@ from types import MappingProxyType
 from typing import BinaryIO, Mapping, Sequence
 
 import numpy as np
+import mcap
 import zstandard
 from zlib_ng.zlib_ng import crc32
 from mcap.data_stream import RecordBuilder
@@ -45,7 +46,6 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.writer import LIBRARY_IDENTIFIER
 
 from fieldlog.acquire import messages, outputs, typehash
 from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
@@ -53,7 +53,8 @@ from fieldlog.acquire.drivestats import DriveStats
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
-LIBRARY = f"fieldlog/0.1 {LIBRARY_IDENTIFIER}"
+# mcap.writer's LIBRARY_IDENTIFIER, spelled here: importing mcap.writer imports importlib.metadata at every start
+LIBRARY = f"fieldlog/0.1 mcap-python/{mcap.__version__}"
 
 # Message record: opcode u8, record length u64, channel_id u16, sequence u32, log_time u64,
 # publish_time u64, then the payload (record length = 22 + payload).

@@ -299,3 +299,12 @@ def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch)
     with pytest.raises(ChunkError, match="CRC") as e:
         read([len(r) for r in raws], crcs=[*crc[:3], crc[3] ^ 1])
     assert e.value.index == 3
+
+
+def test_the_library_field_names_mcap_as_its_writer_would():
+    """The header's library string spells mcap.writer's identifier without importing it (start-up time)."""
+    from mcap.writer import LIBRARY_IDENTIFIER
+
+    from fieldlog.acquire import recorder
+
+    assert recorder.LIBRARY == f"fieldlog/0.1 {LIBRARY_IDENTIFIER}"
