@@ -4,7 +4,7 @@ the training history that feeds them from the fusion loop.
 Networks (pure numpy, one per channel):
 
 - RBFN, eq. 6: y = sum_i w_i exp(-((x - c_i) / s_i)^2 / 2), no bias term. The input is normalised within the
-  training window (mean, std); centres by k-means on it (``scipy.cluster.vq.kmeans2``, k-means++ start, fixed
+  training window (mean, std); centres by k-means on it (:func:`kmeans_1d`, k-means++ start, fixed
   seed); width s_i = the distance from c_i to its nearest other centre times ``width_scale`` (2). Without a
   bias term (as eq. 6) the output decays to zero for inputs far outside the training data: the correction
   then falls back to none, i.e. to the plain filter.
@@ -141,12 +141,33 @@ def kmeans_centres(x: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     """Sorted distinct 1-D k-means centres (at most k) of samples x (n,)."""
     x = np.asarray(x, dtype=float)
     k = max(1, min(k, len(np.unique(x))))
-    from scipy.cluster.vq import kmeans2  # only here: a method without a predictor never imports scipy.cluster
-
-    c, _ = kmeans2(x[:, None], k, minit="++", rng=np.random.default_rng(seed))
-    c = np.sort(c[:, 0])
+    c = np.sort(kmeans_1d(x, k, np.random.default_rng(seed)))
     keep = np.concatenate([[True], np.diff(c) > 1e-9 * max(1.0, float(np.ptp(x)))])
     return c[keep]
+
+
+def kmeans_1d(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 10) -> np.ndarray:
+    """k centres (k,) of 1-D samples x (n,): k-means++ seeding (Arthur and Vassilvitskii), then ``iterations``
+    Lloyd steps; an emptied cluster keeps its centre.
+
+    The algorithm of ``scipy.cluster.vq.kmeans2(x[:, None], k, minit="++", rng=rng)``, step for step and draw
+    for draw, so the centres equal its to the bit (tests/test_predictors.py holds the two against each other);
+    written out in numpy because importing ``scipy.cluster`` costs a predictor method more than all its k-means
+    runs over a drive. Each step's memory is (n, k)."""
+    centres = np.empty(k)
+    for i in range(k):
+        if i == 0:
+            pick = rng.integers(len(x))
+        else:  # the next seed drawn with probability proportional to the squared distance to the nearest one
+            d2 = ((centres[:i, None] - x[None, :]) ** 2).min(axis=0)
+            pick = int(np.searchsorted((d2 / d2.sum()).cumsum(), rng.uniform()))
+        centres[i] = x[pick]
+    for _ in range(iterations):
+        label = np.argmin((x[:, None] - centres[None, :]) ** 2, axis=1)
+        count = np.bincount(label, minlength=k)
+        total = np.bincount(label, weights=x, minlength=k)  # summed in sample order, as kmeans2's update
+        centres = np.where(count > 0, total / np.maximum(count, 1), centres)
+    return centres
 
 
 def rbf_design(x: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:

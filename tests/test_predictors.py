@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_centres
+from fieldlog.fusion.predictors import (OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_1d,
+                                        kmeans_centres)
 from fieldlog.replay.reader import read_topic
 from fieldlog.tools.evaluation.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
@@ -35,6 +36,24 @@ def test_kmeans_centres_are_distinct_and_few_for_few_values():
     x = np.repeat([1.0, 2.0, 5.0], 50)
     c = kmeans_centres(x, 10)
     assert np.allclose(c, [1.0, 2.0, 5.0])
+
+
+def test_kmeans_1d_equals_scipys_kmeans2_to_the_bit():
+    """Smooth, rounded (ties, emptied clusters), heavy-tailed and repeated samples, k from 1 to 11."""
+    import warnings
+
+    from scipy.cluster.vq import kmeans2
+
+    for trial in range(400):
+        rng = np.random.default_rng(trial)
+        n = int(rng.integers(2, 300))
+        x = (rng.normal(size=n), np.round(rng.normal(size=n), 1), rng.standard_cauchy(size=n),
+             np.repeat(rng.normal(size=n // 7 + 1), 7)[:n])[trial % 4]
+        k = min(int(rng.integers(1, 12)), len(np.unique(x)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # kmeans2 warns of an emptied cluster
+            want, _ = kmeans2(x[:, None], k, minit="++", rng=np.random.default_rng(trial))
+        assert np.array_equal(kmeans_1d(x, k, np.random.default_rng(trial)), want[:, 0]), trial
 
 
 def test_tdln_recovers_a_known_fir():
