@@ -26,18 +26,20 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Generator, Iterator
 
 import numpy as np
 
 from fieldlog.acquire import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
 from fieldlog.replay import reader
+from fieldlog.replay.ahead import Ahead
 
 if TYPE_CHECKING:
     from fieldlog.fusion.types import GpsBlock, ImuBlock, OdomBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
+_COUNTERS = ("samples", "gaps", "missing", "repeated", "_last_t", "_period_ns")  # InputStream's
 ODOM = "/vehicle/twist"  # fieldlog's own wheel-speed odometry (forward speed in base_link, linear.x)
 ODOM_TYPES = (messages.TWIST, messages.ODOMETRY, messages.TWIST_STAMPED)  # what --odom-topic reads: linear.x
 TF_STATIC = "/tf_static"
@@ -330,11 +332,18 @@ class InputStream:
             yield reader.Block(t1, t1, self._canonical(seq.flush(), names))
 
     def __iter__(self) -> Iterator[InputBlock]:
+        """The engine's blocks, read on the second core (``replay.ahead``); the counters are this object's
+        again once the drive has been read to its end."""
+        with Ahead(self._input_blocks) as blocks:
+            self.__dict__.update((yield from blocks))
+
+    def _input_blocks(self) -> Generator[InputBlock, None, dict]:
         for b in self.blocks():
             imu = b.data.get(NATIVE[0])
             yield InputBlock(b.t0_ns, b.t1_ns, imu_block(imu), reader.gps_block(b.data.get(NATIVE[1], {}),
                                                                                b.data.get(NATIVE[2], {})),
                              odom_block(b.data.get(ODOM)))
+        return {k: getattr(self, k) for k in _COUNTERS}
 
     def _canonical(self, data: dict[str, dict], names: dict[str, str]) -> dict[str, dict]:
         out = {names.get(k, k): v for k, v in data.items()}

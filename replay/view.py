@@ -4,8 +4,9 @@ The drive may be several files (a rotated session's directory, a rosbag2 directo
 fused ones: ``split_fused``); they are shown as one drive.
 
 Everything is logged on one timeline, ``gps_time`` (UTC timestamps: the MCAP ``log_time`` of the derived
-topics), with ``rr.send_columns`` in blocks; the IMU is streamed in ``IMU_BLOCK_S`` blocks, so memory does not
-grow with the 500 Hz data. A default blueprint is sent with the recording (``blueprint()``).
+topics), with ``rr.send_columns``. The drive itself is read in one pass on the second core
+(``replay.viewdata``: the IMU decimated block by block, so memory does not grow with the 500 Hz data), while
+this module's import of rerun-sdk runs. A default blueprint is sent with the recording (``blueprint()``).
 
 Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>`` is ``east``, ``north``, ``up``):
 
@@ -83,15 +84,15 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import calib, frames, messages, nmea, outputs
+from fieldlog.acquire import calib, frames, outputs
 from fieldlog.fusion import earth
-from fieldlog.replay import inputs, reader, solutions
+from fieldlog.replay import reader, solutions
+from fieldlog.replay.ahead import Ahead
 from fieldlog.replay.drive import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
+from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
 
 TIMELINE = "gps_time"
-IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
-IMU_BLOCK_S = 60.0
 TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
 AXES = ("east", "north", "up")
 ANGLES = ("roll", "pitch", "heading")
@@ -176,20 +177,8 @@ def merge_windows(windows: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
     return [(s, e) for s, e in out]
 
 
-def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Means of consecutive groups of ``n`` rows (trailing partial group dropped): (t_mean int64, x_mean)."""
-    m = len(t_ns) // n
-    t = t_ns[: m * n].reshape(m, n)
-    t_mean = t[:, 0] + np.round((t - t[:, :1]).mean(axis=1)).astype(np.int64)
-    return t_mean, x[: m * n].reshape(m, n, x.shape[1]).mean(axis=1)
-
-
 # ---------------------------------------------------------------------------------------------
 # Reading
-
-
-def _topic_names(path: DriveSpec) -> dict[str, int]:
-    return {t.topic: t.count for t in reader.topics(path)}
 
 
 def gps_track(fix: dict) -> tuple[Track, np.ndarray, np.ndarray]:
@@ -213,7 +202,7 @@ def _fused(path: str | os.PathLike[str], method: str) -> Track:
     ok = f["valid"]
     t = f["log_time_ns"][ok]
     trk = Track(t, f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
-    names = _topic_names(path)
+    names = topic_names(path)
     if names.get(solutions.topic(method, "std")):
         s = solutions.read(path, method, "std")
         trk.sigma_pos = _interp(t, s["log_time_ns"][s["valid"]], s["xyz"][s["valid"]])
@@ -242,21 +231,10 @@ def _interp(t: np.ndarray, tp: np.ndarray, xp: np.ndarray) -> np.ndarray:
 def _outages(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[int, int]]:
     windows = []
     for p in paths:
-        if _topic_names(p).get(solutions.OUTAGE):
+        if topic_names(p).get(solutions.OUTAGE):
             d = reader.read_topic(p, solutions.OUTAGE)
             windows += [(int(m.start_ns), int(m.end_ns)) for m in d["msgs"] if m is not None]
     return merge_windows(windows)
-
-
-def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
-    """``fieldlog view A B C ...``: the first path and every later one without ``/fusion/*/fix`` topics are the
-    drive's files (a directory is one of them); files with fused solutions are the fused ones."""
-    drive, fused = [paths[0]], []
-    for p in paths[1:]:
-        is_fused = Path(p).is_file() and any(t.startswith(solutions.PREFIX) and t.endswith("/fix")
-                                             for t in _topic_names(p))
-        (fused if is_fused else drive).append(p)
-    return drive, fused
 
 
 def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str, Path]]:
@@ -264,7 +242,7 @@ def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str,
     out: list[tuple[str, Path]] = []
     seen: set[str] = set()
     for p in paths:
-        for topic in _topic_names(p):
+        for topic in topic_names(p):
             method = solutions.method_of(topic)
             if method is not None:
                 label = method if method not in seen else f"{method}@{Path(p).stem}"
@@ -384,7 +362,7 @@ def mounting(drive: DriveSpec | None) -> tuple[np.ndarray, np.ndarray]:
     """(imu position in base_link m (3,), C_imu_base (3,3): IMU axes -> base_link axes) from the drive's
     ``/tf_static`` base_link -> imu; without one (or a drive), the default ``[mounting]`` (IMU at base_link,
     RFU -> FLU)."""
-    if drive is not None and _topic_names(drive).get("/tf_static"):
+    if drive is not None and topic_names(drive).get("/tf_static"):
         for msg in reader.read_topic(drive, "/tf_static")["msgs"]:
             for tf in (msg.transforms if msg is not None else ()):
                 if tf.header.frame_id == frames.BASE_LINK and tf.child_frame_id == frames.IMU:
@@ -486,87 +464,6 @@ def _log_attitude_errors(rec: rr.RecordingStream, method: str, pose: Pose, sigma
                 static=True)
 
 
-def gga_quality(drive: DriveSpec) -> dict[str, np.ndarray]:
-    """The GGA sentences of ``/gps/nmea``: log_time_ns, satellites, hdop, fix_type (GGA quality), as float
-    (NaN: field empty). Only payloads holding ``GGA,`` are decoded."""
-    t_out, rows = [], []
-    if _topic_names(drive).get("/gps/nmea"):
-        log_ns, _, payloads = reader.read_payloads(drive, "/gps/nmea")
-        dec = messages.decoder_for(messages.SENTENCE)
-        for t, b in zip(log_ns, payloads):
-            if b"GGA," not in bytes(b):
-                continue
-            line = dec(bytes(b)).sentence.strip().encode("ascii", "replace")
-            gga = nmea.decode_body(nmea.split_checksum(line)[0])
-            if isinstance(gga, nmea.Gga):
-                t_out.append(int(t))
-                rows.append([np.nan if v is None else float(v) for v in (gga.num_sats, gga.hdop, gga.quality)])
-    x = np.array(rows, dtype=np.float64).reshape(-1, 3)
-    return {"log_time_ns": np.array(t_out, dtype=np.int64), "satellites": x[:, 0], "hdop": x[:, 1],
-            "fix_type": x[:, 2]}
-
-
-LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
-    "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
-    "/gps/vel": ("v_n",),
-    "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
-    "/truth/vel": ("v_n",),
-    "/truth/attitude": ("q_xyzw",),
-    "/truth/imu_bias": ("omega_ib_b", "f_b"),
-    "/time/sync": ("state", "rate_ppm", "residual_us"),
-    "/vehicle/twist": ("v_n",),
-    "/truth/vehicle/twist": ("v_n",),
-}
-
-
-def _read_drive(rec: rr.RecordingStream, drive: DriveSpec, names: dict[str, int],
-                progress: Callable[[float], None] | None = None, imap: InputMap | None = None
-                ) -> tuple[dict[str, dict[str, np.ndarray]], int]:
-    """One streaming pass (each chunk decompressed once): /imu is logged block by block, decimated by means of
-    IMU_DECIMATION valid samples (carried across blocks); the LOW_RATE topics are returned whole. ``imap``: the
-    inputs of another logger's drive (``replay.inputs.canonical_blocks``), read as /imu (body RFU), /gps/fix and
-    /gps/vel on their header stamps, re-sequenced as ``fuse`` reads them.
-    -> ({topic: {field: array}}, IMU rows logged)."""
-    wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
-    span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
-    t_first = min((t.first_ns for t in span), default=0)
-    t_last = max((t.last_ns for t in span), default=1)
-    parts: dict[str, list[dict[str, np.ndarray]]] = {t: [] for t in LOW_RATE if names.get(t)}
-    rows = 0
-    carry_t = np.zeros(0, np.int64)
-    carry_x = np.zeros((0, 6))
-    blocks = (reader.iter_blocks(drive, wanted, IMU_BLOCK_S) if imap is None or imap.native else
-              inputs.canonical_blocks(drive, imap, IMU_BLOCK_S, tuple(wanted)))
-    for block in blocks:
-        if progress:
-            progress(0.8 * min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0))
-        for topic, keep in LOW_RATE.items():
-            d = block.data.get(topic)
-            if d is not None and len(d["log_time_ns"]):
-                parts[topic].append({k: d[k] for k in ("log_time_ns", "valid", *keep)})
-        imu = block.data.get("/imu")
-        if imu is None or not len(imu["log_time_ns"]):
-            continue
-        ok = imu["valid"]
-        t = np.concatenate([carry_t, imu["log_time_ns"][ok]])
-        x = np.concatenate([carry_x, np.hstack([imu["omega_ib_b"][ok], imu["f_b"][ok]])])
-        tm, xm = decimate_means(t, x, IMU_DECIMATION)
-        carry_t, carry_x = t[len(tm) * IMU_DECIMATION:], x[len(tm) * IMU_DECIMATION:]
-        if len(tm):
-            rr.send_columns("imu/gyro", indexes=_times(tm), columns=rr.Scalars.columns(scalars=xm[:, 0:3]),
-                            recording=rec)
-            rr.send_columns("imu/accel", indexes=_times(tm), columns=rr.Scalars.columns(scalars=xm[:, 3:6]),
-                            recording=rec)
-            rows += len(tm)
-    if rows:
-        xyz = [(220, 50, 50), (40, 160, 40), (40, 90, 230)]
-        rec.log("imu/gyro", rr.SeriesLines(names=["gyro x (rad/s)", "gyro y", "gyro z"], colors=xyz), static=True)
-        rec.log("imu/accel", rr.SeriesLines(names=["accel x (m/s²)", "accel y", "accel z"], colors=xyz),
-                static=True)
-    whole = {t: {k: np.concatenate([p[k] for p in ps]) for k in ps[0]} for t, ps in parts.items() if ps}
-    return whole, rows
-
-
 def _plot(origin: str, name: str) -> rrb.TimeSeriesView:
     """A time series whose time axis spans the whole drive."""
     whole = rr.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
@@ -641,19 +538,46 @@ def follow_source(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]]) -> 
     methods = discover_methods(fused if not isinstance(drive, (str, os.PathLike)) else [drive, *fused])
     if methods:
         return f"fusion/{methods[0][0]}"
-    return "truth" if _topic_names(drive).get("/truth/attitude") else None
+    return "truth" if topic_names(drive).get("/truth/attitude") else None
+
+
+def _log_imu(rec: rr.RecordingStream, got: DrivePass) -> int:
+    """The decimated IMU rows as ``imu/gyro`` and ``imu/accel``; returns their count."""
+    if not len(got.imu_t_ns):
+        return 0
+    for path, cols in (("imu/gyro", slice(0, 3)), ("imu/accel", slice(3, 6))):
+        rr.send_columns(path, indexes=_times(got.imu_t_ns), columns=rr.Scalars.columns(scalars=got.imu[:, cols]),
+                        recording=rec)
+    xyz = [(220, 50, 50), (40, 160, 40), (40, 90, 230)]
+    rec.log("imu/gyro", rr.SeriesLines(names=["gyro x (rad/s)", "gyro y", "gyro z"], colors=xyz), static=True)
+    rec.log("imu/accel", rr.SeriesLines(names=["accel x (m/s²)", "accel y", "accel z"], colors=xyz), static=True)
+    return len(got.imu_t_ns)
+
+
+def _drain(read: Ahead[float, DrivePass], progress: Callable[[float], None] | None) -> DrivePass:
+    """The drive pass's result, its progress passed on as the first 80 % of the view's."""
+    it = iter(read)
+    while True:
+        try:
+            done = next(it)
+        except StopIteration as stop:
+            return stop.value
+        if progress:
+            progress(0.8 * done)
 
 
 def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
-          progress: Callable[[float], None] | None = None, inputs: InputMap | None = None) -> ViewResult:
+          progress: Callable[[float], None] | None = None, inputs: InputMap | None = None,
+          early: Ahead[float, DrivePass] | None = None) -> ViewResult:
     """Log a drive and its fused files into ``rec`` (which must already have its sink); ``inputs``: the topics
-    and IMU frame of another logger's drive (``replay.inputs.resolve``)."""
-    names = _topic_names(drive)
-    if inputs is not None and not inputs.native:  # another logger's topics, under fieldlog's names
-        names = {**names, **{n: names.get(t, 0) for t, n in zip(inputs.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
+    and IMU frame of another logger's drive (``replay.inputs.resolve``); ``early``: the drive pass
+    (``replay.viewdata.start``) the caller began, else it is begun here."""
     files = [drive, *fused]
     methods = discover_methods(files if isinstance(drive, (str, os.PathLike)) else fused)
-    low, imu_rows = _read_drive(rec, drive, names, progress, inputs)
+    with early if early is not None else start(drive, inputs) as read:
+        got = _drain(read, progress)
+    imu_rows = _log_imu(rec, got)
+    low = got.low
     gps, epochs_t, no_fix = None, np.zeros(0, np.int64), np.zeros(0, bool)
     if "/gps/fix" in low:
         gps, epochs_t, no_fix = gps_track(low["/gps/fix"])
@@ -704,30 +628,30 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
         _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
         path = dict(methods)[m]
         for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
-            if _topic_names(path).get(solutions.topic(method, f"{k}/fix")):
+            if topic_names(path).get(solutions.topic(method, f"{k}/fix")):
                 f = solutions.read(path, method, f"{k}/fix")
                 ok = f["valid"]
                 local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
                 _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
         if ref is not None and len(ref.t_ns):
             _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
-        if _topic_names(path).get(solutions.topic(method, "attitude")):
+        if topic_names(path).get(solutions.topic(method, "attitude")):
             att = solutions.read(path, method, "attitude")
             q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
             ok = np.isfinite(q).all(axis=1)
             pose = base_pose(trk.take(ok), q[ok], mount, origin)
             _log_pose(rec, f"fusion/{m}", pose, color)
             sigma = None
-            if _topic_names(path).get(solutions.topic(method, "attitude_std")):
+            if topic_names(path).get(solutions.topic(method, "attitude_std")):
                 a = solutions.read(path, method, "attitude_std")
                 phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
                 sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
             _log_attitude(rec, m, pose, sigma, color)
             if truth_pose is not None and sigma is not None:
                 _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
-        if _topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
+        if topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
             _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
-        if "/vehicle/twist" in low and _topic_names(path).get(solutions.topic(method, "odom")):
+        if "/vehicle/twist" in low and topic_names(path).get(solutions.topic(method, "odom")):
             od = solutions.read(path, method, "odom")
             keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
             fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
@@ -758,7 +682,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
                 rec.log("map/outage", rr.GeoLineStrings(lat_lon=strips, radii=rr.Radius.ui_points(5.0),
                                                         colors=[OUTAGE_COLOR]), static=True)
 
-    q = gga_quality(drive)
+    q = got.gga
     if len(q["log_time_ns"]):
         _log_scalar(rec, "gps/satellites", q["log_time_ns"], q["satellites"], "satellites used", [GPS_COLOR], step=True)
         _log_scalar(rec, "gps/hdop", q["log_time_ns"], q["hdop"], "HDOP", [GPS_COLOR], step=True)
@@ -783,9 +707,10 @@ def has_display() -> bool:
 
 def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
          rrd: str | os.PathLike[str] | None = None, progress: Callable[[float], None] | None = None,
-         inputs: InputMap | None = None, force: bool = False) -> ViewResult:
+         inputs: InputMap | None = None, force: bool = False, early: Ahead[float, DrivePass] | None = None
+         ) -> ViewResult:
     """Write ``rrd`` (streamed to the file as it is logged; a new name unless ``force``: ``outputs.staged``), or
-    spawn the rerun viewer when ``rrd`` is None."""
+    spawn the rerun viewer when ``rrd`` is None. ``early``: as ``build``'s."""
     drive_files(drive)  # FileNotFoundError naming a missing file
     for p in fused:
         if not Path(p).is_file():
@@ -800,7 +725,7 @@ def view(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]] = (),
         else:
             rec.spawn(default_blueprint=bp)
         try:
-            res = build(rec, drive, fused, progress, inputs)
+            res = build(rec, drive, fused, progress, inputs, early)
         finally:
             rec.flush()
             if work is not None:

@@ -81,7 +81,7 @@ def run(a: argparse.Namespace) -> int:
         return run_live(a)
     if a.foxglove is not None:
         raise ValueError("--foxglove is for --live (and `fieldlog replay`)")
-    from fieldlog.replay.view import split_fused, view
+    from fieldlog.replay import viewdata
 
     if a.drive is None:
         raise ValueError("a drive is required (or --live)")
@@ -90,7 +90,7 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     from fieldlog.tools.fuse import input_map, load_input_spec
 
-    files, fused = split_fused([a.drive, *a.fused])
+    files, fused = viewdata.split_fused([a.drive, *a.fused])
     drive = drive_arg(files)
     try:
         imap = input_map(drive, a.config, input_spec(a))
@@ -99,7 +99,10 @@ def run(a: argparse.Namespace) -> int:
             raise
         imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
     output_parent(a.rrd)
-    res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap, force=a.force)
+    with viewdata.start(drive, imap) as early:  # the drive is read while rerun-sdk is imported
+        from fieldlog.replay.view import view
+
+        res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap, force=a.force, early=early)
     if res.rrd is None:
         log.info(f"sent {' '.join(files)} to the rerun viewer")
         return 0

@@ -1,0 +1,132 @@
+"""What ``fieldlog view`` reads of a drive, without rerun: one pass over the drive's blocks, on the second core.
+
+``start`` forks the pass (``replay.ahead``) so that it runs while the caller imports rerun-sdk, which takes
+about as long as the pass itself; ``replay.view`` then logs what it returns. The pass decimates ``/imu`` block by
+block (``IMU_BLOCK_S``) by means of ``IMU_DECIMATION`` valid samples, carried across blocks, so the 500 Hz rows
+are never held whole; the ``LOW_RATE`` topics and the GGA quality of ``/gps/nmea`` are returned whole. The
+worker yields the fraction of the drive read after each block (for a progress bar) and returns a
+:class:`DrivePass`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Generator, Sequence
+
+import numpy as np
+
+from fieldlog.acquire import messages, nmea
+from fieldlog.replay import inputs, reader, solutions
+from fieldlog.replay.ahead import Ahead
+from fieldlog.replay.drive import DriveSpec
+from fieldlog.replay.inputs import InputMap
+
+IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
+IMU_BLOCK_S = 60.0
+
+LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
+    "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
+    "/gps/vel": ("v_n",),
+    "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
+    "/truth/vel": ("v_n",),
+    "/truth/attitude": ("q_xyzw",),
+    "/truth/imu_bias": ("omega_ib_b", "f_b"),
+    "/time/sync": ("state", "rate_ppm", "residual_us"),
+    "/vehicle/twist": ("v_n",),
+    "/truth/vehicle/twist": ("v_n",),
+}
+
+
+@dataclass
+class DrivePass:
+    """What the viewer shows of the drive itself."""
+
+    imu_t_ns: np.ndarray  # (m,) int64 UTC ns, the mean time of each group of IMU_DECIMATION valid samples
+    imu: np.ndarray  # (m, 6) the group means of omega_ib_b (rad/s) and f_b (m/s^2), body RFU
+    low: dict[str, dict[str, np.ndarray]]  # LOW_RATE topic -> {field: array}, topics the drive has
+    gga: dict[str, np.ndarray]  # gga_quality's
+
+
+def topic_names(path: DriveSpec) -> dict[str, int]:
+    """Topic -> message count of a drive or file."""
+    return {t.topic: t.count for t in reader.topics(path)}
+
+
+def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
+    """``fieldlog view A B C ...``: the first path and every later one without ``/fusion/*/fix`` topics are the
+    drive's files (a directory is one of them); files with fused solutions are the fused ones."""
+    from pathlib import Path
+
+    drive, fused = [paths[0]], []
+    for p in paths[1:]:
+        is_fused = Path(p).is_file() and any(t.startswith(solutions.PREFIX) and t.endswith("/fix")
+                                             for t in topic_names(p))
+        (fused if is_fused else drive).append(p)
+    return drive, fused
+
+
+def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Means of consecutive groups of ``n`` rows (trailing partial group dropped): (t_mean int64, x_mean)."""
+    m = len(t_ns) // n
+    t = t_ns[: m * n].reshape(m, n)
+    t_mean = t[:, 0] + np.round((t - t[:, :1]).mean(axis=1)).astype(np.int64)
+    return t_mean, x[: m * n].reshape(m, n, x.shape[1]).mean(axis=1)
+
+
+def gga_quality(drive: DriveSpec, names: dict[str, int] | None = None) -> dict[str, np.ndarray]:
+    """The GGA sentences of ``/gps/nmea``: log_time_ns, satellites, hdop, fix_type (GGA quality), as float
+    (NaN: field empty). Only payloads holding ``GGA,`` are decoded. ``names``: the drive's topic_names."""
+    t_out, rows = [], []
+    if (names if names is not None else topic_names(drive)).get("/gps/nmea"):
+        log_ns, _, payloads = reader.read_payloads(drive, "/gps/nmea")
+        dec = messages.decoder_for(messages.SENTENCE)
+        for t, b in zip(log_ns, payloads):
+            if b"GGA," not in bytes(b):
+                continue
+            line = dec(bytes(b)).sentence.strip().encode("ascii", "replace")
+            gga = nmea.decode_body(nmea.split_checksum(line)[0])
+            if isinstance(gga, nmea.Gga):
+                t_out.append(int(t))
+                rows.append([np.nan if v is None else float(v) for v in (gga.num_sats, gga.hdop, gga.quality)])
+    x = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    return {"log_time_ns": np.array(t_out, dtype=np.int64), "satellites": x[:, 0], "hdop": x[:, 1],
+            "fix_type": x[:, 2]}
+
+
+def drive_pass(drive: DriveSpec, imap: InputMap | None = None) -> Generator[float, None, DrivePass]:
+    """The pass (module docstring). ``imap``: the inputs of another logger's drive
+    (``replay.inputs.canonical_blocks``), read as /imu (body RFU), /gps/fix and /gps/vel on their header stamps,
+    re-sequenced as ``fuse`` reads them."""
+    names = topic_names(drive)
+    if imap is not None and not imap.native:  # another logger's topics, under fieldlog's names
+        names = {**names, **{n: names.get(t, 0) for t, n in zip(imap.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
+    wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
+    span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
+    t_first = min((t.first_ns for t in span), default=0)
+    t_last = max((t.last_ns for t in span), default=1)
+    parts: dict[str, list[dict[str, np.ndarray]]] = {t: [] for t in LOW_RATE if names.get(t)}
+    carry_t, carry_x = np.zeros(0, np.int64), np.zeros((0, 6))
+    imu_t, imu_x = [carry_t], [carry_x]
+    blocks = (reader.iter_blocks(drive, wanted, IMU_BLOCK_S) if imap is None or imap.native else
+              inputs.canonical_blocks(drive, imap, IMU_BLOCK_S, tuple(wanted)))
+    for block in blocks:
+        for topic, keep in LOW_RATE.items():
+            d = block.data.get(topic)
+            if d is not None and len(d["log_time_ns"]):
+                parts[topic].append({k: d[k] for k in ("log_time_ns", "valid", *keep)})
+        imu = block.data.get("/imu")
+        if imu is not None and len(imu["log_time_ns"]):
+            ok = imu["valid"]
+            t = np.concatenate([carry_t, imu["log_time_ns"][ok]])
+            x = np.concatenate([carry_x, np.hstack([imu["omega_ib_b"][ok], imu["f_b"][ok]])])
+            tm, xm = decimate_means(t, x, IMU_DECIMATION)
+            carry_t, carry_x = t[len(tm) * IMU_DECIMATION:], x[len(tm) * IMU_DECIMATION:]
+            imu_t.append(tm)
+            imu_x.append(xm)
+        yield min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0)
+    low = {t: {k: np.concatenate([p[k] for p in ps]) for k in ps[0]} for t, ps in parts.items() if ps}
+    return DrivePass(np.concatenate(imu_t), np.concatenate(imu_x), low, gga_quality(drive, names))
+
+
+def start(drive: DriveSpec, imap: InputMap | None = None) -> Ahead[float, DrivePass]:
+    """``drive_pass`` begun now on the second core; iterate the result (once) inside its ``with`` block."""
+    return Ahead(lambda: drive_pass(drive, imap))

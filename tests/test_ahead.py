@@ -1,0 +1,120 @@
+"""replay.ahead: a generator run in a forked worker gives the consumer the same items, return value and
+exceptions as run in place, and leaves no worker behind. Each case runs in a fresh interpreter (one thread,
+as ``fieldlog`` runs): a pytest-xdist worker has threads of its own, and there ``Ahead`` runs in place."""
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from fieldlog.replay.ahead import Ahead
+
+PRELUDE = """
+import os, sys, threading
+import numpy as np
+from fieldlog.replay.ahead import Ahead
+
+class Unpicklable(Exception):
+    def __init__(self, a, b):  # pickling re-creates it with one argument: it fails to load
+        super().__init__(f"{a} and {b}")
+
+def numbers(n, fail=None):
+    for i in range(n):
+        yield i, os.getpid(), np.full(1000, float(i))
+    if fail == "value":
+        raise ValueError("bad byte at 12")
+    if fail == "unpicklable":
+        raise Unpicklable(1, 2)
+    if fail == "die":
+        os._exit(3)
+    return {"count": n, "pid": os.getpid()}
+"""
+
+
+def run(body: str) -> str:
+    r = subprocess.run([sys.executable, "-c", PRELUDE + textwrap.dedent(body)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.strip()
+
+
+def test_items_and_return_value_come_from_a_worker_in_order():
+    out = run("""
+        with Ahead(lambda: numbers(50)) as it:
+            got = []
+            def take():
+                result = yield from it
+                got.append(result)
+            items = list(take())
+        assert [i for i, _, _ in items] == list(range(50))
+        assert all(np.array_equal(a, np.full(1000, float(i))) for i, _, a in items)
+        pids = {p for _, p, _ in items}
+        assert pids == {got[0]["pid"]} and os.getpid() not in pids and got[0]["count"] == 50
+        print("ok")
+    """)
+    assert out == "ok"
+
+
+@pytest.mark.parametrize("fail,raised", [("value", "ValueError: bad byte at 12"),
+                                         ("unpicklable", "RuntimeError: Unpicklable: 1 and 2"),
+                                         ("die", "RuntimeError: the drive's reading worker ended without a result")])
+def test_a_failure_in_the_worker_is_raised_in_the_consumer_after_its_items(fail, raised):
+    out = run(f"""
+        seen = 0
+        try:
+            with Ahead(lambda: numbers(5, {fail!r})) as it:
+                for _ in it:
+                    seen += 1
+        except Exception as e:
+            print(seen, f"{{type(e).__name__}}: {{e}}")
+    """)
+    assert out == f"5 {raised}"
+
+
+def test_stopping_early_ends_and_reaps_the_worker():
+    out = run("""
+        it = Ahead(lambda: numbers(10 ** 9))
+        pid = it._pid
+        for i, _, _ in it:
+            if i == 3:
+                break
+        try:
+            os.waitpid(pid, os.WNOHANG)
+            print("still a child")
+        except ChildProcessError:
+            print("reaped")
+        with Ahead(lambda: numbers(10 ** 9)) as never:  # never iterated: leaving the block ends it
+            pid = never._pid
+        try:
+            os.waitpid(pid, os.WNOHANG)
+            print("still a child")
+        except ChildProcessError:
+            print("reaped")
+    """)
+    assert out == "reaped\nreaped"
+
+
+def test_with_other_threads_running_it_runs_in_place():
+    out = run("""
+        stop = threading.Event()
+        t = threading.Thread(target=stop.wait)
+        t.start()
+        with Ahead(lambda: numbers(3)) as it:
+            pids = {p for _, p, _ in it}
+        stop.set()
+        t.join()
+        print(pids == {os.getpid()})
+    """)
+    assert out == "True"
+
+
+def test_it_is_iterated_once():
+    def gen():
+        yield 1
+        return 2
+
+    with Ahead(gen) as it:
+        assert list(it) == [1]
+        with pytest.raises(RuntimeError):
+            list(it)
