@@ -123,14 +123,19 @@ class DistributedKF:
         xs = np.stack([propagate_state(Phi, self.kf_vel.x), propagate_state(Phi, self.kf_pos.x)], axis=1)
         Ps = np.stack([propagate_covariance(Phi, Q, self.kf_vel.P), propagate_covariance(Phi, Q, self.kf_pos.P),
                        propagate_covariance(Phi, Q, self.P12, sym=False)])  # P1, P2, P12 after each cycle
+        # every cycle's information matrices and fused error covariance at once: the same per-matrix LAPACK and
+        # BLAS calls as one by one, so the last cycle's are what _fuse would compute again
+        infos = _inv_spd(Ps[0]), _inv_spd(Ps[1])
+        Pe = _fused_error_cov(*Ps, *infos)[1]
         if m:
             self.kf_vel.x, self.kf_pos.x = xs[-1, 0], xs[-1, 1]
             self.kf_vel.P, self.kf_pos.P, self.P12 = Ps[0, -1].copy(), Ps[1, -1].copy(), Ps[2, -1].copy()
-        self._fuse()
+            self._fuse((infos[0][-1], infos[1][-1]), Pe[-1])
+        else:
+            self._fuse()
         self.local_states = xs
         self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
-        # every cycle's fused error covariance at once: the same per-matrix LAPACK and BLAS calls as one by one
-        return np.diagonal(_fused_error_cov(*Ps)[1], axis1=1, axis2=2).copy()
+        return np.diagonal(Pe, axis1=1, axis2=2).copy()
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """A measurement of the shared interface: to KF_II when it observes position, else to KF_I; then fusion.
@@ -196,13 +201,16 @@ class DistributedKF:
             self.P12 = A @ self.P12 if i == 0 else self.P12 @ A.T
         return dx
 
-    def _fuse(self) -> None:
-        infos = [_inv_spd(f.covariance) for f in self.locals]  # each local information matrix, once
-        self.x, self.P4 = fuse(self.locals, infos)
+    def _fuse(self, infos: tuple[np.ndarray, np.ndarray] | None = None, P: np.ndarray | None = None) -> None:
+        """Eqs. 3-4 on the local filters as they stand; ``infos`` (their inverse covariances) and ``P`` (the
+        fused estimate's error covariance, paper fusion) when the caller has them."""
+        if infos is None:
+            infos = tuple(_inv_spd(f.covariance) for f in self.locals)  # each local information matrix, once
+        self.x, self.P4 = fuse(self.locals, list(infos))
         if self.P12 is None:
             self.P = self.P4
         else:
-            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12, *infos)[1]
+            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12, *infos)[1] if P is None else P
 
 
 def fuse(filters, infos: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:

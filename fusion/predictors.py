@@ -78,7 +78,6 @@ Where the paper is ambiguous
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -337,6 +336,33 @@ class OnlineChannel:
         return float(phi @ self.rls.w)
 
 
+class History:
+    """The newest ``cap`` rows (width ``width``) in arrival order: appended in amortised O(1) into a buffer of
+    twice the capacity, which is compacted when full, so ``rows`` is one contiguous copy (rather than an array
+    built from ``cap`` small ones at every epoch)."""
+
+    def __init__(self, cap: int, width: int) -> None:
+        self.cap = cap
+        self._buf = np.empty((2 * cap, width))
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, row: np.ndarray) -> None:
+        if self._end == len(self._buf):
+            n = len(self)
+            self._buf[:n] = self._buf[self._start:self._end]
+            self._start, self._end = 0, n
+        self._buf[self._end] = row
+        self._end += 1
+        self._start = max(self._start, self._end - self.cap)
+
+    def rows(self) -> np.ndarray:
+        """(len, width): a copy, oldest row first."""
+        return self._buf[self._start:self._end].copy()
+
+
 class OutagePredictor:
     """The six channels of one method (``"rbfn"`` or ``"tdln"`` networks) and their training history.
 
@@ -356,8 +382,7 @@ class OutagePredictor:
         self.kind = kind
         self.cfg = config or PredictorConfig()
         cap = self.cfg.window + (self.cfg.taps if kind == "tdln" else 0)
-        self._u: deque[np.ndarray] = deque(maxlen=cap)
-        self._y: deque[np.ndarray] = deque(maxlen=cap)
+        self._u, self._y = History(cap, N_CHANNELS), History(cap, N_CHANNELS)
         self._models: list[Rbfn | Tdln | None] | None = None
         self._settle_until = -math.inf
         self._in_outage = True  # the filter starts unaided
@@ -381,7 +406,7 @@ class OutagePredictor:
     def _train_online(self) -> None:
         """Real-time training at this epoch: an RLS step per channel with a target, a refresh when due."""
         c = self.cfg
-        U, Y = np.array(self._u), np.array(self._y)
+        U, Y = self._u.rows(), self._y.rows()
         Y[:-c.window] = np.nan
         for i, ch in enumerate(self.online):
             if not np.isfinite(Y[-1, i]) or not np.isfinite(U[-1, i]):
@@ -401,7 +426,7 @@ class OutagePredictor:
         self._in_outage = True
         self._push(u, np.full(N_CHANNELS, np.nan))
         out = np.full(N_CHANNELS, np.nan)
-        U = np.array(self._u)
+        U = self._u.rows()
         if self.online is not None:
             for i, ch in enumerate(self.online):
                 if ch.rls is not None:
@@ -417,12 +442,12 @@ class OutagePredictor:
         return np.clip(out, self._lo, self._hi)
 
     def _push(self, u: np.ndarray, y: np.ndarray) -> None:
-        self._u.append(np.asarray(u, float).copy())
-        self._y.append(np.asarray(y, float).copy())
+        self._u.append(u)
+        self._y.append(y)
 
     def _fit(self) -> list[Rbfn | Tdln | None]:
         c = self.cfg
-        U, Y = np.array(self._u), np.array(self._y)
+        U, Y = self._u.rows(), self._y.rows()
         Y[:-c.window] = np.nan  # the TDLN's extra history is delay line only
         models: list[Rbfn | Tdln | None] = []
         for i in range(N_CHANNELS):
