@@ -18,6 +18,7 @@ returns the prediction: the correction of the INS (``rbfn``, ``tdln``) or the pr
 from __future__ import annotations
 
 import math
+from typing import Any, Callable
 
 import numpy as np
 
@@ -118,9 +119,13 @@ class PredictorBridge:
     KF_I and position from KF_II; the prediction is added to the local filters' state prediction
     (``DistributedKF.predicted_update``)."""
 
-    def __init__(self, method: str, config: predictors.PredictorConfig) -> None:
+    def __init__(self, method: str, config: predictors.PredictorConfig,
+                 make: Callable[[str, predictors.PredictorConfig], Any] | None = None) -> None:
+        """``make(network, config)``: the predictor, anything with the ``train`` and ``predict`` of
+        :class:`fusion.predictors.OutagePredictor` (one that trains it elsewhere, e.g. in another process); None:
+        an OutagePredictor here."""
         self.hybrid = method == "dkf-rbfn"
-        self.predictor = predictors.OutagePredictor(PREDICTOR_NETWORK[method], config)
+        self.predictor = (make or predictors.OutagePredictor)(PREDICTOR_NETWORK[method], config)
         self.origin: tuple[float, float, float] | None = None  # lat, lon, h of the alignment point
 
     def input(self, nav: NavState) -> np.ndarray:

@@ -1,17 +1,21 @@
-"""Read a drive on the second core: a generator run in a forked worker process beside its consumer.
+"""A drive's work on the second core: a generator or an object run in a forked worker process beside its caller.
 
-Reading a drive (zstd, the CDR decode, the input mapping) and what consumes it (the fusion loop, the viewer's
-logging) are each Python-bound, so threads would take turns on one core under the GIL; a forked worker runs the
-generator beside the consumer instead. Items and the generator's return value cross a pipe pickled (protocol 5),
-each after an 8-byte little-endian length. The blocking pipe is the flow control: the worker computes the next
-item while the last one is consumed, then waits until it is taken, so memory holds about two items.
+Reading a drive (zstd, the CDR decode, the input mapping), training an outage predictor and what lies between
+(the fusion loop, the viewer's logging) are each Python-bound, so threads would take turns on one core under
+the GIL; a forked worker runs beside the caller instead. What crosses between them is pickled (protocol 5)
+down a pipe, each message after an 8-byte little-endian length. A blocking pipe is the flow control: a worker
+is at most about one message ahead of its caller, so memory holds about two.
 
-Contract: ``Ahead(produce)`` starts the worker at once; iterating it (once) yields what ``produce()`` yields and
-returns what it returns, in order, equal up to pickling; an exception raised in the worker is raised again in
-the consumer (as the same type where it pickles, else ``RuntimeError`` with its text). The worker is killed when
-the consumer stops early (``close``, leaving its ``with`` block, an exception, Ctrl-C); it ignores SIGINT itself,
-the consumer decides. Without ``os.fork``, or with other threads running (forking them is unsafe), ``produce()``
-runs in the consumer's process instead: the same items, on one core.
+- :class:`Ahead`: a generator in the worker, its items consumed here (``fuse``'s input blocks, ``view``'s
+  drive pass).
+- :class:`Remote`: an object in the worker, its methods called from here, without waiting or for an answer
+  (``fuse``'s outage predictor).
+
+Both pass exceptions back (as the same type where they pickle, else ``RuntimeError`` with their text), ignore
+SIGINT in the worker (the caller decides), end the worker through ``os._exit`` (nothing of the caller's, no
+buffer and no atexit handler, runs twice) and reap it. Without ``os.fork``, or with other threads running
+(forking them is unsafe: a batch worker, the live player), the work runs in the caller's process instead,
+with the same results, on one core.
 """
 from __future__ import annotations
 
@@ -37,7 +41,7 @@ class Ahead(Generic[T, R]):
         self._produce: Callable[[], Generator[T, None, R]] | None = produce
         self._pid = 0
         self._pipe = None
-        if hasattr(os, "fork") and threading.active_count() == 1:
+        if _can_fork():
             r, w = os.pipe()
             pid = os.fork()
             if pid == 0:  # the worker: never returns
@@ -132,3 +136,113 @@ def _receive(pipe) -> tuple[int, object]:
     if len(body) < n:
         raise RuntimeError("the drive's reading worker ended mid-item")
     return pickle.loads(body)
+
+
+class Remote:
+    """An object made by ``make()`` in a forked worker: ``send`` calls one of its methods there without waiting,
+    ``ask`` calls one and returns its result, both in the order given (so an answer reflects every call sent
+    before it). A call that raises in the worker ends it; its exception is raised here by the next ``send`` or
+    ``ask``. ``close`` ends the worker. Without ``os.fork``, or with other threads running, the object lives in
+    this process and each call runs at once."""
+
+    def __init__(self, make: Callable[[], object]) -> None:
+        self._obj: object | None = None
+        self._pid = 0
+        self._calls = -1
+        self._results = None
+        if not _can_fork():
+            self._obj = make()
+            return
+        cr, cw = os.pipe()
+        rr, rw = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the worker: never returns
+            os.close(cw)
+            os.close(rr)
+            _host(make, cr, rw)
+        os.close(cr)
+        os.close(rw)
+        self._pid, self._calls, self._results = pid, cw, os.fdopen(rr, "rb")
+
+    def send(self, name: str, *args: object) -> None:
+        """``obj.name(*args)``, without waiting for it."""
+        if self._obj is not None:
+            getattr(self._obj, name)(*args)
+            return
+        self._put(_ITEM, (name, args))
+
+    def ask(self, name: str, *args: object) -> object:
+        """``obj.name(*args)``, after every call sent before it; its result."""
+        if self._obj is not None:
+            return getattr(self._obj, name)(*args)
+        self._put(_RETURN, (name, args))
+        return self._answer()
+
+    def close(self) -> None:
+        """End the worker (it holds no state worth keeping) and reap it."""
+        if self._pid:
+            os.kill(self._pid, signal.SIGKILL)
+            os.waitpid(self._pid, 0)
+            self._pid = 0
+            os.close(self._calls)
+            self._results.close()
+
+    def _put(self, kind: int, call: tuple) -> None:
+        if not self._pid:
+            raise RuntimeError("the worker has been closed")
+        try:
+            _send(self._calls, kind, call)
+        except BrokenPipeError:  # the worker ended on an error: raise it
+            self._answer()
+            raise RuntimeError("the worker ended early") from None
+
+    def _answer(self) -> object:
+        try:
+            kind, value = _receive(self._results)
+        except RuntimeError:
+            kind, value = _ERROR, RuntimeError("the worker ended without an answer")
+        if kind == _ERROR:
+            self.close()
+            raise value
+        return value
+
+    def __enter__(self) -> "Remote":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _host(make: Callable[[], object], calls: int, results: int) -> None:
+    """The worker of a :class:`Remote`: make the object, then run the calls as they come until the pipe ends."""
+    code = 0
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with os.fdopen(calls, "rb") as pipe:
+            try:
+                obj = make()
+            except BaseException as e:  # noqa: BLE001 - reported at the first call
+                _send(results, _ERROR, _picklable(e))
+                raise SystemExit(1) from None
+            while True:
+                try:
+                    kind, (name, args) = _receive(pipe)
+                except RuntimeError:  # the caller has gone
+                    break
+                try:
+                    value = getattr(obj, name)(*args)
+                except BaseException as e:  # noqa: BLE001 - every failure goes to the caller
+                    _send(results, _ERROR, _picklable(e))
+                    code = 1
+                    break
+                if kind == _RETURN:
+                    _send(results, _RETURN, value)
+    except BaseException:  # noqa: BLE001 - nothing may unwind into the parent's code in this process
+        code = 1
+    finally:
+        os._exit(code)
+
+
+def _can_fork() -> bool:
+    """Whether a worker may be forked: the platform has fork and no other thread runs (forking one is unsafe)."""
+    return hasattr(os, "fork") and threading.active_count() == 1

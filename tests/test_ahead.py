@@ -1,19 +1,34 @@
-"""replay.ahead: a generator run in a forked worker gives the consumer the same items, return value and
-exceptions as run in place, and leaves no worker behind. Each case runs in a fresh interpreter (one thread,
-as ``fieldlog`` runs): a pytest-xdist worker has threads of its own, and there ``Ahead`` runs in place."""
+"""replay.ahead: a generator (Ahead) or an object (Remote) in a forked worker gives its caller the same items,
+answers and exceptions as in place, and leaves no worker behind; and fuse with its workers writes the file it
+writes in place. Each worker case runs in a fresh interpreter (one thread, as ``fieldlog`` runs): a pytest-xdist
+worker has threads of its own, and there the work runs in place."""
 import subprocess
 import sys
 import textwrap
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fieldlog.replay.ahead import Ahead
+from fieldlog.tools.cli import main
 
 PRELUDE = """
 import os, sys, threading
 import numpy as np
-from fieldlog.replay.ahead import Ahead
+from fieldlog.replay.ahead import Ahead, Remote
+
+class Tally:
+    def __init__(self, start):
+        self.total, self.calls = start, []
+    def add(self, x):
+        self.total += x
+        self.calls.append(x)
+    def fail(self):
+        raise KeyError("no such channel")
+    def state(self):
+        return self.total, len(self.calls), os.getpid()
 
 class Unpicklable(Exception):
     def __init__(self, a, b):  # pickling re-creates it with one argument: it fails to load
@@ -118,3 +133,42 @@ def test_it_is_iterated_once():
         assert list(it) == [1]
         with pytest.raises(RuntimeError):
             list(it)
+
+
+def test_a_remote_object_answers_after_every_call_sent_before_and_passes_its_failure_back():
+    out = run("""
+        with Remote(lambda: Tally(10)) as r:
+            for x in range(100):
+                r.send("add", x)
+            total, n, pid = r.ask("state")
+            assert (total, n) == (10 + sum(range(100)), 100) and pid != os.getpid()
+            r.send("fail")
+            try:
+                r.ask("state")
+            except KeyError as e:
+                print("KeyError", e)
+        try:
+            os.waitpid(pid, os.WNOHANG)
+            print("still a child")
+        except ChildProcessError:
+            print("reaped")
+    """)
+    assert out == "KeyError 'no such channel'\nreaped"
+
+
+def test_fuse_with_its_workers_writes_the_file_it_writes_in_place(simulated, tmp_path: Path):
+    """dkf-rbfn reads ahead and trains its predictor in workers; with a thread running here both run in place."""
+    drive = simulated("figure8", 400.0, 1)
+    args = ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "150:40", "--outage", "300:30", "-q", "--out"]
+    r = subprocess.run([sys.executable, "-m", "fieldlog", *args, str(tmp_path / "workers.mcap")], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    stop = threading.Event()
+    busy = threading.Thread(target=stop.wait)
+    busy.start()
+    try:
+        assert main([*args, str(tmp_path / "here.mcap")]) == 0
+    finally:
+        stop.set()
+        busy.join()
+    assert (tmp_path / "workers.mcap").read_bytes() == (tmp_path / "here.mcap").read_bytes()

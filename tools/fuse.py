@@ -41,6 +41,7 @@ a whole; ``--outage`` replaces the outages of either.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tempfile
@@ -56,9 +57,11 @@ from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
 from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
 from fieldlog.replay import inputs as inputs_mod
+from fieldlog.replay.ahead import Remote
 from fieldlog.replay.drive import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
 from fieldlog.replay.reader import read_metadata
@@ -278,6 +281,21 @@ def drive_mounting(drive: DriveSpec) -> calib.Mounting:
     return calib.Calibration.from_toml(toml).mounting if toml else calib.Mounting()
 
 
+class RemotePredictor:
+    """An outage predictor trained in a worker on the second core (``replay.ahead.Remote``), beside the fusion
+    loop: ``train`` is sent without waiting, ``predict`` waits for an answer that reflects every epoch trained
+    before it, so the solution is the one an ``OutagePredictor`` in the loop gives, to the bit."""
+
+    def __init__(self, remote: Remote) -> None:
+        self.remote = remote
+
+    def train(self, t_s: float, u: np.ndarray, y: np.ndarray) -> None:
+        self.remote.send("train", t_s, u, y)
+
+    def predict(self, u: np.ndarray) -> np.ndarray:
+        return self.remote.ask("predict", u)
+
+
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
          smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False
@@ -294,7 +312,6 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     imap = inputs or inputs_mod.resolve(drive)
     log = SmootherLog() if smooth else None
     spill = _RowSpill() if smooth else None
-    engine = Engine(method, cfg, log=log)
     odom = Odometry(method, drive_mounting(drive))
     kept: list[Solution] = []
     span = [t for t in reader_topics(drive) if t.topic in imap.topics and t.count]
@@ -306,7 +323,13 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     meta = {"source": label(drive), "method": method, "config": repr(cfg.flat()), "smooth": "rts" if smooth else "no",
             "inputs": ", ".join(f"{k}={getattr(imap, k)}" for k in ("imu_topic", "fix_topic", "vel_topic",
                                                                       "imu_frame", "odom_topic"))}
-    with Recorder(out, flush_interval_s=None, fsync=False, force=force) as rec:
+    with contextlib.ExitStack() as workers:  # the predictor's worker, if the method has one; then the file
+
+        def predictor(network: str, config: PredictorConfig) -> RemotePredictor:
+            return RemotePredictor(workers.enter_context(Remote(lambda: OutagePredictor(network, config))))
+
+        engine = Engine(method, cfg, log=log, predictor=predictor)
+        rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))
         rec.add_metadata("fusion", meta)
 
         def write_outages(items) -> None:
