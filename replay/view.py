@@ -574,7 +574,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     (``replay.viewdata.start``) the caller began, else it is begun here."""
     files = [drive, *fused]
     methods = discover_methods(files if isinstance(drive, (str, os.PathLike)) else fused)
-    with early if early is not None else start(drive, inputs) as read:
+    with early if early is not None else start(drive, lambda: inputs) as read:
         got = _drain(read, progress)
     imu_rows = _log_imu(rec, got)
     low = got.low

@@ -10,7 +10,7 @@ worker yields the fraction of the drive read after each block (for a progress ba
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Generator, Sequence
+from typing import Callable, Generator, Sequence
 
 import numpy as np
 
@@ -92,10 +92,11 @@ def gga_quality(drive: DriveSpec, names: dict[str, int] | None = None) -> dict[s
             "fix_type": x[:, 2]}
 
 
-def drive_pass(drive: DriveSpec, imap: InputMap | None = None) -> Generator[float, None, DrivePass]:
-    """The pass (module docstring). ``imap``: the inputs of another logger's drive
-    (``replay.inputs.canonical_blocks``), read as /imu (body RFU), /gps/fix and /gps/vel on their header stamps,
-    re-sequenced as ``fuse`` reads them."""
+def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Generator[float, None, DrivePass]:
+    """The pass (module docstring). ``resolve()``: the inputs of another logger's drive
+    (``replay.inputs.resolve``; None: fieldlog's own topics), read as /imu (body RFU), /gps/fix and /gps/vel on
+    their header stamps, re-sequenced as ``fuse`` reads them (``replay.inputs.canonical_blocks``)."""
+    imap = resolve()
     names = topic_names(drive)
     if imap is not None and not imap.native:  # another logger's topics, under fieldlog's names
         names = {**names, **{n: names.get(t, 0) for t, n in zip(imap.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
@@ -127,6 +128,8 @@ def drive_pass(drive: DriveSpec, imap: InputMap | None = None) -> Generator[floa
     return DrivePass(np.concatenate(imu_t), np.concatenate(imu_x), low, gga_quality(drive, names))
 
 
-def start(drive: DriveSpec, imap: InputMap | None = None) -> Ahead[float, DrivePass]:
-    """``drive_pass`` begun now on the second core; iterate the result (once) inside its ``with`` block."""
-    return Ahead(lambda: drive_pass(drive, imap))
+def start(drive: DriveSpec, resolve: Callable[[], InputMap | None] = lambda: None) -> Ahead[float, DrivePass]:
+    """``drive_pass`` begun now on the second core, the drive's inputs resolved there too (``resolve`` raises
+    ValueError for a bad input option: raised when the pass is iterated); iterate the result (once) inside its
+    ``with`` block."""
+    return Ahead(lambda: drive_pass(drive, resolve))

@@ -172,3 +172,12 @@ def test_fuse_with_its_workers_writes_the_file_it_writes_in_place(simulated, tmp
         stop.set()
         busy.join()
     assert (tmp_path / "workers.mcap").read_bytes() == (tmp_path / "here.mcap").read_bytes()
+
+
+def test_view_reports_a_bad_input_option_its_worker_found_in_one_line(simulated, tmp_path: Path):
+    """view resolves the drive's inputs in its worker, beside the rerun-sdk import: the error comes back."""
+    drive = simulated("figure8", 400.0, 1)
+    r = subprocess.run([sys.executable, "-m", "fieldlog", "view", str(drive), "--imu-topic", "/nope", "--rrd",
+                        str(tmp_path / "x.rrd")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "no topic /nope (--imu-topic)" in r.stderr and not (tmp_path / "x.rrd").exists()

@@ -6,9 +6,13 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
                                             drive_arg, input_spec, log, needs_extras, output_parent)
+
+if TYPE_CHECKING:
+    from fieldlog.replay.inputs import InputMap
 
 
 def add_parser(sub) -> None:
@@ -92,17 +96,20 @@ def run(a: argparse.Namespace) -> int:
 
     files, fused = viewdata.split_fused([a.drive, *a.fused])
     drive = drive_arg(files)
-    try:
-        imap = input_map(drive, a.config, input_spec(a))
-    except ValueError:
-        if load_input_spec(a.config).merged(input_spec(a)).given():
-            raise
-        imap = None  # nothing to map (e.g. a GPS-only drive): show what the drive has
+
+    def inputs() -> InputMap | None:
+        try:
+            return input_map(drive, a.config, input_spec(a))
+        except ValueError:
+            if load_input_spec(a.config).merged(input_spec(a)).given():
+                raise
+            return None  # nothing to map (e.g. a GPS-only drive): show what the drive has
+
     output_parent(a.rrd)
-    with viewdata.start(drive, imap) as early:  # the drive is read while rerun-sdk is imported
+    with viewdata.start(drive, inputs) as early:  # the drive is resolved and read while rerun-sdk is imported
         from fieldlog.replay.view import view
 
-        res = view(drive, fused, a.rrd, progress=Progress("view"), inputs=imap, force=a.force, early=early)
+        res = view(drive, fused, a.rrd, progress=Progress("view"), force=a.force, early=early)
     if res.rrd is None:
         log.info(f"sent {' '.join(files)} to the rerun viewer")
         return 0
