@@ -25,7 +25,7 @@ The loop names no sensor and no filter type.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,7 +37,6 @@ from fieldlog.fusion.outages import PREDICTOR_NETWORK, OutageTracker, PredictorB
 from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, OdomBlock, Outage, Solution
 
 if TYPE_CHECKING:
-    from fieldlog.fusion.predictors import PredictorConfig
     from fieldlog.fusion.smoother import SmootherLog
 
 _DEG = math.pi / 180.0
@@ -48,11 +47,8 @@ class Engine:
     ``updates``: fixes used; ``predicted``: outage epochs bridged; ``hybrid_parts`` (``dkf-rbfn``): per outage
     epoch t (s), the fused state prediction and the predicted innovations' change, position and velocity (6,)."""
 
-    def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None,
-                 predictor: Callable[[str, PredictorConfig], Any] | None = None) -> None:
-        """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None; ``predictor``: how the
-        outage predictor of a method of ``PREDICTOR_NETWORK`` is made (``PredictorBridge``'s ``make``; None: an
-        ``OutagePredictor`` here)."""
+    def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
+        """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; one of {METHODS}")
         self.method = method
@@ -75,7 +71,7 @@ class Engine:
         self.updates = 0
         self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self.bridge = (PredictorBridge(method, self.cfg.predictor, predictor) if method in PREDICTOR_NETWORK else None)
+        self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()

@@ -57,6 +57,7 @@ from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.outages import PredictorBridge
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
 from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
@@ -328,7 +329,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
         def predictor(network: str, config: PredictorConfig) -> RemotePredictor:
             return RemotePredictor(workers.enter_context(Remote(lambda: OutagePredictor(network, config))))
 
-        engine = Engine(method, cfg, log=log, predictor=predictor)
+        engine = Engine(method, cfg, log=log)
+        if engine.bridge is not None:  # its outage predictor trained in a worker
+            engine.bridge = PredictorBridge(method, engine.cfg.predictor, predictor)
         rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))
         rec.add_metadata("fusion", meta)
 
