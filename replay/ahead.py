@@ -74,11 +74,7 @@ class Ahead(Generic[T, R]):
         self._reap(kill=True)
 
     def _reap(self, kill: bool) -> None:
-        if self._pid:
-            if kill:
-                os.kill(self._pid, signal.SIGKILL)
-            os.waitpid(self._pid, 0)
-            self._pid = 0
+        self._pid = _end(self._pid, kill)
         if self._pipe is not None:
             self._pipe.close()
             self._pipe = None
@@ -181,9 +177,7 @@ class Remote:
     def close(self) -> None:
         """End the worker (it holds no state worth keeping) and reap it."""
         if self._pid:
-            os.kill(self._pid, signal.SIGKILL)
-            os.waitpid(self._pid, 0)
-            self._pid = 0
+            self._pid = _end(self._pid, kill=True)
             os.close(self._calls)
             self._results.close()
 
@@ -246,3 +240,12 @@ def _host(make: Callable[[], object], calls: int, results: int) -> None:
 def _can_fork() -> bool:
     """Whether a worker may be forked: the platform has fork and no other thread runs (forking one is unsafe)."""
     return hasattr(os, "fork") and threading.active_count() == 1
+
+
+def _end(pid: int, kill: bool) -> int:
+    """Reap worker ``pid`` (0: none), killed first if ``kill``; returns 0, the pid of no worker."""
+    if pid:
+        if kill:
+            os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    return 0

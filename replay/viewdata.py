@@ -10,6 +10,7 @@ worker yields the fraction of the drive read after each block (for a progress ba
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Generator, Sequence
 
 import numpy as np
@@ -54,8 +55,6 @@ def topic_names(path: DriveSpec) -> dict[str, int]:
 def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
     """``fieldlog view A B C ...``: the first path and every later one without ``/fusion/*/fix`` topics are the
     drive's files (a directory is one of them); files with fused solutions are the fused ones."""
-    from pathlib import Path
-
     drive, fused = [paths[0]], []
     for p in paths[1:]:
         is_fused = Path(p).is_file() and any(t.startswith(solutions.PREFIX) and t.endswith("/fix")

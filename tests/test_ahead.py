@@ -34,6 +34,13 @@ class Unpicklable(Exception):
     def __init__(self, a, b):  # pickling re-creates it with one argument: it fails to load
         super().__init__(f"{a} and {b}")
 
+def reaped(pid):
+    try:
+        os.waitpid(pid, os.WNOHANG)
+        return "still a child"
+    except ChildProcessError:
+        return "reaped"
+
 def numbers(n, fail=None):
     for i in range(n):
         yield i, os.getpid(), np.full(1000, float(i))
@@ -94,18 +101,10 @@ def test_stopping_early_ends_and_reaps_the_worker():
         for i, _, _ in it:
             if i == 3:
                 break
-        try:
-            os.waitpid(pid, os.WNOHANG)
-            print("still a child")
-        except ChildProcessError:
-            print("reaped")
+        print(reaped(pid))
         with Ahead(lambda: numbers(10 ** 9)) as never:  # never iterated: leaving the block ends it
             pid = never._pid
-        try:
-            os.waitpid(pid, os.WNOHANG)
-            print("still a child")
-        except ChildProcessError:
-            print("reaped")
+        print(reaped(pid))
     """)
     assert out == "reaped\nreaped"
 
@@ -147,11 +146,7 @@ def test_a_remote_object_answers_after_every_call_sent_before_and_passes_its_fai
                 r.ask("state")
             except KeyError as e:
                 print("KeyError", e)
-        try:
-            os.waitpid(pid, os.WNOHANG)
-            print("still a child")
-        except ChildProcessError:
-            print("reaped")
+        print(reaped(pid))
     """)
     assert out == "KeyError 'no such channel'\nreaped"
 
