@@ -14,7 +14,8 @@ chunk that uses them, so every complete chunk in a truncated file has its channe
 it and ``acquire.recovery.recover`` can rebuild a valid file from the complete chunks alone. Reading chunks back
 is ``acquire.chunks``.
 
-Not thread-safe: one thread owns a Recorder.
+Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses
+each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import os
 import struct
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -132,7 +134,9 @@ class Recorder:
     record (``acquire.drivestats``); off for files whose chunks are copied as they are (``recover``).
     The file is created new (``acquire.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
     regular file and ``force``; always if it is a symbolic link; ``root``: the output folder ``path`` lies in,
-    walked without following a link).
+    walked without following a link). behind: compress each closed chunk on a thread while the caller goes on
+    (at most one chunk in flight), for offline writers: a chunk then reaches the file when the next one closes,
+    at the next record outside chunks, or at ``close``, so ``flush`` no longer bounds what a power cut loses.
     """
 
     def __init__(
@@ -147,6 +151,7 @@ class Recorder:
         stats: bool = True,
         force: bool = False,
         root: str | os.PathLike[str] | None = None,
+        behind: bool = False,
     ) -> None:
         if compression not in ("zstd", "lz4", ""):
             raise ValueError(f"unknown compression {compression!r}")
@@ -172,6 +177,9 @@ class Recorder:
         self.flush_seconds = 0.0  # host time spent in flush (compress + write + fsync)
         self.stats = DriveStats() if stats else None
         self.closed = False
+        self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
+        # the chunk being compressed behind: (future (compressed, crc), uncompressed size, start, end, index)
+        self._pending: tuple[Future, int, int, int, dict] | None = None
         self._f.write(MAGIC)
         self._write_record(Header(PROFILE, LIBRARY))
         if metadata:
@@ -180,7 +188,9 @@ class Recorder:
     # -- records outside chunks --------------------------------------------------------------
 
     def _write_record(self, record) -> int:
-        """Write one record to the data section; return its length in bytes."""
+        """Write one record to the data section (after the chunk being compressed behind); return its length in
+        bytes."""
+        self._drain()
         rb = RecordBuilder()
         record.write(rb)
         data = rb.end()
@@ -199,6 +209,7 @@ class Recorder:
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a Metadata record (string keys and values)."""
+        self._drain()
         offset = self._f.tell()
         length = self._write_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
@@ -366,7 +377,12 @@ class Recorder:
         t0 = time.perf_counter()
         c = self._chunk
         if c.count:
-            self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
+            data = b"".join(c.parts)
+            if self._behind is None:
+                self.write_chunk(data, c.start, c.end, c.index)
+            else:
+                self._drain()
+                self._pending = (self._behind.submit(self._compress, data), len(data), c.start, c.end, c.index)
             self._chunk = _OpenChunk()
         self._f.flush()
         if self._fsync:
@@ -381,6 +397,11 @@ class Recorder:
         content), log times from ``start`` to ``end`` (ns), ``index`` channel id -> pieces of (log times, offsets
         into ``data``) (uint64 arrays, or ints: ``_OpenChunk``). The open chunk's flush, and recovery's copy of a
         file's chunks."""
+        self._drain()
+        self._write_compressed(*self._compress(data), len(data), start, end, index)
+
+    def _compress(self, data: bytes) -> tuple[bytes, int]:
+        """A chunk's content compressed, and its CRC-32 (on the ``behind`` thread, if there is one)."""
         if self._compression == "zstd":
             compressed = self._zstd.compress(data)
         elif self._compression == "lz4":
@@ -389,13 +410,24 @@ class Recorder:
             compressed = lz4.frame.compress(data)
         else:
             compressed = data
+        return compressed, crc32(data)
+
+    def _drain(self) -> None:
+        """Write the chunk being compressed behind, if there is one (its compression's error is raised here)."""
+        if self._pending is not None:
+            future, size, start, end, index = self._pending
+            self._pending = None
+            self._write_compressed(*future.result(), size, start, end, index)
+
+    def _write_compressed(self, compressed: bytes, crc: int, size: int, start: int, end: int,
+                          index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
         chunk = Chunk(
             compression=self._compression,
             data=compressed,
             message_start_time=start,
             message_end_time=end,
-            uncompressed_crc=crc32(data),
-            uncompressed_size=len(data),
+            uncompressed_crc=crc,
+            uncompressed_size=size,
         )
         chunk_offset = self._f.tell()
         chunk_length = self._write_record(chunk)
@@ -422,7 +454,7 @@ class Recorder:
             message_index_length=pos - chunk_offset - chunk_length,
             compression=self._compression,
             compressed_size=len(compressed),
-            uncompressed_size=len(data),
+            uncompressed_size=size,
         ).write(rb)
         self._chunk_indexes += rb.end()
         self._chunks += 1
@@ -436,7 +468,12 @@ class Recorder:
         metadata indexes, summary offsets), the footer and the closing magic."""
         if self.closed:
             return
-        self.flush()
+        try:
+            self.flush()
+            self._drain()
+        finally:
+            if self._behind is not None:
+                self._behind.shutdown()
         if self.stats is not None:   # after the last chunk: a file cut short keeps it only if all chunks are whole
             self.add_metadata(INFO_RECORD, self.stats.record())
         self._write_record(DataEnd(0))

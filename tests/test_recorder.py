@@ -308,3 +308,41 @@ def test_the_library_field_names_mcap_as_its_writer_would():
     from fieldlog.acquire import recorder
 
     assert recorder.LIBRARY == f"fieldlog/0.1 {LIBRARY_IDENTIFIER}"
+
+
+def _mixed(path: Path, **kw) -> None:
+    """Batches over several chunks, a channel and metadata records between them, single messages, a copied
+    chunk."""
+    n = 3000
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    w = np.random.default_rng(5).normal(size=(n, 3))
+    with Recorder(path, chunk_size=48 * 1024, flush_interval_s=None, fsync=False, **kw) as rec:
+        rec.write_batch("/imu", t[:1000], m.encode_imu(t[:1000], w[:1000], w[:1000]))
+        rec.add_metadata("between", {"k": "v"})
+        for i in range(1000, 1010):
+            rec.write("/gps/nmea", int(t[i]), m.encode_sentence(int(t[i]), f"$GPGGA,{i}*00"))
+        rec.flush()
+        rec.write_batch("/imu", t[1000:], m.encode_imu(t[1000:], w[1000:], w[1000:]))
+        rec.write_chunk(b"", int(t[-1]), int(t[-1]), {})
+        rec.write("/raw/gps", int(t[-1]), m.encode_raw(int(t[-1]), 5, "gps", b"$GP\r\n"))
+
+
+def test_behind_writes_the_same_bytes_and_raises_its_errors(tmp_path, monkeypatch):
+    """``behind`` compresses on a thread: the file is the same to the byte, and an error there is raised by the
+    owner's next call, not lost."""
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    _mixed(a)
+    _mixed(b, behind=True)
+    assert a.read_bytes() == b.read_bytes()
+    assert len(_all_messages(b)) == 3011
+    rec = Recorder(tmp_path / "c.mcap", chunk_size=48 * 1024, flush_interval_s=None, fsync=False, behind=True)
+
+    def broken(data: bytes) -> tuple[bytes, int]:
+        raise MemoryError("no room to compress")
+
+    monkeypatch.setattr(rec, "_compress", broken)
+    rec.write("/gps/nmea", T0, m.encode_sentence(T0, "$GPGGA,1*00"))
+    rec.flush()                           # submitted: the error comes with the next record
+    with pytest.raises(MemoryError, match="no room"):
+        rec.add_metadata("after", {"k": "v"})
+    rec.close()

@@ -101,7 +101,7 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
     if "/tf_static" in channels and "/tf_static" not in chosen:
         chosen.insert(0, "/tf_static")
     counts: dict[str, int] = {}
-    with Recorder(out, flush_interval_s=None, fsync=False, force=force) as rec:
+    with Recorder(out, flush_interval_s=None, fsync=False, force=force, behind=True) as rec:
         for name, d in reader.read_metadata(src).items():  # by name, the last wins
             if name != INFO_RECORD:
                 rec.add_metadata(name, d)

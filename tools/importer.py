@@ -225,7 +225,8 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
     meta = {"source": "fieldlog import", "gps": str(gps or ""), "daq": str(daq_path or ""), "can": str(can_log or "")}
-    with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force) as rec:
+    with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,
+                           behind=True) as rec:
         pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)

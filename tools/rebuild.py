@@ -52,7 +52,7 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
     if calibration is not None:
         cal = calib.load_calibration(calibration)
     total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
-    with recorder.Recorder(dst, flush_interval_s=None, fsync=False, force=force) as rec:
+    with recorder.Recorder(dst, flush_interval_s=None, fsync=False, force=force, behind=True) as rec:
         for name, d in records:
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
                 rec.add_metadata(name, d)

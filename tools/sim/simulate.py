@@ -174,7 +174,8 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
                                                   **(sync_settings or {})})
-    with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force) as rec:
+    with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,
+                           behind=True) as rec:
         pipe = Pipeline(rec, cal, sync_cfg, PipelineConfig(can=vehicle.bus_config() if can else None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -176,7 +177,8 @@ class Scenario:
 class TruthSample:
     """True state at times t (n,), s. lat, lon in rad; h in m; v_n ENU m/s; r_e ECEF m;
     q = [x, y, z, w] of C_bn (body RFU -> ENU); heading/pitch/roll rad (fusion.earth conventions);
-    f_b specific force m/s^2 and omega_ib_b angular rate rad/s, body RFU: the error-free IMU."""
+    f_b specific force m/s^2 and omega_ib_b angular rate rad/s, body RFU: the error-free IMU. The attitude's
+    other forms (q, heading, pitch, roll) are computed from C_bn when first asked for."""
 
     t: np.ndarray
     lat: np.ndarray
@@ -185,12 +187,28 @@ class TruthSample:
     v_n: np.ndarray
     r_e: np.ndarray
     C_bn: np.ndarray
-    q: np.ndarray
-    heading: np.ndarray
-    pitch: np.ndarray
-    roll: np.ndarray
     f_b: np.ndarray
     omega_ib_b: np.ndarray
+
+    @cached_property
+    def q(self) -> np.ndarray:
+        return earth.dcm_to_quat(self.C_bn)
+
+    @cached_property
+    def _euler(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return earth.dcm_to_euler(self.C_bn)
+
+    @property
+    def heading(self) -> np.ndarray:
+        return self._euler[0]
+
+    @property
+    def pitch(self) -> np.ndarray:
+        return self._euler[1]
+
+    @property
+    def roll(self) -> np.ndarray:
+        return self._euler[2]
 
 
 # ---------------------------------------------------------------------------------------------- loading
@@ -597,9 +615,7 @@ class Truth:
         f_b = np.einsum("nji,nj->ni", C_bn, f_n)
         omega_ie_t = self._C_et @ np.array([0.0, 0.0, earth.OMEGA_IE])
         omega_ib_b = k["omega_tb_b"] + np.einsum("nji,j->ni", C_bt, omega_ie_t)
-        heading, pitch, roll = earth.dcm_to_euler(C_bn)
-        return TruthSample(t=t, lat=lat, lon=lon, h=h, v_n=v_n, r_e=r_e, C_bn=C_bn, q=earth.dcm_to_quat(C_bn),
-                           heading=heading, pitch=pitch, roll=roll, f_b=f_b, omega_ib_b=omega_ib_b)
+        return TruthSample(t=t, lat=lat, lon=lon, h=h, v_n=v_n, r_e=r_e, C_bn=C_bn, f_b=f_b, omega_ib_b=omega_ib_b)
 
     def local_position(self, t_s: np.ndarray) -> np.ndarray:
         """Position (n, 3) in m in the tangent ENU frame at the origin (quintic Hermite on the grid)."""
