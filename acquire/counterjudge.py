@@ -106,20 +106,9 @@ class CounterJudge:
         return 0 if self._held is None else len(self._held)
 
     def judge(self, fr: DaqFrames, stream_base: int, mono_ns: int | None = None) -> DaqFrames:
-        ref, n = self._ref, len(fr)
-        if n and self._held is None and ref is not None and self._dropped == 0 and self._last_out == ref.k:
-            # the usual read: every frame steps 1 from the one before, back to back in the bytes, so each is
-            # taken as it is (what _run decides for such frames, without its per-frame bookkeeping)
-            counters, ends = fr.k.tolist(), fr.end_offset.tolist()
-            first = stream_base + ends[0] - FRAME_SIZE
-            if first == ref.start + FRAME_SIZE and all(
-                    (c - ref.counter) & _M32 == i and e - ends[0] == (i - 1) * FRAME_SIZE
-                    for i, (c, e) in enumerate(zip(counters, ends), 1)):
-                self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
-                self._base = stream_base
-                self._last_out = ref.k + n
-                return DaqFrames(np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64), fr.counts, fr.pps, fr.latch,
-                                 fr.latch_valid, fr.temperature_c, fr.end_offset)
+        usual = self.usual(fr, stream_base, mono_ns)
+        if usual is not None:
+            return usual
         start = stream_base + fr.end_offset - FRAME_SIZE
         if self._held is not None:
             fr = _concat([self._held, fr])
@@ -127,6 +116,28 @@ class CounterJudge:
             self._held = None
         self._base = stream_base
         return self._run(fr, start, mono_ns, final=False)
+
+    def usual(self, fr: DaqFrames, stream_base: int, mono_ns: int | None = None) -> DaqFrames | None:
+        """``judge`` of the usual read, else None (and nothing changed): every frame steps 1 from the one before,
+        back to back in the bytes after the last frame taken, so each is taken as it is (what ``_run`` decides
+        for such frames, without its per-frame bookkeeping). The frames of several reads in a row, given as one
+        chunk, are usual exactly when each read is usual in turn (a read without frames changes nothing), and
+        the judge is then left as those reads one by one would leave it (``mono_ns``: the last one's with
+        frames)."""
+        ref, n = self._ref, len(fr)
+        if not (n and self._held is None and ref is not None and self._dropped == 0 and self._last_out == ref.k):
+            return None
+        counters, ends = fr.k.tolist(), fr.end_offset.tolist()
+        first = stream_base + ends[0] - FRAME_SIZE
+        if first != ref.start + FRAME_SIZE or not all(
+                (c - ref.counter) & _M32 == i and e - ends[0] == (i - 1) * FRAME_SIZE
+                for i, (c, e) in enumerate(zip(counters, ends), 1)):
+            return None
+        self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
+        self._base = stream_base
+        self._last_out = ref.k + n
+        return DaqFrames(np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64), fr.counts, fr.pps, fr.latch,
+                         fr.latch_valid, fr.temperature_c, fr.end_offset)
 
     def flush(self) -> DaqFrames:
         """The held frames, judged with what there is (end of stream)."""

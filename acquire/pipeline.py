@@ -90,6 +90,26 @@ class Counters:
     gps_ignored: int = 0            # checked frames of a protocol the [gps] protocol setting excludes
 
 
+@dataclass
+class _Ahead:
+    """The frames of consecutive DAQ reads from one decoder call: read i's are ``fr``'s ``cuts[i]:cuts[i + 1]``,
+    and begin ``starts[i]`` bytes after the first read's first byte; ``base``: the decoder's byte count before
+    the first read."""
+
+    fr: daq.DaqFrames
+    cuts: list[int]
+    starts: list[int]
+    base: int
+
+    def span(self, i: int, j: int) -> tuple[daq.DaqFrames, int]:
+        """Reads i..j-1's frames (end offsets from read i's first byte) and the decoder's byte count before
+        read i: what ``DaqDecoder.feed`` of their bytes alone would give, and ``feed``'s ``decoded``."""
+        a, b, s = self.cuts[i], self.cuts[j], self.starts[i]
+        piece = daq.DaqFrames(*(getattr(self.fr, f)[a:b] for f in _FRAME_FIELDS))
+        piece.end_offset = piece.end_offset - s
+        return piece, self.base + s
+
+
 class Pipeline:
     """Feed ``RawRead``-like records; derived messages go to ``sink.write_batch``."""
 
@@ -140,26 +160,45 @@ class Pipeline:
     def feed_reads(self, reads: Iterable[RawRead], progress: Callable[[int], None] | None = None) -> int:
         """``feed`` each read (``RawRead``-like: port, mono_ns, wall_ns, data) in turn, with the same outputs,
         ``READ_BLOCK`` reads at a time: each block's DAQ reads are decoded ahead in one call of the decoder (the
-        frames it finds, and its counts, do not depend on how the bytes are split into reads), so a read costs no
-        decoder call of its own. For a recorded or simulated stream (``sim``, ``rebuild``, ``import``); the
-        daemon feeds each read as it comes. ``progress``: called with the reads fed so far after each block.
-        Returns the number of reads."""
+        frames it finds, and its counts, do not depend on how the bytes are split into reads), and the DAQ reads
+        between two reads of another port or two emits are processed as one where the counter judge and time
+        sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``,
+        ``import``); the daemon feeds each read as it comes. ``progress``: called with the reads fed so far
+        after each block. Returns the number of reads."""
         n, it = 0, iter(reads)
         while block := list(itertools.islice(it, READ_BLOCK)):
-            ahead = iter(self._decode_ahead([r.data for r in block if r.port == "daq"]))
+            ahead = self._decode_ahead([r.data for r in block if r.port == "daq"])
+            run: list[RawRead] = []       # DAQ reads in a row, recorded, not processed yet
+            d = 0                         # the block's DAQ reads so far
             for r in block:
-                self.feed(r.port, r.mono_ns, r.wall_ns, r.data, next(ahead, None) if r.port == "daq" else None)
+                if r.port == "daq" and ahead is not None and self.on_frames is None:
+                    self._record(r.port, r.mono_ns, r.wall_ns, r.data)
+                    run.append(r)
+                    d += 1
+                    if r.mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
+                        self._feed_run(run, ahead, d - len(run))
+                        run = []
+                    continue
+                if run:
+                    self._feed_run(run, ahead, d - len(run))
+                    run = []
+                decoded = None
+                if r.port == "daq":
+                    decoded = ahead.span(d, d + 1) if ahead is not None else None
+                    d += 1
+                self.feed(r.port, r.mono_ns, r.wall_ns, r.data, decoded)
+            if run:
+                self._feed_run(run, ahead, d - len(run))
             n += len(block)
             if progress is not None:
                 progress(n)
         return n
 
-    def _decode_ahead(self, datas: list[bytes]) -> list[tuple[daq.DaqFrames, int]]:
-        """The frames each of these consecutive DAQ reads completes, and the decoder's byte count before it, from
-        one decoder call over their bytes; [] (each read then decoded as it is fed) if that call fails, the
-        decoder put back as it was."""
+    def _decode_ahead(self, datas: list[bytes]) -> "_Ahead | None":
+        """The frames of these consecutive DAQ reads from one decoder call over their bytes; None (each read
+        then decoded as it is fed) if there are none or that call fails, the decoder put back as it was."""
         if not datas:
-            return []
+            return None
         dec = self._daq
         saved, stats = dict(vars(dec)), asdict(dec.stats)
         base = dec.stats.bytes_in
@@ -169,17 +208,12 @@ class Pipeline:
             vars(dec).update(saved)
             for k, v in stats.items():
                 setattr(dec.stats, k, v)
-            return []
+            return None
         lengths = np.array([len(d) for d in datas], np.int64)
         ends = np.cumsum(lengths)
         read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
         cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
-        out = []
-        for a, b, s in zip(cuts[:-1].tolist(), cuts[1:].tolist(), (ends - lengths).tolist()):
-            piece = daq.DaqFrames(*(getattr(fr, f)[a:b] for f in _FRAME_FIELDS))
-            piece.end_offset = piece.end_offset - s  # relative to the read, as feed gives it
-            out.append((piece, base + s))
-        return out
+        return _Ahead(fr, cuts.tolist(), (ends - lengths).tolist(), base)
 
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes,
              decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
@@ -188,9 +222,7 @@ class Pipeline:
         kind with where the read is, and the next read is processed as usual. Sink errors (OSError: a full
         disk) are raised. ``decoded``: a DAQ read's frames and the decoder's byte count before it, when
         ``feed_reads`` decoded them ahead."""
-        self._write_tf_static(wall_ns)
-        self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
-        self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
+        self._record(port, mono_ns, wall_ns, data)
         try:
             if port == "daq":
                 self._feed_daq(mono_ns, wall_ns, data, decoded)
@@ -199,14 +231,56 @@ class Pipeline:
             elif port == "can" and self.vehicle is not None:
                 self.sync.add_host_time(mono_ns, wall_ns)
                 self.vehicle.feed(data, int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0]), self.sink)
-            if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
-                self._last_emit_ns = mono_ns
-                self._emit_sync()
-                self._emit_imu(final=False)
+            self._emit_due(mono_ns)
         except OSError:
             raise
         except Exception as e:  # noqa: BLE001 - the contract: no byte stops the recording
             self._processing_error(e, port, mono_ns, wall_ns)
+
+    def _record(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        """A read into ``/raw/<port>`` (after /tf_static, at a file's start) and the read counters."""
+        self._write_tf_static(wall_ns)
+        self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
+        self.counters.reads[port] = self.counters.reads.get(port, 0) + 1
+
+    def _emit_due(self, mono_ns: int) -> None:
+        """Derived output collected every ``EMIT_PERIOD_NS`` of reads."""
+        if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
+            self._last_emit_ns = mono_ns
+            self._emit_sync()
+            self._emit_imu(final=False)
+
+    def _feed_run(self, run: list[RawRead], ahead: "_Ahead", i: int) -> None:
+        """Process DAQ reads in a row, recorded already, reads ``i..`` of ``ahead``; only the last can be due
+        an emit. As one when the counter judge takes all their frames as they are (``CounterJudge.usual``; time
+        sync then takes them as one, ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
+        last = run[-1]
+        fr, base = ahead.span(i, i + len(run))
+        cuts = ahead.cuts[i:i + len(run) + 1]
+        ends = [c - cuts[0] for c in cuts[1:]]
+        with_frames = [r for r, a, b in zip(run, cuts, cuts[1:]) if b > a]
+        try:
+            usual = self._judge.usual(fr, base, with_frames[-1].mono_ns) if with_frames else None
+            if usual is not None:
+                self._last_daq_read = (last.mono_ns, last.wall_ns)
+                self.sync.add_run(usual.k, usual.pps, usual.latch, usual.latch_valid, ends,
+                                  [r.mono_ns for r in run], [r.wall_ns for r in run])
+                self._pending.append((usual.k, usual.counts))
+                self._emit_due(last.mono_ns)
+                return
+        except OSError:
+            raise
+        except Exception as e:  # noqa: BLE001 - as in feed
+            self._processing_error(e, "daq", last.mono_ns, last.wall_ns)
+            return
+        for j, r in enumerate(run):
+            try:
+                self._feed_daq(r.mono_ns, r.wall_ns, r.data, ahead.span(i + j, i + j + 1))
+                self._emit_due(r.mono_ns)
+            except OSError:
+                raise
+            except Exception as e:  # noqa: BLE001 - as in feed
+                self._processing_error(e, "daq", r.mono_ns, r.wall_ns)
 
     def _processing_error(self, e: Exception, port: str, mono_ns: int, wall_ns: int) -> None:
         self.counters.processing_errors += 1

@@ -329,6 +329,38 @@ class TimeSync:
         self._expire_pending()
         self._advance()
 
+    def add_run(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
+                ends: list[int], mono_ns: list[int], wall_ns: list[int]) -> None:
+        """The frames of several reads in a row, read i's ``k[ends[i - 1]:ends[i]]`` (``ends[-1] == len(k)``), at
+        host ``mono_ns[i]``/``wall_ns[i]``: what ``add_frames`` of each read in turn does.
+
+        In one step while the clock is locked (a knot, no candidate edge waiting) and the run has no PPS edge:
+        each read's host times then only feed the host-clock bins, and every stamp made final depends on the
+        knots alone, so finalising once after the run gives the stamps, states and status records that
+        finalising after each read would. Otherwise read by read.
+        """
+        n = len(k)
+        if (self._finished or not self._knot_k or self._pending or not n or k[0] <= self._k_max or pps.any()
+                or not (k[1:] > k[:-1]).all()):
+            a = 0
+            for b, m, w in zip(ends, mono_ns, wall_ns):
+                self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
+                a = b
+            return
+        counts = np.diff(ends, prepend=0)
+        read = np.repeat(np.arange(len(ends)), counts)
+        b = k // self._bin
+        last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
+        v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self._ns_per_sample).astype(np.int64)
+        for bb, vv in zip(b[last].tolist(), v.tolist()):
+            old = self._bins.get(bb)
+            self._bins[bb] = vv if old is None else min(old, vv)
+        j = int(read[-1])                      # the last read with frames
+        self._wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
+        self._k_max = int(k[-1])
+        self._expire_pending()
+        self._advance()
+
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""
         for e in self._pending:

@@ -107,6 +107,72 @@ def test_rebuild_decodes_read_by_read_when_a_block_does_not_decode(tmp_path, mon
     assert (tmp_path / "ahead.mcap").read_bytes() == (tmp_path / "one_by_one.mcap").read_bytes()
 
 
+RUN_VARIANTS = {  # name: (PPS mode, seconds, GPS settings, damaged reads)
+    "flag": ("flag", 200.0, {}, False),
+    "latch, PPS lost past the holdover": ("latch", 100.0, {"outages": [[40.0, 35.0]], "pps_in_outage": False},
+                                          False),
+    "latch, damaged reads": ("latch", 100.0, {}, True),
+}
+
+
+def _damaged(reads: list, seed: int) -> list:
+    """Reads with bits flipped (2 %) and dropped (0.5 %)."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for r in reads:
+        u = rng.random()
+        if u < 0.005:
+            continue
+        if u < 0.025 and r.data:
+            d = bytearray(r.data)
+            d[rng.integers(len(d))] ^= 1 << int(rng.integers(8))
+            r = replace(r, data=bytes(d))
+        out.append(r)
+    return out
+
+
+@pytest.mark.parametrize("variant", list(RUN_VARIANTS))
+def test_feed_reads_takes_daq_runs_as_one_with_the_outputs_of_each_read_in_turn(tmp_path, monkeypatch, variant):
+    """``feed_reads`` processes the DAQ reads between two other reads or two emits as one where the counter
+    judge and time sync allow it (``Pipeline._feed_run``): the file is the one ``feed`` of each read in turn
+    writes, to the byte, locked or in holdover or on damaged bytes, and the reads after the first knot went as
+    runs."""
+    from dataclasses import replace
+
+    from fieldlog.acquire import recorder, timesync
+    from fieldlog.acquire.pipeline import Pipeline
+    from fieldlog.tools.sim import simulate as sim, trajectory
+
+    mode, duration, gps, damaged = RUN_VARIANTS[variant]
+    sc = trajectory.load_scenario("figure8")
+    sc = replace(sc, gps={**sc.gps, **gps})
+    reads, _, _, ccfg, cal = sim.make_reads(sc, duration, 4, mode)
+    if damaged:
+        reads = _damaged(reads, 4)
+    calls = []
+    add_frames = timesync.TimeSync.add_frames
+    monkeypatch.setattr(timesync.TimeSync, "add_frames", lambda *a: calls.append(1) or add_frames(*a))
+
+    def write(path: Path, each: bool) -> int:
+        calls.clear()
+        with recorder.Recorder(path, flush_interval_s=None, fsync=False) as rec:
+            pipe = Pipeline(rec, cal, timesync.TimeSyncConfig(pps_mode=mode, fs_hz=ccfg.fs_hz))
+            if each:
+                for r in reads:
+                    pipe.feed(r.port, r.mono_ns, r.wall_ns, r.data)
+            else:
+                pipe.feed_reads(reads)
+            pipe.finish()
+            rec.add_metadata("acquire.counters", pipe.counters_metadata())
+        return len(calls)
+
+    each, runs = write(tmp_path / "each.mcap", True), write(tmp_path / "runs.mcap", False)
+    assert (tmp_path / "each.mcap").read_bytes() == (tmp_path / "runs.mcap").read_bytes()
+    assert runs < 0.8 * each, (runs, each)   # after the first knot (flag: 120 s in), read by read before
+
+
 @pytest.mark.slow
 def test_rebuild_with_new_calibration_changes_only_imu(figure8, tmp_path):
     cal = tmp_path / "cal.toml"
