@@ -334,32 +334,44 @@ class TimeSync:
         """The frames of several reads in a row, read i's ``k[ends[i - 1]:ends[i]]`` (``ends[-1] == len(k)``), at
         host ``mono_ns[i]``/``wall_ns[i]``: what ``add_frames`` of each read in turn does.
 
-        In one step while the clock is locked (a knot, no candidate edge waiting) and the run has no PPS edge:
-        each read's host times then only feed the host-clock bins, and every stamp made final depends on the
-        knots alone, so finalising once after the run gives the stamps, states and status records that
-        finalising after each read would. Otherwise read by read.
+        In one pass when the run has no PPS edge and follows earlier frames: each read's host time goes into the
+        host-clock bins, and the knots and final stamps are advanced after just those reads where
+        ``add_frames`` would advance them, with the bins of the reads up to there, so each step sees the state
+        it would. Otherwise read by read.
         """
-        n = len(k)
-        if (self._finished or not self._knot_k or self._pending or not n or k[0] <= self._k_max or pps.any()
+        if (self._finished or self._k_first is None or not len(k) or k[0] <= self._k_max or pps.any()
                 or not (k[1:] > k[:-1]).all()):
             a = 0
             for b, m, w in zip(ends, mono_ns, wall_ns):
                 self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
                 a = b
             return
-        counts = np.diff(ends, prepend=0)
-        read = np.repeat(np.arange(len(ends)), counts)
+        read = np.repeat(np.arange(len(ends)), np.diff(ends, prepend=0))
         b = k // self._bin
         last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
         v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self._ns_per_sample).astype(np.int64)
-        for bb, vv in zip(b[last].tolist(), v.tolist()):
-            old = self._bins.get(bb)
-            self._bins[bb] = vv if old is None else min(old, vv)
+        host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
+        h = a = 0
+
+        def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
+            nonlocal h
+            while h < len(host) and host[h][0] <= i:
+                _, bb, vv = host[h]
+                old = self._bins.get(bb)
+                self._bins[bb] = vv if old is None else min(old, vv)
+                h += 1
+
+        for i, e in enumerate(ends):
+            if e > a:
+                a = e
+                self._k_max = int(k[e - 1])
+                self._expire_pending()
+                if self._advance_due():
+                    bins_until(i)
+                    self._advance()
+        bins_until(math.inf)
         j = int(read[-1])                      # the last read with frames
         self._wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
-        self._k_max = int(k[-1])
-        self._expire_pending()
-        self._advance()
 
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""
@@ -583,17 +595,39 @@ class TimeSync:
         return self._trail[ke]
 
     def _advance(self) -> None:
+        """Fit the knots whose windows are complete, then make final the stamps they decide."""
         if self._k_first is None:
             return
-        if self._finished:
-            kd = math.inf
-        else:
-            kd = self._k_max - 1
-            if self._pending:
-                kd = min(kd, math.floor(self._pending[0].k_edge) - 1)
-        while self._n_knotted < len(self._acc_k) and self._knot_window(self._n_knotted)[1] <= kd:
+        kd = self._decided()
+        while self._knot_due(kd):
             self._knot_fit(self._n_knotted)
             self._n_knotted += 1
+        fu = self._final_target(kd)
+        if self._finalise_due(fu):
+            while self._final < fu:       # in blocks: memory stays bounded across a long frame gap
+                self._finalise(self._final, min(fu, self._final + FINALISE_BLOCK))
+
+    def _advance_due(self) -> bool:
+        """Whether ``_advance`` would change anything now."""
+        if self._k_first is None:
+            return False
+        kd = self._decided()
+        return self._knot_due(kd) or self._finalise_due(self._final_target(kd))
+
+    def _decided(self) -> float:
+        """The last sample before any edge still to be decided (every edge up to it is in)."""
+        if self._finished:
+            return math.inf
+        kd = self._k_max - 1
+        if self._pending:
+            kd = min(kd, math.floor(self._pending[0].k_edge) - 1)
+        return kd
+
+    def _knot_due(self, kd: float) -> bool:
+        return self._n_knotted < len(self._acc_k) and self._knot_window(self._n_knotted)[1] <= kd
+
+    def _final_target(self, kd: float) -> int:
+        """Samples before this one have final stamps once the knots up to kd are fitted."""
         kf = kd                                # every knot at or before kf is known
         if self._n_knotted < len(self._acc_k):
             kf = min(kf, math.nextafter(self._acc_k[self._n_knotted], -math.inf))
@@ -603,11 +637,11 @@ class TimeSync:
             fu = end if kf >= last + self._HO else math.ceil(last)
         else:
             fu = end if kf == math.inf else math.floor(kf - self._H) + 1
-        fu = min(fu, end)
+        return min(fu, end)
+
+    def _finalise_due(self, fu: int) -> bool:
         # host-clock stamps (no knot yet) are finalised in steps of >= 1 s, not on every read
-        if fu > self._final and (self._knot_k or self._finished or fu - self._final >= self._bin):
-            while self._final < fu:       # in blocks: memory stays bounded across a long frame gap
-                self._finalise(self._final, min(fu, self._final + FINALISE_BLOCK))
+        return fu > self._final and bool(self._knot_k or self._finished or fu - self._final >= self._bin)
 
     def _raw(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unclamped stamp (int64 ns), state (uint8) and governing knot (-1: host clock) of samples k."""

@@ -137,8 +137,7 @@ def _damaged(reads: list, seed: int) -> list:
 def test_feed_reads_takes_daq_runs_as_one_with_the_outputs_of_each_read_in_turn(tmp_path, monkeypatch, variant):
     """``feed_reads`` processes the DAQ reads between two other reads or two emits as one where the counter
     judge and time sync allow it (``Pipeline._feed_run``): the file is the one ``feed`` of each read in turn
-    writes, to the byte, locked or in holdover or on damaged bytes, and the reads after the first knot went as
-    runs."""
+    writes, to the byte, before the lock, locked, in holdover or on damaged bytes, and most reads went as runs."""
     from dataclasses import replace
 
     from fieldlog.acquire import recorder, timesync
@@ -170,7 +169,7 @@ def test_feed_reads_takes_daq_runs_as_one_with_the_outputs_of_each_read_in_turn(
 
     each, runs = write(tmp_path / "each.mcap", True), write(tmp_path / "runs.mcap", False)
     assert (tmp_path / "each.mcap").read_bytes() == (tmp_path / "runs.mcap").read_bytes()
-    assert runs < 0.8 * each, (runs, each)   # after the first knot (flag: 120 s in), read by read before
+    assert runs < each * (0.8 if damaged else 0.25), (runs, each)
 
 
 @pytest.mark.slow
