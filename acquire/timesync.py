@@ -334,24 +334,38 @@ class TimeSync:
         """The frames of several reads in a row, read i's ``k[ends[i - 1]:ends[i]]`` (``ends[-1] == len(k)``), at
         host ``mono_ns[i]``/``wall_ns[i]``: what ``add_frames`` of each read in turn does.
 
-        In one pass when the run has no PPS edge and follows earlier frames: each read's host time goes into the
-        host-clock bins, and the knots and final stamps are advanced after just those reads where
-        ``add_frames`` would advance them, with the bins of the reads up to there, so each step sees the state
-        it would. Otherwise read by read.
+        Once frames came before, the reads without a PPS edge go in one pass (``_add_quiet``), and each read
+        with one through ``add_frames``; otherwise every read goes through ``add_frames``.
         """
-        if (self._finished or self._k_first is None or not len(k) or k[0] <= self._k_max or pps.any()
-                or not (k[1:] > k[:-1]).all()):
+        if self._finished or self._k_first is None or not len(k) or k[0] <= self._k_max or not (k[1:] > k[:-1]).all():
             a = 0
             for b, m, w in zip(ends, mono_ns, wall_ns):
                 self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
                 a = b
             return
         read = np.repeat(np.arange(len(ends)), np.diff(ends, prepend=0))
+        r0 = f0 = 0                            # the first read and frame not added yet
+        for i in sorted(set(read[pps].tolist())):
+            a, b = (ends[i - 1] if i else 0), ends[i]
+            if i > r0:
+                self._add_quiet(k[f0:a], read[f0:a] - r0, mono_ns[r0:i], wall_ns[r0:i])
+            self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], mono_ns[i], wall_ns[i])
+            r0, f0 = i + 1, b
+        if r0 < len(ends):
+            self._add_quiet(k[f0:], read[f0:] - r0, mono_ns[r0:], wall_ns[r0:])
+
+    def _add_quiet(self, k: np.ndarray, read: np.ndarray, mono_ns: list[int], wall_ns: list[int]) -> None:
+        """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
+        ``read[j]``'s. Each read's host time goes into the host-clock bins, and the knots and final stamps are
+        advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads up
+        to there, so each step sees the state it would."""
+        if not len(k):
+            return
         b = k // self._bin
         last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
         v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self._ns_per_sample).astype(np.int64)
         host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
-        h = a = 0
+        h = 0
 
         def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
             nonlocal h
@@ -361,14 +375,13 @@ class TimeSync:
                 self._bins[bb] = vv if old is None else min(old, vv)
                 h += 1
 
-        for i, e in enumerate(ends):
-            if e > a:
-                a = e
-                self._k_max = int(k[e - 1])
-                self._expire_pending()
-                if self._advance_due():
-                    bins_until(i)
-                    self._advance()
+        ends = np.flatnonzero(np.diff(read, append=-1) != 0)   # the last frame of each read with frames
+        for i, e in zip(read[ends].tolist(), k[ends].tolist()):
+            self._k_max = e
+            self._expire_pending()
+            if self._advance_due():
+                bins_until(i)
+                self._advance()
         bins_until(math.inf)
         j = int(read[-1])                      # the last read with frames
         self._wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
