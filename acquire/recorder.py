@@ -178,8 +178,7 @@ class Recorder:
         self.stats = DriveStats() if stats else None
         self.closed = False
         self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
-        # the chunk being compressed behind: (future (compressed, crc), uncompressed size, start, end, index)
-        self._pending: tuple[Future, int, int, int, dict] | None = None
+        self._pending: Future | None = None   # the chunk being compressed and written behind
         self._f.write(MAGIC)
         self._write_record(Header(PROFILE, LIBRARY))
         if metadata:
@@ -188,9 +187,11 @@ class Recorder:
     # -- records outside chunks --------------------------------------------------------------
 
     def _write_record(self, record) -> int:
-        """Write one record to the data section (after the chunk being compressed behind); return its length in
-        bytes."""
+        """Write one record to the data section (after the chunk written behind); return its length in bytes."""
         self._drain()
+        return self._put_record(record)
+
+    def _put_record(self, record) -> int:
         rb = RecordBuilder()
         record.write(rb)
         data = rb.end()
@@ -373,22 +374,32 @@ class Recorder:
 
     def flush(self) -> None:
         """Close the open chunk (if it has messages), write it and its message indexes,
-        flush to the OS and fsync (if enabled)."""
+        flush to the OS and fsync (if enabled); with ``behind``, hand it to the thread that does."""
         t0 = time.perf_counter()
         c = self._chunk
-        if c.count:
+        if self._behind is None:
+            if c.count:
+                self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
+                self._chunk = _OpenChunk()
+            self._sync()
+        elif c.count:
             data = b"".join(c.parts)
-            if self._behind is None:
-                self.write_chunk(data, c.start, c.end, c.index)
-            else:
-                self._drain()
-                self._pending = (self._behind.submit(self._compress, data), len(data), c.start, c.end, c.index)
+            self._drain()
+            self._pending = self._behind.submit(self._write_behind, data, c.start, c.end, c.index)
             self._chunk = _OpenChunk()
+        self._last_flush = time.monotonic()
+        self.flush_seconds += time.perf_counter() - t0
+
+    def _sync(self) -> None:
         self._f.flush()
         if self._fsync:
             os.fsync(self._f.fileno())
-        self._last_flush = time.monotonic()
-        self.flush_seconds += time.perf_counter() - t0
+
+    def _write_behind(self, data: bytes, start: int, end: int, index: dict) -> None:
+        """``write_chunk`` and ``_sync`` on the behind thread: the owner waits for it (``_drain``) before it
+        touches the file or the chunk bookkeeping."""
+        self._write_compressed(*self._compress(data), len(data), start, end, index)
+        self._sync()
 
     def write_chunk(
         self, data: bytes, start: int, end: int, index: dict[int, list[tuple[np.ndarray, np.ndarray]]]
@@ -413,11 +424,10 @@ class Recorder:
         return compressed, crc32(data)
 
     def _drain(self) -> None:
-        """Write the chunk being compressed behind, if there is one (its compression's error is raised here)."""
+        """Wait for the chunk written behind, if there is one (its error is raised here)."""
         if self._pending is not None:
-            future, size, start, end, index = self._pending
-            self._pending = None
-            self._write_compressed(*future.result(), size, start, end, index)
+            future, self._pending = self._pending, None
+            future.result()
 
     def _write_compressed(self, compressed: bytes, crc: int, size: int, start: int, end: int,
                           index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
@@ -430,7 +440,7 @@ class Recorder:
             uncompressed_size=size,
         )
         chunk_offset = self._f.tell()
-        chunk_length = self._write_record(chunk)
+        chunk_length = self._put_record(chunk)
         index_offsets: dict[int, int] = {}
         parts = []
         pos = chunk_offset + chunk_length
