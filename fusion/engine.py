@@ -25,7 +25,7 @@ The loop names no sensor and no filter type.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -47,12 +47,13 @@ class Engine:
     ``updates``: fixes used; ``predicted``: outage epochs bridged; ``hybrid_parts`` (``dkf-rbfn``): per outage
     epoch t (s), the fused state prediction and the predicted innovations' change, position and velocity (6,)."""
 
-    def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None) -> None:
-        """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None."""
+    def __init__(self, method: str, config: FusionConfig | None = None, log: SmootherLog | None = None,
+                 make_predictor: Callable[..., Any] | None = None) -> None:
+        """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None; make_predictor: the
+        outage predictor's factory (``fusion.outages.PredictorBridge``'s ``make``), None: one in this process."""
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; one of {METHODS}")
-        self.method = method
-        self.log = log
+        self.method, self.log = method, log
         self.cfg = config or FusionConfig()
         if self.cfg.gps.gps_error_model not in GPS_ERROR_MODELS:
             raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps.gps_error_model!r}")
@@ -66,12 +67,11 @@ class Engine:
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
         self.filter = None  # make_filter's, from the alignment on
-        self.bg = np.zeros(3)
-        self.ba = np.zeros(3)
-        self.updates = 0
-        self.predicted = 0
+        self.bg, self.ba = np.zeros(3), np.zeros(3)
+        self.updates = self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self.bridge = (PredictorBridge(method, self.cfg.predictor) if method in PREDICTOR_NETWORK else None)
+        self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor)
+                       if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()

@@ -57,7 +57,6 @@ from fieldlog.acquire.recorder import Recorder
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
-from fieldlog.fusion.outages import PredictorBridge
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
 from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
@@ -329,9 +328,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
         def predictor(network: str, config: PredictorConfig) -> RemotePredictor:
             return RemotePredictor(workers.enter_context(Remote(lambda: OutagePredictor(network, config))))
 
-        engine = Engine(method, cfg, log=log)
-        if engine.bridge is not None:  # its outage predictor trained in a worker
-            engine.bridge = PredictorBridge(method, engine.cfg.predictor, predictor)
+        engine = Engine(method, cfg, log=log, make_predictor=predictor)  # its outage predictor trained in a worker
         rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))
         rec.add_metadata("fusion", meta)
 
