@@ -14,8 +14,8 @@ chunk that uses them, so every complete chunk in a truncated file has its channe
 it and ``acquire.recovery.recover`` can rebuild a valid file from the complete chunks alone. Reading chunks back
 is ``acquire.chunks``.
 
-Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses
-each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
+Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses and
+writes each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
 """
 
 from __future__ import annotations
@@ -134,9 +134,10 @@ class Recorder:
     record (``acquire.drivestats``); off for files whose chunks are copied as they are (``recover``).
     The file is created new (``acquire.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
     regular file and ``force``; always if it is a symbolic link; ``root``: the output folder ``path`` lies in,
-    walked without following a link). behind: compress each closed chunk on a thread while the caller goes on
-    (at most one chunk in flight), for offline writers: a chunk then reaches the file when the next one closes,
-    at the next record outside chunks, or at ``close``, so ``flush`` no longer bounds what a power cut loses.
+    walked without following a link). behind: compress and write each closed chunk on a thread while the caller
+    goes on (at most one chunk in flight), for offline writers: a chunk is sure to be in the file only when the
+    next one closes, at the next record outside chunks, or at ``close``, so ``flush`` does not bound what a power
+    cut loses.
     """
 
     def __init__(
@@ -398,7 +399,7 @@ class Recorder:
     def _write_behind(self, data: bytes, start: int, end: int, index: dict) -> None:
         """``write_chunk`` and ``_sync`` on the behind thread: the owner waits for it (``_drain``) before it
         touches the file or the chunk bookkeeping."""
-        self._write_compressed(*self._compress(data), len(data), start, end, index)
+        self._write_data(data, start, end, index)
         self._sync()
 
     def write_chunk(
@@ -409,7 +410,7 @@ class Recorder:
         into ``data``) (uint64 arrays, or ints: ``_OpenChunk``). The open chunk's flush, and recovery's copy of a
         file's chunks."""
         self._drain()
-        self._write_compressed(*self._compress(data), len(data), start, end, index)
+        self._write_data(data, start, end, index)
 
     def _compress(self, data: bytes) -> tuple[bytes, int]:
         """A chunk's content compressed, and its CRC-32 (on the ``behind`` thread, if there is one)."""
@@ -429,15 +430,16 @@ class Recorder:
             future, self._pending = self._pending, None
             future.result()
 
-    def _write_compressed(self, compressed: bytes, crc: int, size: int, start: int, end: int,
-                          index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
+    def _write_data(self, data: bytes, start: int, end: int,
+                    index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
+        compressed, crc = self._compress(data)
         chunk = Chunk(
             compression=self._compression,
             data=compressed,
             message_start_time=start,
             message_end_time=end,
             uncompressed_crc=crc,
-            uncompressed_size=size,
+            uncompressed_size=len(data),
         )
         chunk_offset = self._f.tell()
         chunk_length = self._put_record(chunk)
@@ -464,7 +466,7 @@ class Recorder:
             message_index_length=pos - chunk_offset - chunk_length,
             compression=self._compression,
             compressed_size=len(compressed),
-            uncompressed_size=size,
+            uncompressed_size=len(data),
         ).write(rb)
         self._chunk_indexes += rb.end()
         self._chunks += 1
