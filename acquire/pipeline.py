@@ -135,6 +135,7 @@ class Pipeline:
         self._gps_last_read = 0
         self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
         self._last_fix_key: tuple | None = None
+        self._last_fix_ns = 0                # UTC ns of the latest /gps/fix written
         self._date: _dt.date | None = None
         self._last_tod = -1.0
         self._last_emit_ns = -(2**62)
@@ -495,7 +496,7 @@ class Pipeline:
         read (its first message came after that read: a read the host made late holds older epochs) and the
         read of its first message; a receiver time further off than ``receiver_time_tolerance_s`` (a receiver
         clock jump) is NO_FIX ``receiver_time`` and stamped with the fit's time of that read, not the
-        receiver's."""
+        receiver's, and 1 ns after the fix before it if a late read holds both."""
         why = why or ("" if sol.fix else "receiver")
         utc_ns = sol.utc_ns
         if self.sync.gps_clock and sol.first_mono_ns:
@@ -503,8 +504,9 @@ class Pipeline:
             arrival, after = (int(x) for x in self.sync.mono_to_utc(np.array([sol.first_mono_ns, prev], np.int64)))
             tol = int(self.cfg.receiver_time_tolerance_s * NS)
             if not after - NS - tol <= utc_ns <= arrival + tol:
-                why, utc_ns = "receiver_time", arrival
+                why, utc_ns = "receiver_time", max(arrival, self._last_fix_ns + 1)
         t_ns = np.array([utc_ns], np.int64)
+        self._last_fix_ns = max(self._last_fix_ns, utc_ns)
         fix = not why
         c = self.counters
         c.gps_epochs += 1

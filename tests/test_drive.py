@@ -318,3 +318,31 @@ def test_sample_data_opens(tmp_path):
     b = reader.read_topic(out, "/gps/fix")
     np.testing.assert_array_equal(a["stamp_ns"], b["stamp_ns"])
     np.testing.assert_array_equal(a["lat_deg"], b["lat_deg"])
+
+
+def test_jumped_epochs_a_late_read_holds_together_keep_their_order(tmp_path):
+    """A receiver clock jump makes its epochs NO_FIX, stamped by their read; when one late read holds two of
+    them, /gps/fix still goes forward in log time, one epoch after the other."""
+    from dataclasses import replace
+
+    from fieldlog.acquire import messages, recorder, timesync
+    from fieldlog.acquire.pipeline import NS, Pipeline
+    from fieldlog.tools.sim import simulate as sim, trajectory
+
+    sc = trajectory.load_scenario("figure8")
+    sc = replace(sc, gps={**sc.gps, "clock_jumps": [[40.0, 10.0, 3600.0]]})
+    reads, _, _, ccfg, cal = sim.make_reads(sc, 60.0, 5, "latch")
+    gps = [i for i, r in enumerate(reads) if r.port == "gps" and 44 * NS < r.mono_ns - reads[0].mono_ns]
+    late = gps[0]                 # from this GPS read on, 1.5 s of the port come in one late read
+    nxt = [i for i in gps if reads[i].mono_ns - reads[late].mono_ns < 1.5 * NS][-1]
+    merged = replace(reads[nxt], data=b"".join(r.data for r in reads[late:nxt + 1] if r.port == "gps"))
+    reads = [r for i, r in enumerate(reads) if not (late <= i <= nxt and r.port == "gps")]
+    reads.insert(next(i for i, r in enumerate(reads) if r.mono_ns > merged.mono_ns), merged)
+    with recorder.Recorder(tmp_path / "late.mcap", flush_interval_s=None, fsync=False) as rec:
+        pipe = Pipeline(rec, cal, timesync.TimeSyncConfig(pps_mode="latch", fs_hz=ccfg.fs_hz))
+        pipe.feed_reads(reads)
+        pipe.finish()
+    fix = reader.read_topic(tmp_path / "late.mcap", "/gps/fix")
+    flagged = fix["status"] == messages.STATUS_NO_FIX
+    assert 9 <= flagged.sum() <= 11 and pipe.counters.no_fix.get("receiver_time") == flagged.sum()
+    assert np.all(np.diff(fix["log_time_ns"]) > 0)
