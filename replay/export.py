@@ -1,4 +1,5 @@
-"""A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE... --out DIR``.
+"""A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE... --out DIR``; its
+tracks as KML or GPX (``--format kml|gpx``, below).
 
 A drive of several files (a rotated session, a rosbag2 directory: ``replay.drive``) gives one table per topic.
 
@@ -38,12 +39,35 @@ type                            further columns
 
 Covariances are fixed-size list columns (``pl.Array``) in Parquet. CSV cannot hold lists or bytes, so there
 each covariance becomes ``<name>_0`` ... ``<name>_8`` (or ``_35``) and ``data`` is written as hex.
+
+Tracks (``--format kml`` or ``gpx``: ``DIR/tracks.kml``, ``DIR/tracks.gpx``). Every ``sensor_msgs/NavSatFix``
+topic of the drive is one track (``track_kind``: ``gnss`` for a receiver's, whatever the logger named it,
+``fused`` for ``/fusion/<method>/fix`` and a distributed method's local ``kf1``/``kf2`` fixes, not the
+``datum``; ``truth`` for the simulator's ``/truth/fix``), named by its topic: its messages with a fix (valid,
+status >= 0, finite latitude and longitude), each at its ``header.stamp`` (UTC, written to the microsecond),
+latitude and longitude in WGS-84 degrees as Python writes a float (the shortest text that reads back as the
+same float64), height ellipsoidal in m. Each ``/fusion/outage`` window (of every file given) gives every fused
+track one more track of its rows inside the window, named ``<topic> outage <reason> <start UTC>``, in the
+outage style.
+
+- KML 2.2 (OGC): a Document with a Folder ``tracks`` (one Placemark per topic, its ``gx:Track`` of ``when`` and
+  ``gx:coord``) and a Folder ``outages`` (a Placemark per fused track and window, ``#outage`` style: red,
+  wide); tracks are drawn clamped to the ground, since KML's absolute heights are above the geoid while the
+  drive's are above the ellipsoid (the height is written all the same, 0 where the fix has none). Written with
+  fastkml: it writes and reads KML 2.2 with Google's ``gx:`` extension, writes schema-valid documents (the
+  OGC schema, which it ships, checks them) and is kept up; simplekml, the other writer on PyPI, writes
+  element ids that are not XML ids and ``gx:Track`` children out of the schema's order.
+- GPX 1.1: one ``trk`` per track (``type``: its kind, ``outage`` for an outage window's), one ``trkseg``, each
+  ``trkpt`` with ``time`` and, where the fix has one, ``ele`` (the ellipsoidal height). Written with gpxpy
+  (Apache-2.0, no dependencies, widely used), which also reads GPX 1.0 and 1.1 back (``gpxpy.parse``).
 """
 
 from __future__ import annotations
 
+import datetime
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator, Sequence
 
@@ -51,8 +75,8 @@ import numpy as np
 import polars as pl
 
 from fieldlog.acquire import messages, outputs
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, drive_files
+from fieldlog.replay import reader, solutions
+from fieldlog.replay.drive import DriveSpec, drive_files, label
 
 
 def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:
@@ -232,17 +256,24 @@ def table_path(out: Path, topic: str, fmt: str) -> Path:
     return out.joinpath(*parts[:-1], f"{parts[-1]}.{fmt}")
 
 
+FORMATS = ("parquet", "csv", "kml", "gpx")
+TRACK_FORMATS = ("kml", "gpx")
+
+
 def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            topics: Sequence[str] | None = None,
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
-    """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}. Every
-    table is a new file (unless ``force``), and ``out`` and the folders made in it are never symbolic links
+    """Write one table per topic under ``out``, streamed (``topic_batches``), or the NavSatFix topics as tracks
+    in one KML or GPX file (``export_tracks``). -> {topic: (file, rows)}. Every file is new (unless ``force``), and ``out`` and the folders made in it are never symbolic links
     (``acquire.outputs``)."""
-    if fmt not in ("parquet", "csv"):
-        raise ValueError(f"format must be parquet or csv, got {fmt!r}")
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file
-    out = outputs.out_dir(out)
     todo = _topic_types(path, topics)
+    if fmt in TRACK_FORMATS:
+        return export_tracks(path, out, fmt, [t for t, type_name in todo if type_name == messages.NAVSATFIX],
+                             progress, force)
+    out = outputs.out_dir(out)
     written: dict[str, tuple[Path, int]] = {}
     taken: set[Path] = set()
     for i, (topic, type_name) in enumerate(todo):
@@ -284,3 +315,123 @@ def _write(frames: Iterator[pl.DataFrame], f: BinaryIO, fmt: str, empty: Callabl
         else:
             csv_ready(df).write_csv(f)
     return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# Tracks: KML and GPX
+
+
+@dataclass
+class GeoTrack:
+    """One NavSatFix topic's fixes (module docstring, "Tracks")."""
+
+    name: str  # the topic, or its outage window's name
+    kind: str  # gnss, fused, truth or outage
+    stamp_ns: np.ndarray  # (n,) int64 header stamps, UTC ns
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray  # ellipsoidal, NaN where the fix has no height
+
+    def take(self, sel: np.ndarray, name: str, kind: str) -> "GeoTrack":
+        return GeoTrack(name, kind, self.stamp_ns[sel], self.lat_deg[sel], self.lon_deg[sel], self.alt_m[sel])
+
+
+KML_COLORS = {"gnss": "ff008cff", "truth": "ff14a014", "outage": "c81e1ee6"}  # aabbggrr
+FUSED_KML_COLORS = ("ffff641e", "ffd23c96", "ffbeaf00", "ff0078c8", "ffa03ce6")
+
+
+def track_kind(topic: str) -> str:
+    """``fused`` (``/fusion/...``), ``truth`` (``/truth/...``) or ``gnss`` (any other NavSatFix topic)."""
+    return "fused" if topic.startswith(solutions.PREFIX) else "truth" if topic.startswith("/truth/") else "gnss"
+
+
+def geo_tracks(path: DriveSpec, fix_topics: Sequence[str]) -> list[GeoTrack]:
+    """The tracks of ``fix_topics`` (NavSatFix topics of ``path``), then the outage windows' tracks of the fused
+    ones; topics without a fix give none, and neither does a fused file's ``datum`` (its map frame's origin)."""
+    tracks = []
+    for topic in fix_topics:
+        if track_kind(topic) == "fused" and not topic.endswith("/fix"):
+            continue
+        d = reader.read_topic(path, topic)
+        ok = d["valid"] & (d["status"] >= 0) & np.isfinite(d["lat_deg"]) & np.isfinite(d["lon_deg"])
+        if ok.any():
+            tracks.append(GeoTrack(topic, track_kind(topic), d["stamp_ns"][ok], d["lat_deg"][ok], d["lon_deg"][ok],
+                                   d["alt_m"][ok]))
+    windows = []
+    if any(t.kind == "fused" for t in tracks) and any(t.topic == solutions.OUTAGE for t in reader.topics(path)):
+        windows = sorted((int(m.start_ns), int(m.end_ns), m.reason)
+                         for m in reader.read_topic(path, solutions.OUTAGE)["msgs"] if m is not None)
+    outages = []
+    for trk in (t for t in tracks if t.kind == "fused"):
+        for start, end, reason in windows:
+            inside = (trk.stamp_ns >= start) & (trk.stamp_ns <= end)
+            if inside.any():
+                outages.append(trk.take(inside, f"{trk.name} outage {reason} {_utc(start).isoformat()}", "outage"))
+    return tracks + outages
+
+
+def _utc(t_ns: int) -> datetime.datetime:
+    """UTC ns -> an aware datetime, rounded to the microsecond (the finest a datetime holds)."""
+    return datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc) + datetime.timedelta(
+        microseconds=(int(t_ns) + 500) // 1000)
+
+
+def write_kml(tracks: Sequence[GeoTrack], title: str, f: BinaryIO) -> None:
+    """The tracks as one KML 2.2 document (module docstring) into the binary file ``f``."""
+    import pygeoif
+    from fastkml import containers, enums, features, gx, kml, styles
+    from fastkml.times import KmlDateTime
+
+    style_ids = {"gnss": "gnss", "truth": "truth", "outage": "outage"}
+    fused = [t.name for t in tracks if t.kind == "fused"]
+    style_ids.update({name: f"fused{i}" for i, name in enumerate(fused)})
+    colors = {**KML_COLORS, **{f"fused{i}": FUSED_KML_COLORS[i % len(FUSED_KML_COLORS)] for i in range(len(fused))}}
+    folders: dict[str, list] = {"tracks": [], "outages": []}
+    for t in tracks:
+        alt = np.where(np.isfinite(t.alt_m), t.alt_m, 0.0).tolist()
+        items = [gx.TrackItem(when=KmlDateTime(_utc(ns)), coord=pygeoif.Point(lon, lat, h))
+                 for ns, lat, lon, h in zip(t.stamp_ns.tolist(), t.lat_deg.tolist(), t.lon_deg.tolist(), alt)]
+        style = style_ids[t.name if t.kind == "fused" else t.kind]
+        folders["outages" if t.kind == "outage" else "tracks"].append(features.Placemark(
+            name=t.name, description=f"{t.kind}: {len(items)} fixes", style_url=styles.StyleUrl(url=f"#{style}"),
+            kml_geometry=gx.Track(altitude_mode=enums.AltitudeMode.clamp_to_ground, track_items=items)))
+    doc = containers.Document(
+        name=title, styles=[styles.Style(id=i, styles=[styles.LineStyle(color=c, width=6.0 if i == "outage" else 3.0)])
+                            for i, c in colors.items()],
+        features=[containers.Folder(name=k, features=v) for k, v in folders.items() if v])
+    f.write(b'<?xml version="1.0" encoding="UTF-8"?>\n')
+    f.write(kml.KML(features=[doc]).to_string(prettyprint=True).encode("utf-8"))
+
+
+def write_gpx(tracks: Sequence[GeoTrack], title: str, f: BinaryIO) -> None:
+    """The tracks as one GPX 1.1 document (module docstring) into the binary file ``f``."""
+    import gpxpy.gpx
+
+    doc = gpxpy.gpx.GPX()
+    doc.creator, doc.name = "fieldlog", title
+    for t in tracks:
+        seg = gpxpy.gpx.GPXTrackSegment([
+            gpxpy.gpx.GPXTrackPoint(lat, lon, elevation=h if np.isfinite(h) else None, time=_utc(ns))
+            for ns, lat, lon, h in zip(t.stamp_ns.tolist(), t.lat_deg.tolist(), t.lon_deg.tolist(), t.alt_m.tolist())])
+        trk = gpxpy.gpx.GPXTrack(name=t.name)
+        trk.type = t.kind
+        trk.segments.append(seg)
+        doc.tracks.append(trk)
+    f.write(doc.to_xml(version="1.1").encode("utf-8"))
+
+
+def export_tracks(path: DriveSpec, out: str | os.PathLike[str], fmt: str, fix_topics: Sequence[str],
+                  progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
+    """``fix_topics`` of ``path`` as ``out/tracks.kml`` or ``out/tracks.gpx`` (module docstring, "Tracks"), a new
+    file unless ``force``. -> {track name: (file, fixes)}; ValueError when no topic has a fix."""
+    tracks = geo_tracks(path, fix_topics)
+    if not tracks:
+        raise ValueError(f"{label(path)}: no GNSS or fused fixes (sensor_msgs/NavSatFix) to write as {fmt.upper()}")
+    if progress:
+        progress(0.5)
+    dest = outputs.out_dir(out) / f"tracks.{fmt}"
+    with outputs.create(dest, force, root=out) as f:
+        (write_kml if fmt == "kml" else write_gpx)(tracks, label(path), f)
+    if progress:
+        progress(1.0)
+    return {t.name: (dest, len(t.stamp_ns)) for t in tracks}

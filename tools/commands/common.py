@@ -15,8 +15,8 @@ METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sc
 
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.
-EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export",
-          "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
+EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export", "fastkml": "export", "pygeoif": "export",
+          "gpxpy": "export", "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
 
 # the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
 # them is told to reinstall, in one line

@@ -1,4 +1,5 @@
-"""``fieldlog export``: one Parquet or CSV table per topic, through polars (``replay.export``)."""
+"""``fieldlog export``: one Parquet or CSV table per topic, through polars, or the GNSS and fused tracks as KML or
+GPX (``replay.export``)."""
 from __future__ import annotations
 
 import argparse
@@ -9,10 +10,12 @@ from fieldlog.tools.commands.common import (DRIVE_HELP, Progress, add_out_dir, c
 
 
 def add_parser(sub) -> None:
-    s = command_parser(sub, "export", "one Parquet or CSV table per topic, through polars")
+    s = command_parser(sub, "export", "one Parquet or CSV table per topic, or the GNSS and fused tracks as KML or "
+                       "GPX")
     s.add_argument("drive", nargs="+", help=DRIVE_HELP)
-    add_out_dir(s, "output directory (DIR/<topic>.parquet)", required=True)
-    s.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="table format")
+    add_out_dir(s, "output directory (DIR/<topic>.parquet, DIR/tracks.kml)", required=True)
+    s.add_argument("--format", choices=["parquet", "csv", "kml", "gpx"], default="parquet",
+                   help="table format, or kml/gpx: every NavSatFix topic as a timed track in one file")
     s.add_argument("--topics", default=None, help="comma separated topics (default: all)")
     s.set_defaults(func=needs_extras(run))
 
@@ -28,5 +31,6 @@ def run(a: argparse.Namespace) -> int:
         raise ValueError(e.args[0]) from None
     for topic, (path, rows) in written.items():
         log.debug(f"  {topic:<24} {rows:>9} rows  {path}")
-    log.info(f"wrote {len(written)} tables to {a.out_dir} in {time.monotonic() - t0:.1f} s")
+    what = "tracks" if a.format in ("kml", "gpx") else "tables"
+    log.info(f"wrote {len(written)} {what} to {a.out_dir} in {time.monotonic() - t0:.1f} s")
     return 0
