@@ -264,8 +264,8 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            topics: Sequence[str] | None = None,
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``), or the NavSatFix topics as tracks
-    in one KML or GPX file (``export_tracks``). -> {topic: (file, rows)}. Every file is new (unless ``force``), and ``out`` and the folders made in it are never symbolic links
-    (``acquire.outputs``)."""
+    in one KML or GPX file (``export_tracks``). -> {topic: (file, rows)}. Every file is new (unless ``force``),
+    and ``out`` and the folders made in it are never symbolic links (``acquire.outputs``)."""
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file

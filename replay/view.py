@@ -17,6 +17,11 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
 ``map/fusion/<method>/kf1``, ``/kf2``   the distributed methods' local solutions (``/fusion/<method>/kf{1,2}/fix``:
                                       the INS corrected by KF_I's or KF_II's estimate alone, the paper's Fig. 5)
 ``map/<src>/track``                   static GeoLineStrings: the whole track, so the map shows it at any time
+``map/<src>/sigma``                   GeoPoints (``<src>``: ``gps``, ``fusion/<method>``), one row per ``map/<src>``
+                                      row with a sigma: the position, radius max(sigma E, sigma N) in m (the
+                                      circle around the 1-sigma ellipse of ``/fusion/<method>/std``, of the
+                                      receiver's ``position_covariance`` for gps); the map shows the latest,
+                                      a translucent disc that follows the car
 ``map/no_fix``                        GeoPoints, one row per GPS epoch without a fix, at the last fix position
 ``map/outage``                        static GeoLineStrings: the reference track (truth, else GPS) inside each
                                       outage window of ``/fusion/outage`` (merged over all files)
@@ -25,12 +30,21 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       row i is the segment from point i-1 to point i (row 0 degenerate), same
                                       rows as ``map/<src>``; the 3D view shows everything up to the time
                                       cursor, so the path grows as you scrub
+``enu/fusion/<method>/sigma``         Ellipsoids3D: the 1-sigma ellipsoid of ``/fusion/<method>/std``,
+                                      half sizes sigma E, N, U in m, centred on the ENU position; one row per
+                                      ``SIGMA_PERIOD_S`` of the track (its first row with a sigma in each
+                                      period), so that the 3D view, which shows every row up to the cursor,
+                                      stays light
 ``errors/pos/<axis>/<method>``        Scalars [error, +sigma, -sigma], m: fused minus reference position (ENU);
                                       sigma from ``/fusion/<method>/std``
 ``errors/vel/<axis>/<method>``        Scalars [error, +sigma, -sigma], m/s: sigma from the ``/vel`` covariance
 ``status/outage``                     Scalars 0/1 (step): 1 inside a ``/fusion/outage`` window; rows at the
                                       drive start and at every merged window's start and end
 ``status/no_fix``                     Scalars 0/1 (step), one row per ``/gps/fix`` epoch: 1 = no fix
+``<plot>/outage``                     Scalars, the outages shaded in the time plots (``<plot>``: ``errors/pos``,
+                                      ``errors/vel``, ``errors/att`` and ``attitude``, each axis or angle): a
+                                      wide translucent band at 0 across each merged window (rows at its start
+                                      and end, then NaN to break the line until the next)
 ``imu/gyro``, ``imu/accel``           Scalars x, y, z (body RFU): rad/s and m/s^2, DECIMATED by means of
                                       ``IMU_DECIMATION`` consecutive valid samples (500 Hz -> 50 Hz), stamped at
                                       the mean sample time; a trailing incomplete group is dropped, so the row
@@ -94,6 +108,7 @@ from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, 
 
 TIMELINE = "gps_time"
 TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
+SIGMA_PERIOD_S = 2.0  # one sigma ellipsoid per this much of a track in the 3D view
 AXES = ("east", "north", "up")
 ANGLES = ("roll", "pitch", "heading")
 CAR_HALF_SIZES_M = (2.25, 0.9, 0.75)  # a 4.5 x 1.8 x 1.5 m box (base_link FLU), centred 0.75 m above base_link
@@ -103,6 +118,9 @@ WHEELS_COLOR = (120, 60, 200)
 TRUTH_COLOR = (20, 160, 20)
 NO_FIX_COLOR = (230, 30, 30)
 OUTAGE_COLOR = (230, 30, 30, 200)
+OUTAGE_BAND_COLOR = (230, 30, 30, 60)
+OUTAGE_BAND_WIDTH = 36.0  # ui points
+SIGMA_ALPHA = 70  # the map's sigma discs
 METHOD_COLORS = {"ins": (200, 40, 40), "kf": (30, 100, 255), "dkf": (150, 60, 210), "dkf-rbfn": (0, 175, 190),
                  "rbfn": (200, 120, 0), "tdln": (120, 80, 40), "kf-ukf": (230, 60, 160), "ssr-sckf": (90, 90, 90),
                  "hinf": (40, 40, 140)}
@@ -182,9 +200,14 @@ def merge_windows(windows: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
 
 
 def gps_track(fix: dict) -> tuple[Track, np.ndarray, np.ndarray]:
-    """Decoded ``/gps/fix`` -> (track of the fix epochs, all epoch times, no-fix mask over all epochs)."""
+    """Decoded ``/gps/fix`` -> (track of the fix epochs, all epoch times, no-fix mask over all epochs); the
+    track's sigma from the diagonal of ``position_covariance`` (ENU m^2) where the receiver gives one."""
     ok = fix["valid"] & (fix["status"] >= 0) & np.isfinite(fix["lat_deg"]) & np.isfinite(fix["lon_deg"])
     trk = Track(fix["log_time_ns"][ok], fix["lat_deg"][ok], fix["lon_deg"][ok], _fill_alt(fix["alt_m"][ok]))
+    if "position_covariance" in fix and "covariance_type" in fix:
+        var = fix["position_covariance"][ok][:, [0, 4, 8]]
+        known = (fix["covariance_type"][ok] > 0)[:, None] & (var > 0)
+        trk.sigma_pos = np.where(known, np.sqrt(np.where(known, var, 0.0)), np.nan)
     return trk, fix["log_time_ns"][fix["valid"]], ~ok[fix["valid"]]
 
 
@@ -255,7 +278,9 @@ def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str,
 # Logging
 
 
-def _log_track(rec: rr.RecordingStream, src: str, trk: Track, color, origin, radius: float) -> None:
+def _log_track(rec: rr.RecordingStream, src: str, trk: Track, color, origin, radius: float,
+               sigma_3d: bool = True) -> None:
+    """``map/<src>``, its track and sigma discs, and ``enu/<src>`` (with its sigma ellipsoids if ``sigma_3d``)."""
     if len(trk.t_ns) == 0:
         return
     times = _times(trk.t_ns)
@@ -269,6 +294,37 @@ def _log_track(rec: rr.RecordingStream, src: str, trk: Track, color, origin, rad
     rr.send_columns(f"enu/{src}", indexes=times, columns=rr.LineStrips3D.columns(strips=_step_segments(p)),
                     recording=rec)
     rec.log(f"enu/{src}", rr.LineStrips3D.from_fields(colors=[color], radii=rr.Radius.ui_points(1.5)), static=True)
+    if trk.sigma_pos is not None:
+        _log_sigma(rec, src, trk, p if sigma_3d else None, color)
+
+
+def sigma_rows(t_ns: np.ndarray, sigma: np.ndarray, period_s: float = SIGMA_PERIOD_S) -> np.ndarray:
+    """Indices of the rows with a finite sigma (n,3), the first of each ``period_s`` since the first of them."""
+    idx = np.flatnonzero(np.isfinite(sigma).all(axis=1))
+    if not len(idx):
+        return idx
+    k = (t_ns[idx] - t_ns[idx[0]]) // int(period_s * 1e9)
+    return idx[np.concatenate([[True], k[1:] != k[:-1]])]
+
+
+def _log_sigma(rec: rr.RecordingStream, src: str, trk: Track, p_n: np.ndarray | None, color) -> None:
+    """``map/<src>/sigma`` (every row with a horizontal sigma) and, given the ENU positions ``p_n`` (m),
+    ``enu/<src>/sigma`` (``sigma_rows``)."""
+    s = trk.sigma_pos
+    on_map = np.flatnonzero(np.isfinite(s[:, :2]).all(axis=1))
+    if not len(on_map):
+        return
+    rr.send_columns(f"map/{src}/sigma", indexes=_times(trk.t_ns[on_map]),
+                    columns=rr.GeoPoints.columns(positions=np.stack([trk.lat_deg[on_map], trk.lon_deg[on_map]], 1),
+                                                 radii=s[on_map, :2].max(axis=1)), recording=rec)
+    rec.log(f"map/{src}/sigma", rr.GeoPoints.from_fields(colors=[(*color, SIGMA_ALPHA)]), static=True)
+    rows = sigma_rows(trk.t_ns, s) if p_n is not None else []
+    if len(rows):
+        rr.send_columns(f"enu/{src}/sigma", indexes=_times(trk.t_ns[rows]),
+                        columns=rr.Ellipsoids3D.columns(centers=p_n[rows], half_sizes=s[rows]), recording=rec)
+        rec.log(f"enu/{src}/sigma", rr.Ellipsoids3D.from_fields(
+            colors=[color], line_radii=rr.Radius.ui_points(0.75),
+            fill_mode=rr.components.FillMode.MajorWireframe), static=True)
 
 
 @dataclass
@@ -340,6 +396,22 @@ def _log_scalar(rec: rr.RecordingStream, path: str, t_ns: np.ndarray, x: np.ndar
     rec.log(path, rr.SeriesLines(names=names, colors=color,
                                  interpolation_mode=rr.components.InterpolationMode.StepAfter if step else None),
             static=True)
+
+
+BAND_PLOTS = (("errors/pos", AXES), ("errors/vel", AXES), ("errors/att", ANGLES), ("attitude", ANGLES))
+
+
+def _log_outage_bands(rec: rr.RecordingStream, windows: Sequence[tuple[int, int]]) -> None:
+    """``<plot>/outage`` for every plot of ``BAND_PLOTS``: a wide translucent line at 0 across each window
+    [start, end] ns, broken by a NaN row 1 ns after each end."""
+    t = np.array([[s, e, e + 1] for s, e in windows], dtype=np.int64).ravel()
+    y = np.tile([0.0, 0.0, np.nan], len(windows))
+    for group, names in BAND_PLOTS:
+        for name in names:
+            path = f"{group}/{name}/outage"
+            rr.send_columns(path, indexes=_times(t), columns=rr.Scalars.columns(scalars=y), recording=rec)
+            rec.log(path, rr.SeriesLines(names=["outage"], colors=[OUTAGE_BAND_COLOR], widths=[OUTAGE_BAND_WIDTH]),
+                    static=True)
 
 
 BIAS_UNITS = (("gyro", "omega_ib_b", 180.0 / np.pi * 3600.0, "deg/h"), ("accel", "f_b", 1e3 / 9.80665, "mg"))
@@ -594,7 +666,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
         if "/gps/vel" in low:
             v = low["/gps/vel"]
             gps.v_n = _interp(gps.t_ns, v["log_time_ns"][v["valid"]], v["v_n"][v["valid"]])
-        _log_track(rec, "gps", gps, GPS_COLOR, origin, 3.0)
+        _log_track(rec, "gps", gps, GPS_COLOR, origin, 3.0, sigma_3d=False)  # the 3D view: the fused sigma alone
         _log_scalar(rec, "status/no_fix", epochs_t, no_fix.astype(float), "GPS no fix", [NO_FIX_COLOR], step=True)
         if no_fix.any() and len(gps.t_ns):
             idx = np.searchsorted(gps.t_ns, epochs_t[no_fix], side="right") - 1
@@ -671,6 +743,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
         level = np.array([0.0] + [1.0, 0.0] * len(windows))
         order = np.argsort(t_edges, kind="stable")
         _log_scalar(rec, "status/outage", t_edges[order], level[order], "outage", [OUTAGE_COLOR[:3]], step=True)
+        _log_outage_bands(rec, windows)
         track = truth_map if truth_map is not None else gps
         if track is not None and len(track.t_ns):
             strips = []
