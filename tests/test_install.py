@@ -1,9 +1,9 @@
 """A core install (`pip install fieldlog`, no extras) in a fresh venv: what a car PC gets.
 
-It must hold none of the optional dependencies (rerun, dask, polars, matplotlib), build the compiled kernels from
-the sources (setup.py), run the commands the car needs (acquire, info, recover, rebuild, fuse) on a drive, and name
-the extra for a command that needs one. The drive is simulated here with the full test environment; the core venv
-reads, rewrites and fuses it, to the same bytes as the test environment.
+It must hold none of the optional dependencies (rerun, dask, polars, matplotlib, fastkml, gpxpy), build the
+compiled kernels from the sources (setup.py), run the commands the car needs (acquire, info, recover, rebuild,
+fuse) on a drive, and name the extra for a command that needs one. The drive is simulated here with the full
+test environment; the core venv reads, rewrites and fuses it, to the same bytes as the test environment.
 """
 import os
 import struct
@@ -22,7 +22,7 @@ from fieldlog.replay.drive import open_drive
 from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
-OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib")
+OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib", "fastkml", "gpxpy")
 
 
 def _run(args, cwd, timeout=600):
@@ -100,7 +100,8 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
 
 def test_core_install_names_the_missing_extra(core, drive, tmp_path):
     for argv, extra in ((["view", drive, "--rrd", tmp_path / "x.rrd"], "view"),
-                        (["export", drive, "--out", tmp_path / "tables"], "export")):
+                        (["export", drive, "--out", tmp_path / "tables"], "export"),
+                        (["export", drive, "--out-dir", tmp_path / "tracks", "--format", "kml"], "export")):
         r = _run([core / "fieldlog", *argv], tmp_path)
         assert r.returncode == 2, (argv, r.stderr)
         lines = r.stderr.strip().splitlines()

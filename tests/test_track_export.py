@@ -73,7 +73,7 @@ READERS = {"kml": read_kml, "gpx": read_gpx}
 
 
 def _export(drive: list[Path], out: Path, fmt: str, *extra: str) -> Path:
-    assert cli_main(["export", *map(str, drive), "--out", str(out), "--format", fmt, *extra]) == 0
+    assert cli_main(["export", *map(str, drive), "--out-dir", str(out), "--format", fmt, *extra]) == 0
     return out / f"tracks.{fmt}"
 
 
@@ -135,7 +135,7 @@ def test_no_tracks_is_one_line_and_exit_2(drives, tmp_path, capsys):
     assert cli_main(["filter", str(sim), "--topics", "/imu", "--out", str(imu_only)]) == 0
     capsys.readouterr()
     for fmt in ("kml", "gpx"):
-        assert cli_main(["export", str(imu_only), "--out", str(tmp_path / "o"), "--format", fmt]) == 2
+        assert cli_main(["export", str(imu_only), "--out-dir", str(tmp_path / "o"), "--format", fmt]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "imu.mcap" in err and "NavSatFix" in err, err
         assert not (tmp_path / "o" / f"tracks.{fmt}").exists()
@@ -145,11 +145,11 @@ def test_tracks_are_new_files_never_through_a_link(drives, tmp_path, capsys):
     sim, _, _ = drives
     path = _export([sim], tmp_path, "gpx")
     first = path.read_bytes()
-    assert cli_main(["export", str(sim), "--out", str(tmp_path), "--format", "gpx"]) == 2  # exists
+    assert cli_main(["export", str(sim), "--out-dir", str(tmp_path), "--format", "gpx"]) == 2  # exists
     assert re.search(r"tracks\.gpx.*--force", capsys.readouterr().err)
     assert _export([sim], tmp_path, "gpx", "--force").read_bytes() == first
     victim = tmp_path / "victim.txt"
     victim.write_text("keep")
     (tmp_path / "tracks.kml").symlink_to(victim)
-    assert cli_main(["export", str(sim), "--out", str(tmp_path), "--format", "kml", "--force"]) == 2
+    assert cli_main(["export", str(sim), "--out-dir", str(tmp_path), "--format", "kml", "--force"]) == 2
     assert victim.read_text() == "keep"
