@@ -129,15 +129,24 @@ def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
     ends: list[int] = []
     k_pps = None
     k_first = None
+    counters: set[int] = set()        # the counters of the CRC-valid frames, while they are at most two
     for off in range(0, len(data), DAQ_READ_BYTES):
-        fr = judge.judge(dec.feed(data[off:off + DAQ_READ_BYTES]), off)
+        decoded = dec.feed(data[off:off + DAQ_READ_BYTES])
+        if len(counters) < 2:
+            counters.update(np.unique(decoded.k & 0xFFFFFFFF)[:2].tolist())
+        fr = judge.judge(decoded, off)
         ends.append(int(fr.k[-1]) if len(fr.k) else -1)
         if len(fr.k) and k_first is None:
             k_first = int(fr.k[0])
         if k_pps is None and np.any(fr.pps):
             k_pps = int(fr.k[np.argmax(fr.pps)])
+    if k_first is None and len(counters) == 1:
+        raise ValueError(f"the sample counter of its {dec.stats.frames} CRC-valid frames is stuck at {counters.pop()} "
+                         f"(it never advances, so no sample can be placed)")
     if k_first is None:
-        raise ValueError("the DAQ capture holds no valid frame")
+        raise ValueError("the DAQ capture holds no valid frame" + (
+            f" ({dec.stats.frames} CRC-valid frames, none whose sample counter the next frames continue)"
+            if dec.stats.frames else ""))
     if k_pps is None:
         t_ref, k_ref = first_epoch_s, k_first
     else:
