@@ -20,6 +20,7 @@ from fieldlog.tools.sim import simulate, trajectory
 L = daq.FRAME_SIZE
 LOCKED = int(timesync.SyncState.LOCKED)
 ROOT = Path(__file__).resolve().parents[1]
+NS = 1_000_000_000
 
 
 def sim_reads(seconds: float, seed: int, pps_mode: str, floating: bool = False) -> list:
@@ -82,8 +83,8 @@ def test_a_read_delivered_twice_is_dropped_as_repeated_and_k_stays_the_counter(c
     ks = [judge.judge(dec.feed(sent[o:o + chunk]), o).k for o in range(0, len(sent), chunk)] + [judge.flush().k]
     np.testing.assert_array_equal(np.concatenate(ks), counter)     # one sample per frame the board made
     # the repeated frames: those whose bytes lie wholly inside a repeated piece
-    whole = sum(max(0, (b // L) - (-(-a // L))) for i, (a, b) in enumerate(zip(np.r_[0, cuts], np.r_[cuts, len(stream)]))
-                if i in twice)
+    bounds = list(zip(np.r_[0, cuts], np.r_[cuts, len(stream)]))
+    whole = sum(max(0, (b // L) - (-(-a // L))) for i, (a, b) in enumerate(bounds) if i in twice)
     st = dec.stats
     assert whole - 2 * len(twice) <= st.repeated <= whole
     assert st.repeated > 0 and st.counter_implausible == 0 and st.lost_frames == 0
@@ -123,6 +124,33 @@ def test_capture_with_reads_delivered_twice_imports_locked_with_one_imu_sample_p
     c = read_metadata(got)["acquire.counters"]
     assert int(c["daq.repeated"]) > 0 and int(c["daq.counter_implausible"]) == 0
     assert "daq.repeated" not in read_metadata(clean)["acquire.counters"]     # written only when not zero
+
+
+@pytest.mark.parametrize("pps_mode", ["flag", "latch"])
+def test_a_counter_re_based_mid_capture_keeps_the_samples_in_place_and_the_clock_locked(tmp_path: Path,
+                                                                                     pps_mode: str) -> None:
+    """The counter jumps by +5000 from frame 7000 on (a board register re-based) with the bytes continuous: k
+    continues at the byte slot, the /imu stamps keep their 2 ms grid and the clock is locked again within the fit
+    window after the jump."""
+    seconds, at = 30.0, 7000
+    d, g = captures(tmp_path, sim_reads(seconds, 3, pps_mode), "rebased")
+    data = d.read_bytes()
+    rec = np.frombuffer(data[:len(data) // L * L], daq.FRAME_DTYPE).copy()
+    rec["counter"][at:] += 5000
+    rec["crc"] = daq.crc16_frames(rec.view(np.uint8).reshape(rec.size, L)[:, 2:36])
+    d.write_bytes(rec.tobytes() + data[rec.size * L:])
+    out = tmp_path / "rebased.mcap"
+    p = fieldlog("import", "--gps", str(g), "--daq", str(d), "--pps", pps_mode, "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    imu = reader.read_topic(out, "/imu")["log_time_ns"]
+    assert len(imu) == seconds * 500
+    assert np.abs(np.diff(imu) - 2_000_000).max() < 1_000_000          # no sample moved by the jump
+    sync = reader.read_topic(out, "/time/sync")
+    window_ns = timesync.TimeSyncConfig(pps_mode=pps_mode).window_s * NS
+    after = sync["log_time_ns"] > imu[at] + window_ns
+    assert np.all(sync["state"][after] == LOCKED)
+    assert np.mean(sync["state"] == LOCKED) >= 0.9
+    assert int(read_metadata(out)["acquire.counters"]["daq.counter_implausible"]) == 1
 
 
 def test_a_stuck_counter_is_named(tmp_path: Path) -> None:
