@@ -16,6 +16,7 @@ from fieldlog.acquire.pipeline import Pipeline
 from fieldlog.replay import reader
 from fieldlog.replay.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
+from test_daemon import raw_stream
 
 L = daq.FRAME_SIZE
 LOCKED = int(timesync.SyncState.LOCKED)
@@ -200,3 +201,37 @@ def test_import_of_a_floating_pps_says_so(tmp_path: Path) -> None:
     c = read_metadata(out)["acquire.counters"]
     assert int(c["pps_implausible"]) > 3900
     assert len(reader.read_topic(out, "/imu")["log_time_ns"]) == 4000
+
+
+# ------------------------------------------------------------------------------------------ the daemon on ptys
+
+@pytest.mark.parametrize("p", [0.005, 0.01])
+def test_daemon_fed_reads_delivered_twice_stays_locked_with_one_imu_sample_per_board_sample(
+        tmp_path: Path, p: float) -> None:
+    """40 s of figure8 (latched PPS) at x20, each DAQ read written to the pty twice with probability p."""
+    from test_daemon_faults import _latch_config, record
+
+    from fieldlog.tools.sim.serve import repeated_reads
+
+    seconds, seed = 40.0, 4
+    f, truth, _ = record(tmp_path, "--pps", "latch", "--repeat-reads", str(p), duration=seconds, seed=seed,
+                         daemon_args=("--config", str(_latch_config(tmp_path))))
+    meta = read_metadata(truth)["serve"]
+    sc = trajectory.load_scenario("figure8")
+    sc = dataclasses.replace(sc, clock={**sc.clock, "start_utc_ns": int(meta["drive_start_utc_ns"])})
+    daq_reads = [r for r in simulate.make_reads(sc, seconds, seed, "latch")[0] if r.port == "daq"]
+    twice = repeated_reads(len(daq_reads), p, seed)
+    assert int(meta["daq_repeated_reads"]) == twice.sum() > 0
+    sent = b"".join(r.data * (1 + t) for r, t in zip(daq_reads, twice.tolist()))
+    got, _ = raw_stream(f, "daq")
+    assert got == sent                                    # every byte as written, the copies included
+    sync = reader.read_topic(f, "/time/sync")["state"]
+    assert np.mean(sync == LOCKED) >= 0.9
+    imu = reader.read_topic(f, "/imu")
+    tru = reader.read_topic(truth, "/truth/imu")
+    assert len(imu["log_time_ns"]) == len(tru["log_time_ns"]) == seconds * 500      # one per board sample
+    steps = np.round(np.diff(imu["log_time_ns"]) / 2e6)
+    assert steps.min() == steps.max() == 1
+    assert np.sqrt(np.mean((imu["omega_ib_b"] - tru["omega_ib_b"])[:, 2] ** 2)) < 0.01
+    c = read_metadata(f)["acquire.counters"]
+    assert int(c["daq.repeated"]) > 0 and int(c["daq.counter_implausible"]) == 0 and int(c["daq.lost_frames"]) == 0
