@@ -112,6 +112,8 @@ class CounterJudge:
         self._dropped = 0                     # frames decided and dropped since the last frame returned
         self._recent: deque[tuple[np.ndarray, DaqFrames]] = deque()  # (counters, frames) taken, newest last
         self._recent_n = 0
+        self.stuck_run = 0                    # frames in a row, up to the last one fed, carrying one counter
+        self.last_counter: int | None = None
 
     @property
     def held(self) -> int:
@@ -122,6 +124,7 @@ class CounterJudge:
         usual = self.usual(fr, stream_base, mono_ns)
         if usual is not None:
             return usual
+        self._count_stuck(fr.k & _M32)
         start = stream_base + fr.end_offset - FRAME_SIZE
         if self._held is not None:
             fr = _concat([self._held, fr])
@@ -148,6 +151,7 @@ class CounterJudge:
             return None
         self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
         self._remember(fr.k & _M32, fr)
+        self.stuck_run, self.last_counter = 1, counters[-1] & _M32
         self._base = stream_base
         self._last_out = ref.k + n
         return DaqFrames(np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64), fr.counts, fr.pps, fr.latch,
@@ -285,6 +289,18 @@ class CounterJudge:
         out_k[i] = k
         self._ref = _Ref(c, k, s, mono_ns)
         return i + 1
+
+    def _count_stuck(self, counters: np.ndarray) -> None:
+        """``stuck_run`` after the frames with these counters: a counter that does not advance (a stuck board
+        counter) gives a long run, and the judge can place none of its frames."""
+        if not len(counters):
+            return
+        change = np.flatnonzero(counters[1:] != counters[:-1])
+        if change.size:
+            self.stuck_run = len(counters) - 1 - int(change[-1])
+        else:
+            self.stuck_run = len(counters) + (self.stuck_run if counters[0] == self.last_counter else 0)
+        self.last_counter = int(counters[-1])
 
     def _remember(self, counters: np.ndarray, frames: DaqFrames) -> None:
         """Frames taken (their counters and bytes), kept for ``_repeat``: the last ``REPEAT_HISTORY`` or more."""

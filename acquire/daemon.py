@@ -11,7 +11,7 @@ they were recorded (``Pipeline.process``: decoding, the counter judge, time sync
 Both write through the session's sink, one lock around the Recorder.
 
 Raw first. Nothing the derived path does makes the raw path wait: when the derived queue (``[daemon]
-derived_queue_reads``) is full, reads are recorded and not processed until it is half empty, counted
+derived_queue_mb``) is full, reads are recorded and not processed until it is half empty, counted
 (``daemon.derived_dropped_reads`` / ``_bytes``) and logged when the dropping begins and ends; the derived topics
 then have a gap that ``fieldlog rebuild`` fills from the raw bytes, and the status line shows the derived path's
 lag and drops.
@@ -628,7 +628,10 @@ class Daemon:
         self.merge_timeouts = 0
         self.error = ""
         # the derived path: its queue, its thread, what it has done, and how it ends
-        self.derived: queue.Queue[RawRead] = queue.Queue(cfg.daemon.derived_queue_reads)
+        self.derived: queue.Queue[RawRead] = queue.Queue()    # bounded in bytes: derived_queue_mb
+        self.derived_max_bytes = int(cfg.daemon.derived_queue_mb * 1e6)
+        self.derived_put_bytes = 0               # bytes of reads queued (raw path) ...
+        self.derived_got_bytes = 0               # ... and taken (derived path): each counter has one writer
         self.deriver: threading.Thread | None = None
         self.derive_end = threading.Event()      # set by the raw path: nothing more is queued
         self.derive_cut = threading.Event()      # set by the raw path: stop processing at once
@@ -813,18 +816,18 @@ class Daemon:
         self._last_mono = max(self._last_mono, h.mono_ns)
         self.pipe.record(h.port, h.mono_ns, h.wall_ns, h.data)
         self.recorded_mono = h.mono_ns
-        q = self.derived
-        if self._dropping and q.qsize() > q.maxsize // 2:
+        queued = self.derived_put_bytes - self.derived_got_bytes
+        if self._dropping and queued > self.derived_max_bytes // 2:
             self._drop(h)
             return
-        try:
-            q.put_nowait(h)
-        except queue.Full:
+        if queued + len(h.data) > self.derived_max_bytes:
             self.log(f"the derived path is {self.derived_lag_s():.1f} s behind and its queue full: reads are "
                      f"recorded and not processed until it has caught up half of it (their derived topics have a gap; "
                      f"`fieldlog rebuild` fills it from the raw bytes)", logging.WARNING)
             self._drop(h)
             return
+        self.derived_put_bytes += len(h.data)
+        self.derived.put(h)
         if self._dropping:
             self.log(f"the derived path takes reads again: {self._dropping} reads not processed", logging.WARNING)
             self._dropping = 0
@@ -858,6 +861,7 @@ class Daemon:
                     if self.derive_end.is_set() and q.empty():
                         break
                     continue
+                self.derived_got_bytes += len(h.data)
                 self.derive_read(h)
                 if self.provisional is not None and q.empty():
                     self.provisional.flush()      # no read waiting: publish at once

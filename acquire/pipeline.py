@@ -144,6 +144,7 @@ class Pipeline:
         self._last_tod = -1.0
         self._last_emit_ns = -(2**62)
         self._errors_logged: set[tuple[str, str]] = set()
+        self._stuck_logged = False       # the stuck DAQ counter has been logged (until it advances again)
         bw = self.fs / 2
         self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
         self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
@@ -393,6 +394,12 @@ class Pipeline:
             decoded = self._daq.feed(data), base
         fr, base = decoded
         self._add_frames(self._judge.judge(fr, base, mono_ns), mono_ns, wall_ns)
+        stuck = self._judge.stuck_run >= self.fs
+        if stuck and not self._stuck_logged:
+            log.warning("the DAQ sample counter is stuck at %d (%d frames in a row carry it): their samples cannot be "
+                        "placed and are dropped (acquire.counters daq.counter_implausible)", self._judge.last_counter,
+                        self._judge.stuck_run)
+        self._stuck_logged = stuck
 
     def _add_frames(self, fr: daq.DaqFrames, mono_ns: int, wall_ns: int) -> None:
         """Judged frames of one read to time sync, the /imu queue and ``on_frames``."""

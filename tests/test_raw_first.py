@@ -29,7 +29,7 @@ SLOW_DAEMON = """
 import sys, time
 from fieldlog.acquire import config, daemon
 
-daq, gps, out, delay_s, queue_reads = sys.argv[1:6]
+daq, gps, out, delay_s, queue_mb = sys.argv[1:6]
 
 class SlowDerived(daemon.Daemon):
     def derive_read(self, h):
@@ -38,7 +38,7 @@ class SlowDerived(daemon.Daemon):
 
 daemon.setup_logging(0)
 cfg = config.load(None, {"daq": daq, "gps": gps, "out": out})
-cfg.daemon.derived_queue_reads = int(queue_reads)
+cfg.daemon.derived_queue_mb = float(queue_mb)
 sys.exit(daemon.run_daemon(cfg, daemon_class=SlowDerived))
 """
 
@@ -126,10 +126,11 @@ def test_a_floating_pps_neither_costs_raw_bytes_nor_delays_the_stop(tmp_path: Pa
 @pytest.mark.slow
 def test_a_slow_derived_path_lags_and_drops_while_every_raw_byte_is_kept_and_the_stop_is_bounded(
         tmp_path: Path) -> None:
-    # 20 ms per read: the derived path takes ~50 reads a second of the ~150 the ports deliver, its queue of 400
-    # reads fills within seconds and the rest are dropped (counted); SIGINT then finds it behind
+    # 20 ms per read: the derived path takes ~50 reads a second of the ~150 (~30 kB) the ports deliver, its queue
+    # of 100 kB fills within seconds and the reads are dropped while it is half full (counted); SIGINT then finds
+    # it behind
     scenario = floating_pps_scenario(tmp_path)
-    argv = [sys.executable, "-c", SLOW_DAEMON, "{daq}", "{gps}", str(tmp_path / "drives"), "0.02", "400"]
+    argv = [sys.executable, "-c", SLOW_DAEMON, "{daq}", "{gps}", str(tmp_path / "drives"), "0.02", "0.1"]
     f, log, exit_s, truth = run_and_interrupt(tmp_path, argv, scenario, seed=9)
     stop = check_raw_kept_and_stop_bounded(f, truth, scenario, exit_s)
     c = read_metadata(f)["acquire.counters"]

@@ -168,6 +168,28 @@ def test_a_stuck_counter_is_named(tmp_path: Path) -> None:
     assert not (tmp_path / "out.mcap").exists()
 
 
+def test_a_counter_that_stops_advancing_mid_drive_is_logged_as_stuck(tmp_path: Path, caplog) -> None:
+    """The daemon's and rebuild's path: after 4 s the counter stays at one value (CRC-valid frames)."""
+    reads = sim_reads(8.0, 2, "flag")
+    daq_reads = [r for r in reads if r.port == "daq"]
+    data = b"".join(r.data for r in daq_reads)
+    rec = np.frombuffer(data[:len(data) // L * L], daq.FRAME_DTYPE).copy()
+    rec["counter"][2000:] = rec["counter"][2000]
+    rec["crc"] = daq.crc16_frames(rec.view(np.uint8).reshape(rec.size, L)[:, 2:36])
+    stuck = rec.tobytes() + data[rec.size * L:]
+    fed, end = [], 0
+    for r in reads:                       # the same reads, the DAQ ones carrying the stuck stream's bytes
+        if r.port == "daq":
+            r = dataclasses.replace(r, data=stuck[end:end + len(r.data)])
+            end += len(r.data)
+        fed.append(r)
+    with caplog.at_level("WARNING", logger="fieldlog.acquire.pipeline"):
+        _, pipe = fit_work(tmp_path, fed, "flag")
+    msgs = [m for m in caplog.messages if "stuck" in m]
+    assert len(msgs) == 1 and f"stuck at {int(rec['counter'][2000])}" in msgs[0]
+    assert pipe.counters.imu_samples <= 2001 and pipe.counters.daq.counter_implausible >= rec.size - 2002
+
+
 # ---------------------------------------------------------------------------------------- floating PPS
 
 def fit_work(tmp_path: Path, reads: list, pps_mode: str) -> tuple[int, Pipeline]:
