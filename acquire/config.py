@@ -39,6 +39,7 @@ standard baud rate``.
     fsync = true
     [daemon]
     queue_reads = 4096          # bounded queue per port, in reads
+    derived_queue_mb = 64.0     # bytes of reads recorded and waiting for the derived path; beyond, not processed
     merge_wait_s = 0.25         # longest wait for the other port before a read is processed anyway
     reconnect_s = 0.5           # retry period of a port that disappeared
     status_interval_s = 1.0
@@ -180,6 +181,7 @@ class RecorderConfig:
 @dataclass
 class DaemonConfig:
     queue_reads: int = 4096
+    derived_queue_mb: float = 64.0      # bytes (MB) of reads recorded and waiting for the derived path, at most
     merge_wait_s: float = 0.25
     reconnect_s: float = 0.5
     status_interval_s: float = 1.0
@@ -397,7 +399,7 @@ def validate(c: AcquireConfig) -> None:
     dm = c.daemon
     if dm.queue_reads < 16:
         raise ConfigError(f"[daemon] queue_reads: {dm.queue_reads} is below 16")
-    for key in ("merge_wait_s", "reconnect_s", "status_interval_s"):
+    for key in ("merge_wait_s", "reconnect_s", "status_interval_s", "derived_queue_mb"):
         if not getattr(dm, key) > 0:
             raise ConfigError(f"[daemon] {key}: must be > 0")
     try:

@@ -29,6 +29,13 @@ throws the time sync's fit away, so the counter is checked before anyone sees k 
   is the first frame one of whose next two frames it explains, or whose next two frames continue it.
 So k strictly increases, and a step of k is bounded by the bytes and the host time, whatever the counter says.
 
+Repeats. A frame whose counter steps back to (or stays at) the counter of a frame taken among the last
+``REPEAT_HISTORY`` frames, with the same sample bytes (counts, PPS flag and latch, temperature), is that frame
+delivered again (a DAQ read handed over twice: a merge of overlapping captures, a replaying adapter): it is
+dropped and counted in ``repeated``, and the reference stays where it was, so the frames after the repeated run
+continue from it and k has no duplicated sample. A repeat's counter is not a wrong counter: it is not counted in
+``counter_repeats``, ``counter_backwards`` or ``counter_implausible``.
+
 Counting: ``counter_gaps`` is the times the judged k advanced by more than 1; ``lost_frames`` the sample slots
 such gaps skipped less the frames received inside them that the judge dropped (those arrived and are counted
 in ``frames`` and ``counter_implausible``), so no sample is counted in both ``frames`` and ``lost_frames``.
@@ -36,6 +43,7 @@ in ``frames`` and ``counter_implausible``), so no sample is counted in both ``fr
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +53,8 @@ from fieldlog.acquire.daq import FRAME_SIZE, DaqFrames, DaqStats
 _M32 = 0xFFFFFFFF
 _BACK = 2**31                    # a counter step of 2**31 or more modulo 2**32 is a backward step
 _FIELDS = ("k", "counts", "pps", "latch", "latch_valid", "temperature_c", "end_offset")
+_CONTENT = ("counts", "pps", "latch", "latch_valid", "temperature_c")
+REPEAT_HISTORY = 4096            # frames taken that a frame stepping back is compared with (8 s at 500 Hz)
 
 
 @dataclass
@@ -86,7 +96,8 @@ class CounterJudge:
     ``stream_base`` (``stats.bytes_in`` before the call); their k is only read modulo 2**32 (the counter). The
     frames returned are in stream order with strictly increasing k; frames held over from an earlier call come
     first, their ``end_offset`` relative to this call's chunk (so <= 0). Updates the counter fields of ``stats``
-    (``counter_gaps``, ``lost_frames``, ``counter_repeats``, ``counter_backwards``, ``counter_implausible``).
+    (``counter_gaps``, ``lost_frames``, ``counter_repeats``, ``counter_backwards``, ``counter_implausible``,
+    ``repeated``).
     """
 
     def __init__(self, stats: DaqStats, cfg: JudgeConfig | None = None) -> None:
@@ -99,6 +110,10 @@ class CounterJudge:
         self._base = 0
         self._last_out: int | None = None     # k of the last frame returned
         self._dropped = 0                     # frames decided and dropped since the last frame returned
+        self._recent: deque[tuple[np.ndarray, DaqFrames]] = deque()  # (counters, frames) taken, newest last
+        self._recent_n = 0
+        self.stuck_run = 0                    # frames in a row, up to the last one fed, carrying one counter
+        self.last_counter: int | None = None
 
     @property
     def held(self) -> int:
@@ -109,6 +124,7 @@ class CounterJudge:
         usual = self.usual(fr, stream_base, mono_ns)
         if usual is not None:
             return usual
+        self._count_stuck(fr.k & _M32)
         start = stream_base + fr.end_offset - FRAME_SIZE
         if self._held is not None:
             fr = _concat([self._held, fr])
@@ -134,6 +150,8 @@ class CounterJudge:
                 for i, (c, e) in enumerate(zip(counters, ends), 1)):
             return None
         self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
+        self._remember(fr.k & _M32, fr)
+        self.stuck_run, self.last_counter = 1, counters[-1] & _M32
         self._base = stream_base
         self._last_out = ref.k + n
         return DaqFrames(np.arange(ref.k + 1, ref.k + n + 1, dtype=np.int64), fr.counts, fr.pps, fr.latch,
@@ -156,7 +174,7 @@ class CounterJudge:
         if self._ref is None and n:
             i = self._start(counter, start, mono_ns, final, out_k)
         if self._ref is not None and i < n:
-            i = self._walk(counter, start, mono_ns, final, out_k, i)
+            i = self._walk(fr, counter, start, mono_ns, final, out_k, i)
         if i < n:                                  # waiting for the next frames' counters
             self._held = _select(fr, slice(i, n))
             self._held_start = start[i:].copy()
@@ -167,6 +185,8 @@ class CounterJudge:
             floor = np.concatenate(([-1 if self._last_out is None else self._last_out], kk[:-1]))
             keep = keep[kk > np.maximum.accumulate(floor)]
         res = _select(fr, keep)
+        if keep.size:
+            self._remember(counter[keep], res)
         res.k = out_k[keep]
         res.end_offset = start[keep] + FRAME_SIZE - self._base
         # frames dropped between each frame returned and the one before it (held frames are not decided yet)
@@ -196,7 +216,7 @@ class CounterJudge:
             self.stats.counter_implausible += 1
         return n
 
-    def _walk(self, counter: np.ndarray, start: np.ndarray, mono_ns: int | None, final: bool,
+    def _walk(self, fr: DaqFrames, counter: np.ndarray, start: np.ndarray, mono_ns: int | None, final: bool,
               out_k: np.ndarray, i: int) -> int:
         """Judge frames i.. against the reference; returns the first frame not decided (held)."""
         n = counter.size
@@ -222,16 +242,19 @@ class CounterJudge:
                 break
             if i + 2 >= n and not final:
                 return i                            # hold: the next two frames decide
-            i = self._decide(counter, start, mono_ns, out_k, i)
+            i = self._decide(fr, counter, start, mono_ns, out_k, i)
             ref = self._ref
         return i
 
-    def _decide(self, counter: np.ndarray, start: np.ndarray, mono_ns: int | None, out_k: np.ndarray,
-                i: int) -> int:
+    def _decide(self, fr: DaqFrames, counter: np.ndarray, start: np.ndarray, mono_ns: int | None,
+                out_k: np.ndarray, i: int) -> int:
         """Frame i's step from the reference is not explained; its next frames decide. Returns i + 1."""
         ref, st, n = self._ref, self.stats, counter.size
         c, s = int(counter[i]), int(start[i])
         step = (c - ref.counter) & _M32
+        if (step == 0 or step >= _BACK) and self._repeat(fr, counter, out_k, i):
+            st.repeated += 1                        # delivered twice: dropped, the reference stays
+            return i + 1
         st.counter_repeats += step == 0
         st.counter_backwards += step >= _BACK
         nxt = [(int(counter[j]), int(start[j])) for j in range(i + 1, min(n, i + 3))]
@@ -266,6 +289,35 @@ class CounterJudge:
         out_k[i] = k
         self._ref = _Ref(c, k, s, mono_ns)
         return i + 1
+
+    def _count_stuck(self, counters: np.ndarray) -> None:
+        """``stuck_run`` after the frames with these counters: a counter that does not advance (a stuck board
+        counter) gives a long run, and the judge can place none of its frames."""
+        if not len(counters):
+            return
+        change = np.flatnonzero(counters[1:] != counters[:-1])
+        if change.size:
+            self.stuck_run = len(counters) - 1 - int(change[-1])
+        else:
+            self.stuck_run = len(counters) + (self.stuck_run if counters[0] == self.last_counter else 0)
+        self.last_counter = int(counters[-1])
+
+    def _remember(self, counters: np.ndarray, frames: DaqFrames) -> None:
+        """Frames taken (their counters and bytes), kept for ``_repeat``: the last ``REPEAT_HISTORY`` or more."""
+        self._recent.append((counters, frames))
+        self._recent_n += len(counters)
+        while self._recent_n - len(self._recent[0][0]) >= REPEAT_HISTORY:
+            self._recent_n -= len(self._recent.popleft()[0])
+
+    def _repeat(self, fr: DaqFrames, counter: np.ndarray, out_k: np.ndarray, i: int) -> bool:
+        """Frame i of ``fr`` has the counter and the sample bytes of a frame taken before it: one taken in this
+        call (``out_k`` >= 0) or among the recent ones."""
+        c = counter[i]
+        same = [(fr, j) for j in np.flatnonzero((counter[:i] == c) & (out_k[:i] >= 0))[::-1].tolist()]
+        for counters, frames in reversed(self._recent):
+            same += [(frames, j) for j in np.flatnonzero(counters == c)[::-1].tolist()]
+        return any(all(np.array_equal(getattr(other, f)[j], getattr(fr, f)[i], equal_nan=True) for f in _CONTENT)
+                   for other, j in same)
 
     def _allowed(self, s_from: int, s_to: int, mono_ns: int | None) -> float:
         """The largest counter step the bytes and the host clock allow from a frame at stream offset ``s_from``

@@ -2,11 +2,21 @@
 
 Threads. One reader thread per port (pyserial opens and configures the port; the thread waits with
 ``select`` and takes whatever ``os.read`` returns, stamping host monotonic and wall-clock time the moment the
-read returns) puts ``RawRead``s on that port's bounded queue. One processing thread owns the Pipeline, the
-Recorder and the live bus: it merges the two queues in ``read_order`` and feeds the Pipeline, so the daemon
-writes exactly what ``fieldlog rebuild`` of its ``/raw/*`` writes.
+read returns) puts ``RawRead``s on that port's bounded queue. The raw path, one thread (``process``), merges the
+queues in ``read_order``, records each read in ``/raw/<port>`` (``Pipeline.record``), rotates the files and
+shows the status, and hands the read on to the derived path's bounded queue without waiting. The derived path,
+one thread (``derive``), owns the rest of the Pipeline and the live bus: it processes the reads in the order
+they were recorded (``Pipeline.process``: decoding, the counter judge, time sync, CAN decoding, provisional
+``/imu``), so while it keeps up the daemon writes exactly what ``fieldlog rebuild`` of its ``/raw/*`` writes.
+Both write through the session's sink, one lock around the Recorder.
 
-Merge rule. The processing thread holds the head read of each queue and processes the earliest head in
+Raw first. Nothing the derived path does makes the raw path wait: when the derived queue (``[daemon]
+derived_queue_mb``) is full, reads are recorded and not processed until it is half empty, counted
+(``daemon.derived_dropped_reads`` / ``_bytes``) and logged when the dropping begins and ends; the derived topics
+then have a gap that ``fieldlog rebuild`` fills from the raw bytes, and the status line shows the derived path's
+lag and drops.
+
+Merge rule. The raw path holds the head read of each queue and processes the earliest head in
 ``read_order`` once no read that sorts before it can still come from the other port, that is when the other
 port (a) has a head of its own (which sorts later), or (b) is idle: its reader is waiting for bytes or for
 the port to come back and its queue is empty (a reader marks itself busy before ``os.read`` and idle only
@@ -17,7 +27,8 @@ still processed (never dropped) and counted in ``daemon.late_reads``; ``rebuild`
 would differ from the live derived topics only there.
 
 Queues are bounded (``queue_reads`` per port); when one stays full for a second the read is dropped and
-counted (``port.<name>.dropped_reads/bytes``); that only happens when processing cannot keep up.
+counted (``port.<name>.dropped_reads/bytes``); that only happens when the raw path cannot keep up (recording
+stalled: a disk that does not take the writes).
 
 The vehicle bus. With ``[can] url`` (``--can``) a third reader takes the CAN adapter (``acquire/canport.py``: an
 SLCAN serial port read as the others, or SocketCAN through python-can) as port ``can``, merged by the same rule;
@@ -31,7 +42,13 @@ record (``event`` = ``lost`` / ``back``, host mono and wall ns, the error) and c
 SIGXFSZ is ignored so that a ``ulimit -f`` gives the error rather than a kill) stops the daemon with a clear
 message and exit code 1; the file keeps every chunk flushed before (``fieldlog recover`` or the next start
 rescues it if the summary could not be written).
-SIGINT/SIGTERM finish the file (summary and index) and exit 0.
+SIGINT/SIGTERM finish the file (summary and index) and exit 0 within ``STOP_S`` whatever the derived path is
+doing: the readers stop, the raw path records what they had read, and the derived path gets until
+``DERIVED_STOP_S`` after the signal to process what is queued and write its pending tail (``Pipeline.finish``);
+a derived path still busy then is left behind (its later writes are discarded), and the file is closed with the
+derived topics ending where the derived path stood, logged and in the ``acquire.stop`` record (``derived``:
+``complete`` or ``cut``, the reads recorded but not processed, and the host mono ns of the signal and of the
+close).
 
 Files. A session is a rosbag2 directory, ``DIR/<session start UTC>/`` (``config.session_name``; ``-2``, ``-3``
 appended if a session of the same second exists) of ``<session start UTC>_<NNNN>.mcap`` files
@@ -91,6 +108,8 @@ RECOVER_RESERVE_BYTES = 256 << 20
 # heap: free memory glibc cannot return, and RSS that grows with the drive (docs/results.md, the soak)
 READ_SIZE = 65536
 STORAGE_FULL = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file size limit"}
+STOP_S = 2.0            # SIGINT/SIGTERM to the file closed, at most (host s)
+DERIVED_STOP_S = 1.25   # of which the derived path may take this to finish (the rest: draining the ports, closing)
 
 
 log = logging.getLogger("fieldlog.acquire")
@@ -261,11 +280,17 @@ class RotatingSink:
         self.last_sync: bytes | None = None
         self.last_gga: bytes | None = None
         self.skipped = 0            # file names found taken (a file or a link there)
+        self.lock = threading.RLock()   # the raw and the derived path both write; a Recorder has one owner at a time
+        self.discarded = 0          # messages the derived path wrote after the last file was closed
 
     def open_next(self, closing: dict[str, dict[str, str]] | None = None) -> Path:
         """Close the current file and open the next free name of the session: a name that exists is skipped (a
         symbolic link there is logged, never followed); ``outputs.Refused`` after ``MAX_SKIPPED`` taken names."""
-        prev = self.close(closing) if self.rec is not None else None
+        with self.lock:
+            return self._open_next(closing)
+
+    def _open_next(self, closing: dict[str, dict[str, str]] | None) -> Path:
+        prev = self._close(closing) if self.rec is not None else None
         for _ in range(MAX_SKIPPED):
             self.index += 1
             path = self.out_dir / file_name(self.session_wall_ns, self.index)
@@ -289,6 +314,11 @@ class RotatingSink:
         return path
 
     def close(self, closing: dict[str, dict[str, str]] | None = None) -> Path:
+        """Close the current file (``closing``: metadata records added first); later writes are discarded."""
+        with self.lock:
+            return self._close(closing)
+
+    def _close(self, closing: dict[str, dict[str, str]] | None) -> Path:
         rec, self.rec = self.rec, None
         for name, d in (closing or {}).items():
             rec.add_metadata(name, d)
@@ -305,8 +335,20 @@ class RotatingSink:
     def size(self) -> int:
         return os.path.getsize(self.rec.path)
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        with self.lock:
+            self.rec.add_metadata(name, data)
+
+    def maybe_flush(self) -> None:
+        with self.lock:
+            self.rec.maybe_flush()
+
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        self.rec.write(topic, log_time_ns, data)
+        with self.lock:
+            if self.rec is None:
+                self.discarded += 1
+                return
+            self.rec.write(topic, log_time_ns, data)
         if topic == "/gps/nmea" and b"GGA," in data:
             self.last_gga = data
         if self.publish is not None and not topic.startswith("/raw"):
@@ -314,7 +356,11 @@ class RotatingSink:
                          read_mono_ns=self.read_mono_ns)
 
     def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None:
-        self.rec.write_batch(topic, log_time_ns, data)
+        with self.lock:
+            if self.rec is None:
+                self.discarded += len(log_time_ns)
+                return
+            self.rec.write_batch(topic, log_time_ns, data)
         p = messages.as_packed(data)
         if topic == "/time/sync" and len(p):
             self.last_sync = p[len(p) - 1]
@@ -362,8 +408,8 @@ class BusServer:
     (``BUS_PROVISIONAL``, ``BUS_HOST_CLOCK``), i64 read_mono_ns (host monotonic time of the serial read whose
     processing published the frame), u16 topic length, topic (UTF-8), u32 n, n x i64 log_time_ns, n x u8
     sync state (SyncState, or ``BUS_STATE_FINAL``), (n + 1) x i64 payload offsets, the CDR payloads
-    (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the processing thread
-    without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
+    (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the derived path's
+    thread without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
     ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``).
     """
 
@@ -581,6 +627,22 @@ class Daemon:
         self.late_reads = 0
         self.merge_timeouts = 0
         self.error = ""
+        # the derived path: its queue, its thread, what it has done, and how it ends
+        self.derived: queue.Queue[RawRead] = queue.Queue()    # bounded in bytes: derived_queue_mb
+        self.derived_max_bytes = int(cfg.daemon.derived_queue_mb * 1e6)
+        self.derived_put_bytes = 0               # bytes of reads queued (raw path) ...
+        self.derived_got_bytes = 0               # ... and taken (derived path): each counter has one writer
+        self.deriver: threading.Thread | None = None
+        self.derive_end = threading.Event()      # set by the raw path: nothing more is queued
+        self.derive_cut = threading.Event()      # set by the raw path: stop processing at once
+        self.derive_error: BaseException | None = None
+        self.derive_done = False                 # the derived path processed every read queued and finished
+        self.derived_mono = 0                    # host mono of the last read processed
+        self.recorded_mono = 0                   # host mono of the last read recorded
+        self.derived_dropped_reads = 0
+        self.derived_dropped_bytes = 0
+        self._dropping = 0                       # reads dropped since the dropping began (0: not dropping)
+        self.stop_mono_ns: int | None = None     # host mono of SIGINT/SIGTERM
         self._last_mono = 0
         self._status_prev: tuple[float, int, int, int, int] | None = None
         self._can_prev: int | None = None
@@ -620,6 +682,8 @@ class Daemon:
         if self.bus is not None:
             self.provisional = self.pipe.on_frames = ProvisionalImu(self.pipe, self.bus)
         path = self.sink.open_next()
+        self.deriver = threading.Thread(target=self._derive_loop, name="derive", daemon=True)
+        self.deriver.start()
         can_port = f", {self.cfg.can.url} (can)" if self.cfg.can.url else ""
         self.log(f"recording {self.cfg.daq.port} (daq), {self.cfg.gps.port} (gps){can_port} to {path}")
         dm = self.cfg.daemon
@@ -639,7 +703,12 @@ class Daemon:
         return {"drive": drive, **self.pipe.metadata()}
 
     def counters(self) -> dict[str, str]:
-        out = self.pipe.counters_metadata()
+        while True:
+            try:
+                out = self.pipe.counters_metadata()
+                break
+            except RuntimeError:     # a counter dict the derived path grew while it was read: read again
+                continue
         for name, r in self.readers.items():
             out.update({f"port.{name}.{k}": str(v) for k, v in asdict(r.stats).items() if k != "connected"})
             if r.gpsd:
@@ -648,14 +717,17 @@ class Daemon:
                 out[f"port.{name}.gpsd_reports"] = str(r.gpsd_reports + live)
         out["daemon.late_reads"] = str(self.late_reads)
         out["daemon.merge_timeouts"] = str(self.merge_timeouts)
+        out["daemon.derived_dropped_reads"] = str(self.derived_dropped_reads)
+        out["daemon.derived_dropped_bytes"] = str(self.derived_dropped_bytes)
         out["daemon.names_skipped"] = str(self.sink.skipped if self.sink is not None else 0)
         if self.bus is not None:
             out["bus.dropped_clients"] = str(self.bus.dropped_clients)
         return out
 
-    # -- processing ---------------------------------------------------------------------------------
+    # -- the raw path ---------------------------------------------------------------------------------
     def run(self) -> int:
-        """Process until stopped and the queues are drained; finish the file. Returns the exit code."""
+        """The raw path: record until stopped and the queues are drained, let the derived path finish (at most
+        until ``DERIVED_STOP_S`` after the signal), finish the file. Returns the exit code."""
         heads: dict[str, RawRead | PortEvent | None] = {name: None for name in self.readers}
         wait_ns = int(self.cfg.daemon.merge_wait_s * NS)
         next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
@@ -663,6 +735,8 @@ class Daemon:
         try:
             while True:
                 self.wake.clear()
+                if self.derive_error is not None:
+                    raise self.derive_error
                 for name, r in self.readers.items():
                     if heads[name] is None:
                         try:
@@ -675,8 +749,6 @@ class Daemon:
                     if self._may_process(h, heads, wait_ns):
                         heads[h.port] = None
                         self._process(h)
-                        if self.provisional is not None and heads["daq"] is None and self.readers["daq"].q.empty():
-                            self.provisional.flush()      # no DAQ read waiting: publish at once
                         if time.monotonic() >= next_tick:
                             next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
                             self._tick()
@@ -684,18 +756,14 @@ class Daemon:
                 elif self.stop.is_set() and not any(r.is_alive() or not r.q.empty()
                                                     for r in self.readers.values()):
                     break
-                if self.provisional is not None:
-                    self.provisional.flush()
-                self.sink.rec.maybe_flush()
-                if self.bus is not None:
-                    self.bus.pump()
+                self.sink.maybe_flush()
                 if time.monotonic() >= next_tick:
                     next_tick = time.monotonic() + self.cfg.daemon.status_interval_s
                     self._tick()
                 self.wake.wait(0.05)
-            if self.provisional is not None:
-                self.provisional.flush()
-            self.pipe.finish()
+            self._finish_derived()
+            if self.derive_error is not None:
+                raise self.derive_error
         except OSError as e:
             if e.errno not in STORAGE_FULL:
                 raise
@@ -706,8 +774,19 @@ class Daemon:
             self.stop.set()
             for r in self.readers.values():
                 r.join(2.0)
+            self._finish_derived()
             self._close(code)
         return code
+
+    def _finish_derived(self) -> None:
+        """Let the derived path process what is queued and finish, until ``DERIVED_STOP_S`` after the signal (or
+        from now, when stopping for another reason); then leave it behind."""
+        if self.deriver is None or self.derive_cut.is_set():
+            return
+        self.derive_end.set()
+        start = self.stop_mono_ns if self.stop_mono_ns is not None else time.monotonic_ns()
+        self.deriver.join(max(0.0, (start - time.monotonic_ns()) / NS + DERIVED_STOP_S))
+        self.derive_cut.set()
 
     def _may_process(self, h: RawRead | PortEvent, heads: dict, wait_ns: int) -> bool:
         now = time.monotonic_ns()
@@ -723,9 +802,10 @@ class Daemon:
         return True
 
     def _process(self, h: RawRead | PortEvent) -> None:
+        """Record one read (or port event) and queue it for the derived path, never waiting for it."""
         if isinstance(h, PortEvent):
             self.events.append(h)
-            self.sink.rec.add_metadata("acquire.port_event", {"port": h.port, "event": h.kind,
+            self.sink.add_metadata("acquire.port_event", {"port": h.port, "event": h.kind,
                                                               "mono_ns": str(h.mono_ns), "wall_ns": str(h.wall_ns),
                                                               "detail": h.detail})
             self.log(f"{h.port} port {'lost' if h.kind == 'lost' else 'back'}: {h.detail}"
@@ -734,8 +814,73 @@ class Daemon:
         if h.mono_ns < self._last_mono:
             self.late_reads += 1
         self._last_mono = max(self._last_mono, h.mono_ns)
+        self.pipe.record(h.port, h.mono_ns, h.wall_ns, h.data)
+        self.recorded_mono = h.mono_ns
+        queued = self.derived_put_bytes - self.derived_got_bytes
+        if self._dropping and queued > self.derived_max_bytes // 2:
+            self._drop(h)
+            return
+        if queued + len(h.data) > self.derived_max_bytes:
+            self.log(f"the derived path is {self.derived_lag_s():.1f} s behind and its queue full: reads are "
+                     f"recorded and not processed until it has caught up half of it (their derived topics have a gap; "
+                     f"`fieldlog rebuild` fills it from the raw bytes)", logging.WARNING)
+            self._drop(h)
+            return
+        self.derived_put_bytes += len(h.data)
+        self.derived.put(h)
+        if self._dropping:
+            self.log(f"the derived path takes reads again: {self._dropping} reads not processed", logging.WARNING)
+            self._dropping = 0
+
+    def _drop(self, h: RawRead) -> None:
+        """A recorded read the derived path will not process (its queue is full, or still half full)."""
+        self.derived_dropped_reads += 1
+        self.derived_dropped_bytes += len(h.data)
+        self._dropping += 1
+
+    def derived_lag_s(self) -> float:
+        """How far the derived path is behind the raw path: host seconds between the last read recorded and the
+        last read processed."""
+        return max(0, self.recorded_mono - self.derived_mono) / NS if self.derived_mono else 0.0
+
+    # -- the derived path -----------------------------------------------------------------------------
+    def _derive_loop(self) -> None:
+        """The derived path's thread: process the queued reads in order; publish provisional /imu and serve the
+        live bus; when the raw path ends it (``derive_end``), process what is left and finish the Pipeline, unless
+        it is cut first (``derive_cut``: abandoned, nothing more is written)."""
+        q = self.derived
+        try:
+            while not self.derive_cut.is_set():
+                try:
+                    h = q.get(timeout=0.05)
+                except queue.Empty:
+                    if self.provisional is not None:
+                        self.provisional.flush()
+                    if self.bus is not None:
+                        self.bus.pump()
+                    if self.derive_end.is_set() and q.empty():
+                        break
+                    continue
+                self.derived_got_bytes += len(h.data)
+                self.derive_read(h)
+                if self.provisional is not None and q.empty():
+                    self.provisional.flush()      # no read waiting: publish at once
+            else:
+                return
+            if self.provisional is not None:
+                self.provisional.flush()
+            self.pipe.finish()
+            self.derive_done = True
+        except BaseException as e:  # noqa: BLE001 - handed to the raw path, which stops on it
+            self.derive_error = e
+            self.stop.set()
+            self.wake.set()
+
+    def derive_read(self, h: RawRead) -> None:
+        """Process one recorded read (the derived path's step)."""
         self.sink.read_mono_ns = h.mono_ns
-        self.pipe.feed(h.port, h.mono_ns, h.wall_ns, h.data)
+        self.pipe.process(h.port, h.mono_ns, h.wall_ns, h.data)
+        self.derived_mono = h.mono_ns
 
     def _tick(self) -> None:
         """Once a second: rotation, status line."""
@@ -778,6 +923,9 @@ class Daemon:
 
         d, n = c.daq, c.nmea
         drop = sum(r.stats.dropped_reads for r in self.readers.values())
+        lag = self.derived_lag_s()
+        derived = (f"derived {lag:.1f} s behind, {self.derived_dropped_reads} reads not processed | "
+                   if lag >= 1.0 or self.derived_dropped_reads else "")
         bus = ""
         if "can" in self.readers and self.pipe.vehicle is not None:
             cs = self.pipe.vehicle.stats
@@ -786,14 +934,22 @@ class Daemon:
             bus = (f"can {(cs.frames - prev_can) / dt:.0f} fr/s{port('can')} "
                    f"err {cs.error_frames + cs.status_errors + cs.bad_records} | ")
         return (f"daq {(frames - prev[1]) / dt:.0f} fr/s {(db - prev[3]) / dt / 1e3:.1f} kB/s{port('daq')} | "
-                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | {bus}"
+                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | {bus}{derived}"
                 f"pps {c.pps_edges - c.pps_rejected} ok {c.pps_rejected} rej | sync {sync} | {fix} | "
                 f"{self.sink.rec.path.name} {size / 1e6:.1f} MB | dropped {drop} lost {d.lost_frames} "
                 f"crc {d.bad_crc} resync {d.resyncs} nmea-bad {n.bad_checksum} late {self.late_reads}")
 
     def _close(self, code: int) -> None:
+        complete = self.derive_done
+        unprocessed = self.derived.qsize() + self.derived_dropped_reads
+        stop = {"signal_mono_ns": str(self.stop_mono_ns or 0), "close_mono_ns": str(time.monotonic_ns()),
+                "derived": "complete" if complete else "cut", "reads_not_processed": str(unprocessed)}
+        if not complete:
+            self.log(f"stopping with the derived path {self.derived_lag_s():.1f} s behind the raw bytes: the derived "
+                     f"topics end there ({unprocessed} reads recorded and not processed); `fieldlog rebuild` "
+                     f"re-derives them all", logging.WARNING)
         try:
-            self.sink.close({"acquire.counters": self.counters()})
+            self.sink.close({"acquire.counters": self.counters(), "acquire.stop": stop})
         except OSError as e:
             self.error = self.error or f"closing {self.sink.files[-1]}: {e}"
             self.error += "; the file has no summary: run `fieldlog recover` on it (or restart, which does)"
@@ -809,11 +965,14 @@ class Daemon:
             self.log(f"stopped; finished {files}")
 
 
-def run_daemon(cfg: AcquireConfig, quiet: bool = False) -> int:
-    """The ``fieldlog acquire`` command: SIGINT/SIGTERM stop it cleanly. Returns the exit code."""
-    d = Daemon(cfg, quiet)
+def run_daemon(cfg: AcquireConfig, quiet: bool = False, daemon_class: type[Daemon] = Daemon) -> int:
+    """The ``fieldlog acquire`` command: SIGINT/SIGTERM stop it cleanly. Returns the exit code. ``daemon_class``:
+    a Daemon or a subclass of it (a test's derived path made slow on purpose)."""
+    d = daemon_class(cfg, quiet)
 
     def on_signal(signum: int, frame: object) -> None:
+        if d.stop_mono_ns is None:
+            d.stop_mono_ns = time.monotonic_ns()
         d.stop.set()
         d.wake.set()
 

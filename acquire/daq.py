@@ -150,6 +150,7 @@ class DaqStats:
     counter_repeats: int = 0
     counter_backwards: int = 0
     counter_implausible: int = 0
+    repeated: int = 0           # frames delivered twice (same counter, same bytes), dropped
 
 
 def _residue_tables() -> np.ndarray:

@@ -83,11 +83,15 @@ class Counters:
     gps_no_fix: int = 0
     pps_edges: int = 0
     pps_rejected: int = 0
+    pps_implausible: int = 0        # PPS flags ignored: far more often than once a second (timesync)
     processing_errors: int = 0                  # reads whose processing raised (their bytes are in /raw)
     reads: dict = field(default_factory=dict)
     no_fix: dict = field(default_factory=dict)  # epochs that are not fixes, by reason (gnss.no_fix_reason, ...)
     nmea_superseded: int = 0        # NMEA epochs not used: the port also sends UBX/NovAtel solutions
     gps_ignored: int = 0            # checked frames of a protocol the [gps] protocol setting excludes
+
+
+SPARSE_COUNTERS = ("daq.repeated", "pps_implausible")   # in the counters record only when not zero
 
 
 @dataclass
@@ -140,6 +144,7 @@ class Pipeline:
         self._last_tod = -1.0
         self._last_emit_ns = -(2**62)
         self._errors_logged: set[tuple[str, str]] = set()
+        self._stuck_logged = False       # the stuck DAQ counter has been logged (until it advances again)
         bw = self.fs / 2
         self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
         self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
@@ -173,7 +178,7 @@ class Pipeline:
             d = 0                         # the block's DAQ reads so far
             for r in block:
                 if r.port == "daq" and ahead is not None and self.on_frames is None:
-                    self._record(r.port, r.mono_ns, r.wall_ns, r.data)
+                    self.record(r.port, r.mono_ns, r.wall_ns, r.data)
                     run.append(r)
                     d += 1
                     if r.mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
@@ -218,12 +223,19 @@ class Pipeline:
 
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes,
              decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
-        """Record one read in ``/raw/<port>`` and process it. Processing never raises for any data: an
-        exception (a decoder bug a byte sequence reaches) is counted in ``processing_errors``, logged once per
-        kind with where the read is, and the next read is processed as usual. Sink errors (OSError: a full
-        disk) are raised. ``decoded``: a DAQ read's frames and the decoder's byte count before it, when
-        ``feed_reads`` decoded them ahead."""
-        self._record(port, mono_ns, wall_ns, data)
+        """Record one read in ``/raw/<port>`` and process it (``record``, then ``process``). ``decoded``: a DAQ
+        read's frames and the decoder's byte count before it, when ``feed_reads`` decoded them ahead."""
+        self.record(port, mono_ns, wall_ns, data)
+        self.process(port, mono_ns, wall_ns, data, decoded)
+
+    def process(self, port: str, mono_ns: int, wall_ns: int, data: bytes,
+                decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
+        """Derive what one read gives (the read recorded already: ``record``). Reads are processed in
+        ``read_order``, each once. Processing never raises for any data: an exception (a decoder bug a byte
+        sequence reaches) is counted in ``processing_errors``, logged once per kind with where the read is, and
+        the next read is processed as usual. Sink errors (OSError: a full disk) are raised. The daemon records
+        on one thread and processes on another (acquire/daemon.py): ``record`` touches only ``/tf_static``,
+        ``/raw/*`` and the read counters, ``process`` everything else."""
         try:
             if port == "daq":
                 self._feed_daq(mono_ns, wall_ns, data, decoded)
@@ -238,7 +250,7 @@ class Pipeline:
         except Exception as e:  # noqa: BLE001 - the contract: no byte stops the recording
             self._processing_error(e, port, mono_ns, wall_ns)
 
-    def _record(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
+    def record(self, port: str, mono_ns: int, wall_ns: int, data: bytes) -> None:
         """A read into ``/raw/<port>`` (after /tf_static, at a file's start) and the read counters."""
         self._write_tf_static(wall_ns)
         self.sink.write(f"/raw/{port}", wall_ns, messages.encode_raw(wall_ns, mono_ns, port, data))
@@ -339,8 +351,8 @@ class Pipeline:
         out = {f"daq.{k}": str(v) for k, v in asdict(c.daq).items()}
         out.update({f"nmea.{k}": str(v) for k, v in asdict(c.nmea).items()})
         out.update({k: str(getattr(c, k)) for k in ("imu_samples", "gps_epochs", "gps_no_fix", "pps_edges",
-                                                    "pps_rejected", "nmea_superseded", "gps_ignored",
-                                                    "processing_errors")})
+                                                    "pps_rejected", "pps_implausible", "nmea_superseded",
+                                                    "gps_ignored", "processing_errors")})
         out.update({f"gps_no_fix.{k}": str(v) for k, v in c.no_fix.items()})
         fs = self._port.stats
         out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
@@ -352,6 +364,9 @@ class Pipeline:
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
         if self.vehicle is not None:
             out.update(self.vehicle.counters())
+        for k in SPARSE_COUNTERS:
+            if out[k] == "0":
+                del out[k]
         return out
 
     def finish(self) -> None:
@@ -379,6 +394,12 @@ class Pipeline:
             decoded = self._daq.feed(data), base
         fr, base = decoded
         self._add_frames(self._judge.judge(fr, base, mono_ns), mono_ns, wall_ns)
+        stuck = self._judge.stuck_run >= self.fs
+        if stuck and not self._stuck_logged:
+            log.warning("the DAQ sample counter is stuck at %d (%d frames in a row carry it): their samples cannot be "
+                        "placed and are dropped (acquire.counters daq.counter_implausible)", self._judge.last_counter,
+                        self._judge.stuck_run)
+        self._stuck_logged = stuck
 
     def _add_frames(self, fr: daq.DaqFrames, mono_ns: int, wall_ns: int) -> None:
         """Judged frames of one read to time sync, the /imu queue and ``on_frames``."""
@@ -530,15 +551,21 @@ class Pipeline:
                 t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))
 
     def _emit_sync(self) -> None:
+        implausible = self.sync.implausible_edges
+        if implausible and not self.counters.pps_implausible:
+            log.warning("the PPS is implausible: more than %d flags within %g s of DAQ samples (a floating or "
+                        "miswired PPS line?); such flags are ignored and counted (acquire.counters pps_implausible)",
+                        timesync.PPS_BURST, timesync.PPS_BURST_S)
+        self.counters.pps_implausible = implausible
         edges = self.sync.pop_edges()
         if len(edges):
             self.counters.pps_edges += len(edges)
             self.counters.pps_rejected += int(np.count_nonzero(~edges.accepted))
-            log = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
+            stamp = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
             daq_clock_ns = np.round(edges.k_edge / self.fs * NS).astype(np.int64)
             for reason in dict.fromkeys(edges.reason):
                 sel = edges.reason == reason
-                utc = log[sel].astype(np.int64)
+                utc = stamp[sel].astype(np.int64)
                 self.sink.write_batch("/pps", utc, messages.encode_time_reference(
                     utc, daq_clock_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
         st = self.sync.pop_status()

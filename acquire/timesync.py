@@ -14,6 +14,14 @@ was already used (``duplicate``) or it is off the running clock fit (``outlier``
 candidates wait until ``min_edges`` of them within ``acquire_s`` fit one line (Theil-Sen); those that do not
 are ``outlier``, those never part of a lock ``unlocked``.
 
+Implausible PPS. A frame flagged when at least ``PPS_BURST`` others were flagged within the ``PPS_BURST_S``
+of samples before it cannot be a once-a-second pulse (a floating or miswired PPS line, a flag on every frame):
+it is counted in ``implausible_edges`` and ignored (no edge, no /pps record), decided over the flags in one
+vectorised pass, so such a line costs linear time and never reaches the fits below. Every fit then sees a
+bounded number of edges: at most ``window_s`` + 1 accepted ones (one per GPS second), and the lock
+candidates of ``acquire_s`` (at most ``PPS_BURST`` per ``PPS_BURST_S``); ``fit_edges`` counts the edges all
+fits took, the work the robust fits do.
+
 Clock fit. For every accepted edge i, a knot: Theil-Sen then least squares on the inliers of the accepted
 edges within +-window_s/2 (on the DAQ clock) around it, fitting k_edge = kr + c + (fs + e) * (label - L_i)
 (the noise is in k_edge, the labels are exact); at the first and last edges of the stream the window is
@@ -53,6 +61,8 @@ import numpy as np
 from fieldlog.acquire.tables import from_table
 
 FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
+PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is
+PPS_BURST = 4                # implausible (a true PPS and a glitch or two never come that close together)
 
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:
@@ -271,6 +281,9 @@ class TimeSync:
         self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
         self._bins: dict[int, int] = {}                          # bin -> min(wall_ns - k*ns_per_sample)
         # outputs
+        self._flags = np.zeros(0, np.int64)                      # the last PPS_BURST flagged samples
+        self.implausible_edges = 0
+        self.fit_edges = 0                                       # edges taken by all robust fits (their work)
         self._final = 0
         self._floor = 0
         self._pmax: int | None = None                            # max over final samples of raw(k) - k
@@ -322,7 +335,7 @@ class TimeSync:
         self._wall_minus_mono = wall_ns - mono_ns
         self._add_host(k, wall_ns)
         if pps.any():
-            for i in np.flatnonzero(pps).tolist():
+            for i in self._plausible(k, np.flatnonzero(pps)).tolist():
                 ke = float(k[i] - 1) + (float(latch[i]) / 65536.0 if latch_valid[i] else 0.5)
                 self._on_edge(PpsEdge(ke, mono_ns))
         self._k_max = int(k[-1])
@@ -353,6 +366,18 @@ class TimeSync:
             r0, f0 = i + 1, b
         if r0 < len(ends):
             self._add_quiet(k[f0:], read[f0:] - r0, mono_ns[r0:], wall_ns[r0:])
+
+    def _plausible(self, k: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+        """The flagged frames (indices into k) that may be PPS edges: not preceded by ``PPS_BURST`` flags within
+        ``PPS_BURST_S`` of samples; the others are counted in ``implausible_edges``."""
+        ks = np.concatenate((self._flags, k[flagged]))
+        n0 = len(self._flags)
+        p = np.arange(n0, len(ks))
+        back = p - PPS_BURST
+        bad = (back >= 0) & (ks[np.maximum(back, 0)] >= ks[p] - PPS_BURST_S * self._fs)
+        self._flags = ks[-PPS_BURST:]
+        self.implausible_edges += int(bad.sum())
+        return flagged[~bad]
 
     def _add_quiet(self, k: np.ndarray, read: np.ndarray, mono_ns: list[int], wall_ns: list[int]) -> None:
         """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
@@ -509,10 +534,16 @@ class TimeSync:
         self._accept(e)
         self._refit(e)
 
+    def _robust_fit(self, label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
+                    min_inliers: int) -> tuple[_Fit, np.ndarray] | None:
+        """``robust_fit``, its edges counted in ``fit_edges``."""
+        self.fit_edges += len(label)
+        return robust_fit(label, k_edge, lr, kr, fs, tol, min_inliers)
+
     def _refit(self, e: PpsEdge) -> None:
         """Causal fit over the accepted edges within window_s before ``e``."""
         i0 = bisect_left(self._acc_k, e.k_edge - 2 * self._H)
-        fit = robust_fit(np.asarray(self._acc_label[i0:]), np.asarray(self._acc_k[i0:]), e.label,
+        fit = self._robust_fit(np.asarray(self._acc_label[i0:]), np.asarray(self._acc_k[i0:]), e.label,
                          math.floor(e.k_edge), self._fs, self._tol, 2)
         if fit is not None:
             self._fit = fit[0]
@@ -524,7 +555,7 @@ class TimeSync:
         self._pending = [p for p in self._pending if p.k_edge >= e.k_edge - span] + [e]
         labels = np.array([p.label for p in self._pending])
         ks = np.array([p.k_edge for p in self._pending])
-        fit = robust_fit(labels, ks, e.label, math.floor(e.k_edge), self._fs, self._tol, self.cfg.min_edges)
+        fit = self._robust_fit(labels, ks, e.label, math.floor(e.k_edge), self._fs, self._tol, self.cfg.min_edges)
         if fit is None:
             return
         f, inl = fit
@@ -571,7 +602,7 @@ class TimeSync:
 
     def _fit_span(self, lo: float, hi: float, lab: int, kr: int) -> _Fit | None:
         i0, i1 = bisect_left(self._acc_k, lo), bisect_right(self._acc_k, hi)
-        fit = robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), lab, kr, self._fs,
+        fit = self._robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), lab, kr, self._fs,
                          self._tol, self.cfg.min_edges)
         return None if fit is None else fit[0]
 
@@ -602,7 +633,7 @@ class TimeSync:
         ke = self._knot_k[j]
         if ke not in self._trail:
             i0, i1 = bisect_left(self._acc_k, ke - 2 * self._H), bisect_right(self._acc_k, ke)
-            fit = robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), self._knot[j][0],
+            fit = self._robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), self._knot[j][0],
                              math.floor(ke), self._fs, self._tol, self.cfg.min_edges)
             self._trail[ke] = 1.0 / (self._fs + fit[0].e) if fit is not None else self._knot[j][2]
         return self._trail[ke]

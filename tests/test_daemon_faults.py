@@ -13,7 +13,7 @@ import pytest
 from fieldlog.acquire import daq, messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.replay import reader
-from test_daemon import gps_frames, raw_stream, run, start_daemon
+from test_daemon import gps_frames, raw_stream, run, start_daemon, wait_caught_up
 from test_serve import expected_bytes, start_serve
 from fieldlog.replay.reader import read_metadata, read_metadata_records
 from fieldlog.tools.sim.serve import PORTS, corrupt_stream
@@ -47,6 +47,7 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int, daemon_
     finally:
         if serve.poll() is None:
             serve.kill()
+    wait_caught_up(d)
     d.send_signal(signal.SIGTERM)
     code, log = d.wait(300), d.stderr.read()
     assert code == 0, log

@@ -14,6 +14,10 @@ invented, and the rule is stated here because time sync depends on it:
   k_pps / fs after T, marks E when k_pps / fs < 1 - L and E + 1 otherwise (L = NMEA_LATENCY_S). Frame k is
   read at that second + 10 ms + (k - k_pps) / fs. A capture without any PPS flag starts at E.
   A latency far from L, or captures started apart, shift the labels by whole seconds: check ``fieldlog info``.
+  The sample index k is judged (``acquire.counterjudge``) against the capture's own clock, its bytes at one frame
+  per sample period, as the daemon judges it against the host clock: a counter that jumps ahead by more than the
+  bytes and a second of slack allow is re-based (a board reset, a jumped register), not taken as a gap, so the
+  frames after it keep their times and the PPS after it labels as before.
 * CAN (candump ``.log``, Vector ``.asc``, ``.blf`` and the other logs python-can's ``LogReader`` reads): each
   frame is a read of its own (``frames`` records, ``acquire/can.py``) at the log's time stamp, which is also its
   adapter time: absolute times (after 2001, e.g. candump's and an ASC file's ``date``) as they are, relative
@@ -129,15 +133,25 @@ def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
     ends: list[int] = []
     k_pps = None
     k_first = None
+    counters: set[int] = set()        # the counters of the CRC-valid frames, while they are at most two
     for off in range(0, len(data), DAQ_READ_BYTES):
-        fr = judge.judge(dec.feed(data[off:off + DAQ_READ_BYTES]), off)
+        chunk = data[off:off + DAQ_READ_BYTES]
+        decoded = dec.feed(chunk)
+        if len(counters) < 2:
+            counters.update(np.unique(decoded.k & 0xFFFFFFFF)[:2].tolist())
+        fr = judge.judge(decoded, off, int((off + len(chunk)) / daq.FRAME_SIZE / fs_hz * NS))  # the byte clock
         ends.append(int(fr.k[-1]) if len(fr.k) else -1)
         if len(fr.k) and k_first is None:
             k_first = int(fr.k[0])
         if k_pps is None and np.any(fr.pps):
             k_pps = int(fr.k[np.argmax(fr.pps)])
+    if k_first is None and len(counters) == 1:
+        raise ValueError(f"the sample counter of its {dec.stats.frames} CRC-valid frames is stuck at {counters.pop()} "
+                         f"(it never advances, so no sample can be placed)")
     if k_first is None:
-        raise ValueError("the DAQ capture holds no valid frame")
+        raise ValueError("the DAQ capture holds no valid frame" + (
+            f" ({dec.stats.frames} CRC-valid frames, none whose sample counter the next frames continue)"
+            if dec.stats.frames else ""))
     if k_pps is None:
         t_ref, k_ref = first_epoch_s, k_first
     else:

@@ -185,7 +185,8 @@ def format_info(info: DriveInfo) -> str:
         lines.append("port      " + ", ".join(f"{k}={v}" for k, v in ev.items()))
     if info.counters:
         keys = ["daq.bytes_skipped", "daq.resyncs", "daq.bad_crc", "daq.counter_gaps", "daq.lost_frames",
-                "nmea.bad_checksum", "nmea.unknown", "nmea.proprietary", "pps_edges", "pps_rejected"]
+                "daq.repeated", "nmea.bad_checksum", "nmea.unknown", "nmea.proprietary", "pps_edges", "pps_rejected",
+                "pps_implausible", "daemon.derived_dropped_reads"]
         shown = [f"{k}={info.counters[k]}" for k in keys if k in info.counters]
         lines.append("counters  " + ", ".join(shown))
     bus = bus_line(info)

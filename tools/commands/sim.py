@@ -34,6 +34,9 @@ def add_parser(sub) -> None:
     s.add_argument("--corrupt-counters", type=float, default=0.0, metavar="FRACTION",
                    help="--serve: give this fraction of the DAQ frames a wrong counter with a matching CRC, so that "
                         "they pass the decoder's checks (e.g. 0.001; applied before --corrupt)")
+    s.add_argument("--repeat-reads", type=float, default=0.0, metavar="P",
+                   help="--serve: deliver each DAQ read twice with probability P, the copy right after it (a "
+                        "replaying adapter; e.g. 0.01; applied after --corrupt)")
     s.add_argument("--clock-jump", action="append", default=[], metavar="START:LEN:OFFSET",
                    help="--serve: the receiver writes its time OFFSET s off for LEN s from START s of the drive, "
                         "e.g. 900:30:3600 (repeatable; default: never)")
@@ -67,4 +70,4 @@ def serve(a: argparse.Namespace) -> int:
                  unplug=[Unplug.parse(u) for u in a.unplug], link_dir=a.link_dir, hold=a.hold,
                  corrupt=a.corrupt, clock_jumps=[parse_clock_jump(j) for j in a.clock_jump], board=a.board,
                  board_image=a.board_image, can=a.can, force=a.force,
-                 corrupt_counters_frac=a.corrupt_counters)
+                 corrupt_counters_frac=a.corrupt_counters, repeat_reads=a.repeat_reads)

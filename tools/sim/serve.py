@@ -56,6 +56,10 @@ corrupted position); metadata ``daq_corrupt_bytes`` / ``gps_corrupt_bytes`` coun
 > 0 first gives that fraction of the DAQ frames a wrong sample counter with a recomputed CRC, so that they pass
 every check of the decoder (``corrupt_counters``: deterministic from the seed, returning the frames changed;
 metadata ``daq_counter_corrupt_frames``), as a CRC collision or a board glitch would.
+
+Repeats: ``repeat_reads`` > 0 delivers each DAQ read (after corruption) twice with that probability, the copy
+right after it (``repeated_reads``: deterministic from the seed), as a replaying adapter would; metadata
+``daq_repeated_reads`` counts them, and ``daq_bytes`` / ``daq_frames`` include the copies.
 """
 from __future__ import annotations
 
@@ -99,6 +103,12 @@ def corrupt_stream(data: bytes, fraction: float, seed: int, port: str) -> tuple[
     pos = np.sort(rng.choice(b.size, size=int(round(fraction * b.size)), replace=False))
     b[pos] ^= rng.integers(1, 256, pos.size, dtype=np.uint8)
     return b.tobytes(), pos
+
+
+def repeated_reads(n: int, p: float, seed: int) -> np.ndarray:
+    """Which of ``n`` DAQ reads are delivered twice, each with probability ``p``: a bool mask, deterministic
+    from ``seed``."""
+    return np.random.default_rng([seed, 0x2E]).random(n) < p
 
 
 def corrupt_counters(data: bytes, fraction: float, seed: int) -> tuple[bytes, np.ndarray]:
@@ -287,7 +297,7 @@ class Server:
                  link_dir: str | Path | None = None, corrupt: float = 0.0, receiver: str | None = None,
                  clock_jumps: list[list[float]] | None = None, board: str = "simulated",
                  board_image: str | Path | None = None, can: bool = False,
-                 corrupt_counters_frac: float = 0.0) -> None:
+                 corrupt_counters_frac: float = 0.0, repeat_reads: float = 0.0) -> None:
         if not speed > 0:
             raise ValueError(f"--speed {speed}: must be > 0")
         if not 0 <= corrupt < 1:
@@ -301,6 +311,8 @@ class Server:
             pps_mode = "latch"          # the board latches; the simulator's latches place its glitch edges
         if not 0 <= corrupt_counters_frac < 1:
             raise ValueError(f"--corrupt-counters {corrupt_counters_frac}: must be in [0, 1)")
+        if not 0 <= repeat_reads < 1 or (repeat_reads and board == "emulated"):
+            raise ValueError(f"--repeat-reads {repeat_reads}: must be in [0, 1), with the simulated board")
         sc = trajectory.load_scenario(scenario)
         # the drive starts now, so at speed 1 GPS time and the daemon's host clock agree as in the car
         sc = replace(sc, clock={**sc.clock, "start_utc_ns": time.time_ns()},
@@ -323,6 +335,7 @@ class Server:
         m0 = reads[0].mono_ns
         self.ports = {}
         self.counter_corrupt_frames = np.zeros(0, np.int64)
+        self.repeated = 0
         for name in ALL_PORTS if can else PORTS:
             rs = [r for r in reads if r.port == name]
             data = [r.data for r in rs]
@@ -336,8 +349,13 @@ class Server:
             if corrupt > 0 or (name == "daq" and corrupt_counters_frac > 0):
                 ends = np.cumsum([len(d) for d in data])
                 data = [whole[e - len(d):e] for d, e in zip(data, ends)]
-            self.ports[name] = _Port(name, np.array([(r.mono_ns - m0) / NS for r in rs]), data,
-                                     corrupt_bytes=n_corrupt)
+            t_s = np.array([(r.mono_ns - m0) / NS for r in rs])
+            if name == "daq" and repeat_reads > 0:
+                twice = repeated_reads(len(data), repeat_reads, seed)
+                self.repeated = int(twice.sum())
+                data = [x for d, t in zip(data, twice) for x in ((d, d) if t else (d,))]
+                t_s = np.repeat(t_s, 1 + twice)
+            self.ports[name] = _Port(name, t_s, data, corrupt_bytes=n_corrupt)
         self.corrupt = corrupt
         self.unplug = sorted(unplug or [], key=lambda u: u.start_s)
         self.link_dir = Path(link_dir) if link_dir else None
@@ -437,6 +455,7 @@ class Server:
                 "gps_gaps": ";".join(f"{a}:{n}" for a, n in g.gaps), "corrupt": repr(self.corrupt),
                 "daq_corrupt_bytes": str(d.corrupt_bytes), "gps_corrupt_bytes": str(g.corrupt_bytes),
                 "daq_counter_corrupt_frames": str(self.counter_corrupt_frames.size),
+                "daq_repeated_reads": str(self.repeated),
                 "unplug": ";".join(f"{u.port}:{u.start_s:g}:{u.length_s:g}" for u in self.unplug),
                 "daq_replug_mono_ns": ";".join(map(str, d.replugged_mono_ns)),
                 "gps_replug_mono_ns": ";".join(map(str, g.replugged_mono_ns)),
@@ -481,13 +500,13 @@ def serve(scenario: str, duration_s: float | None, seed: int, speed: float, pps_
           link_dir: str | None = None,
           hold: bool = False, corrupt: float = 0.0, clock_jumps: list[list[float]] | None = None,
           board: str = "simulated", board_image: str | None = None, can: bool = False,
-          force: bool = False, corrupt_counters_frac: float = 0.0) -> int:
+          force: bool = False, corrupt_counters_frac: float = 0.0, repeat_reads: float = 0.0) -> int:
     """The ``fieldlog sim --serve`` command: SIGINT/SIGTERM stop it; ``hold`` waits for SIGUSR1 before
     streaming (so a test can start the reader first). ``truth``: a new file unless ``force`` (checked first)."""
     if truth:
         outputs.check_new(truth, force)
     srv = Server(scenario, duration_s, seed, speed, pps_mode, unplug, link_dir, corrupt, receiver, clock_jumps,
-                 board, board_image, can, corrupt_counters_frac)
+                 board, board_image, can, corrupt_counters_frac, repeat_reads)
     go = threading.Event()
     if not hold:
         go.set()
