@@ -32,12 +32,13 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.replay.drive import label
     from fieldlog.replay.inputs import RATE_HZ
     from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 
     drive = drive_arg(a.drive)
-    st = settings(drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    st = settings(drive, TomlFile.read(a.config), input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):
             log.warning(line.removeprefix("warning: "))

@@ -28,11 +28,12 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.replay.player import replay
     from fieldlog.tools.fuse import settings
 
     drive = drive_arg(a.drive)
-    st = settings(drive, a.config, input_spec(a))
+    st = settings(drive, TomlFile.read(a.config), input_spec(a))
     if a.foxglove is not None:
         from fieldlog.tools.foxglove_live import serve
 

@@ -92,16 +92,18 @@ def run(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.tools.fuse import input_map, load_input_spec
 
+    conf = TomlFile.read(a.config)
     files, fused = viewdata.split_fused([a.drive, *a.fused])
     drive = drive_arg(files)
 
     def inputs() -> InputMap | None:
         try:
-            return input_map(drive, a.config, input_spec(a))
+            return input_map(drive, conf, input_spec(a))
         except ValueError:
-            if load_input_spec(a.config).merged(input_spec(a)).given():
+            if load_input_spec(conf).merged(input_spec(a)).given():
                 raise
             return None  # nothing to map (e.g. a GPS-only drive): show what the drive has
 
