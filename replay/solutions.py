@@ -36,7 +36,7 @@ def topic(method: str, name: str) -> str:
 
 def topics(method: str, has_locals: bool) -> list[str]:
     """Every topic ``write_solution`` and ``Odometry`` write for ``method``; ``has_locals``: the method's filter
-    has local solutions (``fusion.filters.has_local_filters``)."""
+    has local solutions (``fusion.methods.Method.local_filters``)."""
     names = [*SOLUTION, *ODOMETRY, *(LOCALS if has_locals else ())]
     return [topic(method, n) for n in names] + [TF, TF_STATIC]
 

@@ -86,6 +86,7 @@ import rerun.blueprint as rrb
 
 from fieldlog.acquire import calib, frames, outputs
 from fieldlog.fusion import earth
+from fieldlog.fusion.methods import REGISTRY
 from fieldlog.replay import reader, solutions
 from fieldlog.replay.ahead import Ahead
 from fieldlog.replay.drive import DriveSpec, drive_files, label
@@ -103,9 +104,7 @@ WHEELS_COLOR = (120, 60, 200)
 TRUTH_COLOR = (20, 160, 20)
 NO_FIX_COLOR = (230, 30, 30)
 OUTAGE_COLOR = (230, 30, 30, 200)
-METHOD_COLORS = {"ins": (200, 40, 40), "kf": (30, 100, 255), "dkf": (150, 60, 210), "dkf-rbfn": (0, 175, 190),
-                 "rbfn": (200, 120, 0), "tdln": (120, 80, 40), "kf-ukf": (230, 60, 160), "ssr-sckf": (90, 90, 90),
-                 "hinf": (40, 40, 140)}
+METHOD_COLORS = {m.name: m.colour for m in REGISTRY.values() if m.colour is not None}
 _PALETTE = [(0, 150, 150), (180, 0, 120), (100, 100, 0), (0, 80, 160), (160, 80, 0)]
 
 

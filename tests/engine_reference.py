@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.fusion.config import METHODS
+from fieldlog.fusion.methods import METHODS
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.fusion.types import Solution

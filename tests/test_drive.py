@@ -301,7 +301,7 @@ def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
 
 
 def test_cli_method_list_is_the_engines():
-    from fieldlog.fusion.config import METHODS
+    from fieldlog.fusion.methods import METHODS
     from fieldlog.tools import cli
 
     assert tuple(cli.METHODS) == tuple(METHODS)

@@ -90,10 +90,10 @@ def announce(url: str) -> None:
 
 def fused_topics(method: str) -> list[str]:
     """The topics the live ``method`` fusion publishes (``replay.solutions.topics``)."""
-    from fieldlog.fusion.filters import has_local_filters
+    from fieldlog.fusion import methods
     from fieldlog.replay.solutions import topics
 
-    return topics(method, has_local_filters(method))
+    return topics(method, methods.get(method).local_filters)
 
 
 class FoxgloveSink:

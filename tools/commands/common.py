@@ -9,9 +9,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-# fusion.engine.METHODS, spelled out so that `fieldlog --help` does not import the fusion stack
-# (tests/test_drive.py checks the two agree)
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
+from fieldlog.fusion.methods import METHODS  # imports none of the fusion stack: `fieldlog --help` stays light
 
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.

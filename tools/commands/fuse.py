@@ -9,6 +9,7 @@ import argparse
 import json
 import time
 
+from fieldlog.fusion.methods import INS, KF
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Progress, add_input_args,
                                             add_out_args, command_parser, drive_arg, finish_out, input_spec, log,
                                             needs_extras, out_file)
@@ -17,7 +18,7 @@ from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Pr
 def add_parser(sub) -> None:
     s = command_parser(sub, "fuse", "run one fusion method over a drive and write its solution")
     s.add_argument("drive", nargs="+", help=DRIVE_HELP)
-    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
+    s.add_argument("--method", choices=METHODS, default=KF.name, help="fusion method")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help=f"force a GPS outage of LEN s from START, {TIME_ORIGIN}, as `filter --start` counts "
                         "(repeatable; default: none)")
@@ -75,7 +76,7 @@ def run(a: argparse.Namespace) -> int:
     lo, hi = RATE_HZ
     if not lo <= res.imu_rate_hz <= hi:
         log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")
-    if res.rows == 0 and a.method != "ins":
+    if res.rows == 0 and a.method != INS.name:
         log.warning(NO_ALIGNMENT)
     finish_out(a, out)
     return 0

@@ -22,6 +22,8 @@ from typing import Callable
 
 import numpy as np
 
+from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF
+
 
 ROWS: list[tuple[str, str, str]] = []   # (what [bench], figure, target): the --markdown table
 
@@ -205,7 +207,7 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     path, warm = tmp / "fuse_f8.mcap", tmp / "fuse_warm.mcap"
     simulate("figure8", duration_s, 1, path)
     simulate("figure8", 30.0, 2, warm)
-    for method in ("ins", "kf", "dkf", "dkf-rbfn"):
+    for method in (INS.name, KF.name, DKF.name, DKF_RBFN.name):
         fuse(warm, method, tmp / "fused_warm.mcap", force=True)  # kernels loaded, caches warm outside the timing
         med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap", force=True), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
@@ -232,13 +234,13 @@ def bench_grades(runs: int, tmp: Path) -> None:
                       f'[gps]\nquality = "{gps}"\n[fusion]\nimu = "{grade}"\n')
         drive, out = tmp / f"grade_{grade}.mcap", tmp / f"grade_{grade}_kf.mcap"
         simulate(str(sc), None, 1, drive)
-        fuse(drive, "kf", out, drive_config(drive).replace(outages=outages))
+        fuse(drive, KF.name, out, drive_config(drive).replace(outages=outages))
         t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
         win = [(t0 + int(a * 1e9), t0 + int((a + n) * 1e9)) for a, n in outages]
-        t, e = outage_error_series(drive, out, "kf", win)
+        t, e = outage_error_series(drive, out, KF.name, win)
         h = np.hypot(e[:, 0], e[:, 1])
         drift = [h[(t >= a) & (t < b)].max() for a, b in win]
-        err, sig = heading_at_starts(drive, out, "kf", win)
+        err, sig = heading_at_starts(drive, out, KF.name, win)
         print(f"{grade:12s} {gps:10s} 2D RMS {math.sqrt(np.mean(h ** 2)):8.3f} m, max drift per outage "
               + ", ".join(f"{d:.3f}" for d in drift) + " m; heading at the starts "
               + ", ".join(f"{x:+.3f}±{y:.3f}°" for x, y in zip(err, sig)))
@@ -272,7 +274,7 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> di
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-_LONG_TARGETS = {"kf": "≤ 10 s; RSS equal", "dkf-rbfn": "≤ 15 s; RSS equal"}  # the 1-hour drive
+_LONG_TARGETS = {KF.name: "≤ 10 s; RSS equal", DKF_RBFN.name: "≤ 15 s; RSS equal"}  # the 1-hour drive
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
@@ -291,8 +293,8 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     warm = tmp / "fuse_warm.mcap"
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
-    _fuse_child(warm, "kf", tmp / "fused_warm.mcap")  # a warm run outside the figures
-    for method, smooth in (("kf", False), ("dkf-rbfn", False), ("kf", True)):
+    _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
+    for method, smooth in ((KF.name, False), (DKF_RBFN.name, False), (KF.name, True)):
         name = method + (" --smooth" if smooth else "")
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth) for d in drives]
         h0 = hours[0]
@@ -624,7 +626,7 @@ def bench_view(runs: int, tmp: Path) -> None:
     from fieldlog.tools.fuse import fuse
 
     drive, fused, rrd = _hour_drive(tmp), tmp / "hour_kf.mcap", tmp / "hour.rrd"
-    fuse(drive, "kf", fused, FusionConfig(), force=True)
+    fuse(drive, KF.name, fused, FusionConfig(), force=True)
     med, ts, _ = timed(lambda: view(drive, [fused], rrd, force=True), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
           f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
@@ -673,9 +675,9 @@ def bench_batch(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     hours = len(drives) * duration_s / 3600.0
 
     def batch(**where) -> None:
-        run_batch(drives, ["kf", "dkf"], [30.0], tmp / "batch", say=lambda _m: None, force=True, **where)
+        run_batch(drives, [KF.name, DKF.name], [30.0], tmp / "batch", say=lambda _m: None, force=True, **where)
 
-    t_one, w_one, _ = timed(lambda: [drive_rows(d, ["kf", "dkf"], [30.0], tmp / "one", force=True) for d in drives],
+    t_one, w_one, _ = timed(lambda: [drive_rows(d, [KF.name, DKF.name], [30.0], tmp / "one", force=True) for d in drives],
                             runs)
     t_local, w_local, _ = timed(lambda: batch(workers=2), runs)
     with loopback_cluster(2, tmp / "cluster") as address:
@@ -700,8 +702,8 @@ def bench_cycle(runs: int, tmp: Path) -> None:
     n = 15
     med = cycle_costs(runs)
     flops = cycle_flops(n, 6)
-    kp, kt = med["kf"]["predict_us"], med["kf"]["total_us"]
-    fp, ft = flops["kf"][2], flops["kf"][2] + flops["kf"][3]
+    kp, kt = med[KF.name]["predict_us"], med[KF.name]["total_us"]
+    fp, ft = flops[KF.name][2], flops[KF.name][2] + flops[KF.name][3]
     print(f"n = {n}, m = 6 GPS rows, {CYCLE_REPS} cycles x {runs} runs, medians; kf-ukf in outage mode (UT every cycle)")
     print(f"{'method':9s} {'predict us':>10s} {'x kf':>6s} {'pred+upd us':>11s} {'x kf':>6s} {'(upd us)':>8s} "
           f"{'pred kflop':>10s} {'x kf':>6s} {'total kflop':>11s} {'x kf':>6s}")
@@ -710,7 +712,7 @@ def bench_cycle(runs: int, tmp: Path) -> None:
         fl_p, fl_t = flops[name][2], flops[name][2] + flops[name][3]
         print(f"{name:9s} {p:10.1f} {p / kp:6.1f} {t:11.1f} {t / kt:6.1f} {u:8.1f} "
               f"{fl_p / 1e3:10.1f} {fl_p / fp:6.1f} {fl_t / 1e3:11.1f} {fl_t / ft:6.1f}")
-        if name != "kf":
+        if name != KF.name:
             row(f"filter cycle cost of {name} against kf, prediction / with a GPS update [cycle]",
                 f"×{p / kp:.1f} / ×{t / kt:.1f}")
     print("flop formulas (n states, m rows, c = 4 c_f + 12 n per point RK4 step, c_f ~ 450):")
@@ -848,9 +850,9 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     convert = [rr, "mcap", "convert", str(drive), "-o", str(tmp / "rr_convert.rrd")]
     fused = tmp / "rr_kf.mcap"
     cmds = {  # name: (fieldlog command, reference command, target)
-        "fuse --method kf": ([*fl, "fuse", str(drive), "--method", "kf", "--out", str(fused), "--force", "-q"],
+        "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×1.0"),
-        "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", "dkf-rbfn", "--out",
+        "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
                                     str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×1.5"),
         "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
                                     "--force", "-q"], convert, "≤ ×1.0"),
@@ -858,7 +860,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
                                            str(tmp / "rr_sim.mcap"), "--force", "-q"], convert, "≤ ×4"),
         "info": ([*fl, "info", str(drive)], [rr, "mcap", "info", str(drive)], ""),
     }
-    warm60 = [*fl, "fuse", str(short), "--method", "kf", "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
+    warm60 = [*fl, "fuse", str(short), "--method", KF.name, "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
     for name in ("fuse --method kf", "fuse --method dkf-rbfn"):
         _run_s(cmds[name][0], tmp)  # a warm run outside the figures (page cache); kf's output feeds view
     _run_s(warm60, tmp)
@@ -1010,7 +1012,7 @@ def _profile_stages(runs: int, tmp: Path, duration_s: float) -> None:
           f"imports, kernel load) {first:.2f} s; load {load:.1f}")
     table = {}
     for (label, path, n) in ((f"{duration_s:g} s", drive, runs), ("1 h", _hour_drive(tmp), 1)):
-        for method in ("kf", "dkf-rbfn"):
+        for method in (KF.name, DKF_RBFN.name):
             fuse(warm, method, tmp / "prof_w.mcap", force=True)
             walls = []
             for _ in range(n):
@@ -1046,7 +1048,7 @@ def _profile_stages(runs: int, tmp: Path, duration_s: float) -> None:
             f"start-up {imp + first:.2f} s; load {load:.1f})")
 
 
-BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
+BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, INS.name: bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "soak": bench_soak, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long, "recover": bench_recover,
