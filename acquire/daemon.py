@@ -72,7 +72,8 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import bagdir, calib, canport, messages, nmea, outputs, recorder, recovery, timesync
+from fieldlog.acquire import calib, canport, nmea, recovery, timesync
+from fieldlog.drive import bagdir, messages, outputs, recorder
 from fieldlog.acquire.config import (AcquireConfig, CanConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name,
                                      session_name)
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink

@@ -22,10 +22,10 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.acquire.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
+from fieldlog.drive import messages, outputs
+from fieldlog.drive.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
 from fieldlog.acquire.pipeline import Pipeline
-from fieldlog.acquire.recorder import MAGIC, Recorder
+from fieldlog.drive.recorder import MAGIC, Recorder
 
 
 @dataclass

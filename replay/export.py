@@ -50,9 +50,9 @@ from typing import BinaryIO, Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, drive_files
+from fieldlog.drive import messages, outputs
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec, drive_files
 
 
 def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:

@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Generator, Iterator
 
 import numpy as np
 
-from fieldlog.acquire import messages
+from fieldlog.drive import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay.ahead import Ahead
 
 if TYPE_CHECKING:

@@ -45,8 +45,8 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from fieldlog.acquire import messages
-from fieldlog.replay.reader import Block, concat, decode
+from fieldlog.drive import messages
+from fieldlog.drive.reader import Block, concat, decode
 
 FLAG_PROVISIONAL = 1     # acquire.daemon.BUS_PROVISIONAL
 FLAG_HOST_CLOCK = 2      # acquire.daemon.BUS_HOST_CLOCK

@@ -31,14 +31,14 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import Outage, Solution
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay import inputs
-from fieldlog.replay.drive import DriveSpec
-from fieldlog.replay.reader import IN_TOPICS, gps_block
+from fieldlog.drive.files import DriveSpec
+from fieldlog.drive.reader import IN_TOPICS, gps_block
 from fieldlog.replay import view as rv
 
 PLAY_BLOCK_S = 1.0  # data seconds per logged block

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from fieldlog.acquire import calib, frames, messages
-from fieldlog.acquire.recorder import Recorder
+from fieldlog.acquire import calib, frames
+from fieldlog.drive import messages
+from fieldlog.drive.recorder import Recorder
 from fieldlog.fusion import earth
 from fieldlog.fusion.types import Solution
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec
 
 PREFIX = "/fusion/"
 OUTAGE = "/fusion/outage"  # outage windows (injected and detected), shared by every method of a file

@@ -84,12 +84,14 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import calib, frames, outputs
+from fieldlog.acquire import calib, frames
+from fieldlog.drive import outputs
 from fieldlog.fusion import earth
 from fieldlog.fusion.methods import REGISTRY
-from fieldlog.replay import reader, solutions
+from fieldlog.drive import reader
+from fieldlog.replay import solutions
 from fieldlog.replay.ahead import Ahead
-from fieldlog.replay.drive import DriveSpec, drive_files, label
+from fieldlog.drive.files import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent

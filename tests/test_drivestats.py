@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from mcap_ros2.writer import Writer
 
-from fieldlog.acquire import messages, recorder
-from fieldlog.acquire.drivestats import QuantisedMedian
+from fieldlog.drive import messages, recorder
+from fieldlog.drive.drivestats import QuantisedMedian
 from fieldlog.tools.info import drive_info
 
 from foreign_drives import FIX_DEF, IMU_DEF, _stamp

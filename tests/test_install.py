@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import chunks
+from fieldlog.drive import chunks
 from fieldlog.acquire.recovery import recover_drive
-from fieldlog.replay import reader
-from fieldlog.replay.drive import open_drive
+from fieldlog.drive import reader
+from fieldlog.drive.files import open_drive
 from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]

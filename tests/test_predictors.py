@@ -6,7 +6,7 @@ import pytest
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.predictors import (RBF, OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_1d,
                                         kmeans_centres)
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.evaluation.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate

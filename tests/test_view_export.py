@@ -13,11 +13,11 @@ import pytest
 import rerun.blueprint as rrb
 from mcap.reader import make_reader
 
-from fieldlog.acquire import messages
-from fieldlog.replay import reader
+from fieldlog.drive import messages
+from fieldlog.drive import reader
 from fieldlog.replay import view as rview
 from fieldlog.replay.export import drive_frames
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.sim.simulate import simulate
 from fieldlog.tools.sim.trajectory import SCENARIO_DIR

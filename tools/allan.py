@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 
 if TYPE_CHECKING:
-    from fieldlog.replay.drive import DriveSpec
+    from fieldlog.drive.files import DriveSpec
 
 G0 = 9.80665  # m/s^2 per g
 FLICKER_ADEV_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.6643...
@@ -213,8 +213,8 @@ def drive_report(path: DriveSpec, plot_prefix: str | None = None, force: bool = 
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
     names them at the end of the text (new files, unless ``force``)."""
-    from fieldlog.replay.drive import label
-    from fieldlog.replay.reader import read_topic
+    from fieldlog.drive.files import label
+    from fieldlog.drive.reader import read_topic
 
     imu = read_topic(path, "/imu")
     name = label(path)

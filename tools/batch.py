@@ -34,9 +34,9 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay.reader import IN_TOPICS
+from fieldlog.drive.reader import IN_TOPICS
 from fieldlog.tools.evaluation.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality,
                                                 outage_error_series, place_outages, rms_columns)
 from fieldlog.tools.fuse import drive_config, fuse

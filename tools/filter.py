@@ -24,13 +24,13 @@ from typing import Callable
 import numpy as np
 from mcap.records import Channel, Schema
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
-from fieldlog.acquire.recorder import Recorder
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
+from fieldlog.drive import messages, outputs
+from fieldlog.drive.drivestats import RECORD as INFO_RECORD
+from fieldlog.drive.recorder import Recorder
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec, drive_files, open_drive
 from fieldlog.replay.inputs import NATIVE, detect
-from fieldlog.replay.mcapfile import McapFile
+from fieldlog.drive.mcapfile import McapFile
 
 NS = 1_000_000_000
 

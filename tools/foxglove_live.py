@@ -48,8 +48,9 @@ from typing import TYPE_CHECKING, Callable, Iterable, Iterator
 import numpy as np
 from mcap.reader import make_reader
 
-from fieldlog.acquire import calib, messages
-from fieldlog.replay.drive import DriveSpec, drive_files
+from fieldlog.acquire import calib
+from fieldlog.drive import messages
+from fieldlog.drive.files import DriveSpec, drive_files
 from fieldlog.replay.inputs import InputMap, InputStream
 
 if TYPE_CHECKING:
@@ -288,7 +289,7 @@ def serve_live(bus: str, method: str, address: str, config: FusionConfig | None 
     channel and the bus is being read. ``mounting``: the daemon's calibration's (None: base_link is the IMU)."""
     from fieldlog.replay import live
     from fieldlog.replay.inputs import imu_block
-    from fieldlog.replay.reader import IN_TOPICS, gps_block
+    from fieldlog.drive.reader import IN_TOPICS, gps_block
 
     with _Server(address, method, [(topic, None, None) for topic in LIVE_TOPICS]) as srv:
         fusion = _Fusion(srv.sink, method, config, mounting or calib.Mounting())

@@ -51,9 +51,10 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from fieldlog.acquire import calib, messages, metavalue, outputs
+from fieldlog.acquire import calib
+from fieldlog.drive import messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
-from fieldlog.acquire.recorder import Recorder
+from fieldlog.drive.recorder import Recorder
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
@@ -62,10 +63,10 @@ from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.ahead import Remote
-from fieldlog.replay.drive import DriveSpec, label
+from fieldlog.drive.files import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
-from fieldlog.replay.reader import read_metadata
-from fieldlog.replay.reader import topics as reader_topics
+from fieldlog.drive.reader import read_metadata
+from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution
 
 BLOCK_S = 10.0

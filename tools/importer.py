@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import (can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, outputs, recorder,
-                              timesync, ubx)
+from fieldlog.acquire import can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, timesync, ubx
+from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 

@@ -16,10 +16,11 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import drivestats, messages, metavalue
-from fieldlog.acquire.drivestats import Quality
-from fieldlog.replay import inputs, reader
-from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
+from fieldlog.drive import drivestats, messages, metavalue
+from fieldlog.drive.drivestats import Quality
+from fieldlog.drive import reader
+from fieldlog.replay import inputs
+from fieldlog.drive.files import DriveSpec, drive_files, open_drive
 
 NS = 1_000_000_000
 

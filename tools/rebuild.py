@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-from fieldlog.acquire import calib, outputs, recorder
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, label
+from fieldlog.acquire import calib
+from fieldlog.drive import outputs, recorder
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec, label
 from fieldlog.acquire.pipeline import PORT_ORDER, Counters, Pipeline, RawRead, read_order
 
 RAW_PORTS = tuple(PORT_ORDER)      # /raw/daq, /raw/gps, /raw/can

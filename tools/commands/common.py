@@ -18,7 +18,7 @@ EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export",
 
 # the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
 # them is told to reinstall, in one line
-KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.acquire._chunks", "fieldlog.tools.sim._sensors")
+KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.drive._chunks", "fieldlog.tools.sim._sensors")
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
 NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
@@ -157,7 +157,7 @@ def add_out_args(s: argparse.ArgumentParser) -> None:
 
 def out_file(a: argparse.Namespace) -> Path:
     """The MCAP file to write: --out, or with --bag the one file of the rosbag2 directory --out."""
-    from fieldlog.acquire.bagdir import bag_file
+    from fieldlog.drive.bagdir import bag_file
 
     return bag_file(Path(a.out)) if a.bag else Path(a.out)
 
@@ -165,7 +165,7 @@ def out_file(a: argparse.Namespace) -> Path:
 def finish_out(a: argparse.Namespace, path: Path) -> None:
     """With --bag: the directory's metadata.yaml for the file just written."""
     if a.bag:
-        from fieldlog.acquire.bagdir import write_bag_metadata
+        from fieldlog.drive.bagdir import write_bag_metadata
 
         log.info(f"wrote {write_bag_metadata(path)}")
 

@@ -61,7 +61,7 @@ def run(a: argparse.Namespace) -> int:
         from fieldlog.tools.evaluation.evaluate import PAPER_SCENARIO
         from fieldlog.tools.sim.simulate import simulate
 
-        from fieldlog.acquire.outputs import out_dir
+        from fieldlog.drive.outputs import out_dir
 
         a.scenario = a.scenario or PAPER_SCENARIO
         out_dir(report, "drives")

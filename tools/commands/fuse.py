@@ -34,7 +34,7 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
-    from fieldlog.replay.drive import label
+    from fieldlog.drive.files import label
     from fieldlog.replay.inputs import RATE_HZ
     from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 

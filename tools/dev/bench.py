@@ -131,7 +131,7 @@ def bench_codecs(runs: int, tmp: Path) -> None:
 
 def bench_recorder(runs: int, tmp: Path) -> None:
     """Encoding and writing 600k IMU messages (a 600 s drive's /imu and /truth/imu)."""
-    from fieldlog.acquire import messages, recorder
+    from fieldlog.drive import messages, recorder
 
     n = 300_000
     t = 1_777_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 2_000_000
@@ -168,7 +168,7 @@ def bench_ins(runs: int, tmp: Path) -> None:
 
 def bench_allan(runs: int, tmp: Path) -> None:
     """The 2-hour static drive through the whole chain: Allan deviation recovers ARW/VRW and bias instability."""
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
     from fieldlog.tools.allan import allan_deviation, noise_parameters
     from fieldlog.tools.sim.sensors import ImuErrorConfig
     from fieldlog.tools.sim.simulate import simulate
@@ -221,7 +221,7 @@ def bench_grades(runs: int, tmp: Path) -> None:
     simulator and the filter, kf with aids off, two 60 s outages after 10 minutes of driving; standalone GPS for
     the MEMS grades, RTK for the others."""
     from fieldlog.fusion import imugrade
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
     from fieldlog.tools.evaluation.evaluate import heading_at_starts, outage_error_series
     from fieldlog.tools.fuse import drive_config, fuse
     from fieldlog.tools.sim.simulate import simulate
@@ -333,8 +333,8 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     import signal
 
     from fieldlog.acquire.timesync import SyncState
-    from fieldlog.replay import reader
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive import reader
+    from fieldlog.drive.reader import read_metadata
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
@@ -386,9 +386,9 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     from collections import Counter
 
     from fieldlog.acquire import daq
-    from fieldlog.acquire.messages import STATUS_NO_FIX
-    from fieldlog.replay import reader
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.messages import STATUS_NO_FIX
+    from fieldlog.drive import reader
+    from fieldlog.drive.reader import read_metadata
     from fieldlog.tools.sim.serve import PORTS, corrupt_stream, delivered, simulated_streams
 
     out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"
@@ -503,7 +503,8 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     import threading
 
     from fieldlog.acquire.timesync import SyncState
-    from fieldlog.replay import live, reader
+    from fieldlog.drive import reader
+    from fieldlog.replay import live
 
     out, truth, bus, cfg = tmp / "drives_bus", tmp / "truth_bus.mcap", tmp / "bus.sock", tmp / "bus.toml"
     cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
@@ -757,7 +758,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """Reading what fuse reads (/imu, /gps/fix, /gps/vel in 10 s blocks) of a 300 s drive in every MCAP layout."""
     # Wall and CPU time both: under contention the wall ratio is not the CPU ratio. The 4 KiB-chunk file is the
     # hard case: every chunk holds /imu, so every chunk is decompressed (about 2.3x the own file's bytes).
-    from fieldlog.replay import drive, reader
+    from fieldlog.drive import files as drive, reader
     from fieldlog.tools.dev.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
 
@@ -795,7 +796,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """``recover DIR``'s check of a complete file (every chunk's CRC), and the recovery of one with a damaged chunk."""
     from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
-    from fieldlog.replay.mcapfile import McapFile
+    from fieldlog.drive.mcapfile import McapFile
     from fieldlog.tools.dev.layouts import rewrite
     from fieldlog.tools.sim.simulate import simulate
 

@@ -26,7 +26,7 @@ import numpy as np
 import rerun as rr
 
 from fieldlog.fusion.methods import DKF_RBFN
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay import view as rv
 
 ROOT = Path(__file__).resolve().parents[2]

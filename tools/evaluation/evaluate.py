@@ -44,12 +44,13 @@ from typing import Callable, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion import earth
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF, METHODS, RBFN, TDLN
 from fieldlog.fusion.types import Solution
-from fieldlog.replay import reader, solutions
+from fieldlog.drive import reader
+from fieldlog.replay import solutions
 from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse

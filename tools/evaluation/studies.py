@@ -36,10 +36,10 @@ from typing import Callable
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.methods import HINF, KF, KF_UKF, SCKF, SSR_SCKF
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import FuseResult, drive_config, fuse
 

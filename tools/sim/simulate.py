@@ -18,7 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, messages, metavalue, outputs, recorder, timesync
+from fieldlog.acquire import calib, daq, timesync
+from fieldlog.drive import messages, metavalue, outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle

@@ -24,7 +24,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Schema
 from mcap.stream_reader import breakup_chunk
 
-from fieldlog.acquire import messages, native
+from fieldlog.drive import messages, native
 
 
 def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -39,7 +39,7 @@ def walk_records(buf, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.nd
     data = np.frombuffer(buf, np.uint8) if not isinstance(buf, np.ndarray) else np.ascontiguousarray(buf, np.uint8)
     if pos < 0:
         raise ValueError(f"walk_records: pos {pos} < 0")
-    n, walk = len(data), native.library("fieldlog.acquire._chunks", native.CHUNKS).fieldlog_walk
+    n, walk = len(data), native.library("fieldlog.drive._chunks", native.CHUNKS).fieldlog_walk
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     cap, end = max(int(cap), 16), ctypes.c_int64(pos)
     while True:

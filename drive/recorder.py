@@ -49,9 +49,9 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from fieldlog.acquire import messages, outputs, typehash
-from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
-from fieldlog.acquire.drivestats import DriveStats
+from fieldlog.drive import messages, outputs, typehash
+from fieldlog.drive.drivestats import RECORD as INFO_RECORD
+from fieldlog.drive.drivestats import DriveStats
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"

@@ -14,8 +14,8 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence, Union
 
-from fieldlog.acquire.bagdir import METADATA, RECOVERED, session_files
-from fieldlog.replay.mcapfile import McapFile
+from fieldlog.drive.bagdir import METADATA, RECOVERED, session_files
+from fieldlog.drive.mcapfile import McapFile
 
 DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
 _OPEN: "OrderedDict[tuple, McapFile]" = OrderedDict()  # recently opened files, by path and version

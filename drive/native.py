@@ -41,7 +41,7 @@ CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # acquire/_ch
 
 
 def library(module: str, signatures: dict[str, tuple[object, list]]) -> ctypes.CDLL:
-    """The compiled kernels of extension ``module`` (``fieldlog.acquire._chunks``, ...), loaded once per process,
+    """The compiled kernels of extension ``module`` (``fieldlog.drive._chunks``, ...), loaded once per process,
     with the C ``signatures`` of its functions (name -> (restype, argtypes)) set. ImportError, naming the fix,
     when the package was installed without them."""
     if module not in _libs:
@@ -111,7 +111,7 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     if getattr(_thread, "dctx", None) is None:
         _thread.dctx = _state["create_dctx"]()
     res = np.zeros(5, np.int64)
-    library("fieldlog.acquire._chunks", CHUNKS).fieldlog_read_chunks(
+    library("fieldlog.drive._chunks", CHUNKS).fieldlog_read_chunks(
         *_state["fns"], _thread.dctx, src.ctypes.data, len(comp), comp.ctypes.data,
         *(a.ctypes.data for a in arrays), stage.ctypes.data, out.ctypes.data, want.ctypes.data, rec.ctypes.data,
         ch.ctypes.data, defs.ctypes.data, res.ctypes.data)

@@ -52,8 +52,8 @@ from mcap.records import Channel, Metadata, Schema
 
 from zlib_ng.zlib_ng import crc32
 
-from fieldlog.acquire.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
-from fieldlog.acquire.recorder import MAGIC
+from fieldlog.drive.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
+from fieldlog.drive.recorder import MAGIC
 
 log = logging.getLogger(__name__)
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes

@@ -16,7 +16,7 @@ import json
 import re
 from functools import lru_cache
 
-from fieldlog.acquire.messages import MSG_DEFS
+from fieldlog.drive.messages import MSG_DEFS
 
 NESTED_TYPE = 1
 PRIMITIVE_IDS = {"int8": 2, "uint8": 3, "int16": 4, "uint16": 5, "int32": 6, "uint32": 7, "int64": 8,

@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import numpy as np
 
-from fieldlog.acquire import messages
-from fieldlog.acquire.chunks import ChunkMessages
-from fieldlog.replay.drive import DriveSpec, label, open_drive
-from fieldlog.replay.mcapfile import McapFile, le
+from fieldlog.drive import messages
+from fieldlog.drive.chunks import ChunkMessages
+from fieldlog.drive.files import DriveSpec, label, open_drive
+from fieldlog.drive.mcapfile import McapFile, le
 
 if TYPE_CHECKING:
     from fieldlog.fusion.types import GpsBlock

@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from fieldlog.acquire import messages, metavalue
+from fieldlog.drive import messages, metavalue
 
 log = logging.getLogger(__name__)
 
