@@ -1,6 +1,6 @@
 """A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE... --out DIR``.
 
-A drive of several files (a rotated session, a rosbag2 directory: ``replay.drive``) gives one table per topic.
+A drive of several files (a rotated session, a rosbag2 directory: ``drive.files``) gives one table per topic.
 
 One table per topic, one row per MCAP message, in ``log_time`` order; ``fieldlog export`` writes ``/raw/*``
 in recorded order instead (the same unless the host wall clock stepped back), streaming. Written as
@@ -237,7 +237,7 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}. Every
     table is a new file (unless ``force``), and ``out`` and the folders made in it are never symbolic links
-    (``acquire.outputs``)."""
+    (``drive.outputs``)."""
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"format must be parquet or csv, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file

@@ -57,7 +57,7 @@ def has(fused: DriveSpec | Solution, method: str, name: str) -> bool:
 
 
 def read(fused: DriveSpec | Solution, method: str, name: str) -> dict[str, object]:
-    """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``replay.reader.read_topic``): a fused
+    """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``drive.reader.read_topic``): a fused
     file, or the solution rows in memory (``tools.fuse.fuse(..., keep=True)``; ``name`` of ``SOLUTION`` or
     ``LOCALS``), whose messages are those ``write_solution`` writes, decoded as the file's are, so both give the
     same arrays to the bit."""

@@ -102,3 +102,24 @@ def test_layers_point_one_way():
             if layer in allowed and d != "fieldlog" and ".".join(d.split(".")[:2]) not in allowed[layer]:
                 bad.append(f"{name} -> {d}")
     assert not bad, "imports against the layers: " + ", ".join(sorted(bad))
+
+
+def _third_party(path: Path) -> set[str]:
+    """The top-level names of every module that ``path`` imports, wherever the import stands."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_only_the_drive_layer_imports_mcap():
+    """The MCAP library is the drive layer's: the layers above read and write drives through it
+    (``fieldlog.drive.records`` names the library's records, reader and writer for them)."""
+    modules = _modules()
+    users = {name for name, path in modules.items() if "mcap" in _third_party(path)}
+    assert "fieldlog.drive.recorder" in users  # the scan sees the imports
+    outside = sorted(u for u in users if not u.startswith("fieldlog.drive."))
+    assert not outside, "modules importing mcap outside fieldlog.drive: " + ", ".join(outside)

@@ -120,7 +120,7 @@ def _walk_reference(buf: bytes) -> tuple[list, list, list, int]:
 
 
 def test_the_compiled_walk_matches_a_plain_one(drive):
-    """The compiled record walk (acquire/_chunks.c) finds the records a plain walk finds, in whole chunks, in
+    """The compiled record walk (drive/_chunks.c) finds the records a plain walk finds, in whole chunks, in
     chunks cut short, and up to a length whose top bit is set; its arrays grow past the capacity it is given."""
     (f,) = open_drive(drive)
     for piece in np.flatnonzero(f.pieces.chunk)[:3].tolist():

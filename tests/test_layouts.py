@@ -355,7 +355,7 @@ def _damaged(src, tmp_path, k: int):
 
 @pytest.fixture(params=["compiled", "numpy"])
 def read_path(request, monkeypatch) -> str:
-    """The reader's two paths for chunks: ``acquire.native``'s compiled pass (zstd, uncompressed), or
+    """The reader's two paths for chunks: ``drive.native``'s compiled pass (zstd, uncompressed), or
     python-zstandard and the walk (what runs when zstandard exports no C API, and for lz4)."""
     if request.param == "numpy":
         monkeypatch.setitem(native._state, "ok", False)

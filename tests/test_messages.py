@@ -1,4 +1,4 @@
-"""acquire.messages: our CDR bytes against mcap_ros2's own encoder and decoder."""
+"""drive.messages: our CDR bytes against mcap_ros2's own encoder and decoder."""
 
 from __future__ import annotations
 

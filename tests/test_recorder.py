@@ -1,4 +1,4 @@
-"""acquire.recorder (write, flush), acquire.recovery (recover) and replay.reader, checked with mcap's own readers
+"""drive.recorder (write, flush), acquire.recovery (recover) and drive.reader, checked with mcap's own readers
 and with rerun's MCAP importer."""
 
 from __future__ import annotations
@@ -247,7 +247,7 @@ def test_decompress_many_takes_empty_and_lying_chunks():
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch):
-    """``read_chunks`` (the reader's hot path) by both paths (the compiled pass of ``acquire.native``, and
+    """``read_chunks`` (the reader's hot path) by both paths (the compiled pass of ``drive.native``, and
     python-zstandard with the numpy walk): message records in zstd chunks (one empty) and an uncompressed one come
     back with their channels, times and payloads, only those asked for; a chunk whose record claims a wrong or an
     absurd size, whose bytes are damaged, or whose CRC is wrong is a ``ChunkError`` naming it."""

@@ -184,7 +184,7 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
     """Log-log PNG of an Allan deviation curve, one line per axis when adev is (m,3) (x, y, z).
 
     taus (m,) s; adev (m,) or (m,k) in the units named by ylabel. ``path`` must be new, unless ``force``
-    (``acquire.outputs``). Returns path."""
+    (``drive.outputs``). Returns path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,7 +209,7 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
 
 def drive_report(path: DriveSpec, plot_prefix: str | None = None, force: bool = False) -> str:
     """``report`` of the /imu topic of a recorded drive (meant for a static drive; one file or several:
-    ``replay.drive``); rate from the stamps.
+    ``drive.files``); rate from the stamps.
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
     names them at the end of the text (new files, unless ``force``)."""

@@ -188,7 +188,7 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
               say: Callable[[str], None] = print, progress: Callable[[float], None] | None = None,
               force: bool = False) -> BatchResult:
     """Process ``drives`` on Dask (one task per drive); writes ``out/results.parquet`` and ``out/fused/`` (new
-    files unless ``force``: ``acquire.outputs``). A line per drive goes to ``say`` as the drives complete, and the
+    files unless ``force``: ``drive.outputs``). A line per drive goes to ``say`` as the drives complete, and the
     fraction done to ``progress``."""
     check_methods(list(methods))
     if not drives:

@@ -46,11 +46,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterable, Iterator
 
 import numpy as np
-from mcap.reader import make_reader
 
 from fieldlog.acquire import calib
 from fieldlog.drive import messages
 from fieldlog.drive.files import DriveSpec, drive_files
+from fieldlog.drive.records import make_reader
 from fieldlog.replay.inputs import InputMap, InputStream
 
 if TYPE_CHECKING:
@@ -71,7 +71,7 @@ DRAIN_S = 2.0
 LIVE_TOPICS = ("/imu", "/gps/fix", "/gps/vel", "/gps/nmea", "/gps/receiver", "/pps", "/time/sync", "/tf_static",
                "/vehicle/twist", "/vehicle/wheel_speeds")
 
-# (topic, schema name, ros2msg schema text); None, None: the contract's schema of the topic (acquire.messages)
+# (topic, schema name, ros2msg schema text); None, None: the contract's schema of the topic (drive.messages)
 ChannelSpec = tuple[str, str | None, bytes | None]
 
 

@@ -1,6 +1,6 @@
 """``fieldlog fuse DRIVE --method ins|kf|dkf|rbfn|tdln|dkf-rbfn [--outage START:LEN ...] --out FUSED.mcap``.
 
-Streams the drive in blocks (``replay.reader.iter_blocks``: vectorised decode, no per-message Python on the
+Streams the drive in blocks (``drive.reader.iter_blocks``: vectorised decode, no per-message Python on the
 IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md (``replay.solutions``):
 
 - ``/fusion/<method>/fix`` NavSatFix: position, covariance ENU m^2 (diagonal known); 10 Hz by default
@@ -302,9 +302,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          ) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
-    ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
+    ``replay.inputs.resolve(drive)``. A drive of several files (``drive.files``) is fused once, across the file
     boundaries. Raises ``replay.solutions.Diverged`` (nothing past the first bad row written) when the
-    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``). ``keep``: the rows
+    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``drive.outputs``). ``keep``: the rows
     written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
     back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``."""
     outputs.check_new(out, force)

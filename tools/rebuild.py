@@ -33,7 +33,7 @@ class RebuildResult:
 
 def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
     """The reads of one port in the order they were recorded (file order, not log-time order), decoded a
-    chunk at a time (``replay.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
+    chunk at a time (``drive.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
     for b in reader.iter_raw_batches(path, f"/raw/{port}"):
         raw, o = b["data"].buf.tobytes(), b["data"].offsets.tolist()
         for i, (ok, mono_ns, wall_ns) in enumerate(zip(b["valid"].tolist(), b["mono_ns"].tolist(),

@@ -24,7 +24,7 @@ KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.drive._c
 NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}
 
-# the commands that write named outputs: they take --force to replace them (acquire/outputs.py)
+# the commands that write named outputs: they take --force to replace them (drive/outputs.py)
 WRITERS = ("sim", "recover", "filter", "import", "rebuild", "allan", "fuse", "evaluate", "view", "export", "batch",
            "replay", "study")
 
@@ -109,7 +109,7 @@ def command_parser(sub, name: str, help: str, quiet_help: str | None = None,
 
 
 def drive_arg(paths: list[str]) -> str | list[str]:
-    """The drive positional(s) as ``replay.drive`` takes them: one path, or the list."""
+    """The drive positional(s) as ``drive.files`` takes them: one path, or the list."""
     return paths[0] if len(paths) == 1 else paths
 
 
@@ -148,7 +148,7 @@ def parse_lengths(text: str, option: str) -> list[float]:
 
 
 def add_out_args(s: argparse.ArgumentParser) -> None:
-    """--out, and --bag to make it a one-file rosbag2 directory (acquire/bagdir.py)."""
+    """--out, and --bag to make it a one-file rosbag2 directory (drive/bagdir.py)."""
     s.add_argument("--out", required=True, help="output MCAP (with --bag: the rosbag2 directory)")
     s.add_argument("--bag", action="store_true",
                    help="write --out as a rosbag2 directory: OUT/OUT.mcap and its metadata.yaml, which `ros2 bag "

@@ -18,7 +18,7 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     """Each step through ``a.cli_main`` (the CLI's entry, which sets it), as if typed. The folder is the demo's
-    own: each run redoes its files (``--force`` to the steps; never through a link: ``acquire.outputs``)."""
+    own: each run redoes its files (``--force`` to the steps; never through a link: ``drive.outputs``)."""
     from fieldlog.drive.outputs import out_dir
 
     out = out_dir(a.out_dir)

@@ -895,7 +895,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
 
 # The stages of `make bench --only profile`: a profiled function's own time goes to the stage of its file (and, in
-# acquire/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
+# drive/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
 _WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
@@ -914,14 +914,14 @@ def _stage_of(path: str, name: str) -> str | None:
         return None
     if ".venv" in rel or rel.startswith("tools/dev/"):
         return None
-    if rel == "acquire/recorder.py":
+    if rel == "drive/recorder.py":
         return "output encoding and writing" if name in _WRITE else "reading and decoding"
-    if rel in ("acquire/messages.py", "fusion/output.py", "tools/fuse.py", "acquire/outputs.py", "fusion/smoother.py"):
+    if rel in ("drive/messages.py", "fusion/output.py", "tools/fuse.py", "drive/outputs.py", "fusion/smoother.py"):
         return "output encoding and writing" if rel != "tools/fuse.py" or name not in ("fuse", "settings",
                                                                                       "input_map") else "other"
     if rel == "replay/inputs.py":
         return "input mapping and resequencing"
-    if rel.startswith("replay/") or rel in ("acquire/native.py", "acquire/bagdir.py"):
+    if rel.startswith("replay/") or rel in ("drive/native.py", "drive/bagdir.py"):
         return "reading and decoding"
     if rel in ("fusion/ins.py", "fusion/errmodel.py", "fusion/clipgyro.py", "fusion/earth.py"):
         return "INS and covariance cycles"

@@ -298,7 +298,7 @@ def _novatel_binary(week: int, ms: int) -> bytes:
 
 def _mcap_seed() -> bytes:
     """A small drive written by mcap's own Writer, uncompressed chunks of a few messages, with metadata."""
-    from mcap.writer import CompressionType, Writer
+    from fieldlog.drive.records import CompressionType, Writer
 
     from fieldlog.drive import messages
 

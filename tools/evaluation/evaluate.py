@@ -423,7 +423,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its absolute figures and
     each of its claims (:func:`paper_report`). Drive names (stems) must be unique (:func:`check_drive_names`),
     checked before anything is written. progress: called with the fraction of the runs done. Every file is new
-    (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
+    (``drive.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
     runs that could not be scored (default: ``say``)."""
     check_methods(methods)
     if not drives:

@@ -638,7 +638,7 @@ def study(name: str, out: Path, work: Path, seeds: int = 3, runs: int = 5, say: 
     """Run one of ``STUDIES``: report into ``out``, drives and fused solutions into ``work``; returns its long
     table. ``runs``: timing repetitions of ``cost``. A report already in ``out`` is replaced only with ``force``
     (its files, and the fused solutions in ``work``, are then the study's own and redone); neither folder may be
-    a symbolic link (``acquire.outputs``)."""
+    a symbolic link (``drive.outputs``)."""
     if name not in STUDIES:
         raise ValueError(f"unknown study {name!r}; one of {', '.join(STUDIES)}")
     if seeds < 1:

@@ -162,7 +162,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
     more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``); ``can``: with the car's CAN
     bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``). ``out`` must be new, unless ``force``
-    (``acquire.outputs``)."""
+    (``drive.outputs``)."""
     outputs.check_new(out, force)
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)
