@@ -25,6 +25,9 @@ def add_parser(sub) -> None:
     add_out_args(s)
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
+    s.add_argument("--tf-from", default=None, metavar="FILE",
+                   help="of a drive's files that give different /tf_static transforms for a frame, the one whose "
+                        "transforms to use (default: refuse the drive, naming the files and the frame)")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys; default: the drive's fusion.config record) "
                         "and/or an [input] table (imu_topic, fix_topic, vel_topic, imu_frame)")
@@ -34,12 +37,15 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.drive import Drive
     from fieldlog.drive.files import label
     from fieldlog.replay.inputs import RATE_HZ
-    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
+    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, load_input_spec, parse_outage, settings
 
-    drive = drive_arg(a.drive)
-    st = settings(drive, TomlFile.read(a.config), input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    conf = TomlFile.read(a.config)
+    imu_axes = input_spec(a).imu_frame or load_input_spec(conf).imu_frame
+    drive = Drive.open(drive_arg(a.drive), a.tf_from, imu_axes_given=imu_axes is not None)  # checked before the work
+    st = settings(drive, conf, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):
             log.warning(line.removeprefix("warning: "))
