@@ -29,7 +29,8 @@ def add_parser(sub) -> None:
                       help="--can with boot-relative stamps: the UTC of its first frame, e.g. 2024-05-01T09:30:00Z "
                            "(default: the GPS log's start; neither: refused)")
     when.add_argument("--align-to", default=None, metavar="DRIVE",
-                      help="--can with boot-relative stamps: its first frame at this drive's first log time")
+                      help="--can with boot-relative stamps: its first frame at this drive's first log time "
+                           "(default: none)")
     s.add_argument("--fs", type=float, default=500.0, help="DAQ sample rate, Hz")
     s.add_argument("--pps", choices=["flag", "latch"], default="flag", help="how the DAQ frames carry the PPS")
     s.add_argument("--out", required=True, help="output MCAP")
