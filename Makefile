@@ -10,7 +10,7 @@ export RERUN_ANALYTICS ?= 0
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py $(wildcard fusion/*.c acquire/*.c tools/sim/*.c)
+$(STAMP): pyproject.toml setup.py $(wildcard fusion/*.c drive/*.c tools/sim/*.c)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e ".[all,dev]"

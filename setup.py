@@ -5,7 +5,7 @@ from setuptools import Extension, setup
 
 FLAGS = ["-O2", "-ffp-contract=off", "-fno-math-errno"]
 KERNELS = {"fieldlog.fusion._ins": "fusion/_ins.c", "fieldlog.fusion._cycles": "fusion/_cycles.c",
-           "fieldlog.acquire._chunks": "acquire/_chunks.c",
+           "fieldlog.drive._chunks": "drive/_chunks.c",
            "fieldlog.tools.sim._sensors": "tools/sim/_sensors.c"}
 
 VECTORISED = {"fieldlog.fusion._cycles"}  # its products vectorise across columns: the same sums, side by side

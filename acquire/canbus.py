@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire import can, messages, metavalue
+from fieldlog.acquire import can
+from fieldlog.drive import messages, metavalue
 
 NS = 1_000_000_000
 SIGNAL_KEYS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr", "vehicle_speed", "gear", "reverse", "steering")

@@ -343,6 +343,24 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is a directory: give a TOML file") from None
 
 
+@dataclass(frozen=True)
+class TomlFile:
+    """A TOML file read once: its tables, and its name for messages. A command reads ``--config`` once into one
+    of these and hands it on, so a pipe (``--config <(...)``) or ``/dev/stdin``, which give their bytes once,
+    work as a file does."""
+
+    path: str
+    tables: dict[str, Any]
+
+    @classmethod
+    def read(cls, path: str | os.PathLike[str] | None) -> "TomlFile | None":
+        """``read_toml`` of path kept with its name; None for no path."""
+        return None if path is None else cls(str(path), read_toml(path))
+
+    def __str__(self) -> str:
+        return self.path
+
+
 def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:
     """Read the TOML file (None: defaults), apply ``overrides`` (``daq``, ``gps``: port paths; ``out``: output
     directory; ``time_scale``: ``[timesync] host_time_scale``, for simulator playback only) and validate.

@@ -53,7 +53,7 @@ close).
 Files. A session is a rosbag2 directory, ``DIR/<session start UTC>/`` (``config.session_name``; ``-2``, ``-3``
 appended if a session of the same second exists) of ``<session start UTC>_<NNNN>.mcap`` files
 (``config.file_name``) and the ``metadata.yaml`` that lists the closed ones, written again at each rotation
-and on close (``acquire/bagdir.py``), so ``ros2 bag info/play DIR/<session>`` and rosbags open it. One
+and on close (``drive/bagdir.py``), so ``ros2 bag info/play DIR/<session>`` and rosbags open it. One
 Pipeline runs for the whole
 session and its sink switches files on rotation (by host time since the file was opened or by size), so
 decoder and time-sync state carry over: the raw bytes are split between files at a read boundary, and the
@@ -89,7 +89,8 @@ from typing import Callable, TextIO
 import numpy as np
 import serial
 
-from fieldlog.acquire import bagdir, calib, canport, messages, nmea, outputs, recorder, recovery, timesync
+from fieldlog.acquire import calib, canport, nmea, recovery, timesync
+from fieldlog.drive import bagdir, messages, outputs, recorder
 from fieldlog.acquire.config import (AcquireConfig, CanConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name,
                                      session_name)
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink

@@ -19,7 +19,8 @@ import math
 
 import numpy as np
 
-from fieldlog.acquire import calib, messages
+from fieldlog.acquire import calib
+from fieldlog.drive import messages
 
 BASE_LINK, IMU, GPS_ANTENNA, MAP, ODOM, EARTH = "base_link", "imu", "gps_antenna", "map", "odom", "earth"
 

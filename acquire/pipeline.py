@@ -16,8 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import (calib, canbus, counterjudge, daq, frames, gnss, gpsport, messages, metavalue, nmea,
-                              novatel, timesync, ubx)
+from fieldlog.acquire import calib, canbus, counterjudge, daq, frames, gnss, gpsport, nmea, novatel, timesync, ubx
+from fieldlog.drive import messages, metavalue
 
 log = logging.getLogger(__name__)
 

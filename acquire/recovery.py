@@ -1,8 +1,8 @@
 """A drive cut short, made complete: ``fieldlog recover`` and the daemon's recovery on start.
 
 ``recover`` keeps every complete chunk: it walks the file record by record with mcap's StreamReader, keeps every
-schema, channel and metadata record and every chunk whose content checks (``acquire.chunks``), and writes them
-with fresh message indexes and a summary (``acquire.recorder.Recorder``). The derived topics lag the raw reads
+schema, channel and metadata record and every chunk whose content checks (``drive.chunks``), and writes them
+with fresh message indexes and a summary (``drive.recorder.Recorder``). The derived topics lag the raw reads
 (``/imu`` by about half the time-sync window, a minute with a sampled PPS), so a crash leaves the tail's raw bytes
 without their derived messages. ``TailDeriver`` re-derives them as ``fieldlog rebuild`` does: every kept raw read
 goes through the pipeline, in file order (the order the daemon processed them), with the drive's calibration and
@@ -18,14 +18,12 @@ from pathlib import Path
 from typing import BinaryIO, Protocol
 
 import numpy as np
-from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.acquire.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
+from fieldlog.drive import messages, outputs
+from fieldlog.drive.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
 from fieldlog.acquire.pipeline import Pipeline
-from fieldlog.acquire.recorder import MAGIC, Recorder
+from fieldlog.drive.recorder import MAGIC, Recorder
+from fieldlog.drive.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Opcode, Schema, StreamReader
 
 
 @dataclass

@@ -27,7 +27,6 @@ from fieldlog.fusion import earth, errmodel
 from fieldlog.fusion.dkf import FUSIONS
 from fieldlog.fusion.predictors import PredictorConfig
 
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
 GPS_ERROR_MODELS = ("consider", "gm-states")
 SCALE_FACTOR_MODELS = ("consider", "bias-steps")
 _DEG = math.pi / 180.0

@@ -17,7 +17,7 @@ epoch (``fusion.outages`` classifies it, a GPS silence gives no-fix epochs):
 3. at a usable fix the fix's measurements (stage "fix") are one update, after the heading check
    (``fusion.align.HeadingCheck``, which may re-align), then fed back.
 
-The filter (:func:`make_filter`) gets what it declares it needs (``fusion.kf.KalmanFilter``) and routes the
+The filter (the method's factory, ``fusion.methods``) gets what it declares it needs (``fusion.kf.KalmanFilter``) and routes the
 observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback.
 The loop names no sensor and no filter type.
 """
@@ -29,11 +29,10 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from fieldlog.fusion import align, clipgyro, errmodel, ins, kf, listeners, measurements, output, ukf
-from fieldlog.fusion.config import GPS_ERROR_MODELS, METHODS, FusionConfig
-from fieldlog.fusion.filters import make_filter
+from fieldlog.fusion import align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output, ukf
+from fieldlog.fusion.config import GPS_ERROR_MODELS, FusionConfig
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
-from fieldlog.fusion.outages import PREDICTOR_NETWORK, OutageTracker, PredictorBridge, Silence
+from fieldlog.fusion.outages import OutageTracker, PredictorBridge, Silence
 from fieldlog.fusion.types import Epoch, GpsBlock, ImuBlock, OdomBlock, Outage, Solution
 
 if TYPE_CHECKING:
@@ -43,7 +42,7 @@ _DEG = math.pi / 180.0
 
 
 class Engine:
-    """One fusion run (a method of ``METHODS``) over a stream of blocks. ``measurements``: ``for_method``'s;
+    """One fusion run (a method of ``fusion.methods``) over a stream of blocks. ``measurements``: the method's;
     ``updates``: fixes used; ``predicted``: outage epochs bridged; ``hybrid_parts`` (``dkf-rbfn``): per outage
     epoch t (s), the fused state prediction and the predicted innovations' change, position and velocity (6,)."""
 
@@ -51,27 +50,26 @@ class Engine:
                  make_predictor: Callable[..., Any] | None = None) -> None:
         """log: a ``fusion.smoother.SmootherLog`` to fill for the backward pass, or None; make_predictor: the
         outage predictor's factory (``fusion.outages.PredictorBridge``'s ``make``), None: one in this process."""
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; one of {METHODS}")
+        self.spec = methods.get(method)
         self.method, self.log = method, log
         self.cfg = config or FusionConfig()
         if self.cfg.gps.gps_error_model not in GPS_ERROR_MODELS:
             raise ValueError(f"gps_error_model must be one of {GPS_ERROR_MODELS}, got {self.cfg.gps.gps_error_model!r}")
-        if self.cfg.gps.gps_error_model == "gm-states" and (method != "kf" or log is not None):
-            self.cfg = self.cfg.replace(gps_error_model="consider")  # the states are kf's, without smoothing
+        if self.cfg.gps.gps_error_model == "gm-states" and (not self.spec.gps_error_states or log is not None):
+            self.cfg = self.cfg.replace(gps_error_model="consider")  # the states are the KF's, without smoothing
         self.q = self.cfg.sensor.noise_psd()
-        self.measurements = measurements.for_method(method, self.cfg)
+        self.measurements = self.spec.measurements(self.cfg)
         self.gps_errors = listeners.GpsErrorBook(self.cfg.gps.gps_error_tau_s, log)
         self.listeners: list[listeners.Listener] = ([listeners.SmootherRecorder(log)] if log is not None else []) + [
             self.gps_errors]
         self.t_ref_ns: int | None = None
         self.nav: ins.NavState | None = None
-        self.filter = None  # make_filter's, from the alignment on
+        self.filter = None  # the method's filter, from the alignment on
         self.bg, self.ba = np.zeros(3), np.zeros(3)
         self.updates = self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor)
-                       if method in PREDICTOR_NETWORK else None)
+        self.bridge = (PredictorBridge(self.spec.bridge, self.cfg.predictor, make_predictor)
+                       if self.spec.bridge is not None else None)
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()
@@ -164,7 +162,7 @@ class Engine:
     def _start(self, a: align.Aligned, t_k: float, t_k_ns: int) -> None:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
-        self.filter = make_filter(self.method, a.P0, self.q, self.cfg)
+        self.filter = self.spec.filter(a.P0, self.q, self.cfg)
         s = self.cfg.sensor
         if s.scale_factor_model == "consider" and (s.gyro_scale_factor_ppm > 0.0 or s.gyro_misalignment_mrad > 0.0):
             self.listeners.append(listeners.GyroConsider(s.gyro_scale_factor_ppm * 1e-6,
@@ -242,7 +240,7 @@ class Engine:
         if r is None:
             return False
         self.nav, P = r
-        self.filter = make_filter(self.method, P, self.q, self.cfg)
+        self.filter = self.spec.filter(P, self.q, self.cfg)
         self.alignment.note += "; re-aligned from the GPS course (chi-square test on the GPS velocity innovations)"
         return True
 

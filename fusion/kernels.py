@@ -1,7 +1,7 @@
 """fusion's compiled kernels (fusion/_ins.c, fusion/_cycles.c), loaded once per process through ctypes.
 
 They are built with the package (setup.py: plain C, no Python headers). fusion imports nothing of the rest of
-fieldlog, so it has this loader of its own beside ``fieldlog.acquire.native``.
+fieldlog, so it has this loader of its own beside ``fieldlog.drive.native``.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ attributes tell the filters what it is:
   update); ``receiver`` True when R is the receiver's own figure (the adaptive filters of ``fusion.sckf`` rescale
   only those).
 
-:func:`for_method` builds the list a method runs with. A new aid (a wheel-speed odometer, say) is one more
+:func:`aids_and_gps` builds the list an aided method runs with (``fusion.methods.Method.measurements``). A new aid (a wheel-speed odometer, say) is one more
 class here with the same method and attributes, and one more entry there.
 """
 
@@ -283,12 +283,9 @@ class FirstOf:
         return None
 
 
-def for_method(method: str, cfg: FusionConfig) -> list[MeasurementModel]:
-    """The measurements a method runs with, in the order the loop applies them: the vehicle aids (not for the
-    free INS, ``ins``; ``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), then the GPS velocity
-    and position."""
-    if method == "ins":
-        return []
+def aids_and_gps(cfg: FusionConfig) -> list[MeasurementModel]:
+    """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids
+    (``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), then the GPS velocity and position."""
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (

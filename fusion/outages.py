@@ -25,10 +25,10 @@ import numpy as np
 from fieldlog.fusion import kf, predictors
 from fieldlog.fusion.errmodel import N_STATES, POS, VEL
 from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.methods import Bridge
 from fieldlog.fusion.types import Epoch, Outage
 
 NS = 1_000_000_000
-PREDICTOR_NETWORK = {"rbfn": "rbfn", "tdln": "tdln", "dkf-rbfn": "rbfn"}
 
 
 class OutageTracker:
@@ -112,20 +112,21 @@ class Silence:
 
 
 class PredictorBridge:
-    """The outage predictor of a method of ``PREDICTOR_NETWORK``, fed and asked by the engine at GPS epochs.
+    """The outage predictor of a method with a bridge (``fusion.methods.Bridge``), fed and asked by the engine at GPS
+    epochs.
 
-    ``rbfn``, ``tdln``: the predictor alone (section 2.2); targets z = INS - GPS, the prediction is the correction.
-    ``dkf-rbfn``: the hybrid (section 2.3, eq. 7); targets the local filters' innovation components, velocity from
+    Not hybrid (``rbfn``, ``tdln``): the predictor alone (section 2.2); targets z = INS - GPS, the prediction is the
+    correction. Hybrid (``dkf-rbfn``): section 2.3, eq. 7; targets the local filters' innovation components, velocity from
     KF_I and position from KF_II; the prediction is added to the local filters' state prediction
     (``DistributedKF.predicted_update``)."""
 
-    def __init__(self, method: str, config: predictors.PredictorConfig,
+    def __init__(self, bridge: Bridge, config: predictors.PredictorConfig,
                  make: Callable[[str, predictors.PredictorConfig], Any] | None = None) -> None:
         """``make(network, config)``: the predictor, anything with the ``train`` and ``predict`` of
         :class:`fusion.predictors.OutagePredictor` (one that trains it elsewhere, e.g. in another process); None:
         an OutagePredictor here."""
-        self.hybrid = method == "dkf-rbfn"
-        self.predictor = (make or predictors.OutagePredictor)(PREDICTOR_NETWORK[method], config)
+        self.hybrid = bridge.hybrid
+        self.predictor = (make or predictors.OutagePredictor)(bridge.network, config)
         self.origin: tuple[float, float, float] | None = None  # lat, lon, h of the alignment point
 
     def input(self, nav: NavState) -> np.ndarray:

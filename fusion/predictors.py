@@ -84,6 +84,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 N_CHANNELS = 6  # position E, N, U (m), velocity E, N, U (m/s)
+RBF, TDL = "rbf", "tdl"  # the network kinds: radial basis functions (RBFN), time-delay linear (TDLN)
+NETWORKS = (RBF, TDL)
 _STD_FLOOR = 1e-3  # m or m/s: a constant input is not stretched into noise
 
 
@@ -292,7 +294,7 @@ class OnlineChannel:
     def features(self, x: np.ndarray) -> np.ndarray:
         """Feature rows (n, l) for inputs: RBFN the current inputs x (n,); TDLN a series x (n,), one row per step."""
         xn = (np.asarray(x, float) - self.mean) / self.std
-        if self.kind == "rbfn":
+        if self.kind == RBF:
             return rbf_design(xn, self.c, self.s)
         d = delay_rows(xn, self.cfg.taps)
         return np.hstack([np.ones((len(d), 1)), d])
@@ -301,7 +303,7 @@ class OnlineChannel:
         """New centres and normaliser from the window's inputs U (n,) and targets Y (n,) (NaN: none); RLS rerun."""
         ok = np.isfinite(Y)
         self.mean, self.std = _normaliser(U[ok])
-        if self.kind == "rbfn":
+        if self.kind == RBF:
             c = kmeans_centres((U[ok] - self.mean) / self.std, self.cfg.centres, self.cfg.seed)
             if len(c) > 1:
                 gap = np.diff(c)
@@ -320,19 +322,19 @@ class OnlineChannel:
     def stale(self, x: float) -> bool:
         """RBFN: an input beyond the outer centres by more than their width (the vehicle left the trained
         region), so the centres are due now."""
-        if self.kind != "rbfn":
+        if self.kind != RBF:
             return False
         xn = (x - self.mean) / self.std
         return bool(xn < self.c[0] - self.s[0] or xn > self.c[-1] + self.s[-1])
 
     def step(self, U: np.ndarray, y: float) -> None:
         """One RLS update with the newest sample: U the input series (the last one is current), y its target."""
-        phi = self.features(U[-1:] if self.kind == "rbfn" else U[-self.cfg.taps:])[-1]
+        phi = self.features(U[-1:] if self.kind == RBF else U[-self.cfg.taps:])[-1]
         self.rls.update(phi, y)
         self.since += 1
 
     def predict(self, U: np.ndarray) -> float:
-        phi = self.features(U[-1:] if self.kind == "rbfn" else U[-self.cfg.taps:])[-1]
+        phi = self.features(U[-1:] if self.kind == RBF else U[-self.cfg.taps:])[-1]
         return float(phi @ self.rls.w)
 
 
@@ -364,7 +366,7 @@ class History:
 
 
 class OutagePredictor:
-    """The six channels of one method (``"rbfn"`` or ``"tdln"`` networks) and their training history.
+    """The six channels of one method (``RBF`` or ``TDL`` networks) and their training history.
 
     Fed once per GPS epoch by the fusion loop: :meth:`train` at a usable epoch (input and target),
     :meth:`predict` at an outage epoch (input; returns the predicted target). History is bounded:
@@ -377,11 +379,11 @@ class OutagePredictor:
     """
 
     def __init__(self, kind: str, config: PredictorConfig | None = None) -> None:
-        if kind not in ("rbfn", "tdln"):
+        if kind not in NETWORKS:
             raise ValueError(f"unknown network {kind!r}")
         self.kind = kind
         self.cfg = config or PredictorConfig()
-        cap = self.cfg.window + (self.cfg.taps if kind == "tdln" else 0)
+        cap = self.cfg.window + (self.cfg.taps if kind == TDL else 0)
         self._u, self._y = History(cap, N_CHANNELS), History(cap, N_CHANNELS)
         self._models: list[Rbfn | Tdln | None] | None = None
         self._settle_until = -math.inf
@@ -438,7 +440,7 @@ class OutagePredictor:
             if m is None:
                 continue
             # the RBFN maps the current input; the TDLN needs its delay line, the last `taps` inputs
-            out[i] = m.predict(U[-1:, i])[0] if self.kind == "rbfn" else m.predict(U[-self.cfg.taps:, i])[-1]
+            out[i] = m.predict(U[-1:, i])[0] if self.kind == RBF else m.predict(U[-self.cfg.taps:, i])[-1]
         return np.clip(out, self._lo, self._hi)
 
     def _push(self, u: np.ndarray, y: np.ndarray) -> None:
@@ -456,7 +458,7 @@ class OutagePredictor:
                 models.append(None)
                 continue
             self._lo[i], self._hi[i] = Y[ok, i].min(), Y[ok, i].max()
-            if self.kind == "rbfn":
+            if self.kind == RBF:
                 models.append(Rbfn(c.centres, c.width_scale, c.ridge, c.seed).fit(U[ok, i], Y[ok, i]))
             else:
                 models.append(Tdln(c.taps, c.ridge).fit(U[:, i], Y[:, i]))

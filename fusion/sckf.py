@@ -282,5 +282,3 @@ def ssr_sckf(P0: np.ndarray, q: np.ndarray) -> CubatureKF:
     """The adaptive SSR-SCKF: simplex-radial points, SVD measurement update, moving-window R."""
     return CubatureKF(P0, q, simplex_radial_rule(N_STATES), svd=True, adaptive=MovingWindowR())
 
-
-FILTERS = {"sckf": sckf, "ssr-sckf": ssr_sckf}

@@ -1,7 +1,7 @@
 """A drive as polars tables: ``drive_frames(path)`` for notebooks, ``fieldlog export DRIVE... --out DIR``; its
 tracks as KML or GPX (``--format kml|gpx``, below).
 
-A drive of several files (a rotated session, a rosbag2 directory: ``replay.drive``) gives one table per topic.
+A drive of several files (a rotated session, a rosbag2 directory: ``drive.files``) gives one table per topic.
 
 One table per topic, one row per MCAP message, in ``log_time`` order; ``fieldlog export`` writes ``/raw/*``
 in recorded order instead (the same unless the host wall clock stepped back), streaming. Written as
@@ -74,9 +74,9 @@ from typing import BinaryIO, Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.replay import reader, solutions
-from fieldlog.replay.drive import DriveSpec, drive_files, label
+from fieldlog.drive import messages, outputs, reader
+from fieldlog.drive.files import DriveSpec, drive_files, label
+from fieldlog.replay import solutions
 
 
 def _xyz(prefix: str, a: np.ndarray, names: Sequence[str] = ("x", "y", "z")) -> dict[str, np.ndarray]:
@@ -265,7 +265,7 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``), or the NavSatFix topics as tracks
     in one KML or GPX file (``export_tracks``). -> {topic: (file, rows)}. Every file is new (unless ``force``),
-    and ``out`` and the folders made in it are never symbolic links (``acquire.outputs``)."""
+    and ``out`` and the folders made in it are never symbolic links (``drive.outputs``)."""
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file

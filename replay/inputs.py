@@ -30,9 +30,11 @@ from typing import TYPE_CHECKING, Generator, Iterator
 
 import numpy as np
 
-from fieldlog.acquire import messages
+from fieldlog.drive import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
-from fieldlog.replay import reader
+from fieldlog.drive import reader
+from fieldlog.drive.drive import Drive, file_transforms
+from fieldlog.drive.files import DriveSpec, open_drive
 from fieldlog.replay.ahead import Ahead
 
 if TYPE_CHECKING:
@@ -131,14 +133,15 @@ def _first_frame_id(path: str | os.PathLike[str], topic: str) -> str:
     return ""
 
 
-def tf_static(path: str | os.PathLike[str]) -> dict[str, tuple[str, np.ndarray, np.ndarray]]:
-    """The drive's static transforms: child frame -> (parent frame, translation (3,) m, C_parent_child (3, 3))."""
+def tf_static(path: DriveSpec) -> dict[str, tuple[str, np.ndarray, np.ndarray]]:
+    """The drive's static transforms: child frame -> (parent frame, translation (3,) m, C_parent_child (3, 3)).
+    A ``drive.drive.Drive``'s are checked across its files (``Drive.tf_static``); for a path, every file's in
+    log-time order, a later file's winning."""
+    if isinstance(path, Drive):
+        return path.tf_static()
     out: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
-    for msg in reader.iter_decoded(path, TF_STATIC):
-        for tr in msg.transforms:
-            t, r = tr.transform.translation, tr.transform.rotation
-            out[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), np.array([t.x, t.y, t.z]),
-                                                  earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w])))
+    for f in open_drive(path):
+        out.update(file_transforms(f.path))
     return out
 
 

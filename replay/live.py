@@ -13,8 +13,8 @@ The daemon serves the bus on a Unix domain socket (``[daemon] bus`` in its confi
 API (stable; ``fieldlog view --live`` and live fusion use it):
 
 ``iter_blocks(path, topics, block_s, max_lag_s=None, final=False, host_clock=False)``
-    yields ``LiveBlock``s: ``replay.reader.Block``s (``t0_ns``, ``t1_ns``, ``data[topic]`` decoded by the
-    same ``replay.reader.decode`` as ``replay.reader.iter_blocks``) so fusion code cannot tell live from
+    yields ``LiveBlock``s: ``drive.reader.Block``s (``t0_ns``, ``t1_ns``, ``data[topic]`` decoded by the
+    same ``drive.reader.decode`` as ``drive.reader.iter_blocks``) so fusion code cannot tell live from
     recorded, plus ``provisional`` (its ``/imu`` rows carry provisional stamps), ``sync_state`` (the worst
     SyncState among them, None without provisional rows), ``read_mono_ns`` (host monotonic time of the newest
     serial read received when the block was yielded) and ``recv_mono_ns`` (when that batch was received). With
@@ -45,8 +45,8 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from fieldlog.acquire import messages
-from fieldlog.replay.reader import Block, concat, decode
+from fieldlog.drive import messages
+from fieldlog.drive.reader import Block, concat, decode
 
 FLAG_PROVISIONAL = 1     # acquire.daemon.BUS_PROVISIONAL
 FLAG_HOST_CLOCK = 2      # acquire.daemon.BUS_HOST_CLOCK
@@ -70,7 +70,7 @@ class Batch:
 
 @dataclass(frozen=True)
 class LiveBlock(Block):
-    """A ``replay.reader.Block`` from the bus, with the provisional / sync state of its ``/imu`` rows."""
+    """A ``drive.reader.Block`` from the bus, with the provisional / sync state of its ``/imu`` rows."""
 
     provisional: bool = False
     sync_state: int | None = None

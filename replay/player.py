@@ -4,7 +4,7 @@ The drive is read in ``PLAY_BLOCK_S`` blocks as ``fuse`` reads it (``replay.inpu
 stamps, late-logged messages re-sequenced), each block goes through the incremental ``fusion.engine.Engine``
 and what it holds and produced is logged at once on the ``gps_time`` timeline, paced so that data time runs X
 times faster than the wall clock. ``play`` takes any iterator of
-``replay.reader.Block``: ``live_view`` (``fieldlog view --live``, ``fieldlog acquire --view``) feeds it the
+``drive.reader.Block``: ``live_view`` (``fieldlog view --live``, ``fieldlog acquire --view``) feeds it the
 daemon's live bus (``replay.live.iter_blocks``), unpaced.
 
 The entities and colours are those of ``replay.view`` (its module docstring), with the blueprint of
@@ -31,14 +31,14 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import Outage, Solution
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay import inputs
-from fieldlog.replay.drive import DriveSpec
-from fieldlog.replay.reader import IN_TOPICS, gps_block
+from fieldlog.drive.files import DriveSpec
+from fieldlog.drive.reader import IN_TOPICS, gps_block
 from fieldlog.replay import view as rv
 
 PLAY_BLOCK_S = 1.0  # data seconds per logged block

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from fieldlog.acquire import calib, frames, messages
-from fieldlog.acquire.recorder import Recorder
+from fieldlog.acquire import calib, frames
+from fieldlog.drive import messages
+from fieldlog.drive.recorder import Recorder
 from fieldlog.fusion import earth
 from fieldlog.fusion.types import Solution
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec
 
 PREFIX = "/fusion/"
 OUTAGE = "/fusion/outage"  # outage windows (injected and detected), shared by every method of a file
@@ -36,7 +37,7 @@ def topic(method: str, name: str) -> str:
 
 def topics(method: str, has_locals: bool) -> list[str]:
     """Every topic ``write_solution`` and ``Odometry`` write for ``method``; ``has_locals``: the method's filter
-    has local solutions (``fusion.filters.has_local_filters``)."""
+    has local solutions (``fusion.methods.Method.local_filters``)."""
     names = [*SOLUTION, *ODOMETRY, *(LOCALS if has_locals else ())]
     return [topic(method, n) for n in names] + [TF, TF_STATIC]
 
@@ -56,7 +57,7 @@ def has(fused: DriveSpec | Solution, method: str, name: str) -> bool:
 
 
 def read(fused: DriveSpec | Solution, method: str, name: str) -> dict[str, object]:
-    """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``replay.reader.read_topic``): a fused
+    """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``drive.reader.read_topic``): a fused
     file, or the solution rows in memory (``tools.fuse.fuse(..., keep=True)``; ``name`` of ``SOLUTION`` or
     ``LOCALS``), whose messages are those ``write_solution`` writes, decoded as the file's are, so both give the
     same arrays to the bit."""

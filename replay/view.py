@@ -98,11 +98,14 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from fieldlog.acquire import calib, frames, outputs
+from fieldlog.acquire import calib, frames
+from fieldlog.drive import outputs
 from fieldlog.fusion import earth
-from fieldlog.replay import reader, solutions
+from fieldlog.fusion.methods import REGISTRY
+from fieldlog.drive import reader
+from fieldlog.replay import solutions
 from fieldlog.replay.ahead import Ahead
-from fieldlog.replay.drive import DriveSpec, drive_files, label
+from fieldlog.drive.files import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
 
@@ -121,9 +124,7 @@ OUTAGE_COLOR = (230, 30, 30, 200)
 OUTAGE_BAND_COLOR = (230, 30, 30, 60)
 OUTAGE_BAND_WIDTH = 36.0  # ui points
 SIGMA_ALPHA = 70  # the map's sigma discs
-METHOD_COLORS = {"ins": (200, 40, 40), "kf": (30, 100, 255), "dkf": (150, 60, 210), "dkf-rbfn": (0, 175, 190),
-                 "rbfn": (200, 120, 0), "tdln": (120, 80, 40), "kf-ukf": (230, 60, 160), "ssr-sckf": (90, 90, 90),
-                 "hinf": (40, 40, 140)}
+METHOD_COLORS = {m.name: m.colour for m in REGISTRY.values() if m.colour is not None}
 _PALETTE = [(0, 150, 150), (180, 0, 120), (100, 100, 0), (0, 80, 160), (160, 80, 0)]
 
 

@@ -15,10 +15,12 @@ from typing import Callable, Generator, Sequence
 
 import numpy as np
 
-from fieldlog.acquire import messages, nmea
-from fieldlog.replay import inputs, reader, solutions
+from fieldlog.acquire import nmea
+from fieldlog.drive import messages
+from fieldlog.drive import reader
+from fieldlog.replay import inputs, solutions
 from fieldlog.replay.ahead import Ahead
-from fieldlog.replay.drive import DriveSpec
+from fieldlog.drive.files import DriveSpec
 from fieldlog.replay.inputs import InputMap
 
 IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.fusion.config import METHODS
+from fieldlog.fusion.methods import METHODS
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.fusion.types import Solution
 from fieldlog.replay import inputs as inputs_mod
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay.inputs import InputStream
 from fieldlog.tools.fuse import BLOCK_S, drive_config
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from mcap_ros2.writer import Writer
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 
 TIME = "int32 sec\nuint32 nanosec\n"
 HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"
@@ -159,7 +159,7 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
         if spec.odom_topic:
             s_odom = wr.register_msgdef(spec.odom_type, ODOM_DEFS[spec.odom_type])
             t_od, _, p_od = reader.read_payloads(native, "/vehicle/twist")
-            from fieldlog.acquire import messages
+            from fieldlog.drive import messages
 
             odom = messages.decode_twist(p_od)
             events += [(int(odom["stamp_ns"][j]) + 3_000_000, 2, j) for j in range(len(t_od))

@@ -16,7 +16,7 @@ from fieldlog.acquire.config import ConfigError
 from fieldlog.fusion import earth, imugrade
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.errmodel import BG
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay.inputs import InputSpec, InputStream, resolve
 from fieldlog.tools.evaluation.evaluate import (attitude_errors, attitudes, heading_at_starts, outage_error_series,
                                                 rms_columns)

@@ -13,7 +13,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from fieldlog.acquire import bagdir
+from fieldlog.drive import bagdir
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.tools.sim.simulate import simulate
 from test_daemon import run, start_daemon

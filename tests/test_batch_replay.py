@@ -14,7 +14,7 @@ import pytest
 from test_view_export import RERUN, _rerun, _rows
 
 from fieldlog.replay import view as rview
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.batch import RESULT_SCHEMA, drive_rows, results_table
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.dev.cluster import loopback_cluster

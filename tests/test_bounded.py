@@ -17,9 +17,10 @@ from mcap.opcode import Opcode
 from mcap.records import Chunk, DataEnd, Footer, Metadata, MessageIndex
 from mcap.stream_reader import StreamReader
 
-from fieldlog.acquire import chunks, recorder, recovery
-from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
-from fieldlog.replay import reader
+from fieldlog.acquire import recovery
+from fieldlog.drive import chunks, recorder
+from fieldlog.drive.drivestats import RECORD as INFO_RECORD
+from fieldlog.drive import reader
 from fieldlog.tools.sim import simulate
 from test_serve import ROOT
 
@@ -156,7 +157,7 @@ def test_a_frame_larger_than_its_chunk_claims_is_never_decompressed_past_the_cla
     chunk claiming 4 KiB stops at the claim (the decoders would otherwise size their output by the header)."""
     probe = """
 import resource, zstandard, lz4.frame
-from fieldlog.acquire import chunks
+from fieldlog.drive import chunks
 big = bytes(256 << 20)
 frames = {"zstd": zstandard.ZstdCompressor(level=1).compress(big),
           "zstd-stream": zstandard.ZstdCompressor(level=1).compressobj().compress(big),
@@ -209,13 +210,13 @@ def test_recover_writes_about_its_input_plus_the_rederived_tail(tmp_path: Path) 
 
 _RSS_PROBE = """import sys
 import numpy as np
-from fieldlog.acquire import native
-from fieldlog.replay.mcapfile import McapFile
+from fieldlog.drive import native
+from fieldlog.drive.mcapfile import McapFile
 
 def status(key):  # this process's own figures (ru_maxrss would start from the parent's, as exec keeps it)
     return next(int(x.split()[1]) for x in open("/proc/self/status") if x.startswith(key)) * 1024
 
-native.ready(), native.library("fieldlog.acquire._chunks", native.CHUNKS)
+native.ready(), native.library("fieldlog.drive._chunks", native.CHUNKS)
 before = status("VmRSS:")
 f = McapFile(sys.argv[1])
 every = np.arange(len(f.pieces.size))

@@ -13,8 +13,9 @@ import cantools
 import numpy as np
 import pytest
 
-from fieldlog.acquire import can, canbus, messages
-from fieldlog.replay import reader
+from fieldlog.acquire import can, canbus
+from fieldlog.drive import messages
+from fieldlog.drive import reader
 from fieldlog.tools.rebuild import rebuild
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import can, messages
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata, read_metadata_records
+from fieldlog.acquire import can
+from fieldlog.drive import messages
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata, read_metadata_records
 from fieldlog.tools.rebuild import iter_raw, rebuild
 from fieldlog.tools.sim import vehicle
 from fieldlog.tools.sim.serve import corrupt_stream, delivered, simulated_streams

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -190,3 +190,22 @@ def test_progress_with_eta_on_a_terminal_only(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fieldlog", "sim", "--duration", "10", "--out", str(tmp_path / "p.mcap")],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0 and r.stderr == "" and r.stdout.startswith("wrote"), r.stderr
+
+
+@pytest.mark.parametrize("how", ["process substitution", "stdin"])
+def test_fuse_config_through_a_pipe_takes_effect(figure8_150s_seed3, tmp_path, how):
+    """``--config <(...)`` and ``--config /dev/stdin`` give their bytes once: the command reads them once, and the
+    fused file's ``fusion`` record carries what they said (the drive's own record and the defaults have the NHC
+    on, so a config read empty would show)."""
+    exe = Path(sys.executable).parent / "fieldlog"
+    fused = tmp_path / "kf.mcap"
+    fuse = f"'{exe}' fuse -q '{figure8_150s_seed3}' --method kf --out '{fused}'"
+    table = r"printf '[fusion]\nnhc = false\n'"
+    script = {"process substitution": f"{fuse} --config <({table})",
+              "stdin": f"{table} | {fuse} --config /dev/stdin"}[how]
+    run = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    fused_config = ast.literal_eval(reader.read_metadata(fused)["fusion"]["config"])
+    assert fused_config["nhc"] is False
+    drive_record = reader.read_metadata(figure8_150s_seed3).get("fusion.config", {})
+    assert ast.literal_eval(drive_record.get("nhc", "True")) is True

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldlog.acquire import counterjudge, daq
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 
 L = daq.FRAME_SIZE
 FS = 500.0
@@ -203,7 +203,7 @@ def test_capture_with_one_counter_jumped_frame_imports_and_rebuilds_with_its_imu
     assert len(imu) >= 0.99 * n
     steps = np.round(np.diff(imu) / (1e9 / FS))
     assert steps.min() >= 1 and steps.max() <= 2            # no sample moved by the jump
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.reader import read_metadata
     c = read_metadata(out)["acquire.counters"]
     assert int(c["daq.counter_implausible"]) == 1 and int(c["processing_errors"]) == 0
     again = tmp_path / "rebuilt.mcap"
@@ -223,7 +223,7 @@ def test_daemon_with_crc_passing_counter_corruption_loses_no_imu_sample_outside_
     from test_daemon_faults import FRAME_NS, record
     from test_serve import expected_bytes
 
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.reader import read_metadata
     from fieldlog.tools.sim.serve import corrupt_counters, corrupt_stream
 
     duration, seed = 600.0, 11

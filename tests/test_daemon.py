@@ -13,11 +13,13 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
-from fieldlog.acquire import gpsport, messages
+from fieldlog.acquire import gpsport
+from fieldlog.drive import messages
 from fieldlog.acquire.daemon import is_finished
-from fieldlog.replay import live, reader
+from fieldlog.drive import reader
+from fieldlog.replay import live
 from test_serve import ROOT, expected_bytes, start_serve
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive.reader import read_metadata
 
 
 def start_daemon(out: Path, paths: dict[str, str], *extra: str, **popen: Any) -> tuple[subprocess.Popen, str]:

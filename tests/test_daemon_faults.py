@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import daq, messages
+from fieldlog.acquire import daq
+from fieldlog.drive import messages
 from fieldlog.acquire.daemon import is_finished
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from test_daemon import gps_frames, raw_stream, run, start_daemon, wait_caught_up
 from test_serve import expected_bytes, start_serve
-from fieldlog.replay.reader import read_metadata, read_metadata_records
+from fieldlog.drive.reader import read_metadata, read_metadata_records
 from fieldlog.tools.sim.serve import PORTS, corrupt_stream
 
 SPEED = 20

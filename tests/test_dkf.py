@@ -12,7 +12,7 @@ from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.types import ImuBlock
-from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks, read_topic
+from fieldlog.drive.reader import IN_TOPICS, gps_block, iter_blocks, read_topic
 from fieldlog.tools.evaluation.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
 

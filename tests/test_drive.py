@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.info import drive_info, format_info
 from fieldlog.tools.rebuild import iter_raw, rebuild
@@ -140,7 +140,8 @@ def test_feed_reads_takes_daq_runs_as_one_with_the_outputs_of_each_read_in_turn(
     writes, to the byte, before the lock, locked, in holdover or on damaged bytes, and most reads went as runs."""
     from dataclasses import replace
 
-    from fieldlog.acquire import recorder, timesync
+    from fieldlog.acquire import timesync
+    from fieldlog.drive import recorder
     from fieldlog.acquire.pipeline import Pipeline
     from fieldlog.tools.sim import simulate as sim, trajectory
 
@@ -301,7 +302,7 @@ def test_demo_runs_the_whole_pipeline(tmp_path, capsys):
 
 
 def test_cli_method_list_is_the_engines():
-    from fieldlog.fusion.config import METHODS
+    from fieldlog.fusion.methods import METHODS
     from fieldlog.tools import cli
 
     assert tuple(cli.METHODS) == tuple(METHODS)
@@ -325,7 +326,8 @@ def test_jumped_epochs_a_late_read_holds_together_keep_their_order(tmp_path):
     them, /gps/fix still goes forward in log time, one epoch after the other."""
     from dataclasses import replace
 
-    from fieldlog.acquire import messages, recorder, timesync
+    from fieldlog.acquire import timesync
+    from fieldlog.drive import messages, recorder
     from fieldlog.acquire.pipeline import NS, Pipeline
     from fieldlog.tools.sim import simulate as sim, trajectory
 

@@ -1,4 +1,4 @@
-"""acquire.drivestats' streaming figures (bounded memory) against the whole-array computation they replace, on
+"""drive.drivestats' streaming figures (bounded memory) against the whole-array computation they replace, on
 stamps with gaps, jitter and missing GPS epochs, written by a third-party writer (mcap_ros2's Writer, scanned)
 and by the recorder in small batches (the record); and the quantised median's independence of batching."""
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from mcap_ros2.writer import Writer
 
-from fieldlog.acquire import messages, recorder
-from fieldlog.acquire.drivestats import QuantisedMedian
+from fieldlog.drive import messages, recorder
+from fieldlog.drive.drivestats import QuantisedMedian
 from fieldlog.tools.info import drive_info
 
 from foreign_drives import FIX_DEF, IMU_DEF, _stamp

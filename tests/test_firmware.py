@@ -358,9 +358,9 @@ def test_daemon_records_the_emulated_board_as_the_simulated_one(tmp_path: Path) 
     PPS flags those the simulator fed, latches within 2 LSB of the simulator's own, time sync locked, and the
     stamps' error against truth within 2x that of the plain simulator (`fieldlog sim`, same drive)."""
     from fieldlog.acquire.timesync import SyncState
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
     from fieldlog.tools import info
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.reader import read_metadata
     from fieldlog.tools.sim.serve import simulated_streams
     from fieldlog.tools.sim.simulate import simulate
 
@@ -408,7 +408,7 @@ def test_a_transmit_path_slower_than_the_adc_shows_as_counted_dropped_samples(tm
     samples, and every drop is a counter gap that the daemon counts and `fieldlog info` prints; frames plus
     lost frames account for every sample fed but the last few (the ring still holds 64 when the input
     stops, covering the last 80 samples)."""
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.reader import read_metadata
 
     from test_daemon import run
 

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay import inputs, reader
+from fieldlog.drive import reader
+from fieldlog.replay import inputs
 from fieldlog.replay import view as rview
 from fieldlog.replay.solutions import Diverged, write_solution
 from fieldlog.tools.cli import main as cli_main

@@ -20,10 +20,10 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive.reader import read_metadata
 from test_daemon import start_daemon, wait_for_clients, wait_until
 from test_serve import start_serve
 

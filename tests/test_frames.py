@@ -12,7 +12,7 @@ from mcap_ros2.decoder import DecoderFactory
 from fieldlog.acquire import calib
 from fieldlog.fusion import earth
 from fieldlog.tools.cli import main as fieldlog
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim.simulate import simulate
 
 

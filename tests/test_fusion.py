@@ -9,7 +9,7 @@ from fieldlog.fusion import earth, errmodel, ins, kf
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
@@ -237,8 +237,8 @@ def test_urban_heading_through_sharp_turns_that_clip_the_gyro(tmp_path):
 
 
 def test_closed_loop_resets_and_keeps_covariance_spd(drive):
-    from fieldlog.replay.reader import iter_blocks
-    from fieldlog.replay.reader import IN_TOPICS, gps_block
+    from fieldlog.drive.reader import iter_blocks
+    from fieldlog.drive.reader import IN_TOPICS, gps_block
     from fieldlog.fusion.types import ImuBlock
 
     for method in ("kf", "dkf"):
@@ -260,7 +260,7 @@ def test_closed_loop_resets_and_keeps_covariance_spd(drive):
 
 def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
     from fieldlog.fusion.output import Solution
-    from fieldlog.replay.reader import IN_TOPICS, gps_block, iter_blocks
+    from fieldlog.drive.reader import IN_TOPICS, gps_block, iter_blocks
     from fieldlog.fusion.types import ImuBlock
 
     eng, parts = Engine(method, cfg), []
@@ -391,8 +391,8 @@ def test_foreign_drive_without_raw_or_truth_fuses(tmp_path):
     """A drive written by another tool with only the data model's /imu, /gps/fix and /gps/vel fuses."""
     from mcap.reader import make_reader
 
-    from fieldlog.acquire.recorder import Recorder
-    from fieldlog.replay import reader
+    from fieldlog.drive.recorder import Recorder
+    from fieldlog.drive import reader
 
     src = tmp_path / "sim.mcap"
     simulate("figure8", 150, 8, src)

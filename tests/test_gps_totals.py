@@ -12,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import gpsport, nmea, novatel, numbers, recorder, ubx
+from fieldlog.acquire import gpsport, nmea, novatel, numbers, ubx
+from fieldlog.drive import recorder
 from fieldlog.acquire.pipeline import Pipeline, RawRead
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 
 HUGE = "9" * 20

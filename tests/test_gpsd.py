@@ -17,8 +17,8 @@ import pytest
 from fieldlog.acquire import config, gpsport
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.acquire.gpsd import GpsdStream, watch_command
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata, read_metadata_records
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata, read_metadata_records
 from test_daemon import raw_stream, run
 from test_daemon_faults import LOCKED, SPEED, record
 from test_drive import messages_by_topic

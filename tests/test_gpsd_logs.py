@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from fieldlog.acquire import messages
-from fieldlog.replay import reader
+from fieldlog.drive import messages
+from fieldlog.drive import reader
 from fieldlog.tools.importer import import_captures
 
 GPSD = Path(__file__).parent / "data" / "gpsd"

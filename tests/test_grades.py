@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion import imugrade
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import fuse, fusion_config
 from fieldlog.tools.sim.simulate import simulate

@@ -12,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import gnss, messages, nmea, recorder, recovery, timesync
+from fieldlog.acquire import gnss, nmea, recovery, timesync
+from fieldlog.drive import messages, recorder
 from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from fieldlog.tools.sim.serve import Server
 from test_daemon import run, start_daemon

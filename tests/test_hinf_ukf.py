@@ -9,10 +9,10 @@ import pytest
 
 from fieldlog.fusion import earth, errmodel, hinf, ins, kf, ukf
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive.reader import read_metadata
 
 DURATION = 150.0
 OUTAGE = (95.0, 25.0)

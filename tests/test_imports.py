@@ -1,5 +1,5 @@
 """The package's import graph: no module imports itself back through others (no import cycle), and the layers point
-one way (tools -> replay -> acquire, fusion; fusion and acquire import nothing else of ours).
+one way (tools -> replay -> acquire -> drive; fusion imports nothing of ours, the drive layer nothing above it).
 
 Every import counts, wherever it stands (module level, inside a function, under ``TYPE_CHECKING``): a cycle that
 only a lazy import keeps working is still a cycle to whoever reads the code."""
@@ -7,8 +7,8 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = {"acquire": "fieldlog.acquire", "fusion": "fieldlog.fusion", "replay": "fieldlog.replay",
-           "tools": "fieldlog.tools", "src/fieldlog": "fieldlog"}
+FOLDERS = {"drive": "fieldlog.drive", "acquire": "fieldlog.acquire", "fusion": "fieldlog.fusion",
+           "replay": "fieldlog.replay", "tools": "fieldlog.tools", "src/fieldlog": "fieldlog"}
 
 
 def _modules() -> dict[str, Path]:
@@ -92,8 +92,9 @@ def test_no_import_cycle():
 
 
 def test_layers_point_one_way():
-    allowed = {"fieldlog.fusion": {"fieldlog.fusion"}, "fieldlog.acquire": {"fieldlog.acquire"},
-               "fieldlog.replay": {"fieldlog.replay", "fieldlog.acquire", "fieldlog.fusion"}}
+    allowed = {"fieldlog.fusion": {"fieldlog.fusion"}, "fieldlog.drive": {"fieldlog.drive", "fieldlog.fusion"},
+               "fieldlog.acquire": {"fieldlog.acquire", "fieldlog.drive"},
+               "fieldlog.replay": {"fieldlog.replay", "fieldlog.acquire", "fieldlog.drive", "fieldlog.fusion"}}
     bad = []
     for name, deps in _graph().items():
         layer = ".".join(name.split(".")[:2])
@@ -101,3 +102,24 @@ def test_layers_point_one_way():
             if layer in allowed and d != "fieldlog" and ".".join(d.split(".")[:2]) not in allowed[layer]:
                 bad.append(f"{name} -> {d}")
     assert not bad, "imports against the layers: " + ", ".join(sorted(bad))
+
+
+def _third_party(path: Path) -> set[str]:
+    """The top-level names of every module that ``path`` imports, wherever the import stands."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_only_the_drive_layer_imports_mcap():
+    """The MCAP library is the drive layer's: the layers above read and write drives through it
+    (``fieldlog.drive.records`` names the library's records, reader and writer for them)."""
+    modules = _modules()
+    users = {name for name, path in modules.items() if "mcap" in _third_party(path)}
+    assert "fieldlog.drive.recorder" in users  # the scan sees the imports
+    outside = sorted(u for u in users if not u.startswith("fieldlog.drive."))
+    assert not outside, "modules importing mcap outside fieldlog.drive: " + ", ".join(outside)

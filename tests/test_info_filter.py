@@ -10,7 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from fieldlog.acquire import recovery
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import build_parser, main
 from fieldlog.tools.filter import filter_drive
 from fieldlog.tools.info import drive_info, format_info

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import chunks
+from fieldlog.drive import chunks
 from fieldlog.acquire.recovery import recover_drive
-from fieldlog.replay import reader
-from fieldlog.replay.drive import open_drive
+from fieldlog.drive import reader
+from fieldlog.drive.files import open_drive
 from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,7 +121,7 @@ def _walk_reference(buf: bytes) -> tuple[list, list, list, int]:
 
 
 def test_the_compiled_walk_matches_a_plain_one(drive):
-    """The compiled record walk (acquire/_chunks.c) finds the records a plain walk finds, in whole chunks, in
+    """The compiled record walk (drive/_chunks.c) finds the records a plain walk finds, in whole chunks, in
     chunks cut short, and up to a length whose top bit is set; its arrays grow past the capacity it is given."""
     (f,) = open_drive(drive)
     for piece in np.flatnonzero(f.pieces.chunk)[:3].tolist():

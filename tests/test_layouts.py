@@ -27,18 +27,18 @@ from mcap.writer import Writer
 from fieldlog.acquire.config import RecorderConfig
 from fieldlog.acquire.daemon import RotatingSink
 from fieldlog.acquire.pipeline import Pipeline, read_order
-from fieldlog.acquire import native
-from fieldlog.acquire.chunks import walk_records
-from fieldlog.replay import reader
-from fieldlog.replay.drive import drive_files, open_drive
-from fieldlog.replay.mcapfile import McapFile, TruncatedError, le
+from fieldlog.drive import native
+from fieldlog.drive.chunks import walk_records
+from fieldlog.drive import reader
+from fieldlog.drive.files import drive_files, open_drive
+from fieldlog.drive.mcapfile import McapFile, TruncatedError, le
 from fieldlog.tools.allan import drive_report
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.evaluation.evaluate import outage_error_series
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.info import drive_info
 from fieldlog.tools.dev.layouts import LAYOUTS, merged, rewrite, schema_of
-from fieldlog.replay.reader import read_metadata_records
+from fieldlog.drive.reader import read_metadata_records
 from fieldlog.tools.rebuild import iter_raw
 from fieldlog.tools.sim.simulate import simulate
 
@@ -355,7 +355,7 @@ def _damaged(src, tmp_path, k: int):
 
 @pytest.fixture(params=["compiled", "numpy"])
 def read_path(request, monkeypatch) -> str:
-    """The reader's two paths for chunks: ``acquire.native``'s compiled pass (zstd, uncompressed), or
+    """The reader's two paths for chunks: ``drive.native``'s compiled pass (zstd, uncompressed), or
     python-zstandard and the walk (what runs when zstandard exports no C API, and for lz4)."""
     if request.param == "numpy":
         monkeypatch.setitem(native._state, "ok", False)

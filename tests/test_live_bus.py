@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from fieldlog.acquire.timesync import SyncState
-from fieldlog.replay import live, reader
+from fieldlog.drive import reader
+from fieldlog.replay import live
 from test_daemon import start_daemon, wait_for_clients
 from test_serve import start_serve
 

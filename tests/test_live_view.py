@@ -11,7 +11,7 @@ from test_daemon import start_daemon
 from test_serve import start_serve
 from test_view_export import _rerun, _rows
 
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.replay import view as rview
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.fusion import earth, kf, measurements
+from fieldlog.fusion import earth, kf, measurements, methods
 from fieldlog.fusion.align import ImuSums
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.dkf import DistributedKF
@@ -25,12 +25,12 @@ def _moment(usable: bool, v_n=(10.0, 0.0, 0.0)) -> measurements.Moment:
 
 
 def test_each_method_gets_its_list():
-    assert measurements.for_method("ins", FusionConfig()) == []
-    ms = measurements.for_method("kf", FusionConfig())
+    assert methods.get("ins").measurements(FusionConfig()) == []
+    ms = methods.get("kf").measurements(FusionConfig())
     assert [type(m).__name__ for m in ms] == ["FirstOf", "GpsVelocity", "GpsPosition"]
     assert [type(p).__name__ for p in ms[0].parts] == ["Stationary", "Odometer", "NonHolonomic"]
     assert [(m.kind, m.stage) for m in ms] == [("velocity", "aid"), ("velocity", "fix"), ("position", "fix")]
-    bare = measurements.for_method("dkf", FusionConfig.from_flat(nhc=False, zupt=False, odometer=False))
+    bare = methods.get("dkf").measurements(FusionConfig.from_flat(nhc=False, zupt=False, odometer=False))
     assert [type(m).__name__ for m in bare] == ["GpsVelocity", "GpsPosition"]
 
 

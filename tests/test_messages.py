@@ -1,4 +1,4 @@
-"""acquire.messages: our CDR bytes against mcap_ros2's own encoder and decoder."""
+"""drive.messages: our CDR bytes against mcap_ros2's own encoder and decoder."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from mcap.writer import Writer
 from mcap_ros2.reader import read_ros2_messages
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from fieldlog.acquire import messages as m
+from fieldlog.drive import messages as m
 
 T0 = 1_700_000_000 * 10**9
 RNG = np.random.default_rng(7)

@@ -13,7 +13,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from fieldlog.acquire import metavalue
+from fieldlog.drive import metavalue
 from fieldlog.acquire.pipeline import Pipeline
 
 DEEP = "[" * 100_000 + "]" * 100_000

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.acquire.config import NAME_FORMAT
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.tools.sim import simulate

@@ -44,7 +44,7 @@ def test_wheel_holds_only_fieldlog(tmp_path):
     site = tmp_path / "site"
     r = _run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    probe = ("import fieldlog, fieldlog.fusion, fieldlog.acquire, fieldlog.replay, fieldlog.tools.cli; "
+    probe = ("import fieldlog, fieldlog.fusion, fieldlog.drive, fieldlog.acquire, fieldlog.replay, fieldlog.tools.cli; "
              "print(fieldlog.fusion.__file__)")
     r = _run([sys.executable, "-c", probe], tmp_path, PYTHONPATH=str(site))
     assert r.returncode == 0, r.stderr
@@ -71,7 +71,7 @@ def test_editable_install_imports_fieldlog_only(tmp_path):
     assert r.returncode == 0 and r.stdout.startswith("fieldlog "), r.stderr
 
 
-@pytest.mark.parametrize("kernel, argv", [("fieldlog.acquire._chunks", ["info"]),
+@pytest.mark.parametrize("kernel, argv", [("fieldlog.drive._chunks", ["info"]),
                                           ("fieldlog.fusion._ins", ["fuse", "--out", "{tmp}/f.mcap"]),
                                           ("fieldlog.fusion._cycles", ["fuse", "--out", "{tmp}/f.mcap"])])
 def test_an_install_without_its_kernels_says_to_reinstall(simulated, monkeypatch, capsys, tmp_path, kernel, argv):
@@ -79,7 +79,7 @@ def test_an_install_without_its_kernels_says_to_reinstall(simulated, monkeypatch
     what to do, exit code 2."""
     import importlib.util
 
-    from fieldlog.acquire import native
+    from fieldlog.drive import native
     from fieldlog.fusion import kernels
     from fieldlog.tools.cli import main
 

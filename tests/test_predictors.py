@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.fusion.predictors import (OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_1d,
+from fieldlog.fusion.predictors import (RBF, OutagePredictor, PredictorConfig, Rbfn, Tdln, delay_rows, kmeans_1d,
                                         kmeans_centres)
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.evaluation.evaluate import outage_errors
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
@@ -73,7 +73,7 @@ def test_tdln_recovers_a_known_fir():
 @pytest.mark.parametrize("training", ["batch", "online"])
 def test_outage_predictor_trains_after_settling_and_clips_to_the_trained_range(training):
     cfg = PredictorConfig(min_train=20, settle_s=10.0, centres=5, training=training)
-    p = OutagePredictor("rbfn", cfg)
+    p = OutagePredictor(RBF, cfg)
     for t in range(60):  # target = 0.1 * input on channel 0, nothing observed on channel 5
         u = np.full(6, float(t))
         p.train(float(t), u, np.array([0.1 * t, 1.0, 1.0, 1.0, 1.0, np.nan]))

@@ -15,8 +15,8 @@ import pytest
 
 from fieldlog.acquire import daemon
 from fieldlog.acquire.daemon import is_finished
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from test_daemon import raw_stream, wait_until
 from test_serve import ROOT, start_serve

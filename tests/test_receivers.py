@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from pyubx2 import UBXMessage
 
 from fieldlog.acquire import gpsport, nmea, novatel, ubx
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.info import drive_info
 

@@ -1,4 +1,4 @@
-"""acquire.recorder (write, flush), acquire.recovery (recover) and replay.reader, checked with mcap's own readers
+"""drive.recorder (write, flush), acquire.recovery (recover) and drive.reader, checked with mcap's own readers
 and with rerun's MCAP importer."""
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
-from fieldlog.acquire import messages as m
-from fieldlog.acquire.recorder import Recorder
+from fieldlog.drive import messages as m
+from fieldlog.drive.recorder import Recorder
 from fieldlog.acquire.recovery import recover
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 
 T0 = 1_700_000_000 * 10**9
 DT = 2_000_000  # 500 Hz
@@ -221,7 +221,7 @@ def test_decompress_many_takes_empty_and_lying_chunks():
 
     import zstandard
 
-    from fieldlog.acquire.chunks import ChunkError, decompress_many
+    from fieldlog.drive.chunks import ChunkError, decompress_many
 
     rng = np.random.default_rng(3)
     raws = [b"", *(rng.integers(0, 4, n, dtype=np.uint8).tobytes() for n in (4096, 1, 5000))]
@@ -247,7 +247,7 @@ def test_decompress_many_takes_empty_and_lying_chunks():
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch):
-    """``read_chunks`` (the reader's hot path) by both paths (the compiled pass of ``acquire.native``, and
+    """``read_chunks`` (the reader's hot path) by both paths (the compiled pass of ``drive.native``, and
     python-zstandard with the numpy walk): message records in zstd chunks (one empty) and an uncompressed one come
     back with their channels, times and payloads, only those asked for; a chunk whose record claims a wrong or an
     absurd size, whose bytes are damaged, or whose CRC is wrong is a ``ChunkError`` naming it."""
@@ -255,8 +255,8 @@ def test_read_chunks_takes_empty_lying_and_damaged_chunks(compiled, monkeypatch)
 
     import zstandard
 
-    from fieldlog.acquire import native
-    from fieldlog.acquire.chunks import ChunkError, read_chunks
+    from fieldlog.drive import native
+    from fieldlog.drive.chunks import ChunkError, read_chunks
 
     if not compiled:
         monkeypatch.setitem(native._state, "ok", False)
@@ -305,7 +305,7 @@ def test_the_library_field_names_mcap_as_its_writer_would():
     """The header's library string spells mcap.writer's identifier without importing it (start-up time)."""
     from mcap.writer import LIBRARY_IDENTIFIER
 
-    from fieldlog.acquire import recorder
+    from fieldlog.drive import recorder
 
     assert recorder.LIBRARY == f"fieldlog/0.1 {LIBRARY_IDENTIFIER}"
 

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldlog.acquire import counterjudge, daq, recorder, timesync
+from fieldlog.acquire import counterjudge, daq, timesync
+from fieldlog.drive import recorder
 from fieldlog.acquire.pipeline import Pipeline
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from test_daemon import raw_stream
 

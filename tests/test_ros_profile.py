@@ -9,9 +9,10 @@ from mcap.reader import make_reader
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from fieldlog.acquire import bagdir, calib, frames, messages
+from fieldlog.acquire import calib, frames
+from fieldlog.drive import bagdir, messages
 from fieldlog.fusion import earth
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.fuse import fuse
 from fieldlog.tools.sim.simulate import simulate
 

@@ -11,12 +11,12 @@ import pytest
 
 from fieldlog.acquire.config import ConfigError
 from fieldlog.fusion import earth, ins
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.evaluation.evaluate import outage_error_series
 from fieldlog.tools.fuse import drive_config, fusion_config
 from fieldlog.tools.info import drive_info, format_info
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import trajectory as tj
 from fieldlog.tools.sim.emit import GpsConfig, gps_solution
 from fieldlog.tools.sim.sensors import ImuErrorConfig, gauss_markov, imu_counts

@@ -202,8 +202,8 @@ def test_two_hour_static_allan_recovers_configured_noise():
 
 
 def test_drive_report_reads_the_imu_topic(tmp_path):
-    from fieldlog.acquire import messages
-    from fieldlog.acquire.recorder import Recorder
+    from fieldlog.drive import messages
+    from fieldlog.drive.recorder import Recorder
 
     n = 60 * 500
     t_s, omega_ib_b, f_b = _static(n)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.replay import reader
-from fieldlog.replay.reader import read_metadata
+from fieldlog.drive import reader
+from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim.serve import corrupt_stream, simulated_streams
 
 ROOT = Path(__file__).resolve().parents[1]

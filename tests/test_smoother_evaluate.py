@@ -5,7 +5,7 @@ import polars as pl
 import pytest
 
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.evaluation.evaluate import (
     PLOT_DT_S,

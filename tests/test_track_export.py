@@ -14,7 +14,7 @@ from fastkml import kml
 from lxml import etree
 
 from foreign_drives import Foreign, write_foreign
-from fieldlog.replay import reader
+from fieldlog.drive import reader
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.sim.simulate import simulate
 from fieldlog.tools.sim.trajectory import SCENARIO_DIR

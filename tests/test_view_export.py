@@ -13,11 +13,11 @@ import pytest
 import rerun.blueprint as rrb
 from mcap.reader import make_reader
 
-from fieldlog.acquire import messages
-from fieldlog.replay import reader
+from fieldlog.drive import messages
+from fieldlog.drive import reader
 from fieldlog.replay import view as rview
 from fieldlog.replay.export import drive_frames
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.sim.simulate import simulate
 from fieldlog.tools.sim.trajectory import SCENARIO_DIR
@@ -222,7 +222,7 @@ def test_pure_helpers():
 
 
 def _mcap_log_times(path: Path) -> dict[str, np.ndarray]:
-    """log_time per topic straight from the mcap library (independent of replay.reader)."""
+    """log_time per topic straight from the mcap library (independent of drive.reader)."""
     out: dict[str, list[int]] = {}
     with open(path, "rb") as f:
         for _, channel, msg in make_reader(f).iter_messages(log_time_order=False):
@@ -304,7 +304,7 @@ def test_errors_against_gps_and_an_imported_nmea_log_on_the_map(drives, tmp_path
 
 
 def test_raw_batch_decoder_equals_the_per_message_decode(drives):
-    """/raw/* read in batch (replay.reader.read_raw) equals mcap_ros2's per-message decode, bit for bit; rows that
+    """/raw/* read in batch (drive.reader.read_raw) equals mcap_ros2's per-message decode, bit for bit; rows that
     are not RawBytes come out invalid, never raising."""
     sim, _ = drives
     for topic in ("/raw/daq", "/raw/gps"):

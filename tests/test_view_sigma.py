@@ -6,7 +6,7 @@ import pytest
 from rerun.chunk import RrdReader
 
 from fieldlog.replay import view as rview
-from fieldlog.replay.reader import read_topic
+from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from test_view_export import _rerun, drives  # noqa: F401 - the fixture: a drive with a no-fix outage, fused kf
 

@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 
 if TYPE_CHECKING:
-    from fieldlog.replay.drive import DriveSpec
+    from fieldlog.drive.files import DriveSpec
 
 G0 = 9.80665  # m/s^2 per g
 FLICKER_ADEV_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.6643...
@@ -184,7 +184,7 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
     """Log-log PNG of an Allan deviation curve, one line per axis when adev is (m,3) (x, y, z).
 
     taus (m,) s; adev (m,) or (m,k) in the units named by ylabel. ``path`` must be new, unless ``force``
-    (``acquire.outputs``). Returns path."""
+    (``drive.outputs``). Returns path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,12 +209,12 @@ def plot(taus: np.ndarray, adev: np.ndarray, path: str, ylabel: str = "Allan dev
 
 def drive_report(path: DriveSpec, plot_prefix: str | None = None, force: bool = False) -> str:
     """``report`` of the /imu topic of a recorded drive (meant for a static drive; one file or several:
-    ``replay.drive``); rate from the stamps.
+    ``drive.files``); rate from the stamps.
 
     With plot_prefix, also writes <plot_prefix>_gyro.png (deg/h) and <plot_prefix>_accel.png (ug) and
     names them at the end of the text (new files, unless ``force``)."""
-    from fieldlog.replay.drive import label
-    from fieldlog.replay.reader import read_topic
+    from fieldlog.drive.files import label
+    from fieldlog.drive.reader import read_topic
 
     imu = read_topic(path, "/imu")
     name = label(path)

@@ -34,9 +34,9 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay.reader import IN_TOPICS
+from fieldlog.drive.reader import IN_TOPICS
 from fieldlog.tools.evaluation.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality,
                                                 outage_error_series, place_outages, rms_columns)
 from fieldlog.tools.fuse import drive_config, fuse
@@ -188,7 +188,7 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
               say: Callable[[str], None] = print, progress: Callable[[float], None] | None = None,
               force: bool = False) -> BatchResult:
     """Process ``drives`` on Dask (one task per drive); writes ``out/results.parquet`` and ``out/fused/`` (new
-    files unless ``force``: ``acquire.outputs``). A line per drive goes to ``say`` as the drives complete, and the
+    files unless ``force``: ``drive.outputs``). A line per drive goes to ``say`` as the drives complete, and the
     fraction done to ``progress``."""
     check_methods(list(methods))
     if not drives:

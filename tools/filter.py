@@ -1,5 +1,5 @@
 """``fieldlog filter DRIVE... --start S --end S --topics T,... --out OUT``: a slice of a drive (one file or several,
-a session or rosbag2 directory: ``replay.drive``) into one file, as ``mcap filter``.
+a session or rosbag2 directory: ``drive.files``) into one file, as ``mcap filter``.
 
 Messages with ``start <= log_time < end`` on the chosen topics are copied as they are (payload, log and publish
 time, schema and channel records with their ids and ``offered_qos_profiles``), chunk by chunk; the metadata
@@ -22,15 +22,15 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from mcap.records import Channel, Schema
 
-from fieldlog.acquire import messages, outputs
-from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
-from fieldlog.acquire.recorder import Recorder
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
+from fieldlog.drive import messages, outputs
+from fieldlog.drive.drivestats import RECORD as INFO_RECORD
+from fieldlog.drive.recorder import Recorder
+from fieldlog.drive.records import Channel, Schema
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec, drive_files, open_drive
 from fieldlog.replay.inputs import NATIVE, detect
-from fieldlog.replay.mcapfile import McapFile
+from fieldlog.drive.mcapfile import McapFile
 
 NS = 1_000_000_000
 
@@ -76,7 +76,7 @@ def select_topics(available: list[str], patterns: list[str] | None) -> list[str]
 def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None = None,
                  end: str | None = None, topics: list[str] | None = None,
                  progress: Callable[[float], None] | None = None, force: bool = False) -> FilterResult:
-    """``src`` (a drive of one or several files, ``replay.drive``) sliced into ``out`` (module docstring). Several
+    """``src`` (a drive of one or several files, ``drive.files``) sliced into ``out`` (module docstring). Several
     files: one output, their messages file by file in the drive's order, each topic on one channel (the first
     file's record; renumbered if its id is taken), the metadata records by name as the drive reads them."""
     out = Path(out)

@@ -46,10 +46,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterable, Iterator
 
 import numpy as np
-from mcap.reader import make_reader
 
-from fieldlog.acquire import calib, messages
-from fieldlog.replay.drive import DriveSpec, drive_files
+from fieldlog.acquire import calib
+from fieldlog.drive import messages
+from fieldlog.drive.files import DriveSpec, drive_files
+from fieldlog.drive.records import make_reader
 from fieldlog.replay.inputs import InputMap, InputStream
 
 if TYPE_CHECKING:
@@ -70,7 +71,7 @@ DRAIN_S = 2.0
 LIVE_TOPICS = ("/imu", "/gps/fix", "/gps/vel", "/gps/nmea", "/gps/receiver", "/pps", "/time/sync", "/tf_static",
                "/vehicle/twist", "/vehicle/wheel_speeds")
 
-# (topic, schema name, ros2msg schema text); None, None: the contract's schema of the topic (acquire.messages)
+# (topic, schema name, ros2msg schema text); None, None: the contract's schema of the topic (drive.messages)
 ChannelSpec = tuple[str, str | None, bytes | None]
 
 
@@ -90,10 +91,10 @@ def announce(url: str) -> None:
 
 def fused_topics(method: str) -> list[str]:
     """The topics the live ``method`` fusion publishes (``replay.solutions.topics``)."""
-    from fieldlog.fusion.filters import has_local_filters
+    from fieldlog.fusion import methods
     from fieldlog.replay.solutions import topics
 
-    return topics(method, has_local_filters(method))
+    return topics(method, methods.get(method).local_filters)
 
 
 class FoxgloveSink:
@@ -288,7 +289,7 @@ def serve_live(bus: str, method: str, address: str, config: FusionConfig | None 
     channel and the bus is being read. ``mounting``: the daemon's calibration's (None: base_link is the IMU)."""
     from fieldlog.replay import live
     from fieldlog.replay.inputs import imu_block
-    from fieldlog.replay.reader import IN_TOPICS, gps_block
+    from fieldlog.drive.reader import IN_TOPICS, gps_block
 
     with _Server(address, method, [(topic, None, None) for topic in LIVE_TOPICS]) as srv:
         fusion = _Fusion(srv.sink, method, config, mounting or calib.Mounting())

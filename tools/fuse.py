@@ -1,6 +1,6 @@
 """``fieldlog fuse DRIVE --method ins|kf|dkf|rbfn|tdln|dkf-rbfn [--outage START:LEN ...] --out FUSED.mcap``.
 
-Streams the drive in blocks (``replay.reader.iter_blocks``: vectorised decode, no per-message Python on the
+Streams the drive in blocks (``drive.reader.iter_blocks``: vectorised decode, no per-message Python on the
 IMU path) through ``fusion.engine.Engine`` and writes, following docs/data-model.md (``replay.solutions``):
 
 - ``/fusion/<method>/fix`` NavSatFix: position, covariance ENU m^2 (diagonal known); 10 Hz by default
@@ -51,9 +51,10 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from fieldlog.acquire import calib, messages, metavalue, outputs
-from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
-from fieldlog.acquire.recorder import Recorder
+from fieldlog.acquire import calib
+from fieldlog.drive import messages, metavalue, outputs
+from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
+from fieldlog.drive.recorder import Recorder
 from fieldlog.fusion import hinf, imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
@@ -62,10 +63,10 @@ from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.ahead import Remote
-from fieldlog.replay.drive import DriveSpec, label
+from fieldlog.drive.files import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
-from fieldlog.replay.reader import read_metadata
-from fieldlog.replay.reader import topics as reader_topics
+from fieldlog.drive.reader import read_metadata
+from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution
 
 BLOCK_S = 10.0
@@ -152,22 +153,21 @@ def fusion_config(table: dict[str, Any]) -> FusionConfig:
         raise ConfigError(str(e)) from None
 
 
-def load_fusion_config(path: str | os.PathLike[str]) -> FusionConfig:
+def load_fusion_config(config: TomlFile) -> FusionConfig:
     """``--config FILE``: the ``[fusion]`` table of a TOML file; ConfigError with one line naming the problem."""
-    d = read_toml(path)
-    if not isinstance(d.get("fusion"), dict):
-        raise ConfigError(f"config file {path}: no [fusion] table")
-    return fusion_config(d["fusion"])
+    if not isinstance(config.tables.get("fusion"), dict):
+        raise ConfigError(f"config file {config}: no [fusion] table")
+    return fusion_config(config.tables["fusion"])
 
 
-def load_input_spec(path: str | os.PathLike[str] | None) -> InputSpec:
+def load_input_spec(config: TomlFile | None) -> InputSpec:
     """The ``[input]`` table of a config file (``replay.inputs.InputSpec``: imu_topic, fix_topic, vel_topic,
     imu_frame); an empty spec without a file or table."""
-    if path is None:
+    if config is None:
         return InputSpec()
-    table = read_toml(path).get("input", {})
+    table = config.tables.get("input", {})
     if not isinstance(table, dict):
-        raise ConfigError(f"config file {path}: [input] must be a table")
+        raise ConfigError(f"config file {config}: [input] must be a table")
     for k, v in table.items():
         if not isinstance(v, str):
             raise ConfigError(f"[input] {k}: expected a string, got {v!r}")
@@ -177,11 +177,11 @@ def load_input_spec(path: str | os.PathLike[str] | None) -> InputSpec:
     return spec
 
 
-def input_map(drive: DriveSpec, config_path: str | os.PathLike[str] | None, spec: InputSpec | None) -> InputMap:
+def input_map(drive: DriveSpec, config: TomlFile | None, spec: InputSpec | None) -> InputMap:
     """``replay.inputs.resolve`` of the config's ``[input]`` table overridden by ``spec`` (the options), each
     input's source naming where it was given."""
-    table, spec = load_input_spec(config_path), spec or InputSpec()
-    given = {k: f"[input] of {config_path}" for k in table.given() if k not in spec.given()}
+    table, spec = load_input_spec(config), spec or InputSpec()
+    given = {k: f"[input] of {config}" for k in table.given() if k not in spec.given()}
     return inputs_mod.resolve(drive, table.merged(spec), given)
 
 
@@ -222,23 +222,23 @@ def _show(v: Any) -> str:
     return str(v) if v != "" else "none"
 
 
-def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None,
+def settings(drive: DriveSpec, config: TomlFile | None = None,
              spec: InputSpec | None = None, outages: tuple[tuple[float, float], ...] | None = None) -> Settings:
     """The settings of a fusion run and their sources: the input map (``replay.inputs.resolve`` of the config's
     [input] table overridden by ``spec``), the FusionConfig from ``--config``'s [fusion] table (replacing the
     drive's record as a whole), else the drive's ``fusion.config`` record, else the defaults; the lever arm from
     the drive's /tf_static when neither gives it; ``outages`` (``--outage``) replace the config's."""
-    imap = input_map(drive, config_path, spec)
-    table = read_toml(config_path).get("fusion") if config_path else None
+    imap = input_map(drive, config, spec)
+    table = config.tables.get("fusion") if config else None
     if table is None:
         table = drive_table(drive)
         where = "the drive's record"
     else:
-        where = f"--config {config_path}"
+        where = f"--config {config}"
     try:
         cfg = fusion_config(table)
     except (ValueError, TypeError) as e:
-        if config_path:
+        if config:
             raise
         raise ValueError(f"{label(drive)}: its fusion.config record: {e}") from None
     given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
@@ -302,9 +302,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          ) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
-    ``replay.inputs.resolve(drive)``. A drive of several files (``replay.drive``) is fused once, across the file
+    ``replay.inputs.resolve(drive)``. A drive of several files (``drive.files``) is fused once, across the file
     boundaries. Raises ``replay.solutions.Diverged`` (nothing past the first bad row written) when the
-    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``acquire.outputs``). ``keep``: the rows
+    solution turns NaN or inf. ``out`` must be new, unless ``force`` (``drive.outputs``). ``keep``: the rows
     written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
     back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``."""
     outputs.check_new(out, force)

@@ -20,9 +20,10 @@ invented, and the rule is stated here because time sync depends on it:
   frames after it keep their times and the PPS after it labels as before.
 * CAN (candump ``.log``, Vector ``.asc``, ``.blf`` and the other logs python-can's ``LogReader`` reads): each
   frame is a read of its own (``frames`` records, ``acquire/can.py``) at the log's time stamp, which is also its
-  adapter time: absolute times (after 2001, e.g. candump's and an ASC file's ``date``) as they are, relative
-  ones from the GPS log's first second (the captures started together), or without a GPS log from the CAN log's
-  modification time less its last time stamp.
+  adapter time: absolute times (after 2001, e.g. candump's and an ASC file's ``date``) as they are; relative
+  (boot) ones from the UTC given for the first frame (``--start``, or ``--align-to DRIVE``: the drive's first log
+  time), else from the GPS log's first second (the captures started together). Without either a relative log is
+  refused: a file's modification time says nothing of when the log began.
 """
 from __future__ import annotations
 
@@ -33,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import (can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, outputs, recorder,
-                              timesync, ubx)
+from fieldlog.acquire import can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, timesync, ubx
+from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
@@ -169,7 +170,7 @@ def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
 ABSOLUTE_S = 1e9     # a CAN log time stamp past this (2001-09-09) is UTC, an earlier one relative
 
 
-def can_reads(path: str | Path, start_ns: int | None) -> list[RawRead]:
+def can_reads(path: str | Path, start_ns: int | None, first_ns: int | None = None) -> list[RawRead]:
     """A CAN log's frames as reads, timed by the rule above (``start_ns``: the GPS log's first second)."""
     import can as pycan
 
@@ -197,10 +198,14 @@ def can_reads(path: str | Path, start_ns: int | None) -> list[RawRead]:
         raise ValueError(f"{path}: the CAN log holds no frame")
     if frames[0][0] >= ABSOLUTE_S:
         offset_ns = 0
+    elif first_ns is not None:
+        offset_ns = first_ns - int(round(frames[0][0] * NS))
     elif start_ns is not None:
         offset_ns = start_ns
     else:
-        offset_ns = int(os.stat(p).st_mtime * NS) - int(round(frames[-1][0] * NS))
+        raise ValueError(f"{path}: its time stamps are relative (from the logger's boot, first "
+                         f"{frames[0][0]:.3f} s): give the UTC of its first frame with --start ISO-TIME, or the drive "
+                         "it belongs to with --align-to DRIVE")
     reads = []
     last = -(2**62)
     for t, f in frames:
@@ -212,9 +217,12 @@ def can_reads(path: str | Path, start_ns: int | None) -> list[RawRead]:
 
 def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,
                     pps_mode: str = "flag", can_log: str | Path | None = None,
-                    can_bus: canbus.BusConfig | None = None, force: bool = False) -> RebuildResult:
+                    can_bus: canbus.BusConfig | None = None, force: bool = False,
+                    can_first_ns: int | None = None) -> RebuildResult:
     """Build ``out`` from a GPS log, a DAQ capture (needs the GPS log) and a CAN log decoded by ``can_bus``
-    (its ``wire`` is set to ``frames``; None: recorded, not decoded). ``out`` must be new, unless ``force``."""
+    (its ``wire`` is set to ``frames``; None: recorded, not decoded). ``out`` must be new, unless ``force``.
+    A CAN log with boot-relative stamps is placed by ``can_first_ns`` (UTC of its first frame, ns), else at the
+    GPS log's start; without either it is refused (ValueError naming it)."""
     outputs.check_new(out, force)
     reads: list[RawRead] = []
     if gps is not None:
@@ -228,7 +236,7 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
         raise ValueError("--daq needs --gps: the DAQ capture is timed by the GPS log")
     if can_log is not None:
         start_ns = round(reads[0].mono_ns / NS - NMEA_LATENCY_S) * NS if reads else None
-        reads += can_reads(can_log, start_ns)
+        reads += can_reads(can_log, start_ns, can_first_ns)
         can_bus = dataclasses.replace(can_bus or canbus.BusConfig(), wire="frames")
     if daq_path is not None:
         first_epoch = round(reads[0].mono_ns / NS - NMEA_LATENCY_S)

@@ -1,10 +1,10 @@
 """``fieldlog info``: what a drive holds and how good its timing is.
 
 Fast path: the summary (channels, statistics) and the metadata records, among them ``fieldlog.info``, which the
-recorder writes at close (``acquire.drivestats``): no message is read, so an hour-long drive answers in about
+recorder writes at close (``drive.drivestats``): no message is read, so an hour-long drive answers in about
 a second. A file without that record (recovered, or written by another tool) is scanned: the topics' message
 indexes and the /imu, /gps/fix, /time/sync and /truth/imu messages, through the same functions. A drive of
-several files (a rotated session, a rosbag2 directory: ``replay.drive``) is scanned as one drive.
+several files (a rotated session, a rosbag2 directory: ``drive.files``) is scanned as one drive.
 """
 from __future__ import annotations
 
@@ -16,10 +16,11 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import drivestats, messages, metavalue
-from fieldlog.acquire.drivestats import Quality
-from fieldlog.replay import inputs, reader
-from fieldlog.replay.drive import DriveSpec, drive_files, open_drive
+from fieldlog.drive import drivestats, messages, metavalue
+from fieldlog.drive.drivestats import Quality
+from fieldlog.drive import reader
+from fieldlog.replay import inputs
+from fieldlog.drive.files import DriveSpec, drive_files, open_drive
 
 NS = 1_000_000_000
 
@@ -33,7 +34,7 @@ class DriveInfo(Quality):
     drive: dict[str, str] = field(default_factory=dict)
     port_events: list[dict[str, str]] = field(default_factory=list)   # the daemon's lost/back port records
     scanned: bool = False       # figures from reading the messages (no fieldlog.info record)
-    files: list[Path] = field(default_factory=list)   # the drive's files (replay.drive)
+    files: list[Path] = field(default_factory=list)   # the drive's files (drive.files)
     # what `ros2 bag info` shows too: bytes on disk, first and last log time (UTC ns), messages, chunks and their
     # compression ("" = none; several when the files differ)
     size_bytes: int = 0
@@ -123,7 +124,7 @@ def scan_quality(path: DriveSpec, topics: list[reader.TopicInfo],
 
 def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], None] | None = None) -> DriveInfo:
     """What ``fieldlog info`` prints. ``scan``: read the messages even when the ``fieldlog.info`` record is there.
-    ``path``: one MCAP, several files, a session or rosbag2 directory (``replay.drive``)."""
+    ``path``: one MCAP, several files, a session or rosbag2 directory (``drive.files``)."""
     files = drive_files(path)
     records = reader.read_metadata_records(path)
     meta = dict(records)

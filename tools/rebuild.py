@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-from fieldlog.acquire import calib, outputs, recorder
-from fieldlog.replay import reader
-from fieldlog.replay.drive import DriveSpec, label
+from fieldlog.acquire import calib
+from fieldlog.drive import outputs, recorder
+from fieldlog.drive import reader
+from fieldlog.drive.files import DriveSpec, label
 from fieldlog.acquire.pipeline import PORT_ORDER, Counters, Pipeline, RawRead, read_order
 
 RAW_PORTS = tuple(PORT_ORDER)      # /raw/daq, /raw/gps, /raw/can
@@ -32,7 +33,7 @@ class RebuildResult:
 
 def iter_raw(path: DriveSpec, port: str) -> Iterator[RawRead]:
     """The reads of one port in the order they were recorded (file order, not log-time order), decoded a
-    chunk at a time (``replay.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
+    chunk at a time (``drive.reader.iter_raw_batches``); a payload that is not a RawBytes message is skipped."""
     for b in reader.iter_raw_batches(path, f"/raw/{port}"):
         raw, o = b["data"].buf.tobytes(), b["data"].offsets.tolist()
         for i, (ok, mono_ns, wall_ns) in enumerate(zip(b["valid"].tolist(), b["mono_ns"].tolist(),

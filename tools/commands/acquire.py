@@ -9,6 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
+from fieldlog.fusion.methods import KF
 from fieldlog.tools.commands.common import METHODS, add_out_dir, command_parser, needs_extras, require_extras
 
 
@@ -42,7 +43,7 @@ def add_parser(sub) -> None:
                         "live bus (/imu with its live stamps) and the live fusion's /fusion/<method>/*, /tf, "
                         "/tf_static (a child `fieldlog view --live BUS --foxglove`; HOST default 127.0.0.1, PORT 0: "
                         "any free port; prints 'foxglove: serving ws://HOST:PORT'; needs fieldlog[foxglove])")
-    s.add_argument("--view-method", choices=METHODS, default="kf", help="--view and --foxglove: fusion method")
+    s.add_argument("--view-method", choices=METHODS, default=KF.name, help="--view and --foxglove: fusion method")
     s.set_defaults(func=needs_extras(run))
 
 

@@ -5,6 +5,7 @@ import argparse
 import glob
 from pathlib import Path
 
+from fieldlog.fusion.methods import DKF, KF
 from fieldlog.tools.commands.common import (METHODS, Progress, add_out_dir, command_parser, log, needs_extras,
                                             parse_lengths)
 
@@ -13,7 +14,7 @@ def add_parser(sub) -> None:
     s = command_parser(sub, "batch", "reprocess many drives on Dask distributed into one Parquet table")
     s.add_argument("drives", nargs="+", help="drives or glob patterns (quote them), e.g. 'drives/*.mcap'; a session "
                                             "or rosbag2 directory is one drive")
-    s.add_argument("--methods", default="kf,dkf", help=f"comma separated: {', '.join(METHODS)}")
+    s.add_argument("--methods", default=",".join((KF.name, DKF.name)), help=f"comma separated: {', '.join(METHODS)}")
     s.add_argument("--outages", default="", help="also forced outages of these lengths, s, comma separated")
     s.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="a running Dask scheduler (default: a local cluster on 127.0.0.1)")

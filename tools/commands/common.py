@@ -9,9 +9,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-# fusion.engine.METHODS, spelled out so that `fieldlog --help` does not import the fusion stack
-# (tests/test_drive.py checks the two agree)
-METHODS = ("ins", "kf", "dkf", "rbfn", "tdln", "dkf-rbfn", "kf-ukf", "hinf", "sckf", "ssr-sckf")
+from fieldlog.fusion.methods import METHODS  # imports none of the fusion stack: `fieldlog --help` stays light
 
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.
@@ -20,13 +18,13 @@ EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export", "fastkml": "
 
 # the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
 # them is told to reinstall, in one line
-KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.acquire._chunks", "fieldlog.tools.sim._sensors")
+KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.drive._chunks", "fieldlog.tools.sim._sensors")
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
 NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}
 
-# the commands that write named outputs: they take --force to replace them (acquire/outputs.py)
+# the commands that write named outputs: they take --force to replace them (drive/outputs.py)
 WRITERS = ("sim", "recover", "filter", "import", "rebuild", "allan", "fuse", "evaluate", "view", "export", "batch",
            "replay", "study")
 
@@ -111,7 +109,7 @@ def command_parser(sub, name: str, help: str, quiet_help: str | None = None,
 
 
 def drive_arg(paths: list[str]) -> str | list[str]:
-    """The drive positional(s) as ``replay.drive`` takes them: one path, or the list."""
+    """The drive positional(s) as ``drive.files`` takes them: one path, or the list."""
     return paths[0] if len(paths) == 1 else paths
 
 
@@ -150,7 +148,7 @@ def parse_lengths(text: str, option: str) -> list[float]:
 
 
 def add_out_args(s: argparse.ArgumentParser) -> None:
-    """--out, and --bag to make it a one-file rosbag2 directory (acquire/bagdir.py)."""
+    """--out, and --bag to make it a one-file rosbag2 directory (drive/bagdir.py)."""
     s.add_argument("--out", required=True, help="output MCAP (with --bag: the rosbag2 directory)")
     s.add_argument("--bag", action="store_true",
                    help="write --out as a rosbag2 directory: OUT/OUT.mcap and its metadata.yaml, which `ros2 bag "
@@ -159,7 +157,7 @@ def add_out_args(s: argparse.ArgumentParser) -> None:
 
 def out_file(a: argparse.Namespace) -> Path:
     """The MCAP file to write: --out, or with --bag the one file of the rosbag2 directory --out."""
-    from fieldlog.acquire.bagdir import bag_file
+    from fieldlog.drive.bagdir import bag_file
 
     return bag_file(Path(a.out)) if a.bag else Path(a.out)
 
@@ -167,7 +165,7 @@ def out_file(a: argparse.Namespace) -> Path:
 def finish_out(a: argparse.Namespace, path: Path) -> None:
     """With --bag: the directory's metadata.yaml for the file just written."""
     if a.bag:
-        from fieldlog.acquire.bagdir import write_bag_metadata
+        from fieldlog.drive.bagdir import write_bag_metadata
 
         log.info(f"wrote {write_bag_metadata(path)}")
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from fieldlog.fusion.methods import DKF, DKF_RBFN, INS
 from fieldlog.tools.commands.common import add_out_dir, command_parser, needs_extras
 from fieldlog.tools.commands.view import rerun_exe
 
@@ -17,8 +18,8 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     """Each step through ``a.cli_main`` (the CLI's entry, which sets it), as if typed. The folder is the demo's
-    own: each run redoes its files (``--force`` to the steps; never through a link: ``acquire.outputs``)."""
-    from fieldlog.acquire.outputs import out_dir
+    own: each run redoes its files (``--force`` to the steps; never through a link: ``drive.outputs``)."""
+    from fieldlog.drive.outputs import out_dir
 
     out = out_dir(a.out_dir)
     drive, fused, rrd, report = out / "figure8.mcap", out / "dkf-rbfn.mcap", out / "figure8.rrd", out / "report"
@@ -27,8 +28,8 @@ def run(a: argparse.Namespace) -> int:
                                       "--out", str(drive), "--force"]),
         ("what the drive holds", ["info", str(drive)]),
         ("fuse with the KF+RBFN hybrid through a 30 s GPS outage",
-         ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "180:30", "--out", str(fused), "--force"]),
-        ("the outage study", ["evaluate", str(drive), "--outages", "30", "--methods", "ins,dkf,dkf-rbfn",
+         ["fuse", str(drive), "--method", DKF_RBFN.name, "--outage", "180:30", "--out", str(fused), "--force"]),
+        ("the outage study", ["evaluate", str(drive), "--outages", "30", "--methods", ",".join((INS.name, DKF.name, DKF_RBFN.name)),
                               "--out-dir", str(report), "--force"]),
         ("a rerun recording", ["view", str(drive), str(fused), "--rrd", str(rrd), "--force"]),
     ]

@@ -61,7 +61,7 @@ def run(a: argparse.Namespace) -> int:
         from fieldlog.tools.evaluation.evaluate import PAPER_SCENARIO
         from fieldlog.tools.sim.simulate import simulate
 
-        from fieldlog.acquire.outputs import out_dir
+        from fieldlog.drive.outputs import out_dir
 
         a.scenario = a.scenario or PAPER_SCENARIO
         out_dir(report, "drives")
@@ -75,12 +75,13 @@ def run(a: argparse.Namespace) -> int:
         if not d.exists():
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
-    from fieldlog.acquire.config import read_toml
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.tools.fuse import load_fusion_config, load_input_spec
 
+    conf = TomlFile.read(a.config)
     table = evaluate(drives, lengths, methods, report, smooth=a.smooth,
-                     config=load_fusion_config(a.config) if a.config and "fusion" in read_toml(a.config) else None,
-                     spec=load_input_spec(a.config).merged(input_spec(a)), paper=a.paper, say=log.debug,
+                     config=load_fusion_config(conf) if conf and "fusion" in conf.tables else None,
+                     spec=load_input_spec(conf).merged(input_spec(a)), paper=a.paper, say=log.debug,
                      note=log.info, progress=Progress("evaluate"), force=a.force)
     if a.json:
         print(json.dumps({"drives": [str(d) for d in drives], "out_dir": str(report), "rows": table.to_dicts()}))

@@ -9,6 +9,7 @@ import argparse
 import json
 import time
 
+from fieldlog.fusion.methods import INS, KF
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Progress, add_input_args,
                                             add_out_args, command_parser, drive_arg, finish_out, input_spec, log,
                                             needs_extras, out_file)
@@ -17,13 +18,16 @@ from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Pr
 def add_parser(sub) -> None:
     s = command_parser(sub, "fuse", "run one fusion method over a drive and write its solution")
     s.add_argument("drive", nargs="+", help=DRIVE_HELP)
-    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
+    s.add_argument("--method", choices=METHODS, default=KF.name, help="fusion method")
     s.add_argument("--outage", action="append", metavar="START:LEN",
                    help=f"force a GPS outage of LEN s from START, {TIME_ORIGIN}, as `filter --start` counts "
                         "(repeatable; default: none)")
     add_out_args(s)
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
+    s.add_argument("--tf-from", default=None, metavar="FILE",
+                   help="of a drive's files that give different /tf_static transforms for a frame, the one whose "
+                        "transforms to use (default: refuse the drive, naming the files and the frame)")
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys; default: the drive's fusion.config record) "
                         "and/or an [input] table (imu_topic, fix_topic, vel_topic, imu_frame)")
@@ -32,12 +36,16 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.replay.drive import label
+    from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.drive import Drive
+    from fieldlog.drive.files import label
     from fieldlog.replay.inputs import RATE_HZ
-    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
+    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, load_input_spec, parse_outage, settings
 
-    drive = drive_arg(a.drive)
-    st = settings(drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
+    conf = TomlFile.read(a.config)
+    imu_axes = input_spec(a).imu_frame or load_input_spec(conf).imu_frame
+    drive = Drive.open(drive_arg(a.drive), a.tf_from, imu_axes_given=imu_axes is not None)  # checked before the work
+    st = settings(drive, conf, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):
             log.warning(line.removeprefix("warning: "))
@@ -74,7 +82,7 @@ def run(a: argparse.Namespace) -> int:
     lo, hi = RATE_HZ
     if not lo <= res.imu_rate_hz <= hi:
         log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")
-    if res.rows == 0 and a.method != "ins":
+    if res.rows == 0 and a.method != INS.name:
         log.warning(NO_ALIGNMENT)
     finish_out(a, out)
     return 0

@@ -3,6 +3,7 @@ log)."""
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 
 from fieldlog.tools.commands.common import command_parser, log, needs_extras
 
@@ -23,6 +24,13 @@ def add_parser(sub) -> None:
     s.add_argument("--config", default=None, metavar="FILE",
                    help="--can: an acquire config whose [can] table (dbc, signals, forward, latency_s) applies "
                         "(default: none)")
+    when = s.add_mutually_exclusive_group()
+    when.add_argument("--start", default=None, metavar="ISO-TIME",
+                      help="--can with boot-relative stamps: the UTC of its first frame, e.g. 2024-05-01T09:30:00Z "
+                           "(default: the GPS log's start; neither: refused)")
+    when.add_argument("--align-to", default=None, metavar="DRIVE",
+                      help="--can with boot-relative stamps: its first frame at this drive's first log time "
+                           "(default: none)")
     s.add_argument("--fs", type=float, default=500.0, help="DAQ sample rate, Hz")
     s.add_argument("--pps", choices=["flag", "latch"], default="flag", help="how the DAQ frames carry the PPS")
     s.add_argument("--out", required=True, help="output MCAP")
@@ -43,6 +51,26 @@ def can_config(a: argparse.Namespace):
     return config.bus_config(c, "frames")
 
 
+def can_first_ns(a: argparse.Namespace) -> int | None:
+    """The UTC of a boot-relative CAN log's first frame, ns: ``--start``, or ``--align-to``'s drive's first log
+    time; None for neither."""
+    if a.start is not None:
+        try:
+            t = dt.datetime.fromisoformat(a.start)
+        except ValueError:
+            raise ValueError(f"--start {a.start!r}: not an ISO time; give e.g. 2024-05-01T09:30:00Z") from None
+        t = t if t.tzinfo is not None else t.replace(tzinfo=dt.timezone.utc)
+        return (t - dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)) // dt.timedelta(microseconds=1) * 1000
+    if a.align_to is not None:
+        from fieldlog.drive.drive import Drive
+
+        start = Drive.open(a.align_to).start_ns
+        if start is None:
+            raise ValueError(f"--align-to {a.align_to}: the drive holds no message to align to")
+        return start
+    return None
+
+
 def run(a: argparse.Namespace) -> int:
     from fieldlog.tools.importer import import_captures
 
@@ -52,7 +80,7 @@ def run(a: argparse.Namespace) -> int:
         raise ValueError("--dbc and --signal decode a CAN log: give it with --can LOG")
     bus = can_config(a) if a.can is not None else None
     res = import_captures(a.gps, a.daq, a.out, fs_hz=a.fs, pps_mode=a.pps, can_log=a.can, can_bus=bus,
-                          force=a.force)
+                          force=a.force, can_first_ns=can_first_ns(a))
     line = (f"wrote {a.out}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs "
             f"({res.counters.gps_no_fix} without fix), {res.counters.nmea.lines} NMEA lines, "
             f"{res.counters.nmea.bad_checksum} bad checksums")

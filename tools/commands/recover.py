@@ -23,9 +23,9 @@ def run(a: argparse.Namespace) -> int:
     reads NAME.recovered.mcap in its place), the complete and sound ones left. A directory's every MCAP file on
     disk is looked at (a session's metadata.yaml lists only the files closed before a crash), and its
     metadata.yaml is written again when a file was recovered or there was none."""
-    from fieldlog.acquire.bagdir import METADATA, rewrite_metadata, session_files
-    from fieldlog.replay.drive import RECOVERED, drive_files
-    from fieldlog.replay.mcapfile import McapFile, TruncatedError
+    from fieldlog.drive.bagdir import METADATA, rewrite_metadata, session_files
+    from fieldlog.drive.files import RECOVERED, drive_files
+    from fieldlog.drive.mcapfile import McapFile, TruncatedError
 
     if len(a.drive) == 1 and not Path(a.drive[0]).is_dir():
         return recover_one(Path(a.drive[0]), Path(a.out) if a.out else None, a.force)
@@ -57,7 +57,7 @@ def run(a: argparse.Namespace) -> int:
 
 def recover_one(src: Path, out: Path | None, force: bool) -> int:
     from fieldlog.acquire.recovery import recover_drive
-    from fieldlog.replay.drive import RECOVERED
+    from fieldlog.drive.files import RECOVERED
 
     out = out or src.with_name(src.stem + RECOVERED)
     if out.resolve() == src.resolve():

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from fieldlog.fusion.methods import KF
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
                                             drive_arg, input_spec, log, needs_extras, output_parent)
 
@@ -11,7 +12,7 @@ def add_parser(sub) -> None:
     s = command_parser(sub, "replay", "play a drive through live fusion into rerun at X times real time")
     s.add_argument("drive", nargs="+", help=DRIVE_HELP)
     s.add_argument("--speed", type=float, default=1.0, help="times real time (0: as fast as possible)")
-    s.add_argument("--method", choices=METHODS, default="kf", help="fusion method")
+    s.add_argument("--method", choices=METHODS, default=KF.name, help="fusion method")
     sink = s.add_mutually_exclusive_group()
     sink.add_argument("--rrd", default=None, metavar="FILE",
                       help="stream into this .rrd file instead of a viewer (default: spawn a viewer)")
@@ -28,11 +29,12 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.replay.player import replay
     from fieldlog.tools.fuse import settings
 
     drive = drive_arg(a.drive)
-    st = settings(drive, a.config, input_spec(a))
+    st = settings(drive, TomlFile.read(a.config), input_spec(a))
     if a.foxglove is not None:
         from fieldlog.tools.foxglove_live import serve
 

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fieldlog.fusion.methods import KF
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
                                             drive_arg, input_spec, log, needs_extras, output_parent)
 
@@ -25,7 +26,7 @@ def add_parser(sub) -> None:
     s.add_argument("--live", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="instead of a drive: the running daemon's live bus (its Unix socket; default: [daemon] bus "
                         "of --config), fused incrementally as in `fieldlog replay`, until the daemon stops")
-    s.add_argument("--method", choices=METHODS, default="kf", help="--live: fusion method")
+    s.add_argument("--method", choices=METHODS, default=KF.name, help="--live: fusion method")
     s.add_argument("--connect", default=None, metavar="URL",
                    help="--live: a running viewer, as for `fieldlog replay` (default: spawn one)")
     s.add_argument("--foxglove", default=None, metavar="[HOST:]PORT",
@@ -92,16 +93,18 @@ def run(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
+    from fieldlog.acquire.config import TomlFile
     from fieldlog.tools.fuse import input_map, load_input_spec
 
+    conf = TomlFile.read(a.config)
     files, fused = viewdata.split_fused([a.drive, *a.fused])
     drive = drive_arg(files)
 
     def inputs() -> InputMap | None:
         try:
-            return input_map(drive, a.config, input_spec(a))
+            return input_map(drive, conf, input_spec(a))
         except ValueError:
-            if load_input_spec(a.config).merged(input_spec(a)).given():
+            if load_input_spec(conf).merged(input_spec(a)).given():
                 raise
             return None  # nothing to map (e.g. a GPS-only drive): show what the drive has
 

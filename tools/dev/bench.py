@@ -22,6 +22,8 @@ from typing import Callable
 
 import numpy as np
 
+from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF
+
 
 ROWS: list[tuple[str, str, str]] = []   # (what [bench], figure, target): the --markdown table
 
@@ -129,7 +131,7 @@ def bench_codecs(runs: int, tmp: Path) -> None:
 
 def bench_recorder(runs: int, tmp: Path) -> None:
     """Encoding and writing 600k IMU messages (a 600 s drive's /imu and /truth/imu)."""
-    from fieldlog.acquire import messages, recorder
+    from fieldlog.drive import messages, recorder
 
     n = 300_000
     t = 1_777_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 2_000_000
@@ -166,7 +168,7 @@ def bench_ins(runs: int, tmp: Path) -> None:
 
 def bench_allan(runs: int, tmp: Path) -> None:
     """The 2-hour static drive through the whole chain: Allan deviation recovers ARW/VRW and bias instability."""
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
     from fieldlog.tools.allan import allan_deviation, noise_parameters
     from fieldlog.tools.sim.sensors import ImuErrorConfig
     from fieldlog.tools.sim.simulate import simulate
@@ -205,7 +207,7 @@ def bench_fusion(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     path, warm = tmp / "fuse_f8.mcap", tmp / "fuse_warm.mcap"
     simulate("figure8", duration_s, 1, path)
     simulate("figure8", 30.0, 2, warm)
-    for method in ("ins", "kf", "dkf", "dkf-rbfn"):
+    for method in (INS.name, KF.name, DKF.name, DKF_RBFN.name):
         fuse(warm, method, tmp / "fused_warm.mcap", force=True)  # kernels loaded, caches warm outside the timing
         med, ts, res = timed(lambda m=method: fuse(path, m, tmp / f"fused_{m}.mcap", force=True), runs)
         print(f"fuse {method:8s} figure8 {duration_s:g} s: median {med:6.2f} s  (runs: {fmt_times(ts)})  "
@@ -219,7 +221,7 @@ def bench_grades(runs: int, tmp: Path) -> None:
     simulator and the filter, kf with aids off, two 60 s outages after 10 minutes of driving; standalone GPS for
     the MEMS grades, RTK for the others."""
     from fieldlog.fusion import imugrade
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
     from fieldlog.tools.evaluation.evaluate import heading_at_starts, outage_error_series
     from fieldlog.tools.fuse import drive_config, fuse
     from fieldlog.tools.sim.simulate import simulate
@@ -232,13 +234,13 @@ def bench_grades(runs: int, tmp: Path) -> None:
                       f'[gps]\nquality = "{gps}"\n[fusion]\nimu = "{grade}"\n')
         drive, out = tmp / f"grade_{grade}.mcap", tmp / f"grade_{grade}_kf.mcap"
         simulate(str(sc), None, 1, drive)
-        fuse(drive, "kf", out, drive_config(drive).replace(outages=outages))
+        fuse(drive, KF.name, out, drive_config(drive).replace(outages=outages))
         t0 = min(t.first_ns for t in reader.topics(drive) if t.topic == "/imu")
         win = [(t0 + int(a * 1e9), t0 + int((a + n) * 1e9)) for a, n in outages]
-        t, e = outage_error_series(drive, out, "kf", win)
+        t, e = outage_error_series(drive, out, KF.name, win)
         h = np.hypot(e[:, 0], e[:, 1])
         drift = [h[(t >= a) & (t < b)].max() for a, b in win]
-        err, sig = heading_at_starts(drive, out, "kf", win)
+        err, sig = heading_at_starts(drive, out, KF.name, win)
         print(f"{grade:12s} {gps:10s} 2D RMS {math.sqrt(np.mean(h ** 2)):8.3f} m, max drift per outage "
               + ", ".join(f"{d:.3f}" for d in drift) + " m; heading at the starts "
               + ", ".join(f"{x:+.3f}±{y:.3f}°" for x, y in zip(err, sig)))
@@ -272,7 +274,7 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> di
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-_LONG_TARGETS = {"kf": "≤ 10 s; RSS equal", "dkf-rbfn": "≤ 15 s; RSS equal"}  # the 1-hour drive
+_LONG_TARGETS = {KF.name: "≤ 10 s; RSS equal", DKF_RBFN.name: "≤ 15 s; RSS equal"}  # the 1-hour drive
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
@@ -291,8 +293,8 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     warm = tmp / "fuse_warm.mcap"
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
-    _fuse_child(warm, "kf", tmp / "fused_warm.mcap")  # a warm run outside the figures
-    for method, smooth in (("kf", False), ("dkf-rbfn", False), ("kf", True)):
+    _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
+    for method, smooth in ((KF.name, False), (DKF_RBFN.name, False), (KF.name, True)):
         name = method + (" --smooth" if smooth else "")
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth) for d in drives]
         h0 = hours[0]
@@ -331,8 +333,8 @@ def bench_daemon(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     import signal
 
     from fieldlog.acquire.timesync import SyncState
-    from fieldlog.replay import reader
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive import reader
+    from fieldlog.drive.reader import read_metadata
 
     def one(speed: float, duration: float) -> None:
         out, truth = tmp / f"drives_x{speed:g}", tmp / f"truth_x{speed:g}.mcap"
@@ -384,9 +386,9 @@ def bench_soak(runs: int, tmp: Path, duration_s: float = 1800.0, speed: float = 
     from collections import Counter
 
     from fieldlog.acquire import daq
-    from fieldlog.acquire.messages import STATUS_NO_FIX
-    from fieldlog.replay import reader
-    from fieldlog.replay.reader import read_metadata
+    from fieldlog.drive.messages import STATUS_NO_FIX
+    from fieldlog.drive import reader
+    from fieldlog.drive.reader import read_metadata
     from fieldlog.tools.sim.serve import PORTS, corrupt_stream, delivered, simulated_streams
 
     out, truth, links = tmp / "soak", tmp / "soak_truth.mcap", tmp / "soak_ports"
@@ -501,7 +503,8 @@ def bench_bus(runs: int, tmp: Path, duration_s: float = 60.0) -> None:
     import threading
 
     from fieldlog.acquire.timesync import SyncState
-    from fieldlog.replay import live, reader
+    from fieldlog.drive import reader
+    from fieldlog.replay import live
 
     out, truth, bus, cfg = tmp / "drives_bus", tmp / "truth_bus.mcap", tmp / "bus.sock", tmp / "bus.toml"
     cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
@@ -624,7 +627,7 @@ def bench_view(runs: int, tmp: Path) -> None:
     from fieldlog.tools.fuse import fuse
 
     drive, fused, rrd = _hour_drive(tmp), tmp / "hour_kf.mcap", tmp / "hour.rrd"
-    fuse(drive, "kf", fused, FusionConfig(), force=True)
+    fuse(drive, KF.name, fused, FusionConfig(), force=True)
     med, ts, _ = timed(lambda: view(drive, [fused], rrd, force=True), runs)
     print(f"view 1 h drive + kf -> .rrd:  median {med:6.2f} s  (runs: {fmt_times(ts)})   target <= 10 s; "
           f"{rrd.stat().st_size / 1e6:.1f} MB .rrd from a {drive.stat().st_size / 1e6:.0f} MB drive")
@@ -673,9 +676,9 @@ def bench_batch(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     hours = len(drives) * duration_s / 3600.0
 
     def batch(**where) -> None:
-        run_batch(drives, ["kf", "dkf"], [30.0], tmp / "batch", say=lambda _m: None, force=True, **where)
+        run_batch(drives, [KF.name, DKF.name], [30.0], tmp / "batch", say=lambda _m: None, force=True, **where)
 
-    t_one, w_one, _ = timed(lambda: [drive_rows(d, ["kf", "dkf"], [30.0], tmp / "one", force=True) for d in drives],
+    t_one, w_one, _ = timed(lambda: [drive_rows(d, [KF.name, DKF.name], [30.0], tmp / "one", force=True) for d in drives],
                             runs)
     t_local, w_local, _ = timed(lambda: batch(workers=2), runs)
     with loopback_cluster(2, tmp / "cluster") as address:
@@ -700,8 +703,8 @@ def bench_cycle(runs: int, tmp: Path) -> None:
     n = 15
     med = cycle_costs(runs)
     flops = cycle_flops(n, 6)
-    kp, kt = med["kf"]["predict_us"], med["kf"]["total_us"]
-    fp, ft = flops["kf"][2], flops["kf"][2] + flops["kf"][3]
+    kp, kt = med[KF.name]["predict_us"], med[KF.name]["total_us"]
+    fp, ft = flops[KF.name][2], flops[KF.name][2] + flops[KF.name][3]
     print(f"n = {n}, m = 6 GPS rows, {CYCLE_REPS} cycles x {runs} runs, medians; kf-ukf in outage mode (UT every cycle)")
     print(f"{'method':9s} {'predict us':>10s} {'x kf':>6s} {'pred+upd us':>11s} {'x kf':>6s} {'(upd us)':>8s} "
           f"{'pred kflop':>10s} {'x kf':>6s} {'total kflop':>11s} {'x kf':>6s}")
@@ -710,7 +713,7 @@ def bench_cycle(runs: int, tmp: Path) -> None:
         fl_p, fl_t = flops[name][2], flops[name][2] + flops[name][3]
         print(f"{name:9s} {p:10.1f} {p / kp:6.1f} {t:11.1f} {t / kt:6.1f} {u:8.1f} "
               f"{fl_p / 1e3:10.1f} {fl_p / fp:6.1f} {fl_t / 1e3:11.1f} {fl_t / ft:6.1f}")
-        if name != "kf":
+        if name != KF.name:
             row(f"filter cycle cost of {name} against kf, prediction / with a GPS update [cycle]",
                 f"×{p / kp:.1f} / ×{t / kt:.1f}")
     print("flop formulas (n states, m rows, c = 4 c_f + 12 n per point RK4 step, c_f ~ 450):")
@@ -755,7 +758,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """Reading what fuse reads (/imu, /gps/fix, /gps/vel in 10 s blocks) of a 300 s drive in every MCAP layout."""
     # Wall and CPU time both: under contention the wall ratio is not the CPU ratio. The 4 KiB-chunk file is the
     # hard case: every chunk holds /imu, so every chunk is decompressed (about 2.3x the own file's bytes).
-    from fieldlog.replay import drive, reader
+    from fieldlog.drive import files as drive, reader
     from fieldlog.tools.dev.layouts import LAYOUTS, rewrite
     from fieldlog.tools.sim.simulate import simulate
 
@@ -793,7 +796,7 @@ def bench_reader(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
 def bench_recover(runs: int, tmp: Path, duration_s: float = 300.0) -> None:
     """``recover DIR``'s check of a complete file (every chunk's CRC), and the recovery of one with a damaged chunk."""
     from fieldlog.acquire.recovery import TailDeriver, recover, recover_drive
-    from fieldlog.replay.mcapfile import McapFile
+    from fieldlog.drive.mcapfile import McapFile
     from fieldlog.tools.dev.layouts import rewrite
     from fieldlog.tools.sim.simulate import simulate
 
@@ -848,9 +851,9 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     convert = [rr, "mcap", "convert", str(drive), "-o", str(tmp / "rr_convert.rrd")]
     fused = tmp / "rr_kf.mcap"
     cmds = {  # name: (fieldlog command, reference command, target)
-        "fuse --method kf": ([*fl, "fuse", str(drive), "--method", "kf", "--out", str(fused), "--force", "-q"],
+        "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×1.0"),
-        "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", "dkf-rbfn", "--out",
+        "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
                                     str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×1.5"),
         "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
                                     "--force", "-q"], convert, "≤ ×1.0"),
@@ -858,7 +861,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
                                            str(tmp / "rr_sim.mcap"), "--force", "-q"], convert, "≤ ×4"),
         "info": ([*fl, "info", str(drive)], [rr, "mcap", "info", str(drive)], ""),
     }
-    warm60 = [*fl, "fuse", str(short), "--method", "kf", "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
+    warm60 = [*fl, "fuse", str(short), "--method", KF.name, "--out", str(tmp / "rr_short_kf.mcap"), "--force", "-q"]
     for name in ("fuse --method kf", "fuse --method dkf-rbfn"):
         _run_s(cmds[name][0], tmp)  # a warm run outside the figures (page cache); kf's output feeds view
     _run_s(warm60, tmp)
@@ -892,7 +895,7 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 
 
 # The stages of `make bench --only profile`: a profiled function's own time goes to the stage of its file (and, in
-# acquire/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
+# drive/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
 _WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
@@ -911,14 +914,14 @@ def _stage_of(path: str, name: str) -> str | None:
         return None
     if ".venv" in rel or rel.startswith("tools/dev/"):
         return None
-    if rel == "acquire/recorder.py":
+    if rel == "drive/recorder.py":
         return "output encoding and writing" if name in _WRITE else "reading and decoding"
-    if rel in ("acquire/messages.py", "fusion/output.py", "tools/fuse.py", "acquire/outputs.py", "fusion/smoother.py"):
+    if rel in ("drive/messages.py", "fusion/output.py", "tools/fuse.py", "drive/outputs.py", "fusion/smoother.py"):
         return "output encoding and writing" if rel != "tools/fuse.py" or name not in ("fuse", "settings",
                                                                                       "input_map") else "other"
     if rel == "replay/inputs.py":
         return "input mapping and resequencing"
-    if rel.startswith("replay/") or rel in ("acquire/native.py", "acquire/bagdir.py"):
+    if rel.startswith("replay/") or rel in ("drive/native.py", "drive/bagdir.py"):
         return "reading and decoding"
     if rel in ("fusion/ins.py", "fusion/errmodel.py", "fusion/clipgyro.py", "fusion/earth.py"):
         return "INS and covariance cycles"
@@ -1010,7 +1013,7 @@ def _profile_stages(runs: int, tmp: Path, duration_s: float) -> None:
           f"imports, kernel load) {first:.2f} s; load {load:.1f}")
     table = {}
     for (label, path, n) in ((f"{duration_s:g} s", drive, runs), ("1 h", _hour_drive(tmp), 1)):
-        for method in ("kf", "dkf-rbfn"):
+        for method in (KF.name, DKF_RBFN.name):
             fuse(warm, method, tmp / "prof_w.mcap", force=True)
             walls = []
             for _ in range(n):
@@ -1046,7 +1049,7 @@ def _profile_stages(runs: int, tmp: Path, duration_s: float) -> None:
             f"start-up {imp + first:.2f} s; load {load:.1f})")
 
 
-BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, "ins": bench_ins, "sim": bench_sim,
+BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "recorder": bench_recorder, INS.name: bench_ins, "sim": bench_sim,
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "soak": bench_soak, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long, "recover": bench_recover,

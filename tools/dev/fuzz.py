@@ -263,7 +263,7 @@ def _daq_decoder_run(t: Target, data: bytes) -> None:
 
 
 def _mcap_run(t: Target, data: bytes) -> None:
-    from fieldlog.replay import reader
+    from fieldlog.drive import reader
 
     path = t.state["path"]
     path.write_bytes(data)
@@ -298,9 +298,9 @@ def _novatel_binary(week: int, ms: int) -> bytes:
 
 def _mcap_seed() -> bytes:
     """A small drive written by mcap's own Writer, uncompressed chunks of a few messages, with metadata."""
-    from mcap.writer import CompressionType, Writer
+    from fieldlog.drive.records import CompressionType, Writer
 
-    from fieldlog.acquire import messages
+    from fieldlog.drive import messages
 
     buf = io.BytesIO()
     w = Writer(buf, chunk_size=600, compression=CompressionType.NONE)

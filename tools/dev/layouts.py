@@ -12,11 +12,11 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
-from fieldlog.acquire import outputs
-from fieldlog.replay import reader
-from fieldlog.replay.drive import open_drive
+from fieldlog.drive import outputs
+from fieldlog.drive import reader
+from fieldlog.drive.files import open_drive
+from fieldlog.drive.records import CompressionType, IndexType, Writer
 
 LAYOUTS: dict[str, dict] = {
     "unchunked": dict(use_chunking=False),

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from fieldlog.replay import reader
+from fieldlog.fusion.methods import DKF_RBFN
+from fieldlog.drive import reader
 from fieldlog.replay import view as rv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -47,7 +48,7 @@ def demo_recording(work: Path, duration_s: float) -> Path:
 
     drive, fused, rrd = work / "figure8.mcap", work / "dkf-rbfn.mcap", work / "viewer.rrd"
     simulate("figure8", duration_s, 1, drive, force=True)     # its own work folder, redone each time
-    fuse(drive, "dkf-rbfn", fused, FusionConfig.from_flat(outages=(parse_outage("180:30"),)), force=True)
+    fuse(drive, DKF_RBFN.name, fused, FusionConfig.from_flat(outages=(parse_outage("180:30"),)), force=True)
     fix = reader.read_topic(drive, "/gps/fix")
     ok = fix["valid"] & (fix["status"] >= 0)
     rec = rr.RecordingStream("fieldlog")

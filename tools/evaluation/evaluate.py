@@ -29,7 +29,7 @@ The scoring functions take the fused solution as a fused file or as its rows in 
 read through ``replay.solutions.read``: the same arrays), so a study scores the runs it fuses without reading its
 fused files back.
 
-Methods: ``fusion.engine.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
+Methods: ``fusion.methods.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
 distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
 """
 
@@ -44,11 +44,13 @@ from typing import Callable, Sequence
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion import earth
-from fieldlog.fusion.config import METHODS, FusionConfig
+from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF, METHODS, RBFN, TDLN
 from fieldlog.fusion.types import Solution
-from fieldlog.replay import reader, solutions
+from fieldlog.drive import reader
+from fieldlog.replay import solutions
 from fieldlog.replay.inputs import InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
 from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
@@ -421,7 +423,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its absolute figures and
     each of its claims (:func:`paper_report`). Drive names (stems) must be unique (:func:`check_drive_names`),
     checked before anything is written. progress: called with the fraction of the runs done. Every file is new
-    (``acquire.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
+    (``drive.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
     runs that could not be scored (default: ``say``)."""
     check_methods(methods)
     if not drives:
@@ -429,7 +431,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     check_drive_names(drives)
     report = Path(report)
     outputs.out_dir(report, "fused")
-    runs = [(m, sm, True) for m in methods for sm in ((False, True) if smooth and m != "ins" else (False,))]
+    runs = [(m, sm, True) for m in methods for sm in ((False, True) if smooth and m != INS.name else (False,))]
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
@@ -444,7 +446,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             base = paper_config(base)
         imap = resolve_inputs(drive, spec)
         t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
-        drive_runs = runs + ([(m, sm, False) for m, sm, _ in runs if m != "ins"]
+        drive_runs = runs + ([(m, sm, False) for m, sm, _ in runs if m != INS.name]
                              if imap.odom_topic and base.aids.odometer else [])
         total += len(lengths) * (len(drive_runs) - len(runs))
         for L in lengths:
@@ -617,12 +619,12 @@ def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
     run."""
     lines = []
     for L in sorted({L for _, L in per}):
-        if ("dkf-rbfn", L) not in per:
+        if (DKF_RBFN.name, L) not in per:
             continue
         d2 = _d2(per, L)
-        h = d2["dkf-rbfn"]
+        h = d2[DKF_RBFN.name]
         parts = []
-        for other in ("rbfn", "tdln", "dkf", "kf"):
+        for other in (RBFN.name, TDLN.name, DKF.name, KF.name):
             if other not in d2 or len(d2[other]) != len(h):  # a drive where one of them had no solution
                 continue
             o = d2[other]
@@ -638,22 +640,22 @@ def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
     return ["## Does the hybrid beat RBFN-only and TDLN, as the paper claims?", "", *lines, ""] if lines else []
 
 
-PAPER_METHODS = ("kf", "dkf", "rbfn", "tdln", "dkf-rbfn")
+PAPER_METHODS = (KF.name, DKF.name, RBFN.name, TDLN.name, DKF_RBFN.name)
 PAPER_LENGTHS = (30.0, 60.0)
 PAPER_SEEDS = 8
 PAPER_SCENARIO = "figure8-varied"  # the paper's figure-eight with laps that vary (no predictor learns the track)
 # the paper's Table 3: RMS longitude, latitude, altitude (m), east, north, up velocity (m/s) in its outages
 PAPER_TABLE3 = {
-    ("tdln", 30.0): (48.8457, 4.8964, 2.837e3, 0.5132, 0.2328, 133.4138),
-    ("tdln", 60.0): (368.5379, 2.7340, 2.2941e4, 2.7722, 0.1926, 248.3301),
-    ("rbfn", 30.0): (6.7454, 4.7034, 6.8774e3, 0.1886, 0.1615, 30.4365),
-    ("rbfn", 60.0): (12.0465, 3.3548, 3.2891e4, 1.5799, 0.2314, 158.1367),
-    ("dkf-rbfn", 30.0): (2.9495, 4.9846, 0.3719, 0.1162, 0.5534, 0.0190),
-    ("dkf-rbfn", 60.0): (8.8609, 3.0110, 2.5718, 0.2351, 0.4023, 0.0500),
+    (TDLN.name, 30.0): (48.8457, 4.8964, 2.837e3, 0.5132, 0.2328, 133.4138),
+    (TDLN.name, 60.0): (368.5379, 2.7340, 2.2941e4, 2.7722, 0.1926, 248.3301),
+    (RBFN.name, 30.0): (6.7454, 4.7034, 6.8774e3, 0.1886, 0.1615, 30.4365),
+    (RBFN.name, 60.0): (12.0465, 3.3548, 3.2891e4, 1.5799, 0.2314, 158.1367),
+    (DKF_RBFN.name, 30.0): (2.9495, 4.9846, 0.3719, 0.1162, 0.5534, 0.0190),
+    (DKF_RBFN.name, 60.0): (8.8609, 3.0110, 2.5718, 0.2351, 0.4023, 0.0500),
 }
 # the paper's claims: (better, worse, words); "dkf >= kf" is section 2.1's information loss of distributed fusion
-PAPER_CLAIMS = (("dkf-rbfn", "rbfn", "hybrid < RBFN"), ("dkf-rbfn", "tdln", "hybrid < TDLN"),
-                ("dkf-rbfn", "dkf", "hybrid < dkf"), ("kf", "dkf", "dkf >= centralised kf"))
+PAPER_CLAIMS = ((DKF_RBFN.name, RBFN.name, "hybrid < RBFN"), (DKF_RBFN.name, TDLN.name, "hybrid < TDLN"),
+                (DKF_RBFN.name, DKF.name, "hybrid < dkf"), (KF.name, DKF.name, "dkf >= centralised kf"))
 
 
 def paper_config(cfg: FusionConfig) -> FusionConfig:
@@ -694,19 +696,19 @@ def paper_report(per: dict[tuple[str, float], list[np.ndarray]], route: str = ""
     route: one line naming the drives' route."""
     lines = ["## The paper's Table 3 beside ours (GPS only, paper's dkf, online networks)", "",
              *((route, "") if route else ()),
-             "| quantity | unit | " + " | ".join(f"{m} {L:g} s ours | paper" for m in ("tdln", "rbfn", "dkf-rbfn")
+             "| quantity | unit | " + " | ".join(f"{m} {L:g} s ours | paper" for m in (TDLN.name, RBFN.name, DKF_RBFN.name)
                                                 for L in PAPER_LENGTHS) + " |",
              "|---|---|" + "---|---|" * 3 * len(PAPER_LENGTHS)]
     for i, (q, unit) in enumerate(QUANTITIES[:6]):
         cells = []
-        for m in ("tdln", "rbfn", "dkf-rbfn"):
+        for m in (TDLN.name, RBFN.name, DKF_RBFN.name):
             for L in PAPER_LENGTHS:
                 ours = np.nanmean(np.array(per[(m, L)])[:, i]) if (m, L) in per else math.nan
                 cells.append(f"{ours:.3f} | {PAPER_TABLE3[(m, L)][i]:.4g}")
         lines.append(f"| {q} | {unit} | " + " | ".join(cells) + " |")
     lines += ["", f"## Verdicts on the paper's absolute figures (2D RMS; ours: mean over drives ± {CONFIDENCE:.0%} "
               "t interval)", "", "| method | outage | quantity | paper | ours | verdict |", "|---|---|---|---|---|---|"]
-    for m in ("tdln", "rbfn", "dkf-rbfn"):
+    for m in (TDLN.name, RBFN.name, DKF_RBFN.name):
         for L in PAPER_LENGTHS:
             if (m, L) not in per:
                 continue
@@ -728,7 +730,7 @@ def paper_report(per: dict[tuple[str, float], list[np.ndarray]], route: str = ""
             pt = paired(d2[worse] - d2[better])  # > 0: the claim's direction
             lines.append(f"- {L:g} s, {words}: {better} {d2[better].mean():.2f} m, {worse} {d2[worse].mean():.2f} m; "
                          f"{worse} - {better} = {pt.cell()} over {pt.n} drives: "
-                         f"**{claim_word(pt, equality_claim=better == 'kf')}**.")
+                         f"**{claim_word(pt, equality_claim=better == KF.name)}**.")
     if len({len(v) for v in per.values()}) == 1 and len(next(iter(per.values()), [])) < PAPER_SEEDS:
         lines.append(f"- Fewer than {PAPER_SEEDS} drives: the paper's set-up asks for at least {PAPER_SEEDS}.")
     return lines + [""]

@@ -36,15 +36,16 @@ from typing import Callable
 import numpy as np
 import polars as pl
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.replay import reader
+from fieldlog.fusion.methods import HINF, KF, KF_UKF, SCKF, SSR_SCKF
+from fieldlog.drive import reader
 from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
 from fieldlog.tools.fuse import FuseResult, drive_config, fuse
 
 # Columns of ``outage_error_series``: position E, N, U (m); velocity E, N, U (m/s); roll, pitch, heading (deg).
 E, N, U, VE, VN, VU, ROLL, PITCH, YAW = range(9)
-STUDIES = ("kf-ukf", "cost", "ssr-sckf", "hinf")
+STUDIES = (KF_UKF.name, "cost", SSR_SCKF.name, HINF.name)
 
 
 @dataclass
@@ -188,12 +189,12 @@ def study_kf_ukf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) 
         for L in UKF_LENGTHS:
             cfg = base.replace(outages=((UKF_OUTAGE_START_S, L),))
             back = UKF_OUTAGE_START_S + L
-            for m in ("kf", "kf-ukf"):
+            for m in (KF.name, KF_UKF.name):
                 r = run(drive, m, f"{m}_{L:g}s", cfg, work / "fused", (0.0, duration))
                 r.label = m
                 for case, (a, b) in ((f"{L:g}", (back, duration)), (f"{L:g} first", (back, back + UKF_TRANSIENT_S))):
                     rms = rms_columns(_window(r, a, b))
-                    rows += [dict(study="kf-ukf", case=case, drive=drive.name, method=m, quantity=name, unit=unit,
+                    rows += [dict(study=KF_UKF.name, case=case, drive=drive.name, method=m, quantity=name, unit=unit,
                                   value=float(rms[c])) for name, unit, c, _ in UKF_COLS]
                 inside = np.abs(_window(r, UKF_OUTAGE_START_S, back))
                 drift.setdefault(L, []).append(np.nanmax(inside[:, ROLL:YAW + 1]))
@@ -219,24 +220,24 @@ def study_kf_ukf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) 
              "GPS's return to the end of the 300 s flight, against the simulator's truth. Ours: mean ± sample "
              f"standard deviation over {len(drives)} drive(s) (seeds 1..{len(drives)}). D = -U.", ""] + head
     for L in UKF_LENGTHS:
-        for m, paper in zip(("kf", "kf-ukf"), UKF_PAPER[L]):
+        for m, paper in zip((KF.name, KF_UKF.name), UKF_PAPER[L]):
             lines.append(f"| {L:g} s | **{m}** (ours) | {ours(f'{L:g}', m)} |")
-            lines.append(f"| {L:g} s | {'EKF' if m == 'kf' else 'hybrid KF-UKF'} (paper) | "
+            lines.append(f"| {L:g} s | {'EKF' if m == KF.name else 'hybrid KF-UKF'} (paper) | "
                          + " | ".join(f"{v:.4f}" for v in paper) + " |")
     lines += ["", f"The same, over the first {UKF_TRANSIENT_S:g} s after the GPS returns only (the transient, where "
               "a better outage prediction would show most):", ""] + head
     for L in UKF_LENGTHS:
-        lines += [f"| {L:g} s | {m} | {ours(f'{L:g} first', m)} |" for m in ("kf", "kf-ukf")]
+        lines += [f"| {L:g} s | {m} | {ours(f'{L:g} first', m)} |" for m in (KF.name, KF_UKF.name)]
     lines += ["", "## What agrees, what differs", ""]
     for L in UKF_LENGTHS:
         diffs = []
         for case in (f"{L:g}", f"{L:g} first"):
             for q, _, _, _ in UKF_COLS:
-                a = _mean(table, case=case, method="kf", quantity=q)
-                b = _mean(table, case=case, method="kf-ukf", quantity=q)
+                a = _mean(table, case=case, method=KF.name, quantity=q)
+                b = _mean(table, case=case, method=KF_UKF.name, quantity=q)
                 if math.isfinite(a) and a > 0 and abs(b - a) / a >= 0.02:
                     first = f" (first {UKF_TRANSIENT_S:g} s)" if case.endswith("first") else ""
-                    diffs.append(f"{q}{first}: {_better(a, b, 'kf', 'kf-ukf')}")
+                    diffs.append(f"{q}{first}: {_better(a, b, KF.name, KF_UKF.name)}")
         paper_gain = np.mean([(k - u) / k * 100 for k, u in zip(*UKF_PAPER[L])][:6])
         lines.append(f"- {L:g} s outage: largest attitude error inside the outage {np.mean(drift[L]):.3f} deg; "
                      + ("; ".join(diffs) if diffs else "kf-ukf and kf are equal within 2 % in every quantity")
@@ -281,15 +282,15 @@ def cycle_flops(n: int, m: int) -> dict[str, tuple[str, str, float, float]]:
     ssr_u = (2 * m * n**2 + 4 * m**2 * (n + m) + 8 * m**3 + 2 * n**2 * m + 2 * m**3 + 2 * n * m**2 + 4 * n * m
              + 2 * n**2 * m + 2 * n * m**2 + qr(n + m, n) + 2 * m**2 * n + 2 * 20 * m + 2 * m**2)
     return {
-        "kf": ("4n^3 + n^2 (Phi P Phi^T + Q)", "4n^3 + 6mn^2 + 6m^2n + 2m^3/3 (gain, Joseph)", kf_p, kf_u),
-        "kf-ukf": ("n^3/3 + 4(2n+1)n^2 + (2n+1)c + n^2 (chol, points, RK4, cov)", "= kf",
+        KF.name: ("4n^3 + n^2 (Phi P Phi^T + Q)", "4n^3 + 6mn^2 + 6m^2n + 2m^3/3 (gain, Joseph)", kf_p, kf_u),
+        KF_UKF.name: ("n^3/3 + 4(2n+1)n^2 + (2n+1)c + n^2 (chol, points, RK4, cov)", "= kf",
                    n**3 / 3 + 4 * (2 * n + 1) * n**2 + (2 * n + 1) * c + n**2, kf_u),
-        "sckf": ("2pn^2 + pc + 4pn + QR(p+n, n) + n^3/3 (points, RK4, centring, QR, sqrt Q), p = 2n",
+        SCKF.name: ("2pn^2 + pc + 4pn + QR(p+n, n) + n^3/3 (points, RK4, centring, QR, sqrt Q), p = 2n",
                  "points 2pn^2 + 6pmn + QR(p+m, m) + QR(p+m, n) + 3m^3 + 2m^2n + 2nm^2, p = 2n",
                  ckf_p(2 * n), sckf_u),
-        "ssr-sckf": ("same, p = 2n+2", "6mn^2 + SVD(m x (n+m)) + QR(n+m, n) + 4nm^2 + 2m^2n + window R 2Wm + 2m^2 (W = 20)",
+        SSR_SCKF.name: ("same, p = 2n+2", "6mn^2 + SVD(m x (n+m)) + QR(n+m, n) + 4nm^2 + 2m^2n + window R 2Wm + 2m^2 (W = 20)",
                      ckf_p(2 * n + 2), ssr_u),
-        "hinf": ("= kf", "kf + chol n^3/3 + eigvalsh 4n^3/3 + eigh 9n^3 + 4n^3 + 4mn^2",
+        HINF.name: ("= kf", "kf + chol n^3/3 + eigvalsh 4n^3/3 + eigh 9n^3 + 4n^3 + 4mn^2",
                  kf_p, kf_u + n**3 / 3 + 4 * n**3 / 3 + 9 * n**3 + 4 * n**3 + 4 * m * n**2),
     }
 
@@ -315,9 +316,9 @@ def cycle_costs(runs: int) -> dict[str, dict[str, float]]:
     pos = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, 2.0 * np.eye(3), lever)
     vel = kf.velocity_measurement(nav, nav.v_n, 0.01 * np.eye(3), np.array([0.0, 0.0, 0.1]), lever, 100.0)
     zs = [(rng.standard_normal(3) * 0.1, rng.standard_normal(3) * 1.4) for _ in range(reps)]
-    makers = {"kf": lambda P: kf.KalmanFilter(P, q), "kf-ukf": lambda P: ukf.HybridKfUkf(P, q),
-              "sckf": lambda P: sckf.sckf(P, q), "ssr-sckf": lambda P: sckf.ssr_sckf(P, q),
-              "hinf": lambda P: hinf.HInfinityFilter(P, q, 100.0, min_ratio=1.5)}
+    makers = {KF.name: lambda P: kf.KalmanFilter(P, q), KF_UKF.name: lambda P: ukf.HybridKfUkf(P, q),
+              SCKF.name: lambda P: sckf.sckf(P, q), SSR_SCKF.name: lambda P: sckf.ssr_sckf(P, q),
+              HINF.name: lambda P: hinf.HInfinityFilter(P, q, 100.0, min_ratio=1.5)}
 
     def make(name: str) -> kf.KalmanFilter:
         f = makers[name](np.diag(sd ** 2))
@@ -377,7 +378,7 @@ def study_cost(out: Path, runs: int, say: Callable[[str], None]) -> pl.DataFrame
     rows = [dict(study="cost", case="n=15", drive="", method=m, quantity=q, unit="us", value=v)
             for m, c in costs.items() for q, v in (("predict", c["predict_us"]), ("total", c["total_us"]))]
     table = _long(rows)
-    kf_p, kf_t = costs["kf"]["predict_us"], costs["kf"]["total_us"]
+    kf_p, kf_t = costs[KF.name]["predict_us"], costs[KF.name]["total_us"]
     fk, fu = flops_kf(n, l), flops_ukf(n, l)
     lines = ["# Hybrid KF/UKF paper, Table 4: cost per filter cycle", "",
              f"`fieldlog study cost`: n = {n} states, l = {l} measurements (GPS velocity and position), median of "
@@ -388,8 +389,8 @@ def study_cost(out: Path, runs: int, say: Callable[[str], None]) -> pl.DataFrame
              "paper's flops, total | our count, prediction (kflop) | our count, total (kflop) |",
              "|---|---|---|---|---|---|---|---|---|"]
     ours = cycle_flops(n, l)
-    formula = {"kf": (f"4n³+n²−n = {fk[0]}", f"{fk[1]}"),
-               "kf-ukf": (f"6⅔n³+12n²+3n = {fu[0]:.0f} + RK4 of 31 points", f"{fu[1]:.0f} + RK4")}
+    formula = {KF.name: (f"4n³+n²−n = {fk[0]}", f"{fk[1]}"),
+               KF_UKF.name: (f"6⅔n³+12n²+3n = {fu[0]:.0f} + RK4 of 31 points", f"{fu[1]:.0f} + RK4")}
     for m, c in costs.items():
         f = formula.get(m, ("–", "–"))
         lines.append(f"| {m} | {c['predict_us']:.1f} | {c['predict_us'] / kf_p:.2f} | {c['total_us']:.1f} | "
@@ -397,7 +398,7 @@ def study_cost(out: Path, runs: int, say: Callable[[str], None]) -> pl.DataFrame
                      f"{(ours[m][2] + ours[m][3]) / 1e3:.1f} |")
     lines += ["", "Our count (a multiply-add = 2 flops; c = one point's RK4 step through the nonlinear model):", ""]
     lines += [f"- {m}: prediction {fp}; update {fu}" for m, (fp, fu, _, _) in ours.items()]
-    ratio = costs["kf-ukf"]["predict_us"] / kf_p
+    ratio = costs[KF_UKF.name]["predict_us"] / kf_p
     lines += ["", "## What agrees, what differs", "",
               f"- The paper counts {fk[0]} flops for the EKF prediction and {fu[0]:.0f} for the UKF's "
               f"({fu[0] / fk[0]:.2f}×), and says the RK4 integration of each sigma point comes on top. We measure "
@@ -412,8 +413,8 @@ def study_cost(out: Path, runs: int, say: Callable[[str], None]) -> pl.DataFrame
 
 # -- adaptive SSR-SCKF, Tables 1-2 -----------------------------------------------------------------------
 
-SSR_PAPER = {"flight600": {"sckf": (3.0238, 0.0732, 60), "ssr-sckf": (1.7307, 0.0712, 32)},
-             "flight600-noisy": {"sckf": (54.4903, 0.7578, 60), "ssr-sckf": (10.7369, 0.1043, 32)}}
+SSR_PAPER = {"flight600": {SCKF.name: (3.0238, 0.0732, 60), SSR_SCKF.name: (1.7307, 0.0712, 32)},
+             "flight600-noisy": {SCKF.name: (54.4903, 0.7578, 60), SSR_SCKF.name: (10.7369, 0.1043, 32)}}
 
 
 SSR_SEGMENTS = ((0.0, 200.0), (200.0, 400.0), (400.0, 600.0))
@@ -424,19 +425,19 @@ def study_ssr_sckf(out: Path, work: Path, seeds: int, say: Callable[[str], None]
 
     # per cycle with a GPS update: sckf's points in the time update and again in the measurement update
     # (eq. 13); ssr-sckf's in the time update only (the SVD update needs none)
-    points = {"sckf": 2 * len(sckf.spherical_radial_rule(15)[1]), "ssr-sckf": len(sckf.simplex_radial_rule(15)[1])}
+    points = {SCKF.name: 2 * len(sckf.spherical_radial_rule(15)[1]), SSR_SCKF.name: len(sckf.simplex_radial_rule(15)[1])}
     duration = 600.0
     rows, plot_runs = [], []
     for scenario in SSR_PAPER:
         for drive in simulate_drives(scenario, duration, seeds, work / "drives", say):
             cfg = drive_config(drive)
-            for m in ("sckf", "ssr-sckf"):
+            for m in (SCKF.name, SSR_SCKF.name):
                 r = run(drive, m, m, cfg, work / "fused", (0.0, duration))
                 pos, vel = _rms3(r.err, E), _rms3(r.err, VE)
-                rows += [dict(study="ssr-sckf", case=scenario, drive=drive.name, method=m, quantity=q, unit=u,
+                rows += [dict(study=SSR_SCKF.name, case=scenario, drive=drive.name, method=m, quantity=q, unit=u,
                               value=v) for q, u, v in (("position", "m", pos), ("velocity", "m/s", vel))]
                 for a, b in SSR_SEGMENTS:
-                    rows.append(dict(study="ssr-sckf", case=f"{scenario} {a:g}-{b:g} s", drive=drive.name, method=m,
+                    rows.append(dict(study=SSR_SCKF.name, case=f"{scenario} {a:g}-{b:g} s", drive=drive.name, method=m,
                                      quantity="position", unit="m", value=_rms3(_window(r, a, b), E)))
                 say(f"{drive.name} {m:8s}: position {pos:.3f} m, velocity {vel:.4f} m/s")
                 if scenario == "flight600-noisy":
@@ -462,18 +463,18 @@ def study_ssr_sckf(out: Path, work: Path, seeds: int, say: Callable[[str], None]
               "| case | method | " + " | ".join(f"{a:g}-{b:g} s" for a, b in SSR_SEGMENTS) + " |",
               "|---|---|" + "---|" * len(SSR_SEGMENTS)]
     for scenario in SSR_PAPER:
-        for m in ("sckf", "ssr-sckf"):
+        for m in (SCKF.name, SSR_SCKF.name):
             lines.append(f"| {scenario} | {m} | " + " | ".join(
                 _cell(table.filter((pl.col("case") == f"{scenario} {a:g}-{b:g} s") & (pl.col("method") == m)
                                    )["value"].to_list()) for a, b in SSR_SEGMENTS) + " |")
     lines += ["", "## What agrees, what differs", ""]
     for scenario in SSR_PAPER:
         for q in ("position", "velocity"):
-            a = _mean(table, case=scenario, method="sckf", quantity=q)
-            b = _mean(table, case=scenario, method="ssr-sckf", quantity=q)
-            pa, pb = (SSR_PAPER[scenario][m][0 if q == "position" else 1] for m in ("sckf", "ssr-sckf"))
-            lines.append(f"- {scenario}, {q}: ours: {_better(a, b, 'sckf', 'ssr-sckf')}; the paper: "
-                         f"{_better(pa, pb, 'sckf', 'ssr-sckf')}.")
+            a = _mean(table, case=scenario, method=SCKF.name, quantity=q)
+            b = _mean(table, case=scenario, method=SSR_SCKF.name, quantity=q)
+            pa, pb = (SSR_PAPER[scenario][m][0 if q == "position" else 1] for m in (SCKF.name, SSR_SCKF.name))
+            lines.append(f"- {scenario}, {q}: ours: {_better(a, b, SCKF.name, SSR_SCKF.name)}; the paper: "
+                         f"{_better(pa, pb, SCKF.name, SSR_SCKF.name)}.")
     lines += ["", "Why: sckf and ssr-sckf differ in three ways. The points: both rules are of the third degree "
               "(`tests/test_sckf.py`), and the error model is close to linear over the filter's covariance, so "
               "they propagate the same mean and covariance. The measurement update: cubature and SVD are "
@@ -501,8 +502,8 @@ HINF_COLS = (("vE", "m/s", VE), ("vN", "m/s", VN), ("vU", "m/s", VU), ("east", "
 # The paper's ranges (min, max), KF then H-infinity (gamma = 3); its up-position range for the KF is
 # unreadable in the source text ("> 7864022"), its other minus signs partly lost: restored from the ranges'
 # spans quoted in its text ("up to 1.2 m/s" for the KF, "only 0.5 m/s" for H-infinity).
-HINF_PAPER = {"kf": ((-0.208, 0.187), (-0.900, 0.341), (-0.252, 0.203), (-3.457, 3.838), (-4.235, 4.184), None),
-              "hinf": ((-0.075, 0.094), (-0.410, 0.126), (-0.096, 0.104), (-0.754, 1.085), (-0.921, 0.981),
+HINF_PAPER = {KF.name: ((-0.208, 0.187), (-0.900, 0.341), (-0.252, 0.203), (-3.457, 3.838), (-4.235, 4.184), None),
+              HINF.name: ((-0.075, 0.094), (-0.410, 0.126), (-0.096, 0.104), (-0.754, 1.085), (-0.921, 0.981),
                        (-0.972, 0.790))}
 HINF_SETTLE_S = 60.0
 HINF_PAPER_GAMMA = 3.0  # the paper's fixed gamma, run with the smallest raise that keeps the filter existing
@@ -515,7 +516,7 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
     raised: dict[str, int] = {}
     epochs: dict[str, int] = {}
     default: list[dict[str, str]] = []  # fusion.hinf.summary of each `--method hinf` run on its defaults
-    cases = [("kf", None)] + [("hinf", g) for g in HINF_GAMMAS] + [("hinf", "fixed"), ("hinf", "default")]
+    cases = [(KF.name, None)] + [(HINF.name, g) for g in HINF_GAMMAS] + [(HINF.name, "fixed"), (HINF.name, "default")]
     for drive in simulate_drives("coloured", duration, seeds, work / "drives", say):
         base = drive_config(drive)
         for m, g in cases:
@@ -525,13 +526,13 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
             r = run(drive, m, label, cfg, work / "fused", (HINF_SETTLE_S, duration))
             if g == "default":
                 default.append(r.fused.hinf)
-            elif m == "hinf":
+            elif m == HINF.name:
                 raised[label] = raised.get(label, 0) + r.fused.gamma_raised
                 epochs[label] = epochs.get(label, 0) + r.fused.updates
             for name, unit, c in HINF_COLS:
                 e = r.err[:, c]
                 for q, v in (("min", np.nanmin(e)), ("max", np.nanmax(e)), ("rms", np.sqrt(np.nanmean(e ** 2)))):
-                    rows.append(dict(study="hinf", case=name, drive=drive.name, method=label, quantity=q, unit=unit,
+                    rows.append(dict(study=HINF.name, case=name, drive=drive.name, method=label, quantity=q, unit=unit,
                                      value=float(v)))
             say(f"{drive.name} {label:12s}: RMS vel {_rms3(r.err, VE):.3f} m/s, pos {_rms3(r.err, E):.2f} m")
             runs.append(r)
@@ -559,13 +560,13 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
             hi = _mean(table, case=name, method=lab, quantity="max")
             rms = _mean(table, case=name, method=lab, quantity="rms")
             cells.append(f"{lo:.3f} ~ {hi:.3f} (RMS {rms:.3f})")
-        paper = [HINF_PAPER[m][i] for m in ("kf", "hinf")]
+        paper = [HINF_PAPER[m][i] for m in (KF.name, HINF.name)]
         cells += ["unreadable" if p is None else f"{p[0]:.3f} ~ {p[1]:.3f}" for p in paper]
         lines.append(f"| {name} | {unit} | " + " | ".join(cells) + " |")
     lines += ["", "## What agrees, what differs", ""]
     for name, _, _ in HINF_COLS:
-        a = _mean(table, case=name, method="kf", quantity="rms")
-        parts = [f"γ={g:g}: {_better(a, _mean(table, case=name, method=f'hinf γ={g:g}', quantity='rms'), 'kf', 'hinf')}"
+        a = _mean(table, case=name, method=KF.name, quantity="rms")
+        parts = [f"γ={g:g}: {_better(a, _mean(table, case=name, method=f'hinf γ={g:g}', quantity='rms'), KF.name, HINF.name)}"
                  for g in HINF_GAMMAS]
         lines.append(f"- {name} RMS: " + "; ".join(parts) + ".")
     lines += ["", "Why: the H-infinity update is the KF update of P inflated to (P^-1 - γ^-2 L^T L)^-1. It exists "
@@ -579,8 +580,8 @@ def study_hinf(out: Path, work: Path, seeds: int, say: Callable[[str], None]) ->
               "every epoch shares and no gain can average away. Our KF's ranges are of the paper's size; the "
               "paper's 4-fold narrower H-infinity ranges are not reproduced, and the paper gives neither its Q, "
               "R, the correlation times of its coloured noise, nor the units of its γ = 3, so its gain cannot "
-              "be checked.", "", *hinf_default_lines(default, raised.get(hinf_label("hinf", "fixed"), 0),
-                                                   epochs.get(hinf_label("hinf", "fixed"), 0)),
+              "be checked.", "", *hinf_default_lines(default, raised.get(hinf_label(HINF.name, "fixed"), 0),
+                                                   epochs.get(hinf_label(HINF.name, "fixed"), 0)),
               f"![errors]({fig.name})", ""]
     return _finish(out, table, lines, say)
 
@@ -637,7 +638,7 @@ def study(name: str, out: Path, work: Path, seeds: int = 3, runs: int = 5, say: 
     """Run one of ``STUDIES``: report into ``out``, drives and fused solutions into ``work``; returns its long
     table. ``runs``: timing repetitions of ``cost``. A report already in ``out`` is replaced only with ``force``
     (its files, and the fused solutions in ``work``, are then the study's own and redone); neither folder may be
-    a symbolic link (``acquire.outputs``)."""
+    a symbolic link (``drive.outputs``)."""
     if name not in STUDIES:
         raise ValueError(f"unknown study {name!r}; one of {', '.join(STUDIES)}")
     if seeds < 1:
@@ -650,6 +651,6 @@ def study(name: str, out: Path, work: Path, seeds: int = 3, runs: int = 5, say: 
     else:
         work = Path(work)
         outputs.out_dir(work, "fused")
-        table = {"kf-ukf": study_kf_ukf, "ssr-sckf": study_ssr_sckf, "hinf": study_hinf}[name](out, work, seeds, say)
+        table = {KF_UKF.name: study_kf_ukf, SSR_SCKF.name: study_ssr_sckf, HINF.name: study_hinf}[name](out, work, seeds, say)
     say(f"study {name}: {time.monotonic() - t0:.0f} s")
     return table

@@ -53,7 +53,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from fieldlog.acquire import native
+from fieldlog.drive import native
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.fusion import imugrade

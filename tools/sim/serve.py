@@ -79,7 +79,8 @@ from typing import Callable, TextIO
 
 import numpy as np
 
-from fieldlog.acquire import daq, outputs, recorder
+from fieldlog.acquire import daq
+from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.tools.sim import board as emulated, simulate, trajectory
 from fieldlog.tools.sim.emit import HostClock

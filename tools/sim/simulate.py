@@ -18,7 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, messages, metavalue, outputs, recorder, timesync
+from fieldlog.acquire import calib, daq, timesync
+from fieldlog.drive import messages, metavalue, outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle
@@ -161,7 +162,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
     more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``); ``can``: with the car's CAN
     bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``). ``out`` must be new, unless ``force``
-    (``acquire.outputs``)."""
+    (``drive.outputs``)."""
     outputs.check_new(out, force)
     scenario = trajectory.load_scenario(scenario_name)
     duration_s = float(duration_s or scenario.duration_s)

@@ -15,7 +15,7 @@ offsets must tile the bytes after that chunk (without a CRC, each message index 
 the summary), and the few records of the data section between the listed chunks (header, schemas, channels,
 metadata, attachments, data end) are walked: a message, chunk or message index among them (messages outside chunks,
 which no chunk index lists) sends the file to the walk. Otherwise (no summary or no chunk indexes, a summary that
-does not check out, a truncated file) the file's top-level records are walked once (``acquire.chunks.walk_records``:
+does not check out, a truncated file) the file's top-level records are walked once (``drive.chunks.walk_records``:
 it reads only each record's 9-byte head, so it jumps over chunk bodies). Both give the same table, so a file with or
 without a summary, indexes, statistics or summary offsets reads the same; a file of many small chunks opens faster
 from its summary than walked. A *piece* is a chunk or a run of loose messages, with its log-time bounds and, when
@@ -52,8 +52,8 @@ from mcap.records import Channel, Metadata, Schema
 
 from zlib_ng.zlib_ng import crc32
 
-from fieldlog.acquire.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
-from fieldlog.acquire.recorder import MAGIC
+from fieldlog.drive.chunks import ChunkError, ChunkMessages, decompress_many, le, read_chunks, walk_records
+from fieldlog.drive.recorder import MAGIC
 
 log = logging.getLogger(__name__)
 LOOSE_RUN_BYTES = 4 << 20  # messages outside chunks are read in runs of about this many bytes

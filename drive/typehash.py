@@ -1,4 +1,4 @@
-"""RIHS01 type hashes (REP-2011) of the message definitions in ``acquire.messages.MSG_DEFS``.
+"""RIHS01 type hashes (REP-2011) of the message definitions in ``drive.messages.MSG_DEFS``.
 
 rosbag2 (Jazzy) records a topic's type hash in the MCAP channel's ``topic_type_hash`` metadata and in
 ``metadata.yaml`` (``type_description_hash``). The hash is ``RIHS01_`` + the SHA-256 of the JSON text
@@ -16,7 +16,7 @@ import json
 import re
 from functools import lru_cache
 
-from fieldlog.acquire.messages import MSG_DEFS
+from fieldlog.drive.messages import MSG_DEFS
 
 NESTED_TYPE = 1
 PRIMITIVE_IDS = {"int8": 2, "uint8": 3, "int16": 4, "uint16": 5, "int32": 6, "uint32": 7, "int64": 8,

@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from fieldlog.acquire import messages, metavalue
+from fieldlog.drive import messages, metavalue
 
 log = logging.getLogger(__name__)
 
@@ -376,7 +376,7 @@ class DriveStats:
         return q
 
     def record(self) -> dict[str, str]:
-        """The ``fieldlog.info`` metadata record: JSON values (``acquire.metavalue``), one key each (no ``timing``
+        """The ``fieldlog.info`` metadata record: JSON values (``drive.metavalue``), one key each (no ``timing``
         when /imu came before /truth/imu: ``info`` scans for it)."""
         out = {f"span.{topic}": metavalue.dump(list(s)) for topic, s in self.span.items()}
         d = asdict(self.quality())

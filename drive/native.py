@@ -4,7 +4,7 @@ python-zstandard decompresses a batch of frames in one call, but hands the outpu
 that must be joined, and its CRC-32 check is one Python call per chunk; the joined buffer is then walked record
 by record and the payloads gathered from it, long after it left the cache (in a file of 4 KiB chunks, where
 every chunk holds a little of every topic, this cost more than the decompression). ``read_chunks`` calls
-libzstd's ``ZSTD_decompressDCtx`` and zlib-ng's ``zng_crc32`` from one compiled loop instead (acquire/_chunks.c):
+libzstd's ``ZSTD_decompressDCtx`` and zlib-ng's ``zng_crc32`` from one compiled loop instead (drive/_chunks.c):
 each chunk is decompressed into a small buffer that stays in the cache, checked, its records walked, and only
 the records asked for copied out, so the batch holds what will be read, packed (as in our own files, whose
 chunks hold few topics).
@@ -36,12 +36,12 @@ _thread = threading.local()  # each thread's zstd context: a ctypes call release
 
 _libs: dict[str, ctypes.CDLL] = {}
 P, I64 = ctypes.c_void_p, ctypes.c_int64  # a pointer (an array's ``ctypes.data``), an int64_t
-CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # acquire/_chunks.c: name -> (restype, argtypes)
+CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # drive/_chunks.c: name -> (restype, argtypes)
           "fieldlog_read_chunks": (None, [P] * 6 + [I64] + [P] * 11)}
 
 
 def library(module: str, signatures: dict[str, tuple[object, list]]) -> ctypes.CDLL:
-    """The compiled kernels of extension ``module`` (``fieldlog.acquire._chunks``, ...), loaded once per process,
+    """The compiled kernels of extension ``module`` (``fieldlog.drive._chunks``, ...), loaded once per process,
     with the C ``signatures`` of its functions (name -> (restype, argtypes)) set. ImportError, naming the fix,
     when the package was installed without them."""
     if module not in _libs:
@@ -111,7 +111,7 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     if getattr(_thread, "dctx", None) is None:
         _thread.dctx = _state["create_dctx"]()
     res = np.zeros(5, np.int64)
-    library("fieldlog.acquire._chunks", CHUNKS).fieldlog_read_chunks(
+    library("fieldlog.drive._chunks", CHUNKS).fieldlog_read_chunks(
         *_state["fns"], _thread.dctx, src.ctypes.data, len(comp), comp.ctypes.data,
         *(a.ctypes.data for a in arrays), stage.ctypes.data, out.ctypes.data, want.ctypes.data, rec.ctypes.data,
         ch.ctypes.data, defs.ctypes.data, res.ctypes.data)

@@ -1,10 +1,10 @@
 """Reading MCAP chunks: the record walk, decompression with its size and CRC checks, and the messages as arrays.
 
-Every reader of the project goes through these kernels: ``replay.mcapfile`` (any file layout, complete or cut
-short), ``replay.reader`` and ``acquire.recovery``. A chunk is walked record by record in one compiled pass
-(``walk_records``, acquire/_chunks.c), decompressed in runs
+Every reader of the project goes through these kernels: ``drive.mcapfile`` (any file layout, complete or cut
+short), ``drive.reader`` and ``acquire.recovery``. A chunk is walked record by record in one compiled pass
+(``walk_records``, drive/_chunks.c), decompressed in runs
 (``decompress_many``: python-zstandard's batch call, zlib-ng's CRC-32; ``read_chunks``: the compiled kernels of
-``acquire.native`` when they are ready) and its Message records gathered as arrays (``ChunkMessages``), so no
+``drive.native`` when they are ready) and its Message records gathered as arrays (``ChunkMessages``), so no
 per-message Python runs on a whole drive. No chunk is decompressed past its claimed size, and none claiming more
 than ``max_chunk_bytes`` (``FIELDLOG_MAX_CHUNK_BYTES``) is decompressed at all.
 """
@@ -24,7 +24,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Schema
 from mcap.stream_reader import breakup_chunk
 
-from fieldlog.acquire import messages, native
+from fieldlog.drive import messages, native
 
 
 def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -35,11 +35,11 @@ def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 def walk_records(buf, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Records in ``buf`` (a uint8 array or a bytes-like object) from byte ``pos`` on (a chunk's content, or a
     whole file after its magic): opcode, start of the record body, body length; and the end of the last complete
-    record. ``cap``: the number of records expected (the arrays grow past it). Compiled (acquire/_chunks.c)."""
+    record. ``cap``: the number of records expected (the arrays grow past it). Compiled (drive/_chunks.c)."""
     data = np.frombuffer(buf, np.uint8) if not isinstance(buf, np.ndarray) else np.ascontiguousarray(buf, np.uint8)
     if pos < 0:
         raise ValueError(f"walk_records: pos {pos} < 0")
-    n, walk = len(data), native.library("fieldlog.acquire._chunks", native.CHUNKS).fieldlog_walk
+    n, walk = len(data), native.library("fieldlog.drive._chunks", native.CHUNKS).fieldlog_walk
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     cap, end = max(int(cap), 16), ctypes.c_int64(pos)
     while True:
@@ -283,7 +283,7 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
     """The messages of many chunks (as ``decompress_many`` takes them) on the channels marked in ``want`` (bool per
     channel id, 65536 long), and the schema and channel records among their records as (opcode, body start in
     the batch's ``data``, body length). When zstd chunks are among them (and uncompressed ones only besides) and
-    ``acquire.native`` is ready, in one compiled pass that keeps only those records: ``scratch(a, b)`` gives a
+    ``drive.native`` is ready, in one compiled pass that keeps only those records: ``scratch(a, b)`` gives a
     staging buffer of ``a`` bytes and the batch's buffer of ``b`` bytes. Else the chunks are decompressed and joined
     (``decompress_many``), walked (``walk_records``) and their messages picked (``messages_of``)."""
     comp, size = np.asarray(comp, np.int64), np.asarray(size, np.int64)

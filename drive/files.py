@@ -3,7 +3,7 @@
 A drive is given as one MCAP file, several files, a directory of a rotated ``fieldlog acquire`` session
 (``<session start>_0001.mcap``, ``_0002.mcap``, ...), or a rosbag2 directory (``metadata.yaml`` lists its
 files in ``relative_file_paths``). ``drive_files`` resolves any of these (or a list mixing them) to the
-files; ``open_drive`` opens them (``replay.mcapfile.McapFile``) ordered by their first log time, so they
+files; ``open_drive`` opens them (``drive.mcapfile.McapFile``) ordered by their first log time, so they
 read as one drive. In a session or rosbag2 directory, ``NAME.recovered.mcap`` (``fieldlog recover``, or the daemon on
 restart) stands in for the cut-short (or damaged) ``NAME.mcap`` next to it.
 """
@@ -14,8 +14,8 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence, Union
 
-from fieldlog.acquire.bagdir import METADATA, RECOVERED, session_files
-from fieldlog.replay.mcapfile import McapFile
+from fieldlog.drive.bagdir import METADATA, RECOVERED, session_files
+from fieldlog.drive.mcapfile import McapFile
 
 DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
 _OPEN: "OrderedDict[tuple, McapFile]" = OrderedDict()  # recently opened files, by path and version

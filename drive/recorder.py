@@ -12,7 +12,7 @@ explicit: a chunk is closed, written, flushed to the OS and (optionally) fsync'd
 Schema and channel records are written in the data section outside chunks, before the first
 chunk that uses them, so every complete chunk in a truncated file has its channels in front of
 it and ``acquire.recovery.recover`` can rebuild a valid file from the complete chunks alone. Reading chunks back
-is ``acquire.chunks``.
+is ``drive.chunks``.
 
 Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses and
 writes each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
@@ -49,9 +49,9 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from fieldlog.acquire import messages, outputs, typehash
-from fieldlog.acquire.drivestats import RECORD as INFO_RECORD
-from fieldlog.acquire.drivestats import DriveStats
+from fieldlog.drive import messages, outputs, typehash
+from fieldlog.drive.drivestats import RECORD as INFO_RECORD
+from fieldlog.drive.drivestats import DriveStats
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
@@ -131,8 +131,8 @@ class Recorder:
     fast as 3 on IMU data for ~5 % larger files). metadata: written as an MCAP Metadata record named
     "drive" (string values; e.g. scenario, seed, config, calibration TOML, software version).
     stats: gather what ``fieldlog info`` shows while writing and store it at close as the ``fieldlog.info``
-    record (``acquire.drivestats``); off for files whose chunks are copied as they are (``recover``).
-    The file is created new (``acquire.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
+    record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``).
+    The file is created new (``drive.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
     regular file and ``force``; always if it is a symbolic link; ``root``: the output folder ``path`` lies in,
     walked without following a link). behind: compress and write each closed chunk on a thread while the caller
     goes on (at most one chunk in flight), for offline writers: a chunk is sure to be in the file only when the

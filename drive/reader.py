@@ -1,13 +1,13 @@
 """Read a drive (MCAP) back as numpy arrays, whole topics or streaming blocks.
 
 A drive is one MCAP file, several, a rotated session directory or a rosbag2 directory
-(``replay.drive``); its files are walked once each (``replay.mcapfile``: any valid layout, with or
+(``drive.files``); its files are walked once each (``drive.mcapfile``: any valid layout, with or
 without summary and indexes, messages in or outside chunks) into *pieces* (chunks, runs of messages
 outside chunks), which are read in one log-time order across the files. The hot path never decodes
 one message at a time: consecutive pieces are read together (``READ_BYTES`` at a time, so small chunks
 cost little more than large ones), decompressed, walked and the records of the topics asked for kept in one
-pass (``acquire.chunks.read_chunks``), and the payloads of each topic decoded as one batch by the
-vectorised CDR decoders in ``acquire.messages``. Types without a fixed layout (NMEA sentences,
+pass (``drive.chunks.read_chunks``), and the payloads of each topic decoded as one batch by the
+vectorised CDR decoders in ``drive.messages``. Types without a fixed layout (NMEA sentences,
 outages) are decoded per message with mcap_ros2's decoder; they are low rate. ``/raw/*``
 (``RawBytes``, high rate) is read in batch by ``read_raw`` / ``iter_raw_batches``
 (``decode_raw_batch``: a vectorised walk of its CDR layout); ``read_topic`` keeps the per-message
@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import numpy as np
 
-from fieldlog.acquire import messages
-from fieldlog.acquire.chunks import ChunkMessages
-from fieldlog.replay.drive import DriveSpec, label, open_drive
-from fieldlog.replay.mcapfile import McapFile, le
+from fieldlog.drive import messages
+from fieldlog.drive.chunks import ChunkMessages
+from fieldlog.drive.files import DriveSpec, label, open_drive
+from fieldlog.drive.mcapfile import McapFile, le
 
 if TYPE_CHECKING:
     from fieldlog.fusion.types import GpsBlock
@@ -281,7 +281,7 @@ def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:
 
 
 def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
-    """``fieldlog_msgs/msg/RawBytes`` batch (layout: ``acquire.messages.encode_raw``, CDR little-endian) ->
+    """``fieldlog_msgs/msg/RawBytes`` batch (layout: ``drive.messages.encode_raw``, CDR little-endian) ->
     ``stamp_ns`` (int64, host wall clock at read), ``mono_ns`` (int64, host monotonic at read), ``port``
     (str array), ``data`` (``Packed``: the bytes read, message i = read i), ``valid``.
 

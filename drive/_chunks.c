@@ -1,4 +1,4 @@
-/* Reading MCAP records in C: the record walk of acquire/chunks.py and the chunk reader of acquire/native.py
+/* Reading MCAP records in C: the record walk of drive/chunks.py and the chunk reader of drive/native.py
  * (their docstrings give the contracts). Built with the package (setup.py) and called through ctypes; it needs
  * no Python headers. libzstd and zlib-ng are not linked: the caller passes the addresses of the functions the
  * installed zstandard and zlib_ng packages export, so the kernels use the very builds python-zstandard and

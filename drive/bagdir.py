@@ -20,7 +20,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from fieldlog.acquire import outputs
+from fieldlog.drive import outputs
 
 METADATA = "metadata.yaml"
 RECOVERED = ".recovered.mcap"     # ``fieldlog recover``'s output stands in for the cut-short NAME.mcap
