@@ -33,7 +33,6 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.replay.drive import label
-    from fieldlog.replay.inputs import RATE_HZ
     from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
 
     drive = drive_arg(a.drive)
@@ -51,7 +50,7 @@ def run(a: argparse.Namespace) -> int:
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
-                   imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, gps_updates=res.updates,
+                   imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, imu_warnings=list(res.imu_warnings), gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
                    alignment=res.alignment, hinf=res.hinf, stationary_updates=len(res.still_ns),
                    zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
@@ -71,9 +70,8 @@ def run(a: argparse.Namespace) -> int:
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
                      "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")
-    lo, hi = RATE_HZ
-    if not lo <= res.imu_rate_hz <= hi:
-        log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")
+    for line in res.imu_warnings:
+        log.warning(line)
     if res.rows == 0 and a.method != "ins":
         log.warning(NO_ALIGNMENT)
     finish_out(a, out)
