@@ -119,6 +119,7 @@ class FuseResult:
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
+    alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
 
 
@@ -378,4 +379,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      Solution.concat(kept) if keep else None, tuple(stream.warnings()))
+                      Solution.concat(kept) if keep else None, dict(engine.alignment.summary),
+                      tuple(stream.warnings()))

@@ -52,7 +52,7 @@ def run(a: argparse.Namespace) -> int:
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
                    imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, imu_warnings=list(res.imu_warnings), gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
-                   alignment=res.alignment, hinf=res.hinf, stationary_updates=len(res.still_ns),
+                   alignment={**(res.alignment_summary or {}), "note": res.alignment}, hinf=res.hinf, stationary_updates=len(res.still_ns),
                    zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
     if a.json:
         print(json.dumps(summary))
@@ -64,7 +64,10 @@ def run(a: argparse.Namespace) -> int:
                  f"{imap.vel_topic or 'none'}: {res.updates} GPS updates, {res.outages} outage windows{windows}; "
                  f"wrote {res.path}: {res.rows} solutions in {summary['wall_s']:.1f} s")
         if res.alignment:
-            log.info(f"alignment: {res.alignment}")
+            how = res.alignment_summary or {}
+            where = (f" (static interval {how['start_s']:.1f}-{how['end_s']:.1f} s)" if how.get("start_s") is not None
+                     else "")
+            log.info(f"alignment: {how.get('method', '?')}{where}, {res.alignment}")
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
         if res.still_ns:
