@@ -31,9 +31,20 @@ def add_parser(sub) -> None:
     s.set_defaults(func=needs_extras(run))
 
 
+def _installation_line(s: dict) -> str:
+    """The summary line of ``tools.fuse.estimate_installation``'s keys in ``s``."""
+    parts = []
+    if s.get("mounting_rpy_deg"):
+        parts.append("mounting roll, pitch, yaw " + ", ".join(
+            f"{x:.2f} ± {e:.2f}" for x, e in zip(s["mounting_rpy_deg"], s["mounting_sigma_deg"])) + " deg")
+    if s.get("imu_time_offset_s") is not None:
+        parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f} ± {s['imu_time_offset_sigma_s'] * 1e3:.1f} ms")
+    return "installation (first pass, aids off; reported, not applied): " + "; ".join(parts)
+
+
 def run(a: argparse.Namespace) -> int:
     from fieldlog.replay.drive import label
-    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, parse_outage, settings
+    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, parse_outage, settings
 
     drive = drive_arg(a.drive)
     st = settings(drive, a.config, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
@@ -54,6 +65,8 @@ def run(a: argparse.Namespace) -> int:
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
                    alignment={**(res.alignment_summary or {}), "note": res.alignment}, hinf=res.hinf, stationary_updates=len(res.still_ns),
                    zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
+    if a.method != "ins":
+        summary.update(estimate_installation(drive, st.config, imap))
     if a.json:
         print(json.dumps(summary))
     else:
@@ -68,6 +81,8 @@ def run(a: argparse.Namespace) -> int:
             where = (f" (static interval {how['start_s']:.1f}-{how['end_s']:.1f} s)" if how.get("start_s") is not None
                      else "")
             log.info(f"alignment: {how.get('method', '?')}{where}, {res.alignment}")
+        if summary.get("mounting_rpy_deg") or summary.get("imu_time_offset_s") is not None:
+            log.info(_installation_line(summary))
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
         if res.still_ns:
