@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
                         "mounting_rpy_deg, else 0,0,0); the drive's /tf_static keeps the nominal zero")
     s.add_argument("--imu-delay", type=float, default=None, metavar="S",
                    help="the IMU's true delay (filter and transport), s: its samples are stamped this late "
-                        "(default: the scenario's [imu] delay_s, else 0)")
+                        "(default: the scenario's [imu] delay_s, else 0; at least its [imu] filter's own delay, "
+                        "figure8-real's 0.0054 s)")
     s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
     s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
     s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")
