@@ -10,7 +10,14 @@ Still detection (:func:`still`, shared by the alignment and the stationary updat
   goes on), beyond twice it "moving": a standing car's speed (Rayleigh) passes 2 x 1.5 = 3 sigmas in 1.1 % of
   its intervals, and a 10 Hz receiver's 0.1 m/s per axis averages to 0.03 m/s over a second. Skipped when the
   drive has no velocity;
-- the specific force and rate vary less than ``still_accel_std_mps2`` and ``still_gyro_std_dps`` over it;
+- the specific force and rate vary less than ``still_accel_std_mps2`` and ``still_gyro_std_dps`` over it, or,
+  for a car whose engine idles (its vibration alone is of order 1 deg/s and 0.1 m/s^2, above those limits), they
+  vary as steadily as the still run they would join: a GPS speed measured and below its limit, and the
+  interval's spread of rate and of specific force each within a factor ``STEADY_RATIO`` of the run's own (the
+  signal's moving baseline; the first interval of a run is its own baseline). The vibration is fast (the engine
+  fires at tens of Hz) and averages out of the interval's mean, so the mean tests below, whose gates grow with
+  the interval's standard error, still tell a car that moves from one that shakes; a creeping car has a GPS
+  speed, a car that pulls away or is bumped changes its spread;
 - the mean rate and the mean specific force are where standing still puts them, within 4 sigma plus the
   floors ``still_rate_tol_dps`` and ``still_accel_tol_mps2``: before the alignment the means of the still
   interval so far (and a rate within the Earth rate plus the bias prior), after it the Earth rate plus the
@@ -113,6 +120,7 @@ class ImuSums:
         self.n += other.n
 
 
+STEADY_RATIO = 2.0  # a vibrating interval's spread within this factor of its still run's: the run goes on
 SPEED_K = 1.5  # the GPS speed limit of the still detector: at least this many sigmas of the tested mean
 _SPEED_SPAN_S = 1.0  # the GPS velocities of the last second are averaged for the tested speed
 
@@ -146,18 +154,21 @@ _MIN_SAMPLES = 10  # per GPS interval, for its spread: 20 at 200 Hz with a 10 Hz
 
 
 def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray | None,
-          w_sigma: float, f_ref: np.ndarray | None, f_sigma: float) -> bool:
+          w_sigma: float, f_ref: np.ndarray | None, f_sigma: float, baseline: ImuSums | None = None) -> bool:
     """Whether the vehicle stood still over a GPS interval (module docstring).
 
     speed: (the GPS speed, m/s, NaN: no GPS velocity, not tested; its limit, m/s) (:class:`GpsSpeed`); w_ref (3,)
     rad/s and f_ref (3,)
     m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
-    sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added."""
+    sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added; baseline:
+    the still run the interval would join (None: it starts one), whose spread a vibrating interval's must match
+    (:func:`steady`)."""
     if interval.n < _MIN_SAMPLES or (math.isfinite(speed[0]) and not speed[0] < speed[1]):
         return False
     sd_f = interval.std(interval.sum_f, interval.sum_ff)
     sd_w = interval.std(interval.sum_w, interval.sum_ww)
-    if not (sd_f < cfg.still.still_accel_std_mps2 and sd_w < cfg.still.still_gyro_std_dps * _DEG):
+    if not ((sd_f < cfg.still.still_accel_std_mps2 and sd_w < cfg.still.still_gyro_std_dps * _DEG)
+            or (math.isfinite(speed[0]) and steady(interval, baseline))):
         return False
     rn = math.sqrt(interval.n)
     if w_ref is not None and np.linalg.norm(interval.sum_w / interval.n - w_ref) > (
@@ -169,13 +180,28 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_re
     return True
 
 
-def _verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple]) -> str:
-    """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma);
-    "unsure" when it fails only on a GPS speed below twice its limit (a noisy velocity: the interval is left
-    out, the still run goes on); else "moving"."""
-    if all(still(cfg, interval, speed, *r) for r in refs):
+def steady(interval: ImuSums, baseline: ImuSums | None) -> bool:
+    """Whether the interval's spreads of rate and of specific force are each within a factor ``STEADY_RATIO`` of
+    the baseline's (a still run's: the same vibration); True without a baseline (the interval starts one)."""
+    if baseline is None or baseline.n == 0:
+        return True
+    for total, squares in (("sum_w", "sum_ww"), ("sum_f", "sum_ff")):
+        sd = interval.std(getattr(interval, total), getattr(interval, squares))
+        ref = baseline.std(getattr(baseline, total), getattr(baseline, squares))
+        if not ref / STEADY_RATIO <= sd <= ref * STEADY_RATIO:
+            return False
+    return True
+
+
+def _verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple],
+             baseline: ImuSums | None = None) -> str:
+    """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma)
+    and the baseline; "unsure" when it fails only on a GPS speed below twice its limit (a noisy velocity: the
+    interval is left out, the still run goes on); else "moving"."""
+    if all(still(cfg, interval, speed, *r, baseline) for r in refs):
         return "still"
-    if math.isfinite(speed[0]) and all(still(cfg, interval, (0.5 * speed[0], speed[1]), *r) for r in refs):
+    if math.isfinite(speed[0]) and all(still(cfg, interval, (0.5 * speed[0], speed[1]), *r, baseline)
+                                       for r in refs):
         return "unsure"
     return "moving"
 
@@ -203,7 +229,7 @@ class StillRun:
         if self.count:
             refs.append((self.run.sum_w / self.run.n, c.init.init_gyro_bias_sigma_dps * _DEG, self.run.sum_f / self.run.n,
                          0.0))
-        verdict = _verdict(c, interval, speed, refs)
+        verdict = _verdict(c, interval, speed, refs, self.run if self.count else None)
         if verdict == "moving":
             self.reset()
         if verdict != "still":
@@ -323,17 +349,24 @@ class HeadingCheck:
 
 class Alignment:
     """Collects the still intervals before the alignment epoch and builds the initial state there.
-    ``note`` says how the heading was found (after the alignment)."""
+    ``note`` says how the heading was found (after the alignment); ``summary`` which alignment ran: ``method``
+    ("gyrocompass": levelled and gyrocompassed on the static interval; "still-level+gps-course": levelled there,
+    heading from the GPS course; "gps-course": no static interval, level 0 with 5 deg; "config-attitude":
+    ``init_attitude_deg``; "config-state": :meth:`configured`), the static interval used for the levelling and
+    the gyro bias (``start_s``, ``end_s``, s from the first IMU sample, trimmed; None without one) and the
+    alignment epoch (``epoch_s``)."""
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
         self.lever = cfg.gps.lever_rfu()
         self.note = ""
-        self._run: list[tuple[ImuSums, float]] = []  # the current run of still intervals, with their seconds
+        self.summary: dict[str, object] = {}  # which alignment ran and on which still interval (class docstring)
+        self._run: list[tuple[ImuSums, float, float]] = []  # the current run of still intervals, with their seconds
+        # and end times (s from the first IMU sample)
         self._run_first = True  # the run started with the drive (its start needs no trimming)
-        self._static: list[tuple[ImuSums, float]] = []  # the last finished run, trimmed at the alignment
+        self._static: list[tuple[ImuSums, float, float]] = []  # the last finished run, trimmed at the alignment
         self._static_first = True
-        self._after: list[tuple[ImuSums, float]] = []  # the intervals since that run
+        self._after: list[tuple[ImuSums, float, float]] = []  # the intervals since that run
         self._speed = GpsSpeed(cfg)
         self._t_prev: float | None = None
         self._last_fix: tuple[float, float, float, float] | None = None  # t_s, lat, lon, h of the last good fix
@@ -361,18 +394,18 @@ class Alignment:
         self._t_prev = t_k
         verdict = self._verdict(interval, self._speed.add((ep.t_ns - t_ref_ns) * 1e-9, v_gps, ep))
         if verdict == "still":
-            self._run.append((interval, dt))
+            self._run.append((interval, dt, t_k))
         elif verdict == "unsure":
-            self._after.append((interval, dt))
+            self._after.append((interval, dt, t_k))
         elif interval.n:
             if self._run:
-                if not self._static or sum(dt for _, dt in self._run) >= 2.0 * self.cfg.align.still_trim_s + _MIN_STATIC_S:
+                if not self._static or sum(dt for _, dt, _ in self._run) >= 2.0 * self.cfg.align.still_trim_s + _MIN_STATIC_S:
                     self._static, self._static_first, self._after = self._run, self._run_first, []
                 else:  # a lull too short to level from (an aircraft's first metres): the stop before it stays
                     self._after += self._run
                 self._run = []
             self._run_first = False
-            self._after.append((interval, dt))
+            self._after.append((interval, dt, t_k))
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else math.inf
         if usable and math.isfinite(ep.h) and math.isfinite(speed) and speed >= self.cfg.align.align_speed_mps:
             return self._initialise(ep, v, t_k, t_ref_ns)
@@ -383,9 +416,9 @@ class Alignment:
         if not self._run:
             prior = math.hypot(c.init.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
             return _verdict(c, interval, speed, [(np.zeros(3), prior, None, 0.0)])
-        run = _total(s for s, _ in self._run)  # the bias instability moves the rate between intervals too
+        run = _total(s for s, _, _ in self._run)  # the bias instability moves the rate between intervals too
         return _verdict(c, interval, speed, [(run.sum_w / run.n, c.init.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
-                                              0.0)])
+                                              0.0)], run)
 
     def _static_interval(self) -> tuple[list[tuple[ImuSums, float]], list[tuple[ImuSums, float]]]:
         """The still intervals of the static start, trimmed by ``still_trim_s`` where the vehicle moved next to
@@ -406,7 +439,7 @@ class Alignment:
         c = self.cfg
         lat = ep.lat
         intervals, after = self._static_interval()
-        tot = _total(s for s, _ in intervals)
+        tot = _total(s for s, _, _ in intervals)
         static = tot.n >= 200
         speed = math.hypot(v[0], v[1])
         w_h = earth.OMEGA_IE * math.cos(lat)  # horizontal Earth rate, rad/s
@@ -414,8 +447,8 @@ class Alignment:
         if static:
             fm, wm = tot.sum_f / tot.n, tot.sum_w / tot.n
             pitch, roll = level(fm)
-            se_w, se_f = _standard_errors([s for s, _ in intervals])
-            seconds = sum(dt for _, dt in intervals)
+            se_w, se_f = _standard_errors([s for s, _, _ in intervals])
+            seconds = sum(dt for _, dt, _ in intervals)
             sd_f = math.hypot(c.sensor.accel_noise_ug_rthz * _UG / math.sqrt(seconds), c.init.init_accel_bias_sigma_ug * _UG)
             sd_level = math.hypot(math.hypot(sd_f, float(np.max(se_f))) / _G, c.init.init_level_sigma_deg * _DEG)
             sd_gc = math.sqrt((c.init.gyro_bias_prior_sigma_dps * _DEG) ** 2 + float(np.max(se_w)) ** 2
@@ -426,19 +459,22 @@ class Alignment:
             sd_gc = math.inf
         # heading change since the static interval (level vehicle: yaw rate = -body up rate, less its rest value)
         rest_z = wm[2] if static else earth.OMEGA_IE * math.sin(lat)
-        turned = -sum((s.sum_w[2] / s.n - rest_z) * dt for s, dt in after if s.n)
+        turned = -sum((s.sum_w[2] / s.n - rest_z) * dt for s, dt, _ in after if s.n)
         gyrocompassed = False
         if c.init.init_attitude_deg:
             roll, pitch = c.init.init_attitude_deg[0] * _DEG, c.init.init_attitude_deg[1] * _DEG
             sd_level = c.init.init_level_sigma_deg * _DEG
             heading, sd_head = c.init.init_attitude_deg[2] * _DEG + turned, c.init.init_heading_sigma_deg * _DEG
             self.note = "heading from the config's init_attitude_deg"
+            method = "config-attitude"
         elif static and sd_gc < min(sd_course, c.align.gyrocompass_max_deg * _DEG):
             heading, sd_head = gyrocompass(wm, pitch, roll) + turned, sd_gc
             gyrocompassed = True
             self.note = f"heading by gyrocompassing, sigma {math.degrees(sd_gc):.2f} deg"
+            method = "gyrocompass"
         else:
             heading, sd_head = math.atan2(v[0], v[1]), sd_course
+            method = "still-level+gps-course" if static else "gps-course"
             self.note = (f"heading from the GPS course, sigma {math.degrees(sd_course):.2f} deg (gyrocompassing: "
                          + (f"sigma {math.degrees(sd_gc):.1f} deg, the gyros cannot see the Earth rate well enough)"
                             if static else "no static start)"))
@@ -461,6 +497,11 @@ class Alignment:
                            ep.h + d_enu[2], v0, earth.dcm_to_quat(C))
         pos_var = np.diag(ep.pos_cov).copy()
         pos_var[~np.isfinite(pos_var) | (pos_var <= 0)] = 25.0
+        span = (None, None)
+        if static:  # the first interval of a drive has no dt: it starts with the drive
+            _, first_dt, first_end = intervals[0]
+            span = (first_end - first_dt if first_dt else 0.0, intervals[-1][2])
+        self.summary = {"method": method, "start_s": span[0], "end_s": span[1], "epoch_s": t_k}
         return Aligned(nav, bg, self._P0(pos_var, sd_level, sd_head, sd_bg))
 
     def configured(self) -> Aligned:
@@ -473,6 +514,7 @@ class Alignment:
         v0 = np.array(c.init.init_velocity_enu, float) if c.init.init_velocity_enu else np.zeros(3)
         nav = ins.NavState(0.0, lat, lon, h, v0, earth.dcm_to_quat(earth.euler_to_dcm(heading, pitch, roll)))
         self.note = "initial state from the config (init_position_llh, init_velocity_enu, init_attitude_deg)"
+        self.summary = {"method": "config-state", "start_s": None, "end_s": None, "epoch_s": 0.0}
         return Aligned(nav, np.zeros(3), self._P0(np.full(3, c.init.init_position_sigma_m ** 2), c.init.init_level_sigma_deg * _DEG,
                                                   c.init.init_heading_sigma_deg * _DEG,
                                                   np.full(3, c.init.gyro_bias_prior_sigma_dps * _DEG)))

@@ -133,8 +133,10 @@ class Stationary:
       standard error of the interval's mean rate (its samples' spread over sqrt(n)) + (still_rate_tol / gate)^2,
       the mean rate the detector lets through as "still" (``[fusion] still_rate_tol_dps`` at its gate of
       ``align.GATE`` sigmas);
-    - ZUPT, per ENU axis: sigma_v^2 = sigma_mps^2 + (still_accel_tol * T / gate)^2, the velocity the admitted
-      mean specific force would build over the interval.
+    - ZUPT, per ENU axis: sigma_v^2 = sigma_mps^2 + (a T)^2, the velocity the admitted mean specific force error
+      a would build over the interval: a = the larger of still_accel_tol / gate (the detector's floor) and the
+      standard error of the interval's mean specific force (its samples' largest per-axis spread over sqrt(n):
+      a vibrating car's mean is admitted within gate of those).
 
     Before the ZARU is used its residual (the interval's mean bias-corrected rate less the Earth rate) is tested
     against the bias estimate: chi^2 = r^T (P_bg + R_w)^-1 r over 3 degrees of freedom; above ``ZARU_CHI2``
@@ -183,7 +185,9 @@ class Stationary:
         spread2 = np.maximum(interval.sum_ww / n - mean * mean, 0.0)
         T = max(seconds, 1e-3)
         var_w = self.gyro_noise ** 2 / T + spread2 / n + (st.still_rate_tol_dps * _DEG / GATE) ** 2
-        var_v = self.sigma_mps ** 2 + (st.still_accel_tol_mps2 * T / GATE) ** 2
+        mean_f = interval.sum_f / n
+        se_f = math.sqrt(float(np.max(np.maximum(interval.sum_ff / n - mean_f * mean_f, 0.0))) / n)
+        var_v = self.sigma_mps ** 2 + max(st.still_accel_tol_mps2 * T / GATE, se_f * T) ** 2
         return np.full(3, math.sqrt(var_v)), np.sqrt(var_w)
 
 

@@ -24,6 +24,7 @@ passes it; ``fuse``, ``replay`` and ``view`` all read a drive through it (``cano
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Generator, Iterator
@@ -41,12 +42,15 @@ if TYPE_CHECKING:
     from fieldlog.fusion.types import GpsBlock, ImuBlock, OdomBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
-_COUNTERS = ("samples", "gaps", "missing", "repeated", "_last_t", "_period_ns")  # InputStream's
+_COUNTERS = ("samples", "gaps", "missing", "repeated", "_last_t", "_period_ns", "_first_t", "_dev_sq", "_steps",
+             "longest_gap_ns", "longest_gap_at_ns")  # InputStream's
 ODOM = "/vehicle/twist"  # fieldlog's own wheel-speed odometry (forward speed in base_link, linear.x)
 ODOM_TYPES = (messages.TWIST, messages.ODOMETRY, messages.TWIST_STAMPED)  # what --odom-topic reads: linear.x
 TF_STATIC = "/tf_static"
 HOLD_S = 1.0  # rows held back per block (Resequencer): longer than a fix's logging latency
 RATE_HZ = (100.0, 1000.0)  # the IMU rates fusion is built for
+CLOCK_TOL = 0.02  # an IMU's own oscillator is within this fraction of its nominal rate (internal RC: percents)
+JITTER_MAX = 0.25  # stamp jitter (RMS step deviation) over the period worth a warning: gap counting needs less
 FIELDS = ("imu_topic", "fix_topic", "vel_topic", "imu_frame", "odom_topic")  # of InputSpec
 
 
@@ -310,11 +314,37 @@ class InputStream:
         self.repeated = 0  # samples dropped for a stamp not after the previous one
         self._last_t: int | None = None
         self._period_ns: float | None = None  # the sample period, from the first 100 steps
+        self._first_t: int | None = None
+        self._dev_sq = 0.0  # squared deviations of the steps that are no gap from the period, ns^2
+        self._steps = 0  # their number
+        self.longest_gap_ns = 0  # the longest gap's step, ns, and where it ends (log time, ns)
+        self.longest_gap_at_ns = 0
 
     @property
     def rate_hz(self) -> float:
         """The IMU's sample rate, Hz (NaN before it is known)."""
         return 1e9 / self._period_ns if self._period_ns else float("nan")
+
+    def warnings(self) -> list[str]:
+        """What is wrong with the IMU's timing, one line each (none for a good IMU): gaps (how many, the samples
+        they lack, the longest and where, s from the first sample), stamp jitter above ``JITTER_MAX`` of the
+        period, and a rate outside ``RATE_HZ`` by more than an oscillator's error (``CLOCK_TOL``): a 100 Hz IMU
+        whose clock runs 257 ppm slow is a 100 Hz IMU."""
+        out = []
+        if self.gaps:
+            at_s = (self.longest_gap_at_ns - (self._first_t or 0)) * 1e-9
+            out.append(f"IMU: {self.gaps} gaps, {self.missing} samples missing; the longest "
+                       f"{self.longest_gap_ns * 1e-9:.3g} s, ending {at_s:.1f} s after the first sample")
+        if self._steps and self._period_ns:
+            jitter = math.sqrt(self._dev_sq / self._steps)
+            if jitter > JITTER_MAX * self._period_ns:
+                out.append(f"IMU: stamps jitter by {jitter * 1e-6:.3g} ms RMS, more than {JITTER_MAX:g} of the "
+                           f"{self._period_ns * 1e-6:.3g} ms period")
+        lo, hi = RATE_HZ
+        rate = self.rate_hz
+        if math.isfinite(rate) and not lo * (1.0 - CLOCK_TOL) <= rate <= hi * (1.0 + CLOCK_TOL):
+            out.append(f"IMU rate {rate:.5g} Hz is outside {lo:g}-{hi:g} Hz")
+        return out
 
     def blocks(self) -> Iterator[reader.Block]:
         """The drive's blocks under fieldlog's names, re-sequenced; a last block (``t0 == t1``, the drive's end)
@@ -378,7 +408,15 @@ class InputStream:
             long = steps > 1.5 * self._period_ns
             self.gaps += int(long.sum())
             self.missing += int(np.round(steps[long] / self._period_ns).sum()) - int(long.sum())
+            self._dev_sq += float(np.sum((steps[~long] - self._period_ns) ** 2))
+            self._steps += int((~long).sum())
+            if long.any() and steps[long].max() > self.longest_gap_ns:
+                i = int(np.argmax(np.where(long, steps, 0)))
+                ends = t[1:] if self._last_t is None else t
+                self.longest_gap_ns, self.longest_gap_at_ns = int(steps[i]), int(ends[i])
         if len(t):
+            if self._first_t is None:
+                self._first_t = int(t[0])
             self._last_t = int(t[-1])
         self.samples += len(t)
         return imu

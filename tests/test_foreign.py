@@ -5,6 +5,7 @@ simulated truth with bounds relative to the native drive; silence as an outage; 
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 from pathlib import Path
 
@@ -398,3 +399,33 @@ def test_gm_state_block():
         f.propagate(Phi, Q)
     np.testing.assert_allclose(np.diag(f.P[15:, 15:]), 0.85 * np.diag(R), rtol=1e-6)
     assert np.all(np.diag(P_e) < 0.85 * np.diag(R))
+
+
+def _imu_warnings(drive: Path) -> list[str]:
+    stream = inputs.InputStream(drive, inputs.resolve(drive), 10.0)
+    for _ in stream:
+        pass
+    return stream.warnings()
+
+
+def test_a_100hz_imu_on_a_slow_clock_is_a_100hz_imu_and_gaps_are_named(native, tmp_path, capsys):
+    """99.97 Hz (300 ppm slow): no warning, in the summary or from `fuse`; the same IMU with gaps: one line
+    naming how many, the samples they lack and the longest (where it ends); stamps that jitter by half their
+    period: one line on the jitter."""
+    slow = write_foreign(native, tmp_path / "slow.mcap", Foreign(imu_rate_hz=99.97, max_s=120.0, jitter_ns=500_000))
+    assert _imu_warnings(slow) == []
+    assert cli_main(["fuse", str(slow), "--method", "kf", "--imu-frame", "flu", "--out", str(tmp_path / "kf.mcap"),
+                     "--json"]) == 0
+    out = capsys.readouterr()
+    assert "IMU" not in out.err and json.loads(out.out.strip().splitlines()[-1])["imu_warnings"] == []
+    runs = ((30.0, 4), (70.0, 25))
+    gaps = write_foreign(native, tmp_path / "gaps.mcap", Foreign(imu_rate_hz=99.97, max_s=120.0, drop_runs=runs))
+    (line,) = _imu_warnings(gaps)
+    assert f"{len(runs)} gaps, {sum(n for _, n in runs)} samples missing" in line
+    longest_s = (runs[1][1] + 1) / 99.97
+    assert f"the longest {longest_s:.3g} s" in line
+    at_s = float(line.split("ending ")[1].split(" s")[0])
+    assert abs(at_s - runs[1][0] - longest_s) < 0.1, line
+    shaky = write_foreign(native, tmp_path / "shaky.mcap", Foreign(imu_rate_hz=99.97, max_s=60.0,
+                                                                   jitter_ns=9_000_000))
+    assert [w for w in _imu_warnings(shaky) if "jitter" in w]

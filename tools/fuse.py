@@ -55,9 +55,10 @@ from fieldlog.acquire import calib
 from fieldlog.drive import messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import hinf, imugrade
+from fieldlog.fusion import hinf, imugrade, installation
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.methods import KF
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
 from fieldlog.fusion.types import Solution
 from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
@@ -120,6 +121,8 @@ class FuseResult:
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
+    alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
+    imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -281,6 +284,39 @@ def drive_mounting(drive: DriveSpec) -> calib.Mounting:
     return calib.Calibration.from_toml(toml).mounting if toml else calib.Mounting()
 
 
+def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> dict[str, object]:
+    """``fusion.installation``'s first pass over ``drive``, in two reads: the IMU's time offset from its rate
+    integral and the receiver's velocities; then ``kf`` without the vehicle aids and the forced outages (they would
+    pull the attitude onto the nominal mounting) on the IMU stamps less that offset (a late IMU tilts the INS in
+    the turns), and the mounting from its rows. The ``fuse --json`` keys ``imu_time_offset_s``,
+    ``imu_time_offset_sigma_s`` (s, the IMU's stamps late against the GPS's), ``mounting_rpy_deg`` and
+    ``mounting_sigma_deg`` (IMU -> base_link, deg), None where the drive does not show them. Reported, not yet
+    applied: the run's NHC and odometer take the IMU's axes for the car's. Memory grows by the rows (10 Hz) and
+    the rate integral (50 Hz)."""
+    out: dict[str, object] = dict.fromkeys(("imu_time_offset_s", "imu_time_offset_sigma_s", "mounting_rpy_deg",
+                                            "mounting_sigma_deg"))
+    gyro = installation.GyroTrack()
+    t_gps, v_gps = [], []
+    for block in InputStream(drive, inputs, BLOCK_S):
+        gyro.add(block.imu.t_ns, block.imu.omega_ib_b, block.imu.f_b)
+        t_gps.append(block.gps.t_ns)
+        v_gps.append(block.gps.v_n)
+    offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
+    if offset is not None:
+        out["imu_time_offset_s"], out["imu_time_offset_sigma_s"] = offset
+    shift = int(round(offset[0] * 1e9)) if offset is not None else 0
+    engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()))
+    parts = []
+    for block in InputStream(drive, inputs, BLOCK_S):
+        imu = block.imu
+        parts.append(engine.process(type(imu)(imu.t_ns - shift, imu.omega_ib_b, imu.f_b), block.gps)[0])
+    parts.append(engine.finish()[0])
+    mount = installation.mounting(Solution.concat(parts))
+    if mount is not None:
+        out["mounting_rpy_deg"], out["mounting_sigma_deg"] = ([round(float(x), 4) for x in a] for a in mount)
+    return out
+
+
 class RemotePredictor:
     """An outage predictor trained in a worker on the second core (``replay.ahead.Remote``), beside the fusion
     loop: ``train`` is sent without waiting, ``predict`` waits for an answer that reflects every epoch trained
@@ -377,4 +413,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      Solution.concat(kept) if keep else None)
+                      Solution.concat(kept) if keep else None, dict(engine.alignment.summary),
+                      tuple(stream.warnings()))

@@ -35,12 +35,22 @@ def add_parser(sub) -> None:
     s.set_defaults(func=needs_extras(run))
 
 
+def _installation_line(s: dict) -> str:
+    """The summary line of ``tools.fuse.estimate_installation``'s keys in ``s``."""
+    parts = []
+    if s.get("mounting_rpy_deg"):
+        parts.append("mounting roll, pitch, yaw " + ", ".join(
+            f"{x:.2f} ± {e:.2f}" for x, e in zip(s["mounting_rpy_deg"], s["mounting_sigma_deg"])) + " deg")
+    if s.get("imu_time_offset_s") is not None:
+        parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f} ± {s['imu_time_offset_sigma_s'] * 1e3:.1f} ms")
+    return "installation (first pass, aids off; reported, not applied): " + "; ".join(parts)
+
+
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.drive import Drive
     from fieldlog.drive.files import label
-    from fieldlog.replay.inputs import RATE_HZ
-    from fieldlog.tools.fuse import NO_ALIGNMENT, fuse, load_input_spec, parse_outage, settings
+    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, load_input_spec, parse_outage, settings
 
     conf = TomlFile.read(a.config)
     imu_axes = input_spec(a).imu_frame or load_input_spec(conf).imu_frame
@@ -59,10 +69,12 @@ def run(a: argparse.Namespace) -> int:
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
-                   imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, gps_updates=res.updates,
+                   imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, imu_warnings=list(res.imu_warnings), gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
-                   alignment=res.alignment, hinf=res.hinf, stationary_updates=len(res.still_ns),
+                   alignment={**(res.alignment_summary or {}), "note": res.alignment}, hinf=res.hinf, stationary_updates=len(res.still_ns),
                    zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
+    if a.method != INS.name:
+        summary.update(estimate_installation(drive, st.config, imap))
     if a.json:
         print(json.dumps(summary))
     else:
@@ -73,15 +85,19 @@ def run(a: argparse.Namespace) -> int:
                  f"{imap.vel_topic or 'none'}: {res.updates} GPS updates, {res.outages} outage windows{windows}; "
                  f"wrote {res.path}: {res.rows} solutions in {summary['wall_s']:.1f} s")
         if res.alignment:
-            log.info(f"alignment: {res.alignment}")
+            how = res.alignment_summary or {}
+            where = (f" (static interval {how['start_s']:.1f}-{how['end_s']:.1f} s)" if how.get("start_s") is not None
+                     else "")
+            log.info(f"alignment: {how.get('method', '?')}{where}, {res.alignment}")
+        if summary.get("mounting_rpy_deg") or summary.get("imu_time_offset_s") is not None:
+            log.info(_installation_line(summary))
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
                      "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")
-    lo, hi = RATE_HZ
-    if not lo <= res.imu_rate_hz <= hi:
-        log.warning(f"IMU rate {res.imu_rate_hz:.0f} Hz is outside {lo:.0f}-{hi:.0f} Hz")
+    for line in res.imu_warnings:
+        log.warning(line)
     if res.rows == 0 and a.method != INS.name:
         log.warning(NO_ALIGNMENT)
     finish_out(a, out)

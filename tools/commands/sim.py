@@ -19,6 +19,13 @@ def add_parser(sub) -> None:
                         "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA")
     s.add_argument("--can", action="store_true",
                    help="the car's CAN bus too: wheel speeds, steering, gear on an SLCAN adapter (data/sim-car.dbc)")
+    s.add_argument("--mounting", type=_mounting, default=None, metavar="ROLL,PITCH,YAW",
+                   help="the IMU's true mounting to base_link, degrees (default: the scenario's [imu] "
+                        "mounting_rpy_deg, else 0,0,0); the drive's /tf_static keeps the nominal zero")
+    s.add_argument("--imu-delay", type=float, default=None, metavar="S",
+                   help="the IMU's true delay (filter and transport), s: its samples are stamped this late "
+                        "(default: the scenario's [imu] delay_s, else 0; at least its [imu] filter's own delay, "
+                        "figure8-real's 0.0054 s)")
     s.add_argument("--out", default=None, help="output MCAP (required without --serve)")
     s.add_argument("--serve", action="store_true", help="stream to pseudo-terminals instead (prints their paths)")
     s.add_argument("--speed", type=float, default=1.0, help="--serve: times real time")
@@ -48,7 +55,20 @@ def add_parser(sub) -> None:
     s.set_defaults(func=needs_extras(run))
 
 
+def _mounting(text: str) -> tuple[float, float, float]:
+    """``--mounting ROLL,PITCH,YAW`` (degrees)."""
+    try:
+        out = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        out = ()
+    if len(out) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected ROLL,PITCH,YAW in degrees, e.g. 2,-4,5")
+    return out
+
+
 def run(a: argparse.Namespace) -> int:
+    if a.serve and (a.mounting is not None or a.imu_delay is not None):
+        raise ValueError("--mounting and --imu-delay: with --out only (a scenario's [imu] sets them for --serve)")
     if a.serve:
         return serve(a)
     if not a.out:
@@ -57,7 +77,8 @@ def run(a: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     res = simulate(a.scenario, a.duration, a.seed, a.out, pps_mode=a.pps, progress=Progress(f"sim {a.scenario}"),
-                   receiver=a.receiver, can=a.can, force=a.force)
+                   receiver=a.receiver, can=a.can, force=a.force, mounting_rpy_deg=a.mounting,
+                   imu_delay_s=a.imu_delay)
     log.info(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial "
              f"reads in {time.monotonic() - t0:.1f} s")
     return 0

@@ -40,6 +40,15 @@ gyro bias stability 0.02 deg/s. Our choices where it does not:
   (Table 2's zero-bias spreads) to simulate a unit running on the nominal, uncalibrated, file.
 All error magnitudes are 1-sigma of zero-mean Gaussian draws, per axis.
 
+The IMU in the car (``Installation``, the ``[imu]`` keys ``mounting_rpy_deg``, ``delay_s``, ``filter_hz``; all
+off by default). The IMU's axes are rotated from the car's body frame (RFU, ``base_link``) by the mounting
+angles [roll, pitch, yaw] in degrees, in the conventions of the vehicle's attitude (``fusion.earth``: the IMU
+frame is to the car's what the car's body is to ENU, ``C_bm = euler_to_dcm(yaw, pitch, roll)`` maps IMU-frame
+vectors into the car's). The IMU's own low-pass (first order, corner ``filter_hz``, run on the samples) and its
+transport delay together make ``delay_s``: a sample stamped t measures the car at t - ``delay_s`` for slow
+signals (the filter's low-frequency group delay phi / (1 - phi) sample periods, phi = exp(-2 pi filter_hz /
+rate_hz), is taken out of the transport delay). These act on the true signal, before the sensor errors.
+
 Grades. ``[imu] grade = "table2-mems" | "s000-mems" | "tactical" | "navigation"`` takes the error figures of
 that datasheet (``fusion.imugrade``, the same figures the filter takes as ``[fusion] imu = NAME``);
 ``table2-mems`` equals the defaults above.
@@ -56,7 +65,7 @@ import numpy as np
 from fieldlog.drive import native
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
-from fieldlog.fusion import imugrade
+from fieldlog.fusion import earth, imugrade
 
 _DEG = math.pi / 180.0
 _UG = 1e-6 * G0
@@ -218,6 +227,77 @@ def flicker_noise(
             x_prev = rng.standard_normal(n_channels)  # stationary start
             acc += _ar1(math.sqrt(1.0 - phi * phi), phi, z, x_prev)
     return _lerp_uniform(acc, h0, t_rel_s) * math.sqrt(s2)
+
+
+def lowpass(x: np.ndarray, phi: float, start: np.ndarray | None = None) -> np.ndarray:
+    """First-order low-pass down the rows of x (n, m): y_k = (1 - phi) x_k + phi y_{k-1}, y_{-1} = start (m,)
+    (default x_0: started settled); phi = exp(-2 pi f_c dt) for a corner f_c Hz at sample period dt s."""
+    x = np.asarray(x, np.float64)
+    return _ar1(1.0 - phi, phi, x, x[0] if start is None else start)
+
+
+@dataclass(frozen=True)
+class Installation:
+    """How the IMU sits in the car and what it does to the signal before its errors (module docstring):
+    mounting [roll, pitch, yaw] deg, IMU to car body; delay_s, s; filter_hz, Hz (0: no filter)."""
+
+    mounting_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    delay_s: float = 0.0
+    filter_hz: float = 0.0
+
+    KEYS = ("mounting_rpy_deg", "delay_s", "filter_hz")
+    MAX_DELAY_S = 1.0
+
+    def __post_init__(self) -> None:
+        rpy = self.mounting_rpy_deg
+        if not (isinstance(rpy, (list, tuple)) and len(rpy) == 3
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) <= 90.0 for x in rpy)):
+            raise ValueError(f"[imu] mounting_rpy_deg: expected [roll, pitch, yaw] within +-90 deg, got {rpy!r}")
+        object.__setattr__(self, "mounting_rpy_deg", tuple(float(x) for x in rpy))
+        for k in ("delay_s", "filter_hz"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < math.inf:
+                raise ValueError(f"[imu] {k}: expected a finite number >= 0, got {v!r}")
+            object.__setattr__(self, k, float(v))
+        if self.delay_s > self.MAX_DELAY_S:
+            raise ValueError(f"[imu] delay_s: at most {self.MAX_DELAY_S:g} s, got {self.delay_s:g}")
+
+    @classmethod
+    def split(cls, imu: dict) -> tuple[Installation, dict]:
+        """A scenario's [imu] table as (its installation keys, the rest: ``ImuErrorConfig``'s)."""
+        inst = cls(**{k: v for k, v in imu.items() if k in cls.KEYS})
+        return inst, {k: v for k, v in imu.items() if k not in cls.KEYS}
+
+    @property
+    def active(self) -> bool:
+        return self != Installation()
+
+    def C_bm(self) -> np.ndarray:
+        """(3, 3) IMU frame -> car body frame (RFU)."""
+        roll, pitch, yaw = (x * _DEG for x in self.mounting_rpy_deg)
+        return earth.euler_to_dcm(yaw, pitch, roll)
+
+    def _phi(self, rate_hz: float) -> float:
+        return math.exp(-2.0 * math.pi * self.filter_hz / rate_hz) if self.filter_hz > 0.0 else 0.0
+
+    def transport_s(self, rate_hz: float) -> float:
+        """The transport delay, s: ``delay_s`` less the filter's low-frequency group delay at rate_hz."""
+        phi = self._phi(rate_hz)
+        out = self.delay_s - phi / (1.0 - phi) / rate_hz
+        if out < 0.0:
+            raise ValueError(f"[imu] delay_s: {self.delay_s:g} s is less than the {self.filter_hz:g} Hz filter's "
+                             f"own delay ({self.delay_s - out:.4f} s)")
+        return out
+
+    def sense(self, omega_b: np.ndarray, f_b: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """The rate (rad/s) and specific force (m/s^2), (n, 3) in the car's body frame at the delayed times, as the
+        IMU's axes see them through its filter."""
+        C = self.C_bm()
+        out = np.concatenate([omega_b @ C, f_b @ C], axis=1)
+        phi = self._phi(rate_hz)
+        if phi > 0.0:
+            out = lowpass(out, phi)
+        return out[:, :3], out[:, 3:]
 
 
 def _si_magnitudes(cfg: ImuErrorConfig) -> dict[str, dict[str, float]]:

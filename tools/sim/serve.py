@@ -82,7 +82,7 @@ import numpy as np
 from fieldlog.acquire import daq
 from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import RawRead
-from fieldlog.tools.sim import board as emulated, simulate, trajectory
+from fieldlog.tools.sim import board as emulated, simulate, trajectory, vehicle
 from fieldlog.tools.sim.emit import HostClock
 
 NS = 1_000_000_000
@@ -324,7 +324,7 @@ class Server:
         self.duration_s = float(duration_s or sc.duration_s)
         self.seed = seed
         self.speed = speed
-        self.can = can
+        self.can = can = can or vehicle.from_scenario(sc.vehicle)[0]
         reads, self.truth, self.t0_ns, self.ccfg, _ = simulate.make_reads(sc, self.duration_s, seed, pps_mode,
                                                                              receiver, can)
         if self.board is not None:     # the DAQ port carries the board's input records, one per sample

@@ -12,7 +12,7 @@ scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key ea
 from __future__ import annotations
 
 import datetime as _dt
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -22,7 +22,7 @@ from fieldlog.acquire import calib, daq, timesync
 from fieldlog.drive import messages, metavalue, outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
-from fieldlog.tools.sim import sensors, trajectory, vehicle
+from fieldlog.tools.sim import sensors, trajectory, vehicle, vibration
 from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, pulse_errors, serial_reads
 
 NS = 1_000_000_000
@@ -53,10 +53,13 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it.
     ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``; ``can``: the car's
     CAN bus on an SLCAN adapter too (port ``can``, ``sim.vehicle``)."""
-    seeds = np.random.SeedSequence(seed).spawn(8)     # spawn(n)'s first children do not depend on n
-    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads, rng_pulse, rng_can = (
+    seeds = np.random.SeedSequence(seed).spawn(9)     # spawn(n)'s first children do not depend on n
+    rng_clock, rng_imu, rng_gps, rng_nmea, rng_daq_reads, rng_gps_reads, rng_pulse, rng_can, rng_vib = (
         np.random.default_rng(s) for s in seeds)
-    imu_cfg = sensors.ImuErrorConfig.from_dict(dict(scenario.imu))
+    install, imu_table = sensors.Installation.split(scenario.imu)
+    imu_cfg = sensors.ImuErrorConfig.from_dict(imu_table)
+    can_on, car = vehicle.from_scenario(scenario.vehicle)
+    can = can or can_on
     clock_d = dict(scenario.clock)
     if pps_mode:
         clock_d["pps_mode"] = pps_mode
@@ -74,7 +77,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
     ts = truth.evaluate(t_k)
-    counts, realised = sensors.imu_counts(t_k, ts.omega_ib_b, ts.f_b, imu_cfg, cal, rng_imu)
+    w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
+    counts, realised = sensors.imu_counts(t_k, w_sensed, f_sensed, imu_cfg, cal, rng_imu)
     qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
     pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
     if not gps_cfg.pps_in_outage:
@@ -103,13 +107,47 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
                                   rng_gps_reads)
     vehicle_truth = None
     if can:
-        can_reads, vehicle_truth = vehicle.can_reads(truth, duration_s, host, t0_ns, rng_can)
+        can_reads, vehicle_truth = vehicle.can_reads(truth, duration_s, host, t0_ns, rng_can, car)
         reads += can_reads
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
                       gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
-                      temp_c=temp_c, vehicle=vehicle_truth)
+                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install)
     return reads, truth_data, t0_ns, ccfg, cal
+
+
+def sensed(truth: trajectory.Truth, t_k: np.ndarray, ts: trajectory.TruthSample, install: sensors.Installation,
+           vibration_table: dict | None, rate_hz: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The rate (rad/s) and specific force (m/s^2), (n, 3), the IMU senses at its sample times t_k (s): the car's
+    (``ts``, body RFU) delayed, shaken by the ``[vibration]`` table's vibration (None: none), in the IMU's axes
+    through its filter (``sensors.Installation``); ``ts``'s own without either."""
+    if not install.active and vibration_table is None:
+        return ts.omega_ib_b, ts.f_b
+    t_s = t_k - install.transport_s(rate_hz)
+    at = truth.evaluate(t_s) if install.delay_s > 0.0 else ts
+    w, f = at.omega_ib_b, at.f_b
+    if vibration_table is not None:
+        dw, df = vibration.vibration(t_s, np.linalg.norm(at.v_n, axis=1),
+                                     vibration.VibrationConfig.from_dict(vibration_table), rng)
+        w, f = w + dw, f + df
+    return install.sense(w, f, rate_hz)
+
+
+def truth_metadata(truth_data: dict, scenario: trajectory.Scenario) -> dict[str, str]:
+    """The ``sim.truth`` record of a drive with the car's imperfections (``sensors.Installation``, ``[vibration]``,
+    ``[vehicle]``): the true IMU mounting [roll, pitch, yaw] deg to ``base_link`` (the drive's /tf_static keeps
+    the nominal zero), the IMU delay s and filter corner Hz, the vibration table's figures, each wheel's true
+    speed scale (FL, FR, RL, RR: reported / true - 1, slip aside); empty for a drive without them."""
+    install = truth_data["install"]
+    if not install.active and scenario.vibration is None and not scenario.vehicle:
+        return {}
+    vt = truth_data.get("vehicle")
+    vib = scenario.vibration
+    out = {"imu_mounting_rpy_deg": list(install.mounting_rpy_deg), "imu_delay_s": install.delay_s,
+           "imu_filter_hz": install.filter_hz,
+           "vibration": None if vib is None else vibration.VibrationConfig.from_dict(vib).__dict__,
+           "wheel_speed_scale": None if vt is None else [float(x) for x in vt["scale"]]}
+    return {k: metavalue.dump(v) for k, v in out.items()}
 
 
 def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> None:
@@ -131,7 +169,7 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     r = truth_data["realised"]  # the sensor error less its white noise, at the nav rate (sim.sensors.imu_counts)
     k = np.clip(np.searchsorted(t_k, t_nav), 0, len(t_k) - 1)
     bias = {}
-    for x, true in (("gyro", ts.omega_ib_b), ("accel", ts.f_b)):
+    for x, true in zip(("gyro", "accel"), truth_data["sensed"]):
         coloured = r[f"{x}_coloured"][k] if f"{x}_coloured" in r else 0.0
         bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
     rec.write_batch("/truth/imu_bias", tn_ns, messages.encode_imu(tn_ns, bias["gyro"], bias["accel"], zero, zero,
@@ -158,13 +196,19 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
              receiver: str | None = None, sync_settings: dict | None = None, can: bool = False,
-             force: bool = False) -> SimResult:
+             force: bool = False, mounting_rpy_deg: tuple[float, float, float] | None = None,
+             imu_delay_s: float | None = None) -> SimResult:
     """Simulate a drive into ``out`` (MCAP). ``duration_s=None`` takes the scenario's default; ``sync_settings``:
     more TimeSyncConfig settings for the pipeline (e.g. ``{"pulse_error": False}``); ``can``: with the car's CAN
-    bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``). ``out`` must be new, unless ``force``
-    (``drive.outputs``)."""
+    bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``; also when the scenario's ``[vehicle] can``);
+    ``mounting_rpy_deg`` (deg) and ``imu_delay_s`` (s) replace the scenario's ``[imu]`` ones. ``out`` must be new,
+    unless ``force`` (``drive.outputs``)."""
     outputs.check_new(out, force)
     scenario = trajectory.load_scenario(scenario_name)
+    over = {k: v for k, v in (("mounting_rpy_deg", mounting_rpy_deg), ("delay_s", imu_delay_s)) if v is not None}
+    if over:
+        scenario = replace(scenario, imu={**scenario.imu, **over})
+    can = can or vehicle.from_scenario(scenario.vehicle)[0]
     duration_s = float(duration_s or scenario.duration_s)
     fusion_meta = fusion_metadata(scenario.fusion)
     reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver, can)
@@ -182,6 +226,9 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
             rec.add_metadata(name, d)
         if fusion_meta:
             rec.add_metadata("fusion.config", fusion_meta)
+        sim_truth = truth_metadata(truth_data, scenario)
+        if sim_truth:
+            rec.add_metadata("sim.truth", sim_truth)
         write_truth(rec, truth_data, duration_s)   # before /imu: drivestats pairs /imu with it as /imu comes
         pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
         pipe.finish()

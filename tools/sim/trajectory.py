@@ -25,7 +25,11 @@ Scenario file format (TOML):
               grade or pitch, default: unchanged), accel_mps2 (peak acceleration of this speed change,
               default max_accel_mps2), ramp_s (duration of this segment's speed and pitch changes instead
               of accel_mps2 and grade_ramp_s)
-    [imu], [clock], [gps]                  passed through as dicts for the sensor and clock models
+    [imu], [clock], [gps]                  passed through as dicts for the sensor and clock models; [imu] also
+                                           says how the IMU sits in the car (``sensors.Installation``)
+    [vibration]                            optional: the car's vibration at the IMU (``vibration``; absent: none)
+    [vehicle]                              optional: the car on the CAN bus (``vehicle.from_scenario``: ``can =
+                                           true`` puts the bus in the drive, ``tyre_scale`` its scale error)
     [fusion]                               passed through: the spec-sheet figures of fusion.engine.FusionConfig
                                            that ``fieldlog sim`` stores in the drive (``tools.fuse.drive_config``)
 
@@ -159,8 +163,8 @@ class Origin:
 
 @dataclass(frozen=True)
 class Scenario:
-    """A scenario file. ``imu``, ``clock``, ``gps``, ``fusion`` are the raw [imu], [clock], [gps], [fusion]
-    tables."""
+    """A scenario file. ``imu``, ``clock``, ``gps``, ``fusion``, ``vibration`` (None: no table), ``vehicle`` are
+    the raw [imu], [clock], [gps], [fusion], [vibration], [vehicle] tables."""
 
     name: str
     description: str
@@ -171,6 +175,8 @@ class Scenario:
     clock: dict = field(default_factory=dict)
     gps: dict = field(default_factory=dict)
     fusion: dict = field(default_factory=dict)
+    vibration: dict | None = None
+    vehicle: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -218,7 +224,8 @@ _SEGMENT_KEYS = {"duration_s", "distance_m", "radius_m", "speed_mps", "turn_deg"
 _MOTION_KEYS = {"initial_heading_deg", "static_s", "max_accel_mps2", "turn_ramp_s", "grade_ramp_s",
                 "roll_per_g_deg", "coordinated_turns", "segments", "lap", "lap_speed_jitter_pct",
                 "lap_time_jitter_pct", "lap_turn_jitter_deg", "idle"}
-_TOP_KEYS = {"name", "description", "duration_s", "extends", "origin", "motion", "imu", "clock", "gps", "fusion"}
+_TOP_KEYS = {"name", "description", "duration_s", "extends", "origin", "motion", "imu", "clock", "gps", "fusion",
+             "vibration", "vehicle"}
 
 
 def _ramp_time(dv: float, accel: float) -> float:
@@ -342,6 +349,8 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         clock=dict(raw.get("clock", {})),
         gps=dict(raw.get("gps", {})),
         fusion=dict(raw.get("fusion", {})),
+        vibration=dict(raw["vibration"]) if "vibration" in raw else None,
+        vehicle=dict(raw.get("vehicle", {})),
     )
 
 

@@ -5,10 +5,10 @@ The car is the demo DBC's (``data/sim-car.dbc``). The IMU sits at the centre of 
 calibration has no ``[mounting] imu_position_m``, so base_link is there too), the body frame is RFU. Each
 wheel's hub moves with v_w = v_b + omega_nb_b x r_w (r_w: the hub from the IMU, RFU: rear at (-+track/2, 0, 0),
 front at (-+track/2, wheelbase, 0)); its speed is the horizontal magnitude of v_w (the wheel rolls along its
-own heading; front wheels are steered) and it reports that times (1 + its tyre-radius scale error) times (1 +
-its slip), quantised by the DBC signal's resolution. Slip: the driven front wheels spin up by
-``traction_slip`` x (a / g)^2 under acceleration a > 0, every wheel locks up by ``brake_slip`` x (a / g)^2 when
-braking. The road wheel angle is the bicycle model's atan(wheelbase x yaw rate / speed).
+own heading; front wheels are steered) and it reports that times (1 + its tyre-radius scale error: a common
+part, drawn in +-``tyre_scale_max`` or set by ``tyre_scale``, plus each wheel's own) times (1 + its slip),
+quantised by the DBC signal's resolution. Slip: the driven front wheels spin up by ``traction_slip`` x (a / g)^2
+under acceleration a > 0, every wheel locks up by ``brake_slip`` x (a / g)^2 when braking. The road wheel angle is the bicycle model's atan(wheelbase x yaw rate / speed).
 
 Timing: each ECU samples at its own rate with a random phase; a frame reaches the bus ``latency_s`` plus a
 uniform jitter in [0, ``jitter_s``) after its sample; the adapter stamps the frame's end with its own ms clock
@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from fieldlog.acquire import can, canbus
+from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.fusion import earth
 from fieldlog.tools.sim.emit import HostClock, serial_reads
@@ -49,6 +50,7 @@ class CanSimConfig:
     track_m: float = 1.6
     tyre_scale_max: float = 0.005       # common tyre-radius scale error, uniform in +-this
     tyre_scale_wheel: float = 0.0005    # and each wheel's own, 1 sigma
+    tyre_scale: float | None = None     # the common scale error instead of the draw (the draw is made still)
     traction_slip: float = 0.2          # slip ratio per (a/g)^2 of the driven (front) wheels accelerating
     brake_slip: float = 0.1             # ... of every wheel braking
     latency_s: float = 0.004            # sample -> bus (ECU processing)
@@ -56,6 +58,21 @@ class CanSimConfig:
     adapter_ppm: float = 30.0           # the adapter's ms clock runs this fast
     serial_baud: int = 1_000_000        # the adapter's serial line (USB CDC)
     read_period_s: tuple[float, float] = (0.001, 0.004)
+
+
+def engine_rpm(speed_mps: np.ndarray) -> np.ndarray:
+    """The engine speed, rpm, at the forward speed (m/s): idle at 800 rpm, one gear above it."""
+    return 800 + 110 * np.abs(speed_mps)
+
+
+def from_scenario(table: dict) -> tuple[bool, CanSimConfig]:
+    """A scenario's [vehicle] table: (``can``: the drive has the CAN bus without ``--can``, the car's
+    ``CanSimConfig`` from the other keys, e.g. ``tyre_scale = 0.008``); unknown keys raise ConfigError."""
+    d = dict(table)
+    can_on = d.pop("can", False)
+    if not isinstance(can_on, bool):
+        raise ConfigError(f"[vehicle] can: expected true or false, got {can_on!r}")
+    return can_on, from_table(CanSimConfig, "vehicle", d)
 
 
 def bus_config(cfg: CanSimConfig | None = None) -> canbus.BusConfig:
@@ -95,7 +112,8 @@ def can_frames(truth, duration_s: float, cfg: CanSimConfig, rng: np.random.Gener
     db = cantools.database.load_file(str(DBC_PATH))
     m_ws, m_st = db.get_message_by_name("WHEEL_SPEEDS"), db.get_message_by_name("STEERING")
     m_gear, m_eng = db.get_message_by_name("GEARBOX"), db.get_message_by_name("ENGINE")
-    scale = rng.uniform(-cfg.tyre_scale_max, cfg.tyre_scale_max) + rng.normal(0, cfg.tyre_scale_wheel, 4)
+    common = rng.uniform(-cfg.tyre_scale_max, cfg.tyre_scale_max)
+    scale = (common if cfg.tyre_scale is None else cfg.tyre_scale) + rng.normal(0, cfg.tyre_scale_wheel, 4)
     out: list[tuple[float, can.CanFrame]] = []
 
     def sent(t_sample: np.ndarray) -> np.ndarray:
@@ -122,7 +140,7 @@ def can_frames(truth, duration_s: float, cfg: CanSimConfig, rng: np.random.Gener
     for t, v in zip(sent(t_g).tolist(), fwd.tolist()):
         out.append((t, can.CanFrame(m_gear.frame_id, m_gear.encode({"GEAR": 1 if v < -0.05 else 3}, scaling=False))))
     t_e = _sample_times(cfg.engine_rate_hz, duration_s, rng)
-    rpm = 800 + 110 * np.abs(wheel_speeds(truth, t_e, cfg)["forward"])
+    rpm = engine_rpm(wheel_speeds(truth, t_e, cfg)["forward"])
     for t, r in zip(sent(t_e).tolist(), rpm.tolist()):
         out.append((t, can.CanFrame(m_eng.frame_id, m_eng.encode({"ENGINE_RPM": r, "PEDAL": 20.0}))))
     for can_id, ext, rate in UNKNOWN_IDS:
