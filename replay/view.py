@@ -31,6 +31,9 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
 ``status/outage``                     Scalars 0/1 (step): 1 inside a ``/fusion/outage`` window; rows at the
                                       drive start and at every merged window's start and end
 ``status/no_fix``                     Scalars 0/1 (step), one row per ``/gps/fix`` epoch: 1 = no fix
+``solution_status/<method>``          Scalars (step), one row per ``/fusion/<method>/status`` message: the
+                                      solution status code (``fusion.output.STATUS``: 0 aligning, 1 aligned,
+                                      2 aided, 3 coasting, 4 degraded, 5 diverged)
 ``imu/gyro``, ``imu/accel``           Scalars x, y, z (body RFU): rad/s and m/s^2, DECIMATED by means of
                                       ``IMU_DECIMATION`` consecutive valid samples (500 Hz -> 50 Hz), stamped at
                                       the mean sample time; a trailing incomplete group is dropped, so the row
@@ -85,7 +88,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from fieldlog.acquire import calib, frames, outputs
-from fieldlog.fusion import earth
+from fieldlog.fusion import earth, output
 from fieldlog.replay import reader, solutions
 from fieldlog.replay.ahead import Ahead
 from fieldlog.replay.drive import DriveSpec, drive_files, label
@@ -103,6 +106,7 @@ WHEELS_COLOR = (120, 60, 200)
 TRUTH_COLOR = (20, 160, 20)
 NO_FIX_COLOR = (230, 30, 30)
 OUTAGE_COLOR = (230, 30, 30, 200)
+SOLUTION_STATUS_TITLE = "solution status (" + ", ".join(f"{i} {n}" for i, n in enumerate(output.STATUS)) + ")"
 METHOD_COLORS = {"ins": (200, 40, 40), "kf": (30, 100, 255), "dkf": (150, 60, 210), "dkf-rbfn": (0, 175, 190),
                  "rbfn": (200, 120, 0), "tdln": (120, 80, 40), "kf-ukf": (230, 60, 160), "ssr-sckf": (90, 90, 90),
                  "hinf": (40, 40, 140)}
@@ -507,7 +511,8 @@ def blueprint(map_zoom: float | None = None, follow: str | None = None) -> rrb.B
                 _row(err["pos"], "position error"),
                 _row(attitude, "attitude"),
                 _row(err["att"], "attitude error (truth)"),
-                _row([_plot("status", "outage / no fix"), _plot("gps/satellites", "satellites"),
+                _row([_plot("status", "outage / no fix"), _plot("solution_status", SOLUTION_STATUS_TITLE),
+                      _plot("gps/satellites", "satellites"),
                       _plot("gps/hdop", "HDOP"), _plot("gps/fix_type", "fix type (1 GPS, 2 DGPS, 4 RTK)"),
                       _plot("timesync/state", "time sync (2 locked)")], "GPS quality and time sync"),
                 rrb.Tabs(
@@ -649,6 +654,11 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
             _log_attitude(rec, m, pose, sigma, color)
             if truth_pose is not None and sigma is not None:
                 _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
+        if topic_names(path).get(solutions.topic(method, solutions.STATUS)):  # fused files before it: none
+            st = solutions.read(path, method, solutions.STATUS)
+            ok = st["valid"]
+            _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),
+                        f"{m} status", [color], step=True)
         if topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
             _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
         if "/vehicle/twist" in low and topic_names(path).get(solutions.topic(method, "odom")):
