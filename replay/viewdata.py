@@ -25,7 +25,7 @@ IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
 IMU_BLOCK_S = 60.0
 
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
-    "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status"),
+    "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status", "position_covariance"),
     "/gps/vel": ("v_n",),
     "/truth/fix": ("lat_deg", "lon_deg", "alt_m"),
     "/truth/vel": ("v_n",),
