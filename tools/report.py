@@ -126,8 +126,11 @@ def _thin(*xs: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def _svg(fig) -> str:
     """A matplotlib Figure as inline SVG (text kept as text; the XML prologue dropped)."""
+    import matplotlib
+
     buf = io.StringIO()
-    fig.savefig(buf, format="svg", bbox_inches="tight")
+    with matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "fieldlog"}):  # the same page each run
+        fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
     text = buf.getvalue()
     return text[text.index("<svg"):]
 
