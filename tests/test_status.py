@@ -78,13 +78,16 @@ def test_status_takes_every_value_in_order(built, tmp_path):
 
 def test_wrong_imu_frame_is_diverged_and_the_right_one_never(simulated, tmp_path):
     """An RFU drive fused as FRD (the CLI's --imu-frame): diverged once it drives; as RFU: never diverged nor
-    degraded, aided from the first update on."""
+    degraded, aided from the first update on; smoothed, the file carries the forward pass's status."""
     drive = simulated("figure8", 120.0, 1)
-    for frame in ("frd", "rfu"):
-        assert cli_main(["fuse", str(drive), "--method", "kf", "--imu-frame", frame, "-q",
-                         "--out", str(tmp_path / f"{frame}.mcap")]) == 0
+    for frame, more in (("frd", []), ("rfu", []), ("rfu", ["--smooth"])):
+        assert cli_main(["fuse", str(drive), "--method", "kf", "--imu-frame", frame, "-q", *more,
+                         "--out", str(tmp_path / f"{frame}{''.join(more)}.mcap")]) == 0
     wrong = solutions.read(tmp_path / "frd.mcap", "kf", "status")
     right = solutions.read(tmp_path / "rfu.mcap", "kf", "status")
     assert output.DIVERGED in wrong["status"] and wrong["nis"][wrong["status"] == output.DIVERGED].min() > 25.0
     assert _first_appearances(right["status"]) == [output.ALIGNING, output.ALIGNED, output.AIDED]
     assert np.nanmax(right["nis"]) < 3.0
+    smoothed = solutions.read(tmp_path / "rfu--smooth.mcap", "kf", "status")
+    for k in ("stamp_ns", "status", "since_update_s", "sigma_h_m"):
+        np.testing.assert_array_equal(smoothed[k], right[k])
