@@ -18,14 +18,13 @@ epoch (``fusion.outages`` classifies it, a GPS silence gives no-fix epochs):
    (``fusion.align.HeadingCheck``, which may re-align), then fed back.
 
 The filter (:func:`make_filter`) gets what it declares it needs (``fusion.kf.KalmanFilter``) and routes the
-observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback.
-The loop names no sensor and no filter type.
+observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback;
+the rows get their status (``fusion.output.StatusBook``). The loop names no sensor and no filter type.
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -74,8 +73,7 @@ class Engine:
         self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor)
                        if method in PREDICTOR_NETWORK else None)
         self.alignment = align.Alignment(self.cfg)
-        self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
-        self.silence = Silence()
+        self.outages, self.silence = OutageTracker(self.cfg.gps.max_fix_sigma_m), Silence()
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
@@ -85,9 +83,7 @@ class Engine:
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
         self._steps = errmodel.BiasSteps.of(self.cfg.sensor)  # scale factors as bias steps, or None
-        self._last_update_ns: int | None = None  # UTC of the fix of the last GNSS update (the status rows)
-        self._aided = False  # whether the last GNSS epoch updated the filter
-        self._nis: deque[float] = deque(maxlen=output.NIS_FIXES)  # NIS per degree of freedom of the last updates
+        self.status = output.StatusBook(self.cfg.filter)  # the rows' status, and before the alignment its own
 
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
         """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
@@ -130,7 +126,7 @@ class Engine:
                 continue
             self._interval.add(w, f, cursor, k)
             if self.nav is None:
-                out.append(self._aligning(t_ns, cursor, k))
+                out.append(self.status.aligning(t_ns[cursor:k + 1]))
                 cursor = k
                 self._pre_init_epoch(ep, float(t[k]), int(t_ns[k]))
             else:
@@ -142,7 +138,7 @@ class Engine:
         held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
         self._interval.add(w, f, cursor, held)
         out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
-                   else self._aligning(t_ns, cursor, held))
+                   else self.status.aligning(t_ns[cursor:held + 1]))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
         return Solution.concat(out), self.outages.take()
 
@@ -182,8 +178,7 @@ class Engine:
 
     def _epoch(self, ep: Epoch, omega_k: np.ndarray) -> None:
         """GPS epoch at the current sample: the aids, then the fix or the outage (module docstring)."""
-        usable = self.outages.classify(ep)
-        self._aided = False
+        usable = self.status.epoch(self.outages.classify(ep))
         interval, self._interval = self._interval, align.ImuSums()
         v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
         t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
@@ -210,9 +205,7 @@ class Engine:
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
             at.nav, at.P = self.nav, self.filter.covariance
             obs = self._observe(fixes, at)
-        self._nis.append(self._nis_per_dof(obs))
-        self._update(obs)
-        self._last_update_ns, self._aided = ep.t_ns, True
+        self._update(self.status.fix(ep.t_ns, obs, self.filter))
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         for x in self.listeners:
             x.fix(ep, self.filter, period)
@@ -231,13 +224,6 @@ class Engine:
             if z_H_R is not None:
                 out.append(kf.Observation(m.kind, z_H_R, m.receiver))
         return out
-
-    def _nis_per_dof(self, obs: list[kf.Observation]) -> float:
-        """The normalised innovation square of the observations against the filter's state and covariance,
-        y^T (H P H^T + R)^-1 y, over its degrees of freedom (the status's divergence test)."""
-        z, H, R = kf.stack(*(o.m for o in obs))
-        y = z - H @ self.filter.state
-        return float(y @ np.linalg.solve(H @ self.filter.covariance @ H.T + R, y)) / len(z)
 
     def _update(self, obs: list[kf.Observation]) -> bool:
         """One filter update with the observations (the listeners told first); False when there are none."""
@@ -297,8 +283,7 @@ class Engine:
 
     # -- INS and covariance between epochs ------------------------------------------------------------
 
-    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int
-                 ) -> Solution:
+    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> Solution:
         """INS and covariance from sample i0 (the current state) to sample i1; solution rows in (i0, i1]."""
         if i1 <= i0:
             return Solution.concat([])
@@ -331,18 +316,8 @@ class Engine:
         diag = diag.copy()
         for x in self.listeners:
             x.cycles(t_ns[i0:i1 + 1][ends], c.Phi, P, c.C_bn, c.w_mean, c.dt, diag)
-        rows = output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag,
-                           np.concatenate([self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local)
-        nis = float(np.mean(self._nis)) if len(self._nis) == self._nis.maxlen else math.nan
-        rows.status = output.status(rows, self._last_update_ns, self._aided, nis, self.cfg.filter.status_max_sigma_m,
-                                    self.cfg.filter.status_diverged_nis)
-        return rows
-
-    def _aligning(self, t_ns: np.ndarray, i0: int, i1: int) -> Solution:
-        """No solution rows, the status rows of samples (i0, i1] before the alignment."""
-        empty = Solution.concat([])
-        empty.status = output.aligning(t_ns[i0:i1 + 1], self.cfg.filter.output_hz)
-        return empty
+        return self.status.of(output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate(
+            [self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local))
 
     def _propagate(self, Phi: np.ndarray, Q: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:

@@ -1,7 +1,7 @@
 """The solution rows the engine produces: the (closed-loop) INS state at the first IMU sample of each
 1/output_hz slot of UTC (10 Hz by default), stamped with that sample's time, with the filter's sigmas; the
 position's with the time-correlated GPS error the filters do not model added (:func:`correlated_variance`);
-and their status (:func:`status`), as an INS receiver reports its solution's (NovAtel SPAN's INS status, a
+and their status (:class:`StatusBook`), as an INS receiver reports its solution's (NovAtel SPAN's INS status, a
 VBOX's IMU coast).
 
 The status of a row is the highest that applies of
@@ -22,10 +22,17 @@ The status of a row is the highest that applies of
 
 from __future__ import annotations
 
+import math
+from collections import deque
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from fieldlog.fusion import earth
+from fieldlog.fusion import earth, kf
 from fieldlog.fusion.types import Solution, Status
+
+if TYPE_CHECKING:
+    from fieldlog.fusion.config import FilterConfig
 
 NS = 1_000_000_000
 STATUS = ("aligning", "aligned", "aided", "coasting", "degraded", "diverged")  # the codes 0..5 of Status.code
@@ -77,28 +84,58 @@ def finite(s: Solution) -> np.ndarray:
             & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
 
 
-def aligning(t_ns: np.ndarray, output_hz: float) -> Status:
-    """The status rows of samples t_ns (n,) UTC before the alignment: ``aligning`` at each output slot's start
-    after the first sample, nothing else known."""
-    t = t_ns[output_rows(t_ns, output_hz)]
-    nan = np.full(len(t), np.nan)
-    return Status(t, np.full(len(t), ALIGNING, np.uint8), nan, nan.copy(), nan.copy())
+class StatusBook:
+    """What the status of the engine's rows depends on (module docstring), kept as the epochs go by: the fix
+    time of the last GNSS update, whether the last epoch updated the filter, the NIS of the last ``NIS_FIXES``
+    updates. ``cfg``: the ``fusion.config.FilterConfig`` (output rate, the thresholds)."""
 
+    def __init__(self, cfg: FilterConfig) -> None:
+        self.cfg = cfg
+        self.last_update_ns: int | None = None
+        self.aided = False
+        self.nis: deque[float] = deque(maxlen=NIS_FIXES)
 
-def status(s: Solution, last_update_ns: int | None, aided: bool, nis: float, max_sigma_m: float,
-           diverged_nis: float) -> Status:
-    """The status of the solution rows s (module docstring): last_update_ns the UTC of the fix of the last GNSS
-    update before them (None: none yet), aided whether the last GNSS epoch updated the filter, nis the mean NIS
-    per degree of freedom of the last ``NIS_FIXES`` updates (NaN: fewer)."""
-    n = len(s.t_ns)
-    sigma_h = np.hypot(s.sigma[:, 0], s.sigma[:, 1])
-    code = np.full(n, ALIGNED if last_update_ns is None else AIDED if aided else COASTING, np.uint8)
-    code[sigma_h > max_sigma_m] = DEGRADED
-    if nis > diverged_nis:
-        code[:] = DIVERGED
-    code[~finite(s)] = DIVERGED
-    since = (s.t_ns - last_update_ns) * 1e-9 if last_update_ns is not None else np.full(n, np.nan)
-    return Status(s.t_ns.copy(), code, since, sigma_h, np.full(n, nis))
+    def epoch(self, usable: bool) -> bool:
+        """A GPS epoch after the alignment (usable or not: its fix may update the filter); returns usable."""
+        self.aided = False
+        return usable
+
+    def fix(self, t_ns: int, obs: list[kf.Observation], filt: kf.KalmanFilter) -> list[kf.Observation]:
+        """The fix of the epoch at t_ns UTC updates the filter ``filt`` (any of ``fusion.filters``; called before
+        the update: its state and covariance are the prior) with the observations obs: their NIS is kept;
+        returns obs."""
+        z, H, R = kf.stack(*(o.m for o in obs))
+        y = z - H @ filt.state
+        try:
+            self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
+        except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
+            self.nis.append(math.inf)
+        self.last_update_ns, self.aided = t_ns, True
+        return obs
+
+    def aligning(self, t_ns: np.ndarray) -> Solution:
+        """No solution rows, the status rows of samples t_ns (n,) UTC before the alignment: ``aligning`` at each
+        output slot's start after the first sample, nothing else known."""
+        t = t_ns[output_rows(t_ns, self.cfg.output_hz)]
+        nan = np.full(len(t), np.nan)
+        empty = Solution.concat([])
+        empty.status = Status(t, np.full(len(t), ALIGNING, np.uint8), nan, nan.copy(), nan.copy())
+        return empty
+
+    def of(self, s: Solution) -> Solution:
+        """The solution rows s with their status."""
+        n = len(s.t_ns)
+        nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
+        sigma_h = np.hypot(s.sigma[:, 0], s.sigma[:, 1])
+        code = np.full(n, ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING, np.uint8)
+        code[sigma_h > self.cfg.status_max_sigma_m] = DEGRADED
+        if nis > self.cfg.status_diverged_nis:
+            code[:] = DIVERGED
+        code[~finite(s)] = DIVERGED
+        since = ((s.t_ns - self.last_update_ns) * 1e-9 if self.last_update_ns is not None
+                 else np.full(n, np.nan))
+        s.status = Status(s.t_ns.copy(), code, since, sigma_h, np.full(n, nis))
+        return s
 
 
 def corrected(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -121,7 +121,7 @@ class Solution:
 
 @dataclass
 class Status:
-    """Solution status rows (``fusion.output.status``): t_ns (n,) int64 UTC; code (n,) uint8, an index of
+    """Solution status rows (``fusion.output.StatusBook``): t_ns (n,) int64 UTC; code (n,) uint8, an index of
     ``fusion.output.STATUS``; since_update_s (n,) s from the last GNSS update to the row (NaN before the first);
     sigma_h_m (n,) horizontal position sigma, m (NaN while aligning); nis (n,) mean normalised innovation square
     per degree of freedom of the last GNSS updates (NaN before any)."""

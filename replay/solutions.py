@@ -2,7 +2,7 @@
 names them.
 
 ``write_solution`` writes a method's solution rows (``fusion.types.Solution``): position, velocity, attitude, their
-sigmas, the IMU bias estimate, the status (``write_status``: ``fusion.output.status``, also before the alignment)
+sigmas, the IMU bias estimate, the status (``write_status``: ``fusion.output.StatusBook``, also before the alignment)
 and, for the distributed methods, the local solutions; ``Odometry`` the same rows as
 REP-105 frames (``odom``, ``datum``, ``/tf``, ``/tf_static``). Both write into a ``Recorder`` (``fieldlog fuse``) or
 anything with its ``write`` and ``write_batch`` (the Foxglove sink of ``fieldlog replay --foxglove``). ``topics``
