@@ -22,7 +22,7 @@ from fieldlog.replay.drive import open_drive
 from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
-OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib")
+OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib", "jinja2")
 
 
 def _run(args, cwd, timeout=600):
@@ -100,7 +100,8 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
 
 def test_core_install_names_the_missing_extra(core, drive, tmp_path):
     for argv, extra in ((["view", drive, "--rrd", tmp_path / "x.rrd"], "view"),
-                        (["export", drive, "--out", tmp_path / "tables"], "export")):
+                        (["export", drive, "--out", tmp_path / "tables"], "export"),
+                        (["report", drive, "--out", tmp_path / "report.html"], "report")):
         r = _run([core / "fieldlog", *argv], tmp_path)
         assert r.returncode == 2, (argv, r.stderr)
         lines = r.stderr.strip().splitlines()

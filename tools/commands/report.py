@@ -5,7 +5,7 @@ import argparse
 import time
 
 from fieldlog.tools.commands.common import (DRIVE_HELP, Progress, command_parser, drive_arg, log, needs_extras,
-                                            output_parent)
+                                            output_parent, require_extras)
 
 
 def add_parser(sub) -> None:
@@ -18,6 +18,7 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
+    require_extras("jinja2", "matplotlib", "polars")  # before the drive is read: the page needs all three
     from fieldlog.replay import viewdata
     from fieldlog.tools.report import report
 
