@@ -173,6 +173,8 @@ def test_foreign_drive_with_missing_topics_lists_the_faults(clean, tmp_path):
     m = re.search(r"GNSS outage of ([0-9.]+) s", got["verdict"])
     assert m and SILENT[1] <= float(m.group(1)) <= SILENT[1] + 2.0, got["verdict"]
     assert {"#imu", "#gnss"} <= set(got["links"])
+    m = re.search(r"longest without a GNSS update</th><td>([0-9.]+) s", text)  # the status topic's coasting
+    assert m and SILENT[1] - 1.0 <= float(m.group(1)) <= SILENT[1] + 2.0
 
 
 def test_a_drive_without_gnss_or_imu_gets_no_data_sections(clean, tmp_path):

@@ -637,6 +637,9 @@ def method_section(d: Drive, m: FusedMethod, findings: list[Finding]) -> Section
         shares = ", ".join(f"{n} {100.0 * np.mean(code == c):.1f} %" for c, n in enumerate(fusion_output.STATUS)
                            if (code == c).any())
         s.facts.append(("status", shares))
+        since = st["since_update_s"][ok]
+        if np.isfinite(since).any():
+            s.facts.append(("longest without a GNSS update", f"{np.nanmax(since):.1f} s"))
         dt = np.diff(t, append=t[-1]) / NS if len(t) else np.zeros(0)
         for c, what in ((fusion_output.DIVERGED, "diverged"), (fusion_output.DEGRADED, "degraded")):
             if (code == c).any():
