@@ -107,7 +107,8 @@ class StatusBook:
         z, H, R = kf.stack(*(o.m for o in obs))
         y = z - H @ filt.state
         try:
-            self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
+            if len(z):  # (a fix whose measurements kept no row has no innovation to test)
+                self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
         except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
             self.nis.append(math.inf)
         self.last_update_ns, self.aided = t_ns, True
