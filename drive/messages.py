@@ -129,6 +129,19 @@ MSG_DEFS: dict[str, str] = {
         "string[] names\n"
         "float64[] values\n"
     ),
+    "fieldlog_msgs/msg/SolutionStatus": (
+        "uint8 ALIGNING=0\n"
+        "uint8 ALIGNED=1\n"
+        "uint8 AIDED=2\n"
+        "uint8 COASTING=3\n"
+        "uint8 DEGRADED=4\n"
+        "uint8 DIVERGED=5\n"
+        "std_msgs/Header header\n"
+        "uint8 status\n"
+        "float64 since_update_s\n"
+        "float64 sigma_h_m\n"
+        "float64 nis\n"
+    ),
 }
 
 _SEPARATOR = "=" * 80
@@ -183,6 +196,7 @@ TFMESSAGE = "tf2_msgs/msg/TFMessage"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 WHEELSPEEDS = "fieldlog_msgs/msg/WheelSpeeds"
+SOLUTION_STATUS = "fieldlog_msgs/msg/SolutionStatus"
 
 TOPICS: dict[str, str] = {
     "/raw/daq": RAWBYTES,
@@ -218,13 +232,14 @@ FUSION_SUBTOPICS: dict[str, str] = {
     "attitude_std": VECTOR3,
     "imu_bias": IMU,
     "datum": NAVSATFIX,
+    "status": SOLUTION_STATUS,
 }
 _FUSION_RE = re.compile(rf"^/fusion/([A-Za-z0-9_-]+)/(?:kf[12]/(fix|vel)|({'|'.join(FUSION_SUBTOPICS)}))$")
 
 
 def topic_type(topic: str) -> str:
     """Type name of a contract topic, including ``/fusion/<method>/{fix,vel,attitude,std,attitude_std,odom,imu_bias,
-    datum}``
+    datum,status}``
     and the distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
@@ -381,6 +396,8 @@ _FIELDS: dict[str, list[_Field]] = {
         ("edges_used", "<u4", ()),
         ("edges_rejected", "<u4", ()),
     ],
+    SOLUTION_STATUS: _HEADER
+    + [("status", "<u1", ()), ("since_update_s", "<f8", ()), ("sigma_h_m", "<f8", ()), ("nis", "<f8", ())],
 }
 
 
@@ -600,6 +617,17 @@ def encode_time_sync(
     arr = _new(TIMESYNC, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
     arr["state"], arr["rate_ppm"], arr["residual_us"] = state, rate_ppm, residual_us
     arr["edges_used"], arr["edges_rejected"] = edges_used, edges_rejected
+    return _pack(arr)
+
+
+def encode_solution_status(stamp_ns: np.ndarray, status: np.ndarray, since_update_s: np.ndarray,
+                           sigma_h_m: np.ndarray, nis: np.ndarray, frame_id: str = "imu") -> Packed:
+    """``fieldlog_msgs/msg/SolutionStatus`` batch: status ALIGNING=0 .. DIVERGED=5 (``fusion.output.STATUS``);
+    since_update_s (s) from the last GNSS update, sigma_h_m (m) the horizontal position sigma, nis the mean
+    normalised innovation square per degree of freedom of the last updates (NaN where not known)."""
+    stamp_ns = np.asarray(stamp_ns)
+    arr = _new(SOLUTION_STATUS, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
+    arr["status"], arr["since_update_s"], arr["sigma_h_m"], arr["nis"] = status, since_update_s, sigma_h_m, nis
     return _pack(arr)
 
 
@@ -908,6 +936,15 @@ def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     return out
 
 
+def decode_solution_status(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
+    """SolutionStatus batch -> stamp_ns, status, since_update_s, sigma_h_m, nis, valid."""
+    a, ok = _decode_fixed(SOLUTION_STATUS, msgs)
+    out = {"stamp_ns": join_stamp(a["sec"], a["nanosec"])}
+    out.update({k: a[k] for k in ("status", "since_update_s", "sigma_h_m", "nis")})
+    out["valid"] = ok
+    return out
+
+
 BATCH_DECODERS: dict[str, Callable[["Packed | Sequence[bytes]"], dict[str, np.ndarray]]] = {
     IMU: decode_imu,
     NAVSATFIX: decode_navsatfix,
@@ -916,6 +953,7 @@ BATCH_DECODERS: dict[str, Callable[["Packed | Sequence[bytes]"], dict[str, np.nd
     VECTOR3: decode_vector3,
     TIMEREF: decode_time_reference,
     TIMESYNC: decode_time_sync,
+    SOLUTION_STATUS: decode_solution_status,
 }
 
 # ---------------------------------------------------------------------------------------------

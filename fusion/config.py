@@ -143,6 +143,8 @@ class FilterConfig:
     dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
+    status_max_sigma_m: float = 10.0  # the status is "degraded" above this horizontal position sigma, m
+    status_diverged_nis: float = 25.0  # ... "diverged" above this mean NIS per degree of freedom (fusion.output)
 
 
 SECTIONS = {"sensor": SensorConfig, "gps": GpsConfig, "init": InitConfig, "align": AlignConfig,
@@ -195,7 +197,7 @@ class FusionConfig:
         g, i, f = self.gps, self.init, self.filter
         if g.lever_arm_frame.lower() not in ("rfu", "flu", "frd"):
             raise ValueError(f"[fusion] lever_arm_frame: one of rfu, flu, frd, got {g.lever_arm_frame!r}")
-        for key in ("output_hz", "cov_step_s"):
+        for key in ("output_hz", "cov_step_s", "status_max_sigma_m", "status_diverged_nis"):
             if not getattr(f, key) > 0:
                 raise ValueError(f"[fusion] {key}: must be > 0")
         if f.dkf_fusion not in FUSIONS:

@@ -18,8 +18,8 @@ epoch (``fusion.outages`` classifies it, a GPS silence gives no-fix epochs):
    (``fusion.align.HeadingCheck``, which may re-align), then fed back.
 
 The filter (the method's factory, ``fusion.methods``) gets what it declares it needs (``fusion.kf.KalmanFilter``) and routes the
-observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback.
-The loop names no sensor and no filter type.
+observations by kind; the listeners (``fusion.listeners``) are called at each cycle, update, fix and feedback;
+the rows get their status (``fusion.output.StatusBook``). The loop names no sensor and no filter type.
 """
 
 from __future__ import annotations
@@ -71,8 +71,7 @@ class Engine:
         self.bridge = (PredictorBridge(self.spec.bridge, self.cfg.predictor, make_predictor)
                        if self.spec.bridge is not None else None)
         self.alignment = align.Alignment(self.cfg)
-        self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
-        self.silence = Silence()
+        self.outages, self.silence = OutageTracker(self.cfg.gps.max_fix_sigma_m), Silence()
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
@@ -82,6 +81,7 @@ class Engine:
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
         self._steps = errmodel.BiasSteps.of(self.cfg.sensor)  # scale factors as bias steps, or None
+        self.status = output.StatusBook(self.cfg.filter)  # the rows' status, and before the alignment its own
 
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
         """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
@@ -124,6 +124,7 @@ class Engine:
                 continue
             self._interval.add(w, f, cursor, k)
             if self.nav is None:
+                out.append(self.status.aligning(t_ns[cursor:k + 1]))
                 cursor = k
                 self._pre_init_epoch(ep, float(t[k]), int(t_ns[k]))
             else:
@@ -134,8 +135,8 @@ class Engine:
         # the tail after the last cycle start waits for the next block, so blocks never cut a cycle short
         held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
         self._interval.add(w, f, cursor, held)
-        if self.nav is not None:
-            out.append(self._advance(t, t_ns, w, f, cursor, held))
+        out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
+                   else self.status.aligning(t_ns[cursor:held + 1]))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
         return Solution.concat(out), self.outages.take()
 
@@ -175,7 +176,7 @@ class Engine:
 
     def _epoch(self, ep: Epoch, omega_k: np.ndarray) -> None:
         """GPS epoch at the current sample: the aids, then the fix or the outage (module docstring)."""
-        usable = self.outages.classify(ep)
+        usable = self.status.epoch(self.outages.classify(ep))
         interval, self._interval = self._interval, align.ImuSums()
         v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
         t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
@@ -202,7 +203,7 @@ class Engine:
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
             at.nav, at.P = self.nav, self.filter.covariance
             obs = self._observe(fixes, at)
-        self._update(obs)
+        self._update(self.status.fix(ep.t_ns, obs, self.filter))
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         for x in self.listeners:
             x.fix(ep, self.filter, period)
@@ -280,8 +281,7 @@ class Engine:
 
     # -- INS and covariance between epochs ------------------------------------------------------------
 
-    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int
-                 ) -> Solution:
+    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> Solution:
         """INS and covariance from sample i0 (the current state) to sample i1; solution rows in (i0, i1]."""
         if i1 <= i0:
             return Solution.concat([])
@@ -314,8 +314,8 @@ class Engine:
         diag = diag.copy()
         for x in self.listeners:
             x.cycles(t_ns[i0:i1 + 1][ends], c.Phi, P, c.C_bn, c.w_mean, c.dt, diag)
-        return output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag,
-                           np.concatenate([self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local)
+        return self.status.of(output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate(
+            [self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local))
 
     def _propagate(self, Phi: np.ndarray, Q: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:

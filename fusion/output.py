@@ -1,15 +1,43 @@
 """The solution rows the engine produces: the (closed-loop) INS state at the first IMU sample of each
 1/output_hz slot of UTC (10 Hz by default), stamped with that sample's time, with the filter's sigmas; the
-position's with the time-correlated GPS error the filters do not model added (:func:`correlated_variance`)."""
+position's with the time-correlated GPS error the filters do not model added (:func:`correlated_variance`);
+and their status (:class:`StatusBook`), as an INS receiver reports its solution's (NovAtel SPAN's INS status, a
+VBOX's IMU coast).
+
+The status of a row is the highest that applies of
+
+- ``aligning``: no solution yet (the alignment gathers its still interval or waits for speed): a status row at
+  each output slot, without a solution row;
+- ``aligned``: the INS runs from its alignment; no GNSS fix has updated it yet;
+- ``aided`` or ``coasting``: the last GNSS epoch updated the filter, or it did not (an outage: no fix, low
+  quality, injected or silent), with the seconds from the last update's fix time to the row in both;
+- ``degraded``: the horizontal position sigma is above ``status_max_sigma_m``;
+- ``diverged``: the normalised innovation squares (NIS, y^T S^-1 y over the degrees of freedom, S = H P H^T +
+  R) of the last ``NIS_FIXES`` GNSS updates average above ``status_diverged_nis``: the filter no longer
+  explains the GNSS by its own covariance, as with a wrong IMU frame. A consistent filter's mean is near 1
+  and passes 3 by chance with probability below 1e-4 over 5 updates of 3 degrees of freedom: the default 25
+  (innovations of 5 sigma RMS) leaves room for the receiver's error the filter does not model. Or the row is
+  not finite.
+"""
 
 from __future__ import annotations
 
+import math
+from collections import deque
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from fieldlog.fusion import earth
-from fieldlog.fusion.types import Solution
+from fieldlog.fusion import earth, kf
+from fieldlog.fusion.types import Solution, Status
+
+if TYPE_CHECKING:
+    from fieldlog.fusion.config import FilterConfig
 
 NS = 1_000_000_000
+STATUS = ("aligning", "aligned", "aided", "coasting", "degraded", "diverged")  # the codes 0..5 of Status.code
+ALIGNING, ALIGNED, AIDED, COASTING, DEGRADED, DIVERGED = range(len(STATUS))
+NIS_FIXES = 5  # the GNSS updates the divergence test averages over
 
 
 def sigmas(diag: np.ndarray) -> np.ndarray:
@@ -48,6 +76,67 @@ def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.nda
             loc[:, i, 6:12] = np.sqrt(np.maximum(d[:, i, 0:6], 0.0))
     return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig,
                     np.tile(np.asarray(bias, float), (len(r), 1)), loc)
+
+
+def finite(s: Solution) -> np.ndarray:
+    """Rows (n,) bool of s whose position, velocity, attitude, sigmas and bias are all finite."""
+    return (np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
+            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
+
+
+class StatusBook:
+    """What the status of the engine's rows depends on (module docstring), kept as the epochs go by: the fix
+    time of the last GNSS update, whether the last epoch updated the filter, the NIS of the last ``NIS_FIXES``
+    updates. ``cfg``: the ``fusion.config.FilterConfig`` (output rate, the thresholds)."""
+
+    def __init__(self, cfg: FilterConfig) -> None:
+        self.cfg = cfg
+        self.last_update_ns: int | None = None
+        self.aided = False
+        self.nis: deque[float] = deque(maxlen=NIS_FIXES)
+
+    def epoch(self, usable: bool) -> bool:
+        """A GPS epoch after the alignment (usable or not: its fix may update the filter); returns usable."""
+        self.aided = False
+        return usable
+
+    def fix(self, t_ns: int, obs: list[kf.Observation], filt: kf.KalmanFilter) -> list[kf.Observation]:
+        """The fix of the epoch at t_ns UTC updates the filter ``filt`` (any of ``fusion.filters``; called before
+        the update: its state and covariance are the prior) with the observations obs: their NIS is kept;
+        returns obs."""
+        z, H, R = kf.stack(*(o.m for o in obs))
+        y = z - H @ filt.state
+        try:
+            if len(z):  # (a fix whose measurements kept no row has no innovation to test)
+                self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
+        except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
+            self.nis.append(math.inf)
+        self.last_update_ns, self.aided = t_ns, True
+        return obs
+
+    def aligning(self, t_ns: np.ndarray) -> Solution:
+        """No solution rows, the status rows of samples t_ns (n,) UTC before the alignment: ``aligning`` at each
+        output slot's start after the first sample, nothing else known."""
+        t = t_ns[output_rows(t_ns, self.cfg.output_hz)]
+        nan = np.full(len(t), np.nan)
+        empty = Solution.concat([])
+        empty.status = Status(t, np.full(len(t), ALIGNING, np.uint8), nan, nan.copy(), nan.copy())
+        return empty
+
+    def of(self, s: Solution) -> Solution:
+        """The solution rows s with their status."""
+        n = len(s.t_ns)
+        nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
+        sigma_h = np.hypot(s.sigma[:, 0], s.sigma[:, 1])
+        code = np.full(n, ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING, np.uint8)
+        code[sigma_h > self.cfg.status_max_sigma_m] = DEGRADED
+        if nis > self.cfg.status_diverged_nis:
+            code[:] = DIVERGED
+        code[~finite(s)] = DIVERGED
+        since = ((s.t_ns - self.last_update_ns) * 1e-9 if self.last_update_ns is not None
+                 else np.full(n, np.nan))
+        s.status = Status(s.t_ns.copy(), code, since, sigma_h, np.full(n, nis))
+        return s
 
 
 def corrected(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, x: np.ndarray) -> np.ndarray:

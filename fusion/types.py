@@ -8,7 +8,7 @@ degrees in the blocks (as the drive stores them) and radians in an :class:`Epoch
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -90,7 +90,10 @@ class Solution:
     body RFU (``fusion.errmodel`` states 9:15 are its residual).
 
     local (n, 2, 12) or None: the distributed filter's local solutions (KF_I, KF_II), the INS corrected by that
-    local estimate alone: lat, lon (rad), h (m), v_n (3) ENU m/s, sigma position ENU (3) m, velocity (3) m/s."""
+    local estimate alone: lat, lon (rad), h (m), v_n (3) ENU m/s, sigma position ENU (3) m, velocity (3) m/s.
+
+    status: the rows' :class:`Status` and, before the alignment, those of the output slots without a solution;
+    None where nobody computed it (a solution put together from a file)."""
 
     t_ns: np.ndarray
     lat: np.ndarray
@@ -101,16 +104,41 @@ class Solution:
     sigma: np.ndarray
     bias: np.ndarray
     local: np.ndarray | None = None
+    status: Status | None = None
 
     @staticmethod
     def concat(parts: list[Solution]) -> Solution:
+        status = [p.status for p in parts if p.status is not None]
+        status = Status.concat(status) if status else None
         if not parts:
             return Solution(np.zeros(0, np.int64), *(np.zeros(0),) * 3, np.zeros((0, 3)), np.zeros((0, 4)),
                             np.zeros((0, 15)), np.zeros((0, 6)))
         local = [p.local for p in parts if len(p.t_ns)]
         return Solution(*(np.concatenate([getattr(p, k) for p in parts]) for k in
                           ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")),
-                        np.concatenate(local) if local and all(x is not None for x in local) else None)
+                        np.concatenate(local) if local and all(x is not None for x in local) else None, status)
+
+
+@dataclass
+class Status:
+    """Solution status rows (``fusion.output.StatusBook``): t_ns (n,) int64 UTC; code (n,) uint8, an index of
+    ``fusion.output.STATUS``; since_update_s (n,) s from the last GNSS update to the row (NaN before the first);
+    sigma_h_m (n,) horizontal position sigma, m (NaN while aligning); nis (n,) mean normalised innovation square
+    per degree of freedom of the last GNSS updates (NaN before any)."""
+
+    t_ns: np.ndarray
+    code: np.ndarray
+    since_update_s: np.ndarray
+    sigma_h_m: np.ndarray
+    nis: np.ndarray
+
+    @staticmethod
+    def concat(parts: list[Status]) -> Status:
+        return Status(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Status)))
+
+    def take(self, keep: np.ndarray) -> Status:
+        """The rows where keep (n,) bool is True."""
+        return Status(*(getattr(self, f.name)[keep] for f in fields(Status)))
 
 
 @dataclass

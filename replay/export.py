@@ -176,6 +176,8 @@ def _frame(d: dict, type_name: str, path: DriveSpec, topic: str) -> pl.DataFrame
     elif type_name == messages.TIMESYNC:
         cols.update({k: d[k] for k in ("stamp_ns", "state", "rate_ppm", "residual_us", "edges_used",
                                        "edges_rejected")})
+    elif type_name == messages.SOLUTION_STATUS:
+        cols.update({k: d[k] for k in ("stamp_ns", "status", "since_update_s", "sigma_h_m", "nis")})
     elif type_name == messages.SENTENCE:
         cols.update(_generic(d, {"frame_id": lambda m: m.header.frame_id, "sentence": lambda m: m.sentence}))
     elif type_name == messages.RAWBYTES:

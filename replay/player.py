@@ -12,7 +12,7 @@ The entities and colours are those of ``replay.view`` (its module docstring), wi
 ``enu/gps``, ``map/truth`` and ``enu/truth`` (every ``TRUTH_DECIMATION``-th row), ``map/fusion/<method>``,
 ``enu/fusion/<method>`` (one row per solution row; ENU origin: the first GPS fix, else the first truth
 point), ``errors/{pos,vel}/<axis>/<method>`` (against the truth when the drive has it, else the GPS),
-``status/no_fix``, ``status/outage``, ``imu/gyro``, ``imu/accel`` (decimated by ``IMU_DECIMATION`` block means),
+``status/no_fix``, ``status/outage``, ``solution_status/<method>``, ``imu/gyro``, ``imu/accel`` (decimated by ``IMU_DECIMATION`` block means),
 ``enu/fusion/<method>/base_link`` and ``attitude/<angle>/<method>`` with its sigma (the vehicle; base_link
 through the drive's ``/tf_static``, live from the bus the default mounting).
 The whole-track GeoLineStrings of ``fieldlog view`` are not logged: the track grows in the 3D view up to the
@@ -168,6 +168,16 @@ class Player:
                                                     interpolation_mode=rr.components.InterpolationMode.StepAfter))
         self.res.outages += len(done)
 
+    def _status(self, sol: Solution) -> None:
+        st = sol.status
+        if st is None or not len(st.t_ns):
+            return
+        path = f"solution_status/{self.method}"
+        rr.send_columns(path, indexes=rv._times(st.t_ns), columns=rr.Scalars.columns(
+            scalars=st.code.astype(float)), recording=self.rec)
+        self._style(path, rr.SeriesLines(names=[f"{self.method} status"], colors=[self.fused.color],
+                                         interpolation_mode=rr.components.InterpolationMode.StepAfter))
+
     def block(self, b: reader.Block) -> None:
         """Fuse one block and log it."""
         d = b.data
@@ -175,6 +185,7 @@ class Player:
         epochs = gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {}))
         sol, done = self.engine.process(inputs.imu_block(imu), epochs)
         self._imu(imu)
+        self._status(sol)
         ref, ref_is_truth = None, False
         fix = d.get("/gps/fix")
         if fix is not None and len(fix["log_time_ns"]):

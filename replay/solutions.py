@@ -2,7 +2,8 @@
 names them.
 
 ``write_solution`` writes a method's solution rows (``fusion.types.Solution``): position, velocity, attitude, their
-sigmas, the IMU bias estimate and, for the distributed methods, the local solutions; ``Odometry`` the same rows as
+sigmas, the IMU bias estimate, the status (``write_status``: ``fusion.output.StatusBook``, also before the alignment)
+and, for the distributed methods, the local solutions; ``Odometry`` the same rows as
 REP-105 frames (``odom``, ``datum``, ``/tf``, ``/tf_static``). Both write into a ``Recorder`` (``fieldlog fuse``) or
 anything with its ``write`` and ``write_batch`` (the Foxglove sink of ``fieldlog replay --foxglove``). ``topics``
 lists every topic they write for a method (a live server advertises them before the first row), ``topic`` names
@@ -15,16 +16,16 @@ from __future__ import annotations
 import numpy as np
 
 from fieldlog.acquire import calib, frames
-from fieldlog.drive import messages
-from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import earth
-from fieldlog.fusion.types import Solution
-from fieldlog.drive import reader
+from fieldlog.drive import messages, reader
 from fieldlog.drive.files import DriveSpec
+from fieldlog.drive.recorder import Recorder
+from fieldlog.fusion import earth, output
+from fieldlog.fusion.types import Solution, Status
 
 PREFIX = "/fusion/"
 OUTAGE = "/fusion/outage"  # outage windows (injected and detected), shared by every method of a file
 SOLUTION = ("fix", "vel", "attitude", "std", "attitude_std", "imu_bias")  # write_solution, every method
+STATUS = "status"  # write_status, every method: /fusion/<method>/status (fieldlog_msgs/SolutionStatus)
 ODOMETRY = ("datum", "odom")  # Odometry, per method
 LOCALS = ("kf1/fix", "kf1/vel", "kf2/fix", "kf2/vel")  # write_solution, the methods with local filters
 TF, TF_STATIC = "/tf", "/tf_static"  # Odometry's frames, shared by every method
@@ -38,7 +39,7 @@ def topic(method: str, name: str) -> str:
 def topics(method: str, has_locals: bool) -> list[str]:
     """Every topic ``write_solution`` and ``Odometry`` write for ``method``; ``has_locals``: the method's filter
     has local solutions (``fusion.methods.Method.local_filters``)."""
-    names = [*SOLUTION, *ODOMETRY, *(LOCALS if has_locals else ())]
+    names = [*SOLUTION, STATUS, *ODOMETRY, *(LOCALS if has_locals else ())]
     return [topic(method, n) for n in names] + [TF, TF_STATIC]
 
 
@@ -52,15 +53,19 @@ def has(fused: DriveSpec | Solution, method: str, name: str) -> bool:
     """Whether ``fused`` (a fused file, or the solution rows in memory) holds messages of
     ``/fusion/<method>/<name>``."""
     if isinstance(fused, Solution):
+        if name == STATUS:
+            return fused.status is not None and len(fused.status.t_ns) > 0
         return len(fused.t_ns) > 0 and (name in SOLUTION or (name in LOCALS and fused.local is not None))
     return any(t.topic == topic(method, name) and t.count for t in reader.topics(fused))
 
 
 def read(fused: DriveSpec | Solution, method: str, name: str) -> dict[str, object]:
     """The ``/fusion/<method>/<name>`` messages of ``fused`` as arrays (``drive.reader.read_topic``): a fused
-    file, or the solution rows in memory (``tools.fuse.fuse(..., keep=True)``; ``name`` of ``SOLUTION`` or
-    ``LOCALS``), whose messages are those ``write_solution`` writes, decoded as the file's are, so both give the
-    same arrays to the bit."""
+    file, or the solution rows in memory (``tools.fuse.fuse(..., keep=True)``; ``name`` of ``SOLUTION``,
+    ``LOCALS`` or ``STATUS``), whose messages are those ``write_solution`` writes, decoded as the file's are, so
+    both give the same arrays to the bit."""
+    if isinstance(fused, Solution) and name == STATUS:
+        return reader.decode(messages.SOLUTION_STATUS, fused.status.t_ns, _status_payloads(fused.status))
     if isinstance(fused, Solution):
         return reader.decode(messages.topic_type(topic(method, name)), fused.t_ns, _payloads(fused, name))
     return reader.read_topic(fused, topic(method, name))
@@ -71,16 +76,34 @@ class Diverged(ValueError):
 
 
 def write_solution(rec: Recorder, method: str, s: Solution) -> None:
-    """The ``/fusion/<method>/*`` rows of ``s`` into ``rec`` (a Recorder, or anything with its ``write_batch``)."""
-    if len(s.t_ns) == 0:
-        return
-    bad = ~(np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
-            & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
+    """The ``/fusion/<method>/*`` rows of ``s`` into ``rec`` (a Recorder, or anything with its ``write_batch``);
+    its status rows (``write_status``) up to the first row that is not finite, which raises ``Diverged``."""
+    bad = ~output.finite(s)
     if bad.any():
+        write_status(rec, method, s, until_ns=int(s.t_ns[np.argmax(bad)]))
         raise Diverged(f"the {method} solution diverged (NaN or inf) at UTC {int(s.t_ns[np.argmax(bad)]) * 1e-9:.3f} s; "
                        "nothing from there on was written: check the IMU frame (--imu-frame) and units")
-    for name in (*SOLUTION, *(LOCALS if s.local is not None else ())):
-        rec.write_batch(topic(method, name), s.t_ns, _payloads(s, name))
+    if len(s.t_ns):
+        for name in (*SOLUTION, *(LOCALS if s.local is not None else ())):
+            rec.write_batch(topic(method, name), s.t_ns, _payloads(s, name))
+    write_status(rec, method, s)
+
+
+def write_status(rec: Recorder, method: str, s: Solution, until_ns: int | None = None) -> None:
+    """The ``/fusion/<method>/status`` rows of ``s`` (none when it has no status), those up to until_ns UTC
+    if given."""
+    st = s.status
+    if st is None or len(st.t_ns) == 0:
+        return
+    if until_ns is not None:
+        st = st.take(st.t_ns <= until_ns)
+    rec.write_batch(topic(method, STATUS), st.t_ns, _status_payloads(st))
+
+
+def _status_payloads(st: Status) -> messages.Packed:
+    """The ``/fusion/<method>/status`` messages of the status rows st (frame imu: the solution's point)."""
+    return messages.encode_solution_status(st.t_ns, st.code, st.since_update_s, st.sigma_h_m, st.nis,
+                                           frame_id=frames.IMU)
 
 
 def _payloads(s: Solution, name: str) -> messages.Packed:

@@ -45,6 +45,9 @@ Entity paths (``<src>`` is ``gps``, ``truth`` or ``fusion/<method>``; ``<axis>``
                                       ``errors/vel``, ``errors/att`` and ``attitude``, each axis or angle): a
                                       wide translucent band at 0 across each merged window (rows at its start
                                       and end, then NaN to break the line until the next)
+``solution_status/<method>``          Scalars (step), one row per ``/fusion/<method>/status`` message: the
+                                      solution status code (``fusion.output.STATUS``: 0 aligning, 1 aligned,
+                                      2 aided, 3 coasting, 4 degraded, 5 diverged)
 ``imu/gyro``, ``imu/accel``           Scalars x, y, z (body RFU): rad/s and m/s^2, DECIMATED by means of
                                       ``IMU_DECIMATION`` consecutive valid samples (500 Hz -> 50 Hz), stamped at
                                       the mean sample time; a trailing incomplete group is dropped, so the row
@@ -99,10 +102,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from fieldlog.acquire import calib, frames
-from fieldlog.drive import outputs
-from fieldlog.fusion import earth
+from fieldlog.drive import outputs, reader
+from fieldlog.fusion import earth, output
 from fieldlog.fusion.methods import REGISTRY
-from fieldlog.drive import reader
 from fieldlog.replay import solutions
 from fieldlog.replay.ahead import Ahead
 from fieldlog.drive.files import DriveSpec, drive_files, label
@@ -125,6 +127,7 @@ OUTAGE_BAND_COLOR = (230, 30, 30, 60)
 OUTAGE_BAND_WIDTH = 36.0  # ui points
 SIGMA_ALPHA = 70  # the map's sigma discs
 METHOD_COLORS = {m.name: m.colour for m in REGISTRY.values() if m.colour is not None}
+SOLUTION_STATUS_TITLE = "solution status (" + ", ".join(f"{i} {n}" for i, n in enumerate(output.STATUS)) + ")"
 _PALETTE = [(0, 150, 150), (180, 0, 120), (100, 100, 0), (0, 80, 160), (160, 80, 0)]
 
 
@@ -580,7 +583,8 @@ def blueprint(map_zoom: float | None = None, follow: str | None = None) -> rrb.B
                 _row(err["pos"], "position error"),
                 _row(attitude, "attitude"),
                 _row(err["att"], "attitude error (truth)"),
-                _row([_plot("status", "outage / no fix"), _plot("gps/satellites", "satellites"),
+                _row([_plot("status", "outage / no fix"), _plot("solution_status", SOLUTION_STATUS_TITLE),
+                      _plot("gps/satellites", "satellites"),
                       _plot("gps/hdop", "HDOP"), _plot("gps/fix_type", "fix type (1 GPS, 2 DGPS, 4 RTK)"),
                       _plot("timesync/state", "time sync (2 locked)")], "GPS quality and time sync"),
                 rrb.Tabs(
@@ -722,6 +726,11 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
             _log_attitude(rec, m, pose, sigma, color)
             if truth_pose is not None and sigma is not None:
                 _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
+        if topic_names(path).get(solutions.topic(method, solutions.STATUS)):  # fused files before it: none
+            st = solutions.read(path, method, solutions.STATUS)
+            ok = st["valid"]
+            _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),
+                        f"{m} status", [color], step=True)
         if topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
             _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
         if "/vehicle/twist" in low and topic_names(path).get(solutions.topic(method, "odom")):

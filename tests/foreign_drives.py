@@ -87,6 +87,7 @@ class Foreign:
     seed: int = 0
     odom_topic: str | None = None  # the native /vehicle/twist's forward speed on this topic (None: none)
     odom_type: str = "nav_msgs/msg/Odometry"  # or geometry_msgs/msg/TwistStamped (no covariance)
+    frame_after: tuple[float, str] | None = None  # (start_s, frame): from start_s the IMU in this frame instead
 
 
 def _stamp(t_ns: int) -> dict:
@@ -129,8 +130,10 @@ def write_foreign(native: Path, out: Path, spec: Foreign) -> Path:
     for start_s, n in spec.drop_runs:
         i = int(np.searchsorted(t, t[0] + int(start_s * 1e9)))
         keep[i:i + n] = False
-    C = TO_FRAME[spec.frame]
-    w, f = w @ C.T, f @ C.T
+    C = np.broadcast_to(TO_FRAME[spec.frame], (len(t), 3, 3)).copy()
+    if spec.frame_after is not None:  # a logger whose IMU frame changes mid-drive (a wrong frame from then on)
+        C[t >= t[0] + int(spec.frame_after[0] * 1e9)] = TO_FRAME[spec.frame_after[1]]
+    w, f = np.einsum("nij,nj->ni", C, w), np.einsum("nij,nj->ni", C, f)
     st = t + (rng.integers(-spec.jitter_ns, spec.jitter_ns + 1, len(t)) if spec.jitter_ns else 0)
     t0 = int(t[0])
     with open(out, "wb") as fh:

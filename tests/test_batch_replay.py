@@ -120,6 +120,9 @@ def _check_recording(rrd: Path, drive: Path, tmp_path: Path) -> None:
                          ("/attitude/heading/kf", "Scalars:scalars")):  # the vehicle, every solution row
         assert rows[entity, comp] == fused.rows, entity
     assert rows["/enu/fusion/kf/base_link", "Boxes3D:half_sizes"] == 1
+    # the live status: as fuse writes it, the rows before the alignment too
+    assert rows["/solution_status/kf", "Scalars:scalars"] == len(read_topic(tmp_path / "kf.mcap",
+                                                                            "/fusion/kf/status")["log_time_ns"])
     assert any(e == "/time_panel" for e, _ in rows)  # the blueprint's time panel follows the newest data
 
 

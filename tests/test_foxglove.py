@@ -30,7 +30,7 @@ from test_serve import start_serve
 pytest.importorskip("foxglove")
 websockets = pytest.importorskip("websockets")
 ROOT = Path(__file__).resolve().parents[1]
-WANT = ("/imu", "/fusion/kf/fix")
+WANT = ("/imu", "/fusion/kf/fix", "/fusion/kf/status")
 # the live drive: as tests/test_live_view.py (x10, the daemon told the time scale), shorter
 LIVE_DURATION_S, LIVE_SPEED = 60.0, 10.0
 LOCK_WITHIN_S = 15.0  # the time sync locks within this much of the drive start (provisional /imu from then on)
@@ -136,6 +136,8 @@ def test_clients_receive_and_decode_and_a_dropped_one_disturbs_nothing(drive) ->
             assert f.header.frame_id == w.header.frame_id == "imu"
             assert abs(f.latitude - w.latitude) < 1e-9 and abs(f.longitude - w.longitude) < 1e-9
             assert abs(f.altitude - w.altitude) < 1e-6
+        status = [decode["/fusion/kf/status"](m) for _, m in c["got"]["/fusion/kf/status"]]
+        assert len(status) >= len(fixes) and status[-1].status == 2 and status[-1].since_update_s < 1.5  # aided
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ from fieldlog.drive.files import open_drive
 from fieldlog.tools.fuse import fuse
 
 ROOT = Path(__file__).resolve().parents[1]
-OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib", "fastkml", "gpxpy")
+OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib", "fastkml", "gpxpy", "jinja2")
 
 
 def _run(args, cwd, timeout=600):
@@ -102,6 +102,7 @@ def test_core_install_names_the_missing_extra(core, drive, tmp_path):
     for argv, extra in ((["view", drive, "--rrd", tmp_path / "x.rrd"], "view"),
                         (["export", drive, "--out", tmp_path / "tables"], "export"),
                         (["export", drive, "--out-dir", tmp_path / "tracks", "--format", "kml"], "export")):
+                        (["report", drive, "--out", tmp_path / "report.html"], "report")):
         r = _run([core / "fieldlog", *argv], tmp_path)
         assert r.returncode == 2, (argv, r.stderr)
         lines = r.stderr.strip().splitlines()

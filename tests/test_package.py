@@ -33,6 +33,7 @@ def test_wheel_holds_only_fieldlog(tmp_path):
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == {"fieldlog"}
     assert "fieldlog/tools/sim/scenarios/figure8.toml" in names   # scenario data travels with the code
+    assert "fieldlog/tools/templates/report.html.j2" in names     # so does the report's page template
     assert "fieldlog/tools/evaluation/evaluate.py" in names
     dev = [n for n in names if n.startswith("fieldlog/tools/dev/")
            or n.rpartition("/")[2] in ("bench.py", "fuzz.py", "layouts.py", "screenshot.py")]

@@ -76,6 +76,8 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
     n_truth = -(-len(read_topic(sim, "/truth/fix")["log_time_ns"]) // rview.TRUTH_DECIMATION)
     n_sync = len(read_topic(sim, "/time/sync")["log_time_ns"])
     n_att = int(read_topic(kf, "/fusion/kf/attitude")["valid"].sum())
+    n_status = len(read_topic(kf, "/fusion/kf/status")["log_time_ns"])
+    assert n_status > n_kf  # the rows before the alignment too
     assert n_att == n_kf
     n_gga = sum(1 for m in read_topic(sim, "/gps/nmea")["msgs"] if m.sentence[3:7] == "GGA,")
     assert n_gga >= n_fix + n_no_fix - 1  # one GGA per epoch, no-fix epochs too
@@ -96,6 +98,7 @@ def test_view_rrd_has_every_entity_with_the_expected_rows(drives, tmp_path):
         ("/bias/gyro/kf", "Scalars:scalars"): n_kf,
         ("/bias/accel/kf", "Scalars:scalars"): n_kf,
         ("/bias/gyro/truth", "Scalars:scalars"): n_truth,
+        ("/solution_status/kf", "Scalars:scalars"): n_status,
         ("/status/outage", "Scalars:scalars"): 1 + 2 * 2,  # drive start, then each window's start and end
         ("/map/outage", "GeoLineStrings:line_strings"): 1,  # one static row holding both windows' strips
         ("/map/gps/track", "GeoLineStrings:line_strings"): 1,
@@ -146,7 +149,8 @@ def test_blueprint_shows_error_axes_and_attitude_side_by_side():
     for group in ("errors/pos", "attitude", "errors/att"):
         axes = rview.ANGLES if "att" in group else rview.AXES
         assert {kinds[f"{group}/{a}"] for a in axes} == {horizontal}, group  # not tabs
-    row = {kinds[o] for o in ("status", "gps/satellites", "gps/hdop", "gps/fix_type", "timesync/state")}
+    row = {kinds[o] for o in ("status", "solution_status", "gps/satellites", "gps/hdop", "gps/fix_type",
+                              "timesync/state")}
     assert row == {horizontal}  # GPS quality and the sync state on one row
     views = [v for c in _containers(bp.root_container) for v in c.contents if hasattr(v, "origin")]
     assert sum(isinstance(v, rrb.Spatial3DView) for v in views) == 2  # the trajectory and the close-up

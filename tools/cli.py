@@ -27,6 +27,7 @@ examples:
   fieldlog fuse drive.mcap --method dkf-rbfn --outage 300:60 --out fused.mcap
   fieldlog evaluate --seeds 3 --outages 30,60 --methods ins,kf,dkf --out-dir report/
   fieldlog view drive.mcap fused.mcap --rrd drive.rrd
+  fieldlog report drive.mcap fused.mcap --out report.html   # the drive's health on one page, a verdict on top
 
 Times on the command line (filter --start/--end, fuse --outage) count in seconds from the drive's first IMU
 sample. `fieldlog COMMAND --help` for the options of one command; every command takes -q and -v. Commands

@@ -68,16 +68,17 @@ from fieldlog.drive.files import DriveSpec, label
 from fieldlog.replay.inputs import InputMap, InputSpec, InputStream
 from fieldlog.drive.reader import read_metadata
 from fieldlog.drive.reader import topics as reader_topics
-from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution
+from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution, write_status
 
 BLOCK_S = 10.0
 
 
 class _RowSpill:
     """The forward solution rows of a smoothed run, spilled block by block to an anonymous temporary file as they
-    come and read back in the same blocks (``Solution`` without ``local``, which smoothing drops)."""
+    come and read back in the same blocks (``Solution`` without ``local``, which smoothing drops, and ``status``,
+    written as it comes)."""
 
-    _FIELDS = [f.name for f in fields(Solution) if f.name != "local"]
+    _FIELDS = [f.name for f in fields(Solution) if f.name not in ("local", "status")]
 
     def __init__(self) -> None:
         self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the spill; close())
@@ -379,6 +380,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
             nonlocal rows
             if smooth:
                 spill.add(sol)
+                write_status(rec, method, sol)  # the forward pass's: what the filter knew at the row
             else:
                 if keep:
                     kept.append(sol)

@@ -14,19 +14,19 @@ from fieldlog.fusion.methods import METHODS  # imports none of the fusion stack:
 # Optional dependencies (pyproject.toml extras) by top-level module: a command that needs one that is not
 # installed says which extra to install, in one line.
 EXTRAS = {"rerun": "view", "polars": "export", "pyarrow": "export", "fastkml": "export", "pygeoif": "export",
-          "gpxpy": "export", "matplotlib": "plots", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
+          "gpxpy": "export", "matplotlib": "plots", "jinja2": "report", "dask": "batch", "distributed": "batch", "foxglove": "foxglove"}
 
 # the compiled kernels (setup.py builds them; tests/test_package.py checks the two agree): an install without
 # them is told to reinstall, in one line
 KERNELS = ("fieldlog.fusion._ins", "fieldlog.fusion._cycles", "fieldlog.drive._chunks", "fieldlog.tools.sim._sensors")
 
 # the extras (pyproject.toml) each command needs beyond the core install, shown in `fieldlog --help`
-NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view",
+NEEDS = {"evaluate": "export,plots", "view": "view", "replay": "view", "report": "report",
          "export": "export", "batch": "batch", "study": "all", "demo": "all"}
 
 # the commands that write named outputs: they take --force to replace them (drive/outputs.py)
 WRITERS = ("sim", "recover", "filter", "import", "rebuild", "allan", "fuse", "evaluate", "view", "export", "batch",
-           "replay", "study")
+           "replay", "study", "report")
 
 DRIVE_HELP = ("the drive: an MCAP file, several files, a rotated session's directory or a rosbag2 directory (read "
               "as one drive, in log-time order)")
