@@ -1,4 +1,5 @@
-"""The GPS port's byte stream: NMEA 0183, u-blox UBX and NovAtel OEM (ASCII and binary) mixed on one port,
+"""The GPS port's byte stream: NMEA 0183, u-blox UBX, NovAtel OEM (ASCII and binary) and Septentrio SBF mixed on
+one port,
 split into checked frames by protocol, and the receiver-independent solution record the decoders produce.
 
 A u-blox receiver sends UBX and NMEA on the same port, a NovAtel one its logs and NMEA; the framer finds every
@@ -7,7 +8,9 @@ protocol's sync pattern wherever it lies, so no configuration is needed ("auto")
 * ``nmea``: '$' or '!' up to CR/LF (terminator stripped), at most ``nmea.MAX_LINE`` bytes; checked later;
 * ``novatel``: OEM ASCII '#' up to CR/LF, at most MAX_ASCII bytes; CRC-32 checked here;
 * ``ubx``: 0xB5 0x62, class, id, u16 length, payload, Fletcher-8 checksum; checked here;
-* ``novatel_bin``: 0xAA 0x44 0x12, header length, ..., u16 message length at 8, CRC-32; checked here.
+* ``novatel_bin``: 0xAA 0x44 0x12, header length, ..., u16 message length at 8, CRC-32; checked here;
+* ``sbf``: '$@', CRC-16-CCITT, block id, u16 block length (header included, a multiple of 4); checked here.
+  NMEA sentences never start '$@', so a '$' followed by '@' is an SBF block and nothing else.
 
 A frame candidate that fails its check (or is too long) is skipped by one byte, so a real frame hidden behind a
 false sync is found again (resynchronisation). Memory is bounded by MAX_FRAME whatever arrives, and nothing
@@ -15,6 +18,7 @@ raises. CR, LF and bytes of no frame are counted in ``bytes_discarded``.
 """
 from __future__ import annotations
 
+import binascii
 import datetime as _dt
 import zlib
 from dataclasses import dataclass, field
@@ -24,15 +28,17 @@ from fieldlog.acquire import nmea
 MAX_ASCII = 1024           # NovAtel ASCII logs (BESTPOSA ~ 230 bytes)
 MAX_UBX_PAYLOAD = 2048     # NAV-PVT 92, TIM-TP 16; NAV-SAT with many satellites ~ 1 kB
 MAX_BIN = 2048
-MAX_FRAME = max(MAX_ASCII, MAX_UBX_PAYLOAD + 8, MAX_BIN)
+MAX_SBF = 4096             # PVTGeodetic 96 bytes; MeasEpoch of many satellites a few kB
+MAX_FRAME = max(MAX_ASCII, MAX_UBX_PAYLOAD + 8, MAX_BIN, MAX_SBF)
 
 UBX_SYNC = b"\xb5\x62"
 OEM_SYNC = b"\xaa\x44\x12"
+SBF_SYNC = b"$@"
 _STARTS = frozenset(b"$!#\xb5\xaa")
 _EOL = frozenset(b"\r\n")
 # what each [gps] protocol setting decodes (NMEA always: u-blox and NovAtel ports send it too)
-ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
-           "novatel": {"nmea", "novatel", "novatel_bin"}}
+ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin", "sbf"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
+           "novatel": {"nmea", "novatel", "novatel_bin"}, "septentrio": {"nmea", "sbf"}}
 
 
 def ubx_checksum(body: bytes) -> bytes:
@@ -42,6 +48,11 @@ def ubx_checksum(body: bytes) -> bytes:
         a = (a + x) & 0xFF
         b = (b + a) & 0xFF
     return bytes((a, b))
+
+
+def sbf_crc(data: bytes) -> int:
+    """SBF's CRC-16-CCITT (polynomial 0x1021, initial value 0) over block id, length and body."""
+    return binascii.crc_hqx(data, 0)
 
 
 def crc32(data: bytes) -> int:
@@ -143,6 +154,8 @@ class Framer:
                 st.bad_checksum["novatel_bin"] = st.bad_checksum.get("novatel_bin", 0) + 1
                 return "skip", 1
             return "novatel_bin", total
+        if c == 0x24 and n - pos >= 2 and buf[pos + 1] == 0x40:
+            return self._sbf_at(buf, pos, n)
         # ASCII: up to the first CR/LF; another frame start inside means this one was cut off
         limit = nmea.MAX_LINE if c != 0x23 else MAX_ASCII
         end = pos + 1
@@ -164,6 +177,23 @@ class Framer:
                 return "skip", 1
             return "novatel", end + 1 - pos
         return "nmea", end + 1 - pos
+
+
+    def _sbf_at(self, buf: bytearray, pos: int, n: int) -> tuple[str, int]:
+        """As ``_frame_at`` for the SBF block whose '$@' is at ``pos``."""
+        st = self.stats
+        if n - pos < 8:
+            return "wait", 0
+        ln = int.from_bytes(buf[pos + 6:pos + 8], "little")
+        if ln < 8 or ln % 4 or ln > MAX_SBF:
+            st.overlong += ln > MAX_SBF
+            return "skip", 1
+        if n - pos < ln:
+            return "wait", 0
+        if sbf_crc(bytes(buf[pos + 4:pos + ln])) != int.from_bytes(buf[pos + 2:pos + 4], "little"):
+            st.bad_checksum["sbf"] = st.bad_checksum.get("sbf", 0) + 1
+            return "skip", 1
+        return "sbf", ln
 
 
 def _next_start(buf: bytearray, i: int) -> int:

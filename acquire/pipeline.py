@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from fieldlog.acquire import (calib, canbus, counterjudge, daq, frames, gnss, gpsport, messages, metavalue, nmea,
-                              novatel, timesync, ubx)
+                              novatel, sbf, timesync, ubx)
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +128,7 @@ class Pipeline:
         self._port = gpsport.Framer()
         self._ubx = ubx.UbxDecoder()
         self._oem = novatel.NovatelDecoder()
+        self._sbf = sbf.SbfDecoder()
         self._accepts = gpsport.ACCEPTS[self.cfg.gps_protocol]
         self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
         self._epochs = nmea.EpochAssembler()
@@ -345,7 +346,10 @@ class Pipeline:
         fs = self._port.stats
         out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
         out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
-        for name, st in (("ubx", self._ubx.stats), ("novatel", self._oem.stats)):
+        decoders = [("ubx", self._ubx.stats), ("novatel", self._oem.stats)]
+        if fs.frames.get("sbf"):
+            decoders.append(("sbf", self._sbf.stats))
+        for name, st in decoders:
             out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
             out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
         out["nmea.epoch_repeats"] = str(self._epochs.late)
@@ -361,7 +365,7 @@ class Pipeline:
             self._add_frames(self._judge.flush(), mono_ns, wall_ns)
             for ep in self._epochs.flush():
                 self._emit_epoch(ep)
-            for sol in self._oem.flush():
+            for sol in self._oem.flush() + self._sbf.flush():
                 self._emit_solution(sol)
             self.sync.finish()
             self._emit_sync()
@@ -418,6 +422,8 @@ class Pipeline:
                 continue
             if kind == "ubx":
                 name, records = self._ubx.decode(frame, mono_ns)
+            elif kind == "sbf":
+                name, records = self._sbf.decode(frame, mono_ns)
             else:
                 name, records = self._oem.decode(kind, frame, mono_ns)
             self.sink.write("/gps/receiver", stamp, messages.encode_raw(
