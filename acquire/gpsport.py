@@ -224,7 +224,8 @@ class Solution:
     quality: GGA-like quality (0 none, 1 autonomous, 2 differential, 4 RTK fixed, 5 RTK float);
     lat/lon in degrees, h ellipsoidal metres; pos_var (3,) ENU m^2 and whether it is the receiver's own
     (``pos_var_known``) or approximated; vel_enu (3,) m/s and vel_var (3,) (m/s)^2 (``messages.UNKNOWN_VARIANCE``: not observed);
-    first_mono_ns: host time of the epoch's first message.
+    first_mono_ns: host time of the epoch's first message; time_only: the receiver gives time, not position (a
+    timing receiver on its surveyed position, u-blox fixType 5): lat/lon/h are that position, ``fix`` is False.
     """
 
     utc_ns: int
@@ -240,6 +241,53 @@ class Solution:
     vel_var: tuple[float, float, float]
     first_mono_ns: int = 0
     source: str = ""
+    time_only: bool = False
+
+
+class EpochGroup:
+    """The messages of one receiver epoch (one time key), for protocols that spread a solution over several.
+
+    A group is complete once it holds the ``required`` message and every message type the groups so far held
+    (the receiver's output set, learnt as it goes), or when a message of another key arrives, or on ``flush``.
+    A message of the group last completed joins the learnt set and is counted in ``late`` (not merged).
+    """
+
+    def __init__(self, required: str) -> None:
+        self.required = required
+        self.late = 0
+        self.key: object = None
+        self.parts: dict[str, object] = {}
+        self.mono_ns = 0
+        self._expect: set[str] = set()
+        self._done: object = None
+
+    def is_new(self, key: object) -> bool:
+        """Whether a message of ``key`` starts a group (the caller flushes the one in progress first)."""
+        return key != self.key and key != self._done
+
+    def add(self, key: object, name: str, msg: object, mono_ns: int) -> list[tuple[object, dict, int]]:
+        """The groups (key, {name: message}, host time of the first message) that ``msg`` completes."""
+        if key == self._done:
+            self._expect.add(name)
+            self.late += 1
+            return []
+        out = self.flush() if key != self.key else []
+        if self.key is None:
+            self.key, self.parts, self.mono_ns = key, {}, mono_ns
+        self.parts[name] = msg
+        if self.required in self.parts and self.parts.keys() >= self._expect:
+            out += self.flush()
+        return out
+
+    def flush(self) -> list[tuple[object, dict, int]]:
+        """The group in progress, if it holds the required message."""
+        key, parts = self.key, self.parts
+        self.key, self.parts = None, {}
+        if key is None or self.required not in parts:
+            return []
+        self._expect |= parts.keys()
+        self._done = key
+        return [(key, parts, self.mono_ns)]
 
 
 @dataclass(frozen=True)
@@ -277,3 +325,49 @@ def leap_seconds(day: _dt.date) -> int:
         if day >= d:
             n = s
     return n
+
+
+# ---------------------------------------------------------------------------------------------- unknown logs
+
+_PROTOCOL_NAMES = {"nmea": "NMEA", "ubx": "UBX", "novatel": "NovAtel ASCII", "novatel_bin": "NovAtel binary",
+                   "sbf": "Septentrio SBF"}
+_SIRF_START, _SIRF_END = b"\xa0\xa2", b"\xb0\xb3"
+_UNDECODED = "not decoded; set the receiver to NMEA, UBX, NovAtel OEM or SBF output"
+
+
+def _sirf_messages(data: bytes) -> int:
+    """SiRF binary messages (0xA0 0xA2, u16 big-endian length, payload, 15-bit sum, 0xB0 0xB3) in ``data``."""
+    n, i = 0, data.find(_SIRF_START)
+    while 0 <= i <= len(data) - 8:
+        ln = int.from_bytes(data[i + 2:i + 4], "big") & 0x7FFF
+        end = i + 4 + ln
+        if data[end + 2:end + 4] == _SIRF_END and sum(data[i + 4:end]) & 0x7FFF == int.from_bytes(
+                data[end:end + 2], "big"):
+            n += 1
+            i = data.find(_SIRF_START, end + 4)
+        else:
+            i = data.find(_SIRF_START, i + 1)
+    return n
+
+
+def describe(data: bytes, frames: list[tuple[str, bytes]], names: dict[str, dict[str, int]]) -> str:
+    """What a GPS log holds, for a log that gives no time: each protocol with its count of messages and the
+    commonest message types (``names``: protocol -> message name -> count, of the checked ``frames``), and the
+    receiver protocols we do not decode (SiRF binary, Trimble TSIP, Motorola Oncore, Javad GREIS) found by their
+    framing; e.g. "SiRF binary, 615 messages: not decoded; set the receiver to ...". "" for an empty log."""
+    parts = []
+    counts: dict[str, int] = {}
+    for kind, _ in frames:
+        counts[kind] = counts.get(kind, 0) + 1
+    for kind, n in counts.items():
+        top = sorted(names.get(kind, {}).items(), key=lambda kv: -kv[1])[:4]
+        what = ", ".join(f"{name} {c}" for name, c in top)
+        parts.append(f"{_PROTOCOL_NAMES[kind]}, {n} messages" + (f" ({what})" if what else ""))
+    foreign = {"SiRF binary": _sirf_messages(data),
+               "Trimble TSIP": data.count(b"\x10\x03\x10"),          # DLE ETX ends a packet, DLE starts the next
+               "Motorola Oncore": data.count(b"\r\n@@"),
+               "Javad GREIS": data.count(b"~~005")}                   # the RT (receiver time) message
+    parts += [f"{name}, {n} messages: {_UNDECODED}" for name, n in foreign.items() if n >= 2]
+    if not parts:
+        return f"{len(data)} bytes of no receiver protocol" if data else "no bytes"
+    return "; ".join(parts)

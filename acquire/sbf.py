@@ -58,15 +58,6 @@ class SbfStats:
     late: int = 0             # blocks of an epoch already emitted (not merged)
 
 
-@dataclass
-class _Epoch:
-    mono_ns: int
-    types: set[str] = field(default_factory=set)
-    pvt: object = None
-    pos_cov: object = None
-    vel_cov: object = None
-
-
 def block_number(frame: bytes) -> int:
     """The block number of an SBF frame (the id's low 13 bits; the top 3 are the revision)."""
     return int.from_bytes(frame[4:6], "little") & 0x1FFF
@@ -85,10 +76,7 @@ class SbfDecoder:
     def __init__(self) -> None:
         self.stats = SbfStats()
         self.leap_s: int | None = None          # GPS - UTC from ReceiverTime
-        self._epoch: _Epoch | None = None
-        self._key: tuple[int, int] | None = None
-        self._expect: set[str] = set()          # block types an epoch holds (learnt from the epochs so far)
-        self._done: tuple[int, int] | None = None   # time of the last epoch emitted
+        self._group = gpsport.EpochGroup("PVTGeodetic")
 
     def decode(self, frame: bytes, mono_ns: int) -> tuple[str, list]:
         """(block name, records) of one checked frame."""
@@ -118,26 +106,13 @@ class SbfDecoder:
             return []
         if name == "xPPSOffset":
             return self._pulse(m, week, tow_ms, t)
-        out: list = []
         key = (week, tow_ms)
-        if key == self._done:
-            self._expect.add(name)
-            self.stats.late += 1
-            return []
-        if key != self._key:
+        out: list = []
+        if self._group.is_new(key):
             out = self.flush()
-            self._key, self._epoch = key, _Epoch(mono_ns)
             out.append(gpsport.EpochTime(novatel.utc_ns_of(week, tow_ms, self.leap_s)))
-        ep = self._epoch
-        ep.types.add(name)
-        if name == "PVTGeodetic":
-            ep.pvt = m
-        elif name == "PosCovGeodetic":
-            ep.pos_cov = m
-        else:
-            ep.vel_cov = m
-        if ep.pvt is not None and ep.types >= self._expect:
-            out += self.flush()
+        out += self._solutions(self._group.add(key, name, m, mono_ns))
+        self.stats.late = self._group.late
         return out
 
     def _pulse(self, m, week: int, tow_ms: int, t: numbers.Tally) -> list:
@@ -150,23 +125,22 @@ class SbfDecoder:
 
     def flush(self) -> list[gpsport.Solution]:
         """The epoch in progress, if it has a PVTGeodetic."""
-        key, ep = self._key, self._epoch
-        self._key, self._epoch = None, None
-        if key is None or ep is None or ep.pvt is None:
-            return []
-        self._expect |= ep.types
-        self._done = key
-        t = numbers.Tally()
-        try:
-            return [self._solution(key, ep, t)]
-        except (AttributeError, TypeError, ValueError, OverflowError):
-            self.stats.undecodable += 1
-            return []
-        finally:
-            self.stats.bad_fields += t.bad
+        return self._solutions(self._group.flush())
 
-    def _solution(self, key: tuple[int, int], ep: _Epoch, t: numbers.Tally) -> gpsport.Solution:
-        p = ep.pvt
+    def _solutions(self, groups: list) -> list[gpsport.Solution]:
+        out = []
+        for key, parts, mono_ns in groups:
+            t = numbers.Tally()
+            try:
+                out.append(self._solution(key, parts, mono_ns, t))
+            except (AttributeError, TypeError, ValueError, OverflowError):
+                self.stats.undecodable += 1
+            finally:
+                self.stats.bad_fields += t.bad
+        return out
+
+    def _solution(self, key: tuple[int, int], parts: dict, mono_ns: int, t: numbers.Tally) -> gpsport.Solution:
+        p = parts["PVTGeodetic"]
         quality = MODE_QUALITY.get(t.whole(p.Type, 0, 15), 0) if t.whole(p.Error, 0, 255) == 0 else 0
         sats = t.whole(p.NrSV, 0, 254) or 0
         lat = math.degrees(_real(t, p.Latitude, -math.pi / 2, math.pi / 2))
@@ -174,31 +148,30 @@ class SbfDecoder:
         h = _real(t, p.Height, -1e5, 1e8)
         fix = not gnss.no_fix_reason(quality, sats, None) and all(x == x for x in (lat, lon, h))
         vel = (_real(t, p.Ve, -1e5, 1e5), _real(t, p.Vn, -1e5, 1e5), _real(t, p.Vu, -1e5, 1e5))
-        pos_var, known = self._pos_var(ep, t)
+        pos_var, known = _pos_var(p, parts.get("PosCovGeodetic"), t)
         vel_var = (math.nan,) * 3
-        if ep.vel_cov is not None:
-            c = ep.vel_cov
+        c = parts.get("VelCovGeodetic")
+        if c is not None:
             vel_var = tuple(_real(t, x, 0, 1e10) for x in (c.Cov_VeVe, c.Cov_VnVn, c.Cov_VuVu))
         week, tow_ms = key
         return gpsport.Solution(
             utc_ns=novatel.utc_ns_of(week, tow_ms, self.leap_s), fix=fix, quality=quality if fix else 0,
             num_sats=sats, lat_deg=lat, lon_deg=lon, h_m=h, pos_var=pos_var, pos_var_known=known,
-            vel_enu=vel if fix and all(v == v for v in vel) else None, vel_var=vel_var, first_mono_ns=ep.mono_ns,
+            vel_enu=vel if fix and all(v == v for v in vel) else None, vel_var=vel_var, first_mono_ns=mono_ns,
             source="sbf")
 
-    @staticmethod
-    def _pos_var(ep: _Epoch, t: numbers.Tally) -> tuple[tuple[float, float, float], bool]:
-        """ENU position variances (m^2) and whether they are the receiver's own covariance."""
-        if ep.pos_cov is not None:
-            c = ep.pos_cov
-            var = tuple(_real(t, x, 0, 1e10) for x in (c.Cov_lonlon, c.Cov_latlat, c.Cov_hgthgt))
-            if all(v == v for v in var):
-                return var, True
-        p = ep.pvt
-        h_cm, v_cm = t.whole(p.HAccuracy, 0, HACC_DNU_CM - 1), t.whole(p.VAccuracy, 0, HACC_DNU_CM - 1)
-        sh = h_cm / 100 / TWO_SQRT2 if h_cm is not None else math.nan
-        sv = v_cm / 100 / 2 if v_cm is not None else math.nan
-        return (sh * sh, sh * sh, sv * sv), False
+
+def _pos_var(p, c, t: numbers.Tally) -> tuple[tuple[float, float, float], bool]:
+    """ENU position variances (m^2) of PVTGeodetic ``p`` and PosCovGeodetic ``c`` (or None), and whether they
+    are the receiver's own covariance."""
+    if c is not None:
+        var = tuple(_real(t, x, 0, 1e10) for x in (c.Cov_lonlon, c.Cov_latlat, c.Cov_hgthgt))
+        if all(v == v for v in var):
+            return var, True
+    h_cm, v_cm = t.whole(p.HAccuracy, 0, HACC_DNU_CM - 1), t.whole(p.VAccuracy, 0, HACC_DNU_CM - 1)
+    sh = h_cm / 100 / TWO_SQRT2 if h_cm is not None else math.nan
+    sv = v_cm / 100 / 2 if v_cm is not None else math.nan
+    return (sh * sh, sh * sh, sv * sv), False
 
 
 def solution_time_ns(frame: bytes) -> int | None:

@@ -188,6 +188,11 @@ def format_info(info: DriveInfo) -> str:
                 "nmea.bad_checksum", "nmea.unknown", "nmea.proprietary", "pps_edges", "pps_rejected"]
         shown = [f"{k}={info.counters[k]}" for k in keys if k in info.counters]
         lines.append("counters  " + ", ".join(shown))
+        src = {k.rsplit(".", 1)[1]: v for k, v in info.counters.items() if k.startswith("nmea.position_from.")}
+        if src:
+            lines.append("NMEA      positions from " + ", ".join(f"{k} {v}" for k, v in src.items())
+                         + " (GGA first, then RMC, then GLL); GGA and RMC/GLL of different seconds: "
+                         + f"{info.counters.get('nmea.split_seconds', '0')} times, each second its own epoch")
     bus = bus_line(info)
     if bus:
         lines.append(bus)
