@@ -247,13 +247,16 @@ class Solution:
 class EpochGroup:
     """The messages of one receiver epoch (one time key), for protocols that spread a solution over several.
 
-    A group is complete once it holds the ``required`` message and every message type the groups so far held
-    (the receiver's output set, learnt as it goes), or when a message of another key arrives, or on ``flush``.
-    A message of the group last completed joins the learnt set and is counted in ``late`` (not merged).
+    A group is emitted when it is complete: it holds the ``required`` messages and every message type the groups
+    so far held (the receiver's output set, learnt as it goes; the first group, before anything is learnt, is
+    never complete); or, if it holds the ``anchor`` message (the one that carries the position), when a message
+    of another key arrives or on ``flush``. A message of the group last emitted joins the learnt set and is
+    counted in ``late`` (not merged).
     """
 
-    def __init__(self, required: str) -> None:
-        self.required = required
+    def __init__(self, anchor: str, required: frozenset[str] = frozenset()) -> None:
+        self.anchor = anchor
+        self.required = required | {anchor}
         self.late = 0
         self.key: object = None
         self.parts: dict[str, object] = {}
@@ -275,15 +278,15 @@ class EpochGroup:
         if self.key is None:
             self.key, self.parts, self.mono_ns = key, {}, mono_ns
         self.parts[name] = msg
-        if self.required in self.parts and self.parts.keys() >= self._expect:
+        if self._done is not None and self.parts.keys() >= self.required | self._expect:
             out += self.flush()
         return out
 
     def flush(self) -> list[tuple[object, dict, int]]:
-        """The group in progress, if it holds the required message."""
+        """The group in progress, if it holds the anchor message."""
         key, parts = self.key, self.parts
         self.key, self.parts = None, {}
-        if key is None or self.required not in parts:
+        if key is None or self.anchor not in parts:
             return []
         self._expect |= parts.keys()
         self._done = key
@@ -360,6 +363,9 @@ def describe(data: bytes, frames: list[tuple[str, bytes]], names: dict[str, dict
     for kind, _ in frames:
         counts[kind] = counts.get(kind, 0) + 1
     for kind, n in counts.items():
+        n = sum(names[kind].values()) if kind in names else n      # NMEA: the sentences whose checksum holds
+        if not n:
+            continue
         top = sorted(names.get(kind, {}).items(), key=lambda kv: -kv[1])[:4]
         what = ", ".join(f"{name} {c}" for name, c in top)
         parts.append(f"{_PROTOCOL_NAMES[kind]}, {n} messages" + (f" ({what})" if what else ""))

@@ -121,7 +121,7 @@ class SbfDecoder:
             return []
         leap = 0 if scale == TIME_SCALE_UTC else self.leap_s
         utc_ns = novatel.utc_ns_of(week, tow_ms, leap)
-        return [Pulse(round(utc_ns / NS), late_ns * 1e-9)]
+        return [Pulse(round(utc_ns / NS), late_ns / 1e9)]
 
     def flush(self) -> list[gpsport.Solution]:
         """The epoch in progress, if it has a PVTGeodetic."""

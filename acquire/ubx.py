@@ -7,7 +7,8 @@ per-axis horizontal variance hAcc^2, vertical vAcc^2, velocity sAcc^2 on each EN
 
 Receivers without NAV-PVT (u-blox 5 and 6, the timing modules): NAV-POSLLH (position, hAcc/vAcc), NAV-VELNED
 (velocity in cm/s, sAcc), NAV-SOL (fix type, gpsFixOK, differential, satellites, week) and NAV-TIMEUTC (UTC)
-of the same iTOW make one epoch, as gpsd groups them (``gpsport.EpochGroup``; NAV-EOE ends an epoch at once).
+of the same iTOW make one epoch, as gpsd groups them (``gpsport.EpochGroup``: complete with NAV-POSLLH, NAV-SOL
+and whatever else the receiver's epochs hold; NAV-EOE ends an epoch at once).
 The epoch needs NAV-POSLLH; its time is NAV-TIMEUTC's when valid, else NAV-SOL's week and iTOW less GPS - UTC;
 it is a fix only when NAV-SOL says so. Once a NAV-PVT has come, these messages make no epoch (NAV-PVT is the
 same solution).
@@ -70,7 +71,7 @@ class UbxDecoder:
         self.leap_s: int | None = None   # GPS - UTC, learnt from NAV-PVT or NAV-TIMEUTC (iTOW against UTC)
         self.use_hnr = use_hnr
         self._has_pvt = False            # a NAV-PVT came: the older messages make no epochs
-        self._group = gpsport.EpochGroup("NAV-POSLLH")
+        self._group = gpsport.EpochGroup("NAV-POSLLH", frozenset({"NAV-SOL"}))
         self._group_time: int | None = None   # UTC of the group in progress, once known
         self.old_late = 0                # NAV-POSLLH/VELNED/SOL/TIMEUTC of an epoch already emitted (not merged)
 
