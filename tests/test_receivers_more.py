@@ -308,7 +308,8 @@ def _fused_rms_2d(tmp_path, receiver: str, seed: int) -> float:
 
     drive = tmp_path / f"{receiver}-{seed}.mcap"
     simulate("figure8", 120.0, seed, drive, receiver=receiver)
-    fused = fuse(drive, "kf", tmp_path / f"{receiver}-{seed}-kf.mcap")
+    fused = tmp_path / f"{receiver}-{seed}-kf.mcap"
+    fuse(drive, "kf", fused)
     tr, s = reader.read_topic(drive, "/truth/fix"), reader.read_topic(fused, "/fusion/kf/fix")
     t, tt = s["log_time_ns"], tr["log_time_ns"]
     m = (t >= tt[0]) & (t <= tt[-1])
@@ -347,3 +348,20 @@ def test_the_daemon_records_a_septentrio_receiver_on_a_pty_locked_and_byte_exact
     state = reader.read_topic(f, "/time/sync")["state"]
     assert np.mean(state == messages.TIMESYNC_LOCKED) > 0.8
     assert int(c["pps_edges"]) - int(c["pps_rejected"]) >= 30
+
+
+# ---------------------------------------------------------------------------------------------- fuzzing
+
+def test_sbf_fuzz_inputs_pass_the_crc_and_never_crash_the_decoders():
+    from fieldlog.tools.dev import fuzz
+
+    rng = np.random.default_rng(3)
+    t = fuzz.make_target("sbf", fast=True)
+    framer = gpsport.Framer()
+    for i in range(400):
+        framer.feed(fuzz.FIXES["sbf"](fuzz.mutate(t.seeds[i % len(t.seeds)], rng)))
+    assert framer.stats.frames.get("sbf", 0) > 100           # mutated blocks pass their CRC and are framed
+    assert framer.stats.bad_checksum.get("sbf", 0) <= 0.5 * framer.stats.frames["sbf"]
+    for name in ("sbf", "ubx"):
+        r = fuzz.campaign(name, 3000, seed=2027, fast=True)
+        assert r.inputs == 3000 and not r.crashes, dict(r.crashes)

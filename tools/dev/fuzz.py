@@ -298,6 +298,25 @@ def _novatel_binary(week: int, ms: int) -> bytes:
                                               struct.pack("<I", 1) + bytes(4))
 
 
+def _ubx_older(itow: int) -> bytes:
+    """An epoch of a receiver without NAV-PVT (NAV-POSLLH, NAV-SOL, NAV-VELNED, NAV-TIMEUTC, NAV-EOE), a
+    time-only NAV-PVT and an HNR-PVT, as pyubx2 writes them."""
+    from pyubx2 import UBXMessage
+
+    t = dict(year=2026, month=3, day=14, hour=12, min=0, validDate=1, validTime=1, nano=0, lat=48.1, lon=11.5,
+             height=500_000, hAcc=1500, vAcc=2500, sAcc=80)
+    return b"".join(m.serialize() for m in (
+        UBXMessage("NAV", "NAV-POSLLH", 0, iTOW=itow, lat=48.1, lon=11.5, height=500_000, hAcc=1500, vAcc=2500),
+        UBXMessage("NAV", "NAV-SOL", 0, iTOW=itow, week=2410, gpsFix=3, gpsfixOK=1, wknSet=1, towSet=1, numSV=9,
+                   sAcc=8),
+        UBXMessage("NAV", "NAV-VELNED", 0, iTOW=itow, velN=120, velE=-40, velD=3, sAcc=8),
+        UBXMessage("NAV", "NAV-TIMEUTC", 0, iTOW=itow, year=2026, month=3, day=14, hour=12, min=0,
+                   sec=itow // 1000 % 60, validTOW=1, validWKN=1, validUTC=1),
+        UBXMessage("NAV", "NAV-EOE", 0, iTOW=itow),
+        UBXMessage("NAV", "NAV-PVT", 0, iTOW=itow, **t, second=itow // 1000 % 60, fixType=5, gnssFixOk=1),
+        UBXMessage("HNR", "HNR-PVT", 0, iTOW=itow, **t, second=itow // 1000 % 60, gpsFix=4, GPSfixOK=1)))
+
+
 def _mcap_seed() -> bytes:
     """A small drive written by mcap's own Writer, uncompressed chunks of a few messages, with metadata."""
     from mcap.writer import CompressionType, Writer
@@ -367,6 +386,8 @@ def make_target(name: str, fast: bool = False) -> Target:
         seeds = [b"".join(frames[i:i + group]) for i in range(0, len(frames), group)]
         if name == "novatel":
             seeds += [_novatel_binary(2300, 1000 * k) for k in range(4)]
+        if name == "ubx":
+            seeds += [_ubx_older(1000 * k) for k in range(4)]
         return Target(name, seeds, _gps_decoders_run if fast else _gps_run)
     if name == "daq":
         reads = _sim_reads("nmea", 20.0)
