@@ -472,8 +472,10 @@ class EpochAssembler:
     one of each of the five types (nothing more can belong to it: the live bus gets the fix a second earlier).
     VTG has no time and joins the current epoch; sentences with an empty time, VTG before any epoch, and Other
     records are ignored. A timed sentence of an epoch already emitted complete (a repeat) is counted in
-    ``late`` and not merged (it stays in ``/gps/nmea`` and the raw bytes). GLL joins like the others but is not
-    needed for completeness.
+    ``late`` and not merged (it stays in ``/gps/nmea`` and the raw bytes). GLL is the position of a receiver that
+    sends nothing better: once a GGA, GNS or RMC has come, GLL sentences are counted in ``gll_ignored`` and not
+    used (their time may be another second's: a Garmin 48 writes GLL a second off), and an epoch of GLL alone
+    still pending then is dropped.
 
     ``position_from`` counts the epochs by the sentence their position came from ('GGA' (GGA or GNS), 'RMC',
     'GLL', 'none'). A receiver whose GGA and RMC/GLL carry different seconds gives epochs of each (the seconds
@@ -487,6 +489,8 @@ class EpochAssembler:
         self.late = 0
         self.position_from: dict[str, int] = {}
         self.split = 0
+        self.better = False             # a GGA, GNS or RMC came: GLL is not used from then on
+        self.gll_ignored = 0
         self._last_only: tuple[str, int] | None = None   # ('gga' | 'other', key) of the last epoch, if one-sided
         self._done: int | None = None  # key of the last epoch emitted complete
         self._key: int | None = None
@@ -500,6 +504,11 @@ class EpochAssembler:
         if isinstance(s, Vtg):
             if self._key is not None:
                 self._parts.append(s)
+            return []
+        if isinstance(s, (Gga, Rmc)):
+            self.better = True
+        elif isinstance(s, Gll) and self.better:
+            self.gll_ignored += 1
             return []
         tod = getattr(s, "time_of_day_s", None)
         if tod is None:
@@ -521,6 +530,10 @@ class EpochAssembler:
     def flush(self) -> list[GnssEpoch]:
         """Emit the epoch in progress, if any."""
         if self._key is None:
+            return []
+        if self.better and not any(isinstance(p, (Gga, Rmc, Gst, Zda)) for p in self._parts):
+            self.gll_ignored += 1          # GLL alone, from before the receiver's first GGA/RMC
+            self._key, self._parts = None, []
             return []
         epoch = self._merge(self._key / 1000.0, self._parts, self._mono)
         self._key, self._parts = None, []

@@ -355,8 +355,9 @@ class Pipeline:
             out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
             out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
         ep = self._epochs
-        if ep.split or "GLL" in ep.position_from:      # which sentence gave the positions (tools/info.py)
+        if ep.split or "GLL" in ep.position_from or ep.gll_ignored:   # which sentence gave the positions
             out["nmea.split_seconds"] = str(ep.split)
+            out["nmea.gll_ignored"] = str(ep.gll_ignored)
             out.update({f"nmea.position_from.{k}": str(v) for k, v in ep.position_from.items()})
         if self._ubx.old_late:
             out["ubx.late"] = str(self._ubx.old_late)
@@ -423,7 +424,7 @@ class Pipeline:
                     continue
                 self.sink.write("/gps/nmea", stamp, messages.encode_sentence(
                     stamp, s.raw.decode("ascii", "replace"), self.cfg.gps_frame_id))
-                if not self._binary_solutions:
+                if not self._binary_solutions and not (isinstance(s, nmea.Gll) and self._epochs.better):
                     self._note_time(s, mono_ns, wall_ns)
                 for ep in self._epochs.add(s, mono_ns):
                     self._emit_epoch(ep)

@@ -276,7 +276,21 @@ def test_gga_and_rmc_of_different_seconds_are_stated_in_info(tmp_path):
     c = reader.read_metadata(path)["acquire.counters"]
     assert int(c["nmea.split_seconds"]) >= len(eps) - 2
     assert int(c["nmea.position_from.GGA"]) >= len(eps) - 1 and int(c["nmea.position_from.RMC"]) >= len(eps) - 1
-    assert "GGA and RMC/GLL of different seconds" in format_info(drive_info(path))
+    assert "GGA and RMC of different seconds" in format_info(drive_info(path))
+
+
+def test_gll_of_another_second_beside_gga_is_not_used_and_info_says_so(tmp_path):
+    """A Garmin 48 writes GLL a second off its GGA and RMC: one epoch per GGA, the GLL counted as not used."""
+    eps = _epochs(10, 20, 1.0, (0, 0), T0 - dt.timedelta(hours=3))
+    data = b"".join(_nmea("GLL", e["t"] - dt.timedelta(seconds=1), e["lat"] + 1, e["lon"]) + _nmea(
+        "GGA", e["t"], e["lat"], e["lon"]) + _nmea("RMC", e["t"], e["lat"], e["lon"]) for e in eps)
+    path = _import(tmp_path, "garmin", data)
+    fix = reader.read_topic(path, "/gps/fix")
+    np.testing.assert_array_equal(fix["log_time_ns"], [_utc_ns(e) for e in eps])
+    assert np.max(np.abs(fix["lat_deg"] - [e["lat"] for e in eps])) < 1e-6
+    c = reader.read_metadata(path)["acquire.counters"]
+    assert int(c["nmea.gll_ignored"]) == len(eps) and int(c["nmea.position_from.GGA"]) == len(eps)
+    assert f"GLL not used (the receiver sends GGA/RMC): {len(eps)}" in format_info(drive_info(path))
 
 
 # ---------------------------------------------------------------------------------------------- unknown logs

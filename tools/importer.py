@@ -51,14 +51,15 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
         ends += framer.ends
     date = gnss.in_range(_first_date(frames) or fallback_date)
     dec = nmea.NmeaDecoder()
+    sentences = [dec.decode_line(frame) if kind == "nmea" else None for kind, frame in frames]
+    gll_time = not any(isinstance(s, (nmea.Gga, nmea.Rmc)) for s in sentences)   # GLL only without better
     times: list[float | None] = []
     last_tod = None
-    for kind, frame in frames:
+    for (kind, frame), s in zip(frames, sentences):
         t = None
         if kind == "nmea":
-            s = dec.decode_line(frame)
             own = getattr(s, "date", None)
-            tod = getattr(s, "time_of_day_s", None)
+            tod = getattr(s, "time_of_day_s", None) if gll_time or not isinstance(s, nmea.Gll) else None
             date = own or date
             if tod is not None and np.isfinite(tod):
                 if own is None:
