@@ -379,3 +379,38 @@ def test_sbf_fuzz_inputs_pass_the_crc_and_never_crash_the_decoders():
     for name in ("sbf", "ubx"):
         r = fuzz.campaign(name, 3000, seed=2027, fast=True)
         assert r.inputs == 3000 and not r.crashes, dict(r.crashes)
+
+
+def test_rebuild_of_a_simulated_septentrio_drive_is_bit_for_bit(tmp_path):
+    from mcap.reader import make_reader
+
+    from fieldlog.tools.sim.simulate import simulate
+
+    drive, out = tmp_path / "sept.mcap", tmp_path / "rebuilt.mcap"
+    simulate("figure8", 20.0, 4, drive, receiver="septentrio")
+    assert fieldlog(["rebuild", str(drive), "--out", str(out)]) == 0
+    for topic in ("/gps/fix", "/gps/vel", "/gps/receiver", "/pps", "/imu"):
+        with open(drive, "rb") as f, open(out, "rb") as g:
+            a = [(m.log_time, m.data) for _s, _c, m in make_reader(f).iter_messages(topics=[topic])]
+            b = [(m.log_time, m.data) for _s, _c, m in make_reader(g).iter_messages(topics=[topic])]
+        assert a == b and len(a) > 0, topic
+    assert reader.read_metadata(out)["acquire.counters"] == reader.read_metadata(drive)["acquire.counters"]
+
+
+def test_use_hnr_is_recorded_for_rebuild():
+    from fieldlog.acquire.pipeline import Pipeline as P
+
+    meta = P(_Fixes(), cfg=PipelineConfig(use_hnr=True)).metadata()
+    assert meta["gps"] == {"protocol": "auto", "use_hnr": "true"}
+    assert P.settings_from_metadata(meta)[2].use_hnr
+    assert "use_hnr" not in P(_Fixes()).metadata()["gps"] and not P.settings_from_metadata({})[2].use_hnr
+
+
+def test_gps_use_hnr_and_septentrio_protocol_are_config_keys():
+    from fieldlog.acquire import config
+
+    c = config.from_dict({"gps": {"use_hnr": True, "protocol": "septentrio"}})
+    assert c.gps.use_hnr and c.gps.protocol == "septentrio"
+    assert gpsport.ACCEPTS["septentrio"] == {"nmea", "sbf"} and "sbf" in gpsport.ACCEPTS["auto"]
+    with pytest.raises(config.ConfigError):
+        config.from_dict({"gps": {"use_hnr": "yes"}})
