@@ -5,17 +5,17 @@ that they reach the field decoders, the counter judge, the time sync and the MCA
     python -m fieldlog.tools.dev.fuzz --target all --runs 1000000 --crashes out/fuzz-crashes
     python -m fieldlog.tools.dev.fuzz --target ubx --atheris -max_total_time=3600 out/corpus   # coverage-guided
 
-Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary), ``sbf`` (Septentrio) through the pipeline's GPS
-path (framer, decoders, epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one read per input
-of a continuous simulated stream with valid GPS beside it; ``mcap`` through the reader (summary, chunks,
-metadata, every topic). Inputs start from valid bytes of the simulator's encoders (and mcap's own Writer),
-are mutated (bit flips, interesting bytes, hostile numbers in text fields, spans inserted, deleted,
-duplicated, spliced) and re-checksummed: NMEA ``*HH``, UBX Fletcher, NovAtel CRC-32 (ASCII and binary), SBF
-CRC-16, DAQ CRC-16, MCAP chunk CRC-32 (data section and summary CRCs set to 0, "not computed"). A *crash* is any exception
-escaping the target: for the pipeline, any processing error it would have counted; for the reader, any
-exception but the ValueError that commands report as bad input. Each crash is written to ``--crashes`` as
-``TARGET-KIND-HASH.bin`` (tests/test_fuzz.py replays the ones kept in tests/data/fuzz/). Without atheris the
-loop is a plain seeded random one (reproducible from ``--seed``).
+Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary), ``sbf`` (Septentrio) through the pipeline's GPS path
+(framer, decoders, epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one
+read per input of a continuous simulated stream with valid GPS beside it; ``mcap`` through the reader (summary,
+chunks, metadata, every topic). Inputs start from valid bytes of the simulator's encoders (and mcap's own Writer),
+are mutated (bit flips, interesting bytes, hostile numbers in text fields, spans inserted, deleted, duplicated,
+spliced) and re-checksummed: NMEA ``*HH``, UBX Fletcher, NovAtel CRC-32 (ASCII and binary), SBF CRC-16, DAQ
+CRC-16, MCAP chunk CRC-32 (data section and summary CRCs set to 0, "not computed"). A *crash* is any exception
+escaping the target: for the pipeline, any processing error it would have counted; for the reader, any exception
+but the ValueError that commands report as bad input. Each crash is written to ``--crashes`` as
+``TARGET-KIND-HASH.bin`` (tests/test_fuzz.py replays the ones kept in tests/data/fuzz/). Without atheris the loop
+is a plain seeded random one (reproducible from ``--seed``).
 """
 from __future__ import annotations
 
