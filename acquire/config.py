@@ -10,8 +10,9 @@ standard baud rate``.
     [gps]                       # the GPS receiver
     port = "/dev/ttyUSB1"       # or "gpsd://HOST[:PORT][/DEVICE]": through a running gpsd (acquire/gpsd.py)
     baud = 115200
-    protocol = "auto"           # NMEA, u-blox UBX and NovAtel OEM, mixed, found by themselves; or one of
-                                # "nmea", "ubx", "novatel" (with NMEA) to ignore the others
+    protocol = "auto"           # NMEA, u-blox UBX, NovAtel OEM and Septentrio SBF, mixed, found by themselves;
+                                # or one of "nmea", "ubx", "novatel", "septentrio" (with NMEA) to ignore the others
+    use_hnr = false             # u-blox HNR-PVT (the receiver's own IMU-fused solution) as the fixes
     [can]                       # optional: the vehicle bus (acquire/can.py, acquire/canbus.py)
     url = "slcan:///dev/ttyACM0@500000"   # or socketcan://can0; --can URL
     baud = 115200               # the SLCAN adapter's serial rate (USB adapters ignore it)
@@ -69,7 +70,7 @@ STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 4
 NAME_FORMAT = "%Y-%m-%dT%H-%M-%SZ"
 
 
-GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel")   # the keys of acquire.gpsport.ACCEPTS (kept equal by a test)
+GPS_PROTOCOLS = ("auto", "nmea", "ubx", "novatel", "septentrio")   # the keys of acquire.gpsport.ACCEPTS (kept equal by a test)
 
 
 @dataclass
@@ -132,7 +133,8 @@ def parse_gpsd_url(text: str) -> GpsdAddress | None:
 
 @dataclass
 class GpsPortConfig(PortConfig):
-    protocol: str = "auto"      # 'auto' (every protocol, mixed), 'nmea', 'ubx' (+ NMEA), 'novatel' (+ NMEA)
+    protocol: str = "auto"      # 'auto' (every protocol, mixed), 'nmea', 'ubx', 'novatel', 'septentrio' (+ NMEA)
+    use_hnr: bool = False       # u-blox HNR-PVT as the fix stream (acquire/ubx.py): not independent of its IMU
 
     @property
     def gpsd(self) -> GpsdAddress | None:

@@ -679,7 +679,8 @@ class Daemon:
         self.sink = RotatingSink(self.session_dir, self.session_wall_ns, self.cfg.recorder, self._headers,
                                  self.bus.publish if self.bus else None, self.log)
         self.pipe = Pipeline(self.sink, self.cal, self.sync_cfg, PipelineConfig(gps_protocol=self.cfg.gps.protocol,
-                                                                               can=self.cfg.can_bus()))
+                                                                               can=self.cfg.can_bus(),
+                                                                               use_hnr=self.cfg.gps.use_hnr))
         if self.bus is not None:
             self.provisional = self.pipe.on_frames = ProvisionalImu(self.pipe, self.bus)
         path = self.sink.open_next()

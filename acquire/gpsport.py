@@ -1,4 +1,5 @@
-"""The GPS port's byte stream: NMEA 0183, u-blox UBX and NovAtel OEM (ASCII and binary) mixed on one port,
+"""The GPS port's byte stream: NMEA 0183, u-blox UBX, NovAtel OEM (ASCII and binary) and Septentrio SBF mixed on
+one port,
 split into checked frames by protocol, and the receiver-independent solution record the decoders produce.
 
 A u-blox receiver sends UBX and NMEA on the same port, a NovAtel one its logs and NMEA; the framer finds every
@@ -7,7 +8,9 @@ protocol's sync pattern wherever it lies, so no configuration is needed ("auto")
 * ``nmea``: '$' or '!' up to CR/LF (terminator stripped), at most ``nmea.MAX_LINE`` bytes; checked later;
 * ``novatel``: OEM ASCII '#' up to CR/LF, at most MAX_ASCII bytes; CRC-32 checked here;
 * ``ubx``: 0xB5 0x62, class, id, u16 length, payload, Fletcher-8 checksum; checked here;
-* ``novatel_bin``: 0xAA 0x44 0x12, header length, ..., u16 message length at 8, CRC-32; checked here.
+* ``novatel_bin``: 0xAA 0x44 0x12, header length, ..., u16 message length at 8, CRC-32; checked here;
+* ``sbf``: '$@', CRC-16-CCITT, block id, u16 block length (header included, a multiple of 4); checked here.
+  NMEA sentences never start '$@', so a '$' followed by '@' is an SBF block and nothing else.
 
 A frame candidate that fails its check (or is too long) is skipped by one byte, so a real frame hidden behind a
 false sync is found again (resynchronisation). Memory is bounded by MAX_FRAME whatever arrives, and nothing
@@ -15,6 +18,7 @@ raises. CR, LF and bytes of no frame are counted in ``bytes_discarded``.
 """
 from __future__ import annotations
 
+import binascii
 import datetime as _dt
 import zlib
 from dataclasses import dataclass, field
@@ -24,15 +28,17 @@ from fieldlog.acquire import nmea
 MAX_ASCII = 1024           # NovAtel ASCII logs (BESTPOSA ~ 230 bytes)
 MAX_UBX_PAYLOAD = 2048     # NAV-PVT 92, TIM-TP 16; NAV-SAT with many satellites ~ 1 kB
 MAX_BIN = 2048
-MAX_FRAME = max(MAX_ASCII, MAX_UBX_PAYLOAD + 8, MAX_BIN)
+MAX_SBF = 4096             # PVTGeodetic 96 bytes; MeasEpoch of many satellites a few kB
+MAX_FRAME = max(MAX_ASCII, MAX_UBX_PAYLOAD + 8, MAX_BIN, MAX_SBF)
 
 UBX_SYNC = b"\xb5\x62"
 OEM_SYNC = b"\xaa\x44\x12"
+SBF_SYNC = b"$@"
 _STARTS = frozenset(b"$!#\xb5\xaa")
 _EOL = frozenset(b"\r\n")
 # what each [gps] protocol setting decodes (NMEA always: u-blox and NovAtel ports send it too)
-ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
-           "novatel": {"nmea", "novatel", "novatel_bin"}}
+ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin", "sbf"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
+           "novatel": {"nmea", "novatel", "novatel_bin"}, "septentrio": {"nmea", "sbf"}}
 
 
 def ubx_checksum(body: bytes) -> bytes:
@@ -42,6 +48,11 @@ def ubx_checksum(body: bytes) -> bytes:
         a = (a + x) & 0xFF
         b = (b + a) & 0xFF
     return bytes((a, b))
+
+
+def sbf_crc(data: bytes) -> int:
+    """SBF's CRC-16-CCITT (polynomial 0x1021, initial value 0) over block id, length and body."""
+    return binascii.crc_hqx(data, 0)
 
 
 def crc32(data: bytes) -> int:
@@ -143,6 +154,8 @@ class Framer:
                 st.bad_checksum["novatel_bin"] = st.bad_checksum.get("novatel_bin", 0) + 1
                 return "skip", 1
             return "novatel_bin", total
+        if c == 0x24 and n - pos >= 2 and buf[pos + 1] == 0x40:
+            return self._sbf_at(buf, pos, n)
         # ASCII: up to the first CR/LF; another frame start inside means this one was cut off
         limit = nmea.MAX_LINE if c != 0x23 else MAX_ASCII
         end = pos + 1
@@ -164,6 +177,23 @@ class Framer:
                 return "skip", 1
             return "novatel", end + 1 - pos
         return "nmea", end + 1 - pos
+
+
+    def _sbf_at(self, buf: bytearray, pos: int, n: int) -> tuple[str, int]:
+        """As ``_frame_at`` for the SBF block whose '$@' is at ``pos``."""
+        st = self.stats
+        if n - pos < 8:
+            return "wait", 0
+        ln = int.from_bytes(buf[pos + 6:pos + 8], "little")
+        if ln < 8 or ln % 4 or ln > MAX_SBF:
+            st.overlong += ln > MAX_SBF
+            return "skip", 1
+        if n - pos < ln:
+            return "wait", 0
+        if sbf_crc(bytes(buf[pos + 4:pos + ln])) != int.from_bytes(buf[pos + 2:pos + 4], "little"):
+            st.bad_checksum["sbf"] = st.bad_checksum.get("sbf", 0) + 1
+            return "skip", 1
+        return "sbf", ln
 
 
 def _next_start(buf: bytearray, i: int) -> int:
@@ -194,7 +224,8 @@ class Solution:
     quality: GGA-like quality (0 none, 1 autonomous, 2 differential, 4 RTK fixed, 5 RTK float);
     lat/lon in degrees, h ellipsoidal metres; pos_var (3,) ENU m^2 and whether it is the receiver's own
     (``pos_var_known``) or approximated; vel_enu (3,) m/s and vel_var (3,) (m/s)^2 (``messages.UNKNOWN_VARIANCE``: not observed);
-    first_mono_ns: host time of the epoch's first message.
+    first_mono_ns: host time of the epoch's first message; time_only: the receiver gives time, not position (a
+    timing receiver on its surveyed position, u-blox fixType 5): lat/lon/h are that position, ``fix`` is False.
     """
 
     utc_ns: int
@@ -210,6 +241,56 @@ class Solution:
     vel_var: tuple[float, float, float]
     first_mono_ns: int = 0
     source: str = ""
+    time_only: bool = False
+
+
+class EpochGroup:
+    """The messages of one receiver epoch (one time key), for protocols that spread a solution over several.
+
+    A group is emitted when it is complete: it holds the ``required`` messages and every message type the groups
+    so far held (the receiver's output set, learnt as it goes; the first group, before anything is learnt, is
+    never complete); or, if it holds the ``anchor`` message (the one that carries the position), when a message
+    of another key arrives or on ``flush``. A message of the group last emitted joins the learnt set and is
+    counted in ``late`` (not merged).
+    """
+
+    def __init__(self, anchor: str, required: frozenset[str] = frozenset()) -> None:
+        self.anchor = anchor
+        self.required = required | {anchor}
+        self.late = 0
+        self.key: object = None
+        self.parts: dict[str, object] = {}
+        self.mono_ns = 0
+        self._expect: set[str] = set()
+        self._done: object = None
+
+    def is_new(self, key: object) -> bool:
+        """Whether a message of ``key`` starts a group (the caller flushes the one in progress first)."""
+        return key != self.key and key != self._done
+
+    def add(self, key: object, name: str, msg: object, mono_ns: int) -> list[tuple[object, dict, int]]:
+        """The groups (key, {name: message}, host time of the first message) that ``msg`` completes."""
+        if key == self._done:
+            self._expect.add(name)
+            self.late += 1
+            return []
+        out = self.flush() if key != self.key else []
+        if self.key is None:
+            self.key, self.parts, self.mono_ns = key, {}, mono_ns
+        self.parts[name] = msg
+        if self._done is not None and self.parts.keys() >= self.required | self._expect:
+            out += self.flush()
+        return out
+
+    def flush(self) -> list[tuple[object, dict, int]]:
+        """The group in progress, if it holds the anchor message."""
+        key, parts = self.key, self.parts
+        self.key, self.parts = None, {}
+        if key is None or self.anchor not in parts:
+            return []
+        self._expect |= parts.keys()
+        self._done = key
+        return [(key, parts, self.mono_ns)]
 
 
 @dataclass(frozen=True)
@@ -247,3 +328,52 @@ def leap_seconds(day: _dt.date) -> int:
         if day >= d:
             n = s
     return n
+
+
+# ---------------------------------------------------------------------------------------------- unknown logs
+
+_PROTOCOL_NAMES = {"nmea": "NMEA", "ubx": "UBX", "novatel": "NovAtel ASCII", "novatel_bin": "NovAtel binary",
+                   "sbf": "Septentrio SBF"}
+_SIRF_START, _SIRF_END = b"\xa0\xa2", b"\xb0\xb3"
+_UNDECODED = "not decoded; set the receiver to NMEA, UBX, NovAtel OEM or SBF output"
+
+
+def _sirf_messages(data: bytes) -> int:
+    """SiRF binary messages (0xA0 0xA2, u16 big-endian length, payload, 15-bit sum, 0xB0 0xB3) in ``data``."""
+    n, i = 0, data.find(_SIRF_START)
+    while 0 <= i <= len(data) - 8:
+        ln = int.from_bytes(data[i + 2:i + 4], "big") & 0x7FFF
+        end = i + 4 + ln
+        if data[end + 2:end + 4] == _SIRF_END and sum(data[i + 4:end]) & 0x7FFF == int.from_bytes(
+                data[end:end + 2], "big"):
+            n += 1
+            i = data.find(_SIRF_START, end + 4)
+        else:
+            i = data.find(_SIRF_START, i + 1)
+    return n
+
+
+def describe(data: bytes, frames: list[tuple[str, bytes]], names: dict[str, dict[str, int]]) -> str:
+    """What a GPS log holds, for a log that gives no time: each protocol with its count of messages and the
+    commonest message types (``names``: protocol -> message name -> count, of the checked ``frames``), and the
+    receiver protocols we do not decode (SiRF binary, Trimble TSIP, Motorola Oncore, Javad GREIS) found by their
+    framing; e.g. "SiRF binary, 615 messages: not decoded; set the receiver to ...". "" for an empty log."""
+    parts = []
+    counts: dict[str, int] = {}
+    for kind, _ in frames:
+        counts[kind] = counts.get(kind, 0) + 1
+    for kind, n in counts.items():
+        n = sum(names[kind].values()) if kind in names else n      # NMEA: the sentences whose checksum holds
+        if not n:
+            continue
+        top = sorted(names.get(kind, {}).items(), key=lambda kv: -kv[1])[:4]
+        what = ", ".join(f"{name} {c}" for name, c in top)
+        parts.append(f"{_PROTOCOL_NAMES[kind]}, {n} messages" + (f" ({what})" if what else ""))
+    foreign = {"SiRF binary": _sirf_messages(data),
+               "Trimble TSIP": data.count(b"\x10\x03\x10"),          # DLE ETX ends a packet, DLE starts the next
+               "Motorola Oncore": data.count(b"\r\n@@"),
+               "Javad GREIS": data.count(b"~~005")}                   # the RT (receiver time) message
+    parts += [f"{name}, {n} messages: {_UNDECODED}" for name, n in foreign.items() if n >= 2]
+    if not parts:
+        return f"{len(data)} bytes of no receiver protocol" if data else "no bytes"
+    return "; ".join(parts)

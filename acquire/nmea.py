@@ -1,5 +1,6 @@
-"""NMEA 0183: line framing, checksum, typed decoding of GGA/RMC/VTG/GST/ZDA/GNS/GSA/GSV/HDT, epoch grouping,
-generators. GNS is a Gga subclass, so it gives an epoch's position when the receiver sends no GGA.
+"""NMEA 0183: line framing, checksum, typed decoding of GGA/RMC/VTG/GST/ZDA/GNS/GSA/GSV/HDT/GLL, epoch grouping,
+generators. GNS is a Gga subclass, so it gives an epoch's position when the receiver sends no GGA; GLL gives it
+when there is neither GGA nor RMC (``EpochAssembler``).
 
 Decoded values are SI: degrees for latitude/longitude (WGS-84, north/east positive), metres, m/s, seconds of
 the UTC day, radians for courses (clockwise from true north). Empty fields decode to NaN (floats) or None
@@ -134,6 +135,18 @@ class Rmc:
 
 
 @dataclass(frozen=True)
+class Gll:
+    """GLL geographic position. valid: status 'A' and mode indicator (if any) not 'N'."""
+
+    talker: str
+    time_of_day_s: float | None
+    valid: bool
+    lat_deg: float
+    lon_deg: float
+    raw: bytes = field(default=b"", repr=False)
+
+
+@dataclass(frozen=True)
 class Vtg:
     """VTG course over ground (true) and speed; speed from the km/h field, else from knots."""
 
@@ -219,7 +232,7 @@ class Hdt:
     raw: bytes = field(default=b"", repr=False)
 
 
-Sentence = Gga | Rmc | Vtg | Gst | Zda | Gsa | Gsv | Hdt | Other
+Sentence = Gga | Rmc | Vtg | Gst | Zda | Gsa | Gsv | Hdt | Gll | Other
 
 
 # ---------------------------------------------------------------------------------------------- decoding
@@ -300,6 +313,10 @@ def _rmc(t: str, f: _Fields, raw: bytes) -> Rmc:
                f.course(8), day, raw)
 
 
+def _gll(t: str, f: _Fields, raw: bytes) -> Gll:
+    return Gll(t, f.time(5), f.s(6) == "A" and f.s(7) != "N", f.angle(1, 2, "S", "N"), f.angle(3, 4, "W", "E"), raw)
+
+
 def _vtg(t: str, f: _Fields, raw: bytes) -> Vtg:
     kmh = f.num(7)
     speed = kmh / 3.6 if not math.isnan(kmh) else f.num(5) * KNOT_MPS
@@ -341,7 +358,7 @@ def _hdt(t: str, f: _Fields, raw: bytes) -> Hdt:
 
 
 _DECODERS = {"GGA": (_gga, 12), "RMC": (_rmc, 10), "VTG": (_vtg, 9), "GST": (_gst, 9), "ZDA": (_zda, 5),
-             "GNS": (_gns, 13), "GSA": (_gsa, 18), "GSV": (_gsv, 4), "HDT": (_hdt, 3)}
+             "GNS": (_gns, 13), "GSA": (_gsa, 18), "GSV": (_gsv, 4), "HDT": (_hdt, 3), "GLL": (_gll, 7)}
 
 
 @dataclass
@@ -419,8 +436,9 @@ class NmeaDecoder:
 class GnssEpoch:
     """One receiver epoch merged from its sentences. NaN/0/None where no sentence gave the value.
 
-    Position from GGA (RMC when there is no GGA, then altitude is NaN); quality from GGA, else 1/0 from RMC
-    validity; speed and course from RMC, else VTG; standard deviations from GST; date from RMC/ZDA or carried
+    Position from GGA (GNS), else RMC, else GLL (altitude NaN without GGA); quality from GGA, else 1/0 from
+    RMC's or GLL's validity; speed and course from RMC, else VTG; standard deviations from GST; date from
+    RMC/ZDA or carried
     over from the last one (with midnight roll-over, ``gnss.roll_over``). first_mono_ns: host monotonic time of its
     first sentence. no_fix: why it is not a fix (``gnss.no_fix_reason``; "" for a fix).
     """
@@ -454,13 +472,26 @@ class EpochAssembler:
     one of each of the five types (nothing more can belong to it: the live bus gets the fix a second earlier).
     VTG has no time and joins the current epoch; sentences with an empty time, VTG before any epoch, and Other
     records are ignored. A timed sentence of an epoch already emitted complete (a repeat) is counted in
-    ``late`` and not merged (it stays in ``/gps/nmea`` and the raw bytes).
+    ``late`` and not merged (it stays in ``/gps/nmea`` and the raw bytes). GLL is the position of a receiver that
+    sends nothing better: once a GGA, GNS or RMC has come, GLL sentences are counted in ``gll_ignored`` and not
+    used (their time may be another second's: a Garmin 48 writes GLL a second off), and an epoch of GLL alone
+    still pending then is dropped.
+
+    ``position_from`` counts the epochs by the sentence their position came from ('GGA' (GGA or GNS), 'RMC',
+    'GLL', 'none'). A receiver whose GGA and RMC/GLL carry different seconds gives epochs of each (the seconds
+    are never merged: each epoch takes its own sentences' time and position); ``split`` counts consecutive
+    epochs within a second of each other of which one has GGA only and the other RMC/GLL only.
     """
 
     COMPLETE = frozenset((Gga, Rmc, Vtg, Gst, Zda))
 
     def __init__(self) -> None:
         self.late = 0
+        self.position_from: dict[str, int] = {}
+        self.split = 0
+        self.better = False             # a GGA, GNS or RMC came: GLL is not used from then on
+        self.gll_ignored = 0
+        self._last_only: tuple[str, int] | None = None   # ('gga' | 'other', key) of the last epoch, if one-sided
         self._done: int | None = None  # key of the last epoch emitted complete
         self._key: int | None = None
         self._parts: list[Sentence] = []
@@ -473,6 +504,11 @@ class EpochAssembler:
         if isinstance(s, Vtg):
             if self._key is not None:
                 self._parts.append(s)
+            return []
+        if isinstance(s, (Gga, Rmc)):
+            self.better = True
+        elif isinstance(s, Gll) and self.better:
+            self.gll_ignored += 1
             return []
         tod = getattr(s, "time_of_day_s", None)
         if tod is None:
@@ -495,6 +531,10 @@ class EpochAssembler:
         """Emit the epoch in progress, if any."""
         if self._key is None:
             return []
+        if self.better and not any(isinstance(p, (Gga, Rmc, Gst, Zda)) for p in self._parts):
+            self.gll_ignored += 1          # GLL alone, from before the receiver's first GGA/RMC
+            self._key, self._parts = None, []
+            return []
         epoch = self._merge(self._key / 1000.0, self._parts, self._mono)
         self._key, self._parts = None, []
         return [epoch]
@@ -504,6 +544,7 @@ class EpochAssembler:
         rmc = next((p for p in parts if isinstance(p, Rmc)), None)
         vtg = next((p for p in parts if isinstance(p, Vtg)), None)
         gst = next((p for p in parts if isinstance(p, Gst)), None)
+        gll = next((p for p in parts if isinstance(p, Gll)), None)
         day = next((p.date for p in parts if isinstance(p, (Rmc, Zda)) and p.date is not None), None)
         if day is None:
             day = gnss.roll_over(self._last_date, tod, self._last_tod)
@@ -516,9 +557,21 @@ class EpochAssembler:
             quality, sats, hdop = gga.quality or 0, gga.num_sats or 0, gga.hdop
         elif rmc is not None:
             lat, lon, alt, quality, sats, hdop = rmc.lat_deg, rmc.lon_deg, nan, int(rmc.valid), 0, nan
+        elif gll is not None:
+            lat, lon, alt, quality, sats, hdop = gll.lat_deg, gll.lon_deg, nan, int(gll.valid), 0, nan
         else:
             lat = lon = alt = hdop = nan
             quality = sats = 0
+        source = "GGA" if gga is not None else "RMC" if rmc is not None else "GLL" if gll is not None else "none"
+        self.position_from[source] = self.position_from.get(source, 0) + 1
+        only = ("gga" if rmc is None and gll is None else None) if gga is not None else \
+            "other" if rmc is not None or gll is not None else None
+        key = round(tod * 1000)
+        last = self._last_only
+        if only and last and last[0] != only and abs(key - last[1]) <= 1000:
+            self.split += 1
+        self._last_only = (only, key) if only else None
+        status = rmc.valid if rmc is not None else gll.valid if gll is not None else None
         vel = rmc if rmc is not None and not math.isnan(rmc.speed_mps) else vtg
         return GnssEpoch(
             time_of_day_s=tod, date=day, lat_deg=lat, lon_deg=lon, alt_ellipsoid_m=alt, quality=quality,
@@ -528,7 +581,7 @@ class EpochAssembler:
             sd_east_m=gst.sd_lon_m if gst else nan, sd_north_m=gst.sd_lat_m if gst else nan,
             sd_up_m=gst.sd_alt_m if gst else nan, first_mono_ns=mono_ns,
             no_fix=gnss.no_fix_reason(quality if gga is not None else None, gga.num_sats if gga is not None else None,
-                                      rmc.valid if rmc is not None else None))
+                                      status))
 
 
 # ---------------------------------------------------------------------------------------------- generators
@@ -585,6 +638,12 @@ def format_gst(talker: str, tod: float, rms_m: float, sd_lat_m: float, sd_lon_m:
     orient = 0.0 if sd_lat_m >= sd_lon_m else 90.0
     return sentence(f"{talker}GST,{_hms(tod)},{rms_m:.3f},{major:.3f},{minor:.3f},{orient:.1f},"
                     f"{sd_lat_m:.3f},{sd_lon_m:.3f},{sd_alt_m:.3f}")
+
+
+def format_gll(talker: str, tod: float, lat_deg: float, lon_deg: float, valid: bool = True) -> bytes:
+    """GLL sentence (NMEA 2.3 with mode indicator); when not valid: status V, mode N, empty position."""
+    pos = f"{_latlon(lat_deg, 2, 'N', 'S')},{_latlon(lon_deg, 3, 'E', 'W')}" if valid else ",,,"
+    return sentence(f"{talker}GLL,{pos},{_hms(tod)},{'A,A' if valid else 'V,N'}")
 
 
 def format_zda(talker: str, tod: float, day: Date) -> bytes:

@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.acquire import calib, canbus, counterjudge, daq, frames, gnss, gpsport, nmea, novatel, timesync, ubx
+from fieldlog.acquire import calib, canbus, counterjudge, daq, frames, gnss, gpsport, nmea, novatel, sbf, timesync, ubx
 from fieldlog.drive import messages, metavalue
 
 log = logging.getLogger(__name__)
@@ -68,6 +68,7 @@ class PipelineConfig:
     gps_frame_id: str = frames.GPS_ANTENNA
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
     gps_protocol: str = "auto"                      # [gps] protocol: which frames are decoded (gpsport.ACCEPTS)
+    use_hnr: bool = False                           # [gps] use_hnr: u-blox HNR-PVT as the fixes (acquire/ubx.py)
     receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (see _emit_solution)
     can: canbus.BusConfig | None = None             # the vehicle bus: how /raw/can is decoded (acquire/canbus.py)
 
@@ -130,8 +131,9 @@ class Pipeline:
         self._last_daq_read = (0, 0)      # (mono_ns, wall_ns) of the last DAQ read
         self._nmea = nmea.NmeaDecoder()
         self._port = gpsport.Framer()
-        self._ubx = ubx.UbxDecoder()
+        self._ubx = ubx.UbxDecoder(self.cfg.use_hnr)
         self._oem = novatel.NovatelDecoder()
+        self._sbf = sbf.SbfDecoder()
         self._accepts = gpsport.ACCEPTS[self.cfg.gps_protocol]
         self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
         self._epochs = nmea.EpochAssembler()
@@ -315,7 +317,7 @@ class Pipeline:
         """What a later ``rebuild`` needs to reproduce this run: calibration and time-sync settings."""
         out = {"calibration": {"toml": self.cal.to_toml()},
                "timesync": {k: metavalue.dump(v) for k, v in asdict(self.sync.cfg).items()},
-               "gps": {"protocol": self.cfg.gps_protocol}}
+               "gps": {"protocol": self.cfg.gps_protocol, **({"use_hnr": "true"} if self.cfg.use_hnr else {})}}
         if self.cfg.can is not None:
             out["can"] = self.cfg.can.metadata()
         return out
@@ -343,7 +345,8 @@ class Pipeline:
         protocol = meta.get("gps", {}).get("protocol", "auto")
         can = canbus.BusConfig.from_metadata(meta["can"]) if "can" in meta else None
         return cal, sync_cfg, PipelineConfig(
-            gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto", can=can)
+            gps_protocol=protocol if protocol in gpsport.ACCEPTS else "auto", can=can,
+            use_hnr=meta.get("gps", {}).get("use_hnr") == "true")
 
     def counters_metadata(self) -> dict[str, str]:
         """The counters, flattened for an MCAP metadata record."""
@@ -357,9 +360,19 @@ class Pipeline:
         fs = self._port.stats
         out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
         out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
-        for name, st in (("ubx", self._ubx.stats), ("novatel", self._oem.stats)):
+        decoders = [("ubx", self._ubx.stats), ("novatel", self._oem.stats)]
+        if fs.frames.get("sbf"):
+            decoders.append(("sbf", self._sbf.stats))
+        for name, st in decoders:
             out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
             out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
+        ep = self._epochs
+        if ep.split or "GLL" in ep.position_from or ep.gll_ignored:   # which sentence gave the positions
+            out["nmea.split_seconds"] = str(ep.split)
+            out["nmea.gll_ignored"] = str(ep.gll_ignored)
+            out.update({f"nmea.position_from.{k}": str(v) for k, v in ep.position_from.items()})
+        if self._ubx.old_late:
+            out["ubx.late"] = str(self._ubx.old_late)
         out["nmea.epoch_repeats"] = str(self._epochs.late)
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
         if self.vehicle is not None:
@@ -376,7 +389,7 @@ class Pipeline:
             self._add_frames(self._judge.flush(), mono_ns, wall_ns)
             for ep in self._epochs.flush():
                 self._emit_epoch(ep)
-            for sol in self._oem.flush():
+            for sol in self._oem.flush() + self._sbf.flush():
                 self._emit_solution(sol)
             self.sync.finish()
             self._emit_sync()
@@ -432,13 +445,15 @@ class Pipeline:
                     continue
                 self.sink.write("/gps/nmea", stamp, messages.encode_sentence(
                     stamp, s.raw.decode("ascii", "replace"), self.cfg.gps_frame_id))
-                if not self._binary_solutions:
+                if not self._binary_solutions and not (isinstance(s, nmea.Gll) and self._epochs.better):
                     self._note_time(s, mono_ns, wall_ns)
                 for ep in self._epochs.add(s, mono_ns):
                     self._emit_epoch(ep)
                 continue
             if kind == "ubx":
                 name, records = self._ubx.decode(frame, mono_ns)
+            elif kind == "sbf":
+                name, records = self._sbf.decode(frame, mono_ns)
             else:
                 name, records = self._oem.decode(kind, frame, mono_ns)
             self.sink.write("/gps/receiver", stamp, messages.encode_raw(
@@ -518,7 +533,7 @@ class Pipeline:
         read of its first message; a receiver time further off than ``receiver_time_tolerance_s`` (a receiver
         clock jump) is NO_FIX ``receiver_time`` and stamped with the fit's time of that read, not the
         receiver's, and 1 ns after the fix before it if a late read holds both."""
-        why = why or ("" if sol.fix else "receiver")
+        why = why or ("" if sol.fix else "time_only" if sol.time_only else "receiver")
         utc_ns = sol.utc_ns
         if self.sync.gps_clock and sol.first_mono_ns:
             prev = self._gps_prev_read.get(sol.first_mono_ns, sol.first_mono_ns)
@@ -538,9 +553,13 @@ class Pipeline:
             messages.COVARIANCE_TYPE_APPROXIMATED
         status = messages.fix_status(sol.quality if fix else 0)
         nan = np.nan
+        shown = fix or why == "time_only"     # a timing receiver's surveyed position: NO_FIX, covariance unknown
+        pos_cov = np.diag(sol.pos_var).ravel()
+        if why == "time_only":
+            cov_type, pos_cov = messages.COVARIANCE_TYPE_UNKNOWN, np.zeros(9)
         self.sink.write_batch("/gps/fix", t_ns, messages.encode_navsatfix(
-            t_ns, [sol.lat_deg if fix else nan], [sol.lon_deg if fix else nan], [sol.h_m if fix else nan],
-            np.diag(sol.pos_var).ravel(), cov_type, status, self.cfg.gps_service, frame_id=self.cfg.gps_frame_id))
+            t_ns, [sol.lat_deg if shown else nan], [sol.lon_deg if shown else nan], [sol.h_m if shown else nan],
+            pos_cov, cov_type, status, self.cfg.gps_service, frame_id=self.cfg.gps_frame_id))
         if fix and sol.vel_enu is not None and np.all(np.isfinite(sol.vel_enu)):
             lin = np.array([sol.vel_enu])
             default = (self.cfg.gps_vel_sigma_mps**2,) * 2 + (self.cfg.gps_vvel_sigma_mps**2,)

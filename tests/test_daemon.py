@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
-from fieldlog.acquire import gpsport
+from fieldlog.acquire import gpsport, sbf
 from fieldlog.drive import messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.drive import reader
@@ -100,7 +100,7 @@ def gps_frames(data: bytes) -> dict[str, int]:
     return out
 
 
-@pytest.mark.parametrize("receiver", ["nmea", "ublox"])
+@pytest.mark.parametrize("receiver", ["nmea", "ublox", "septentrio"])
 def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(tmp_path: Path,
                                                                                   receiver: str) -> None:
     truth = tmp_path / "truth.mcap"
@@ -138,6 +138,7 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     frames = gps_frames(want["gps"])
     assert {k: int(c.get(f"gps.frames.{k}", 0)) for k in frames} == frames
     assert (receiver == "ublox") == (frames.get("ubx", 0) > 0) and int(c.get("ubx.undecodable", 0)) == 0
+    assert (receiver == "septentrio") == (frames.get("sbf", 0) > 0) and int(c.get("sbf.undecodable", 0)) == 0
     assert int(c["port.daq.dropped_reads"]) == 0 and int(c["daemon.late_reads"]) == 0
     # /imu: one message per frame, increasing stamps, and frame k carries truth sample k (scored by index:
     # at x20 the stamps are host-clock based, see tools/sim/serve.py)
@@ -162,6 +163,9 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     assert sum(len(b.data["/gps/fix"]["log_time_ns"]) for b in blocks) == fixes >= (38 if receiver == "nmea" else 33)
     if receiver == "ublox":     # one fix per NAV-PVT sent (the simulator drops 5 messages at random)
         assert fixes == sum(1 for k, fr in gpsport.Framer().feed(want["gps"]) if k == "ubx" and fr[2:4] == b"\x01\x07")
+    if receiver == "septentrio":    # one fix per PVTGeodetic sent
+        assert fixes == sum(1 for k, fr in gpsport.Framer().feed(want["gps"])
+                            if k == "sbf" and sbf.block_name(fr) == "PVTGeodetic")
 
 
 @pytest.mark.slow

@@ -32,7 +32,8 @@ def gpsd_positions(log: Path) -> list[tuple[float, float, float | None] | None]:
     """Per GGA epoch: the position gpsd reported for it (lat, lon deg, alt m above MSL if given), from any of its
     TPV reports with mode >= 2, else None. A report belongs to the epoch of its time; one without a time (gpsd
     gives none before it has a date) to the epoch whose GGA has its latitude and longitude. (gpsd also reports
-    GLL positions at times without a GGA; fieldlog does not decode GLL, so they are outside the comparison.)"""
+    GLL positions at times without a GGA; fieldlog uses GLL only from a receiver that sends no GGA or RMC, so
+    they are outside the comparison.)"""
     epochs = gga(log)
     out: list[tuple[float, float, float | None] | None] = [None] * len(epochs)
     for line in (GPSD / f"{log.stem}.tpv").read_text().splitlines():

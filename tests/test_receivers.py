@@ -11,7 +11,7 @@ import pytest
 from mcap.reader import make_reader
 from pyubx2 import UBXMessage
 
-from fieldlog.acquire import gpsport, nmea, novatel, ubx
+from fieldlog.acquire import gpsport, nmea, novatel, sbf, ubx
 from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.info import drive_info
@@ -337,7 +337,7 @@ class _Count:
         self.n[topic] = self.n.get(topic, 0) + len(t)
 
 
-@pytest.mark.parametrize("receiver", ["ublox", "novatel"])
+@pytest.mark.parametrize("receiver", ["ublox", "novatel", "septentrio"])
 def test_every_scenario_plays_in_every_receiver_protocol(receiver):
     """20 s of each scenario through the pipeline: one fix per epoch sent, the edges labelled from the
     receiver's own messages (as many accepted as with NMEA)."""
@@ -360,7 +360,8 @@ def test_every_scenario_plays_in_every_receiver_protocol(receiver):
             accepted[rcv] = c.pps_edges - c.pps_rejected
             if rcv == receiver:
                 sent = sum(1 for k, fr in gpsport.Framer().feed(b"".join(r.data for r in reads if r.port == "gps"))
-                           if (k == "ubx" and fr[2:4] == b"\x01\x07") or (k == "novatel" and b"BESTPOSA" in fr[:9]))
+                           if (k == "ubx" and fr[2:4] == b"\x01\x07") or (k == "novatel" and b"BESTPOSA" in fr[:9])
+                           or (k == "sbf" and sbf.block_name(fr) == "PVTGeodetic"))
                 assert c.gps_epochs == sent == sink.n["/gps/fix"], name
                 rate = GpsConfig.from_dict(dict(sc.gps)).rate_hz
                 assert sent >= 19 * rate - 6, name

@@ -3,9 +3,10 @@
 The bytes are kept exactly (``/raw/*``) and go through the normal pipeline. Host read times have to be
 invented, and the rule is stated here because time sync depends on it:
 
-* GPS (NMEA, u-blox UBX, NovAtel OEM ASCII/binary, mixed; auto-detected by ``acquire.gpsport``): a message is
-  read 0.2 s after the UTC second of the last time-bearing message at or before it (the typical receiver
-  latency; time-bearing: NMEA GGA/RMC/GST/ZDA, UBX NAV-PVT, NovAtel BESTPOS/BESTVEL); messages before the first
+* GPS (NMEA, u-blox UBX, NovAtel OEM ASCII/binary, Septentrio SBF, mixed; auto-detected by ``acquire.gpsport``):
+  a message is read 0.2 s after the UTC second of the last time-bearing message at or before it (the typical
+  receiver latency; time-bearing: NMEA GGA/RMC/GST/ZDA/GLL, UBX NAV-PVT/NAV-TIMEUTC/NAV-SOL, NovAtel
+  BESTPOS/BESTVEL, SBF PVTGeodetic); messages before the first
   one take its time. Reads are the bytes of one such second, cut at message ends. NMEA lines before the first
   date (RMC, ZDA, or a UBX/NovAtel solution) take that date; logs without any date (GGA only) take the
   file's modification date.
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldlog.acquire import can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, timesync, ubx
+from fieldlog.acquire import can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, sbf, timesync, ubx
 from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
@@ -55,14 +56,15 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
         ends += framer.ends
     date = gnss.in_range(_first_date(frames) or fallback_date)
     dec = nmea.NmeaDecoder()
+    sentences = [dec.decode_line(frame) if kind == "nmea" else None for kind, frame in frames]
+    gll_time = not any(isinstance(s, (nmea.Gga, nmea.Rmc)) for s in sentences)   # GLL only without better
     times: list[float | None] = []
     last_tod = None
-    for kind, frame in frames:
+    for (kind, frame), s in zip(frames, sentences):
         t = None
         if kind == "nmea":
-            s = dec.decode_line(frame)
             own = getattr(s, "date", None)
-            tod = getattr(s, "time_of_day_s", None)
+            tod = getattr(s, "time_of_day_s", None) if gll_time or not isinstance(s, nmea.Gll) else None
             date = own or date
             if tod is not None and np.isfinite(tod):
                 if own is None:
@@ -80,8 +82,15 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
         times.append(t)
     known = [t for t in times if t is not None]
     if not known:
-        raise ValueError("the GPS log has no message with a UTC time (NMEA GGA/RMC/GST/ZDA, UBX NAV-PVT, "
-                         "NovAtel BESTPOS/BESTVEL)")
+        names: dict[str, dict[str, int]] = {"nmea": dec.stats.by_type}
+        for kind, frame in frames:
+            if kind != "nmea":
+                name = sbf.block_name(frame) if kind == "sbf" else ubx.UbxDecoder().decode(frame, 0)[0] \
+                    if kind == "ubx" else "log"
+                names.setdefault(kind, {})[name] = names.get(kind, {}).get(name, 0) + 1
+        raise ValueError(f"the GPS log has no message with a UTC time (NMEA GGA/RMC/GST/ZDA/GLL, UBX NAV-PVT/"
+                         f"NAV-TIMEUTC/NAV-SOL, NovAtel BESTPOS/BESTVEL, SBF PVTGeodetic): it holds "
+                         f"{gpsport.describe(data, frames, names)}")
     cur = known[0]
     groups: dict[float, int] = {}            # second -> stream offset where its read ends
     order: list[float] = []
@@ -104,10 +113,13 @@ def gps_reads(data: bytes, fallback_date: _dt.date) -> list[RawRead]:
 
 
 def _binary_time_ns(kind: str, frame: bytes) -> int | None:
-    """UTC of a UBX NAV-PVT or NovAtel BESTPOS/BESTVEL frame, else None."""
+    """UTC of a UBX NAV-PVT, NAV-TIMEUTC or NAV-SOL, NovAtel BESTPOS/BESTVEL or SBF PVTGeodetic frame, else
+    None."""
     if kind == "ubx":
         _, recs = ubx.UbxDecoder().decode(frame, 0)
-        return next((r.utc_ns for r in recs if isinstance(r, gpsport.Solution)), None)
+        return next((r.utc_ns for r in recs if isinstance(r, (gpsport.Solution, gpsport.EpochTime))), None)
+    if kind == "sbf":
+        return sbf.solution_time_ns(frame)
     return novatel.log_time_ns(kind, frame)
 
 
@@ -231,7 +243,7 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
         try:
             reads = gps_reads(gps_bytes, mdate)
         except ValueError as e:
-            raise ValueError(f"{gps}: {e}: give a GPS log") from None
+            raise ValueError(f"{gps}: {e}") from None
     elif daq_path is not None:
         raise ValueError("--daq needs --gps: the DAQ capture is timed by the GPS log")
     if can_log is not None:

@@ -190,6 +190,12 @@ def format_info(info: DriveInfo) -> str:
                 "pps_implausible", "daemon.derived_dropped_reads"]
         shown = [f"{k}={info.counters[k]}" for k in keys if k in info.counters]
         lines.append("counters  " + ", ".join(shown))
+        src = {k.rsplit(".", 1)[1]: v for k, v in info.counters.items() if k.startswith("nmea.position_from.")}
+        if src or "nmea.gll_ignored" in info.counters:
+            lines.append("NMEA      positions from " + ", ".join(f"{k} {v}" for k, v in src.items())
+                         + " (GGA first, then RMC, then GLL); GGA and RMC of different seconds: "
+                         + f"{info.counters.get('nmea.split_seconds', '0')} times, each second its own epoch; "
+                         + f"GLL not used (the receiver sends GGA/RMC): {info.counters.get('nmea.gll_ignored', '0')}")
     bus = bus_line(info)
     if bus:
         lines.append(bus)

@@ -14,9 +14,10 @@ def add_parser(sub) -> None:
     s.add_argument("--seed", type=int, default=1, help="random seed of the sensor errors and clocks")
     s.add_argument("--pps", choices=["flag", "latch"], default=None,
                    help="PPS as a sampled flag or a latch (default: the scenario's, else flag)")
-    s.add_argument("--receiver", choices=["nmea", "ublox", "novatel"], default=None,
+    s.add_argument("--receiver", choices=["nmea", "ublox", "novatel", "septentrio"], default=None,
                    help="the GPS port's protocol (default: the scenario's, NMEA): u-blox sends GGA + UBX NAV-PVT "
-                        "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA")
+                        "+ TIM-TP, NovAtel BESTPOSA + BESTVELA + TIMEA, Septentrio SBF PVTGeodetic + "
+                        "PosCovGeodetic + VelCovGeodetic + ReceiverTime + xPPSOffset")
     s.add_argument("--can", action="store_true",
                    help="the car's CAN bus too: wheel speeds, steering, gear on an SLCAN adapter (data/sim-car.dbc)")
     s.add_argument("--mounting", type=_mounting, default=None, metavar="ROLL,PITCH,YAW",

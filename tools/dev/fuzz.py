@@ -5,17 +5,17 @@ that they reach the field decoders, the counter judge, the time sync and the MCA
     python -m fieldlog.tools.dev.fuzz --target all --runs 1000000 --crashes out/fuzz-crashes
     python -m fieldlog.tools.dev.fuzz --target ubx --atheris -max_total_time=3600 out/corpus   # coverage-guided
 
-Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary) through the pipeline's GPS path (framer, decoders,
-epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one read per input
-of a continuous simulated stream with valid GPS beside it; ``mcap`` through the reader (summary, chunks,
-metadata, every topic). Inputs start from valid bytes of the simulator's encoders (and mcap's own Writer),
-are mutated (bit flips, interesting bytes, hostile numbers in text fields, spans inserted, deleted,
-duplicated, spliced) and re-checksummed: NMEA ``*HH``, UBX Fletcher, NovAtel CRC-32 (ASCII and binary), DAQ
+Targets: ``nmea``, ``ubx``, ``novatel`` (ASCII and binary), ``sbf`` (Septentrio) through the pipeline's GPS path
+(framer, decoders, epochs, /gps/fix); ``daq`` through its DAQ path (decoder, counter judge, time sync, /imu), one
+read per input of a continuous simulated stream with valid GPS beside it; ``mcap`` through the reader (summary,
+chunks, metadata, every topic). Inputs start from valid bytes of the simulator's encoders (and mcap's own Writer),
+are mutated (bit flips, interesting bytes, hostile numbers in text fields, spans inserted, deleted, duplicated,
+spliced) and re-checksummed: NMEA ``*HH``, UBX Fletcher, NovAtel CRC-32 (ASCII and binary), SBF CRC-16, DAQ
 CRC-16, MCAP chunk CRC-32 (data section and summary CRCs set to 0, "not computed"). A *crash* is any exception
-escaping the target: for the pipeline, any processing error it would have counted; for the reader, any
-exception but the ValueError that commands report as bad input. Each crash is written to ``--crashes`` as
-``TARGET-KIND-HASH.bin`` (tests/test_fuzz.py replays the ones kept in tests/data/fuzz/). Without atheris the
-loop is a plain seeded random one (reproducible from ``--seed``).
+escaping the target: for the pipeline, any processing error it would have counted; for the reader, any exception
+but the ValueError that commands report as bad input. Each crash is written to ``--crashes`` as
+``TARGET-KIND-HASH.bin`` (tests/test_fuzz.py replays the ones kept in tests/data/fuzz/). Without atheris the loop
+is a plain seeded random one (reproducible from ``--seed``).
 """
 from __future__ import annotations
 
@@ -225,13 +225,13 @@ def _daq_run(t: Target, data: bytes) -> None:
 
 
 def _gps_decoders_run(t: Target, data: bytes) -> None:
-    """The GPS decoders alone (framer, NMEA with epochs, UBX, NovAtel): the fast loop of the CI tests."""
-    from fieldlog.acquire import gpsport, nmea, novatel, ubx
+    """The GPS decoders alone (framer, NMEA with epochs, UBX, NovAtel, SBF): the fast loop of the CI tests."""
+    from fieldlog.acquire import gpsport, nmea, novatel, sbf, ubx
 
     st = t.state
     if "framer" not in st or st["n"] >= 200:
         st.update(framer=gpsport.Framer(), nmea=nmea.NmeaDecoder(), epochs=nmea.EpochAssembler(),
-                  ubx=ubx.UbxDecoder(), oem=novatel.NovatelDecoder(), n=0)
+                  ubx=ubx.UbxDecoder(), oem=novatel.NovatelDecoder(), sbf=sbf.SbfDecoder(), n=0)
     st["n"] += 1
     for kind, frame in st["framer"].feed(data):
         if kind == "nmea":
@@ -241,6 +241,8 @@ def _gps_decoders_run(t: Target, data: bytes) -> None:
                     ep.utc_ns
         elif kind == "ubx":
             st["ubx"].decode(frame, st["n"])
+        elif kind == "sbf":
+            st["sbf"].decode(frame, st["n"])
         else:
             st["oem"].decode(kind, frame, st["n"])
 
@@ -296,6 +298,25 @@ def _novatel_binary(week: int, ms: int) -> bytes:
                                               struct.pack("<I", 1) + bytes(4))
 
 
+def _ubx_older(itow: int) -> bytes:
+    """An epoch of a receiver without NAV-PVT (NAV-POSLLH, NAV-SOL, NAV-VELNED, NAV-TIMEUTC, NAV-EOE), a
+    time-only NAV-PVT and an HNR-PVT, as pyubx2 writes them."""
+    from pyubx2 import UBXMessage
+
+    t = dict(year=2026, month=3, day=14, hour=12, min=0, validDate=1, validTime=1, nano=0, lat=48.1, lon=11.5,
+             height=500_000, hAcc=1500, vAcc=2500, sAcc=80)
+    return b"".join(m.serialize() for m in (
+        UBXMessage("NAV", "NAV-POSLLH", 0, iTOW=itow, lat=48.1, lon=11.5, height=500_000, hAcc=1500, vAcc=2500),
+        UBXMessage("NAV", "NAV-SOL", 0, iTOW=itow, week=2410, gpsFix=3, gpsfixOK=1, wknSet=1, towSet=1, numSV=9,
+                   sAcc=8),
+        UBXMessage("NAV", "NAV-VELNED", 0, iTOW=itow, velN=120, velE=-40, velD=3, sAcc=8),
+        UBXMessage("NAV", "NAV-TIMEUTC", 0, iTOW=itow, year=2026, month=3, day=14, hour=12, min=0,
+                   sec=itow // 1000 % 60, validTOW=1, validWKN=1, validUTC=1),
+        UBXMessage("NAV", "NAV-EOE", 0, iTOW=itow),
+        UBXMessage("NAV", "NAV-PVT", 0, iTOW=itow, **t, second=itow // 1000 % 60, fixType=5, gnssFixOk=1),
+        UBXMessage("HNR", "HNR-PVT", 0, iTOW=itow, **t, second=itow // 1000 % 60, gpsFix=4, GPSfixOK=1)))
+
+
 def _mcap_seed() -> bytes:
     """A small drive written by mcap's own Writer, uncompressed chunks of a few messages, with metadata."""
     from fieldlog.drive.records import CompressionType, Writer
@@ -317,9 +338,45 @@ def _mcap_seed() -> bytes:
     return buf.getvalue()
 
 
+# ------------------------------------------------------------------------------------------ SBF
+
+def fix_sbf(data: bytes) -> bytes:
+    """Septentrio SBF CRC-16s rewritten: each '$@' whose length field is a block length gets the CRC of its id,
+    length and body."""
+    from fieldlog.acquire import gpsport
+
+    data = bytearray(data)
+    for m in re.finditer(rb"\$@", bytes(data)):
+        p = m.start()
+        if p + 8 > len(data):
+            break
+        ln = int.from_bytes(data[p + 6:p + 8], "little")
+        if ln >= 8 and ln % 4 == 0 and p + ln <= len(data):
+            data[p + 2:p + 4] = gpsport.sbf_crc(bytes(data[p + 4:p + ln])).to_bytes(2, "little")
+    return bytes(data)
+
+
+def make_sbf_target(fast: bool = False) -> Target:
+    """Target ``sbf``: a simulated Septentrio receiver's blocks (PVTGeodetic, PosCovGeodetic, VelCovGeodetic,
+    ReceiverTime, xPPSOffset), five to an input, through the pipeline's GPS path (``fast``: the decoders)."""
+    from fieldlog.acquire import gpsport
+
+    gps = b"".join(r.data for r in _sim_reads("septentrio") if r.port == "gps")
+    frames = [f for _, f in gpsport.Framer().feed(gps)]
+    group = 1 if fast else 5
+    seeds = [b"".join(frames[i:i + group]) for i in range(0, len(frames), group)]
+    return Target("sbf", seeds, _gps_decoders_run if fast else _gps_run)
+
+
+TARGETS = (*TARGETS, "sbf")
+FIXES["sbf"] = fix_sbf
+
+
 def make_target(name: str, fast: bool = False) -> Target:
-    """Target ``name``; ``fast``: the decoders without the pipeline (nmea, ubx, novatel), the decoder and the
+    """Target ``name``; ``fast``: the decoders without the pipeline (nmea, ubx, novatel, sbf), the decoder and the
     counter judge without the time sync (daq)."""
+    if name == "sbf":
+        return make_sbf_target(fast)
     if name in ("nmea", "ubx", "novatel"):
         from fieldlog.acquire import gpsport
 
@@ -329,6 +386,8 @@ def make_target(name: str, fast: bool = False) -> Target:
         seeds = [b"".join(frames[i:i + group]) for i in range(0, len(frames), group)]
         if name == "novatel":
             seeds += [_novatel_binary(2300, 1000 * k) for k in range(4)]
+        if name == "ubx":
+            seeds += [_ubx_older(1000 * k) for k in range(4)]
         return Target(name, seeds, _gps_decoders_run if fast else _gps_run)
     if name == "daq":
         reads = _sim_reads("nmea", 20.0)

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire import gpsport, nmea, novatel
+from fieldlog.acquire import gpsport, nmea, novatel, sbf
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.fusion import earth
@@ -20,7 +20,7 @@ from fieldlog.tools.sim.sensors import gauss_markov
 
 NS = 1_000_000_000
 NMEA_TICK_NS = 10_000_000  # NMEA times are written to the centisecond
-RECEIVERS = ("nmea", "ublox", "novatel")
+RECEIVERS = ("nmea", "ublox", "novatel", "septentrio")
 LEAP_S = 18                # GPS - UTC of the simulated drives (2017 on)
 NOVATEL_UNDULATION_M = 47.0
 
@@ -58,8 +58,9 @@ class GpsConfig:
     pps_in_outage: bool = True     # the receiver keeps its time pulse from its own clock through outages
     noise_tau_s: float = 0.0       # correlation time of the white_* and vel_noise terms (0: white)
     noise_schedule: list = field(default_factory=list)  # [{start_s, end_s, scale}, ...]: unreported noise scale
-    receiver: str = "nmea"         # what the port sends: 'nmea', 'ublox' (GGA + UBX NAV-PVT + TIM-TP), 'novatel'
-    qerr_step_ns: float = 1e9 / 48e6   # u-blox: the time pulse is put out on this clock grid (TIM-TP qErr)
+    receiver: str = "nmea"         # what the port sends: 'nmea', 'ublox' (GGA + UBX NAV-PVT + TIM-TP), 'novatel',
+                                   # 'septentrio' (SBF PVTGeodetic + PosCovGeodetic + VelCovGeodetic + xPPSOffset)
+    qerr_step_ns: float = 1e9 / 48e6   # u-blox, Septentrio: the time pulse is put out on this clock grid
     clock_jumps: list = field(default_factory=list)  # [[start_s, len_s, offset_s], ...]: reported time off
 
     def __post_init__(self) -> None:
@@ -175,9 +176,10 @@ def gps_solution(truth, seconds: np.ndarray, cfg: GpsConfig, rng: np.random.Gene
 
 
 def pulse_errors(n: int, cfg: GpsConfig, rng: np.random.Generator) -> np.ndarray | None:
-    """u-blox: how late each time pulse comes (s), the quantisation of its clock grid (uniform over one step);
-    TIM-TP reports it as qErr. None for the other receivers (their pulse error is the clock model's jitter)."""
-    if cfg.receiver != "ublox":
+    """u-blox and Septentrio: how late each time pulse comes (s), the quantisation of its clock grid (uniform over
+    one step); u-blox reports it before the pulse (TIM-TP qErr), Septentrio after it (xPPSOffset). None for the
+    other receivers (their pulse error is the clock model's jitter)."""
+    if cfg.receiver not in ("ublox", "septentrio"):
         return None
     return rng.uniform(-0.5, 0.5, n) * cfg.qerr_step_ns * 1e-9
 
@@ -214,6 +216,9 @@ def nmea_bursts(sol: dict[str, np.ndarray], utc_ns: np.ndarray, cfg: GpsConfig,
                                  int(utc_ns[0] + shown[i] - utc_ns[i]))
         elif cfg.receiver == "novatel":
             burst = _novatel_burst(sol, i, int(shown[i]), lat, lon, h, ok, cfg)
+        elif cfg.receiver == "septentrio":
+            burst = _septentrio_burst(sol, i, int(shown[i]), lat, lon, h, ok, cfg, qerr_s,
+                                      int(utc_ns[0] + shown[i] - utc_ns[i]))
         else:
             burst = [
                 nmea.format_gga(cfg.talker, tod, lat, lon, 1 if ok else 0, cfg.num_sats if ok else 0, hdop, h, 0.0,
@@ -284,6 +289,42 @@ def _novatel_burst(sol: dict[str, np.ndarray], i: int, utc_ns: int, lat: float, 
         dt = datetime.fromtimestamp(utc_ns // NS, tz=timezone.utc)
         out.append(novatel.format_timea(week, ms / 1000, LEAP_S, (dt.year, dt.month, dt.day, dt.hour, dt.minute,
                                                                   dt.second * 1000)))
+    return out
+
+
+def _septentrio_burst(sol: dict[str, np.ndarray], i: int, utc_ns: int, lat: float, lon: float, h: float, ok: bool,
+                      cfg: GpsConfig, qerr_s: np.ndarray | None, first_ns: int) -> list[bytes]:
+    """What a Septentrio port logging PVTGeodetic, PosCovGeodetic and VelCovGeodetic on each epoch sends, with
+    ReceiverTime and, after the pulse of that second, xPPSOffset on whole seconds (SBF blocks by pysbf2)."""
+    from pysbf2 import SBFMessage
+
+    week, ms = _gps_week_ms(utc_ns)
+    dnu = sbf.DNU_FLOAT
+    sd_h, sd_v = float(sol["sigma_h"][i]), float(sol["sigma_v"][i])
+    sacc = cfg.vel_noise_mps * float(sol["factor"][i])
+    vE, vN, vU = (float(v) for v in sol["v_n"][i]) if ok else (dnu, dnu, dnu)
+    mode, err = (1, 0) if ok else (0, 1)
+    pvt = SBFMessage("PVTGeodetic", TOW=ms, WNc=week, Type=mode, Error=err,
+                     Latitude=np.radians(lat) if ok else dnu, Longitude=np.radians(lon) if ok else dnu,
+                     Height=h if ok else dnu, Undulation=0.0, Vn=vN, Ve=vE, Vu=vU, COG=dnu, NrSV=cfg.num_sats if ok else 0,
+                     HAccuracy=round(sd_h * sbf.TWO_SQRT2 * 100) if ok else sbf.HACC_DNU_CM,
+                     VAccuracy=round(sd_v * 2 * 100) if ok else sbf.HACC_DNU_CM, scaling=False)
+    cov = (sd_h**2, sd_h**2, sd_v**2) if ok else (dnu, dnu, dnu)
+    pos = SBFMessage("PosCovGeodetic", TOW=ms, WNc=week, Type=mode, Error=err, Cov_latlat=cov[0],
+                     Cov_lonlon=cov[1], Cov_hgthgt=cov[2], scaling=False)
+    vcov = (sacc**2,) * 3 if ok else (dnu, dnu, dnu)
+    vel = SBFMessage("VelCovGeodetic", TOW=ms, WNc=week, Type=mode, Error=err, Cov_VnVn=vcov[0], Cov_VeVe=vcov[1],
+                     Cov_VuVu=vcov[2], scaling=False)
+    out = [pvt.serialize(), pos.serialize(), vel.serialize()]
+    if utc_ns % NS == 0:
+        dt = datetime.fromtimestamp(utc_ns // NS, tz=timezone.utc)
+        out.append(SBFMessage("ReceiverTime", TOW=ms, WNc=week, UTCYear=dt.year % 100, UTCMonth=dt.month,
+                              UTCDay=dt.day, UTCHour=dt.hour, UTCMin=dt.minute, UTCSec=dt.second, DeltaLS=LEAP_S,
+                              SyncLevel=7, scaling=False).serialize())
+        j = (utc_ns - first_ns) // NS
+        if qerr_s is not None and 0 <= j < len(qerr_s):
+            out.append(SBFMessage("xPPSOffset", TOW=ms, WNc=week, SyncAge=0, TimeScale=sbf.TIME_SCALE_GPS,
+                                  Offset=float(qerr_s[j] * 1e9), scaling=False).serialize())
     return out
 
 
