@@ -112,9 +112,40 @@ def test_the_reference_mounting_is_steady_along_the_drive(segment):
     assert abs(rpy[1]) > 3 * sd[1], (rpy, sd)
 
 
-def test_json_reports_the_drive(drive, tmp_path, capsys):
-    """The real drive's --json summary parses."""
+def test_the_wheel_scale_is_estimated_with_its_sigma(segment, drive, tmp_path, capsys):
+    """``fuse --json`` reports the wheels' scale factor with its sigma; the scale agrees within 3 sigma (and the
+    reference's own spread) with the ratio of the rear wheels' speed to the reference pose's speed over the
+    segment, and its sigma is the drive's, well above one sample's quantisation (resolution / sqrt(12)) over the
+    speed."""
     capsys.readouterr()
-    _fused_error(drive, tmp_path, "plain", outage=False)
+    _fused_error(drive, tmp_path, "plain", "kf", False)
     summary = json.loads(capsys.readouterr().out)
-    assert isinstance(summary, dict) and summary, summary
+    scale, sigma = summary["odometer_scale"], summary["odometer_scale_sigma"]
+    ref = reference(segment)
+    v_ref = np.interp(boot_to_utc_ns(segment, segment["wheel_speed_t"]), ref["t_ns"],
+                      np.linalg.norm(ref["v_n"], axis=1))
+    v_rear = segment["wheel_speed"][:, 2:].mean(axis=1)
+    fast = v_ref > 3.0
+    ratio = np.sum(v_rear[fast]) / np.sum(v_ref[fast])
+    assert abs(scale - ratio) < 3 * sigma, (scale, sigma, ratio)
+    assert sigma > 3 * DBC_RESOLUTION_MPS / np.sqrt(12) / np.mean(v_ref[fast]), sigma  # not the quantisation
+    assert summary["odometer_slip_skipped"] < 0.05 * len(segment["gnss_t"]), summary["odometer_slip_skipped"]
+
+
+def test_nhc_and_odometer_switch_off_one_by_one(drive, tmp_path):
+    """``nhc = false`` changes the solution while the odometer is on (the odometer drops its NHC rows), and the
+    default (odometer with the NHC) bridges the withheld windows no worse than with both aids off."""
+    runs = {}
+    for name, table in (("default", ""), ("no-nhc", "nhc = false\n"),
+                        ("aids-off", "nhc = false\nodometer = false\n")):
+        cfg = tmp_path / f"{name}.toml"
+        cfg.write_text("[fusion]\n" + table)
+        runs[name] = _fused_error(drive, tmp_path, name, "kf", True, "--config", str(cfg))
+    assert not np.array_equal(runs["default"][1], runs["no-nhc"][1])
+    t0 = int(runs["default"][0][0])
+    for a, n in OUTAGES:
+        worst = {}
+        for name, (t, e) in runs.items():
+            w = (t >= t0 + a * 1e9) & (t < t0 + (a + n) * 1e9)
+            worst[name] = np.nanmax(e[w])
+        assert worst["default"] <= worst["aids-off"], (a, worst)

@@ -54,7 +54,7 @@ import numpy as np
 from fieldlog.acquire import calib, messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, from_table, read_toml, typed_value
 from fieldlog.acquire.recorder import Recorder
-from fieldlog.fusion import hinf, imugrade
+from fieldlog.fusion import hinf, imugrade, measurements
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
@@ -118,6 +118,7 @@ class FuseResult:
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
+    odometer: dict[str, float] | None = None  # the wheel odometer's scale, its sigma, epochs used and slip-skipped
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
 
 
@@ -377,4 +378,14 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      Solution.concat(kept) if keep else None)
+                      odometer_summary(engine), Solution.concat(kept) if keep else None)
+
+
+def odometer_summary(engine: Engine) -> dict[str, float] | None:
+    """The wheel odometer's fitted scale factor and its sigma (``fusion.odometer.ScaleEstimator``), the epochs it
+    updated at and those among them skipped as slip; None when the run had no odometer or no wheel speed."""
+    odo = [p for m in engine.measurements for p in getattr(m, "parts", (m,)) if isinstance(p, measurements.Odometer)]
+    if not odo or not odo[0].times:
+        return None
+    return {"scale": odo[0].scale.scale, "scale_sigma": odo[0].scale.sigma, "epochs": len(odo[0].times),
+            "slip_skipped": len(odo[0].slip_skipped)}
