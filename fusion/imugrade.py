@@ -222,6 +222,20 @@ def settings(table: dict) -> dict:
     return {**out, **{k: v for k, v in table.items() if k not in sheet}}
 
 
+def sources(table: dict) -> dict[str, str]:
+    """For each FusionConfig key ``settings(table)`` sets from the grade or the datasheet keys (not the table's
+    own FusionConfig keys): where it came from, ``"grade NAME"`` or ``"datasheet KEY[, KEY]"``."""
+    sheet = [k for k in DATASHEET_KEYS if k in table]
+    name = table.get("imu", "")
+    out = {k: f"grade {name}" for k in grade(name).filter_settings()} if isinstance(name, str) and name else {}
+    by_key: dict[str, list[str]] = {}
+    for k in sheet:
+        for derived in _derived({k: table[k]}):
+            by_key.setdefault(derived, []).append(k)
+    out.update({k: "datasheet " + ", ".join(keys) for k, keys in by_key.items()})
+    return {k: v for k, v in out.items() if k not in table}
+
+
 def _derived(sheet: dict) -> set[str]:
     """The FusionConfig keys the given datasheet keys set."""
     probe = ImuGrade(**asdict(GRADES["tactical"]))

@@ -14,8 +14,8 @@ GPS-UTC leap seconds of the drive's date (18 s in 2018). A NavSatFix is stamped 
 ``utc_timestamp`` and logged at its boot arrival time mapped to UTC; the IMU and the CAN frames are stamped and
 logged at their boot times mapped to UTC.
 
-Run as a script (``python tests/comma2k19.py OUTDIR``) it writes ``drive.mcap``, ``wheels.log`` and the DBC there
-(docs/results.md, "Real drives").
+Run as a script (``python tests/comma2k19.py OUTDIR [--score]``) it writes ``drive.mcap``, ``wheels.log`` and the
+DBC there, and with ``--score`` prints the figures of docs/results.md, "Real drives".
 """
 from __future__ import annotations
 
@@ -186,6 +186,47 @@ def horizontal_error_m(ref: dict[str, np.ndarray], t_ns: np.ndarray, lat_deg: np
     return np.where(inside, np.hypot(de, dn), np.nan)
 
 
+OUTAGES = ((20.0, 15.0), (40.0, 12.0))  # s from the first IMU sample: GNSS withheld (the car moves throughout)
+SWITCHES = {"defaults": "", "nhc = false": "nhc = false\n", "odometer = false": "odometer = false\n",
+            "aids off": "nhc = false\nodometer = false\n"}
+
+
+def score(seg: dict[str, np.ndarray], drive: Path) -> None:
+    """Print docs/results.md's "Real drives" table: kf with each aid switch and free INS, GNSS withheld in
+    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m)."""
+    import contextlib
+    import io
+    import json
+
+    from fieldlog.replay import reader
+    from fieldlog.tools.cli import main as fieldlog
+
+    ref = reference(seg)
+    t0 = int(boot_to_utc_ns(seg, seg["imu_t"][:1])[0])
+    runs = [(name, "kf", table) for name, table in SWITCHES.items()] + [("ins", "ins", "")]
+    for name, method, table in runs:
+        cfg = drive.with_name(f"{method}-{len(table)}.toml")
+        cfg.write_text("[fusion]\n" + table)
+        out = drive.with_name(f"{method}-{len(table)}.mcap")
+        args = ["fuse", str(drive), "--method", method, "--out", str(out), "--imu-topic", IMU_TOPIC, "--fix-topic",
+                FIX_TOPIC, "--vel-topic", VEL_TOPIC, "--odom-topic", ODOM_TOPIC, "--config", str(cfg), "--force",
+                "--json"] + [x for a, n in OUTAGES for x in ("--outage", f"{a:g}:{n:g}")]
+        with contextlib.redirect_stdout(io.StringIO()) as summary:
+            fieldlog(args)
+        js = json.loads(summary.getvalue())
+        f = reader.read_topic(out, f"/fusion/{method}/fix")
+        t = f["log_time_ns"]
+        e = horizontal_error_m(ref, t, f["lat_deg"], f["lon_deg"])
+        windows = [(t >= t0 + a * 1e9) & (t < t0 + (a + n) * 1e9) for a, n in OUTAGES]
+        aided = ~np.any(windows, axis=0) & (t > t0 + 5e9)
+        print(f"| {method} {name} | {np.nanmedian(e[aided]):.2f} | "
+              + " | ".join(f"{np.nanmax(e[w]):.2f}" for w in windows)
+              + f" | scale {js['odometer_scale']} +- {js['odometer_scale_sigma']}, slip {js['odometer_slip_skipped']}")
+    fix = seg["gnss_value"]
+    e_fix = horizontal_error_m(ref, (fix[:, 3] * 1e6).astype(np.int64), fix[:, 0], fix[:, 1])
+    print(f"fixes: median {np.nanmedian(e_fix):.2f} m")
+
+
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     dest = Path(sys.argv[1])
@@ -196,3 +237,5 @@ if __name__ == "__main__":
     shutil.copy(DBC, dest / DBC.name)
     print(f"wrote {dest}/drive.mcap, wheels.log, {DBC.name}; boot->GPS offset {boot_to_gps_s(segment)} s; "
           f"mounting roll, pitch, yaw {mounting_deg(segment)} deg")
+    if "--score" in sys.argv[2:]:
+        score(segment, dest / "drive.mcap")

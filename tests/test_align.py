@@ -416,7 +416,8 @@ def test_a_large_bias_instability_stays_a_bias_process():
     """A phone's datasheet (VRW 0.1 m/s/sqrt(h), accelerometer bias instability 2000 ug; ARW 0.3 deg/sqrt(h), gyro
     bias instability 50 deg/h): the white noise densities are the datasheet's VRW and ARW, whatever the bias
     instability, while the bias random walk and prior grow with it (a bias process); ten times the instability
-    moves the bias process and leaves the white noise where it was."""
+    moves the bias process and leaves the white noise where it was; each setting's source is the datasheet key or
+    the grade that set it (``imugrade.sources``, shown by ``fuse -v``)."""
     sheet = {"accel_vrw_mps_rth": 0.1, "accel_bias_instability_ug": 2000.0, "accel_bias_corr_time_s": 100.0,
              "gyro_arw_deg_rth": 0.3, "gyro_bias_instability_dph": 50.0, "gyro_bias_corr_time_s": 100.0}
     small = {**sheet, "accel_bias_instability_ug": 200.0, "gyro_bias_instability_dph": 5.0}
@@ -428,6 +429,10 @@ def test_a_large_bias_instability_stays_a_bias_process():
     for k in ("accel_bias_rw_ug_rts", "gyro_bias_rw_dps_rts"):
         assert getattr(big.sensor, k) == pytest.approx(10.0 * getattr(little.sensor, k)), k
     assert big.init.init_accel_bias_sigma_ug > 2000.0 > little.init.init_accel_bias_sigma_ug
+    src = imugrade.sources({**sheet, "imu": "s000-mems", "gyro_noise_dps_rthz": 0.02})   # what fuse -v names
+    assert src["accel_noise_ug_rthz"] == "datasheet accel_vrw_mps_rth"
+    assert "accel_bias_instability_ug" in src["accel_bias_rw_ug_rts"] and "gyro_noise_dps_rthz" not in src
+    assert src["gyro_scale_factor_ppm"] == "grade s000-mems"
 
 
 @pytest.mark.parametrize("grade", ["tactical", "navigation", "s000-mems"])

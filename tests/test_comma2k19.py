@@ -7,14 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from comma2k19 import (DBC, DBC_RESOLUTION_MPS, FIX_TOPIC, IMU_TOPIC, ODOM_TOPIC, VEL_TOPIC, WHEEL_SIGNALS, boot_to_gps_s,
+from comma2k19 import (DBC, DBC_RESOLUTION_MPS, FIX_TOPIC, OUTAGES, IMU_TOPIC, ODOM_TOPIC, VEL_TOPIC, WHEEL_SIGNALS, boot_to_gps_s,
                        boot_to_utc_ns, horizontal_error_m, load, mounting_deg, reference, write_candump, write_drive)
 from fieldlog.replay import reader
 
 pytest.importorskip("can", reason="needs python-can (the can extra)")
 pytest.importorskip("mcap_ros2", reason="needs mcap_ros2 (the dev extra)")
 
-OUTAGES = ((20.0, 15.0), (40.0, 12.0))  # s from the first IMU sample: GNSS withheld (the car moves throughout)
 
 
 @pytest.fixture(scope="module")

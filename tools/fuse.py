@@ -243,7 +243,9 @@ def settings(drive: DriveSpec, config_path: str | os.PathLike[str] | None = None
             raise
         raise ValueError(f"{label(drive)}: its fusion.config record: {e}") from None
     given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
-    sources = {f: (where if f in given else "default") for f in FLAT_KEYS}
+    derived = imugrade.sources(table)
+    sources = {f: (f"{where}, {derived[f]}" if f in derived else where if f in given else "default")
+               for f in FLAT_KEYS}
     sources["predictor"] = where if "predictor" in given else "default"
     if "lever_arm_b" not in given and imap.lever_arm_b is not None:
         cfg = cfg.replace(lever_arm_b=tuple(float(x) for x in imap.lever_arm_b), lever_arm_frame="rfu")
