@@ -199,10 +199,10 @@ class Odometer:
     do not lag it; its variance is the topic's plus ``sigma_mps`` squared (slip, tyre deformation, stamp error).
     The scale factor is fitted while GPS is good against the GPS velocity's forward component
     (``odometer.ScaleEstimator``; not the INS's, which this aid itself corrects). ``feed`` takes the rows as the
-    engine reads them; ``times``: the epochs it gave a measurement at; ``slip_skipped``: those among them whose
-    wheel speed failed the slip test (the NHC's zeros only; without ``nhc`` none). Without rows near an epoch it
-    gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the forward
-    row alone)."""
+    engine reads them; ``times``: the epochs it gave a measurement at; ``slip_skipped``: the epochs whose wheel
+    speed failed the slip test (then the NHC's zeros only; without ``nhc`` no measurement). Without rows near an
+    epoch it gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the
+    forward row alone)."""
 
     lever_b: np.ndarray
     sigma_mps: float
@@ -256,7 +256,6 @@ class Odometer:
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
         z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
                                                 self.scale.sigma, self.nhc_sigma_mps)
-        self.times.append(m.epoch.t_ns)
         if z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
             self.slip_skipped.append(m.epoch.t_ns)
             rows = [0, 2] if self.nhc else []
@@ -270,6 +269,7 @@ class Odometer:
                 self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2]))
         if not rows:
             return None
+        self.times.append(m.epoch.t_ns)
         return z[rows], H[rows], R[np.ix_(rows, rows)]
 
 

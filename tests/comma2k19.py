@@ -3,7 +3,8 @@ and comma's reference pose) written out as other loggers would write it, by thir
 
 - ``write_candump``: the wheel-speed and speed frames as a candump log (python-can's ``CanutilsLogWriter``);
 - ``write_drive``: an MCAP drive (mcap_ros2's ``Writer``) with ``sensor_msgs/Imu`` in the phone's FRD frame and a
-  ``/tf_static`` saying so, ``sensor_msgs/NavSatFix``, the receiver's speed and bearing as an ENU ``TwistWithCovarianceStamped`` and the rear-axle wheel speed as ``TwistStamped``;
+  ``/tf_static`` saying so, ``sensor_msgs/NavSatFix``, the receiver's speed and bearing as an ENU
+  ``TwistWithCovarianceStamped`` and the rear wheels' mean speed as ``TwistStamped``;
 - ``reference``: the reference pose (ECEF positions and velocities, camera orientation) as geodetic tracks;
 - ``mounting_deg``: the device's mounting against the car from the reference pose.
 

@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from comma2k19 import (DBC, DBC_RESOLUTION_MPS, FIX_TOPIC, OUTAGES, IMU_TOPIC, ODOM_TOPIC, VEL_TOPIC, WHEEL_SIGNALS, boot_to_gps_s,
-                       boot_to_utc_ns, horizontal_error_m, load, mounting_deg, reference, write_candump, write_drive)
+from comma2k19 import (DBC, DBC_RESOLUTION_MPS, FIX_TOPIC, IMU_TOPIC, ODOM_TOPIC, OUTAGES, VEL_TOPIC,
+                       WHEEL_SIGNALS, boot_to_gps_s, boot_to_utc_ns, horizontal_error_m, load, mounting_deg,
+                       reference, write_candump, write_drive)
 from fieldlog.replay import reader
 
 pytest.importorskip("can", reason="needs python-can (the can extra)")
