@@ -6,7 +6,8 @@ and comma's reference pose) written out as other loggers would write it, by thir
   ``/tf_static`` saying so, ``sensor_msgs/NavSatFix``, the receiver's speed and bearing as an ENU
   ``TwistWithCovarianceStamped`` and the rear wheels' mean speed as ``TwistStamped``;
 - ``reference``: the reference pose (ECEF positions and velocities, camera orientation) as geodetic tracks;
-- ``mounting_deg``: the device's mounting against the car from the reference pose.
+- ``mounting_deg``: the device's mounting against the car from the reference pose; ``attitude_error_deg``: a fused
+  attitude against the reference's.
 
 Clocks. The segment stamps everything on the phone's boot clock (s). ``global_pose/frame_gps_times`` gives
 (GPS week, time of week) for each reference frame's boot time: their difference is one constant over the segment
@@ -90,6 +91,18 @@ def mounting_deg(seg: dict[str, np.ndarray], min_speed_mps: float = 5.0) -> tupl
     roll = np.arcsin(-right[:, 2] / np.cos(np.arcsin(fwd[:, 2])))            # right axis down: roll right
     rpy = np.degrees(np.stack([roll, pitch, yaw], axis=1))
     return rpy.mean(axis=0), rpy.std(axis=0)
+
+
+def attitude_error_deg(ref: dict[str, np.ndarray], t_ns: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """The error angles (deg, about east, north, up; small-angle) of a fused attitude (quaternions body RFU -> ENU,
+    x, y, z, w, at t_ns) against the reference camera's, the phone's FRD axes taken as its body's, at the nearest
+    reference frame."""
+    from foreign_drives import TO_FRAME
+
+    i = np.clip(np.searchsorted(ref["t_ns"], t_ns), 0, len(ref["t_ns"]) - 1)
+    C_ref = ref["C_fn"][i] @ TO_FRAME["frd"]                   # body RFU -> ENU
+    E = np.einsum("kij,klj->kil", earth.quat_to_dcm(q_xyzw), C_ref)
+    return np.degrees(np.stack([E[:, 2, 1] - E[:, 1, 2], E[:, 0, 2] - E[:, 2, 0], E[:, 1, 0] - E[:, 0, 1]], 1) / 2)
 
 
 def write_candump(seg: dict[str, np.ndarray], out: Path) -> Path:

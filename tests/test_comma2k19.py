@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from comma2k19 import (DBC, DBC_RESOLUTION_MPS, FIX_TOPIC, IMU_TOPIC, ODOM_TOPIC, OUTAGES, VEL_TOPIC,
+from comma2k19 import (DBC, attitude_error_deg, DBC_RESOLUTION_MPS, FIX_TOPIC, IMU_TOPIC, ODOM_TOPIC, OUTAGES, VEL_TOPIC,
                        WHEEL_SIGNALS, boot_to_gps_s, boot_to_utc_ns, horizontal_error_m, load, mounting_deg,
                        reference, write_candump, write_drive)
 from fieldlog.replay import reader
@@ -110,6 +110,21 @@ def test_the_reference_mounting_is_steady_along_the_drive(segment):
     for i in (1, 2):
         assert abs(a[i] - b[i]) < 3 * np.hypot(sa[i], sb[i]), (i, a, b, sa, sb)
     assert abs(rpy[1]) > 3 * sd[1], (rpy, sd)
+
+
+def test_the_fused_attitude_errs_by_no_more_than_the_unmodelled_mounting(segment, drive, tmp_path):
+    """kf's attitude against the reference camera's (the phone's axes as the body's): the filter does not know the
+    phone is pitched and yawed against the car, and the wheel aids hold the body's forward axis along the
+    velocity, so the attitude may err by up to the mounting angles; its mean error about each axis stays within
+    the mounting's largest angle plus 1 degree, and the heading error (about up) within the mounting's yaw plus
+    1 degree."""
+    _fused_error(drive, tmp_path, "attitude", "kf", False)
+    a = reader.read_topic(tmp_path / "attitude.mcap", "/fusion/kf/attitude")
+    err = attitude_error_deg(reference(segment), a["log_time_ns"], a["q_xyzw"])
+    rpy, _ = mounting_deg(segment)
+    mean_abs = np.abs(err[len(err) // 10:]).mean(axis=0)    # after the first seconds' alignment
+    assert np.all(mean_abs < np.abs(rpy).max() + 1.0), (mean_abs, rpy)
+    assert mean_abs[2] < abs(rpy[2]) + 1.0, (mean_abs, rpy)
 
 
 def test_the_wheel_scale_is_estimated_with_its_sigma(segment, drive, tmp_path, capsys):
