@@ -124,12 +124,14 @@ class StillConfig:
 class AidConfig:
     """The vehicle aids of a car (``fusion.measurements``): they need no GPS and act in outages too."""
 
-    nhc: bool = True  # non-holonomic constraint of a car (body lateral, vertical velocity 0) at every epoch
+    nhc: bool = True  # non-holonomic constraint of a car (body lateral, vertical velocity 0) at every epoch;
+    # with the odometer on, its lateral and vertical rows (false: the odometer's forward row alone)
     nhc_sigma_mps: float = 0.1
     zupt: bool = True  # zero-velocity and zero-angular-rate update when the vehicle stands still
     zupt_sigma_mps: float = 0.02
     static_speed_mps: float = 0.3  # below this GPS speed the car is slow: no non-holonomic constraint
     odometer: bool = True  # the wheel speeds (/vehicle/twist or --odom-topic) with the NHC, when the drive has them
+    # (false: the NHC alone; fusion.odometer, "With the NHC and without")
     odometer_lever_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> rear axle centre, body RFU, m
     odometer_sigma_mps: float = 0.02  # the wheel speed's sigma when the topic gives no variance
 

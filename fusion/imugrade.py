@@ -12,8 +12,8 @@ Datasheet units and their conversion into ``FusionConfig`` (``settings``):
 ==============================  =========================  ===========================================
 key                             unit                       FusionConfig
 ==============================  =========================  ===========================================
-gyro_arw_deg_rth                deg/sqrt(h)                gyro_noise_dps_rthz = hypot(ARW / 60, n(B))
-accel_vrw_mps_rth               m/s/sqrt(h)                accel_noise_ug_rthz = hypot(VRW / 60 / 1 ug, n(B))
+gyro_arw_deg_rth                deg/sqrt(h)                gyro_noise_dps_rthz = ARW / 60
+accel_vrw_mps_rth               m/s/sqrt(h)                accel_noise_ug_rthz = VRW / 60 / 1 ug
 gyro_bias_instability_dph       deg/h, with                gyro_bias_rw_dps_rts = q(B, T),
 gyro_bias_corr_time_s           T in s                     init_gyro_bias_sigma_dps = B (the floor of
                                                            the bias after a static mean)
@@ -32,14 +32,16 @@ as flicker noise (``tools.sim.sensors``): variance B^2 / pi per e-fold of correl
 read two ways, and the filter takes the more conservative (``flicker_bias``):
 
 - a first-order Gauss-Markov bias of standard deviation B and correlation time T (driving noise PSD 2 B^2 / T);
-- flicker with correlation times from 1 s (faster components average out within the filter's epochs: noise) to
+- flicker with correlation times from 1 s (faster ones are in the ARW and VRW: below) to
   T_f = max(T, 1e4 s) (the floor holds over a drive's hours, as in the simulator), whose standard deviation is
   s = B sqrt(ln(T_f / 1 s) / pi) (1.7 B) and whose change over a time tau has the variance
   D(tau) = (2 B^2 / pi) integral over ln T' in [0, ln T_f] of (1 - exp(-tau / T')).
 
-The components faster than 1 s are white noise to the filter: a Gauss-Markov component of variance s_i^2 and
-correlation time T_i integrates like white noise of density sqrt(2 s_i^2 T_i), so the components from 0 to 1 s
-add the density n(B) = B sqrt(2 x 1 s / pi) (0.8 B per sqrt(Hz)) to the random walk of the datasheet.
+The bias instability stays a bias process, never white noise: the datasheet's white noise densities are the
+ARW and VRW alone. Components of the flicker faster than 1 s are below the averaging times at which a datasheet
+reads B off the Allan deviation's floor, where the Allan curve is the white noise the ARW and VRW already give;
+counting them again as white noise would turn a large B (a phone's 2000 ug) into a white density of 0.8 B per
+sqrt(Hz), far above the sensor's own (test_a_large_bias_instability_stays_a_bias_process).
 
 The 15-state model (``fusion.errmodel``) carries random-walk biases, so B and T become **an equivalent random
 walk**: q(B, T) = max(B sqrt(2 / T), sqrt(D(60 s) / 60 s)), the Gauss-Markov driving noise or the random walk
@@ -111,10 +113,10 @@ class ImuGrade:
 
     def filter_settings(self) -> dict[str, float]:
         """The datasheet converted into FusionConfig keys (module docstring)."""
-        s_g, q_g, n_g = flicker_bias(self.gyro_bias_instability_dph / 3600.0, self.gyro_bias_corr_time_s)
-        s_a, q_a, n_a = flicker_bias(self.accel_bias_instability_ug, self.accel_bias_corr_time_s)
-        out = dict(gyro_noise_dps_rthz=math.hypot(self.gyro_arw_deg_rth / 60.0, n_g),
-                   accel_noise_ug_rthz=math.hypot(self.accel_vrw_mps_rth / 60.0 / _UG, n_a),
+        s_g, q_g = flicker_bias(self.gyro_bias_instability_dph / 3600.0, self.gyro_bias_corr_time_s)
+        s_a, q_a = flicker_bias(self.accel_bias_instability_ug, self.accel_bias_corr_time_s)
+        out = dict(gyro_noise_dps_rthz=self.gyro_arw_deg_rth / 60.0,
+                   accel_noise_ug_rthz=self.accel_vrw_mps_rth / 60.0 / _UG,
                    gyro_bias_rw_dps_rts=q_g, accel_bias_rw_ug_rts=q_a,
                    init_gyro_bias_sigma_dps=self.gyro_bias_instability_dph / 3600.0,
                    gyro_bias_prior_sigma_dps=math.hypot(self.gyro_turn_on_bias_dph / 3600.0, s_g),
@@ -127,23 +129,21 @@ class ImuGrade:
         return out
 
 
-FLICKER_FROM_S = 1.0  # s: bias-instability components faster than this are noise to the filter
+FLICKER_FROM_S = 1.0  # s: bias-instability components faster than this are in the datasheet's ARW/VRW
 FLICKER_TO_S = 1.0e4  # s: ... and slower than this (or the datasheet's T) constant over a drive
 BIAS_LEAN_S = 60.0  # s: the time over which the filter leans on its bias estimate
 
 
-def flicker_bias(b: float, t_corr: float) -> tuple[float, float, float]:
-    """Standard deviation (b's unit), equivalent random walk (b's unit per sqrt(s)) and white-noise density of the
-    fast part (b's unit per sqrt(Hz)) of a bias instability b with correlation time t_corr (s): the more
-    conservative of the Gauss-Markov and the flicker readings (module docstring): (max(b, s), max(b sqrt(2 / T),
-    sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S)), b sqrt(2 FLICKER_FROM_S / pi))."""
+def flicker_bias(b: float, t_corr: float) -> tuple[float, float]:
+    """Standard deviation (b's unit) and equivalent random walk (b's unit per sqrt(s)) of a bias instability b
+    with correlation time t_corr (s): the more conservative of the Gauss-Markov and the flicker readings (module
+    docstring): (max(b, s), max(b sqrt(2 / T), sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S)))."""
     span = math.log(max(t_corr, FLICKER_TO_S) / FLICKER_FROM_S)
     n = 200  # midpoint rule in ln T': the integrand is smooth
     change = sum(1.0 - math.exp(-BIAS_LEAN_S / (FLICKER_FROM_S * math.exp((k + 0.5) * span / n)))
                  for k in range(n)) * span / n
     return (max(b, b * math.sqrt(span / math.pi)),
-            max(b * math.sqrt(2.0 / t_corr), b * math.sqrt(2.0 * change / math.pi / BIAS_LEAN_S)),
-            b * math.sqrt(2.0 * FLICKER_FROM_S / math.pi))
+            max(b * math.sqrt(2.0 / t_corr), b * math.sqrt(2.0 * change / math.pi / BIAS_LEAN_S)))
 
 
 GRADES: dict[str, ImuGrade] = {
@@ -220,6 +220,20 @@ def settings(table: dict) -> dict:
         conv = g.filter_settings()
         out.update({k: conv[k] for k in derived}, scale_factor_model=conv["scale_factor_model"])
     return {**out, **{k: v for k, v in table.items() if k not in sheet}}
+
+
+def sources(table: dict) -> dict[str, str]:
+    """For each FusionConfig key ``settings(table)`` sets from the grade or the datasheet keys (not the table's
+    own FusionConfig keys): where it came from, ``"grade NAME"`` or ``"datasheet KEY[, KEY]"``."""
+    sheet = [k for k in DATASHEET_KEYS if k in table]
+    name = table.get("imu", "")
+    out = {k: f"grade {name}" for k in grade(name).filter_settings()} if isinstance(name, str) and name else {}
+    by_key: dict[str, list[str]] = {}
+    for k in sheet:
+        for derived in _derived({k: table[k]}):
+            by_key.setdefault(derived, []).append(k)
+    out.update({k: "datasheet " + ", ".join(keys) for k, keys in by_key.items()})
+    return {k: v for k, v in out.items() if k not in table}
 
 
 def _derived(sheet: dict) -> set[str]:

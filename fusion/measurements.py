@@ -203,12 +203,15 @@ class Odometer:
     do not lag it; its variance is the topic's plus ``sigma_mps`` squared (slip, tyre deformation, stamp error).
     The scale factor is fitted while GPS is good against the GPS velocity's forward component
     (``odometer.ScaleEstimator``; not the INS's, which this aid itself corrects). ``feed`` takes the rows as the
-    engine reads them; ``times``: the epochs it gave a measurement at. Without rows near an epoch it gives none
-    (the NHC then, ``FirstOf``)."""
+    engine reads them; ``times``: the epochs it gave a measurement at; ``slip_skipped``: the epochs whose wheel
+    speed failed the slip test (then the NHC's zeros only; without ``nhc`` no measurement). Without rows near an
+    epoch it gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the
+    forward row alone)."""
 
     lever_b: np.ndarray
     sigma_mps: float
     nhc_sigma_mps: float
+    nhc: bool = True
     window_s: float = 0.3
     min_samples: int = 3
     max_age_s: float = 0.1
@@ -216,6 +219,7 @@ class Odometer:
     stage = "aid"
     receiver = False
     times: list[int] = field(default_factory=list)
+    slip_skipped: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.scale = odometer.ScaleEstimator(min_samples=30, prior_sigma=0.005)
@@ -253,16 +257,24 @@ class Odometer:
             return None
         v_wheel, var = got
         C_nb = m.nav.C_bn.T
-        if m.usable and np.isfinite(m.epoch.v_n[:2]).all() and np.isfinite(m.epoch.vel_cov[:2, :2]).all():
-            e = C_nb[1]
-            v_gps = m.epoch.v_n.copy()
-            if not np.isfinite(v_gps[2]):
-                v_gps[2] = m.nav.v_n[2]
-            self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2]))
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
+        z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
+                                                self.scale.sigma, self.nhc_sigma_mps)
+        if z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
+            self.slip_skipped.append(m.epoch.t_ns)
+            rows = [0, 2] if self.nhc else []
+        else:
+            rows = [0, 1, 2] if self.nhc else [1]
+            if m.usable and np.isfinite(m.epoch.v_n[:2]).all() and np.isfinite(m.epoch.vel_cov[:2, :2]).all():
+                e = C_nb[1]
+                v_gps = m.epoch.v_n.copy()
+                if not np.isfinite(v_gps[2]):
+                    v_gps[2] = m.nav.v_n[2]
+                self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2]))
+        if not rows:
+            return None
         self.times.append(m.epoch.t_ns)
-        return odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
-                                             self.scale.sigma, self.nhc_sigma_mps)
+        return z[rows], H[rows], R[np.ix_(rows, rows)]
 
 
 @dataclass
@@ -293,7 +305,7 @@ def aids_and_gps(cfg: FusionConfig) -> list[MeasurementModel]:
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
-        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps)]
+        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc)]
         if a.odometer else []) + (
         [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
     return ([FirstOf(tuple(aids))] if aids else []) + [GpsVelocity(lever, cfg.gps.vel_var_max), GpsPosition(lever)]

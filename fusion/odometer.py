@@ -15,9 +15,18 @@ this a zero-velocity update of the whole body velocity.
 Scale factor. Estimated inside the aid rather than as a filter state (the 15 states stay as every filter sizes
 them): while GPS is good, ``ScaleEstimator`` fits v_wheel = s v_ins (v_ins the INS's forward speed at the rear
 axle, GPS-aided) by least squares with a forgetting time ``tau_s``, over samples faster than ``min_speed_mps``;
-its sigma follows from the INS speed sigma over the samples the fit holds, taken as independent once a second.
-In an outage the estimate is held; it is never used before ``min_samples`` have been fitted (then s = 1 and
-sigma_s = ``prior_sigma``).
+its sigma is the larger of two readings over the samples the fit holds, taken as independent once a second: the
+INS (GPS) speed's sigma, and the fit's own residual scatter (wheel slip, tyre deformation, stamp errors: what the
+drive shows, not the wheel speed's quantisation). In an outage the estimate is held; it is never used before
+``min_samples`` have been fitted (then s = 1 and sigma_s = ``prior_sigma``).
+
+Slip. A wheel that slips or locks breaks v_wheel = s v: the forward row's innovation is tested against its
+variance (the filter's covariance through H plus R), chi^2 over one degree of freedom above ``SLIP_CHI2``
+(99.9 %), and such an epoch gives the NHC's zeros only (no wheel speed, and no sample for the scale fit).
+
+With the NHC and without. The aid carries the NHC's lateral and vertical zeros (``[fusion] nhc``); with
+``nhc = false`` it is the forward row alone, and ``[fusion] odometer = false`` leaves the NHC alone (the
+``FirstOf`` in ``fusion.measurements``: the odometer where it has wheel speeds, the NHC elsewhere).
 """
 from __future__ import annotations
 
@@ -31,6 +40,7 @@ from fieldlog.fusion.errmodel import ATT, BG, N_STATES, VEL
 from fieldlog.fusion.ins import NavState
 
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]
+SLIP_CHI2 = 10.83  # chi^2, 1 degree of freedom, 99.9 %: a wheel speed off the INS's forward speed by more slips
 
 
 def body_velocity_at(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray) -> np.ndarray:
@@ -62,8 +72,9 @@ class ScaleEstimator:
     min_speed_mps: float = 3.0
     min_samples: int = 200
     prior_sigma: float = 0.01
-    sxy: float = 0.0          # forgetting sums: v_ins v_wheel, v_ins^2, samples, seconds of samples
+    sxy: float = 0.0          # forgetting sums: v_ins v_wheel, v_ins^2, v_wheel^2, samples, seconds of samples
     sxx: float = 0.0
+    syy: float = 0.0
     n: float = 0.0
     seconds: float = 0.0
     var_ins: float = 0.0      # the INS forward speed's variance (m/s)^2, averaged like the sums
@@ -78,6 +89,7 @@ class ScaleEstimator:
         k = math.exp(-dt / self.tau_s)
         self.sxy = k * self.sxy + v_ins * v_wheel
         self.sxx = k * self.sxx + v_ins * v_ins
+        self.syy = k * self.syy + v_wheel * v_wheel
         self.var_ins = k * self.var_ins + var_ins
         self.n = k * self.n + 1.0
         self.seconds = k * self.seconds + min(dt, 1.0)
@@ -92,9 +104,11 @@ class ScaleEstimator:
 
     @property
     def sigma(self) -> float:
-        """sigma of s: the mean INS speed variance over the fit's sum of v^2, per independent second."""
+        """sigma of s: the larger of the mean INS speed variance and the fit's residual variance per sample, over
+        the fit's mean v^2, per independent second."""
         if not self.ready:
             return self.prior_sigma
         mean_v2 = self.sxx / self.n
         independent = max(self.seconds, 1.0)
-        return math.sqrt(self.var_ins / self.n / mean_v2 / independent)
+        residual = max(self.syy - self.sxy ** 2 / self.sxx, 0.0) / max(self.n - 1.0, 1.0)
+        return math.sqrt(max(self.var_ins / self.n, residual) / mean_v2 / independent)

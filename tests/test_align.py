@@ -379,17 +379,15 @@ def test_still_detector_creep_and_stops(creep, tmp_path):
 
 
 def test_datasheet_units_and_grades():
-    """ARW deg/sqrt(h) / 60 = deg/s/sqrt(Hz); VRW m/s/sqrt(h) / 60 = m/s^2/sqrt(Hz), each with the white noise of
-    the bias instability's components faster than FLICKER_FROM_S, B sqrt(2 FLICKER_FROM_S / pi); bias instability
+    """ARW deg/sqrt(h) / 60 = deg/s/sqrt(Hz); VRW m/s/sqrt(h) / 60 = m/s^2/sqrt(Hz) (the bias instability adds no
+    white noise: test_a_large_bias_instability_stays_a_bias_process); bias instability
     B with correlation time T -> the random walk B sqrt(2/T); table2-mems is the simulator's defaults, and as the
     filter's preset the datasheet given key by key (the defaults keep the inflated figures); a datasheet key and
     the setting it derives cannot both be given; an unknown grade is named."""
-    fast = math.sqrt(2.0 * imugrade.FLICKER_FROM_S / math.pi)
     c = fusion_config({"gyro_arw_deg_rth": 0.6, "accel_vrw_mps_rth": 0.06, "gyro_bias_instability_dph": 36.0,
                        "gyro_bias_corr_time_s": 200.0})
-    assert c.sensor.gyro_noise_dps_rthz == pytest.approx(math.hypot(0.01, 0.01 * fast))
-    table2_accel_b = imugrade.grade("table2-mems").accel_bias_instability_ug  # the companion of the VRW given alone
-    assert c.sensor.accel_noise_ug_rthz == pytest.approx(math.hypot(0.001 / (G * 1e-6), table2_accel_b * fast))
+    assert c.sensor.gyro_noise_dps_rthz == pytest.approx(0.01)
+    assert c.sensor.accel_noise_ug_rthz == pytest.approx(0.001 / (G * 1e-6))
     assert c.sensor.scale_factor_model == "bias-steps" and fusion_config({}).sensor.scale_factor_model == "consider"
     assert c.sensor.gyro_bias_rw_dps_rts >= 0.01 * math.sqrt(2.0 / 200.0)  # the Gauss-Markov reading, or the flicker's
     assert c.init.init_gyro_bias_sigma_dps == pytest.approx(0.01)
@@ -402,7 +400,7 @@ def test_datasheet_units_and_grades():
     tac = ImuErrorConfig.from_dict({"grade": "tactical", "rate_hz": 200})
     assert tac.gyro_noise_density_dps_rthz == pytest.approx(0.003 / 60) and tac.rate_hz == 200.0
     assert fusion_config({"imu": "tactical"}).sensor.gyro_noise_dps_rthz == pytest.approx(
-        math.hypot(tac.gyro_noise_density_dps_rthz, tac.gyro_bias_instability_dps * fast))
+        tac.gyro_noise_density_dps_rthz)
     rtk = GpsConfig.from_dict({"quality": "rtk"})
     assert (rtk.white_h_m, rtk.gm_h_m, rtk.vel_noise_mps) == (0.02, 0.0, 0.01)
     assert GpsConfig.from_dict({"quality": "standalone"}) == GpsConfig()
@@ -412,6 +410,29 @@ def test_datasheet_units_and_grades():
         fusion_config({"imu": "fog"})
     with pytest.raises(ConfigError, match=r"\[gps\] quality"):
         GpsConfig.from_dict({"quality": "dgps"})
+
+
+def test_a_large_bias_instability_stays_a_bias_process():
+    """A phone's datasheet (VRW 0.1 m/s/sqrt(h), accelerometer bias instability 2000 ug; ARW 0.3 deg/sqrt(h), gyro
+    bias instability 50 deg/h): the white noise densities are the datasheet's VRW and ARW, whatever the bias
+    instability, while the bias random walk and prior grow with it (a bias process); ten times the instability
+    moves the bias process and leaves the white noise where it was; each setting's source is the datasheet key or
+    the grade that set it (``imugrade.sources``, shown by ``fuse -v``)."""
+    sheet = {"accel_vrw_mps_rth": 0.1, "accel_bias_instability_ug": 2000.0, "accel_bias_corr_time_s": 100.0,
+             "gyro_arw_deg_rth": 0.3, "gyro_bias_instability_dph": 50.0, "gyro_bias_corr_time_s": 100.0}
+    small = {**sheet, "accel_bias_instability_ug": 200.0, "gyro_bias_instability_dph": 5.0}
+    big, little = fusion_config(sheet), fusion_config(small)
+    assert big.sensor.accel_noise_ug_rthz == pytest.approx(0.1 / 60.0 / (G * 1e-6), rel=1e-3)
+    assert big.sensor.gyro_noise_dps_rthz == pytest.approx(0.3 / 60.0)
+    for k in ("accel_noise_ug_rthz", "gyro_noise_dps_rthz"):
+        assert getattr(big.sensor, k) == getattr(little.sensor, k), k
+    for k in ("accel_bias_rw_ug_rts", "gyro_bias_rw_dps_rts"):
+        assert getattr(big.sensor, k) == pytest.approx(10.0 * getattr(little.sensor, k)), k
+    assert big.init.init_accel_bias_sigma_ug > 2000.0 > little.init.init_accel_bias_sigma_ug
+    src = imugrade.sources({**sheet, "imu": "s000-mems", "gyro_noise_dps_rthz": 0.02})   # what fuse -v names
+    assert src["accel_noise_ug_rthz"] == "datasheet accel_vrw_mps_rth"
+    assert "accel_bias_instability_ug" in src["accel_bias_rw_ug_rts"] and "gyro_noise_dps_rthz" not in src
+    assert src["gyro_scale_factor_ppm"] == "grade s000-mems"
 
 
 @pytest.mark.parametrize("grade", ["tactical", "navigation", "s000-mems"])

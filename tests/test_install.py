@@ -101,7 +101,7 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
 def test_core_install_names_the_missing_extra(core, drive, tmp_path):
     for argv, extra in ((["view", drive, "--rrd", tmp_path / "x.rrd"], "view"),
                         (["export", drive, "--out", tmp_path / "tables"], "export"),
-                        (["export", drive, "--out-dir", tmp_path / "tracks", "--format", "kml"], "export")):
+                        (["export", drive, "--out-dir", tmp_path / "tracks", "--format", "kml"], "export"),
                         (["report", drive, "--out", tmp_path / "report.html"], "report")):
         r = _run([core / "fieldlog", *argv], tmp_path)
         assert r.returncode == 2, (argv, r.stderr)

@@ -55,7 +55,7 @@ from fieldlog.acquire import calib
 from fieldlog.drive import messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import hinf, imugrade, installation
+from fieldlog.fusion import hinf, imugrade, installation, measurements
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
@@ -121,6 +121,7 @@ class FuseResult:
     alignment: str = ""  # how the heading was aligned (fusion.align.Alignment.note)
     hinf: dict[str, str] | None = None  # hinf: which gamma ran, whether it equalled kf (fusion.hinf.summary)
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
+    odometer: dict[str, float] | None = None  # the wheel odometer's scale, its sigma, epochs used and slip-skipped
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
     alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
@@ -246,7 +247,9 @@ def settings(drive: DriveSpec, config: TomlFile | None = None,
             raise
         raise ValueError(f"{label(drive)}: its fusion.config record: {e}") from None
     given = set(imugrade.settings(table))  # an IMU grade's or datasheet keys' settings count as given
-    sources = {f: (where if f in given else "default") for f in FLAT_KEYS}
+    derived = imugrade.sources(table)
+    sources = {f: (f"{where}, {derived[f]}" if f in derived else where if f in given else "default")
+               for f in FLAT_KEYS}
     sources["predictor"] = where if "predictor" in given else "default"
     if "lever_arm_b" not in given and imap.lever_arm_b is not None:
         cfg = cfg.replace(lever_arm_b=tuple(float(x) for x in imap.lever_arm_b), lever_arm_frame="rfu")
@@ -415,5 +418,15 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      Solution.concat(kept) if keep else None, dict(engine.alignment.summary),
-                      tuple(stream.warnings()))
+                      odometer_summary(engine), Solution.concat(kept) if keep else None,
+                      dict(engine.alignment.summary), tuple(stream.warnings()))
+
+
+def odometer_summary(engine: Engine) -> dict[str, float] | None:
+    """The wheel odometer's fitted scale factor and its sigma (``fusion.odometer.ScaleEstimator``), the epochs it
+    updated at and those among them skipped as slip; None when the run had no odometer or no wheel speed."""
+    odo = [p for m in engine.measurements for p in getattr(m, "parts", (m,)) if isinstance(p, measurements.Odometer)]
+    if not odo or not odo[0].times:
+        return None
+    return {"scale": odo[0].scale.scale, "scale_sigma": odo[0].scale.sigma, "epochs": len(odo[0].times),
+            "slip_skipped": len(odo[0].slip_skipped)}

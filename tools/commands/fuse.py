@@ -72,7 +72,11 @@ def run(a: argparse.Namespace) -> int:
                    imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, imu_warnings=list(res.imu_warnings), gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
                    alignment={**(res.alignment_summary or {}), "note": res.alignment}, hinf=res.hinf, stationary_updates=len(res.still_ns),
-                   zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
+                   zaru_skipped=len(res.zaru_skipped_ns),
+                   odometer_scale=res.odometer["scale"] if res.odometer else None,
+                   odometer_scale_sigma=res.odometer["scale_sigma"] if res.odometer else None,
+                   odometer_slip_skipped=res.odometer["slip_skipped"] if res.odometer else None,
+                   wall_s=round(time.monotonic() - t0, 3))
     if a.method != INS.name:
         summary.update(estimate_installation(drive, st.config, imap))
     if a.json:
@@ -93,6 +97,10 @@ def run(a: argparse.Namespace) -> int:
             log.info(_installation_line(summary))
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
+        if res.odometer:
+            o = res.odometer
+            log.info(f"odometer: wheel-speed scale {o['scale']:.5f} +- {o['scale_sigma']:.5f} (1 sigma), "
+                     f"{o['epochs']} epochs, {o['slip_skipped']} of them skipped as slip")
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
                      "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")
