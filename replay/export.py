@@ -64,7 +64,7 @@ def _array(a: np.ndarray) -> pl.Series:
 
 
 def _stamp(msg) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    return int(messages.join_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec))
 
 
 def _generic(d: dict, fields: dict[str, Callable]) -> dict[str, object]:
