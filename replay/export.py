@@ -237,7 +237,7 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``). -> {topic: (file, rows)}. Every
     table is a new file (unless ``force``), and ``out`` and the folders made in it are never symbolic links
-    (``acquire.outputs``)."""
+    (``acquire.outputs``). On an error (a full disk) the tables written so far are removed: all or nothing."""
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"format must be parquet or csv, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file
@@ -245,18 +245,23 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
     todo = _topic_types(path, topics)
     written: dict[str, tuple[Path, int]] = {}
     taken: set[Path] = set()
-    for i, (topic, type_name) in enumerate(todo):
-        dest = table_path(out, topic, fmt)
-        n = 1
-        while dest in taken:                  # two topics cleaned to the same name: number the later ones
-            n += 1
-            dest = table_path(out, f"{topic}~{n}", fmt)
-        taken.add(dest)
-        with outputs.create(dest, force, root=out) as f:
-            written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
-                                           lambda: topic_frame(path, topic, type_name)))
-        if progress:
-            progress((i + 1) / len(todo))
+    try:
+        for i, (topic, type_name) in enumerate(todo):
+            dest = table_path(out, topic, fmt)
+            n = 1
+            while dest in taken:                  # two topics cleaned to the same name: number the later ones
+                n += 1
+                dest = table_path(out, f"{topic}~{n}", fmt)
+            taken.add(dest)
+            with outputs.create(dest, force, root=out) as f:
+                written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
+                                               lambda: topic_frame(path, topic, type_name)))
+            if progress:
+                progress((i + 1) / len(todo))
+    except Exception:
+        for dest, _ in written.values():
+            dest.unlink(missing_ok=True)
+        raise
     return written
 
 

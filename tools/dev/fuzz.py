@@ -326,16 +326,16 @@ _ASC_FRAME = re.compile(rb"(\s[0-9A-Fa-f]+x?\s+[RT]x\s+d\s+)([0-9A-Fa-f])((?:\s+
 
 
 def fix_slcan(data: bytes) -> bytes:
-    """Each classic data frame record's DLC digit set to its number of data bytes (at most 8; a record with an
-    adapter time keeps its 4 digits out of the count)."""
+    """Each classic data frame record's DLC digit set to its number of data bytes (at most 8) when it matches
+    neither the data alone nor the data and a 4-digit adapter time; the time is taken to be there (adapters that
+    stamp, as the simulated one does) when the digits allow it."""
     def dlc(m: re.Match) -> bytes:
-        hexdata = m.group(4)
-        n = len(hexdata) // 2
-        if m.group(1) in b"rR":
+        hexdata, d = m.group(4), int(m.group(3))
+        digits = len(hexdata)
+        if m.group(1) in b"rR" or digits % 2 or digits in (2 * d, 2 * d + 4):
             return m.group(0)
-        if n > 8 and n - 2 <= 8:
-            n -= 2                                      # the last 4 hex digits: the adapter time
-        return m.group(1) + m.group(2) + b"%d" % min(n, 8) + hexdata + b"\r"
+        n = (digits - 4) // 2 if 4 <= digits <= 20 else min(digits // 2, 8)
+        return m.group(1) + m.group(2) + b"%d" % n + hexdata + b"\r"
 
     return _SLCAN_RECORD.sub(dlc, data)
 
