@@ -541,8 +541,9 @@ def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[
             continue
         dst, state = recovery.recovered_state(p)
         if state in ("link", "stale"):
-            log(f"not recovering unfinished {p.name}: {dst} " + ("is a symbolic link (never followed)" if state == "link"
-                else "exists but does not stand in for it (older, or cut short)") + f"; remove it, or run "
+            what = ("is a symbolic link (never followed)" if state == "link"
+                    else "exists but does not stand in for it (older, or cut short)")
+            log(f"not recovering unfinished {p.name}: {dst} {what}; remove it, or run "
                 f"`fieldlog recover {p} --out FILE`")
             continue
         if state == "done":

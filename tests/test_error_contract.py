@@ -328,3 +328,25 @@ def test_foxglove_sdk_warnings_go_through_fieldlogs_log(capsys) -> None:
             err += capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines and all(line.startswith("fieldlog replay: ") for line in lines), lines
+
+
+def test_the_daemons_start_says_what_to_do_with_a_planted_recovered_file(drive, tmp_path: Path) -> None:
+    import os
+
+    from fieldlog.acquire.daemon import recover_unfinished
+
+    session = tmp_path / "out" / "session"
+    session.mkdir(parents=True)
+    cut = session / "s_0001.mcap"
+    data = drive.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    dst = session / "s_0001.recovered.mcap"
+    dst.write_bytes(data[:1000])
+    os.utime(dst, ns=(cut.stat().st_mtime_ns - NS,) * 2)
+    said: list[str] = []
+    assert recover_unfinished(tmp_path / "out", said.append) == []
+    assert len(said) == 1 and str(dst) in said[0] and "fieldlog recover" in said[0]
+    assert dst.read_bytes() == data[:1000]
+    dst.unlink()
+    assert recover_unfinished(tmp_path / "out", said.append) == [(cut, dst)]
+    assert recover_unfinished(tmp_path / "out", said.append) == []                 # once
