@@ -37,11 +37,12 @@ TOML layout (all six keys required, nothing else allowed; ``default_toml()`` pri
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from fieldlog.drive import tables
 
 G0 = 9.80665  # standard gravity, m/s^2 (used to convert g and ug)
 ADC_FULL_SCALE_V = 10.0
@@ -157,12 +158,9 @@ class Calibration:
         return cls(**triads, mounting=Mounting(**mounting))
 
     @classmethod
-    def from_toml(cls, text: str) -> Calibration:
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"calibration: invalid TOML: {exc}") from None
-        return cls.from_dict(d)
+    def from_toml(cls, text: str, name: str = "calibration") -> Calibration:
+        """From TOML text (bounded: ``tables.load_toml``); ValueError in one line naming ``name`` or the key."""
+        return cls.from_dict(tables.load_toml(text, name))
 
     def to_toml(self) -> str:
         """TOML text that ``from_toml`` reads back to identical values (floats written with repr)."""
@@ -204,7 +202,13 @@ def load_calibration(path: str | Path | None) -> Calibration:
     """Read a calibration TOML file; ``None`` gives ``default_calibration()``."""
     if path is None:
         return default_calibration()
-    return Calibration.from_toml(Path(path).read_text(encoding="utf-8"))
+    name = f"calibration file {path}"
+    try:
+        return Calibration.from_toml(tables.read_text(path, "calibration file"), name)
+    except tables.ConfigError:
+        raise
+    except ValueError as e:
+        raise ValueError(f"{name}: {e}") from None
 
 
 def apply(cal: Calibration, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

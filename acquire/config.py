@@ -51,13 +51,12 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from fieldlog.acquire import timesync
-from fieldlog.acquire.tables import ConfigError, from_table
+from fieldlog.drive.tables import ConfigError, from_table, load_toml, read_text
 
 if TYPE_CHECKING:
     from fieldlog.acquire import canbus
@@ -332,17 +331,18 @@ def from_dict(d: dict[str, Any]) -> AcquireConfig:
 
 
 def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A TOML file as a dict; ConfigError with one line when it is missing or not valid TOML."""
+    """A TOML file as a dict; ConfigError with one line when it is missing, not valid TOML or out of bounds
+    (``tables.load_toml``)."""
+    return load_toml(read_text(path, "config file"), f"config file {path}")
+
+
+def from_file(path: str | os.PathLike[str]) -> AcquireConfig:
+    """``from_dict`` of the TOML file ``path``; a ConfigError names the file and the key."""
+    d = read_toml(path)
     try:
-        return tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"config file {path} is not text (not UTF-8): give a TOML file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"config file {path} is a directory: give a TOML file") from None
+        return from_dict(d)
+    except ConfigError as e:
+        raise ConfigError(f"config file {path}: {e}") from None
 
 
 @dataclass(frozen=True)
@@ -367,7 +367,7 @@ def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> Ac
     """Read the TOML file (None: defaults), apply ``overrides`` (``daq``, ``gps``: port paths; ``out``: output
     directory; ``time_scale``: ``[timesync] host_time_scale``, for simulator playback only) and validate.
     Raises ConfigError with a one-line message naming the key."""
-    c = from_dict(read_toml(path) if path is not None else {})
+    c = from_file(path) if path is not None else from_dict({})
     o = overrides or {}
     if o.get("daq"):
         c.daq.port = o["daq"]

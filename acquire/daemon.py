@@ -40,8 +40,9 @@ record (``event`` = ``lost`` / ``back``, host mono and wall ns, the error) and c
 ``port.<name>.disconnects``; ``/raw`` has no reads in the gap. Corrupt bytes are the decoders' business
 (resynchronised and counted). A full disk (ENOSPC), an exceeded quota (EDQUOT) or file size limit (EFBIG;
 SIGXFSZ is ignored so that a ``ulimit -f`` gives the error rather than a kill) stops the daemon with a clear
-message and exit code 1; the file keeps every chunk flushed before (``fieldlog recover`` or the next start
-rescues it if the summary could not be written).
+message naming the file and exit code 2 (the storage given is the problem, as with any bad output); the file
+keeps every chunk flushed before (``fieldlog recover`` or the next start rescues it if the summary could not be
+written).
 SIGINT/SIGTERM finish the file (summary and index) and exit 0 within ``STOP_S`` whatever the derived path is
 doing: the readers stop, the raw path records what they had read, and the derived path gets until
 ``DERIVED_STOP_S`` after the signal to process what is queued and write its pending tail (``Pipeline.finish``);
@@ -411,7 +412,8 @@ class BusServer:
     sync state (SyncState, or ``BUS_STATE_FINAL``), (n + 1) x i64 payload offsets, the CDR payloads
     (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the derived path's
     thread without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
-    ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``).
+    ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``). Clients only read: bytes a client
+    sends are read and dropped (``pump``), counted in ``ignored_bytes`` and logged once per client.
     """
 
     def __init__(self, path: str, max_buffer: int = 16 << 20) -> None:
@@ -428,6 +430,8 @@ class BusServer:
         self.max_buffer = max_buffer
         self.clients: dict[socket.socket, bytearray] = {}
         self.dropped_clients = 0
+        self.ignored_bytes = 0
+        self._noisy: set[socket.socket] = set()
 
     def active(self) -> bool:
         """Accept waiting clients; True if any is connected (otherwise publishing is a no-op)."""
@@ -474,13 +478,35 @@ class BusServer:
 
     def _drop(self, c: socket.socket) -> None:
         self.clients.pop(c, None)
+        self._noisy.discard(c)
         c.close()
 
+    def _ignore_input(self, c: socket.socket) -> None:
+        """Read and drop what client ``c`` sent (at most 1 MB a call), counted, logged once; EOF drops it."""
+        for _ in range(16):
+            try:
+                data = c.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self._drop(c)
+                return
+            if not data:
+                self._drop(c)
+                return
+            self.ignored_bytes += len(data)
+            if c not in self._noisy:
+                self._noisy.add(c)
+                log.warning(f"live bus {self.path}: a client sent bytes; the bus only sends, they are dropped "
+                            f"(counted in bus.ignored_bytes)")
+
     def pump(self) -> None:
-        """Accept new clients and send what is buffered (call when idle)."""
+        """Accept new clients, drop what they sent (``_ignore_input``) and send what is buffered (call when
+        idle)."""
         self._accept()
         for c, buf in list(self.clients.items()):
-            if buf:
+            self._ignore_input(c)
+            if buf and c in self.clients:
                 self._send(c, buf)
 
     def close(self, timeout_s: float = 2.0) -> None:
@@ -560,12 +586,14 @@ def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[
     for p in sorted([*out_dir.glob("*.mcap"), *out_dir.glob("*/*.mcap")]):
         if p.name.endswith(".recovered.mcap") or p.is_symlink() or p.parent.is_symlink() or is_finished(p):
             continue
-        dst = p.with_name(p.stem + ".recovered.mcap")
-        if dst.is_symlink():
-            log(f"not recovering unfinished {p.name}: {dst} is a symbolic link (never followed); remove it, or run "
+        dst, state = recovery.recovered_state(p)
+        if state in ("link", "stale"):
+            what = ("is a symbolic link (never followed)" if state == "link"
+                    else "exists but does not stand in for it (older, or cut short)")
+            log(f"not recovering unfinished {p.name}: {dst} {what}; remove it, or run "
                 f"`fieldlog recover {p} --out FILE`")
             continue
-        if dst.exists():
+        if state == "done":
             continue
         need, free = RECOVER_SPACE_FACTOR * p.stat().st_size + RECOVER_RESERVE_BYTES, shutil.disk_usage(out_dir).free
         if free < need:
@@ -724,6 +752,7 @@ class Daemon:
         out["daemon.names_skipped"] = str(self.sink.skipped if self.sink is not None else 0)
         if self.bus is not None:
             out["bus.dropped_clients"] = str(self.bus.dropped_clients)
+            out["bus.ignored_bytes"] = str(self.bus.ignored_bytes)
         return out
 
     # -- the raw path ---------------------------------------------------------------------------------
@@ -771,7 +800,7 @@ class Daemon:
                 raise
             self.error = (f"{STORAGE_FULL[e.errno]} ({errno.errorcode[e.errno]}) writing {self.sink.rec.path}: "
                           f"recording stopped; the file keeps every chunk flushed before this")
-            code = 1
+            code = 2
         finally:
             self.stop.set()
             for r in self.readers.values():

@@ -1,8 +1,10 @@
 """Receiver-independent GNSS rules, shared by every protocol decoder (NMEA today; UBX, NovAtel) and the
 pipeline: which dates are believable, the midnight roll-over, and what counts as a fix (as gpsd decides).
 
-A date outside YEAR_MIN..YEAR_MAX is treated as a malformed field: every UTC time the pipeline derives from
-it then fits an int64 of nanoseconds (1678..2262) with room to spare, whatever a receiver sends.
+A date outside YEAR_MIN..YEAR_MAX, or a GPS week past WEEK_MAX, is treated as a malformed field (counted in
+``bad_fields``, the epoch refused): every UTC time the pipeline derives from it then fits an int64 of
+nanoseconds and a ROS header stamp (``acquire.messages``: unsigned 32-bit seconds, up to 2106-02-07), whatever
+a receiver sends.
 """
 from __future__ import annotations
 
@@ -12,13 +14,14 @@ from datetime import timedelta
 from fieldlog.acquire import numbers
 
 YEAR_MIN = 1980          # GPS time starts 1980-01-06
-YEAR_MAX = 2200
+YEAR_MAX = 2105         # the last whole year a header stamp carries
 HALF_DAY_S = 43_200.0
 
 # GGA quality indicators that are not fixes (gpsd): 0 invalid, 6 dead reckoning, 7 manual input, 8 simulator
 NOT_FIX_QUALITY = frozenset((0, 6, 7, 8))
 
 _UNIX_ORDINAL = Date(1970, 1, 1).toordinal()
+WEEK_MAX = (Date(YEAR_MAX, 12, 31).toordinal() - Date(1980, 1, 6).toordinal()) // 7   # GPS week, not rolled over
 
 
 def make_date(year: int | str, month: int | str, day: int | str) -> Date | None:

@@ -148,9 +148,9 @@ MAX_LEAP_S = 1000           # |GPS - UTC| beyond this is not a leap-second count
 
 
 def _week_ms(week: object, seconds: object, t: numbers.Tally) -> tuple[int | None, int | None]:
-    """The header's GPS week (1..9999) and milliseconds of week, None where out of range."""
+    """The header's GPS week (1..``gnss.WEEK_MAX``) and milliseconds of week, None where out of range."""
     sec = t.real(seconds, 0.0, gpsport.WEEK_S - 0.001)
-    return t.whole(week, 1, 9999), None if sec != sec else round(sec * 1000)
+    return t.whole(week, 1, gnss.WEEK_MAX), None if sec != sec else round(sec * 1000)
 
 
 def _pos(sol_stat: bool, quality: int, lat: object, lon: object, hgt: object, und: object,

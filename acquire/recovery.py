@@ -19,7 +19,7 @@ from typing import BinaryIO, Protocol
 
 import numpy as np
 
-from fieldlog.drive import messages, outputs
+from fieldlog.drive import bagdir, messages, outputs
 from fieldlog.drive.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
 from fieldlog.acquire.pipeline import Pipeline
 from fieldlog.drive.recorder import MAGIC, Recorder
@@ -48,6 +48,19 @@ class Extend(Protocol):
     def chunk(self, rec: Recorder, cm: ChunkMessages, metadata: dict[str, dict[str, str]]) -> None: ...
 
     def finish(self, rec: Recorder) -> dict[str, int]: ...
+
+
+def recovered_state(src: Path) -> tuple[Path, str]:
+    """``NAME.recovered.mcap`` next to ``src`` (``NAME.mcap``) and what it is: ``"none"`` (no such name),
+    ``"done"`` (a complete file that stands in for ``src``: ``bagdir.stand_in``), ``"link"`` (a symbolic link:
+    never followed, never replaced) or ``"stale"`` (a file that does not stand in: older than ``src``, or cut
+    short)."""
+    dst = src.with_name(src.stem + bagdir.RECOVERED)
+    if dst.is_symlink():
+        return dst, "link"
+    if not dst.exists():
+        return dst, "none"
+    return dst, "done" if bagdir.stand_in(src) == dst and has_footer(dst) else "stale"
 
 
 def has_footer(path: str | os.PathLike[str]) -> bool:

@@ -38,7 +38,6 @@ MODE_QUALITY = {0: 0, 1: 1, 2: 2, 3: 7, 4: 4, 5: 5, 6: 2, 7: 4, 8: 5, 10: 2}
 DECODED = frozenset(("PVTGeodetic", "PosCovGeodetic", "VelCovGeodetic", "ReceiverTime", "xPPSOffset"))
 TIME_SCALE_GPS, TIME_SCALE_UTC = 1, 2          # xPPSOffset TimeScale (3 receiver time, 4 GLONASS: not used)
 HACC_DNU_CM = 65535
-MAX_WEEK = 9999                                # GPS weeks to 2171: UTC in int64 ns (WNc's 65535: do not use)
 DNU_FLOAT = -2e10                              # SBF's do-not-use value of F4 and F8 fields
 TWO_SQRT2 = 2.0 * math.sqrt(2.0)
 
@@ -96,7 +95,7 @@ class SbfDecoder:
             self.stats.bad_fields += t.bad
 
     def _records(self, name: str, m, mono_ns: int, t: numbers.Tally) -> list:
-        week, tow_ms = t.whole(m.WNc, 0, MAX_WEEK), t.whole(m.TOW, 0, gpsport.WEEK_S * 1000 - 1)
+        week, tow_ms = t.whole(m.WNc, 0, gnss.WEEK_MAX), t.whole(m.TOW, 0, gpsport.WEEK_S * 1000 - 1)
         if name == "ReceiverTime":
             leap = t.whole(m.DeltaLS, 0, novatel.MAX_LEAP_S)
             if leap is not None:

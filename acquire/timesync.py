@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire.tables import from_table
+from fieldlog.drive.tables import from_table
 
 FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
 PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is

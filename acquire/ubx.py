@@ -210,7 +210,7 @@ class UbxDecoder:
             return []
         t = numbers.Tally()
         tow_s = t.real(m.towMS, 0, gpsport.WEEK_S * 1000) / 1000.0 + t.real(m.towSubMS, 0) / 1000.0
-        week, qerr = t.whole(m.week, 0, 10_000), t.real(m.qErr)
+        week, qerr = t.whole(m.week, 0, gnss.WEEK_MAX), t.real(m.qErr)
         self.stats.bad_fields += t.bad
         if tow_s != tow_s or week is None or qerr != qerr:
             return []

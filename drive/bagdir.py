@@ -17,10 +17,11 @@ it over ``metadata.yaml`` (atomic; a symlink planted at that name is replaced, n
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from fieldlog.drive import outputs
+from fieldlog.drive import outputs, tables
 
 METADATA = "metadata.yaml"
 RECOVERED = ".recovered.mcap"     # ``fieldlog recover``'s output stands in for the cut-short NAME.mcap
@@ -51,18 +52,21 @@ class FileInfo:
 
 def file_info(path: Path) -> FileInfo:
     """What the metadata says of one finished MCAP file, from its summary; ValueError when it has none."""
-    import yaml  # here, not at the top: yaml and mcap's reader would add to every command's start-up
-    from mcap.reader import make_reader
+    from mcap.reader import make_reader  # here, not at the top: it would add to every command's start-up
 
     with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
+        try:
+            summary = make_reader(f).get_summary()
+        except Exception:  # noqa: BLE001 - mcap's reader raises its own kinds on a file cut short or damaged
+            summary = None
     if summary is None or summary.statistics is None:
         raise ValueError(f"{path}: no MCAP summary with statistics (an unfinished file: run `fieldlog recover`)")
     st = summary.statistics
     topics = []
     for cid, ch in sorted(summary.channels.items()):
         schema = summary.schemas.get(ch.schema_id)
-        qos = yaml.safe_load(ch.metadata.get("offered_qos_profiles", "") or "[]") or []
+        qos = tables.load_yaml(ch.metadata.get("offered_qos_profiles", "") or "[]",
+                               f"{path}: channel {ch.topic} offered_qos_profiles") or []
         topics.append(TopicInfo(ch.topic, schema.name if schema else "", ch.message_encoding, qos,
                                 ch.metadata.get("topic_type_hash", ""),
                                 int(st.channel_message_counts.get(cid, 0))))
@@ -133,10 +137,26 @@ def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str
 
 def session_files(directory: Path) -> list[Path]:
     """A directory's MCAP files on disk by name (a session's in rotation order), each ``NAME.mcap`` replaced by
-    ``NAME.recovered.mcap`` when that is there."""
+    ``NAME.recovered.mcap`` when that stands in for it (``stand_in``)."""
     names = sorted({f.with_name(f.name[: -len(RECOVERED)] + ".mcap") if f.name.endswith(RECOVERED) else f
                     for f in directory.glob("*.mcap")})
-    return [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f for f in names]
+    return [stand_in(f) for f in names]
+
+
+def stand_in(f: Path) -> Path:
+    """``NAME.recovered.mcap`` in place of ``f`` (``NAME.mcap``) when it is a regular file (a symbolic link never
+    stands in) at least as new as ``f``; else ``f``."""
+    r = f.with_name(f.stem + RECOVERED)
+    try:
+        st = os.lstat(r)
+    except OSError:
+        return f
+    if not stat.S_ISREG(st.st_mode):
+        return f
+    try:
+        return f if st.st_mtime_ns < os.stat(f).st_mtime_ns else r
+    except OSError:
+        return r
 
 
 def rewrite_metadata(directory: Path) -> tuple[Path, list[Path]]:
@@ -153,11 +173,12 @@ def rewrite_metadata(directory: Path) -> tuple[Path, list[Path]]:
 
 def bag_file(out: Path) -> Path:
     """The MCAP file of a one-file bag ``out`` (``--bag``): ``out/<name>.mcap``, ``name`` = ``out`` without a
-    ``.mcap`` suffix; the directory is made (a symlink or a file in its place raises ValueError)."""
+    ``.mcap`` suffix; the directory is made as every output folder is (``outputs.out_dir``: a symbolic link there
+    is refused, ``outputs.Refused``; a file there raises ValueError)."""
     d = out.with_suffix("") if out.suffix == ".mcap" else out
-    if d.is_symlink() or (d.exists() and not d.is_dir()):
+    if not d.is_symlink() and d.exists() and not d.is_dir():
         raise ValueError(f"{d}: exists and is not a directory; --bag writes a rosbag2 directory there")
-    d.mkdir(parents=True, exist_ok=True)
+    outputs.out_dir(d)
     return d / f"{d.name}.mcap"
 
 

@@ -14,7 +14,7 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence, Union
 
-from fieldlog.drive.bagdir import METADATA, RECOVERED, session_files
+from fieldlog.drive.bagdir import METADATA, RECOVERED, session_files, stand_in
 from fieldlog.drive.mcapfile import McapFile
 
 DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
@@ -23,27 +23,47 @@ _OPEN_MAX = 64
 
 
 def _rosbag2_files(d: Path) -> list[Path]:
-    import yaml
+    """The files a rosbag2 ``metadata.yaml`` lists (bounded: ``tables.load_yaml``); ValueError in one line naming
+    the file and the key when it is not one, or when it names a file outside its directory."""
+    from fieldlog.drive import tables
 
-    try:
-        meta = yaml.safe_load((d / METADATA).read_text())["rosbag2_bagfile_information"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError) as e:
-        raise ValueError(f"{d / METADATA}: not a rosbag2 metadata file ({e})") from None
+    name = str(d / METADATA)
+    doc = tables.load_yaml(tables.read_text(d / METADATA, "rosbag2 metadata file"), name)
+    meta = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{name}: no rosbag2_bagfile_information mapping: not a rosbag2 metadata file")
     storage = meta.get("storage_identifier", "mcap")
     if storage != "mcap":
         raise ValueError(f"{d}: rosbag2 storage {storage!r}; only mcap is read (ros2 bag convert it to mcap)")
-    names = meta.get("relative_file_paths") or [f["path"] for f in meta.get("files", [])]
-    return [d / n for n in names]
+    if meta.get("relative_file_paths"):
+        names, key = meta["relative_file_paths"], "relative_file_paths"
+    else:
+        files = meta.get("files") or []
+        if not isinstance(files, list) or not all(isinstance(f, dict) for f in files):
+            raise ValueError(f"{name}: files is not a list of mappings: not a rosbag2 metadata file")
+        names, key = [f.get("path") for f in files], "files[].path"
+    if not isinstance(names, list):
+        raise ValueError(f"{name}: {key} is not a list of file names: not a rosbag2 metadata file")
+    out = []
+    for i, n in enumerate(names):
+        if not isinstance(n, str) or not n or "\0" in n:
+            raise ValueError(f"{name}: {key} entry {i} ({type(n).__name__} {str(n)[:40]!r}) is not a file name: not "
+                             f"a rosbag2 metadata file")
+        p = Path(n)
+        if p.is_absolute() or ".." in p.parts:
+            raise ValueError(f"{name}: {key} entry {i} ({n[:80]!r}) lies outside the bag's directory: refused, a "
+                             f"rosbag2 directory lists only its own files")
+        out.append(d / p)
+    return out
 
 
 def _dir_files(d: Path) -> list[Path]:
     """A directory's files (a rosbag2's in its metadata order, else ``*.mcap`` by name), each ``NAME.mcap``
-    replaced by ``NAME.recovered.mcap`` when that is there."""
+    replaced by ``NAME.recovered.mcap`` when that stands in for it (``bagdir.stand_in``)."""
     if not (d / METADATA).is_file():
         files = session_files(d)
     else:
-        files = [f.with_name(f.stem + RECOVERED) if f.with_name(f.stem + RECOVERED).is_file() else f
-                 for f in _rosbag2_files(d)]
+        files = [stand_in(f) for f in _rosbag2_files(d)]
     if not files:
         raise FileNotFoundError(f"{d}: no .mcap files in the directory")
     return files

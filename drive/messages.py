@@ -9,8 +9,11 @@ fixed) are built for a whole batch at once through a numpy structured dtype with
 offsets. A batch is a :class:`Packed`: one contiguous ``uint8`` buffer plus ``n + 1`` offsets.
 Variable-length types (NMEA sentences, raw bytes, outages) are low rate and encoded per message.
 
-Times: stamps are int64 UTC ns since the Unix epoch, split into ``sec`` (int32, floor) and
-``nanosec`` (uint32, 0..999_999_999) as ``builtin_interfaces/Time`` requires.
+Times: stamps are int64 UTC ns since the Unix epoch, split into ``sec`` (floor) and ``nanosec`` (uint32,
+0..999_999_999) as ``builtin_interfaces/Time`` requires. Its ``sec`` field is 32 bits wide (``int32``); it holds
+the low 32 bits of the seconds and is read back unsigned, so every time from 1970 to 2106-02-07 (``STAMP_END_NS``)
+comes back whole, past 2038 included, and a time before 2038 is laid out exactly as an ``int32`` would have it.
+The GPS decoders refuse times past that (``acquire.gnss``); the MCAP ``log_time`` is 64 bits anyway.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from mcap.records import Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
+STAMP_END_NS = 2**32 * 1_000_000_000      # the first time a header stamp cannot carry (2106-02-07T06:28:16Z)
 SCHEMA_ENCODING = SchemaEncoding.ROS2  # "ros2msg"
 MESSAGE_ENCODING = MessageEncoding.CDR  # "cdr"
 
@@ -434,14 +438,15 @@ def _dtype(fields: tuple[_Field, ...], string_lengths: tuple[int, ...]) -> np.dt
 
 
 def split_stamp(stamp_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """int64 ns -> (sec int32 floor, nanosec uint32 in [0, 1e9))."""
+    """int64 ns -> (sec: the low 32 bits of the floor seconds, as int32; nanosec uint32 in [0, 1e9))."""
     stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
     sec, nsec = np.divmod(stamp_ns, 1_000_000_000)
     return sec.astype(np.int32), nsec.astype(np.uint32)
 
 
 def join_stamp(sec: np.ndarray, nanosec: np.ndarray) -> np.ndarray:
-    return np.asarray(sec, dtype=np.int64) * 1_000_000_000 + np.asarray(nanosec, dtype=np.int64)
+    """The inverse of ``split_stamp``: int64 ns from ``sec`` read unsigned (1970 to 2106) and ``nanosec``."""
+    return (np.asarray(sec).astype(np.int64) & 0xFFFFFFFF) * 1_000_000_000 + np.asarray(nanosec, dtype=np.int64)
 
 
 def _new(type_name: str, n: int, strings: dict[str, str], stamp_ns: np.ndarray) -> np.ndarray:
@@ -686,7 +691,7 @@ class _Cdr:
 
     def header(self, stamp_ns: int, frame_id: str) -> "_Cdr":
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        return self.put("iI", sec, nsec).string(frame_id)
+        return self.put("II", sec & 0xFFFFFFFF, nsec).string(frame_id)
 
     def bytes(self) -> bytes:
         return b"".join(self.parts)
@@ -707,14 +712,14 @@ def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: st
     f, p = frame_id.encode() + b"\x00", port.encode() + b"\x00"
     pad_mono = -(12 + len(f)) % 8                       # int64 mono_ns after sec, nanosec and the frame id
     pad_data = -len(p) % 4                              # the data's uint32 length after the port string
-    return b"".join((CDR_LE_HEADER, struct.pack("<iII", sec, nsec, len(f)), f, bytes(pad_mono),
+    return b"".join((CDR_LE_HEADER, struct.pack("<III", sec & 0xFFFFFFFF, nsec, len(f)), f, bytes(pad_mono),
                      struct.pack("<qI", mono_ns, len(p)), p, bytes(pad_data), struct.pack("<I", len(data)),
                      bytes(data)))
 
 
 def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:
     """``fieldlog_msgs/msg/RawBytes`` -> (wall_ns, mono_ns, port, data); the inverse of ``encode_raw``."""
-    sec, nsec, flen = struct.unpack_from("<iII", data, 4)
+    sec, nsec, flen = struct.unpack_from("<III", data, 4)
     pos = 12 + flen
     pos += -pos % 8
     (mono_ns,) = struct.unpack_from("<q", data, 4 + pos)

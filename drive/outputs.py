@@ -15,17 +15,22 @@ Libraries that write only by path (rerun's ``save``) write into ``staged``: a fr
 random name) next to the destination, whose file is then linked into place (``os.link`` fails on an existing
 name; ``force``: ``os.replace``, which replaces a name without following it).
 
+A file made by ``create`` is an ``Output``: an OSError from writing it (a full disk) names the file, and a
+``with`` block left on an error (not Ctrl-C) closes and removes it, so a failed command leaves no half-written
+file behind.
+
 ``Refused`` is a ``ValueError``: every command reports it in one line with exit code 2.
 """
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import shutil
 import stat
 import tempfile
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import Callable, Iterator
 
 CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -33,6 +38,64 @@ DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
 
 class Refused(ValueError):
     """An output name that is not written: it exists (without ``force``) or it is a symbolic link."""
+
+
+def named(e: OSError, path: str | os.PathLike[str]) -> OSError:
+    """``e`` with the file ``path`` named in it when it names none (write errors such as ENOSPC do not)."""
+    return e if e.filename is not None or not e.errno else OSError(e.errno, e.strerror, str(path))
+
+
+class Output(io.BufferedWriter):
+    """A new output file open for binary writing (``create``): its OSErrors name it (``named``); leaving a ``with``
+    block on an error other than Ctrl-C, or failing to close at its end, ``discard``s it."""
+
+    def __init__(self, fd: int, path: Path) -> None:
+        super().__init__(io.FileIO(fd, "wb"))
+        self.path = path
+        st = os.fstat(fd)
+        self._id = (st.st_dev, st.st_ino)
+
+    def write(self, b) -> int:
+        try:
+            return super().write(b)
+        except OSError as e:
+            raise named(e, self.path) from None
+
+    def flush(self) -> None:
+        try:
+            super().flush()
+        except OSError as e:
+            raise named(e, self.path) from None
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except OSError as e:
+            raise named(e, self.path) from None
+
+    def discard(self) -> None:
+        """Close without writing what is buffered and remove the file, if its name is still this file."""
+        self.raw.close()
+        with contextlib.suppress(OSError):
+            now = os.lstat(self.path)
+            if (now.st_dev, now.st_ino) == self._id:
+                os.unlink(self.path)
+
+    def __exit__(self, kind, value, tb) -> None:
+        end(kind, self.close, self.discard)
+
+
+def end(kind: type[BaseException] | None, close: Callable[[], None], discard: Callable[[], None]) -> None:
+    """How an output's ``with`` block ends (``kind``: the exception leaving it, or None): ``close``d, or
+    ``discard``ed on an error other than Ctrl-C (which keeps what was written), in the block or in closing."""
+    if kind is not None and not issubclass(kind, KeyboardInterrupt):
+        discard()
+        return
+    try:
+        close()
+    except Exception:
+        discard()
+        raise
 
 
 def _link_text(path: Path) -> str:
@@ -78,18 +141,18 @@ def _open(name: str | os.PathLike[str], shown: Path, force: bool, mode: int, dir
 
 
 def create(path: str | os.PathLike[str], force: bool = False, root: str | os.PathLike[str] | None = None,
-           mode: int = 0o644) -> BinaryIO:
+           mode: int = 0o644) -> Output:
     """A new file at ``path``, open for binary writing (``Refused`` if the name exists, unless it is a regular
     file and ``force``; always if it is a symbolic link). ``root``: ``path`` lies inside this output folder
     (``out_dir``), and the folders between are made as needed, each refused if it is a symbolic link."""
     p = Path(path)
     if root is None:
-        return os.fdopen(_open(p, p, force, mode, None), "wb")
+        return Output(_open(p, p, force, mode, None), p)
     r = Path(root)
     rel = p.relative_to(r)
     fd = _walk(open_dir(r), rel.parts[:-1], r)
     try:
-        return os.fdopen(_open(rel.parts[-1], p, force, mode, fd), "wb")
+        return Output(_open(rel.parts[-1], p, force, mode, fd), p)
     finally:
         os.close(fd)
 

@@ -304,7 +304,7 @@ def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
         return np.where(ok, le(buf, np.where(ok, start + 4 + rel, 0), dtype), 0)
 
     ok &= (le(buf, np.where(ok, start, 0), "<u2") == 0x0100)  # CDR_LE representation id, 00 01
-    sec, nsec, flen = at(z, "<i4", 4), at(z + 4, "<u4", 4), at(z + 8, "<u4", 4).astype(np.int64)
+    sec, nsec, flen = at(z, "<u4", 4), at(z + 4, "<u4", 4), at(z + 8, "<u4", 4).astype(np.int64)
     ok &= flen >= 1  # a CDR string holds its NUL
     pos = 12 + flen
     pos += -pos % 8

@@ -27,7 +27,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import BinaryIO, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import mcap
@@ -157,7 +157,7 @@ class Recorder:
         if compression not in ("zstd", "lz4", ""):
             raise ValueError(f"unknown compression {compression!r}")
         self.path = Path(path)
-        self._f: BinaryIO = outputs.create(self.path, force, root)
+        self._f = outputs.create(self.path, force, root)
         self._chunk_size = chunk_size
         self._flush_interval_s = flush_interval_s
         self._compression = compression
@@ -536,8 +536,20 @@ class Recorder:
         self._f.close()
         self.closed = True
 
+    def discard(self) -> None:
+        """Stop writing and remove the file (``outputs.Output.discard``): what an offline writer does on an error,
+        so that it leaves no half-written drive behind."""
+        if self.closed:
+            return
+        self.closed = True
+        if self._behind is not None:
+            self._behind.shutdown(cancel_futures=True)
+        self._f.discard()
+
     def __enter__(self) -> "Recorder":
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, kind, value, tb) -> None:
+        """Close the file; on an error other than Ctrl-C (which keeps what was written, finished), in the block or
+        in closing, ``discard`` it."""
+        outputs.end(kind, self.close, self.discard)

@@ -88,7 +88,7 @@ def _array(a: np.ndarray) -> pl.Series:
 
 
 def _stamp(msg) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    return int(messages.join_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec))
 
 
 def _generic(d: dict, fields: dict[str, Callable]) -> dict[str, object]:
@@ -267,7 +267,7 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
            progress: Callable[[float], None] | None = None, force: bool = False) -> dict[str, tuple[Path, int]]:
     """Write one table per topic under ``out``, streamed (``topic_batches``), or the NavSatFix topics as tracks
     in one KML or GPX file (``export_tracks``). -> {topic: (file, rows)}. Every file is new (unless ``force``),
-    and ``out`` and the folders made in it are never symbolic links (``drive.outputs``)."""
+    and ``out`` and the folders made in it are never symbolic links (``drive.outputs``). On an error (a full disk) the tables written so far are removed: all or nothing."""
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     drive_files(path)  # FileNotFoundError naming a missing file
@@ -278,18 +278,23 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
     out = outputs.out_dir(out)
     written: dict[str, tuple[Path, int]] = {}
     taken: set[Path] = set()
-    for i, (topic, type_name) in enumerate(todo):
-        dest = table_path(out, topic, fmt)
-        n = 1
-        while dest in taken:                  # two topics cleaned to the same name: number the later ones
-            n += 1
-            dest = table_path(out, f"{topic}~{n}", fmt)
-        taken.add(dest)
-        with outputs.create(dest, force, root=out) as f:
-            written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
-                                           lambda: topic_frame(path, topic, type_name)))
-        if progress:
-            progress((i + 1) / len(todo))
+    try:
+        for i, (topic, type_name) in enumerate(todo):
+            dest = table_path(out, topic, fmt)
+            n = 1
+            while dest in taken:                  # two topics cleaned to the same name: number the later ones
+                n += 1
+                dest = table_path(out, f"{topic}~{n}", fmt)
+            taken.add(dest)
+            with outputs.create(dest, force, root=out) as f:
+                written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
+                                               lambda: topic_frame(path, topic, type_name)))
+            if progress:
+                progress((i + 1) / len(todo))
+    except Exception:
+        for dest, _ in written.values():
+            dest.unlink(missing_ok=True)
+        raise
     return written
 
 

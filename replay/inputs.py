@@ -443,7 +443,7 @@ def odom_rows(d: dict) -> dict:
     for i, m in enumerate(d.get("msgs", [])):
         if m is None:
             continue
-        stamp[i] = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        stamp[i] = messages.join_stamp(m.header.stamp.sec, m.header.stamp.nanosec)
         tw = m.twist.twist if hasattr(m.twist, "twist") else m.twist          # Odometry / TwistStamped
         v[i] = tw.linear.x
         cov = getattr(m.twist, "covariance", None)

@@ -115,7 +115,7 @@ def test_bad_calibration_names_the_key(mutate, message):
 
 
 def test_invalid_toml_and_missing_file(tmp_path):
-    with pytest.raises(ValueError, match="invalid TOML"):
+    with pytest.raises(ValueError, match="calibration is not valid TOML"):
         Calibration.from_toml("[gyro\nsensitivity = 1")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match=f"calibration file {tmp_path / 'nope.toml'} does not exist"):
         load_calibration(tmp_path / "nope.toml")

@@ -205,7 +205,7 @@ def test_file_size_limit_stops_cleanly_with_a_recoverable_file(tmp_path: Path) -
     finally:
         serve.send_signal(signal.SIGTERM)
         serve.wait(300)
-    assert code == 1, log
+    assert code == 2, log
     assert "Traceback" not in log and "Exception" not in log
     (err,) = [line for line in log.splitlines() if "error:" in line]
     (f,) = sorted(out.glob("*/*.mcap"))

@@ -87,12 +87,18 @@ class ConsoleHandler(logging.Handler):
 def setup_logging(command: str, verbosity: int, json_out: bool = False) -> None:
     """The log of one command run: ``verbosity`` = (number of -v) - (number of -q): 1 or more DEBUG, 0 INFO,
     -1 WARNING, -2 or less ERROR. Replaces the handlers of the ``fieldlog`` logger (a second run in the same
-    process starts afresh)."""
-    root = logging.getLogger("fieldlog")
-    root.handlers[:] = [ConsoleHandler(command, json_out)]
-    root.setLevel(logging.DEBUG if verbosity > 0 else logging.INFO if verbosity == 0
-                  else logging.WARNING if verbosity == -1 else logging.ERROR)
-    root.propagate = False
+    process starts afresh). The libraries' own warnings and errors (python-can, foxglove-sdk, ...: the root
+    logger's) go through the same handler, so they read as fieldlog's lines do."""
+    level = (logging.DEBUG if verbosity > 0 else logging.INFO if verbosity == 0
+             else logging.WARNING if verbosity == -1 else logging.ERROR)
+    ours = logging.getLogger("fieldlog")
+    ours.handlers[:] = [ConsoleHandler(command, json_out)]
+    ours.setLevel(level)
+    ours.propagate = False
+    others = ConsoleHandler(command, json_out)
+    others.setLevel(max(level, logging.WARNING))
+    root = logging.getLogger()
+    root.handlers[:] = [h for h in root.handlers if not isinstance(h, ConsoleHandler)] + [others]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -161,6 +161,7 @@ class _Server:
     def __init__(self, address: str, method: str, own: Iterable[ChannelSpec]) -> None:
         import foxglove    # (missing: the command says which extra to install)
 
+        foxglove.set_log_level(logging.WARNING)   # its warnings into Python's logging: fieldlog's lines, not raw
         host, port = parse_address(address)
         context = foxglove.Context()
         self.subs = _Subscriptions()

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import logging
 import os
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from fieldlog.drive import outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.rebuild import RebuildResult
 
+log = logging.getLogger(__name__)
 NS = 1_000_000_000
 NMEA_LATENCY_S = 0.2
 DAQ_READ_BYTES = 512
@@ -180,32 +182,44 @@ def daq_reads(data: bytes, fs_hz: float, first_epoch_s: float) -> list[RawRead]:
 
 
 ABSOLUTE_S = 1e9     # a CAN log time stamp past this (2001-09-09) is UTC, an earlier one relative
+LAST_S = float(2**32)  # a CAN log time stamp at or past this (2106-02-07) is not believable
 
 
 def can_reads(path: str | Path, start_ns: int | None, first_ns: int | None = None) -> list[RawRead]:
-    """A CAN log's frames as reads, timed by the rule above (``start_ns``: the GPS log's first second)."""
+    """A CAN log's frames as reads, timed by the rule above (``start_ns``: the GPS log's first second). A frame
+    python-can reads but which no bus carries (an id beyond 29 bits or 11 without the extended flag, more than
+    64 data bytes, a time stamp not in 0..``LAST_S``) is skipped, counted and logged."""
     import can as pycan
 
     p = Path(path)
     suffix = "".join(p.suffixes[-2:]).lower() if p.suffix.lower() == ".gz" else p.suffix.lower()
     if not p.is_file():
         raise ValueError(f"{path}: no such file: give a CAN log")
+    frames: list[tuple[float, can.CanFrame]] = []
+    skipped = 0
     try:
         reader = pycan.LogReader(str(p), **({"relative_timestamp": False} if suffix.startswith(".asc") else {}))
     except ValueError:
         raise ValueError(f"{path}: {suffix or 'no suffix'} is not a CAN log format python-can reads: give a "
                          f"candump .log, Vector .asc or .blf file") from None
-    frames: list[tuple[float, can.CanFrame]] = []
+    except Exception as e:  # noqa: BLE001 - python-can's readers raise what their parsers meet
+        raise _unreadable(path, suffix, e) from None
     try:
         with reader:
             for m in reader:
-                frames.append((float(m.timestamp), can.CanFrame(
-                    int(m.arbitration_id), bytes(m.data) if not m.is_remote_frame else b"", bool(m.is_extended_id),
-                    bool(m.is_remote_frame), bool(m.is_error_frame), bool(m.is_fd), bool(m.bitrate_switch))))
+                t, cid, data = float(m.timestamp), int(m.arbitration_id), bytes(m.data)
+                if not (0.0 <= t < LAST_S and 0 <= cid <= (can.CAN_EFF_MASK if m.is_extended_id else 0x7FF)
+                        and len(data) <= 64):
+                    skipped += 1
+                    continue
+                frames.append((t, can.CanFrame(cid, data if not m.is_remote_frame else b"", bool(m.is_extended_id),
+                                               bool(m.is_remote_frame), bool(m.is_error_frame), bool(m.is_fd),
+                                               bool(m.bitrate_switch))))
     except Exception as e:  # noqa: BLE001 - python-can's readers raise what their parsers meet
-        raise ValueError(f"{path}: not a readable {suffix} CAN log ({type(e).__name__}: "
-                         f"{str(e).splitlines()[0] if str(e) else ''}): give a candump .log, Vector .asc or .blf "
-                         f"file") from None
+        raise _unreadable(path, suffix, e) from None
+    if skipped:
+        log.warning(f"{path}: {skipped} frame{'s' * (skipped > 1)} skipped: an id, a length or a time stamp no bus "
+                    f"carries")
     if not frames:
         raise ValueError(f"{path}: the CAN log holds no frame")
     if frames[0][0] >= ABSOLUTE_S:
@@ -225,6 +239,12 @@ def can_reads(path: str | Path, start_ns: int | None, first_ns: int | None = Non
         last = ns
         reads.append(RawRead("can", ns, ns, can.encode_records([f._replace(adapter_ns=ns)])))
     return reads
+
+
+def _unreadable(path: str | Path, suffix: str, e: Exception) -> ValueError:
+    first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    return ValueError(f"{path}: not a readable {suffix} CAN log ({type(e).__name__}: {first}): give a candump "
+                      f".log, Vector .asc or .blf file")
 
 
 def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: str | Path, fs_hz: float = 500.0,

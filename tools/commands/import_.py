@@ -41,7 +41,7 @@ def can_config(a: argparse.Namespace):
     """``[can]`` of ``--config`` with --dbc and --signal KEY=MESSAGE.SIGNAL over it, as the pipeline's BusConfig."""
     from fieldlog.acquire import config
 
-    c = config.from_dict(config.read_toml(a.config)).can if a.config else config.CanConfig()
+    c = config.from_file(a.config).can if a.config else config.CanConfig()
     c.dbc = a.dbc or c.dbc
     for sig in a.signal:
         key, eq, ref = sig.partition("=")

@@ -22,9 +22,12 @@ def run(a: argparse.Namespace) -> int:
     and each complete one with a damaged chunk (every chunk's CRC checked), recovered next to it (the drive then
     reads NAME.recovered.mcap in its place), the complete and sound ones left. A directory's every MCAP file on
     disk is looked at (a session's metadata.yaml lists only the files closed before a crash), and its
-    metadata.yaml is written again when a file was recovered or there was none."""
-    from fieldlog.drive.bagdir import METADATA, rewrite_metadata, session_files
-    from fieldlog.drive.files import RECOVERED, drive_files
+    metadata.yaml is written again when a file was recovered or there was none. A ``NAME.recovered.mcap`` that does
+    not stand in for its file (a symbolic link, or an older or cut-short file: ``recovery.recovered_state``) is
+    never followed nor replaced without --force: one line says what to do, exit code 2."""
+    from fieldlog.drive.bagdir import METADATA, RECOVERED, rewrite_metadata, session_files
+    from fieldlog.acquire.recovery import recovered_state
+    from fieldlog.drive.files import drive_files
     from fieldlog.drive.mcapfile import McapFile, TruncatedError
 
     if len(a.drive) == 1 and not Path(a.drive[0]).is_dir():
@@ -32,32 +35,45 @@ def run(a: argparse.Namespace) -> int:
     if a.out:
         raise ValueError(f"{' '.join(a.drive)}: --out takes one damaged file; a drive of several files is recovered "
                          f"next to them (NAME{RECOVERED})")
+    code = 0
     for spec in a.drive:
         d = Path(spec)
         recovered = False
         for src in session_files(d) if d.is_dir() else drive_files(spec):
             if src.name.endswith(RECOVERED):
-                log.info(f"{src}: recovered already")
-                continue
+                orig = src.with_name(src.name[:-len(RECOVERED)] + ".mcap")
+                if not orig.is_file():
+                    log.info(f"{src}: recovered already")
+                    continue
+                src = orig
             try:
                 damaged = McapFile(src).damaged()
             except TruncatedError:
-                recovered = recover_one(src, None, a.force) == 0 or recovered
+                damaged = None
+            if damaged == []:
+                log.info(f"{src}: complete, nothing to recover")
                 continue
             if damaged:
                 log.info(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
-                recovered = recover_one(src, None, a.force) == 0 or recovered
+            dst, state = recovered_state(src)
+            if state == "done":
+                log.info(f"{src}: recovered already, as {dst}")
+            elif state == "link" or (state == "stale" and not a.force):
+                log.error(f"{src}: not recovered: {dst} " + ("is a symbolic link (never followed): remove it"
+                          if state == "link" else "exists but does not stand in for it (older, or cut short): "
+                          "remove it or give --force") + f" and run again, or run `fieldlog recover {src} --out FILE`")
+                code = 2
             else:
-                log.info(f"{src}: complete, nothing to recover")
+                recovered = recover_one(src, None, a.force) == 0 or recovered
         if d.is_dir() and (recovered or not (d / METADATA).exists()):
             meta, left = rewrite_metadata(d)
             log.info(f"wrote {meta}" + (f" (left out, no summary: {', '.join(str(f) for f in left)})" if left else ""))
-    return 0
+    return code
 
 
 def recover_one(src: Path, out: Path | None, force: bool) -> int:
+    from fieldlog.drive.bagdir import RECOVERED
     from fieldlog.acquire.recovery import recover_drive
-    from fieldlog.drive.files import RECOVERED
 
     out = out or src.with_name(src.stem + RECOVERED)
     if out.resolve() == src.resolve():

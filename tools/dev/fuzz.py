@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import io
+import logging
 import re
 import struct
 import sys
@@ -37,6 +38,7 @@ import numpy as np
 
 NS = 1_000_000_000
 TARGETS = ("nmea", "ubx", "novatel", "daq", "mcap")
+CAN_TARGETS = ("slcan", "candump", "asc", "blf", "dbc")
 HOSTILE = [b"inf", b"-inf", b"nan", b"1e999", b"9" * 20, b"9" * 400, b"-1", b"", b"1_0", b"0x10", b"999999",
            b"240000", b"-0", b"4294967296", b"\xff"]
 INTERESTING = [0x00, 0xFF, 0x7F, 0x80, 0x01, 0xA5, 0x5A, 0x2C, 0x2A, 0x24, 0x23, 0x0A, 0x0D, 0x39, 0x2E, 0x2D]
@@ -372,6 +374,196 @@ TARGETS = (*TARGETS, "sbf")
 FIXES["sbf"] = fix_sbf
 
 
+# ------------------------------------------------------------------------------------------ CAN targets
+
+_SLCAN_RECORD = re.compile(rb"([tTxrR])([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})([0-9])([0-9A-Fa-f]*)\r")
+_ASC_FRAME = re.compile(rb"(\s[0-9A-Fa-f]+x?\s+[RT]x\s+d\s+)([0-9A-Fa-f])((?:\s+[0-9A-Fa-f]{2})*)")
+
+
+def fix_slcan(data: bytes) -> bytes:
+    """Each classic data frame record's DLC digit set to its number of data bytes (at most 8) when it matches
+    neither the data alone nor the data and a 4-digit adapter time; the time is taken to be there (adapters that
+    stamp, as the simulated one does) when the digits allow it."""
+    def dlc(m: re.Match) -> bytes:
+        hexdata, d = m.group(4), int(m.group(3))
+        digits = len(hexdata)
+        if m.group(1) in b"rR" or digits % 2 or digits in (2 * d, 2 * d + 4):
+            return m.group(0)
+        n = (digits - 4) // 2 if 4 <= digits <= 20 else min(digits // 2, 8)
+        return m.group(1) + m.group(2) + b"%d" % n + hexdata + b"\r"
+
+    return _SLCAN_RECORD.sub(dlc, data)
+
+
+def fix_asc(data: bytes) -> bytes:
+    """Each Vector ASC data frame's DLC set to the number of data bytes that follow it."""
+    return _ASC_FRAME.sub(lambda m: m.group(1) + b"%X" % min(len(m.group(3).split()), 15) + m.group(3), data)
+
+
+def fix_blf(data: bytes) -> bytes:
+    """BLF object sizes rewritten from where the objects lie: each ``LOBJ`` object ends where the next one of its
+    level starts (log containers at the top level, stored uncompressed; the frames inside them), and a
+    container's uncompressed size is its data's length."""
+    b = bytearray(data)
+    at = [m.start() for m in re.finditer(b"LOBJ", data)]
+    outer = [p for p in at if p + 32 <= len(b) and int.from_bytes(b[p + 12:p + 16], "little") == 10]
+    for p, e in zip(outer, [*outer[1:], len(b)]):
+        size = e - p - (e - p) % 4
+        b[p + 8:p + 12] = size.to_bytes(4, "little")
+        b[p + 16:p + 18] = b"\0\0"                     # stored, not compressed
+        b[p + 24:p + 28] = max(size - 32, 0).to_bytes(4, "little")
+        inner = [q - p - 32 for q in at if p + 32 <= q < p + size]
+        for q, f in zip(inner, [*inner[1:], size - 32]):
+            b[p + 32 + q + 8:p + 32 + q + 12] = (f - q).to_bytes(4, "little")
+    return bytes(b)
+
+
+FIXES.update(slcan=fix_slcan, candump=lambda d: d, asc=fix_asc, blf=fix_blf, dbc=lambda d: d)
+
+
+def _dbc_seeds() -> list[bytes]:
+    """The simulated car's DBC and variants with what real DBCs hold: 64-bit and float signals, multiplexed
+    signals (simple and extended multiplexing), the largest ids, each also cut short at a few places."""
+    from fieldlog.tools.sim import vehicle
+
+    base = vehicle.DBC_PATH.read_bytes()
+    extra = [
+        b'BO_ 1024 BIG64: 8 ECM\n SG_ COUNT64 : 0|64@1+ (1,0) [0|18446744073709551615] "" LOGGER\n'
+        b' SG_ WHEEL64 : 63|64@0- (0.001,0) [-9.2e15|9.2e15] "m/s" LOGGER\n',
+        b'BO_ 1040 FLOATS: 8 ECM\n SG_ F32 : 0|32@1- (1,0) [0|0] "km/h" LOGGER\n SG_ F64B : 32|32@1- (1,0) [0|0] ""'
+        b' LOGGER\nSIG_VALTYPE_ 1040 F32 : 1;\n',
+        b'BO_ 1056 MUXED: 8 ABS\n SG_ MUX M : 0|8@1+ (1,0) [0|255] "" LOGGER\n SG_ SPEED_A m0 : 8|16@1+ (0.01,0)'
+        b' [0|655.35] "km/h" LOGGER\n SG_ SPEED_B m1 : 8|16@1+ (0.01,0) [0|655.35] "km/h" LOGGER\n'
+        b' SG_ SUB m2M : 8|8@1+ (1,0) [0|255] "" LOGGER\n SG_ DEEP m3 : 16|16@1+ (1,0) [0|65535] "" LOGGER\n'
+        b'SG_MUL_VAL_ 1056 DEEP SUB 3-3;\nSG_MUL_VAL_ 1056 SUB MUX 2-2;\n',
+        b'BO_ 2147483648 ZERO_EXT: 0 ECM\n',
+        b'BO_ 2684354559 MAX_EXT: 64 ECM\n SG_ WHEEL_X : 0|16@1+ (1e308,0) [0|0] "km/h" LOGGER\n'
+        b' SG_ LAST : 504|8@1+ (1,0) [0|255] "" LOGGER\n',
+    ]
+    whole = base + b"\n" + b"".join(extra)
+    huge = whole + b'BO_ 4294967295 HUGE_EXT: 8 ECM\n SG_ H : 0|8@1+ (1,0) [0|255] "" LOGGER\n'
+    return [whole] * 4 + [huge] + [whole[:n] for n in (len(whole) // 5, len(whole) // 2, len(whole) - 40)]
+
+
+DBC_SIGNALS = {"wheel_fl": "WHEEL_SPEEDS.WHEEL_SPEED_FL", "wheel_fr": "BIG64.WHEEL64",
+               "wheel_rl": "MUXED.SPEED_A", "wheel_rr": "MUXED.SPEED_B", "vehicle_speed": "FLOATS.F32",
+               "gear": "GEARBOX.GEAR", "steering": "STEERING.STEER_ANGLE"}
+
+
+def _can_frames(rng: np.random.Generator) -> bytes:
+    """``frames`` records of every id the DBC seeds name, of every length up to 64, random data."""
+    from fieldlog.acquire import can
+
+    ids = [(464, False), (480, False), (928, False), (192, False), (1024, False), (1040, False), (1056, False),
+           (0x1FFFFFFF, True), (0x0, True), (0x1FFFFFFF & 2684354559, True)]
+    frames = []
+    for cid, ext in ids:
+        for n in (0, 1, 2, 4, 7, 8, 12, 64):
+            data = bytearray(rng.bytes(n))
+            if cid == 1056 and n:
+                data[0] = int(rng.integers(0, 5))                 # every multiplexer value, and one unknown
+            frames.append(can.CanFrame(cid, bytes(data), ext, fd=n > 8, adapter_ns=int(rng.integers(-1, 10**12))))
+    return can.encode_records(frames)
+
+
+def _vehicle(dbc: bytes, signals: dict[str, str], wire: str):
+    from fieldlog.acquire import canbus
+
+    return canbus.VehicleDecoder(canbus.BusConfig(wire=wire, dbc=dbc.decode("utf-8", "replace"),
+                                                  dbc_name="fuzz.dbc", signals=dict(signals)))
+
+
+def _one_line(e: ValueError) -> None:
+    """A ValueError is a command's one-line report: more than one line is a finding too."""
+    if "\n" in str(e):
+        raise AssertionError(f"a bad-input message of more than one line: {str(e)[:200]!r}")
+
+
+def _slcan_run(t: Target, data: bytes) -> None:
+    """SLCAN bytes through the daemon's CAN path: the framer and the DBC decoder (a new one every 200 reads)."""
+    from fieldlog.tools.sim import vehicle
+
+    st = t.state
+    if "dec" not in st or st["n"] >= 200:
+        st.update(dec=_vehicle(vehicle.DBC_PATH.read_bytes(), vehicle.SIGNALS, "slcan"), n=0)
+    st["n"] += 1
+    st["dec"].feed(data, 1_700_000_000 * NS + st["n"] * NS // 100, _Drop())
+
+
+def _can_log_run(t: Target, data: bytes) -> None:
+    """A CAN log file through ``fieldlog import --can``'s reading (python-can's reader for the suffix) and the DBC
+    decoder; a ValueError (the one-line report of a bad log) is not a crash."""
+    from fieldlog.tools import importer
+    from fieldlog.tools.sim import vehicle
+
+    st = t.state
+    path = st["path"]
+    path.write_bytes(data)
+    try:
+        reads = importer.can_reads(path, 1_700_000_000 * NS)
+    except ValueError as e:
+        _one_line(e)
+        return
+    dec = st.get("dec") or st.setdefault("dec", _vehicle(vehicle.DBC_PATH.read_bytes(), vehicle.SIGNALS, "frames"))
+    for r in reads:
+        dec.feed(r.data, r.wall_ns, _Drop())
+
+
+def _dbc_run(t: Target, data: bytes) -> None:
+    """A DBC file as ``[can] dbc`` or ``import --dbc`` loads it, the signals set up, then frames of every id and
+    length decoded; a ValueError (CanConfigError: the one-line report of a bad DBC or signal) is not a crash."""
+    try:
+        dec = _vehicle(data, DBC_SIGNALS, "frames")
+    except ValueError as e:
+        _one_line(e)
+        return
+    dec.feed(t.state["frames"], 1_700_000_000 * NS, _Drop())
+
+
+def _can_log_seeds(fmt: str) -> list[bytes]:
+    """Logs of the simulated car's bus (4 s) and a few odd frames (CAN FD, remote, error), 20 frames to a log,
+    written by python-can's own writers (BLF stored uncompressed, so that mutations reach the frames)."""
+    import can as pycan
+
+    from fieldlog.acquire import can
+    from fieldlog.tools.sim import simulate, trajectory
+
+    reads = simulate.make_reads(trajectory.load_scenario("figure8"), 4.0, 5, can=True)[0]
+    framer = can.SlcanFramer()
+    frames = [f for r in reads if r.port == "can" for f in framer.feed(r.data)]
+    frames += [can.CanFrame(0x1FFFFFFF, bytes(range(64)), True, fd=True, brs=True),
+               can.CanFrame(0x7FF, b"", remote=True), can.CanFrame(0, b"\0" * 8, error=True)]
+    path = Path(tempfile.mkdtemp(prefix="fieldlog-fuzz-")) / f"seed.{fmt}"
+    seeds = []
+    for start in range(0, len(frames), 20):
+        with pycan.Logger(str(path), **({"compression_level": 0} if fmt == "blf" else {})) as w:
+            for i, f in enumerate(frames[start:start + 20], start):
+                w.on_message_received(pycan.Message(
+                    timestamp=1_700_000_000 + i / 100, arbitration_id=f.can_id, is_extended_id=f.extended,
+                    is_remote_frame=f.remote, is_error_frame=f.error, is_fd=f.fd, bitrate_switch=f.brs,
+                    data=f.data, dlc=len(f.data), channel=0 if fmt == "blf" else "can0"))
+        seeds.append(path.read_bytes())
+        path.unlink()
+    return seeds
+
+
+def _can_target(name: str) -> Target:
+    if name == "slcan":
+        from fieldlog.tools.sim import simulate, trajectory
+
+        reads = simulate.make_reads(trajectory.load_scenario("figure8"), 4.0, 5, can=True)[0]
+        return Target(name, [r.data for r in reads if r.port == "can"][:400], _slcan_run)
+    if name == "dbc":
+        return Target(name, _dbc_seeds(), _dbc_run, {"frames": _can_frames(np.random.default_rng(0))})
+    fmt = {"candump": "log", "asc": "asc", "blf": "blf"}[name]
+    import can.io.player
+
+    can.io.player._update_reader_plugins()          # python-can looks its plugins up on every LogReader: once here
+    can.io.player._update_reader_plugins = lambda: None
+    work = Path(tempfile.mkdtemp(prefix="fieldlog-fuzz-", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
+    return Target(name, _can_log_seeds(fmt), _can_log_run, {"path": work / f"input.{fmt}"})
+
+
 def make_target(name: str, fast: bool = False) -> Target:
     """Target ``name``; ``fast``: the decoders without the pipeline (nmea, ubx, novatel, sbf), the decoder and the
     counter judge without the time sync (daq)."""
@@ -396,7 +588,9 @@ def make_target(name: str, fast: bool = False) -> Target:
     if name == "mcap":
         tmp = Path(tempfile.mkdtemp(prefix="fieldlog-fuzz-"))
         return Target(name, [_mcap_seed()], _mcap_run, {"path": tmp / "input.mcap"})
-    raise ValueError(f"unknown target {name!r}; one of {', '.join(TARGETS)}")
+    if name in CAN_TARGETS:
+        return _can_target(name)
+    raise ValueError(f"unknown target {name!r}; one of {', '.join(TARGETS + CAN_TARGETS)}")
 
 
 def one_input(target: Target, data: bytes) -> None:
@@ -430,7 +624,7 @@ def campaign(name: str, runs: int, seed: int = 1, crashes: Path | None = None,
              progress: Callable[[Campaign], None] | None = None, fast: bool = False) -> Campaign:
     """``runs`` mutated, re-checksummed inputs through target ``name`` (``make_target``); crashes counted by kind
     and (one file per kind) saved to ``crashes``."""
-    rng = np.random.default_rng([seed, TARGETS.index(name)])
+    rng = np.random.default_rng([seed, (TARGETS + CAN_TARGETS).index(name)])
     t = make_target(name, fast)
     res = Campaign()
     t0 = time.monotonic()
@@ -459,14 +653,15 @@ def campaign(name: str, runs: int, seed: int = 1, crashes: Path | None = None,
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m fieldlog.tools.dev.fuzz", description=__doc__.splitlines()[0])
-    p.add_argument("--target", choices=[*TARGETS, "all"], required=True)
+    p.add_argument("--target", choices=[*TARGETS, *CAN_TARGETS, "all", "can"], required=True)
     p.add_argument("--runs", type=int, default=1_000_000, help="inputs per target (default 10^6)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--crashes", type=Path, default=Path("out/fuzz-crashes"), help="one input per crash kind")
     p.add_argument("--atheris", action="store_true", help="coverage-guided (pip install atheris); libFuzzer "
                                                           "flags follow")
     a, rest = p.parse_known_args(argv)
-    names = TARGETS if a.target == "all" else (a.target,)
+    logging.disable(logging.WARNING)                  # the decoders' warnings about bad input: what is fed here
+    names = {"all": TARGETS, "can": CAN_TARGETS}.get(a.target, (a.target,))
     if a.atheris:
         return _atheris(names[0], rest)
     for name in names:

@@ -65,13 +65,13 @@ Times are seconds since the drive start (t = 0 at the start of the static period
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
+from fieldlog.drive import tables
 from fieldlog.fusion import earth
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
@@ -317,8 +317,7 @@ def _read_raw(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     """The scenario's TOML with its ``extends`` chain resolved (relative paths from the file's folder)."""
     if path.resolve() in seen:
         raise ValueError(f"{path}: circular extends")
-    with open(path, "rb") as fh:
-        raw = tomllib.load(fh)
+    raw = tables.load_toml(tables.read_text(path, "scenario file"), f"scenario file {path}")
     bad = set(raw) - _TOP_KEYS
     if bad:
         raise ValueError(f"{path}: unknown top-level keys {sorted(bad)}")
