@@ -70,8 +70,10 @@ class Engine:
         self.bg, self.ba = np.zeros(3), np.zeros(3)
         self.updates = self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
+        paper = method != "dkf-rbfn" or self.cfg.filter.predictor_mode == "paper"  # "pseudo": a measurement
         self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor)
-                       if method in PREDICTOR_NETWORK else None)
+                       if method in PREDICTOR_NETWORK and paper else None)
+        self._imu_readers = [p for p in self._parts() if hasattr(p, "feed_imu")]  # measurements of raw samples
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
         self.silence = Silence()
@@ -88,6 +90,10 @@ class Engine:
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
         """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
         return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in getattr(p, times))
+
+    def part(self, name: str) -> measurements.MeasurementModel | None:
+        """The measurement of class ``name`` the method runs with (one inside a ``FirstOf`` too), or None."""
+        return next((p for p in self._parts() if p.__class__.__name__ == name), None)
 
     def _parts(self) -> list[measurements.MeasurementModel]:
         """The measurements, those inside a ``FirstOf`` one by one."""
@@ -124,7 +130,7 @@ class Engine:
             if k < cursor:  # the epoch precedes the samples still to process (IMU gap): skip it
                 self.outages.classify(ep)
                 continue
-            self._interval.add(w, f, cursor, k)
+            self._add_interval(w, f, cursor, k)
             if self.nav is None:
                 cursor = k
                 self._pre_init_epoch(ep, float(t[k]), int(t_ns[k]))
@@ -135,11 +141,17 @@ class Engine:
                 self._anchor = float(t[k])
         # the tail after the last cycle start waits for the next block, so blocks never cut a cycle short
         held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
-        self._interval.add(w, f, cursor, held)
+        self._add_interval(w, f, cursor, held)
         if self.nav is not None:
             out.append(self._advance(t, t_ns, w, f, cursor, held))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
         return Solution.concat(out), self.outages.take()
+
+    def _add_interval(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
+        """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
+        self._interval.add(w, f, i0, i1)
+        for p in self._imu_readers:
+            p.feed_imu(w, f, i0, i1, self._imu_dt)
 
     def finish(self) -> tuple[Solution, list[Outage]]:
         """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed)."""

@@ -120,6 +120,7 @@ class FuseResult:
     zaru_skipped_ns: tuple[int, ...] = ()  # still_ns epochs whose ZARU failed its chi^2 test (ZUPT alone)
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
+    virtual_odometer: dict | None = None  # dkf-rbfn, predictor_mode "pseudo": its held-out score and whether it ran
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -378,4 +379,5 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      Solution.concat(kept) if keep else None, tuple(stream.warnings()))
+                      Solution.concat(kept) if keep else None, tuple(stream.warnings()),
+                      vo.summary() if (vo := engine.part("VirtualOdometer")) is not None else None)

@@ -53,7 +53,8 @@ def run(a: argparse.Namespace) -> int:
                    imu_gaps=res.imu_gaps, imu_missing=res.imu_missing, imu_warnings=list(res.imu_warnings), gps_updates=res.updates,
                    solutions=res.rows, outages=res.outages, forced_outages=[list(o) for o in forced],
                    alignment=res.alignment, hinf=res.hinf, stationary_updates=len(res.still_ns),
-                   zaru_skipped=len(res.zaru_skipped_ns), wall_s=round(time.monotonic() - t0, 3))
+                   zaru_skipped=len(res.zaru_skipped_ns), predictor_mode=st.config.get("predictor_mode"),
+                   virtual_odometer=res.virtual_odometer, wall_s=round(time.monotonic() - t0, 3))
     if a.json:
         print(json.dumps(summary))
     else:
@@ -67,6 +68,11 @@ def run(a: argparse.Namespace) -> int:
             log.info(f"alignment: {res.alignment}")
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
+        if res.virtual_odometer:
+            v = res.virtual_odometer
+            skill = "none yet" if v["held_out_skill"] is None else f"{v['held_out_skill']:.2f}"
+            log.info(f"virtual odometer: held-out skill {skill} over 30-60 s (against the IMU's dead reckoning), "
+                     f"{'used at ' + str(v['epochs_used']) + ' outage epochs' if v['ran'] else 'did not run'}")
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
                      "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")
