@@ -70,9 +70,8 @@ class Engine:
         self.bg, self.ba = np.zeros(3), np.zeros(3)
         self.updates = self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
-        paper = method != "dkf-rbfn" or self.cfg.filter.predictor_mode == "paper"  # "pseudo": a measurement
-        self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor)
-                       if method in PREDICTOR_NETWORK and paper else None)
+        self.bridge = (PredictorBridge(method, self.cfg.predictor, make_predictor) if method in PREDICTOR_NETWORK
+                       and (method != "dkf-rbfn" or self.cfg.filter.predictor_mode == "paper") else None)
         self._imu_readers = [p for p in self._parts() if hasattr(p, "feed_imu")]  # measurements of raw samples
         self.alignment = align.Alignment(self.cfg)
         self.outages = OutageTracker(self.cfg.gps.max_fix_sigma_m)
@@ -90,10 +89,6 @@ class Engine:
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
         """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
         return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in getattr(p, times))
-
-    def part(self, name: str) -> measurements.MeasurementModel | None:
-        """The measurement of class ``name`` the method runs with (one inside a ``FirstOf`` too), or None."""
-        return next((p for p in self._parts() if p.__class__.__name__ == name), None)
 
     def _parts(self) -> list[measurements.MeasurementModel]:
         """The measurements, those inside a ``FirstOf`` one by one."""

@@ -12,7 +12,8 @@ Features (:func:`imu_features`, from the last ``FEATURE_S`` of raw IMU samples, 
   speed times the yaw rate;
 - band powers: log10 of the power of the de-meaned specific force and of the rate (summed over the axes) in the
   bands ``BANDS_HZ`` (10);
-- the frequency of the specific force's strongest line in ``PEAK_HZ`` (Hz).
+- the frequency of the specific force's strongest line in ``PEAK_HZ`` (Hz, :func:`peak_frequency`; the samples
+  Hann-windowed for this and the band powers).
 
 What the set assumes: the car's vibration carries its speed, as a car's does through its wheel orders (a wheel
 turns speed / (2 pi r) times a second) and a road's roughness (its power grows with the speed), and the
@@ -50,6 +51,7 @@ TURN_RATE_FLOOR = 0.05  # rad/s: below about this yaw rate the turn speed fades 
 N_FEATURES = 3 + 3 + 1 + 1 + 2 * len(BANDS_HZ) + 1
 HORIZON_S = (30.0, 60.0)  # the outage horizon the residuals are scored over
 SNAPSHOT_S = 10.0  # a frozen copy this often
+SCORED_PER_EPOCH = int((HORIZON_S[1] - HORIZON_S[0]) / SNAPSHOT_S) + 1  # copies within the horizon at an epoch
 MIN_SCORED = 30  # scored residuals before R and the skill are trusted
 _POWER_FLOOR = 1e-12
 
@@ -80,16 +82,31 @@ def imu_features(w: np.ndarray, f: np.ndarray, dt: float, nav: NavState) -> np.n
     mw, mf = w.mean(axis=0), f.mean(axis=0)
     pitch = math.asin(max(-1.0, min(1.0, float(nav.C_bn[2, 1]))))
     turn = -mf[0] * mw[2] / (mw[2] ** 2 + TURN_RATE_FLOOR ** 2)
-    freq = np.fft.rfftfreq(len(w), dt)
+    n = len(w)
+    freq = np.fft.rfftfreq(n, dt)
+    taper = np.hanning(n)[:, None]
     bands = []
     spectra = []
     for x in (f, w):
-        p = (np.abs(np.fft.rfft(x - x.mean(axis=0), axis=0)) ** 2).sum(axis=1) / len(x)
+        p = (np.abs(np.fft.rfft((x - x.mean(axis=0)) * taper, axis=0)) ** 2).sum(axis=1) / n
         spectra.append(p)
         bands += [math.log10(float(p[(freq >= lo) & (freq < hi)].sum()) + _POWER_FLOOR) for lo, hi in BANDS_HZ]
-    sel = (freq >= PEAK_HZ[0]) & (freq <= PEAK_HZ[1])
-    peak = float(freq[sel][np.argmax(spectra[0][sel])]) if sel.any() else 0.0
-    return np.concatenate([mf, mw, [pitch, turn], bands, [peak]])
+    return np.concatenate([mf, mw, [pitch, turn], bands, [peak_frequency(freq, spectra[0])]])
+
+
+def peak_frequency(freq: np.ndarray, power: np.ndarray) -> float:
+    """The frequency (Hz) of the strongest line of a power spectrum within ``PEAK_HZ``, between bins by a parabola
+    through the log power of the peak bin and its neighbours (a Hann-windowed line's log power is close to a
+    parabola near its top); 0 when the band holds fewer than three bins."""
+    idx = np.flatnonzero((freq >= PEAK_HZ[0]) & (freq <= PEAK_HZ[1]))
+    if len(idx) < 3:
+        return 0.0
+    k = int(idx[np.argmax(power[idx])])
+    k = min(max(k, 1), len(power) - 2)
+    a, b, c = np.log(power[k - 1:k + 2] + _POWER_FLOOR)
+    den = a - 2.0 * b + c
+    shift = 0.5 * (a - c) / den if den < 0 else 0.0
+    return float(freq[k] + max(-0.5, min(0.5, shift)) * (freq[1] - freq[0]))
 
 
 def forward_speed(nav: NavState, v_n: np.ndarray) -> float:
@@ -122,13 +139,13 @@ class ForwardReckoner:
 
 
 class HeldOut:
-    """The held-out residuals over the outage horizon (module docstring): R and the skill, over the last
-    ``window`` residuals scored."""
+    """The held-out residuals over the outage horizon (module docstring): R and the skill, over the residuals of
+    the last ``window`` good epochs (each scores the copies within the horizon, about ``SCORED_PER_EPOCH``)."""
 
     def __init__(self, window: int) -> None:
         self.snapshots: deque[tuple[float, SpeedNetwork, ForwardReckoner]] = deque()
-        self.e_net: deque[float] = deque(maxlen=window)
-        self.e_dr: deque[float] = deque(maxlen=window)
+        self.e_net: deque[float] = deque(maxlen=window * SCORED_PER_EPOCH)
+        self.e_dr: deque[float] = deque(maxlen=window * SCORED_PER_EPOCH)
         self._last = -math.inf
 
     def score(self, t: float, x: np.ndarray, y: float, mean_w: np.ndarray, mean_f: np.ndarray,

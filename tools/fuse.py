@@ -380,4 +380,4 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
                       Solution.concat(kept) if keep else None, tuple(stream.warnings()),
-                      vo.summary() if (vo := engine.part("VirtualOdometer")) is not None else None)
+                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None))
