@@ -101,16 +101,16 @@ def test_verdict_names_drives_windows_and_the_drift_ratio_of_the_virtual_odomete
 
 
 SEEDS = (1, 2, 3)
-DRIVE_S = 330.0  # 60 s parked, then laps; one 60 s outage after the network has trained and been scored
-OUTAGE = (240.0, 60.0)
+DRIVE_S = 250.0  # 60 s parked, then laps; one 60 s outage after the network has trained and been scored
+OUTAGE = (180.0, 60.0)
 
 
 @pytest.mark.slow
 def test_virtual_odometer_beats_dkf_in_gps_only_outages_over_seeds(simulated, tmp_path, capsys):
     """figure8-varied-real (laps whose speed varies, a car whose vibration carries it), GPS only as the paper's
     set-up, one 60 s outage per drive: the virtual odometer runs (positive held-out skill, reported by
-    ``fuse --json``) and its 2D RMS in the outage is below dkf's on every drive, the paired t test resolving it
-    and the mean at most 0.7 of dkf's (the full study: docs/studies/pseudo)."""
+    ``fuse --json``) and its 2D RMS in the outage is below dkf's on every drive, the paired t test of the log
+    ratios resolving it, and the mean at most 0.7 of dkf's (the full study: docs/studies/pseudo)."""
     from fieldlog.tools.cli import main
     from fieldlog.tools.evaluation.evaluate import fix_quality, outage_error_series, paired
     from fieldlog.tools.fuse import drive_config, fuse
@@ -128,8 +128,8 @@ def test_virtual_odometer_beats_dkf_in_gps_only_outages_over_seeds(simulated, tm
         vo = res.virtual_odometer
         assert vo["ran"] and vo["held_out_skill"] > 0 and vo["epochs_used"] >= 50, vo
     dkf, ours = np.array(d2["dkf"]), np.array(d2["pseudo"])
-    pt = paired(dkf - ours)
-    assert (ours < dkf).all() and pt.resolved and pt.mean > 0, (d2, pt)
+    pt = paired(np.log(ours / dkf))  # dkf's error spreads over drives with its gyro biases: compare ratios
+    assert (ours < dkf).all() and pt.resolved and pt.mean < 0, (d2, pt)
     assert ours.mean() <= 0.7 * dkf.mean(), d2
     # fuse --json reports the held-out skill and whether it ran
     cfg_file = tmp_path / "pseudo.toml"
