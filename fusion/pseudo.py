@@ -23,7 +23,8 @@ they were over the training window, which is the last ``window`` GNSS epochs (``
 PredictorConfig``), so a changed road or a new gear is learnt again only after GNSS returns. The speed before the
 outage is not an input: the model would learn to repeat it (the next epoch's speed is the last one's, to a few
 cm/s), which says nothing at 30-60 s. A car that does not vibrate (an electric car on smooth asphalt) gives the
-network only the mean force and rate and the turn speed; its held-out score then says so.
+network only the mean force and rate and the turn speed; its held-out R then says so (a large R, a measurement the
+filter weighs little).
 
 Held-out score (:class:`HeldOut`): every ``SNAPSHOT_S`` while GNSS is good a copy of the network is frozen, with
 a dead reckoning of the forward speed started from the GNSS's (:class:`ForwardReckoner`: the INS's along-track
