@@ -1,5 +1,6 @@
 """Outage predictors of the distributed-KF paper (sections 2.2-2.3): six SISO RBF networks, the TDLN, and
-the training history that feeds them from the fusion loop.
+the training history that feeds them from the fusion loop; and :class:`SpeedNetwork`, the same family with several
+inputs, the virtual odometer of ``predictor_mode = "pseudo"`` (``fusion.pseudo``).
 
 Networks (pure numpy, one per channel):
 
