@@ -669,7 +669,8 @@ def verdict(per: dict[tuple[str, float], list[np.ndarray]], windows: dict[tuple[
             return None
         h = d[cand]
         parts = [compare(cand, h, o, d[o]) for o in others if o in d and len(d[o]) == len(h)]
-        count = f"{len(h)} drive{'s' if len(h) != 1 else ''}, {windows.get((cand, L), 0)} windows"
+        w = windows.get((cand, L), 0)
+        count = f"{len(h)} drive{'s' if len(h) != 1 else ''}, {w} window{'s' if w != 1 else ''}"
         return f"- {L:g} s ({count}): {cand} {what} {h.mean():.2f} m; " + "; ".join(parts) + "."
 
     hybrid, pseudo = [], []
