@@ -29,6 +29,7 @@ from fieldlog.fusion.predictors import PredictorConfig
 
 GPS_ERROR_MODELS = ("consider", "gm-states")
 SCALE_FACTOR_MODELS = ("consider", "bias-steps")
+PREDICTOR_MODES = ("paper", "pseudo")
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
 
@@ -143,6 +144,8 @@ class FilterConfig:
     output_hz: float = 10.0
     cov_step_s: float = 0.1  # covariance propagation cycle, s
     dkf_fusion: str = "paper"  # dkf and the predictors' filter: "paper" (eqs. 3-4, lossy) or "federated" (= kf)
+    predictor_mode: str = "paper"  # dkf-rbfn: "paper" (networks predict the local filters' innovations, eq. 7) or
+    # "pseudo" (a network learns the forward speed from the IMU: a virtual odometer, fusion.pseudo)
     hinf_gamma: float = 100.0  # H-infinity bound, position (m) / velocity (m/s) errors; must exceed their sigma
     hinf_min_ratio: float = 1.5  # gamma_k = max(hinf_gamma, ratio x existence bound); 0: fixed gamma (may raise)
     status_max_sigma_m: float = 10.0  # the status is "degraded" above this horizontal position sigma, m
@@ -215,6 +218,8 @@ class FusionConfig:
         for key in ("init_position_sigma_m", "init_vel_sigma_mps", "init_level_sigma_deg", "init_heading_sigma_deg"):
             if not getattr(i, key) > 0:
                 raise ValueError(f"[fusion] {key}: must be > 0")
+        if f.predictor_mode not in PREDICTOR_MODES:
+            raise ValueError(f"[fusion] predictor_mode: {f.predictor_mode!r}; one of {', '.join(PREDICTOR_MODES)}")
         if self.sensor.scale_factor_model not in SCALE_FACTOR_MODELS:
             raise ValueError(f"[fusion] scale_factor_model: {self.sensor.scale_factor_model!r}; one of "
                              f"{', '.join(SCALE_FACTOR_MODELS)}")

@@ -69,7 +69,8 @@ class Engine:
         self.updates = self.predicted = 0
         self.hybrid_parts: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.bridge = (PredictorBridge(self.spec.bridge, self.cfg.predictor, make_predictor)
-                       if self.spec.bridge is not None else None)
+                       if self.spec.bridge is not None and not self.spec.learns_speed(self.cfg) else None)
+        self._imu_readers = [p for p in self._parts() if hasattr(p, "feed_imu")]  # measurements of raw samples
         self.alignment = align.Alignment(self.cfg)
         self.outages, self.silence = OutageTracker(self.cfg.gps.max_fix_sigma_m), Silence()
         # samples not yet integrated (t_ns, omega, f; raw): the block's tail after its last covariance-cycle start
@@ -122,7 +123,7 @@ class Engine:
             if k < cursor:  # the epoch precedes the samples still to process (IMU gap): skip it
                 self.outages.classify(ep)
                 continue
-            self._interval.add(w, f, cursor, k)
+            self._add_interval(w, f, cursor, k)
             if self.nav is None:
                 out.append(self.status.aligning(t_ns[cursor:k + 1]))
                 cursor = k
@@ -134,11 +135,17 @@ class Engine:
                 self._anchor = float(t[k])
         # the tail after the last cycle start waits for the next block, so blocks never cut a cycle short
         held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
-        self._interval.add(w, f, cursor, held)
+        self._add_interval(w, f, cursor, held)
         out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
                    else self.status.aligning(t_ns[cursor:held + 1]))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
         return Solution.concat(out), self.outages.take()
+
+    def _add_interval(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
+        """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
+        self._interval.add(w, f, i0, i1)
+        for p in self._imu_readers:
+            p.feed_imu(w, f, i0, i1, self._imu_dt)
 
     def finish(self) -> tuple[Solution, list[Outage]]:
         """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed)."""

@@ -24,10 +24,11 @@ from typing import Protocol
 
 import numpy as np
 
-from fieldlog.fusion import earth, kf, odometer
+from fieldlog.fusion import earth, kf, odometer, pseudo
 from fieldlog.fusion.align import GATE, GpsSpeed, ImuSums, StillRun
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.errmodel import BA, BG
+from fieldlog.fusion.predictors import PredictorConfig
 from fieldlog.fusion.ins import NavState
 from fieldlog.fusion.types import Epoch, OdomBlock
 
@@ -278,6 +279,88 @@ class Odometer:
 
 
 @dataclass
+class VirtualOdometer:
+    """The learnt forward speed (``[fusion] predictor_mode = "pseudo"``, ``fusion.pseudo``): a virtual odometer.
+
+    While GNSS is good it trains an RBF network (``fusion.predictors.SpeedNetwork``) on the IMU's features
+    (``fusion.pseudo.imu_features``) to the GNSS velocity's component along the IMU's forward axis, scoring
+    copies frozen 30-60 s before first (``fusion.pseudo.HeldOut``). At an epoch without a usable fix it gives the
+    predicted speed as the forward row of the wheel odometer's measurement (``odometer.odometer_measurement``
+    at the IMU, scale 1): z = (C_nb v_n)_y - v_pred, R the held-out residuals' mean square; only when the held-out
+    skill is positive and ``MIN_SCORED`` residuals were scored. No lateral or vertical zeros: those are the
+    NHC's, when it is on. ``preempted_by``: aids whose measurement at the same epoch replaces this one (the
+    wheel odometer, the stationary update). ``feed_imu`` takes the raw samples as the engine integrates them;
+    ``times``: the epochs it gave a measurement at."""
+
+    cfg: PredictorConfig
+    preempted_by: tuple = ()
+    kind = "velocity"
+    stage = "aid"
+    receiver = False
+    times: list[int] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.net = pseudo.new_network(self.cfg)
+        self.window = pseudo.ImuWindow()
+        self.held_out = pseudo.HeldOut(self.cfg.window)
+        self.trained = 0
+        self.outage_skills: list[float] = []  # the skill at each outage's first epoch
+        self._in_outage = False
+
+    def feed_imu(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int, imu_dt: float) -> None:
+        """Raw IMU samples (i0, i1] of w, f (n, 3), body RFU, at period imu_dt (s)."""
+        self.window.add(w, f, i0, i1, imu_dt)
+
+    def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        x = self.window.features(m.nav, m.imu_dt)
+        if m.usable and np.isfinite(m.epoch.v_n[:2]).all():
+            self._in_outage = False
+            if x is not None:
+                y = pseudo.forward_speed(m.nav, m.epoch.v_n)
+                iv = m.interval
+                if iv.n:
+                    self.held_out.score(m.t_fix, x, y, iv.sum_w / iv.n, iv.sum_f / iv.n, iv.n * m.imu_dt)
+                self.net.train(x, y)
+                self.trained += 1
+                self.held_out.freeze(m.t_fix, self.net, m.nav, y, m.bg, m.ba)
+            return None
+        if m.usable:
+            return None
+        if not self._in_outage:
+            self._in_outage = True
+            self.held_out.forget_reckoners()
+            self.outage_skills.append(self.held_out.skill)
+        if any(p.times and p.times[-1] == m.epoch.t_ns for p in self.preempted_by):
+            return None
+        if x is None or not self.on:
+            return None
+        v = self.net.predict(x)
+        if not math.isfinite(v):
+            return None
+        omega_nb_b = m.omega_b - m.nav.C_bn.T @ earth.omega_ie_n(m.nav.lat)
+        z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, np.zeros(3), v, self.held_out.R, 1.0, 0.0, 0.0)
+        self.times.append(m.epoch.t_ns)
+        return z[1:2], H[1:2], R[1:2, 1:2]
+
+    @property
+    def on(self) -> bool:
+        """Whether the held-out score lets the prediction in: enough residuals scored and a positive skill."""
+        return self.held_out.scored >= pseudo.MIN_SCORED and self.held_out.skill > 0.0
+
+    def summary(self) -> dict:
+        """Held-out skill and R (m/s, as a sigma), residuals scored, epochs trained, outage epochs it ran at, and
+        the skill at each outage's start."""
+        r = self.held_out.R
+        return dict(held_out_skill=_finite(self.held_out.skill), held_out_sigma_mps=_finite(math.sqrt(r)),
+                    scored=self.held_out.scored, trained=self.trained, ran=len(self.times) > 0,
+                    epochs_used=len(self.times), outage_skills=[_finite(s) for s in self.outage_skills])
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+@dataclass
 class FirstOf:
     """The first of the given measurements that gives one (the others are not asked): the vehicle aids of one
     epoch exclude each other (a standing car gets the stationary update, not the non-holonomic constraint).
@@ -299,16 +382,21 @@ class FirstOf:
         return None
 
 
-def aids_and_gps(cfg: FusionConfig) -> list[MeasurementModel]:
+def aids_and_gps(cfg: FusionConfig, learnt_speed: bool = False) -> list[MeasurementModel]:
     """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids
-    (``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), then the GPS velocity and position."""
+    (``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), the virtual odometer when
+    ``learnt_speed`` (``fusion.methods.Method.learns_speed``: ``dkf-rbfn`` with ``predictor_mode = "pseudo"``),
+    then the GPS velocity and position."""
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
         [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc)]
         if a.odometer else []) + (
         [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
-    return ([FirstOf(tuple(aids))] if aids else []) + [GpsVelocity(lever, cfg.gps.vel_var_max), GpsPosition(lever)]
+    learnt = ([VirtualOdometer(cfg.predictor, tuple(p for p in aids if not isinstance(p, NonHolonomic)))]
+              if learnt_speed else [])
+    return ([FirstOf(tuple(aids))] if aids else []) + learnt + [GpsVelocity(lever, cfg.gps.vel_var_max),
+                                                                GpsPosition(lever)]
 
 
 def _still_references(nav: NavState, bg: np.ndarray, ba: np.ndarray, P: np.ndarray

@@ -89,8 +89,9 @@ class Method:
     measurements (``fusion.measurements.aids_and_gps``: the vehicle aids, then the GPS velocity and position), False
     for the free INS; bridge: its outage bridge, None for none; local_filters: its output topics include the
     distributed filter's local solutions (``/fusion/<name>/kf1/*``, ``kf2/*``); gps_error_states: ``[fusion]
-    gps_error_model = "gm-states"`` applies (the states are the centralised filter's); colour: the viewer's RGB,
-    None for one of its palette."""
+    gps_error_model = "gm-states"`` applies (the states are the centralised filter's); speed_bridge: with
+    ``[fusion] predictor_mode = "pseudo"`` it bridges outages with the learnt forward speed (a virtual odometer,
+    ``fusion.pseudo``) instead of ``bridge``; colour: the viewer's RGB, None for one of its palette."""
 
     name: str
     filter: FilterFactory
@@ -98,6 +99,7 @@ class Method:
     bridge: Bridge | None = None
     local_filters: bool = False
     gps_error_states: bool = False
+    speed_bridge: bool = False
     colour: tuple[int, int, int] | None = None
 
     def measurements(self, cfg: FusionConfig) -> list:
@@ -107,7 +109,12 @@ class Method:
             return []
         from fieldlog.fusion.measurements import aids_and_gps
 
-        return aids_and_gps(cfg)
+        return aids_and_gps(cfg, self.learns_speed(cfg))
+
+    def learns_speed(self, cfg: FusionConfig) -> bool:
+        """Whether this run bridges outages with the virtual odometer (``speed_bridge`` and ``[fusion]
+        predictor_mode = "pseudo"``) rather than with ``bridge``."""
+        return self.speed_bridge and cfg.filter.predictor_mode == "pseudo"
 
 
 INS = Method("ins", _centralised, aided=False, colour=(200, 40, 40))
@@ -115,7 +122,7 @@ KF = Method("kf", _centralised, gps_error_states=True, colour=(30, 100, 255))
 DKF = Method("dkf", _distributed, local_filters=True, colour=(150, 60, 210))
 RBFN = Method("rbfn", _distributed, bridge=Bridge("rbf"), local_filters=True, colour=(200, 120, 0))
 TDLN = Method("tdln", _distributed, bridge=Bridge("tdl"), local_filters=True, colour=(120, 80, 40))
-DKF_RBFN = Method("dkf-rbfn", _distributed, bridge=Bridge("rbf", hybrid=True), local_filters=True,
+DKF_RBFN = Method("dkf-rbfn", _distributed, bridge=Bridge("rbf", hybrid=True), local_filters=True, speed_bridge=True,
                   colour=(0, 175, 190))
 KF_UKF = Method("kf-ukf", _kf_ukf, colour=(230, 60, 160))
 HINF = Method("hinf", _hinf, colour=(40, 40, 140))

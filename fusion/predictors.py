@@ -1,5 +1,6 @@
 """Outage predictors of the distributed-KF paper (sections 2.2-2.3): six SISO RBF networks, the TDLN, and
-the training history that feeds them from the fusion loop.
+the training history that feeds them from the fusion loop; and :class:`SpeedNetwork`, the same family with several
+inputs, the virtual odometer of ``predictor_mode = "pseudo"`` (``fusion.pseudo``).
 
 Networks (pure numpy, one per channel):
 
@@ -148,26 +149,32 @@ def kmeans_centres(x: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
 
 
 def kmeans_1d(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 10) -> np.ndarray:
-    """k centres (k,) of 1-D samples x (n,): k-means++ seeding (Arthur and Vassilvitskii), then ``iterations``
-    Lloyd steps; an emptied cluster keeps its centre.
+    """k centres (k,) of 1-D samples x (n,): :func:`kmeans` on one column.
 
     The algorithm of ``scipy.cluster.vq.kmeans2(x[:, None], k, minit="++", rng=rng)``, step for step and draw
     for draw, so the centres equal its to the bit (tests/test_predictors.py holds the two against each other);
     written out in numpy because importing ``scipy.cluster`` costs a predictor method more than all its k-means
-    runs over a drive. Each step's memory is (n, k)."""
-    centres = np.empty(k)
+    runs over a drive."""
+    return kmeans(np.asarray(x, float)[:, None], k, rng, iterations)[:, 0]
+
+
+def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 10) -> np.ndarray:
+    """k centres (k, d) of samples x (n, d): k-means++ seeding (Arthur and Vassilvitskii), then ``iterations``
+    Lloyd steps; an emptied cluster keeps its centre. Each step's memory is (n, k, d)."""
+    centres = np.empty((k, x.shape[1]))
     for i in range(k):
         if i == 0:
             pick = rng.integers(len(x))
         else:  # the next seed drawn with probability proportional to the squared distance to the nearest one
-            d2 = ((centres[:i, None] - x[None, :]) ** 2).min(axis=0)
+            d2 = ((centres[:i, None, :] - x[None, :, :]) ** 2).sum(axis=2).min(axis=0)
             pick = int(np.searchsorted((d2 / d2.sum()).cumsum(), rng.uniform()))
         centres[i] = x[pick]
     for _ in range(iterations):
-        label = np.argmin((x[:, None] - centres[None, :]) ** 2, axis=1)
+        label = np.argmin(((x[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2), axis=1)
         count = np.bincount(label, minlength=k)
-        total = np.bincount(label, weights=x, minlength=k)  # summed in sample order, as kmeans2's update
-        centres = np.where(count > 0, total / np.maximum(count, 1), centres)
+        for j in range(x.shape[1]):  # summed in sample order, as kmeans2's update
+            total = np.bincount(label, weights=x[:, j], minlength=k)
+            centres[:, j] = np.where(count > 0, total / np.maximum(count, 1), centres[:, j])
     return centres
 
 
@@ -464,3 +471,85 @@ class OutagePredictor:
                 models.append(Tdln(c.taps, c.ridge).fit(U[:, i], Y[:, i]))
         self.fits += 1
         return models
+
+
+class SpeedNetwork:
+    """A multi-input RBF network trained in real time on a scalar target (the virtual odometer of
+    ``fusion.pseudo``): the same family as the paper's channels, with d inputs instead of one.
+
+    y = w_0 + sum_j w_j xn_j + sum_i w_i exp(-|xn - c_i|^2 / (2 s_i^2)), xn the input normalised by the window's
+    mean and std per component. Centres by k-means (:func:`kmeans`, k-means++ start, ``seed``) on the window's
+    normalised inputs, width s_i = ``width_scale`` x the distance to the nearest other centre; output weights by
+    recursive least squares with forgetting (:class:`Rls`), refreshed as :class:`OnlineChannel` (every
+    ``refresh`` trained epochs, first after ``min_train``). The bias and linear terms (which eq. 6 lacks) carry
+    the output outside the centres' span, where the Gaussian units fall to zero: a speed does not fall to zero
+    because an input left the training range. Predictions are clipped to the trained targets' range."""
+
+    def __init__(self, dim: int, cfg: PredictorConfig) -> None:
+        self.cfg = cfg
+        self._x, self._y = History(cfg.window, dim), History(cfg.window, 1)
+        self.rls: Rls | None = None
+        self.c = self.s = None
+        self.mean, self.std = np.zeros(dim), np.ones(dim)
+        self.lo = self.hi = math.nan
+        self.since = 0
+
+    @property
+    def ready(self) -> bool:
+        return self.rls is not None
+
+    def features(self, x: np.ndarray) -> np.ndarray:
+        """Feature rows (n, 1 + d + l) for inputs x (n, d)."""
+        xn = (np.atleast_2d(x) - self.mean) / self.std
+        d2 = ((xn[:, None, :] - self.c[None, :, :]) ** 2).sum(axis=2)
+        return np.hstack([np.ones((len(xn), 1)), xn, np.exp(-0.5 * d2 / self.s ** 2)])
+
+    def train(self, x: np.ndarray, y: float) -> None:
+        """One epoch: input x (d,), target y; an RLS step, or a refresh when due."""
+        if not (np.isfinite(x).all() and math.isfinite(y)):
+            return
+        self._x.append(x)
+        self._y.append(np.array([y]))
+        X, Y = self._x.rows(), self._y.rows()[:, 0]
+        self.lo, self.hi = float(Y.min()), float(Y.max())
+        if self.rls is None and len(Y) < self.cfg.min_train:
+            return
+        if self.rls is None or self.since >= self.cfg.refresh:
+            self._refresh(X, Y)
+        else:
+            self.rls.update(self.features(x)[0], y)
+            self.since += 1
+
+    def _refresh(self, X: np.ndarray, Y: np.ndarray) -> None:
+        self.mean = X.mean(axis=0)
+        self.std = np.maximum(X.std(axis=0), _STD_FLOOR)
+        xn = (X - self.mean) / self.std
+        k = max(1, min(self.cfg.centres, len(np.unique(xn, axis=0))))
+        c = kmeans(xn, k, np.random.default_rng(self.cfg.seed))
+        if len(c) > 1:
+            d = np.sqrt(((c[:, None, :] - c[None, :, :]) ** 2).sum(axis=2))
+            np.fill_diagonal(d, np.inf)
+            s = d.min(axis=1)
+        else:
+            s = np.ones(1)
+        self.c, self.s = c, self.cfg.width_scale * np.maximum(s, 1e-3)
+        A = self.features(X)
+        self.rls = Rls(A.shape[1], self.cfg.forget, self.cfg.rls_delta)
+        for phi, y in zip(A, Y):
+            self.rls.update(phi, y)
+        self.since = 0
+
+    def frozen(self) -> "SpeedNetwork":
+        """A copy that predicts as this one does now (its history not copied: it is not trained further)."""
+        out = SpeedNetwork.__new__(SpeedNetwork)
+        out.cfg, out.c, out.s, out.mean, out.std, out.lo, out.hi = (self.cfg, self.c, self.s, self.mean, self.std,
+                                                                    self.lo, self.hi)
+        out.rls = Rls.__new__(Rls)
+        out.rls.w = self.rls.w.copy()
+        return out
+
+    def predict(self, x: np.ndarray) -> float:
+        """The output for input x (d,), clipped to the trained targets' range; NaN before the first fit."""
+        if self.rls is None or not np.isfinite(x).all():
+            return math.nan
+        return float(np.clip(self.features(x)[0] @ self.rls.w, self.lo, self.hi))

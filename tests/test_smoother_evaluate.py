@@ -180,11 +180,13 @@ def test_verdict_says_whether_the_hybrid_beats_rbfn_and_the_paper_figure():
 
     per = {("dkf-rbfn", 60.0): runs([2.0, 3.0, 2.5]), ("rbfn", 60.0): runs([5.0, 6.0, 5.5]),
            ("dkf", 60.0): runs([2.1, 2.9, 2.5]), ("dkf-rbfn", 30.0): runs([8.0, 9.0]), ("tdln", 30.0): runs([7.0, 8.5])}
-    text = "\n".join(verdict(per))
+    text = "\n".join(verdict(per, {("dkf-rbfn", 60.0): 6, ("dkf-rbfn", 30.0): 4}))
     line60 = next(x for x in text.splitlines() if x.startswith("- 60 s"))
+    assert line60.startswith("- 60 s (3 drives, 6 windows)")
     assert "55 % better than rbfn" in line60 and ", resolved: " in line60.split("; ")[1]
-    assert "not resolved" in line60.split("; ")[2] and line60.endswith("9.3 m: met.")
+    assert "not resolved against dkf" in line60.split("; ")[2] and line60.endswith("9.3 m: met.")
     line30 = next(x for x in text.splitlines() if x.startswith("- 30 s"))
-    # two drives: a paired test needs three, so even a consistent difference is not resolved
-    assert "worse than tdln" in line30 and "not resolved" in line30 and "9.3" not in line30
+    # two drives: a paired test needs three, so even a consistent difference is not resolved, and not stated
+    assert "not resolved against tdln" in line30 and "worse" not in line30 and "%" not in line30
+    assert "9.3" not in line30
     assert verdict({("kf", 60.0): runs([1.0])}) == []

@@ -125,6 +125,7 @@ class FuseResult:
     solution: Solution | None = None  # the rows written (smoothed with smooth), when fuse was asked to keep them
     alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
+    virtual_odometer: dict | None = None  # dkf-rbfn, predictor_mode "pseudo": its held-out score and whether it ran
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -419,7 +420,8 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
                       odometer_summary(engine), Solution.concat(kept) if keep else None,
-                      dict(engine.alignment.summary), tuple(stream.warnings()))
+                      dict(engine.alignment.summary), tuple(stream.warnings()),
+                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None))
 
 
 def odometer_summary(engine: Engine) -> dict[str, float] | None:

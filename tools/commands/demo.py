@@ -39,6 +39,7 @@ def run(a: argparse.Namespace) -> int:
         rc = a.cli_main([argv[0], *flags, *argv[1:]])
         if rc:
             return rc
-    print(f"\nreport:  {report.resolve() / 'table.md'}\nrerun:   {rerun_exe()} {rrd.resolve()}   "
-          f"(or: {rerun_exe()} {drive.resolve()})")
+    print(f"\nreport:  {report.resolve() / 'table.md'} (one drive: it shows the errors and resolves no difference "
+          "between methods; `fieldlog evaluate --seeds 8 ...` can)\n"
+          f"rerun:   {rerun_exe()} {rrd.resolve()}   (or: {rerun_exe()} {drive.resolve()})")
     return 0

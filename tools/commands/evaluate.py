@@ -25,7 +25,13 @@ def add_parser(sub) -> None:
                    help="--seeds: scenario to simulate (default figure8-varied: the figure-eight with laps that "
                         "vary, so no predictor can learn the track)")
     s.add_argument("--duration", type=float, default=600.0, help="--seeds: seconds per simulated drive")
+    s.add_argument("--first-outage", type=float, default=None, metavar="S",
+                   help="earliest outage start, s from the first IMU sample (default 120: after the filter has "
+                        "converged; later for a predictor that must train first)")
     s.add_argument("--smooth", action="store_true", help="add RTS-smoothed columns (<method>+rts)")
+    s.add_argument("--predictor-modes", default="paper", metavar="MODES",
+                   help="dkf-rbfn: comma separated [fusion] predictor_mode values, one column each (paper, pseudo: "
+                        "the virtual odometer, column 'dkf-rbfn (pseudo)')")
     add_input_args(s)
     s.add_argument("--paper", action="store_true",
                    help="the distributed-KF paper's set-up: GPS only, its dkf, online networks, methods "
@@ -42,10 +48,16 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.tools.evaluation.evaluate import check_methods, evaluate
+    from fieldlog.tools.evaluation.evaluate import StudyConfig, check_methods, evaluate
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     check_methods(methods)
+    from fieldlog.fusion.config import PREDICTOR_MODES
+
+    modes = [m.strip() for m in a.predictor_modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in PREDICTOR_MODES]
+    if bad or not modes:
+        raise ValueError(f"--predictor-modes: {', '.join(bad) or 'none given'}; one or more of {', '.join(PREDICTOR_MODES)}")
     lengths = parse_lengths(a.outages, "--outages")
     if not lengths:
         raise ValueError("--outages: lengths must be > 0")
@@ -82,7 +94,8 @@ def run(a: argparse.Namespace) -> int:
     table = evaluate(drives, lengths, methods, report, smooth=a.smooth,
                      config=load_fusion_config(conf) if conf and "fusion" in conf.tables else None,
                      spec=load_input_spec(conf).merged(input_spec(a)), paper=a.paper, say=log.debug,
-                     note=log.info, progress=Progress("evaluate"), force=a.force)
+                     note=log.info, progress=Progress("evaluate"), force=a.force, predictor_modes=modes,
+                     study=StudyConfig() if a.first_outage is None else StudyConfig(first_s=a.first_outage))
     if a.json:
         print(json.dumps({"drives": [str(d) for d in drives], "out_dir": str(report), "rows": table.to_dicts()}))
     else:

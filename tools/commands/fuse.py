@@ -76,6 +76,7 @@ def run(a: argparse.Namespace) -> int:
                    odometer_scale=res.odometer["scale"] if res.odometer else None,
                    odometer_scale_sigma=res.odometer["scale_sigma"] if res.odometer else None,
                    odometer_slip_skipped=res.odometer["slip_skipped"] if res.odometer else None,
+                   predictor_mode=st.config.get("predictor_mode"), virtual_odometer=res.virtual_odometer,
                    wall_s=round(time.monotonic() - t0, 3))
     if a.method != INS.name:
         summary.update(estimate_installation(drive, st.config, imap))
@@ -101,6 +102,11 @@ def run(a: argparse.Namespace) -> int:
             o = res.odometer
             log.info(f"odometer: wheel-speed scale {o['scale']:.5f} +- {o['scale_sigma']:.5f} (1 sigma), "
                      f"{o['epochs']} epochs, {o['slip_skipped']} of them skipped as slip")
+        if res.virtual_odometer:
+            v = res.virtual_odometer
+            skill = "none yet" if v["held_out_skill"] is None else f"{v['held_out_skill']:.2f}"
+            log.info(f"virtual odometer: held-out skill {skill} over 30-60 s (against the IMU's dead reckoning), "
+                     f"{'used at ' + str(v['epochs_used']) + ' outage epochs' if v['ran'] else 'did not run'}")
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
                      "zero-rate part (its mean rate failed the chi^2 test against the bias estimate)")

@@ -30,7 +30,13 @@ read through ``replay.solutions.read``: the same arrays), so a study scores the 
 fused files back.
 
 Methods: ``fusion.methods.METHODS``. ``rbfn``, ``tdln`` and ``dkf-rbfn`` (``fusion.predictors``) run the
-distributed filter while GPS is good and differ from ``dkf`` only inside the outages.
+distributed filter while GPS is good and differ from ``dkf`` only inside the outages. ``--predictor-modes paper,pseudo`` runs ``dkf-rbfn`` once per
+``[fusion] predictor_mode``, the virtual odometer's column labelled ``dkf-rbfn (pseudo)`` (``fusion.pseudo``).
+
+Below the table, what the run can say (:func:`verdict`): each predictor against the plain filters by the paired t
+test over the drives, naming how many drives and windows it rests on; a difference the test does not resolve is
+reported as "not resolved", never as a percentage. For the virtual odometer also its drift over the outages (the
+error less its value at the outage's start, :func:`drift_2d`) against dkf's.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ import polars as pl
 
 from fieldlog.drive import outputs
 from fieldlog.fusion import earth
-from fieldlog.fusion.config import FusionConfig
+from fieldlog.fusion.config import PREDICTOR_MODES, FusionConfig
 from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF, METHODS, RBFN, TDLN
 from fieldlog.fusion.types import Solution
 from fieldlog.drive import reader
@@ -354,6 +360,23 @@ def window_curves(t_ns: np.ndarray, err: np.ndarray, windows_ns: list[tuple[int,
     return out
 
 
+def drift_2d(t_ns: np.ndarray, err: np.ndarray, windows_ns: list[tuple[int, int]]) -> float:
+    """The drift over the outages: per window, the horizontal position error less its value at the window's first
+    row; RMS over every row of the windows, m (NaN without rows)."""
+    d2 = []
+    for w0, w1 in windows_ns:
+        m = (t_ns >= w0) & (t_ns < w1) & np.isfinite(err[:, :2]).all(axis=1)
+        if m.any():
+            e = err[m, :2]
+            d2.append(((e - e[0]) ** 2).sum(axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(d2)))) if d2 else math.nan
+
+
+def run_label(method: str, mode: str) -> str:
+    """A study column's method label: the method, and for dkf-rbfn a predictor mode other than the paper's."""
+    return f"{method} ({mode})" if method == DKF_RBFN.name and mode != PREDICTOR_MODES[0] else method
+
+
 def plot_errors(curves: dict[str, np.ndarray], length_s: float, path: Path, drives: int, force: bool = False
                 ) -> Path:
     """PNG of the outage error curves of one outage length: curves[method] = (windows, 2, grid) from
@@ -411,7 +434,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
              config: FusionConfig | None = None, study: StudyConfig = StudyConfig(),
              say: Callable[[str], None] = print, spec: InputSpec | None = None, paper: bool = False,
              progress: Callable[[float], None] | None = None, force: bool = False,
-             note: Callable[[str], None] | None = None) -> pl.DataFrame:
+             note: Callable[[str], None] | None = None, predictor_modes: Sequence[str] = ("paper",)
+             ) -> pl.DataFrame:
     """Run the study; writes DIR/table.md, DIR/table.csv, DIR/fused/*.mcap, DIR/errors_<L>s.png.
     Returns the long table.
 
@@ -424,16 +448,19 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     each of its claims (:func:`paper_report`). Drive names (stems) must be unique (:func:`check_drive_names`),
     checked before anything is written. progress: called with the fraction of the runs done. Every file is new
     (``drive.outputs``) unless ``force``; DIR and DIR/fused are never symbolic links. note: the lines about
-    runs that could not be scored (default: ``say``)."""
+    runs that could not be scored (default: ``say``). predictor_modes: ``[fusion] predictor_mode`` values
+    ``dkf-rbfn`` runs with, each its own column (``run_label``: ``dkf-rbfn (pseudo)``)."""
     check_methods(methods)
     if not drives:
         raise ValueError("no drive to evaluate")
     check_drive_names(drives)
     report = Path(report)
     outputs.out_dir(report, "fused")
-    runs = [(m, sm, True) for m in methods for sm in ((False, True) if smooth and m != INS.name else (False,))]
+    runs = [(m, sm, True, mode) for m in methods for sm in ((False, True) if smooth and m != INS.name else (False,))
+            for mode in (predictor_modes if m == DKF_RBFN.name else ("paper",))]
     per: dict[tuple[str, float], list[np.ndarray]] = {}
     windows: dict[tuple[str, float], int] = {}
+    drifts: dict[tuple[str, float], list[float]] = {}
     curves: dict[float, dict[str, list[np.ndarray]]] = {}
     honesty: dict[tuple[str, float], list[dict[str, float]]] = {}
     headings: list[dict] = []
@@ -446,7 +473,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
             base = paper_config(base)
         imap = resolve_inputs(drive, spec)
         t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
-        drive_runs = runs + ([(m, sm, False) for m, sm, _ in runs if m != INS.name]
+        drive_runs = runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
                              if imap.odom_topic and base.aids.odometer else [])
         total += len(lengths) * (len(drive_runs) - len(runs))
         for L in lengths:
@@ -458,10 +485,11 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                 continue
             win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
             cfg = base.replace(outages=tuple(win))
-            for m, sm, odo in drive_runs:
-                name = m + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
-                out = report / "fused" / f"{drive.stem}_{name}_{L:g}s.mcap"
-                run_cfg = cfg if odo else cfg.replace(odometer=False)
+            for m, sm, odo, mode in drive_runs:
+                name = run_label(m, mode) + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
+                file_name = name.replace(" (", "-").replace(")", "")
+                out = report / "fused" / f"{drive.stem}_{file_name}_{L:g}s.mcap"
+                run_cfg = (cfg if odo else cfg.replace(odometer=False)).replace(predictor_mode=mode)
                 res = fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force, keep=True)
                 if res.rows == 0:
                     done += 1
@@ -478,6 +506,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
                                   heading_sigma_deg=sg) for (s0, _), e, sg in zip(win, h_err, h_sig)]
                 curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
                 per.setdefault((name, L), []).append(rms)
+                drifts.setdefault((name, L), []).append(drift_2d(t_err, err, win_ns))
                 windows[(name, L)] = windows.get((name, L), 0) + len(win)
                 done += 1
                 progress(done / total)
@@ -507,8 +536,8 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         say(f"wrote {f}")
     route = route_note([Path(d) for d in drives])
     say(route)
-    conclusions = paper_report(per, route) if paper else verdict(per)
-    for line in (conclusions if paper else conclusions[2:-1]):
+    conclusions = paper_report(per, route) if paper else verdict(per, windows, drifts)
+    for line in (conclusions if paper else [x for x in conclusions if x.startswith("- ")]):
         say(line)
     sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in honesty.items()]
     for line in sigma_lines:
@@ -612,32 +641,60 @@ def _d2(per: dict[tuple[str, float], list[np.ndarray]], L: float, cols: tuple[in
     return {m: np.hypot(np.array(v)[:, cols[0]], np.array(v)[:, cols[1]]) for (m, L2), v in per.items() if L2 == L}
 
 
-def verdict(per: dict[tuple[str, float], list[np.ndarray]]) -> list[str]:
-    """The paper's claim checked on this run: the hybrid (dkf-rbfn) against RBFN-only, TDLN and the plain
-    filter, by 2D position RMS (mean over drives), with whether the paired difference is resolved by a paired
-    t test over the drives (``paired``); and the 60 s target. Lines of markdown; none when dkf-rbfn was not
-    run."""
-    lines = []
+def compare(name: str, ours: np.ndarray, other_name: str, other: np.ndarray, unit: str = "m") -> str:
+    """One paired comparison of per-drive values (n,) each: how much better or worse ``name`` is than
+    ``other_name`` when the paired t test (``paired``) resolves it, else "not resolved against" it; the other's
+    mean and the interval either way. A difference the drives cannot resolve is never stated as one."""
+    pt = paired(other - ours)  # per drive, > 0: ours is better
+    if pt.resolved:
+        word = "better" if pt.mean > 0 else "worse"
+        return (f"{abs(pt.mean) / other.mean() * 100:.0f} % {word} than {other_name} ({other.mean():.2f} {unit}, "
+                f"resolved: {pt.cell(unit)})")
+    why = pt.cell(unit) if pt.n >= MIN_PAIRED_DRIVES else f"{pt.n} drive{'s' if pt.n != 1 else ''}: a paired test needs {MIN_PAIRED_DRIVES}"
+    return f"not resolved against {other_name} ({other.mean():.2f} {unit}; {why})"
+
+
+PSEUDO = run_label(DKF_RBFN.name, PREDICTOR_MODES[1])
+
+
+def verdict(per: dict[tuple[str, float], list[np.ndarray]], windows: dict[tuple[str, float], int] | None = None,
+            drifts: dict[tuple[str, float], list[float]] | None = None) -> list[str]:
+    """What the run can say of the predictors, per outage length, by 2D position RMS (mean over drives) and the
+    paired t test over the drives (``compare``), each line naming its drives and windows: the paper's hybrid
+    (dkf-rbfn) against RBFN-only, TDLN and the plain filters, with the paper's 60 s target; the virtual odometer
+    (``dkf-rbfn (pseudo)``) against dkf, the paper's hybrid and kf, and by its drift over the outages
+    (``drift_2d``) against dkf's. Lines of markdown; none when neither was run."""
+    windows, drifts = windows or {}, drifts or {}
+
+    def lines_for(cand: str, others: tuple[str, ...], L: float, d: dict[str, np.ndarray], what: str) -> str | None:
+        if cand not in d:
+            return None
+        h = d[cand]
+        parts = [compare(cand, h, o, d[o]) for o in others if o in d and len(d[o]) == len(h)]
+        w = windows.get((cand, L), 0)
+        count = f"{len(h)} drive{'s' if len(h) != 1 else ''}, {w} window{'s' if w != 1 else ''}"
+        return f"- {L:g} s ({count}): {cand} {what} {h.mean():.2f} m; " + "; ".join(parts) + "."
+
+    hybrid, pseudo = [], []
     for L in sorted({L for _, L in per}):
-        if (DKF_RBFN.name, L) not in per:
-            continue
         d2 = _d2(per, L)
-        h = d2[DKF_RBFN.name]
-        parts = []
-        for other in (RBFN.name, TDLN.name, DKF.name, KF.name):
-            if other not in d2 or len(d2[other]) != len(h):  # a drive where one of them had no solution
-                continue
-            o = d2[other]
-            pt = paired(o - h)  # per drive, > 0: the hybrid is better
-            word = "better" if pt.mean > 0 else "worse"
-            parts.append(f"{abs(pt.mean) / o.mean() * 100:.0f} % {word} than {other} ({o.mean():.2f} m, "
-                         + ("resolved" if pt.resolved else "not resolved") + f": {pt.cell()})")
-        line = f"- {L:g} s: dkf-rbfn 2D RMS {h.mean():.2f} m; " + "; ".join(parts) + "."
-        if L == 60.0:
-            line += (f" The paper's figure is {PAPER_HYBRID_60S_2D_M} m: "
-                     + ("met." if h.mean() <= PAPER_HYBRID_60S_2D_M else "not met."))
-        lines.append(line)
-    return ["## Does the hybrid beat RBFN-only and TDLN, as the paper claims?", "", *lines, ""] if lines else []
+        line = lines_for(DKF_RBFN.name, (RBFN.name, TDLN.name, DKF.name, KF.name), L, d2, "2D RMS")
+        if line is not None:
+            if L == 60.0:
+                line += (f" The paper's figure is {PAPER_HYBRID_60S_2D_M} m: "
+                         + ("met." if d2[DKF_RBFN.name].mean() <= PAPER_HYBRID_60S_2D_M else "not met."))
+            hybrid.append(line)
+        line = lines_for(PSEUDO, (DKF.name, DKF_RBFN.name, KF.name), L, d2, "2D RMS")
+        if line is not None:
+            pseudo.append(line)
+            dd = {m: np.array(v) for (m, L2), v in drifts.items() if L2 == L}
+            line = lines_for(PSEUDO, (DKF.name,), L, dd, "drift (error less its value at the outage start)")
+            if line is not None and DKF.name in dd:
+                pseudo.append(line + f" Ratio of the means to dkf's: {dd[PSEUDO].mean() / dd[DKF.name].mean():.2f}.")
+    out = ["## Does the hybrid beat RBFN-only and TDLN, as the paper claims?", "", *hybrid, ""] if hybrid else []
+    if pseudo:
+        out += ["## Does the virtual odometer (`predictor_mode = \"pseudo\"`) beat dkf?", "", *pseudo, ""]
+    return out
 
 
 PAPER_METHODS = (KF.name, DKF.name, RBFN.name, TDLN.name, DKF_RBFN.name)
