@@ -726,7 +726,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
             _log_attitude(rec, m, pose, sigma, color)
             if truth_pose is not None and sigma is not None:
                 _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
-        if topic_names(path).get(solutions.topic(method, solutions.STATUS)):  # fused files before it: none
+        if topic_names(path).get(solutions.topic(method, solutions.STATUS)):  # a fused file may have none
             st = solutions.read(path, method, solutions.STATUS)
             ok = st["valid"]
             _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),

@@ -48,7 +48,7 @@ class DriveInfo(Quality):
         d = asdict(self)
         d["path"] = str(self.path.resolve())
         d["files"] = [str(f.resolve()) for f in self.files]
-        d["topics"] = [dict(asdict(t), rate_hz=_rate(t)) for t in self.topics]
+        d["topics"] = [dict(asdict(t), rate_hz=topic_rate(t)) for t in self.topics]
         return json.dumps(_nan_to_none(d), indent=2)
 
 
@@ -63,7 +63,8 @@ def _nan_to_none(d):
     return d
 
 
-def _rate(t: reader.TopicInfo) -> float:
+def topic_rate(t: reader.TopicInfo) -> float:
+    """A topic's mean message rate over its span, Hz (0 with fewer than two messages)."""
     span = (t.last_ns - t.first_ns) / NS
     return (t.count - 1) / span if t.count > 1 and span > 0 else 0.0
 
@@ -169,7 +170,7 @@ def format_info(info: DriveInfo) -> str:
     lines.append("")
     lines.append(f"{'topic':<22} {'type':<46} {'count':>9} {'rate Hz':>9}")
     for t in info.topics:
-        lines.append(f"{t.topic:<22} {t.type:<46} {t.count:>9} {_rate(t):>9.2f}")
+        lines.append(f"{t.topic:<22} {t.type:<46} {t.count:>9} {topic_rate(t):>9.2f}")
     lines.append("")
     if info.sync_states:
         states = ", ".join(f"{k} {v * 100:.1f} %" for k, v in info.sync_states.items())
@@ -211,7 +212,7 @@ def bus_line(info: DriveInfo) -> str:
     top = ", ".join(f"{name} {n}" for n, name in ids[:6]) + (", ..." if len(ids) > 6 else "")
     errors = {k: c.get(f"can.{k}", "0") for k in ("error_frames", "bus_off", "status_errors", "overruns", "refused",
                                                    "bad_records", "bytes_discarded", "decode_errors")}
-    rates = {t.topic: _rate(t) for t in info.topics if t.topic.startswith("/vehicle/")}
+    rates = {t.topic: topic_rate(t) for t in info.topics if t.topic.startswith("/vehicle/")}
     decoded = ", ".join(f"{topic} {r:.1f} Hz" for topic, r in rates.items()) or "none (no DBC signals)"
     return (f"can       {c['can.frames']} frames, {c.get('can.ids', '0')} ids ({top}); errors "
             + ", ".join(f"{k} {v}" for k, v in errors.items()) + f"; decoded {decoded}")

@@ -43,7 +43,7 @@ from fieldlog.fusion import output as fusion_output
 from fieldlog.replay import inputs, solutions, viewdata
 from fieldlog.drive import reader
 from fieldlog.drive.files import DriveSpec, label
-from fieldlog.tools.info import DriveInfo, _rate, bus_line, drive_info
+from fieldlog.tools.info import DriveInfo, bus_line, drive_info, topic_rate
 
 NS = 1_000_000_000
 MAX_POINTS = 2000  # per plotted line: a longer series is decimated to every k-th point
@@ -311,7 +311,7 @@ def drive_section(d: Drive, findings: list[Finding]) -> Section:
         receiver += " (" + ", ".join(f"{v} {k} frames" for k, v in frames.items()) + ")"
     imu_topic = d.imap.imu_topic if d.imap is not None else "/imu"
     rate = next((t for t in info.topics if t.topic == imu_topic), None)
-    imu = f"{imu_topic}, {rate.count} samples at {_rate(rate):.1f} Hz" if rate is not None and rate.count > 1 else (
+    imu = f"{imu_topic}, {rate.count} samples at {topic_rate(rate):.1f} Hz" if rate is not None and rate.count > 1 else (
         "no IMU topic")
     if "calibration" in d.metadata:
         imu += "; DAQ board with a calibration record"
@@ -340,7 +340,7 @@ def drive_section(d: Drive, findings: list[Finding]) -> Section:
             findings.append(Finding(f"port {ev.get('port', '?')} lost: {ev.get('detail', '')}", "drive"))
     s.tables.append((["event", "detail"], events or [["none", "one file, no recovery, no port lost"]]))
     s.tables.append((["topic", "type", "messages", "rate (Hz)"],
-                     [[t.topic, t.type, str(t.count), f"{_rate(t):.2f}" if t.count > 1 else "-"]
+                     [[t.topic, t.type, str(t.count), f"{topic_rate(t):.2f}" if t.count > 1 else "-"]
                       for t in info.topics]))
     return s
 
@@ -560,7 +560,7 @@ def can_section(d: Drive, findings: list[Finding]) -> Section:
         s.nodata = "no vehicle bus topics in the drive (/raw/can, /vehicle/*)"
         return s
     s.tables.append((["topic", "messages", "rate (Hz)"],
-                     [[t, str(i.count), f"{_rate(i):.2f}" if i.count > 1 else "-"] for t, i in names.items()
+                     [[t, str(i.count), f"{topic_rate(i):.2f}" if i.count > 1 else "-"] for t, i in names.items()
                       if t == "/raw/can" or t.startswith("/vehicle/")]))
     tw = d.data.low.get("/vehicle/twist")
     if tw is not None and len(tw["log_time_ns"]):
