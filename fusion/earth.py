@@ -41,6 +41,15 @@ def principal_radii(lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarra
     """Meridian and prime-vertical radii of curvature plus height, ``(R_M + h, R_N + h)`` in m.
 
     lat in rad, h ellipsoidal height in m.
+
+    Parameters
+    ----------
+    lat, h : as :func:`gravity`
+
+    Returns
+    -------
+    R_M_h : ndarray, meridian radius of curvature plus height, m
+    R_N_h : ndarray, prime-vertical radius of curvature plus height, m
     """
     s2 = np.sin(lat) ** 2
     w = np.sqrt(1.0 - E2 * s2)
@@ -54,6 +63,15 @@ def gravity(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
 
     lat in rad, h ellipsoidal height in m (NIMA TR8350.2 eq. 4-1 and 4-3). This is the one gravity model of
     the project: the INS and the simulator both use it, with direction along -up of the ENU frame.
+
+    Parameters
+    ----------
+    lat : array_like, geodetic latitude, rad
+    h : array_like, ellipsoidal height, m
+
+    Returns
+    -------
+    g : ndarray, magnitude of normal gravity, m/s^2
     """
     s2 = np.sin(lat) ** 2
     g0 = GAMMA_E * (1.0 + _K_SOMIGLIANA * s2) / np.sqrt(1.0 - E2 * s2)
@@ -61,7 +79,16 @@ def gravity(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
 
 
 def gravity_n(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
-    """Normal gravity vector in ENU, ``[0, 0, -g]``, shape (..., 3), m/s^2."""
+    """Normal gravity vector in ENU, ``[0, 0, -g]``, shape (..., 3), m/s^2.
+
+    Parameters
+    ----------
+    lat, h : as :func:`gravity`
+
+    Returns
+    -------
+    g_n : (..., 3) ndarray, gravity in ENU, m/s^2
+    """
     g = np.asarray(gravity(lat, h), dtype=float)
     out = np.zeros(g.shape + (3,))
     out[..., 2] = -g
@@ -69,7 +96,18 @@ def gravity_n(lat: ArrayLike, h: ArrayLike) -> np.ndarray:
 
 
 def lla_to_ecef(lat: ArrayLike, lon: ArrayLike, h: ArrayLike) -> np.ndarray:
-    """Geodetic (lat, lon in rad, h in m) to ECEF position, shape (..., 3), m."""
+    """Geodetic (lat, lon in rad, h in m) to ECEF position, shape (..., 3), m.
+
+    Parameters
+    ----------
+    lat : array_like, geodetic latitude, rad
+    lon : array_like, longitude, rad
+    h : array_like, ellipsoidal height, m
+
+    Returns
+    -------
+    r_e : (..., 3) ndarray, ECEF position, m
+    """
     lat, lon, h = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (lat, lon, h)))
     sl, cl = np.sin(lat), np.cos(lat)
     r_n = A / np.sqrt(1.0 - E2 * sl * sl)
@@ -83,6 +121,16 @@ def ecef_to_lla(r_e: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     Bowring's iteration on the reduced latitude (cubic convergence), three passes: round-trip error below
     1e-8 m from below the surface to satellite altitudes (not meant for points near the Earth's centre).
+
+    Parameters
+    ----------
+    r_e : (..., 3) array_like, ECEF position, m
+
+    Returns
+    -------
+    lat : ndarray, geodetic latitude, rad
+    lon : ndarray, longitude in (-pi, pi], rad
+    h : ndarray, ellipsoidal height, m
     """
     r_e = np.asarray(r_e, dtype=float)
     x, y, z = r_e[..., 0], r_e[..., 1], r_e[..., 2]
@@ -99,7 +147,17 @@ def ecef_to_lla(r_e: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def C_en(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
-    """DCM ECEF -> ENU at (lat, lon) in rad, shape (..., 3, 3): ``v_n = C_en @ v_e``."""
+    """DCM ECEF -> ENU at (lat, lon) in rad, shape (..., 3, 3): ``v_n = C_en @ v_e``.
+
+    Parameters
+    ----------
+    lat : array_like, geodetic latitude, rad
+    lon : array_like, longitude, rad
+
+    Returns
+    -------
+    C_en : (..., 3, 3) ndarray, ECEF -> ENU
+    """
     lat, lon = np.broadcast_arrays(np.asarray(lat, dtype=float), np.asarray(lon, dtype=float))
     sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
     out = np.empty(lat.shape + (3, 3))
@@ -110,13 +168,33 @@ def C_en(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
 
 
 def omega_ie_n(lat: ArrayLike) -> np.ndarray:
-    """Earth rotation rate in ENU, ``[0, Omega cos(lat), Omega sin(lat)]``, rad/s, shape (..., 3)."""
+    """Earth rotation rate in ENU, ``[0, Omega cos(lat), Omega sin(lat)]``, rad/s, shape (..., 3).
+
+    Parameters
+    ----------
+    lat : array_like, geodetic latitude, rad
+
+    Returns
+    -------
+    omega_ie_n : (..., 3) ndarray, Earth rate in ENU, rad/s
+    """
     lat = np.asarray(lat, dtype=float)
     return np.stack([np.zeros_like(lat), OMEGA_IE * np.cos(lat), OMEGA_IE * np.sin(lat)], axis=-1)
 
 
 def omega_en_n(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike) -> np.ndarray:
-    """Transport rate (n relative to e, in n) for ENU velocity v_n (..., 3) in m/s; rad/s, shape (..., 3)."""
+    """Transport rate (n relative to e, in n) for ENU velocity v_n (..., 3) in m/s; rad/s, shape (..., 3).
+
+    Parameters
+    ----------
+    lat : array_like, geodetic latitude, rad
+    h : array_like, ellipsoidal height, m
+    v_n : (..., 3) array_like, velocity in ENU, m/s
+
+    Returns
+    -------
+    omega_en_n : (..., 3) ndarray, transport rate in ENU, rad/s
+    """
     v_n = np.asarray(v_n, dtype=float)
     lat = np.asarray(lat, dtype=float)
     rm, rn = principal_radii(lat, np.asarray(h, dtype=float))
@@ -126,7 +204,16 @@ def omega_en_n(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike) -> np.ndarray:
 
 def cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     """a x b over the last axis (broadcast): np.cross's numbers, without its axis handling (most of its time on
-    a few vectors)."""
+    a few vectors).
+
+    Parameters
+    ----------
+    a, b : (..., 3) array_like, vectors in one frame (any unit), broadcast together
+
+    Returns
+    -------
+    c : (..., 3) ndarray, a x b in that frame, unit of a times unit of b
+    """
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
@@ -134,7 +221,16 @@ def cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
 
 
 def skew(v: ArrayLike) -> np.ndarray:
-    """Cross-product matrix ``[v x]`` of (..., 3) vectors, shape (..., 3, 3)."""
+    """Cross-product matrix ``[v x]`` of (..., 3) vectors, shape (..., 3, 3).
+
+    Parameters
+    ----------
+    v : (..., 3) array_like, vector (any frame, any unit)
+
+    Returns
+    -------
+    V : (..., 3, 3) ndarray, with ``V @ w = v x w``
+    """
     v = np.asarray(v, dtype=float)
     out = np.zeros(v.shape + (3,))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -144,7 +240,18 @@ def skew(v: ArrayLike) -> np.ndarray:
 
 
 def euler_to_dcm(heading: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> np.ndarray:
-    """``C_bn`` (body RFU -> ENU) from heading, pitch, roll in rad (conventions in the module docstring)."""
+    """``C_bn`` (body RFU -> ENU) from heading, pitch, roll in rad (conventions in the module docstring).
+
+    Parameters
+    ----------
+    heading : array_like, clockwise from north, rad
+    pitch : array_like, nose-up positive, rad
+    roll : array_like, right-side-down positive, rad
+
+    Returns
+    -------
+    C_bn : (..., 3, 3) ndarray, body RFU -> ENU
+    """
     heading, pitch, roll = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (heading, pitch, roll)))
     sh, ch = np.sin(heading), np.cos(heading)
     sp, cp = np.sin(pitch), np.cos(pitch)
@@ -163,7 +270,18 @@ def euler_to_dcm(heading: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> np.nd
 
 
 def dcm_to_euler(C_bn: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(heading, pitch, roll)`` in rad from ``C_bn``; heading in [0, 2 pi), pitch in [-pi/2, pi/2]."""
+    """``(heading, pitch, roll)`` in rad from ``C_bn``; heading in [0, 2 pi), pitch in [-pi/2, pi/2].
+
+    Parameters
+    ----------
+    C_bn : (..., 3, 3) array_like, body RFU -> ENU
+
+    Returns
+    -------
+    heading : ndarray, in [0, 2 pi), rad
+    pitch : ndarray, in [-pi/2, pi/2], rad
+    roll : ndarray, in (-pi, pi], rad
+    """
     C = np.asarray(C_bn, dtype=float)
     pitch = np.arcsin(np.clip(C[..., 2, 1], -1.0, 1.0))
     roll = np.arctan2(-C[..., 2, 0], C[..., 2, 2])
@@ -172,7 +290,16 @@ def dcm_to_euler(C_bn: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def quat_to_dcm(q: ArrayLike) -> np.ndarray:
-    """DCM of a Hamilton quaternion ``[x, y, z, w]`` (need not be exactly unit; it is normalised)."""
+    """DCM of a Hamilton quaternion ``[x, y, z, w]`` (need not be exactly unit; it is normalised).
+
+    Parameters
+    ----------
+    q : (..., 4) array_like, ``[x, y, z, w]``, non-zero
+
+    Returns
+    -------
+    C : (..., 3, 3) ndarray, the DCM of the normalised q (for the quaternion of ``C_bn``, body -> ENU)
+    """
     q = np.asarray(q, dtype=float)
     if q.shape == (4,):  # one quaternion, in floats: numpy's operations without its per-call cost
         x, y, z, w = q.tolist()
@@ -196,7 +323,16 @@ def _dcm_rows(x, y, z, w):
 
 
 def dcm_to_quat(C: ArrayLike) -> np.ndarray:
-    """Hamilton quaternion ``[x, y, z, w]`` (w >= 0) of a DCM; Shepperd's method, stable for all angles."""
+    """Hamilton quaternion ``[x, y, z, w]`` (w >= 0) of a DCM; Shepperd's method, stable for all angles.
+
+    Parameters
+    ----------
+    C : (..., 3, 3) array_like, a rotation matrix
+
+    Returns
+    -------
+    q : (..., 4) ndarray, unit ``[x, y, z, w]`` with w >= 0
+    """
     C = np.asarray(C, dtype=float)
     tr = C[..., 0, 0] + C[..., 1, 1] + C[..., 2, 2]
     # four candidate 4*q_i^2 values; pick the largest per matrix
@@ -218,7 +354,16 @@ def dcm_to_quat(C: ArrayLike) -> np.ndarray:
 
 
 def quat_multiply(p: ArrayLike, q: ArrayLike) -> np.ndarray:
-    """Hamilton product ``p * q`` of ``[x, y, z, w]`` quaternions (DCM of the product = DCM(p) @ DCM(q))."""
+    """Hamilton product ``p * q`` of ``[x, y, z, w]`` quaternions (DCM of the product = DCM(p) @ DCM(q)).
+
+    Parameters
+    ----------
+    p, q : (..., 4) array_like, ``[x, y, z, w]`` quaternions, broadcast together
+
+    Returns
+    -------
+    pq : (..., 4) ndarray, ``p * q`` (not renormalised)
+    """
     p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
     pv, pw = p[..., :3], p[..., 3:]
     qv, qw = q[..., :3], q[..., 3:]
@@ -228,7 +373,16 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> np.ndarray:
 
 
 def rotvec_to_quat(rv: ArrayLike) -> np.ndarray:
-    """Quaternion ``[x, y, z, w]`` of rotation vector(s) rv (..., 3) in rad."""
+    """Quaternion ``[x, y, z, w]`` of rotation vector(s) rv (..., 3) in rad.
+
+    Parameters
+    ----------
+    rv : (..., 3) array_like, rotation vector (axis times angle), rad
+
+    Returns
+    -------
+    q : (..., 4) ndarray, unit ``[x, y, z, w]`` (w < 0 when the angle exceeds pi)
+    """
     rv = np.asarray(rv, dtype=float)
     a = np.linalg.norm(rv, axis=-1, keepdims=True)
     a2 = a * a
@@ -238,7 +392,16 @@ def rotvec_to_quat(rv: ArrayLike) -> np.ndarray:
 
 
 def quat_to_rotvec(q: ArrayLike) -> np.ndarray:
-    """Rotation vector(s) (..., 3) in rad, angle in [0, pi], of ``[x, y, z, w]`` quaternion(s)."""
+    """Rotation vector(s) (..., 3) in rad, angle in [0, pi], of ``[x, y, z, w]`` quaternion(s).
+
+    Parameters
+    ----------
+    q : (..., 4) array_like, ``[x, y, z, w]``, non-zero (normalised here)
+
+    Returns
+    -------
+    rv : (..., 3) ndarray, rotation vector, rad
+    """
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     q = q * np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
@@ -249,12 +412,30 @@ def quat_to_rotvec(q: ArrayLike) -> np.ndarray:
 
 
 def rotvec_to_dcm(rv: ArrayLike) -> np.ndarray:
-    """DCM ``exp([rv x])`` of rotation vector(s) rv (..., 3) in rad."""
+    """DCM ``exp([rv x])`` of rotation vector(s) rv (..., 3) in rad.
+
+    Parameters
+    ----------
+    rv : as :func:`rotvec_to_quat`
+
+    Returns
+    -------
+    C : (..., 3, 3) ndarray
+    """
     return quat_to_dcm(rotvec_to_quat(rv))
 
 
 def dcm_to_rotvec(C: ArrayLike) -> np.ndarray:
-    """Rotation vector(s) of DCM(s) C, angle in [0, pi]."""
+    """Rotation vector(s) of DCM(s) C, angle in [0, pi].
+
+    Parameters
+    ----------
+    C : as :func:`dcm_to_quat`
+
+    Returns
+    -------
+    rv : (..., 3) ndarray, rotation vector, rad
+    """
     return quat_to_rotvec(dcm_to_quat(C))
 
 
@@ -268,7 +449,21 @@ BODY_FRAMES: dict[str, np.ndarray] = {
 
 
 def C_rfu_from(frame: str) -> np.ndarray:
-    """The rotation (3, 3) from a named body frame (``BODY_FRAMES``: rfu, flu, frd) to body RFU."""
+    """The rotation (3, 3) from a named body frame (``BODY_FRAMES``: rfu, flu, frd) to body RFU.
+
+    Parameters
+    ----------
+    frame : str, a key of ``BODY_FRAMES`` (any case)
+
+    Returns
+    -------
+    C_rfu_x : (3, 3) ndarray, maps vectors in ``frame`` to body RFU: ``v_rfu = C_rfu_x @ v_x``
+
+    Raises
+    ------
+    ValueError
+        For an unknown frame name.
+    """
     try:
         return BODY_FRAMES[frame.lower()]
     except KeyError:

@@ -59,7 +59,18 @@ def position_velocity_weights() -> np.ndarray:
 
 
 def existence_bound(P: np.ndarray, L: np.ndarray) -> float:
-    """Smallest gamma for which H_k = P^-1 - gamma^-2 L^T L is positive definite: sqrt(lambda_max(S^T L^T L S))."""
+    """Smallest gamma for which H_k = P^-1 - gamma^-2 L^T L is positive definite: sqrt(lambda_max(S^T L^T L S)).
+
+    Parameters
+    ----------
+    P : (15, 15) ndarray, error covariance (``fusion.errmodel`` order and units), positive definite
+    L : (p, 15) ndarray, the estimated combination z = L x (e.g. :func:`position_velocity_weights`)
+
+    Returns
+    -------
+    float
+        The bound, in the units of z (m and m/s for the default L).
+    """
     S = np.linalg.cholesky(P)
     LS = L @ S
     return float(np.sqrt(max(np.linalg.eigvalsh(LS.T @ LS)[-1], 0.0)))
@@ -112,7 +123,16 @@ class HInfinityFilter(KalmanFilter):
         return 0.5 * (Pbar + Pbar.T)
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """``KalmanFilter.propagate``; the next update inflates P again (a new epoch)."""
+        """``KalmanFilter.propagate``; the next update inflates P again (a new epoch).
+
+        Parameters
+        ----------
+        Phi, Q : (m, 15, 15) ndarray, as :meth:`fusion.kf.KalmanFilter.propagate`
+
+        Returns
+        -------
+        (m, 15) ndarray, diag(P) after each cycle (P, not the inflated Pbar).
+        """
         self._inflate = True
         return super().propagate(Phi, Q)
 
@@ -120,7 +140,21 @@ class HInfinityFilter(KalmanFilter):
         """H-infinity measurement update: the KF update (Joseph form) of Pbar. Returns K (z - H x) (15,).
 
         P is inflated to Pbar once per epoch, at its first update (the vehicle aid or the GPS): eq. 26 has one
-        H_k per step, and the updates of one epoch are the parts of that step's measurement."""
+        H_k per step, and the updates of one epoch are the parts of that step's measurement.
+
+        Parameters
+        ----------
+        z, H, R : as :meth:`fusion.kf.KalmanFilter.update` (z (m,), H (m, 15), R (m, m))
+
+        Returns
+        -------
+        (15,) ndarray, K (z - H x) with the gain of Pbar, ``fusion.errmodel`` order and units.
+
+        Raises
+        ------
+        GammaTooSmall
+            With a fixed gamma (``min_ratio = 0``) below the existence bound at this epoch.
+        """
         if self._inflate:
             self.P = self.inflated()
             self._inflate = False
@@ -133,7 +167,17 @@ KF_EQUAL_INFLATION = 1.01  # Pbar within 1 % of P along every direction: the upd
 def summary(f: HInfinityFilter) -> dict[str, str]:
     """What gamma ran, as the fused file's ``fusion.hinf`` metadata record and ``fieldlog fuse``'s line:
     ``gamma`` (configured), ``min_ratio``, ``gamma_run_min``/``_max``, ``raised``, ``epochs``,
-    ``worst_inflation``, ``paper_gamma_exists`` (epochs where gamma = 3 lay above the bound) and ``note``: whether the filter equalled ``kf`` on this drive."""
+    ``worst_inflation``, ``paper_gamma_exists`` (epochs where gamma = 3 lay above the bound) and ``note``: whether the filter equalled ``kf`` on this drive.
+
+    Parameters
+    ----------
+    f : HInfinityFilter, the filter after the drive
+
+    Returns
+    -------
+    dict[str, str]
+        The record's fields, values as text.
+    """
     lo, hi = f.gamma_run if f.epochs else (f.gamma, f.gamma)
     same = f.worst_inflation < KF_EQUAL_INFLATION
     note = (f"gamma {lo:.3g}..{hi:.3g} ran (configured {f.gamma:g}, raised at {f.raised} of {f.epochs} epochs); "

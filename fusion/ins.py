@@ -64,7 +64,17 @@ class NavSolution:
     q: np.ndarray
 
     def state(self, i: int) -> NavState:
-        """State at sample i (use -1 to continue with the next block)."""
+        """State at sample i (use -1 to continue with the next block).
+
+        Parameters
+        ----------
+        i : int, sample index (negative counts from the end)
+
+        Returns
+        -------
+        NavState
+            A copy of row i (changing it leaves the solution as it is).
+        """
         return NavState(float(self.t[i]), float(self.lat[i]), float(self.lon[i]), float(self.h[i]),
                         self.v_n[i].copy(), self.q[i].copy())
 
@@ -85,6 +95,23 @@ def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.
     t_s (n,) strictly increasing sample times, s; omega_ib_b (n, 3) rad/s; f_b (n, 3) m/s^2, body RFU.
     Returns the state at every sample time (row 0 is ``state``). To continue with the next block, pass
     ``solution.state(-1)`` and start that block with the last sample of this one.
+
+    Parameters
+    ----------
+    state : NavState, the navigation state at ``t_s[0]``
+    t_s : (n,) ndarray, strictly increasing sample times, s
+    omega_ib_b : (n, 3) ndarray, angular rate of body w.r.t. inertial, body RFU, rad/s
+    f_b : (n, 3) ndarray, specific force, body RFU, m/s^2
+
+    Returns
+    -------
+    NavSolution
+        lat, lon (rad), h (m), v_n (ENU, m/s), q (of ``C_bn``) at each of the n sample times.
+
+    Raises
+    ------
+    ValueError
+        For mismatched shapes, times not strictly increasing, or a first sample not at ``state.t``.
     """
     t = np.ascontiguousarray(t_s, dtype=float)
     w = np.ascontiguousarray(omega_ib_b, dtype=float)
@@ -112,6 +139,18 @@ def step(state: NavState, t1: float, omega0: np.ndarray, f0: np.ndarray, omega1:
     """One INS step from ``state`` (at the time of sample 0: omega0, f0) to t1 (sample 1: omega1, f1).
 
     Rates in rad/s, specific forces in m/s^2, body RFU; same algorithm as ``integrate``.
+
+    Parameters
+    ----------
+    state : NavState, the state at sample 0
+    t1 : float, time of sample 1, s (after ``state.t``)
+    omega0, omega1 : (3,) array_like, angular rate omega_ib_b at samples 0 and 1, body RFU, rad/s
+    f0, f1 : (3,) array_like, specific force at samples 0 and 1, body RFU, m/s^2
+
+    Returns
+    -------
+    NavState
+        The state at t1.
     """
     sol = integrate(state, np.array([state.t, float(t1)]), np.array([omega0, omega1], dtype=float),
                     np.array([f0, f1], dtype=float))

@@ -97,7 +97,17 @@ _PINV_RTOL = 1e-12
 
 
 def simplex_vertices(n: int) -> np.ndarray:
-    """Eq. 14: the n + 1 vertices a_i (rows, (n+1, n)) of the regular simplex on the unit sphere in R^n."""
+    """Eq. 14: the n + 1 vertices a_i (rows, (n+1, n)) of the regular simplex on the unit sphere in R^n.
+
+    Parameters
+    ----------
+    n : int, state dimension (>= 1)
+
+    Returns
+    -------
+    (n+1, n) ndarray
+        Unit vectors a_i summing to zero.
+    """
     i = np.arange(1, n + 2)[:, None]
     j = np.arange(1, n + 1)[None, :]
     below = -np.sqrt((n + 1) / (n * (n - j + 2) * (n - j + 1)))
@@ -106,25 +116,65 @@ def simplex_vertices(n: int) -> np.ndarray:
 
 
 def spherical_radial_rule(n: int) -> Rule:
-    """Third-degree spherical-radial rule (eq. 12): +-sqrt(n) e_i, weights 1/(2n); 2n points."""
+    """Third-degree spherical-radial rule (eq. 12): +-sqrt(n) e_i, weights 1/(2n); 2n points.
+
+    Parameters
+    ----------
+    n : int, state dimension (>= 1)
+
+    Returns
+    -------
+    xi : (m, n) ndarray, unit points (point j = x + S xi_j)
+    w : (m,) ndarray, weights (sum to one)
+    """
     e = np.sqrt(n) * np.eye(n)
     return np.concatenate([e, -e]), np.full(2 * n, 0.5 / n)
 
 
 def simplex_radial_rule(n: int) -> Rule:
-    """Spherical simplex-radial rule: +-sqrt(n) a_i with eq. 14's vertices, weights 1/(2(n+1)); 2(n+1) points."""
+    """Spherical simplex-radial rule: +-sqrt(n) a_i with eq. 14's vertices, weights 1/(2(n+1)); 2(n+1) points.
+
+    Parameters
+    ----------
+    n : int, state dimension (>= 1)
+
+    Returns
+    -------
+    Rule
+        As :func:`spherical_radial_rule`, 2(n+1) points.
+    """
     a = np.sqrt(n) * simplex_vertices(n)
     return np.concatenate([a, -a]), np.full(2 * (n + 1), 0.5 / (n + 1))
 
 
 def tria(A: np.ndarray) -> np.ndarray:
-    """Lower-triangular square root of A A^T (A (n, k), k >= n): R^T of the QR decomposition of A^T."""
+    """Lower-triangular square root of A A^T (A (n, k), k >= n): R^T of the QR decomposition of A^T.
+
+    Parameters
+    ----------
+    A : (n, k) ndarray, k >= n
+
+    Returns
+    -------
+    (n, n) ndarray
+        Lower-triangular L with L L^T = A A^T.
+    """
     return np.linalg.qr(A.T, mode="r").T
 
 
 def psd_sqrt(M: np.ndarray) -> np.ndarray:
     """A square root L of a symmetric positive semi-definite M (L L^T = M): Cholesky, or the eigen-decomposition
-    with negative (rounding) eigenvalues set to zero when Cholesky fails."""
+    with negative (rounding) eigenvalues set to zero when Cholesky fails.
+
+    Parameters
+    ----------
+    M : (n, n) ndarray, symmetric positive semi-definite
+
+    Returns
+    -------
+    (n, n) ndarray
+        L with L L^T = M (to rounding), in the units of the square root of M.
+    """
     try:
         return np.linalg.cholesky(M)
     except np.linalg.LinAlgError:
@@ -134,7 +184,19 @@ def psd_sqrt(M: np.ndarray) -> np.ndarray:
 
 def time_update(X: np.ndarray, w: np.ndarray, SQ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Square-root cubature time update: propagated points X (m, n), weights w (m,) (all positive), sqrt(Q) SQ
-    (n, n) -> (x-, S-) with S- S-^T = sum w_j (X_j - x-)(X_j - x-)^T + Q."""
+    (n, n) -> (x-, S-) with S- S-^T = sum w_j (X_j - x-)(X_j - x-)^T + Q.
+
+    Parameters
+    ----------
+    X : (m, n) ndarray, propagated cubature points, ``fusion.errmodel`` order and units
+    w : (m,) ndarray, positive weights summing to one
+    SQ : (n, n) ndarray, a square root of the discrete process noise Q
+
+    Returns
+    -------
+    x : (n,) ndarray, predicted mean x-
+    S : (n, n) ndarray, lower-triangular square root S- of the predicted covariance
+    """
     x = w @ X
     Xc = np.sqrt(w)[:, None] * (X - x)
     return x, tria(np.hstack([Xc.T, SQ]))
@@ -143,7 +205,22 @@ def time_update(X: np.ndarray, w: np.ndarray, SQ: np.ndarray) -> tuple[np.ndarra
 def cubature_update(x: np.ndarray, S: np.ndarray, rule: Rule, z: np.ndarray, H: np.ndarray, SR: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
     """SCKF measurement update through the cubature points (eq. 13), linear h(x) = H x: (x, S) after it.
-    x (n,), S (n, n) predicted; z (m,), H (m, n), SR (m, m) a square root of R."""
+    x (n,), S (n, n) predicted; z (m,), H (m, n), SR (m, m) a square root of R.
+
+    Parameters
+    ----------
+    x : (n,) ndarray, predicted error state (``fusion.errmodel`` order and units)
+    S : (n, n) ndarray, square root of the predicted covariance, S S^T = P-
+    rule : Rule, unit points and weights of the cubature rule
+    z : (m,) ndarray, measurement (INS minus aid; m, m/s by kind)
+    H : (m, n) ndarray, measurement matrix
+    SR : (m, m) ndarray, a square root of R, units of z
+
+    Returns
+    -------
+    x : (n,) ndarray, updated error state
+    S : (n, n) ndarray, lower-triangular square root of the updated covariance
+    """
     xi, w = rule
     X = x + xi @ S.T
     Z = X @ H.T
@@ -157,7 +234,16 @@ def cubature_update(x: np.ndarray, S: np.ndarray, rule: Rule, z: np.ndarray, H: 
 
 def svd_update(x: np.ndarray, S: np.ndarray, z: np.ndarray, H: np.ndarray, SR: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Linear measurement update by SVD (eqs. 16-21): (x, S) after it. Arguments as :func:`cubature_update`."""
+    """Linear measurement update by SVD (eqs. 16-21): (x, S) after it. Arguments as :func:`cubature_update`.
+
+    Parameters
+    ----------
+    x, S, z, H, SR : as :func:`cubature_update`
+
+    Returns
+    -------
+    x, S : as :func:`cubature_update`
+    """
     HS = H @ S
     U, d, _ = np.linalg.svd(np.hstack([HS, SR]), full_matrices=False)
     keep = d > _PINV_RTOL * d[0]
@@ -167,7 +253,17 @@ def svd_update(x: np.ndarray, S: np.ndarray, z: np.ndarray, H: np.ndarray, SR: n
 
 
 def channels(H: np.ndarray) -> np.ndarray:
-    """GPS channel of each measurement row (m,): 0-2 position E, N, U, 3-5 velocity E, N, U."""
+    """GPS channel of each measurement row (m,): 0-2 position E, N, U, 3-5 velocity E, N, U.
+
+    Parameters
+    ----------
+    H : (m, 15) ndarray, GPS measurement matrix (one unit entry in columns 0-5 per row)
+
+    Returns
+    -------
+    (m,) int ndarray
+        Channel of each row.
+    """
     return np.argmax(np.abs(H[:, 0:6]), axis=1)
 
 
@@ -185,7 +281,15 @@ class MovingWindowR:
 
     def push(self, ch: np.ndarray, y: np.ndarray, HPH: np.ndarray, R_nom: np.ndarray) -> None:
         """One epoch: its rows' channels (m,), innovation y = z - H x- (m,), H P- H^T (m, m) and the nominal R
-        (m, m) the receiver reported."""
+        (m, m) the receiver reported.
+
+        Parameters
+        ----------
+        ch : (m,) int ndarray, channel of each row (:func:`channels`)
+        y : (m,) ndarray, innovation z - H x-, m or m/s by channel
+        HPH : (m, m) ndarray, H P- H^T, units of y squared
+        R_nom : (m, m) ndarray, nominal R reported by the receiver, units of y squared
+        """
         D = self._d[self.epochs % self.window]
         D.fill(np.nan)
         D[ch] = (y * y - np.diag(HPH)) / np.diag(R_nom)
@@ -194,7 +298,18 @@ class MovingWindowR:
     def estimate(self, ch: np.ndarray, R_nom: np.ndarray) -> np.ndarray:
         """R (m, m) for rows of channels ch: R_nom with each channel's variance scaled by its window mean ratio
         of measured to nominal variance, floored at ``floor`` (correlations of R_nom kept); R_nom itself until
-        the window is full or when fewer than half its epochs have all these channels."""
+        the window is full or when fewer than half its epochs have all these channels.
+
+        Parameters
+        ----------
+        ch : (m,) int ndarray, channel of each row (:func:`channels`)
+        R_nom : (m, m) ndarray, nominal R of this epoch, m^2 or (m/s)^2 by channel
+
+        Returns
+        -------
+        (m, m) ndarray
+            The R to use, units of R_nom.
+        """
         if self.epochs < self.window:
             return R_nom
         block = self._d[:, ch]
@@ -230,11 +345,26 @@ class CubatureKF(ukf.CycleFilter):
 
     @P.setter
     def P(self, P: np.ndarray) -> None:
+        """Set the covariance through its square root S (:func:`psd_sqrt`).
+
+        Parameters
+        ----------
+        P : (15, 15) ndarray, error covariance, ``fusion.errmodel`` units squared
+        """
         self.S = psd_sqrt(np.asarray(P, dtype=float))
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Cubature time update through the nonlinear model over the queued cycles (Phi unused); diag(P) after
-        each cycle (m, 15)."""
+        each cycle (m, 15).
+
+        Parameters
+        ----------
+        Phi, Q : (m, 15, 15) ndarray, as :meth:`fusion.kf.KalmanFilter.propagate`
+
+        Returns
+        -------
+        (m, 15) ndarray, diag(S S^T) after each cycle's cubature time update.
+        """
         cycles = self.take(len(Phi))
         xi, w = self.rule
         out = np.empty((len(Phi), N_STATES))
@@ -246,14 +376,28 @@ class CubatureKF(ukf.CycleFilter):
 
     def update_batch(self, obs: list[kf.Observation]) -> None:
         """The observations stacked as :meth:`fusion.kf.KalmanFilter.update_batch`; with the window R if adaptive
-        and every row is the receiver's (a GPS update)."""
+        and every row is the receiver's (a GPS update).
+
+        Parameters
+        ----------
+        obs : list of kf.Observation, the epoch's observations (z, H, R each), in order
+        """
         m = kf.stack(*(o.m for o in obs))
         if m is not None:
             self._update(*m, self.adaptive is not None and all(o.receiver for o in obs))
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Measurement update with R as given (a non-GPS aid: not part of the GPS window). Returns the change of
-        the estimate (15,)."""
+        the estimate (15,).
+
+        Parameters
+        ----------
+        z, H, R : as :meth:`fusion.kf.KalmanFilter.update` (z (m,), H (m, 15), R (m, m))
+
+        Returns
+        -------
+        (15,) ndarray, the change of the estimate, ``fusion.errmodel`` order and units.
+        """
         return self._update(z, H, R, False)
 
     def _update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray, adapt: bool) -> np.ndarray:
@@ -274,11 +418,30 @@ class CubatureKF(ukf.CycleFilter):
 
 
 def sckf(P0: np.ndarray, q: np.ndarray) -> CubatureKF:
-    """The paper's baseline SCKF: spherical-radial points, cubature measurement update, nominal R."""
+    """The paper's baseline SCKF: spherical-radial points, cubature measurement update, nominal R.
+
+    Parameters
+    ----------
+    P0 : (15, 15) ndarray, initial error covariance, ``fusion.errmodel`` units squared
+    q : (12, 12) ndarray, noise PSD (``errmodel.noise_psd``)
+
+    Returns
+    -------
+    CubatureKF
+    """
     return CubatureKF(P0, q, spherical_radial_rule(N_STATES), svd=False, adaptive=None)
 
 
 def ssr_sckf(P0: np.ndarray, q: np.ndarray) -> CubatureKF:
-    """The adaptive SSR-SCKF: simplex-radial points, SVD measurement update, moving-window R."""
+    """The adaptive SSR-SCKF: simplex-radial points, SVD measurement update, moving-window R.
+
+    Parameters
+    ----------
+    P0, q : as :func:`sckf`
+
+    Returns
+    -------
+    CubatureKF
+    """
     return CubatureKF(P0, q, simplex_radial_rule(N_STATES), svd=True, adaptive=MovingWindowR())
 

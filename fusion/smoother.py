@@ -83,11 +83,24 @@ class SmootherLog:
         self._file.close()
 
     def start(self, t_ns: int, P0: np.ndarray) -> None:
-        """The filter's initial covariance at t_ns (alignment)."""
+        """The filter's initial covariance at t_ns (alignment).
+
+        Parameters
+        ----------
+        t_ns : int, alignment time, UTC ns
+        P0 : (15, 15) ndarray, initial error covariance, ``fusion.errmodel`` units squared
+        """
         self.cycles(np.array([t_ns], np.int64), np.eye(N_STATES)[None], np.asarray(P0, float)[None])
 
     def cycles(self, t_ns: np.ndarray, Phi: np.ndarray, P_pred: np.ndarray) -> None:
-        """Covariance cycles ending at t_ns (m,) int64 UTC: Phi (m, 15, 15), predicted P (m, 15, 15)."""
+        """Covariance cycles ending at t_ns (m,) int64 UTC: Phi (m, 15, 15), predicted P (m, 15, 15).
+
+        Parameters
+        ----------
+        t_ns : (m,) int64 ndarray, cycle end times, UTC ns
+        Phi : (m, 15, 15) ndarray, transition matrix of each cycle
+        P_pred : (m, 15, 15) ndarray, covariance predicted to each cycle end, ``fusion.errmodel`` units squared
+        """
         if len(t_ns) == 0:
             return
         r = np.zeros(len(t_ns), RECORD)
@@ -104,28 +117,58 @@ class SmootherLog:
 
     def update(self, dx: np.ndarray, P_upd: np.ndarray) -> None:
         """The update at the last recorded cycle end (the engine updates only there): correction dx (15,)
-        fed back, covariance after it. A second update at the same instant adds its correction (linear)."""
+        fed back, covariance after it. A second update at the same instant adds its correction (linear).
+
+        Parameters
+        ----------
+        dx : (15,) ndarray, correction fed into the INS, ``fusion.errmodel`` order and units
+        P_upd : (15, 15) ndarray, covariance after the update, ``fusion.errmodel`` units squared
+        """
         self._pending[-1]["dx"][-1] += dx
         self._pending[-1]["pp"][-1] = P_upd
 
     def sensitivity(self, S: np.ndarray) -> None:
-        """The consider sensitivity (``fusion.consider``) after each of the cycles last recorded, (m, 15, 9)."""
+        """The consider sensitivity (``fusion.consider``) after each of the cycles last recorded, (m, 15, 9).
+
+        Parameters
+        ----------
+        S : (m, 15, 9) ndarray, d(error state)/d(consider parameters) at each of the last m cycle ends
+        """
         self._pending[-1]["sm"] = S
         self._pending[-1]["sp"] = S
 
     def sensitivity_update(self, S: np.ndarray) -> None:
-        """The consider sensitivity after the update at the last recorded cycle end, (15, 9)."""
+        """The consider sensitivity after the update at the last recorded cycle end, (15, 9).
+
+        Parameters
+        ----------
+        S : (15, 9) ndarray, d(error state)/d(consider parameters) after the update
+        """
         self._pending[-1]["sp"][-1] = S
 
     def bridge(self, b: np.ndarray) -> None:
         """A predicted correction b (15,) fed into the INS at the last recorded cycle end (``rbfn``, ``tdln``,
-        ``dkf-rbfn`` in outages): a known input, not an estimate (module docstring)."""
+        ``dkf-rbfn`` in outages): a known input, not an estimate (module docstring).
+
+        Parameters
+        ----------
+        b : (15,) ndarray, the predicted correction, ``fusion.errmodel`` order and units
+        """
         self._pending[-1]["dx"][-1] += b
         self._pending[-1]["b"][-1] += b
         self.bridged = True
 
     def read(self, i0: int, i1: int) -> np.ndarray:
-        """Records [i0, i1) (``RECORD``)."""
+        """Records [i0, i1) (``RECORD``).
+
+        Parameters
+        ----------
+        i0, i1 : int, record indices, 0 <= i0 < i1 <= len(self)
+
+        Returns
+        -------
+        (i1 - i0,) ndarray of ``RECORD``
+        """
         parts = []
         if i0 < self._spilled:
             n = min(i1, self._spilled) - i0
@@ -155,7 +198,16 @@ class Smoothed:
 
 def rts(log: SmootherLog) -> Smoothed | None:
     """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time; None
-    with fewer than two records (nothing to smooth)."""
+    with fewer than two records (nothing to smooth).
+
+    Parameters
+    ----------
+    log : SmootherLog, the records of a forward run
+
+    Returns
+    -------
+    Smoothed or None
+    """
     n = len(log)
     if n < 2:
         return None
@@ -211,7 +263,18 @@ def _filtered_means(log: SmootherLog) -> tuple[np.ndarray, np.ndarray]:
 def row_errors(sm: Smoothed, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smoothed error (n, 15) and its covariance diagonal (n, 15) of forward solution rows at t_ns (n,).
 
-    A row in (t_{k-1}, t_k] is the INS before the update at k: the error runs from y_{k-1} to y_k + dx_k."""
+    A row in (t_{k-1}, t_k] is the INS before the update at k: the error runs from y_{k-1} to y_k + dx_k.
+
+    Parameters
+    ----------
+    sm : Smoothed, the backward pass (:func:`rts`)
+    t_ns : (n,) int64 array_like, row times, UTC ns
+
+    Returns
+    -------
+    e : (n, 15) ndarray, smoothed error (computed - true), ``fusion.errmodel`` order and units
+    var : (n, 15) ndarray, its variance, units squared
+    """
     t_ns = np.asarray(t_ns, np.int64)
     k = np.searchsorted(sm.t_ns, t_ns, side="left").clip(1, max(len(sm.t_ns) - 1, 1))
     t0, t1 = sm.t_ns[k - 1], sm.t_ns[k]
@@ -223,7 +286,21 @@ def row_errors(sm: Smoothed, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q: np.ndarray, e: np.ndarray
             ) -> tuple[np.ndarray, ...]:
     """Remove errors e (n, 15) (computed - true, ``fusion.errmodel`` order) from navigation rows: lat, lon
-    (rad), h (m), v_n (n, 3) ENU m/s, q (n, 4) [x, y, z, w] of C_bn. Vectorised ``kf.correct_ins``."""
+    (rad), h (m), v_n (n, 3) ENU m/s, q (n, 4) [x, y, z, w] of C_bn. Vectorised ``kf.correct_ins``.
+
+    Parameters
+    ----------
+    lat, lon : (n,) ndarray, rad
+    h : (n,) ndarray, ellipsoidal height, m
+    v_n : (n, 3) ndarray, velocity, ENU, m/s
+    q : (n, 4) ndarray, ``[x, y, z, w]`` quaternion of ``C_bn`` (body RFU -> ENU)
+    e : (n, 15) ndarray, errors (computed - true), ``fusion.errmodel`` order and units
+
+    Returns
+    -------
+    tuple of ndarray
+        (lat, lon, h, v_n, q) corrected, same shapes and units; q unit with w >= 0.
+    """
     rm, rn = earth.principal_radii(lat, h)
     dr = e[:, POS]
     q2 = earth.quat_multiply(earth.rotvec_to_quat(e[:, ATT]), q)
@@ -233,13 +310,36 @@ def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q:
 
 
 def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
-    """The forward solution rows of a whole drive, smoothed with the records of the same run."""
+    """The forward solution rows of a whole drive, smoothed with the records of the same run.
+
+    Parameters
+    ----------
+    sol : Solution, the forward solution rows of the drive
+    log : SmootherLog, the records of the same forward run
+
+    Returns
+    -------
+    Solution
+        The smoothed rows (sigma the smoothed standard deviations).
+    """
     return smooth_rows(sol, rts(log), log)
 
 
 def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:
     """Forward solution rows (any block of them) smoothed with ``sm`` (``rts`` of ``log``, None: too few records
-    to smooth: the rows as they are); row by row, so a drive's rows can be smoothed a block at a time."""
+    to smooth: the rows as they are); row by row, so a drive's rows can be smoothed a block at a time.
+
+    Parameters
+    ----------
+    sol : Solution, forward solution rows
+    sm : Smoothed or None, :func:`rts` of ``log``
+    log : SmootherLog, the records of the same forward run (its GPS variances)
+
+    Returns
+    -------
+    Solution
+        The smoothed rows, or ``sol`` itself when there is nothing to smooth.
+    """
     if len(sol.t_ns) == 0 or sm is None:
         return sol
     e, var = row_errors(sm, sol.t_ns)

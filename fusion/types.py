@@ -77,7 +77,17 @@ class Epoch:
 
     @staticmethod
     def silence(t_ns: int) -> Epoch:
-        """A no-fix epoch at t_ns for a GPS silence."""
+        """A no-fix epoch at t_ns for a GPS silence.
+
+        Parameters
+        ----------
+        t_ns : int, time of the epoch, UTC ns
+
+        Returns
+        -------
+        Epoch
+            Status -1, NaN position and velocity, ``silent`` True.
+        """
         nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
         return Epoch(t_ns, math.nan, math.nan, math.nan, nan33, -1, nan3, nan33.copy(), silent=True)
 
@@ -108,6 +118,18 @@ class Solution:
 
     @staticmethod
     def concat(parts: list[Solution]) -> Solution:
+        """Rows of several solutions in order (the distributed filter's local solutions only if every non-empty
+        part has them).
+
+        Parameters
+        ----------
+        parts : list of Solution
+
+        Returns
+        -------
+        Solution
+            Empty (no rows) for no parts.
+        """
         status = [p.status for p in parts if p.status is not None]
         status = Status.concat(status) if status else None
         if not parts:
@@ -134,10 +156,29 @@ class Status:
 
     @staticmethod
     def concat(parts: list[Status]) -> Status:
+        """Rows of several status blocks in order.
+
+        Parameters
+        ----------
+        parts : list of Status, at least one
+
+        Returns
+        -------
+        Status
+        """
         return Status(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Status)))
 
     def take(self, keep: np.ndarray) -> Status:
-        """The rows where keep (n,) bool is True."""
+        """The rows where keep (n,) bool is True.
+
+        Parameters
+        ----------
+        keep : (n,) bool ndarray
+
+        Returns
+        -------
+        Status
+        """
         return Status(*(getattr(self, f.name)[keep] for f in fields(Status)))
 
 

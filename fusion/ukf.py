@@ -78,20 +78,58 @@ class Cycles:
 def cycles_from_ins(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, q: np.ndarray, starts: np.ndarray,
                     mid: np.ndarray, ends: np.ndarray, f_b: np.ndarray, dt: np.ndarray) -> Cycles:
     """Cycles from an INS solution (per sample: lat, h, v_n (n, 3), q (n, 4) of C_bn) and the sample indices
-    of each cycle's start, middle and end; f_b (m, 3) the cycles' mean specific force, dt (m,) their lengths."""
+    of each cycle's start, middle and end; f_b (m, 3) the cycles' mean specific force, dt (m,) their lengths.
+
+    Parameters
+    ----------
+    lat : (n,) ndarray, INS latitude per sample, rad
+    h : (n,) ndarray, INS ellipsoidal height per sample, m
+    v_n : (n, 3) ndarray, INS velocity per sample, ENU, m/s
+    q : (n, 4) ndarray, INS ``[x, y, z, w]`` quaternion of ``C_bn`` per sample
+    starts, mid, ends : (m,) int ndarray, sample index of each cycle's start, middle and end
+    f_b : (m, 3) array_like, mean bias-corrected specific force per cycle, body RFU, m/s^2
+    dt : (m,) array_like, cycle lengths, s
+
+    Returns
+    -------
+    Cycles
+        The m cycles.
+    """
     idx = np.stack([starts, mid, ends], axis=1)
     return Cycles(lat[idx], h[idx], v_n[idx], earth.quat_to_dcm(q[idx]), np.asarray(f_b, float), np.asarray(dt, float))
 
 
 def cycle_at(nav: NavState, f_b: np.ndarray, dt: float) -> Cycles:
-    """One cycle with the navigation state held constant over it (the ``predict`` interface)."""
+    """One cycle with the navigation state held constant over it (the ``predict`` interface).
+
+    Parameters
+    ----------
+    nav : NavState, the INS state used at all three nodes
+    f_b : (3,) array_like, mean bias-corrected specific force over the cycle, body RFU, m/s^2
+    dt : float, cycle length, s
+
+    Returns
+    -------
+    Cycles
+        One cycle.
+    """
     C = nav.C_bn
     return Cycles(np.full((1, 3), nav.lat), np.full((1, 3), nav.h), np.tile(nav.v_n, (1, 3, 1)),
                   np.tile(C, (1, 3, 1, 1)), np.asarray(f_b, float)[None], np.array([dt], float))
 
 
 def euler_error_dcm(psi: np.ndarray) -> np.ndarray:
-    """C_n^n' (..., 3, 3) of the Euler error angles psi (..., 3) (paper eq. 3, the printed matrix)."""
+    """C_n^n' (..., 3, 3) of the Euler error angles psi (..., 3) (paper eq. 3, the printed matrix).
+
+    Parameters
+    ----------
+    psi : (..., 3) ndarray, Euler error angles about E, N, U, rad
+
+    Returns
+    -------
+    (..., 3, 3) ndarray
+        C_n^n', ENU -> the computed (erroneous) navigation frame.
+    """
     sx, sy, sz = np.sin(psi[..., 0]), np.sin(psi[..., 1]), np.sin(psi[..., 2])
     cx, cy, cz = np.cos(psi[..., 0]), np.cos(psi[..., 1]), np.cos(psi[..., 2])
     return np.stack([
@@ -119,6 +157,20 @@ def error_rates(y: np.ndarray, lat: float, h: float, v_n: np.ndarray, C_bn: np.n
     y = [d-lambda (rad), d-L (rad), dh (m), dv_n (m/s), psi (rad), gyro bias err (rad/s), accel bias err
     (m/s^2)], errors = computed - true; (lat, h, v_n, C_bn) the computed navigation state, f_b the
     specific force (body RFU).
+
+    Parameters
+    ----------
+    y : (..., 15) ndarray, error state in the angle form above
+    lat : float, computed latitude, rad
+    h : float, computed ellipsoidal height, m
+    v_n : (3,) ndarray, computed velocity, ENU, m/s
+    C_bn : (3, 3) ndarray, computed attitude, body RFU -> ENU
+    f_b : (3,) ndarray, specific force, body RFU, m/s^2
+
+    Returns
+    -------
+    (..., 15) ndarray
+        y', same order: rad/s, rad/s, m/s, m/s^2, rad/s, and zero for the bias errors.
     """
     dL, dh = y[..., 1], y[..., 2]  # no rate depends on the longitude error
     dv, psi = y[..., VEL], y[..., 6:9]
@@ -162,7 +214,18 @@ def _to_metres(y: np.ndarray, lat: float, h: float) -> np.ndarray:
 
 def propagate_samples(x: np.ndarray, c: Cycles) -> np.ndarray:
     """Integrate error states x (..., 15) (``fusion.errmodel`` order, ENU m) through the nonlinear model over
-    the cycles c in turn, RK4 with the start, middle and end nodes of each cycle; noise-free."""
+    the cycles c in turn, RK4 with the start, middle and end nodes of each cycle; noise-free.
+
+    Parameters
+    ----------
+    x : (..., 15) ndarray, error states, ``fusion.errmodel`` order and units
+    c : Cycles, navigation nodes of the filter cycles, in order
+
+    Returns
+    -------
+    (..., 15) ndarray
+        The states at the end of the last cycle, same order and units.
+    """
     for i in range(len(c)):
         node = [(c.lat[i, j], c.h[i, j], c.v_n[i, j], c.C_bn[i, j], c.f_b[i]) for j in range(3)]
         dt = c.dt[i]
@@ -176,7 +239,21 @@ def propagate_samples(x: np.ndarray, c: Cycles) -> np.ndarray:
 
 
 def unscented_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """(n + lambda, W^(m) (2n+1,), W^(c) (2n+1,)), eq. 23 with the i >= 1 weights 1 / (2 (n + lambda))."""
+    """(n + lambda, W^(m) (2n+1,), W^(c) (2n+1,)), eq. 23 with the i >= 1 weights 1 / (2 (n + lambda)).
+
+    Parameters
+    ----------
+    n : int, state dimension
+    alpha : float, spread of the points (0, 1]
+    beta : float, prior-distribution term (2 for a Gaussian)
+    kappa : float, secondary scaling
+
+    Returns
+    -------
+    scale : float, n + lambda
+    wm : (2n+1,) ndarray, mean weights (sum to one)
+    wc : (2n+1,) ndarray, covariance weights
+    """
     lam = alpha ** 2 * (n + kappa) - n
     wm = np.full(2 * n + 1, 0.5 / (n + lam))
     wc = wm.copy()
@@ -186,7 +263,18 @@ def unscented_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[
 
 
 def unscented_points(n: int, scale: float) -> np.ndarray:
-    """Eq. 24's unit points (2n+1, n): 0, +sqrt(scale) e_i, -sqrt(scale) e_i (sigma point i = x + S xi_i)."""
+    """Eq. 24's unit points (2n+1, n): 0, +sqrt(scale) e_i, -sqrt(scale) e_i (sigma point i = x + S xi_i).
+
+    Parameters
+    ----------
+    n : int, state dimension
+    scale : float, n + lambda (> 0)
+
+    Returns
+    -------
+    (2n+1, n) ndarray
+        The unit points xi_i, centre first.
+    """
     e = np.sqrt(scale) * np.eye(n)
     return np.concatenate([np.zeros((1, n)), e, -e])
 
@@ -194,7 +282,20 @@ def unscented_points(n: int, scale: float) -> np.ndarray:
 def propagate_points(x: np.ndarray, S: np.ndarray, xi: np.ndarray, c: Cycles) -> np.ndarray:
     """The points x + S xi_j of a sampling rule (unit points xi (m, n), S (n, n) a square root of P, S S^T = P)
     integrated through the nonlinear error model over the cycles c (:func:`propagate_samples`): (m, n).
-    The one point propagation of the unscented (here) and cubature (``fusion.sckf``) filters."""
+    The one point propagation of the unscented (here) and cubature (``fusion.sckf``) filters.
+
+    Parameters
+    ----------
+    x : (n,) ndarray, error-state mean, ``fusion.errmodel`` order and units
+    S : (n, n) ndarray, a square root of the covariance, S S^T = P
+    xi : (m, n) ndarray, unit points of the rule
+    c : Cycles, navigation nodes of the filter cycles, in order
+
+    Returns
+    -------
+    (m, n) ndarray
+        The propagated points, same order and units.
+    """
     return propagate_samples(x + xi @ S.T, c)
 
 
@@ -209,11 +310,31 @@ class CycleFilter(KalmanFilter):
         self._queue: list[Cycles] = []
 
     def queue(self, cycles: Cycles) -> None:
-        """Navigation nodes of the cycles the next ``propagate`` calls cover, in order."""
+        """Navigation nodes of the cycles the next ``propagate`` calls cover, in order.
+
+        Parameters
+        ----------
+        cycles : Cycles, the nodes of the next cycles to be propagated
+        """
         self._queue.append(cycles)
 
     def take(self, m: int) -> Cycles:
-        """The nodes of the next m cycles, removed from the queue."""
+        """The nodes of the next m cycles, removed from the queue.
+
+        Parameters
+        ----------
+        m : int, number of cycles
+
+        Returns
+        -------
+        Cycles
+            Their nodes.
+
+        Raises
+        ------
+        RuntimeError
+            When fewer than m cycles are queued.
+        """
         parts, need = [], m
         while need:
             if not self._queue:
@@ -228,7 +349,12 @@ class CycleFilter(KalmanFilter):
                         ("lat", "h", "v_n", "C_bn", "f_b", "dt")))
 
     def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
-        """As :meth:`fusion.kf.KalmanFilter.predict`; the nonlinear model with the navigation state held."""
+        """As :meth:`fusion.kf.KalmanFilter.predict`; the nonlinear model with the navigation state held.
+
+        Parameters
+        ----------
+        dt, ins_state, imu : as :meth:`fusion.kf.KalmanFilter.predict`
+        """
         self.queue(cycle_at(ins_state, imu[1], dt))
         super().predict(dt, ins_state, imu)
 
@@ -250,7 +376,16 @@ class HybridKfUkf(CycleFilter):
         self.outage = True
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Phi P Phi^T + Q with GPS; in an outage the unscented transform of the queued cycles (Phi unused)."""
+        """Phi P Phi^T + Q with GPS; in an outage the unscented transform of the queued cycles (Phi unused).
+
+        Parameters
+        ----------
+        Phi, Q : (m, 15, 15) ndarray, as :meth:`fusion.kf.KalmanFilter.propagate`
+
+        Returns
+        -------
+        (m, 15) ndarray, diag(P) after each cycle (of the unscented transform in an outage).
+        """
         cycles = self.take(len(Phi))
         if not self.outage:
             return super().propagate(Phi, Q)
@@ -265,6 +400,15 @@ class HybridKfUkf(CycleFilter):
         return out
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Linear KF update (eqs. 17-19); ends the outage."""
+        """Linear KF update (eqs. 17-19); ends the outage.
+
+        Parameters
+        ----------
+        z, H, R : as :meth:`fusion.kf.KalmanFilter.update` (z (m,), H (m, 15), R (m, m))
+
+        Returns
+        -------
+        (15,) ndarray, K (z - H x), as the Kalman filter's.
+        """
         self.outage = False
         return super().update(z, H, R)
