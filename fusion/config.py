@@ -173,11 +173,35 @@ class FusionConfig:
     @classmethod
     def from_flat(cls, **keys: Any) -> FusionConfig:
         """The defaults with the given flat keys (values already of the field's type); KeyError names an
-        unknown key."""
+        unknown key.
+
+        Parameters
+        ----------
+        **keys : flat keys (``known_keys``) and their values, in the units the fields name
+
+        Returns
+        -------
+        FusionConfig
+        """
         return cls().replace(**keys)
 
     def replace(self, **keys: Any) -> FusionConfig:
-        """A copy with the given flat keys (and ``predictor``) replaced."""
+        """A copy with the given flat keys (and ``predictor``) replaced.
+
+        Parameters
+        ----------
+        **keys : flat keys (``known_keys``) and their values, in the units the fields name
+
+        Returns
+        -------
+        FusionConfig
+            A new config; self is unchanged.
+
+        Raises
+        ------
+        KeyError
+            Naming the unknown keys.
+        """
         bad = sorted(k for k in keys if k not in FLAT_KEYS and k != "predictor")
         if bad:
             raise KeyError(f"{', '.join(bad)}: unknown key; known keys: {', '.join(sorted(known_keys()))}")
@@ -186,7 +210,17 @@ class FusionConfig:
         return FusionConfig(**parts, predictor=keys.get("predictor", self.predictor))
 
     def get(self, key: str) -> Any:
-        """The value of a flat key (or ``predictor``); KeyError for an unknown one."""
+        """The value of a flat key (or ``predictor``); KeyError for an unknown one.
+
+        Parameters
+        ----------
+        key : str, a flat key (``known_keys``)
+
+        Returns
+        -------
+        Any
+            The value, in the unit its field names.
+        """
         return self.predictor if key == "predictor" else getattr(getattr(self, FLAT_KEYS[key]), key)
 
     def flat(self) -> dict[str, Any]:

@@ -57,12 +57,31 @@ class GpsErrorKF(KalmanFilter):
         return self.P[:N_STATES, :N_STATES]
 
     def cycles(self, dt: np.ndarray) -> None:
-        """The lengths (s) of the filter cycles the next :meth:`propagate` call applies, (m,)."""
+        """The lengths (s) of the filter cycles the next :meth:`propagate` call applies, (m,).
+
+        Parameters
+        ----------
+        dt : (m,) array_like, cycle lengths, s
+        """
         self._dt = np.asarray(dt, dtype=float)
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """The INS cycles Phi, Q (m, 15, 15) (lengths given by :meth:`cycles`) with the Gauss-Markov block added;
-        returns the INS states' diag(P) after each, (m, 15)."""
+        returns the INS states' diag(P) after each, (m, 15).
+
+        Parameters
+        ----------
+        Phi, Q : (m, 15, 15) ndarray, as :meth:`fusion.kf.KalmanFilter.propagate`
+
+        Returns
+        -------
+        (m, 15) ndarray, diag(P) of the 15 INS error states after each cycle.
+
+        Raises
+        ------
+        ValueError
+            When the cycle lengths were not given first.
+        """
         m, n = len(Phi), len(self.x)
         if len(self._dt) != m:
             raise ValueError("GpsErrorKF.propagate: give the cycle lengths first (cycles)")
@@ -77,14 +96,31 @@ class GpsErrorKF(KalmanFilter):
         return super().propagate(Phi_a, Q_a)[:, :N_STATES]
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """An INS-only measurement (H (m, 15)) or one with the error columns already set (H (m, 18))."""
+        """An INS-only measurement (H (m, 15)) or one with the error columns already set (H (m, 18)).
+
+        Parameters
+        ----------
+        z : (m,) ndarray, measurement (INS minus aid; m, m/s by kind)
+        H : (m, 15) or (m, 18) ndarray, measurement matrix on the INS error states, or on them and the GPS error states
+        R : (m, m) ndarray, measurement noise covariance, units of z squared
+
+        Returns
+        -------
+        (15,) ndarray
+            The INS states' part of K (z - H x), ``fusion.errmodel`` order and units.
+        """
         if H.shape[1] == N_STATES:
             H = np.hstack([H, np.zeros((len(H), N_GPS))])
         return super().update(z, H, R)[:N_STATES]
 
     def update_batch(self, obs: list[Observation]) -> None:
         """The observations stacked, the receiver's position rows with the error states' columns (module
-        docstring: H = [I, -I], R the white share); the other rows see no GPS error state."""
+        docstring: H = [I, -I], R the white share); the other rows see no GPS error state.
+
+        Parameters
+        ----------
+        obs : list of Observation, the epoch's observations (z, H (m, 15), R each), in order
+        """
         out = []
         for o in obs:
             z, H, R = o.m

@@ -33,23 +33,65 @@ class Listener:
     records_history = False
 
     def start(self, t_ns: int, P0: np.ndarray) -> None:
-        """The filter started."""
+        """The filter started.
+
+        Parameters
+        ----------
+        t_ns : int, alignment time, UTC ns
+        P0 : (15, 15) ndarray, initial error covariance, ``fusion.errmodel`` units squared
+        """
 
     def cycles(self, t_end_ns: np.ndarray, Phi: np.ndarray, P: np.ndarray | None, C_bn: np.ndarray,
                omega_b: np.ndarray, dt: np.ndarray, diag: np.ndarray) -> None:
-        """Filter cycles ran."""
+        """Filter cycles ran.
+
+        Parameters
+        ----------
+        t_end_ns : (m,) int64 ndarray, cycle end times, UTC ns
+        Phi : (m, 15, 15) ndarray, transition matrix of each cycle
+        P : (m, 15, 15) ndarray or None, predicted covariance at each cycle end (None unless ``records_history``)
+        C_bn : (m, 3, 3) ndarray, attitude of each cycle, body RFU -> ENU
+        omega_b : (m, 3) ndarray, mean bias-corrected angular rate of each cycle, body RFU, rad/s
+        dt : (m,) ndarray, cycle lengths, s
+        diag : (m, 15) ndarray, the printed covariance diagonals, ``fusion.errmodel`` units squared (may be added to)
+        """
 
     def update(self, P: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
-        """An update is about to run."""
+        """An update is about to run.
+
+        Parameters
+        ----------
+        P : (15, 15) ndarray, covariance before the update
+        H : (k, 15) ndarray, stacked measurement matrix
+        R : (k, k) ndarray, stacked measurement noise covariance (m^2, (m/s)^2 by row)
+        """
 
     def feedback(self, x: np.ndarray, P: np.ndarray) -> None:
-        """An estimate was fed back."""
+        """An estimate was fed back.
+
+        Parameters
+        ----------
+        x : (15,) ndarray, the estimate fed back, ``fusion.errmodel`` order and units
+        P : (15, 15) ndarray, covariance after the update
+        """
 
     def fix(self, epoch: Epoch, filt, period_s: float) -> None:
-        """A GPS fix was used."""
+        """A GPS fix was used.
+
+        Parameters
+        ----------
+        epoch : Epoch, the GPS epoch
+        filt : KalmanFilter, the filter it updated (``fusion.kf`` interface)
+        period_s : float, time between fixes, s
+        """
 
     def bridged(self, x: np.ndarray) -> None:
-        """A predicted correction was fed in."""
+        """A predicted correction was fed in.
+
+        Parameters
+        ----------
+        x : (15,) ndarray, the predicted correction, ``fusion.errmodel`` order and units
+        """
 
 
 class SmootherRecorder(Listener):
@@ -62,15 +104,39 @@ class SmootherRecorder(Listener):
         self.log = log
 
     def start(self, t_ns: int, P0: np.ndarray) -> None:
+        """Record the initial covariance.
+
+        Parameters
+        ----------
+        t_ns, P0 : as :meth:`Listener.start`
+        """
         self.log.start(t_ns, P0)
 
     def cycles(self, t_end_ns, Phi, P, C_bn, omega_b, dt, diag) -> None:
+        """Record Phi and the predicted covariance of each cycle.
+
+        Parameters
+        ----------
+        t_end_ns, Phi, P, C_bn, omega_b, dt, diag : as :meth:`Listener.cycles`
+        """
         self.log.cycles(t_end_ns, Phi, P)
 
     def feedback(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Record the correction and the covariance after the update.
+
+        Parameters
+        ----------
+        x, P : as :meth:`Listener.feedback`
+        """
         self.log.update(x.copy(), P.copy())
 
     def bridged(self, x: np.ndarray) -> None:
+        """Record the predicted correction.
+
+        Parameters
+        ----------
+        x : as :meth:`Listener.bridged`
+        """
         self.log.bridge(x)
 
 
@@ -87,12 +153,24 @@ class GyroConsider(Listener):
             log.var_c = self.analysis.var_c
 
     def cycles(self, t_end_ns, Phi, P, C_bn, omega_b, dt, diag) -> None:
+        """Propagate the sensitivity and add its accelerometer-bias variance to ``diag``.
+
+        Parameters
+        ----------
+        t_end_ns, Phi, P, C_bn, omega_b, dt, diag : as :meth:`Listener.cycles`
+        """
         S = self.analysis.propagate(Phi, consider.gyro_sensitivity(C_bn, omega_b, dt))
         diag[:, BA] += self.analysis.variance(S)[:, BA]
         if self.log is not None:
             self.log.sensitivity(S)
 
     def update(self, P: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
+        """Update the sensitivity with the filter's gain.
+
+        Parameters
+        ----------
+        P, H, R : as :meth:`Listener.update`
+        """
         self.analysis.update(consider.gain(P, H, R), H)
         if self.log is not None:
             self.log.sensitivity_update(self.analysis.S)
@@ -111,6 +189,12 @@ class GpsErrorBook(Listener):
         self.var_local = np.zeros(3)
 
     def fix(self, epoch: Epoch, filt, period_s: float) -> None:
+        """The correlated GPS error variance left after this fix.
+
+        Parameters
+        ----------
+        epoch, filt, period_s : as :meth:`Listener.fix`
+        """
         r = np.diag(epoch.pos_cov)
         if not filt.models_gps_error:
             self.var = output.correlated_variance(r, np.diag(filt.covariance)[POS], period_s, self.tau_s)

@@ -104,7 +104,17 @@ class Method:
 
     def measurements(self, cfg: FusionConfig) -> list:
         """The measurement objects the loop applies, in its order (``fusion.measurements.aids_and_gps``); none for
-        an unaided method."""
+        an unaided method.
+
+        Parameters
+        ----------
+        cfg : FusionConfig, the run's settings
+
+        Returns
+        -------
+        list
+            The measurement objects (``fusion.measurements``).
+        """
         if not self.aided:
             return []
         from fieldlog.fusion.measurements import aids_and_gps
@@ -113,7 +123,16 @@ class Method:
 
     def learns_speed(self, cfg: FusionConfig) -> bool:
         """Whether this run bridges outages with the virtual odometer (``speed_bridge`` and ``[fusion]
-        predictor_mode = "pseudo"``) rather than with ``bridge``."""
+        predictor_mode = "pseudo"``) rather than with ``bridge``.
+
+        Parameters
+        ----------
+        cfg : FusionConfig, as :meth:`measurements`
+
+        Returns
+        -------
+        bool
+        """
         return self.speed_bridge and cfg.filter.predictor_mode == "pseudo"
 
 
@@ -134,7 +153,21 @@ METHODS = tuple(REGISTRY)  # the names, in the order the CLI lists them
 
 
 def get(name: str) -> Method:
-    """The method called ``name``; ValueError naming the known ones otherwise."""
+    """The method called ``name``; ValueError naming the known ones otherwise.
+
+    Parameters
+    ----------
+    name : str, a method name (``METHODS``)
+
+    Returns
+    -------
+    Method
+
+    Raises
+    ------
+    ValueError
+        For an unknown name.
+    """
     try:
         return REGISTRY[name]
     except KeyError:

@@ -41,12 +41,33 @@ NIS_FIXES = 5  # the GNSS updates the divergence test averages over
 
 
 def sigmas(diag: np.ndarray) -> np.ndarray:
-    """Position, velocity, attitude and IMU bias sigmas (..., 15) from covariance diagonals (..., 15)."""
+    """Position, velocity, attitude and IMU bias sigmas (..., 15) from covariance diagonals (..., 15).
+
+    Parameters
+    ----------
+    diag : (..., 15) array_like, covariance diagonals, ``fusion.errmodel`` order and units squared
+
+    Returns
+    -------
+    (..., 15) ndarray
+        Standard deviations (negative variances read as 0), ``fusion.errmodel`` units.
+    """
     return np.sqrt(np.maximum(np.asarray(diag)[..., :15], 0.0))
 
 
 def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
-    """Indices of the samples t_ns (n,) UTC that start a 1/output_hz slot, after the first sample."""
+    """Indices of the samples t_ns (n,) UTC that start a 1/output_hz slot, after the first sample.
+
+    Parameters
+    ----------
+    t_ns : (n,) int64 ndarray, sample times, UTC ns
+    output_hz : float, output rate, Hz
+
+    Returns
+    -------
+    (k,) int ndarray
+        Sample indices.
+    """
     bucket = np.floor(t_ns / (NS / output_hz)).astype(np.int64)
     return np.flatnonzero(np.diff(bucket) != 0) + 1
 
@@ -58,7 +79,25 @@ def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.nda
     diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); bias (6,) the segment's gyro
     (rad/s) and accelerometer (m/s^2) bias estimate, body RFU; local: the distributed filter's
     local estimates and variances after each cycle, (m, 2, 15) each, or None; gps_var (3,) m^2
-    added to the position variances (``correlated_variance``), gps_var_local (3,) to KF_II's."""
+    added to the position variances (``correlated_variance``), gps_var_local (3,) to KF_II's.
+
+    Parameters
+    ----------
+    sol : ins.NavSolution, the INS over the segment's samples
+    t_ns : (n,) int64 ndarray, sample times, UTC ns
+    output_hz : float, output rate, Hz
+    ends : (m,) int ndarray, sample index at which each filter cycle ends
+    diag : (m, 15) ndarray, covariance diagonal after each cycle, ``fusion.errmodel`` units squared
+    bias : (6,) array_like, gyro (rad/s) then accelerometer (m/s^2) bias estimate, body RFU
+    gps_var : (3,) ndarray or None, ENU variance added to the position, m^2
+    local : tuple of two (m, 2, 15) ndarray or None, local estimates and their variances
+    gps_var_local : (3,) ndarray or None, ENU variance added to KF_II's position, m^2
+
+    Returns
+    -------
+    Solution
+        One row per output slot started in the segment (``output_rows``).
+    """
     r = output_rows(t_ns, output_hz)
     cyc = np.searchsorted(ends, r)
     sig = sigmas(diag)[cyc]
@@ -79,7 +118,16 @@ def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.nda
 
 
 def finite(s: Solution) -> np.ndarray:
-    """Rows (n,) bool of s whose position, velocity, attitude, sigmas and bias are all finite."""
+    """Rows (n,) bool of s whose position, velocity, attitude, sigmas and bias are all finite.
+
+    Parameters
+    ----------
+    s : Solution
+
+    Returns
+    -------
+    (n,) bool ndarray
+    """
     return (np.isfinite(s.lat) & np.isfinite(s.lon) & np.isfinite(s.h) & np.isfinite(s.v_n).all(axis=1)
             & np.isfinite(s.q).all(axis=1) & np.isfinite(s.sigma).all(axis=1) & np.isfinite(s.bias).all(axis=1))
 
@@ -96,14 +144,36 @@ class StatusBook:
         self.nis: deque[float] = deque(maxlen=NIS_FIXES)
 
     def epoch(self, usable: bool) -> bool:
-        """A GPS epoch after the alignment (usable or not: its fix may update the filter); returns usable."""
+        """A GPS epoch after the alignment (usable or not: its fix may update the filter); returns usable.
+
+        Parameters
+        ----------
+        usable : bool, whether the epoch's fix may update the filter
+
+        Returns
+        -------
+        bool
+            ``usable``.
+        """
         self.aided = False
         return usable
 
     def fix(self, t_ns: int, obs: list[kf.Observation], filt: kf.KalmanFilter) -> list[kf.Observation]:
         """The fix of the epoch at t_ns UTC updates the filter ``filt`` (any of ``fusion.filters``; called before
         the update: its state and covariance are the prior) with the observations obs: their NIS is kept;
-        returns obs."""
+        returns obs.
+
+        Parameters
+        ----------
+        t_ns : int, fix time, UTC ns
+        obs : list of kf.Observation, the epoch's observations
+        filt : kf.KalmanFilter, the filter before the update
+
+        Returns
+        -------
+        list of kf.Observation
+            ``obs``.
+        """
         z, H, R = kf.stack(*(o.m for o in obs))
         y = z - H @ filt.state
         try:
@@ -116,7 +186,17 @@ class StatusBook:
 
     def aligning(self, t_ns: np.ndarray) -> Solution:
         """No solution rows, the status rows of samples t_ns (n,) UTC before the alignment: ``aligning`` at each
-        output slot's start after the first sample, nothing else known."""
+        output slot's start after the first sample, nothing else known.
+
+        Parameters
+        ----------
+        t_ns : (n,) int64 ndarray, sample times before the alignment, UTC ns
+
+        Returns
+        -------
+        Solution
+            No rows, ``status`` with one ``aligning`` row per output slot.
+        """
         t = t_ns[output_rows(t_ns, self.cfg.output_hz)]
         nan = np.full(len(t), np.nan)
         empty = Solution.concat([])
@@ -124,7 +204,17 @@ class StatusBook:
         return empty
 
     def of(self, s: Solution) -> Solution:
-        """The solution rows s with their status."""
+        """The solution rows s with their status.
+
+        Parameters
+        ----------
+        s : Solution, rows without status
+
+        Returns
+        -------
+        Solution
+            ``s`` itself, its ``status`` set.
+        """
         n = len(s.t_ns)
         nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
         sigma_h = np.hypot(s.sigma[:, 0], s.sigma[:, 1])
@@ -141,7 +231,20 @@ class StatusBook:
 
 def corrected(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Position and velocity (n,) rad, rad, m and (n, 3) ENU m/s corrected by error states x (n, 15) as
-    ``kf.correct_ins`` does: (n, 6) lat, lon, h, v_n."""
+    ``kf.correct_ins`` does: (n, 6) lat, lon, h, v_n.
+
+    Parameters
+    ----------
+    lat, lon : (n,) ndarray, rad
+    h : (n,) ndarray, ellipsoidal height, m
+    v_n : (n, 3) ndarray, velocity, ENU, m/s
+    x : (n, 15) ndarray, error states (computed - true), ``fusion.errmodel`` order and units
+
+    Returns
+    -------
+    (n, 6) ndarray
+        lat, lon (rad), h (m), v_n (ENU, m/s).
+    """
     rm, rn = earth.principal_radii(lat, h)
     return np.column_stack([lat - x[:, 1] / rm, lon - x[:, 0] / (rn * np.cos(lat)), h - x[:, 2], v_n - x[:, 3:6]])
 
@@ -155,7 +258,20 @@ def correlated_variance(r: np.ndarray, p: np.ndarray, period_s: float, tau_s: fl
     Gauss-Markov error of correlation time tau_s averaged over T keeps the variance r f(T / tau_s),
     f(x) = 2 (x - 1 + exp(-x)) / x^2 (1 at x = 0: fully correlated; 2 / x for x >> 1: as white). It is added to
     the printed position variance; in an outage it stays, as the error taken in from the last fixes does.
-    tau_s = 0: white errors, nothing added. Axes without a figure (NaN) get 0."""
+    tau_s = 0: white errors, nothing added. Axes without a figure (NaN) get 0.
+
+    Parameters
+    ----------
+    r : (3,) ndarray, the fix's position variance per ENU axis, m^2 (NaN: none)
+    p : (3,) ndarray, the filter's position variance per ENU axis after the update, m^2
+    period_s : float, time between fixes, s
+    tau_s : float, correlation time of the GPS error, s (0: white)
+
+    Returns
+    -------
+    (3,) ndarray
+        Variance to add per ENU axis, m^2.
+    """
     r = np.where(np.isfinite(r), r, 0.0)
     if tau_s <= 0.0:
         return np.zeros_like(r)
