@@ -1,5 +1,6 @@
 """The docs name the code as it is: docs/architecture.md's module table lists every module file of the package
-and no file that is gone."""
+and no file that is gone; docs/data-model.md's tables name every metadata record the code writes."""
+import ast
 import re
 from pathlib import Path
 
@@ -49,3 +50,24 @@ def test_a_module_left_out_is_found():
     assert listed("fusion/earth.py", rows) and listed("tools/sim/trajectory.py", rows)
     assert not listed("fusion/ins.py", rows) and not listed("tools/sim/sensors.py", rows)
 
+
+def _written_records() -> set[str]:
+    """The metadata record names written as literals (``add_metadata("name", ...)``) by the package, tools/dev aside."""
+    names = set()
+    for path in _module_files():
+        if path.suffix != ".py" or "dev" in path.relative_to(ROOT).parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_metadata"
+                    and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+                names.add(node.args[0].value)
+    return names
+
+
+def test_every_metadata_record_written_is_in_the_data_model():
+    written = _written_records()
+    assert {"fusion", "fusion.config", "drive"} <= written  # the scan sees the writers
+    doc = (ROOT / "docs" / "data-model.md").read_text()
+    documented = {m.group(1) for m in re.finditer(r"^\| `([\w.]+)`", doc, re.M)}
+    missing = sorted(written - documented)
+    assert not missing, "metadata records written but not in docs/data-model.md's tables: " + ", ".join(missing)
