@@ -1,5 +1,5 @@
-"""``replay.loop.run``, the one loop of every front end, on a simulated drive: its sinks get the rows ``fuse``
-writes, each the same blocks in the order given; an engine or sink error taken by ``on_error`` stops the sinks
+"""``replay.loop.run``, the one loop of every front end, on simulated drives: its sinks get the rows ``fuse``
+writes (the wheel speeds' too), each the same blocks in the order given; an engine or sink error taken by ``on_error`` stops the sinks
 and drains the source; progress reaches the end of the span."""
 from __future__ import annotations
 
@@ -43,11 +43,14 @@ def drive(simulated) -> Path:
     return simulated("figure8", 90, 1)
 
 
-@pytest.mark.parametrize("method", ["kf", "dkf"])
-def test_sinks_get_the_rows_fuse_writes(drive: Path, tmp_path: Path, method: str) -> None:
+@pytest.mark.parametrize("method, can", [("kf", False), ("dkf", False), ("kf", True)])
+def test_sinks_get_the_rows_fuse_writes(simulated, tmp_path: Path, method: str, can: bool) -> None:
+    drive = simulated("figure8", 90, 1, can=True) if can else simulated("figure8", 90, 1)
     cfg = drive_config(drive)
     imap = resolve(drive)
-    want = fuse(drive, method, tmp_path / "f.mcap", cfg, inputs=imap, keep=True).solution
+    fused = fuse(drive, method, tmp_path / "f.mcap", cfg, inputs=imap, keep=True)
+    assert (fused.odometer is not None) == can  # with wheel speeds, the loop feeds them to the odometer
+    want = fused.solution
     a, b = Collect(), Collect()
     done = []
     tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
