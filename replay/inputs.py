@@ -295,6 +295,7 @@ class InputBlock:
     imu: ImuBlock
     gps: GpsBlock
     odom: OdomBlock | None = None
+    data: dict[str, dict] | None = None  # the block's rows per topic (``reader.Block.data``), when kept
 
 
 class InputStream:
@@ -370,12 +371,13 @@ class InputStream:
         with Ahead(self._input_blocks) as blocks:
             self.__dict__.update((yield from blocks))
 
+    def inputs(self, keep_data: bool = False) -> Iterator[InputBlock]:
+        """The engine's blocks, read in this process (``blocks()`` as ``input_block``s); ``keep_data``: each
+        with its rows per topic, for a viewer."""
+        return (input_block(b, keep_data) for b in self.blocks())
+
     def _input_blocks(self) -> Generator[InputBlock, None, dict]:
-        for b in self.blocks():
-            imu = b.data.get(NATIVE[0])
-            yield InputBlock(b.t0_ns, b.t1_ns, imu_block(imu), reader.gps_block(b.data.get(NATIVE[1], {}),
-                                                                               b.data.get(NATIVE[2], {})),
-                             odom_block(b.data.get(ODOM)))
+        yield from self.inputs()
         return {k: getattr(self, k) for k in _COUNTERS}
 
     def _canonical(self, data: dict[str, dict], names: dict[str, str]) -> dict[str, dict]:
@@ -420,6 +422,27 @@ class InputStream:
             self._last_t = int(t[-1])
         self.samples += len(t)
         return imu
+
+
+def input_block(b: reader.Block, keep_data: bool = False) -> InputBlock:
+    """A block under fieldlog's topic names as the engine's inputs (``NATIVE``, ``ODOM`` rows of ``odom_rows``).
+
+    Parameters
+    ----------
+    b : drive.reader.Block
+        The block: ``/imu`` in body RFU, ``/gps/fix``, ``/gps/vel`` and ``/vehicle/twist`` rows when it has them.
+    keep_data : bool
+        Keep ``b.data`` in the result (``InputBlock.data``).
+
+    Returns
+    -------
+    InputBlock
+        Its span, ImuBlock, GpsBlock and OdomBlock (None without wheel speeds).
+    """
+    d = b.data
+    return InputBlock(b.t0_ns, b.t1_ns, imu_block(d.get(NATIVE[0])),
+                      reader.gps_block(d.get(NATIVE[1], {}), d.get(NATIVE[2], {})), odom_block(d.get(ODOM)),
+                      d if keep_data else None)
 
 
 def imu_block(imu: dict | None) -> ImuBlock:

@@ -1,11 +1,11 @@
 """``fieldlog replay DRIVE --speed X [--method M] [--rrd OUT.rrd | --connect URL]``: live fusion into rerun.
 
-The drive is read in ``PLAY_BLOCK_S`` blocks as ``fuse`` reads it (``replay.inputs.canonical_blocks``: header
+The drive is read in ``PLAY_BLOCK_S`` blocks as ``fuse`` reads it (``replay.inputs.InputStream``: header
 stamps, late-logged messages re-sequenced), each block goes through the incremental ``fusion.engine.Engine``
-and what it holds and produced is logged at once on the ``gps_time`` timeline, paced so that data time runs X
-times faster than the wall clock. ``play`` takes any iterator of
-``drive.reader.Block``: ``live_view`` (``fieldlog view --live``, ``fieldlog acquire --view``) feeds it the
-daemon's live bus (``replay.live.iter_blocks``), unpaced.
+in the loop of every front end (``replay.loop.run``) and what it holds and produced is logged at once on the
+``gps_time`` timeline by the ``Player`` sink, paced so that data time runs X times faster than the wall clock.
+``play`` takes any source of ``replay.inputs.InputBlock`` with their data: ``live_view`` (``fieldlog view
+--live``, ``fieldlog acquire --view``) feeds it the daemon's live bus (``replay.loop.live_inputs``), unpaced.
 
 The entities and colours are those of ``replay.view`` (its module docstring), with the blueprint of
 ``replay.view.blueprint`` plus a time panel that follows the newest data. Logged live: ``map/gps``,
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import time
 from dataclasses import dataclass, fields
 from typing import Callable, Iterable
 
@@ -38,8 +37,10 @@ from fieldlog.fusion.types import Outage, Solution
 from fieldlog.drive import reader
 from fieldlog.replay import inputs
 from fieldlog.drive.files import DriveSpec
-from fieldlog.drive.reader import IN_TOPICS, gps_block
+from fieldlog.drive.reader import IN_TOPICS
 from fieldlog.replay import view as rv
+from fieldlog.replay.inputs import InputBlock
+from fieldlog.replay.loop import Pace, live_inputs, run
 
 PLAY_BLOCK_S = 1.0  # data seconds per logged block
 TOPICS = (*IN_TOPICS, "/truth/fix", "/truth/vel")
@@ -115,13 +116,13 @@ def _fused_track(s: Solution) -> rv.Track:
 
 
 class Player:
-    """Logs blocks and their fusion output into ``rec``; state carried between blocks."""
+    """The loop's rerun sink (``replay.loop.Sink``): logs blocks and their fusion output into ``rec``, flushed
+    after each block; state carried between blocks."""
 
-    def __init__(self, rec: rr.RecordingStream, method: str, config: FusionConfig | None = None,
+    def __init__(self, rec: rr.RecordingStream, method: str,
                  mount: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.rec, self.method = rec, method
         self.mount = mount if mount is not None else rv.mounting(None)  # base_link -> imu (view.mounting)
-        self.engine = Engine(method, config)
         self.origin: tuple[float, float, float] | None = None
         self.gps = _Source(rec, "gps", rv.GPS_COLOR, 3.0)
         self.truth = _Source(rec, "truth", rv.TRUTH_COLOR, 2.0)
@@ -178,12 +179,20 @@ class Player:
         self._style(path, rr.SeriesLines(names=[f"{self.method} status"], colors=[self.fused.color],
                                          interpolation_mode=rr.components.InterpolationMode.StepAfter))
 
-    def block(self, b: reader.Block) -> None:
-        """Fuse one block and log it."""
-        d = b.data
+    def block(self, b: InputBlock, sol: Solution, done: list[Outage]) -> None:
+        """Log one block (its data: ``InputBlock.data``) and its fusion output.
+
+        Parameters
+        ----------
+        b : InputBlock
+            The block, with its rows per topic.
+        sol : Solution
+            The engine's rows for it (UTC ns, WGS-84 rad and m, ENU m/s).
+        done : list of Outage
+            The outage windows it closed (UTC ns).
+        """
+        d = b.data or {}
         imu = d.get("/imu", {})
-        epochs = gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {}))
-        sol, done = self.engine.process(inputs.imu_block(imu), epochs)
         self._imu(imu)
         self._status(sol)
         ref, ref_is_truth = None, False
@@ -220,7 +229,7 @@ class Player:
             ref = self.gps_pending = _cat(self.gps_pending, ref)
         self._solution(sol, ref, ref_is_truth)
         self._outages(done)
-        self.res.blocks += 1
+        self.rec.flush()
 
     def _solution(self, sol: Solution, ref: rv.Track | None, ref_is_truth: bool) -> None:
         """Log fused rows, and their errors against ``ref`` (truth, or the GPS epochs not yet scored)."""
@@ -243,40 +252,49 @@ class Player:
                                rv.method_color(self.method, 0))
         self.res.solutions += len(sol.t_ns)
 
-    def finish(self) -> ReplayResult:
-        sol, done = self.engine.finish()
+    def finish(self, sol: Solution, done: list[Outage]) -> None:
+        """Log the engine's last rows (scored against the GPS epochs still pending) and outage windows.
+
+        Parameters
+        ----------
+        sol : Solution
+            The rows of ``Engine.finish``.
+        done : list of Outage
+            Its outage windows.
+        """
         self._solution(sol, self.gps_pending, False)
         self._outages(done)
-        self.res.updates = self.engine.updates
-        return self.res
 
 
-def play(rec: rr.RecordingStream, blocks: Iterable[reader.Block], method: str, speed: float,
-         config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         span_ns: tuple[int, int] | None = None, mount: tuple[np.ndarray, np.ndarray] | None = None
-         ) -> ReplayResult:
-    """Fuse and log ``blocks`` into ``rec``, paced at ``speed`` times real time (``speed <= 0``: no pacing).
-    ``span_ns`` (first, last data time) only drives ``progress``; ``mount``: the drive's base_link -> imu
-    (``view.mounting``; None: the default mounting)."""
-    player = Player(rec, method, config, mount)
-    t_wall0 = time.monotonic()
-    t_data0: int | None = None
-    t_end = 0
-    for b in blocks:
-        if t_data0 is None:
-            t_data0 = b.t0_ns
-        player.block(b)
-        t_end = b.t1_ns
-        rec.flush()
-        if speed > 0:
-            wait = t_wall0 + (b.t1_ns - t_data0) * 1e-9 / speed - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
-        if progress and span_ns:
-            progress(min((b.t1_ns - span_ns[0]) / max(span_ns[1] - span_ns[0], 1), 1.0))
-    res = player.finish()
-    res.data_s = (t_end - t_data0) * 1e-9 if t_data0 is not None else 0.0
-    res.wall_s = time.monotonic() - t_wall0
+def play(rec: rr.RecordingStream, blocks: Iterable[InputBlock], method: str, pace: Pace,
+         config: FusionConfig | None = None, mount: tuple[np.ndarray, np.ndarray] | None = None) -> ReplayResult:
+    """Fuse and log ``blocks`` (with their data) into ``rec`` through ``replay.loop.run``.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        The recording, its sink set.
+    blocks : iterable of InputBlock
+        The source, each block with its rows per topic (``InputBlock.data``).
+    method : str
+        The fusion method.
+    pace : Pace
+        Speed against the wall clock and progress.
+    config : FusionConfig, optional
+        The fusion settings (None: the defaults).
+    mount : tuple of ndarray, optional
+        The drive's base_link -> imu (``view.mounting``; None: the default mounting).
+
+    Returns
+    -------
+    ReplayResult
+        What was logged, log time played and wall time (s).
+    """
+    player = Player(rec, method, mount)
+    engine = Engine(method, config)
+    ran = run(blocks, engine, [player], pace)
+    res = player.res
+    res.blocks, res.updates, res.data_s, res.wall_s = ran.blocks, engine.updates, ran.data_s, ran.wall_s
     return res
 
 
@@ -300,17 +318,15 @@ def _open(rrd: str | os.PathLike[str] | None, connect: str | None, method: str) 
     return rec, "viewer"
 
 
-def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: Iterable[reader.Block],
-               method: str, speed: float, config: FusionConfig | None,
-               progress: Callable[[float], None] | None = None,
-               span_ns: tuple[int, int] | None = None, force: bool = False,
+def _play_into(rrd: str | os.PathLike[str] | None, connect: str | None, blocks: Iterable[InputBlock],
+               method: str, pace: Pace, config: FusionConfig | None, force: bool = False,
                mount: tuple[np.ndarray, np.ndarray] | None = None) -> ReplayResult:
     """``play`` into the sink of ``_open``; an ``rrd`` file is a new name unless ``force`` (``outputs.staged``)."""
     to_file = rrd is not None and connect is None
     with outputs.staged(rrd, force) if to_file else contextlib.nullcontext() as work:
         rec, sink = _open(work, connect, method)
         try:
-            res = play(rec, blocks, method, speed, config, progress, span_ns, mount)
+            res = play(rec, blocks, method, pace, config, mount)
         finally:
             rec.flush()
             rec.disconnect()
@@ -325,14 +341,14 @@ def replay(drive: DriveSpec, method: str, speed: float, rrd: str | os.PathLike[s
     """Play ``drive`` into a rerun viewer: ``connect`` (a gRPC URL, e.g. ``rerun+http://127.0.0.1:9876/proxy``),
     else the ``rrd`` file, else a spawned viewer. ``imap``: the topics and IMU frame of another logger's drive
     (``replay.inputs.resolve``; None: resolved from the drive). The drive is read as ``fuse`` reads it
-    (``replay.inputs.canonical_blocks``: on the header stamps, late-logged messages re-sequenced), so the
-    solution is ``fuse``'s."""
+    (``replay.inputs.InputStream``: on the header stamps, late-logged messages re-sequenced, wheel speeds when
+    mapped), so the solution is ``fuse``'s."""
     imap = imap or inputs.resolve(drive)
     tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
-    blocks = inputs.canonical_blocks(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):])  # as `fuse` reads it
+    blocks = inputs.InputStream(drive, imap, PLAY_BLOCK_S, TOPICS[len(IN_TOPICS):]).inputs(keep_data=True)
     _check_sink(rrd, connect)
-    span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
-    return _play_into(rrd, connect, blocks, method, speed, config, progress, span, force, rv.mounting(drive))
+    pace = Pace(speed, (min(t.first_ns for t in tops), max(t.last_ns for t in tops)), progress)
+    return _play_into(rrd, connect, blocks, method, pace, config, force, rv.mounting(drive))
 
 
 def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = None, connect: str | None = None,
@@ -343,5 +359,5 @@ def live_view(address: str, method: str, rrd: str | os.PathLike[str] | None = No
     from fieldlog.replay import live
 
     _check_sink(rrd, connect)
-    blocks = live.batch_blocks(live.follow(address, wait_s), IN_TOPICS, PLAY_BLOCK_S)
-    return _play_into(rrd, connect, blocks, method, 0.0, config, force=force)
+    blocks = live_inputs(live.batch_blocks(live.follow(address, wait_s), IN_TOPICS, PLAY_BLOCK_S))
+    return _play_into(rrd, connect, blocks, method, Pace(), config, force=force)

@@ -264,6 +264,12 @@ def _outages(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[int, int]]:
     return merge_windows(windows)
 
 
+def _one_path(drive: DriveSpec) -> bool:
+    """Whether the drive was given as one path (a file or directory, or a ``Drive`` opened from one), which may
+    hold fused topics itself."""
+    return isinstance(drive, (str, os.PathLike)) or len(drive) == 1
+
+
 def discover_methods(paths: Sequence[str | os.PathLike[str]]) -> list[tuple[str, Path]]:
     """(label, file) for every ``/fusion/<method>/fix`` in ``paths``; a method seen twice gets the file's stem."""
     out: list[tuple[str, Path]] = []
@@ -612,7 +618,7 @@ def blueprint(map_zoom: float | None = None, follow: str | None = None) -> rrb.B
 
 def follow_source(drive: DriveSpec, fused: Sequence[str | os.PathLike[str]]) -> str | None:
     """The source the close-up view tracks: the first fused method, else the truth, else none."""
-    methods = discover_methods(fused if not isinstance(drive, (str, os.PathLike)) else [drive, *fused])
+    methods = discover_methods([drive, *fused] if _one_path(drive) else fused)
     if methods:
         return f"fusion/{methods[0][0]}"
     return "truth" if topic_names(drive).get("/truth/attitude") else None
@@ -650,7 +656,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     and IMU frame of another logger's drive (``replay.inputs.resolve``); ``early``: the drive pass
     (``replay.viewdata.start``) the caller began, else it is begun here."""
     files = [drive, *fused]
-    methods = discover_methods(files if isinstance(drive, (str, os.PathLike)) else fused)
+    methods = discover_methods(files if _one_path(drive) else fused)
     with early if early is not None else start(drive, lambda: inputs) as read:
         got = _drain(read, progress)
     imu_rows = _log_imu(rec, got)
@@ -668,21 +674,55 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     origin = (float(o.lat_deg[0]), float(o.lon_deg[0]), float(o.alt_m[ok_alt][0]) if ok_alt.any() else 0.0)
 
     if gps is not None:
-        if "/gps/vel" in low:
-            v = low["/gps/vel"]
-            gps.v_n = _interp(gps.t_ns, v["log_time_ns"][v["valid"]], v["v_n"][v["valid"]])
-        _log_track(rec, "gps", gps, GPS_COLOR, origin, 3.0, sigma_3d=False)  # the 3D view: the fused sigma alone
-        _log_scalar(rec, "status/no_fix", epochs_t, no_fix.astype(float), "GPS no fix", [NO_FIX_COLOR], step=True)
-        if no_fix.any() and len(gps.t_ns):
-            idx = np.searchsorted(gps.t_ns, epochs_t[no_fix], side="right") - 1
-            has = idx >= 0
-            pos = np.stack([gps.lat_deg[idx[has]], gps.lon_deg[idx[has]]], axis=1)
-            rr.send_columns("map/no_fix", indexes=_times(epochs_t[no_fix][has]),
-                            columns=rr.GeoPoints.columns(positions=pos), recording=rec)
-            rec.log("map/no_fix", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(6.0), colors=[NO_FIX_COLOR]),
-                    static=True)
-    truth_map, truth_pose = None, None
+        _log_gps(rec, gps, epochs_t, no_fix, low, origin)
     mount = mounting(drive)
+    truth_map, truth_pose = _log_truth(rec, truth, low, mount, origin)
+    ref = _Reference(truth if truth is not None else gps, truth is not None, truth_pose, mount)
+    for i, (m, trk) in enumerate(fused_trk):
+        _log_fused(rec, m, trk, dict(methods)[m], method_color(m.split("@")[0], i), origin, ref,
+                   "/vehicle/twist" in low)
+    for topic, src, color in (("/vehicle/twist", "wheels", WHEELS_COLOR), ("/truth/vehicle/twist", "truth",
+                                                                           TRUTH_COLOR)):
+        if topic in low:
+            d = low[topic]
+            ok = d["valid"]
+            _log_scalar(rec, f"speed/{src}", d["log_time_ns"][ok], d["v_n"][ok, 0], f"{src} forward speed (m/s)",
+                        [color])
+
+    windows = _outages(files)
+    if windows:
+        _log_outage_windows(rec, windows, min(int(c.t_ns[0]) for c in candidates),
+                            truth_map if truth_map is not None else gps)
+    _log_receiver(rec, got.gga, low)
+    if progress:
+        progress(1.0)
+    return ViewResult(None, len(gps.t_ns) if gps is not None else 0, int(no_fix.sum()), imu_rows,
+                      [m for m, _ in fused_trk], len(windows))
+
+
+def _log_gps(rec: rr.RecordingStream, gps: Track, epochs_t: np.ndarray, no_fix: np.ndarray, low: dict,
+             origin: tuple[float, float, float]) -> None:
+    """The GPS track (its velocity from ``/gps/vel``) and the epochs without a fix, in time and on the map."""
+    if "/gps/vel" in low:
+        v = low["/gps/vel"]
+        gps.v_n = _interp(gps.t_ns, v["log_time_ns"][v["valid"]], v["v_n"][v["valid"]])
+    _log_track(rec, "gps", gps, GPS_COLOR, origin, 3.0, sigma_3d=False)  # the 3D view: the fused sigma alone
+    _log_scalar(rec, "status/no_fix", epochs_t, no_fix.astype(float), "GPS no fix", [NO_FIX_COLOR], step=True)
+    if no_fix.any() and len(gps.t_ns):
+        idx = np.searchsorted(gps.t_ns, epochs_t[no_fix], side="right") - 1
+        has = idx >= 0
+        pos = np.stack([gps.lat_deg[idx[has]], gps.lon_deg[idx[has]]], axis=1)
+        rr.send_columns("map/no_fix", indexes=_times(epochs_t[no_fix][has]),
+                        columns=rr.GeoPoints.columns(positions=pos), recording=rec)
+        rec.log("map/no_fix", rr.GeoPoints.from_fields(radii=rr.Radius.ui_points(6.0), colors=[NO_FIX_COLOR]),
+                static=True)
+
+
+def _log_truth(rec: rr.RecordingStream, truth: Track | None, low: dict, mount: tuple[np.ndarray, np.ndarray],
+               origin: tuple[float, float, float]) -> tuple[Track | None, Pose | None]:
+    """The truth's track (decimated), pose, attitude and IMU biases; (the decimated track, the whole pose), None
+    for what the drive does not have."""
+    truth_map, truth_pose = None, None
     if truth is not None:
         sl = slice(None, None, TRUTH_DECIMATION)
         truth_map = Track(truth.t_ns[sl], truth.lat_deg[sl], truth.lon_deg[sl], truth.alt_m[sl])
@@ -697,75 +737,87 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
             _log_attitude(rec, "truth", dec, None, TRUTH_COLOR)
     if "/truth/imu_bias" in low:
         _log_bias(rec, "truth", {k: v[::TRUTH_DECIMATION] for k, v in low["/truth/imu_bias"].items()}, TRUTH_COLOR)
+    return truth_map, truth_pose
 
-    ref = truth if truth is not None else gps
-    for i, (m, trk) in enumerate(fused_trk):
-        method = m.split("@")[0]
-        color = method_color(method, i)
-        _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
-        path = dict(methods)[m]
-        for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
-            if topic_names(path).get(solutions.topic(method, f"{k}/fix")):
-                f = solutions.read(path, method, f"{k}/fix")
-                ok = f["valid"]
-                local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
-                _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
-        if ref is not None and len(ref.t_ns):
-            _log_errors(rec, m, errors(trk, ref, truth is not None, origin), color)
-        if topic_names(path).get(solutions.topic(method, "attitude")):
-            att = solutions.read(path, method, "attitude")
-            q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
-            ok = np.isfinite(q).all(axis=1)
-            pose = base_pose(trk.take(ok), q[ok], mount, origin)
-            _log_pose(rec, f"fusion/{m}", pose, color)
-            sigma = None
-            if topic_names(path).get(solutions.topic(method, "attitude_std")):
-                a = solutions.read(path, method, "attitude_std")
-                phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
-                sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
-            _log_attitude(rec, m, pose, sigma, color)
-            if truth_pose is not None and sigma is not None:
-                _log_attitude_errors(rec, m, pose, sigma, truth_pose, color)
-        if topic_names(path).get(solutions.topic(method, solutions.STATUS)):  # a fused file may have none
-            st = solutions.read(path, method, solutions.STATUS)
-            ok = st["valid"]
-            _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),
-                        f"{m} status", [color], step=True)
-        if topic_names(path).get(solutions.topic(method, "imu_bias")):  # fused files before it: none
-            _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
-        if "/vehicle/twist" in low and topic_names(path).get(solutions.topic(method, "odom")):
-            od = solutions.read(path, method, "odom")
-            keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
-            fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
-            _log_scalar(rec, f"speed/{m}", od["log_time_ns"][keep], fwd, f"{m} forward speed (m/s)", [color])
-    for topic, src, color in (("/vehicle/twist", "wheels", WHEELS_COLOR), ("/truth/vehicle/twist", "truth",
-                                                                           TRUTH_COLOR)):
-        if topic in low:
-            d = low[topic]
-            ok = d["valid"]
-            _log_scalar(rec, f"speed/{src}", d["log_time_ns"][ok], d["v_n"][ok, 0], f"{src} forward speed (m/s)",
-                        [color])
 
-    windows = _outages(files)
-    t_start = min(int(c.t_ns[0]) for c in candidates)
-    if windows:
-        t_edges = np.array([t_start] + [x for w in windows for x in w], dtype=np.int64)
-        level = np.array([0.0] + [1.0, 0.0] * len(windows))
-        order = np.argsort(t_edges, kind="stable")
-        _log_scalar(rec, "status/outage", t_edges[order], level[order], "outage", [OUTAGE_COLOR[:3]], step=True)
-        _log_outage_bands(rec, windows)
-        track = truth_map if truth_map is not None else gps
-        if track is not None and len(track.t_ns):
-            strips = []
-            for s, e in windows:
-                inside = (track.t_ns >= s) & (track.t_ns <= e)
-                if inside.sum() >= 2:
-                    strips.append(np.stack([track.lat_deg[inside], track.lon_deg[inside]], axis=1))
-            if strips:
-                rec.log("map/outage", rr.GeoLineStrings(lat_lon=strips, radii=rr.Radius.ui_points(5.0),
-                                                        colors=[OUTAGE_COLOR]), static=True)
+@dataclass
+class _Reference:
+    """What a fused solution is shown against: ``track`` (the truth, else the GPS; None: neither), whether it is
+    the truth, the truth's pose (None without), and the drive's base_link -> imu mounting (``mounting``)."""
 
-    q = got.gga
+    track: Track | None
+    is_truth: bool
+    pose: Pose | None
+    mount: tuple[np.ndarray, np.ndarray]
+
+
+def _log_fused(rec: rr.RecordingStream, m: str, trk: Track, path: Path, color, origin: tuple[float, float, float],
+               ref: _Reference, wheels: bool) -> None:
+    """One fused method's track (labelled ``m``, read from ``path``), its local filters' tracks, its errors
+    against ``ref``, pose, attitude with its sigma and errors, status, IMU biases and (``wheels``: the drive has
+    wheel speeds) forward speed."""
+    method = m.split("@")[0]
+    names = topic_names(path)
+    _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
+    for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
+        if names.get(solutions.topic(method, f"{k}/fix")):
+            f = solutions.read(path, method, f"{k}/fix")
+            ok = f["valid"]
+            local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
+            _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
+    if ref.track is not None and len(ref.track.t_ns):
+        _log_errors(rec, m, errors(trk, ref.track, ref.is_truth, origin), color)
+    if names.get(solutions.topic(method, "attitude")):
+        att = solutions.read(path, method, "attitude")
+        q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
+        ok = np.isfinite(q).all(axis=1)
+        pose = base_pose(trk.take(ok), q[ok], ref.mount, origin)
+        _log_pose(rec, f"fusion/{m}", pose, color)
+        sigma = None
+        if names.get(solutions.topic(method, "attitude_std")):
+            a = solutions.read(path, method, "attitude_std")
+            phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
+            sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
+        _log_attitude(rec, m, pose, sigma, color)
+        if ref.pose is not None and sigma is not None:
+            _log_attitude_errors(rec, m, pose, sigma, ref.pose, color)
+    if names.get(solutions.topic(method, solutions.STATUS)):  # a fused file may have none
+        st = solutions.read(path, method, solutions.STATUS)
+        ok = st["valid"]
+        _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),
+                    f"{m} status", [color], step=True)
+    if names.get(solutions.topic(method, "imu_bias")):  # fused files before it: none
+        _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
+    if wheels and names.get(solutions.topic(method, "odom")):
+        od = solutions.read(path, method, "odom")
+        keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
+        fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
+        _log_scalar(rec, f"speed/{m}", od["log_time_ns"][keep], fwd, f"{m} forward speed (m/s)", [color])
+
+
+def _log_outage_windows(rec: rr.RecordingStream, windows: list[tuple[int, int]], t_start: int,
+                        track: Track | None) -> None:
+    """The outage windows (UTC ns) as a step from ``t_start`` on, as bands in the time plots and as strips of
+    ``track`` (the truth, else the GPS) on the map."""
+    t_edges = np.array([t_start] + [x for w in windows for x in w], dtype=np.int64)
+    level = np.array([0.0] + [1.0, 0.0] * len(windows))
+    order = np.argsort(t_edges, kind="stable")
+    _log_scalar(rec, "status/outage", t_edges[order], level[order], "outage", [OUTAGE_COLOR[:3]], step=True)
+    _log_outage_bands(rec, windows)
+    if track is not None and len(track.t_ns):
+        strips = []
+        for s, e in windows:
+            inside = (track.t_ns >= s) & (track.t_ns <= e)
+            if inside.sum() >= 2:
+                strips.append(np.stack([track.lat_deg[inside], track.lon_deg[inside]], axis=1))
+        if strips:
+            rec.log("map/outage", rr.GeoLineStrings(lat_lon=strips, radii=rr.Radius.ui_points(5.0),
+                                                    colors=[OUTAGE_COLOR]), static=True)
+
+
+def _log_receiver(rec: rr.RecordingStream, q: dict, low: dict) -> None:
+    """The receiver's GGA quality (satellites, HDOP, fix type: ``q``) and the time sync's state, rate error and
+    fit residual (``/time/sync`` in ``low``)."""
     if len(q["log_time_ns"]):
         _log_scalar(rec, "gps/satellites", q["log_time_ns"], q["satellites"], "satellites used", [GPS_COLOR], step=True)
         _log_scalar(rec, "gps/hdop", q["log_time_ns"], q["hdop"], "HDOP", [GPS_COLOR], step=True)
@@ -778,10 +830,6 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
         _log_scalar(rec, "timesync/state", t, ts["state"][ok], "state (0 free, 1 holdover, 2 locked)", step=True)
         _log_scalar(rec, "timesync/rate_ppm", t, ts["rate_ppm"][ok], "rate error (ppm)")
         _log_scalar(rec, "timesync/residual_us", t, ts["residual_us"][ok], "fit residual (us)")
-    if progress:
-        progress(1.0)
-    return ViewResult(None, len(gps.t_ns) if gps is not None else 0, int(no_fix.sum()), imu_rows,
-                      [m for m, _ in fused_trk], len(windows))
 
 
 def has_display() -> bool:

@@ -20,7 +20,8 @@ from fieldlog.drive import reader
 from fieldlog.replay.inputs import InputSpec, InputStream, resolve
 from fieldlog.tools.evaluation.evaluate import (attitude_errors, attitudes, heading_at_starts, outage_error_series,
                                                 rms_columns)
-from fieldlog.tools.fuse import BLOCK_S, drive_config, fuse, fusion_config
+from fieldlog.tools.fuse import BLOCK_S, fuse
+from fieldlog.tools.fuse_settings import drive_config, fusion_config
 from fieldlog.tools.sim.emit import GpsConfig
 from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise
 from fieldlog.tools.sim.simulate import simulate

@@ -76,6 +76,16 @@ def test_files_that_disagree_on_the_imu_frame_are_refused(frd_drive, tmp_path):
     assert "frd" in reader.read_metadata(tmp_path / "fused.mcap")["fusion"]["inputs"]
 
 
+@pytest.mark.parametrize("command", ["replay", "view"])
+def test_replay_and_view_open_the_drive_as_fuse_does(frd_drive, tmp_path, command):
+    t0 = int(reader.read_topic(frd_drive, "/sensors/imu")["log_time_ns"][0])
+    other = _tf_only(tmp_path / "can.mcap", "rfu", t0)
+    rrd = tmp_path / "out.rrd"
+    _one_line(_cli(command, frd_drive, other, "--imu-topic", "/sensors/imu", "--fix-topic", "/sensors/gnss/fix",
+                   "--rrd", rrd, cwd=tmp_path), str(frd_drive), str(other), "'imu'", "--tf-from")
+    assert not rrd.exists()
+
+
 def _boot_log(path: Path, n: int = 250, t0_s: float = 12.5) -> Path:
     """A candump log as python-can writes it, stamped from the logger's boot (t0_s s on), 50 Hz."""
     with pycan.Logger(str(path)) as log:

@@ -142,7 +142,7 @@ def test_lever_arm_from_tf_static(native, tmp_path):
     assert imap.imu_frame == "frd"
     # antenna 0.8 m behind, 0.3 m left and 1.0 m above the IMU: RFU (-0.3, -0.8, 1.0)
     np.testing.assert_allclose(imap.lever_arm_b, [-0.3, -0.8, 1.0], atol=1e-12)
-    from fieldlog.tools.fuse import settings
+    from fieldlog.tools.fuse_settings import settings
 
     st = settings(drive)
     assert st.sources["lever_arm_b"] == "/tf_static" and st.config.gps.lever_arm_b == pytest.approx((-0.3, -0.8, 1.0))

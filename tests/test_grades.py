@@ -21,7 +21,8 @@ import pytest
 from fieldlog.fusion import imugrade
 from fieldlog.drive import reader
 from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
-from fieldlog.tools.fuse import fuse, fusion_config
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.fuse_settings import fusion_config
 from fieldlog.tools.sim.simulate import simulate
 
 NS = 1_000_000_000

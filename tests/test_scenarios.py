@@ -14,7 +14,7 @@ from fieldlog.fusion import earth, ins
 from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
 from fieldlog.tools.evaluation.evaluate import outage_error_series
-from fieldlog.tools.fuse import drive_config, fusion_config
+from fieldlog.tools.fuse_settings import drive_config, fusion_config
 from fieldlog.tools.info import drive_info, format_info
 from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import trajectory as tj

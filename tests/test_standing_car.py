@@ -16,7 +16,8 @@ from mcap_ros2.writer import Writer
 from fieldlog.fusion import earth, imugrade
 from fieldlog.replay import inputs
 from fieldlog.drive.reader import read_topic
-from fieldlog.tools.fuse import fuse, fusion_config
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.fuse_settings import fusion_config
 from fieldlog.tools.sim import trajectory as tj
 from foreign_drives import FIX_DEF, IMU_DEF, _stamp
 

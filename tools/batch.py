@@ -39,7 +39,9 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.drive.reader import IN_TOPICS
 from fieldlog.tools.evaluation.evaluate import (QUANTITIES, check_drive_names, check_methods, fix_quality,
                                                 outage_error_series, place_outages, rms_columns)
-from fieldlog.tools.fuse import drive_config, fuse
+from fieldlog.drive.drive import Drive
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.fuse_settings import drive_config
 from fieldlog.tools.info import drive_info
 
 RESULT_SCHEMA: dict[str, pl.DataType] = {
@@ -81,8 +83,9 @@ def _metrics(err: np.ndarray) -> dict[str, float | int | None]:
 def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[float], out: str | Path,
                config: FusionConfig | None = None, force: bool = False) -> list[dict]:
     """All result rows of one drive (raises on a bad drive; ``safe_drive_rows`` turns that into a row).
-    ``config`` None: the drive's own settings (``tools.fuse.drive_config``). ``force``: replace fused files."""
-    drive, out = Path(drive), Path(out)
+    ``config`` None: the drive's own settings (``tools.fuse_settings.drive_config``). ``force``: replace fused files."""
+    path, out = Path(drive), Path(out)
+    drive = Drive.open(path)  # its files opened once and checked as one drive
     cfg = config or drive_config(drive)
     fused_dir = outputs.out_dir(out, "fused")
     info = drive_info(drive)
@@ -90,7 +93,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     if not any(t.topic == "/imu" for t in span):
         raise ValueError(f"{drive}: no /imu messages")
     names = {t.topic for t in info.topics if t.count}
-    base = dict(drive=drive.stem, path=str(drive), status="ok", error=None, duration_s=info.duration_s,
+    base = dict(drive=path.stem, path=str(path), status="ok", error=None, duration_s=info.duration_s,
                 sync_locked=info.sync_states.get("locked", 0.0) if info.sync_states else None,
                 rate_ppm=info.rate_ppm if math.isfinite(info.rate_ppm) else None,
                 residual_us=info.residual_us if math.isfinite(info.residual_us) else None,
@@ -99,8 +102,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     whole = [(min(t.first_ns for t in span), max(t.last_ns for t in span) + 1)]
     rows = []
     for m in methods:
-        path = fused_dir / f"{drive.stem}_{m}.mcap"
-        res = fuse(drive, m, path, cfg, force=force, keep=True)
+        res = fuse(drive, m, fused_dir / f"{path.stem}_{m}.mcap", cfg, force=force, keep=True)
         _, err = outage_error_series(drive, res.solution, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
@@ -113,8 +115,8 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                 if not win:  # no room for an outage of this length in good GPS
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
-                path = fused_dir / f"{drive.stem}_{m}_{L:g}s.mcap"
-                res = fuse(drive, m, path, cfg.replace(outages=tuple(win)), force=force, keep=True)
+                res = fuse(drive, m, fused_dir / f"{path.stem}_{m}_{L:g}s.mcap", cfg.replace(outages=tuple(win)),
+                           force=force, keep=True)
                 _, err = outage_error_series(drive, res.solution, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows

@@ -16,6 +16,9 @@ beyond). At the end the server stays up while a client is subscribed, for at mos
 queued for it is sent before the connection closes. Bound to 127.0.0.1 unless another host is given; port 0
 picks a free port.
 
+Both run the loop of every front end (``replay.loop.run``) with the sinks here: ``FusedTopics`` publishes each
+block's fused rows, ``DriveMessages`` (replay) the drive's own messages before them.
+
 Replay. The drive is played as ``fuse`` reads it (``replay.inputs.InputStream`` blocks, the incremental
 ``fusion.engine.Engine``), paced so that data time runs ``speed`` times faster than the wall clock. Each block
 publishes, in log-time order within the block, the drive's own messages of the block's span (every topic but
@@ -55,7 +58,8 @@ from fieldlog.replay.inputs import InputMap, InputStream
 
 if TYPE_CHECKING:
     from fieldlog.fusion.config import FusionConfig
-    from fieldlog.fusion.types import GpsBlock, ImuBlock, Solution
+    from fieldlog.fusion.types import Outage, Solution
+    from fieldlog.replay.inputs import InputBlock
 
 log = logging.getLogger(__name__)
 
@@ -194,30 +198,48 @@ class _Server:
             time.sleep(0.05)
 
 
-class _Fusion:
-    """The incremental ``method`` fusion onto a sink: each step's solution rows as ``fuse`` writes them, with
-    their REP-105 frames (``Odometry``, base_link placed by ``mounting``)."""
+class FusedTopics:
+    """The loop's sink (``replay.loop.Sink``) of the live ``method`` fusion: each block's solution rows as
+    ``fuse`` writes them, with their REP-105 frames (``Odometry``, base_link placed by ``mounting``)."""
 
-    def __init__(self, sink: FoxgloveSink, method: str, config: FusionConfig | None,
-                 mounting: calib.Mounting) -> None:
-        from fieldlog.fusion.engine import Engine
+    def __init__(self, sink: FoxgloveSink, method: str, mounting: calib.Mounting) -> None:
         from fieldlog.replay.solutions import Odometry, write_solution
 
         self.sink, self.method, self._write_solution = sink, method, write_solution
-        self.engine = Engine(method, config)
         self.odom = Odometry(method, mounting)
         self.solutions = 0
 
-    def step(self, imu: ImuBlock, gps: GpsBlock) -> None:
-        self._publish(self.engine.process(imu, gps)[0])
+    def block(self, block: InputBlock, sol: Solution, done: list[Outage]) -> None:
+        """Publish the block's solution rows (``replay.loop.Sink.block``)."""
+        self._publish(sol)
 
-    def finish(self) -> None:
-        self._publish(self.engine.finish()[0])
+    def finish(self, sol: Solution, done: list[Outage]) -> None:
+        """Publish the last solution rows (``replay.loop.Sink.finish``)."""
+        self._publish(sol)
 
     def _publish(self, sol: Solution) -> None:
         self._write_solution(self.sink, self.method, sol)
         self.odom.write(self.sink, sol)
         self.solutions += len(sol.t_ns)
+
+
+class DriveMessages:
+    """The loop's sink that publishes a drive's own messages (``_drive_messages``) up to each block's end,
+    before that block's fused rows (it comes first among the sinks)."""
+
+    def __init__(self, sink: FoxgloveSink, drive: DriveSpec) -> None:
+        self.sink = sink
+        self._own = _drive_messages(drive)
+        self._pending = next(self._own, None)
+
+    def block(self, block: InputBlock, sol: Solution, done: list[Outage]) -> None:
+        """Publish the messages logged before the block's end (``replay.loop.Sink.block``)."""
+        while self._pending is not None and self._pending[1] < block.t1_ns:
+            self.sink.write(*self._pending)
+            self._pending = next(self._own, None)
+
+    def finish(self, sol: Solution, done: list[Outage]) -> None:
+        """(Nothing: the drive's messages went with its blocks.)"""
 
 
 @dataclass
@@ -254,29 +276,18 @@ def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: Input
           config: FusionConfig | None = None, on_ready: Callable[[str], None] = announce) -> ServeResult:
     """Play ``drive`` with live ``method`` fusion to Foxglove clients at ``address`` ([HOST:]PORT); ``on_ready``
     gets ``ws://HOST:PORT`` once the server listens with every channel. ``speed <= 0``: as fast as possible."""
-    from fieldlog.tools.fuse import BLOCK_S, drive_config, drive_mounting
+    from fieldlog.fusion.engine import Engine
+    from fieldlog.replay.loop import Pace, run
+    from fieldlog.tools.fuse import BLOCK_S
+    from fieldlog.tools.fuse_settings import drive_config, drive_mounting
 
     with _Server(address, method, _drive_channels(drive)) as srv:
-        fusion = _Fusion(srv.sink, method, config or drive_config(drive), drive_mounting(drive))
-        res = ServeResult(srv.address)
+        fused = FusedTopics(srv.sink, method, drive_mounting(drive))
+        engine = Engine(method, config or drive_config(drive))
         on_ready(srv.address)
-        own = _drive_messages(drive)
-        pending = next(own, None)
-        wall0 = t0 = None
-        for block in InputStream(drive, imap, PLAY_BLOCK_S if speed > 0 else BLOCK_S):
-            while pending is not None and pending[1] < block.t1_ns:
-                srv.sink.write(*pending)
-                pending = next(own, None)
-            fusion.step(block.imu, block.gps)
-            res.blocks += 1
-            if speed > 0:
-                wall0 = time.monotonic() if wall0 is None else wall0
-                t0 = block.t0_ns if t0 is None else t0
-                wait = (block.t1_ns - t0) / 1e9 / speed - (time.monotonic() - wall0)
-                if wait > 0:
-                    time.sleep(wait)
-        fusion.finish()
-        res.solutions, res.published = fusion.solutions, srv.sink.published
+        stream = InputStream(drive, imap, PLAY_BLOCK_S if speed > 0 else BLOCK_S)
+        ran = run(stream, engine, [DriveMessages(srv.sink, drive), fused], Pace(speed))
+        res = ServeResult(srv.address, ran.blocks, fused.solutions, srv.sink.published)
         srv.drain()
     return res
 
@@ -288,39 +299,27 @@ def serve_live(bus: str, method: str, address: str, config: FusionConfig | None 
     clients at ``address`` ([HOST:]PORT) until the daemon closes the bus (module docstring); waits up to
     ``wait_s`` for the bus to appear. ``on_ready`` gets ``ws://HOST:PORT`` once the server listens with every
     channel and the bus is being read. ``mounting``: the daemon's calibration's (None: base_link is the IMU)."""
+    from fieldlog.drive.reader import IN_TOPICS
+    from fieldlog.fusion.engine import Engine
     from fieldlog.replay import live
-    from fieldlog.replay.inputs import imu_block
-    from fieldlog.drive.reader import IN_TOPICS, gps_block
+    from fieldlog.replay.loop import live_inputs, run
 
     with _Server(address, method, [(topic, None, None) for topic in LIVE_TOPICS]) as srv:
-        fusion = _Fusion(srv.sink, method, config, mounting or calib.Mounting())
-        res = ServeResult(srv.address)
+        fused = FusedTopics(srv.sink, method, mounting or calib.Mounting())
+        engine = Engine(method, config)
 
         def relay(b: live.Batch) -> None:
             if live.in_stream(b):
                 srv.sink.write_batch(b.topic, b.log_time_ns, b.payloads)
 
+        def stopped(e: Exception) -> None:  # the fused topics stop there; the car's own are still worth serving
+            log.error(f"live {method} fusion stopped: {type(e).__name__}: {e}; the daemon's topics are still "
+                      "served")
+
         batches = live.follow(bus, wait_s, tap=relay)
         on_ready(srv.address)
-        failed = False
-        for block in live.batch_blocks(batches, IN_TOPICS, PLAY_BLOCK_S):
-            res.blocks += 1
-            d = block.data
-            failed = failed or _failed(method, fusion.step, imu_block(d.get("/imu", {})),
-                                       gps_block(d.get("/gps/fix", {}), d.get("/gps/vel", {})))
-        if not failed:
-            _failed(method, fusion.finish)
-        res.solutions, res.published = fusion.solutions, srv.sink.published
+        ran = run(live_inputs(live.batch_blocks(batches, IN_TOPICS, PLAY_BLOCK_S)), engine, [fused],
+                  on_error=stopped)
+        res = ServeResult(srv.address, ran.blocks, fused.solutions, srv.sink.published)
         srv.drain()
     return res
-
-
-def _failed(method: str, step: Callable[..., None], *args) -> bool:
-    """``step(*args)``, one live fusion step; True, logged, if it raised: the fused topics stop there, the
-    daemon's go on."""
-    try:
-        step(*args)
-        return False
-    except Exception as e:  # noqa: BLE001  (any fusion error: the car's own topics are still worth serving)
-        log.error(f"live {method} fusion stopped: {type(e).__name__}: {e}; the daemon's topics are still served")
-        return True

@@ -113,6 +113,26 @@ def drive_arg(paths: list[str]) -> str | list[str]:
     return paths[0] if len(paths) == 1 else paths
 
 
+def add_tf_from_arg(s: argparse.ArgumentParser) -> None:
+    """``--tf-from FILE``: of a drive's files that disagree on a frame's /tf_static, the one to use
+    (``drive.drive.Drive.open``)."""
+    s.add_argument("--tf-from", default=None, metavar="FILE",
+                   help="of a drive's files that give different /tf_static transforms for a frame, the one whose "
+                        "transforms to use (default: refuse the drive, naming the files and the frame)")
+
+
+def open_drive(paths: str | list[str], a: argparse.Namespace, config=None):
+    """``drive.drive.Drive.open`` of the drive positional(s) (or one path), checked as one drive before the work:
+    with ``--tf-from`` when the command has it, the IMU's axes given when ``--imu-frame`` or the ``[input]``
+    table of ``config`` (an ``acquire.config.TomlFile``) gives them."""
+    from fieldlog.drive.drive import Drive
+    from fieldlog.tools.fuse_settings import load_input_spec
+
+    imu_axes = input_spec(a).imu_frame or load_input_spec(config).imu_frame
+    spec = drive_arg(paths) if isinstance(paths, list) else paths
+    return Drive.open(spec, getattr(a, "tf_from", None), imu_axes_given=imu_axes is not None)
+
+
 def input_spec(a: argparse.Namespace):
     """``replay.inputs.InputSpec`` of --imu-topic, --fix-topic, --vel-topic, --imu-frame, --odom-topic."""
     from fieldlog.replay.inputs import InputSpec

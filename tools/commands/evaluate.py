@@ -88,7 +88,7 @@ def run(a: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
     from fieldlog.acquire.config import TomlFile
-    from fieldlog.tools.fuse import load_fusion_config, load_input_spec
+    from fieldlog.tools.fuse_settings import load_fusion_config, load_input_spec
 
     conf = TomlFile.read(a.config)
     table = evaluate(drives, lengths, methods, report, smooth=a.smooth,

@@ -11,8 +11,8 @@ import time
 
 from fieldlog.fusion.methods import INS, KF
 from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, TIME_ORIGIN, Progress, add_input_args,
-                                            add_out_args, command_parser, drive_arg, finish_out, input_spec, log,
-                                            needs_extras, out_file)
+                                            add_out_args, add_tf_from_arg, command_parser, finish_out, input_spec,
+                                            log, needs_extras, open_drive, out_file)
 
 
 def add_parser(sub) -> None:
@@ -25,9 +25,7 @@ def add_parser(sub) -> None:
     add_out_args(s)
     s.add_argument("--smooth", action="store_true", help="RTS backward pass after the drive (memory grows with it)")
     add_input_args(s)
-    s.add_argument("--tf-from", default=None, metavar="FILE",
-                   help="of a drive's files that give different /tf_static transforms for a frame, the one whose "
-                        "transforms to use (default: refuse the drive, naming the files and the frame)")
+    add_tf_from_arg(s)
     s.add_argument("--config", default=None, metavar="FILE",
                    help="TOML with a [fusion] table (FusionConfig keys; default: the drive's fusion.config record) "
                         "and/or an [input] table (imu_topic, fix_topic, vel_topic, imu_frame)")
@@ -48,13 +46,12 @@ def _installation_line(s: dict) -> str:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
-    from fieldlog.drive.drive import Drive
     from fieldlog.drive.files import label
-    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, load_input_spec, parse_outage, settings
+    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse
+    from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
-    imu_axes = input_spec(a).imu_frame or load_input_spec(conf).imu_frame
-    drive = Drive.open(drive_arg(a.drive), a.tf_from, imu_axes_given=imu_axes is not None)  # checked before the work
+    drive = open_drive(a.drive, a, conf)  # checked before the work
     st = settings(drive, conf, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):

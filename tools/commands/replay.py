@@ -4,8 +4,9 @@ from __future__ import annotations
 import argparse
 
 from fieldlog.fusion.methods import KF
-from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
-                                            drive_arg, input_spec, log, needs_extras, output_parent)
+from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, add_tf_from_arg,
+                                            command_parser, input_spec, log, needs_extras, open_drive,
+                                            output_parent)
 
 
 def add_parser(sub) -> None:
@@ -25,16 +26,18 @@ def add_parser(sub) -> None:
     s.add_argument("--config", default=None, metavar="FILE",
                    help="fusion TOML ([fusion] table; default: the drive's own, else the defaults)")
     add_input_args(s)
+    add_tf_from_arg(s)
     s.set_defaults(func=needs_extras(run))
 
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.replay.player import replay
-    from fieldlog.tools.fuse import settings
+    from fieldlog.tools.fuse_settings import settings
 
-    drive = drive_arg(a.drive)
-    st = settings(drive, TomlFile.read(a.config), input_spec(a))
+    conf = TomlFile.read(a.config)
+    drive = open_drive(a.drive, a, conf)  # checked before the work
+    st = settings(drive, conf, input_spec(a))
     if a.foxglove is not None:
         from fieldlog.tools.foxglove_live import serve
 

@@ -9,8 +9,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fieldlog.fusion.methods import KF
-from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, command_parser,
-                                            drive_arg, input_spec, log, needs_extras, output_parent)
+from fieldlog.tools.commands.common import (DRIVE_HELP, METHODS, Progress, add_input_args, add_tf_from_arg,
+                                            command_parser, input_spec, log, needs_extras, open_drive,
+                                            output_parent)
 
 if TYPE_CHECKING:
     from fieldlog.replay.inputs import InputMap
@@ -38,6 +39,7 @@ def add_parser(sub) -> None:
                    help="--live: the daemon's config, for [daemon] bus and (--foxglove) its calibration's mounting; "
                         "else its [input] (default: none)")
     add_input_args(s)
+    add_tf_from_arg(s)
     s.set_defaults(func=needs_extras(run))
 
 
@@ -94,11 +96,11 @@ def run(a: argparse.Namespace) -> int:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
     from fieldlog.acquire.config import TomlFile
-    from fieldlog.tools.fuse import input_map, load_input_spec
+    from fieldlog.tools.fuse_settings import input_map, load_input_spec
 
     conf = TomlFile.read(a.config)
     files, fused = viewdata.split_fused([a.drive, *a.fused])
-    drive = drive_arg(files)
+    drive = open_drive(files, a, conf)  # checked before the work
 
     def inputs() -> InputMap | None:
         try:

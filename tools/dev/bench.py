@@ -223,7 +223,8 @@ def bench_grades(runs: int, tmp: Path) -> None:
     from fieldlog.fusion import imugrade
     from fieldlog.drive import reader
     from fieldlog.tools.evaluation.evaluate import heading_at_starts, outage_error_series
-    from fieldlog.tools.fuse import drive_config, fuse
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.fuse_settings import drive_config
     from fieldlog.tools.sim.simulate import simulate
 
     outages = ((630.0, 60.0), (720.0, 60.0))

@@ -43,7 +43,8 @@ def map_zoom(lat_deg: np.ndarray, lon_deg: np.ndarray, points: float = 300.0) ->
 def demo_recording(work: Path, duration_s: float) -> Path:
     """Simulate, fuse dkf-rbfn with a 30 s outage at 180 s, write ``work/viewer.rrd``."""
     from fieldlog.fusion.config import FusionConfig
-    from fieldlog.tools.fuse import fuse, parse_outage
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.fuse_settings import parse_outage
     from fieldlog.tools.sim.simulate import simulate
 
     drive, fused, rrd = work / "figure8.mcap", work / "dkf-rbfn.mcap", work / "viewer.rrd"

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -56,10 +56,12 @@ from fieldlog.fusion.config import PREDICTOR_MODES, FusionConfig
 from fieldlog.fusion.methods import DKF, DKF_RBFN, INS, KF, METHODS, RBFN, TDLN
 from fieldlog.fusion.types import Solution
 from fieldlog.drive import reader
+from fieldlog.drive.drive import Drive
 from fieldlog.replay import solutions
-from fieldlog.replay.inputs import InputSpec, by_stamp
+from fieldlog.replay.inputs import InputMap, InputSpec, by_stamp
 from fieldlog.replay.inputs import resolve as resolve_inputs
-from fieldlog.tools.fuse import NO_ALIGNMENT, drive_config, fuse
+from fieldlog.tools.fuse import NO_ALIGNMENT, fuse
+from fieldlog.tools.fuse_settings import drive_config
 
 QUANTITIES = (("longitude", "m"), ("latitude", "m"), ("altitude", "m"), ("vE", "m/s"), ("vN", "m/s"),
               ("vU", "m/s"), ("roll", "deg"), ("pitch", "deg"), ("heading", "deg"))
@@ -442,7 +444,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     smooth adds a ``<method>+rts`` column per method (RTS-smoothed, ``fusion.smoother``); a drive with wheel
     speeds (``replay.inputs``: /vehicle/twist or the spec's odometry topic) fused with the odometer also gets a
     ``<method>-no-odometer`` column per method, the same run with ``[fusion] odometer = false``. config None: each
-    drive's own ``fusion.config`` record (``tools.fuse.drive_config``). spec: the input mapping of drives from
+    drive's own ``fusion.config`` record (``tools.fuse_settings.drive_config``). spec: the input mapping of drives from
     another logger (``replay.inputs``). paper: the distributed-KF paper's set-up (:func:`paper_config` on each
     drive's config) and, in the report, its Table 3 beside ours and a verdict on each of its absolute figures and
     each of its claims (:func:`paper_report`). Drive names (stems) must be unique (:func:`check_drive_names`),
@@ -454,102 +456,147 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     if not drives:
         raise ValueError("no drive to evaluate")
     check_drive_names(drives)
+    opened = [Drive.open(d, imu_axes_given=spec is not None and spec.imu_frame is not None) for d in drives]
     report = Path(report)
     outputs.out_dir(report, "fused")
     runs = [(m, sm, True, mode) for m in methods for sm in ((False, True) if smooth and m != INS.name else (False,))
             for mode in (predictor_modes if m == DKF_RBFN.name else ("paper",))]
-    per: dict[tuple[str, float], list[np.ndarray]] = {}
-    windows: dict[tuple[str, float], int] = {}
-    drifts: dict[tuple[str, float], list[float]] = {}
-    curves: dict[float, dict[str, list[np.ndarray]]] = {}
-    honesty: dict[tuple[str, float], list[dict[str, float]]] = {}
-    headings: list[dict] = []
-    total, done = len(drives) * len(lengths) * len(runs), 0
-    progress = progress or (lambda fraction: None)
-    note = note or say
-    for drive in map(Path, drives):
+    acc = _Study(total=len(drives) * len(lengths) * len(runs), progress=progress or (lambda fraction: None),
+                 say=say, note=note or say)
+    for path, drive in zip(map(Path, drives), opened):
         base = config or drive_config(drive)
         if paper:
             base = paper_config(base)
-        imap = resolve_inputs(drive, spec)
-        t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
-        drive_runs = runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
-                             if imap.odom_topic and base.aids.odometer else [])
-        total += len(lengths) * (len(drive_runs) - len(runs))
-        for L in lengths:
-            win = place_outages(t_fix, good, L, study)
-            if not win:
-                note(f"{drive.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
-                done += len(drive_runs)
-                progress(done / total)
-                continue
-            win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
-            cfg = base.replace(outages=tuple(win))
-            for m, sm, odo, mode in drive_runs:
-                name = run_label(m, mode) + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
-                file_name = name.replace(" (", "-").replace(")", "")
-                out = report / "fused" / f"{drive.stem}_{file_name}_{L:g}s.mcap"
-                run_cfg = (cfg if odo else cfg.replace(odometer=False)).replace(predictor_mode=mode)
-                res = fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force, keep=True)
-                if res.rows == 0:
-                    done += 1
-                    progress(done / total)
-                    note(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
-                    continue
-                t_err, err = outage_error_series(drive, res.solution, m, win_ns, imap.fix_topic, imap.vel_topic)
-                rms = rms_columns(err)
-                c = consistency(drive, res.solution, m)
-                if c is not None:
-                    honesty.setdefault((name, L), []).append(c)
-                h_err, h_sig = heading_at_starts(drive, res.solution, m, win_ns)
-                headings += [dict(drive=drive.name, method=name, outage_s=float(L), start_s=s0, heading_err_deg=e,
-                                  heading_sigma_deg=sg) for (s0, _), e, sg in zip(win, h_err, h_sig)]
-                curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
-                per.setdefault((name, L), []).append(rms)
-                drifts.setdefault((name, L), []).append(drift_2d(t_err, err, win_ns))
-                windows[(name, L)] = windows.get((name, L), 0) + len(win)
-                done += 1
-                progress(done / total)
-                say(f"[{done}/{total}] {drive.name} {name:8s} {L:g} s x {len(win)}: "
-                    f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {vel_cell(rms[3:6])}; heading "
-                    "at the starts " + ", ".join(heading_cell(e, sg, 2, "°") for e, sg in zip(h_err, h_sig)))
-    rows = []
-    for (name, L), vals in per.items():
-        arr = np.array(vals)
-        std = arr.std(axis=0, ddof=1) if len(arr) > 1 else np.full(arr.shape[1], np.nan)
-        for i, (q, unit) in enumerate(QUANTITIES):
-            rows.append(dict(quantity=q, unit=unit, method=name, outage_s=float(L), mean=float(np.nanmean(arr[:, i]))
-                             if np.isfinite(arr[:, i]).any() else None, std=float(std[i]) if np.isfinite(std[i])
-                             else None, drives=len(arr), windows=windows[(name, L)]))
-    table = pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
-                                       "mean": pl.Float64, "std": pl.Float64, "drives": pl.Int64, "windows": pl.Int64})
+        _study_drive(acc, path, drive, base, runs, lengths, study, spec, report, force)
+    table = acc.table()
     with outputs.create(report / "table.csv", force, root=report) as f:
         table.write_csv(f)
-    heading = pl.DataFrame(headings, schema={"drive": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
-                                             "start_s": pl.Float64, "heading_err_deg": pl.Float64,
-                                             "heading_sigma_deg": pl.Float64})
+    heading = acc.heading_table()
     with outputs.create(report / "heading.csv", force, root=report) as f:
         heading.write_csv(f)
+    _write_report(acc, table, heading, [Path(d) for d in drives], base, paper, report, force)
+    return table
+
+
+@dataclass
+class _Study:
+    """The study's scores as the runs come (``evaluate``): per (column, outage length) each drive's RMS errors,
+    windows, 2D drifts, error curves and sigma consistency; the heading at each outage start; runs done of
+    ``total`` (``progress`` told the fraction)."""
+
+    total: int
+    progress: Callable[[float], None]
+    say: Callable[[str], None]
+    note: Callable[[str], None]
+    done: int = 0
+    per: dict = field(default_factory=dict)  # (name, L) -> [rms errors (9,)]
+    windows: dict = field(default_factory=dict)  # (name, L) -> windows scored
+    drifts: dict = field(default_factory=dict)  # (name, L) -> [2D drift]
+    curves: dict = field(default_factory=dict)  # L -> name -> [error curves]
+    honesty: dict = field(default_factory=dict)  # (name, L) -> [consistency]
+    headings: list = field(default_factory=list)
+
+    def step(self, n: int = 1) -> None:
+        self.done += n
+        self.progress(self.done / self.total)
+
+    def table(self) -> pl.DataFrame:
+        """The long table: each quantity's mean and std over the drives per column and outage length."""
+        rows = []
+        for (name, L), vals in self.per.items():
+            arr = np.array(vals)
+            std = arr.std(axis=0, ddof=1) if len(arr) > 1 else np.full(arr.shape[1], np.nan)
+            for i, (q, unit) in enumerate(QUANTITIES):
+                rows.append(dict(quantity=q, unit=unit, method=name, outage_s=float(L),
+                                 mean=float(np.nanmean(arr[:, i])) if np.isfinite(arr[:, i]).any() else None,
+                                 std=float(std[i]) if np.isfinite(std[i]) else None, drives=len(arr),
+                                 windows=self.windows[(name, L)]))
+        return pl.DataFrame(rows, schema={"quantity": pl.Utf8, "unit": pl.Utf8, "method": pl.Utf8,
+                                          "outage_s": pl.Float64, "mean": pl.Float64, "std": pl.Float64,
+                                          "drives": pl.Int64, "windows": pl.Int64})
+
+    def heading_table(self) -> pl.DataFrame:
+        """The heading error and sigma at each outage start."""
+        return pl.DataFrame(self.headings, schema={"drive": pl.Utf8, "method": pl.Utf8, "outage_s": pl.Float64,
+                                                   "start_s": pl.Float64, "heading_err_deg": pl.Float64,
+                                                   "heading_sigma_deg": pl.Float64})
+
+
+def _study_drive(acc: _Study, path: Path, drive: Drive, base: FusionConfig, runs: list[tuple[str, bool, bool, str]],
+                 lengths: list[float], study: StudyConfig, spec: InputSpec | None, report: Path, force: bool
+                 ) -> None:
+    """Every run of one drive (opened from ``path``) at every outage length, scored into ``acc``."""
+    imap = resolve_inputs(drive, spec)
+    t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
+    drive_runs = runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
+                         if imap.odom_topic and base.aids.odometer else [])
+    acc.total += len(lengths) * (len(drive_runs) - len(runs))
+    for L in lengths:
+        win = place_outages(t_fix, good, L, study)
+        if not win:
+            acc.note(f"{path.name}: no room for a {L:g} s outage in good GPS after {study.first_s:g} s; skipped")
+            acc.step(len(drive_runs))
+            continue
+        win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
+        cfg = base.replace(outages=tuple(win))
+        for m, sm, odo, mode in drive_runs:
+            name = run_label(m, mode) + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
+            file_name = name.replace(" (", "-").replace(")", "")
+            out = report / "fused" / f"{path.stem}_{file_name}_{L:g}s.mcap"
+            run_cfg = (cfg if odo else cfg.replace(odometer=False)).replace(predictor_mode=mode)
+            res = fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force, keep=True)
+            if res.rows == 0:
+                acc.step()
+                acc.note(f"[{acc.done}/{acc.total}] {path.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
+                continue
+            _score(acc, path, drive, m, name, L, win, win_ns, imap, res.solution)
+
+
+def _score(acc: _Study, path: Path, drive: Drive, method: str, name: str, L: float, win: list[tuple[float, float]],
+           win_ns: list[tuple[int, int]], imap: InputMap, sol: Solution) -> None:
+    """One run's errors over its outage windows, its sigma consistency and headings, into ``acc``."""
+    t_err, err = outage_error_series(drive, sol, method, win_ns, imap.fix_topic, imap.vel_topic)
+    rms = rms_columns(err)
+    c = consistency(drive, sol, method)
+    if c is not None:
+        acc.honesty.setdefault((name, L), []).append(c)
+    h_err, h_sig = heading_at_starts(drive, sol, method, win_ns)
+    acc.headings += [dict(drive=path.name, method=name, outage_s=float(L), start_s=s0, heading_err_deg=e,
+                          heading_sigma_deg=sg) for (s0, _), e, sg in zip(win, h_err, h_sig)]
+    acc.curves.setdefault(L, {}).setdefault(name, []).append(window_curves(t_err, err, win_ns, L))
+    acc.per.setdefault((name, L), []).append(rms)
+    acc.drifts.setdefault((name, L), []).append(drift_2d(t_err, err, win_ns))
+    acc.windows[(name, L)] = acc.windows.get((name, L), 0) + len(win)
+    acc.step()
+    acc.say(f"[{acc.done}/{acc.total}] {path.name} {name:8s} {L:g} s x {len(win)}: "
+            f"2D {math.hypot(rms[0], rms[1]):.2f} m, 3D vel {vel_cell(rms[3:6])}; heading "
+            "at the starts " + ", ".join(heading_cell(e, sg, 2, "°") for e, sg in zip(h_err, h_sig)))
+
+
+def _write_report(acc: _Study, table: pl.DataFrame, heading: pl.DataFrame, drives: list[Path], base: FusionConfig,
+                  paper: bool, report: Path, force: bool) -> None:
+    """The figures and table.md: the table, the route, the aids, the verdicts (or the paper's) and the sigma's
+    honesty."""
+    say = acc.say
     figures = [plot_errors({m: np.concatenate(c) for m, c in by.items()}, L, report / f"errors_{L:g}s.png",
-                           max(map(len, by.values())), force) for L, by in curves.items()]
+                           max(map(len, by.values())), force) for L, by in acc.curves.items()]
     for f in figures:
         say(f"wrote {f}")
-    route = route_note([Path(d) for d in drives])
+    route = route_note(drives)
     say(route)
-    conclusions = paper_report(per, route) if paper else verdict(per, windows, drifts)
+    conclusions = paper_report(acc.per, route) if paper else verdict(acc.per, acc.windows, acc.drifts)
     for line in (conclusions if paper else [x for x in conclusions if x.startswith("- ")]):
         say(line)
-    sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in honesty.items()]
+    sigma_lines = [f"- {L:g} s outages, " + consistency_line(name, pooled(cs)) for (name, L), cs in acc.honesty.items()]
     for line in sigma_lines:
         say(line[2:])
     if sigma_lines:
         conclusions = [*conclusions, "## Is the printed sigma honest?", "",
                        "Position error over every solution row (outages included) against the truth, in units of "
                        "the sigma the method printed:", "", *sigma_lines, ""]
-    text = markdown(table, [p.name for p in map(Path, drives)], [f.name for f in figures],
+    text = markdown(table, [p.name for p in drives], [f.name for f in figures],
                     route + "\n\n" + aids_note(base), conclusions) + heading_markdown(heading)
     outputs.write_bytes(report / "table.md", text.encode(), force, root=report)
-    return table
 
 
 def heading_markdown(heading: pl.DataFrame) -> str:

@@ -41,7 +41,8 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.methods import HINF, KF, KF_UKF, SCKF, SSR_SCKF
 from fieldlog.drive import reader
 from fieldlog.tools.evaluation.evaluate import outage_error_series, rms_columns
-from fieldlog.tools.fuse import FuseResult, drive_config, fuse
+from fieldlog.tools.fuse import FuseResult, fuse
+from fieldlog.tools.fuse_settings import drive_config
 
 # Columns of ``outage_error_series``: position E, N, U (m); velocity E, N, U (m/s); roll, pitch, heading (deg).
 E, N, U, VE, VN, VU, ROLL, PITCH, YAW = range(9)

@@ -7,7 +7,7 @@ Rates: the DAQ runs at ``[clock] fs_hz`` (default: ``[imu] rate_hz``; the two mu
 ``[gps] rate_hz`` (epochs at whole UTC seconds plus multiples of its period). The ``drive`` metadata records
 both (``imu_rate_hz``, ``gps_rate_hz``), the ``timesync`` record the DAQ rate the pipeline used, and a
 scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key each, Python literals), which
-``fieldlog fuse`` and ``evaluate`` use when no ``--config`` is given (``tools.fuse.drive_config``).
+``fieldlog fuse`` and ``evaluate`` use when no ``--config`` is given (``tools.fuse_settings.drive_config``).
 """
 from __future__ import annotations
 
@@ -187,7 +187,7 @@ def fusion_metadata(table: dict) -> dict[str, str]:
     ConfigError naming it)."""
     if not table:
         return {}
-    from fieldlog.tools.fuse import fusion_config
+    from fieldlog.tools.fuse_settings import fusion_config
 
     fusion_config(table)
     return {k: metavalue.dump(v) for k, v in table.items()}

@@ -31,7 +31,7 @@ Scenario file format (TOML):
     [vehicle]                              optional: the car on the CAN bus (``vehicle.from_scenario``: ``can =
                                            true`` puts the bus in the drive, ``tyre_scale`` its scale error)
     [fusion]                               passed through: the spec-sheet figures of fusion.engine.FusionConfig
-                                           that ``fieldlog sim`` stores in the drive (``tools.fuse.drive_config``)
+                                           that ``fieldlog sim`` stores in the drive (``tools.fuse_settings.drive_config``)
 
 Laps that vary: with the ``lap_*_jitter`` keys each lap is drawn afresh from the drive's seed (``generate``'s
 ``seed``): all its speeds scaled by one factor k = 1 + N(0, lap_speed_jitter_pct %) and its durations by 1 / k

@@ -1,0 +1,82 @@
+"""``replay.loop.run``, the one loop of every front end, on simulated drives: its sinks get the rows ``fuse``
+writes (the wheel speeds' too), each the same blocks in the order given; an engine or sink error taken by ``on_error`` stops the sinks
+and drains the source; progress reaches the end of the span."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fieldlog.drive import reader
+from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.types import Outage, Solution
+from fieldlog.replay.inputs import InputBlock, InputStream, resolve
+from fieldlog.replay.loop import Pace, run
+from fieldlog.tools.fuse import BLOCK_S, fuse
+from fieldlog.tools.fuse_settings import drive_config
+
+
+@dataclass
+class Collect:
+    """A sink keeping what it was given; ``fail_at``: raise at that block (0-based) instead."""
+
+    fail_at: int | None = None
+    spans: list[tuple[int, int]] = field(default_factory=list)
+    rows: list[Solution] = field(default_factory=list)
+    finished: int = 0
+
+    def block(self, block: InputBlock, sol: Solution, done: list[Outage]) -> None:
+        if self.fail_at is not None and len(self.spans) == self.fail_at:
+            raise RuntimeError(f"sink failed at block {self.fail_at}")
+        self.spans.append((block.t0_ns, block.t1_ns))
+        self.rows.append(sol)
+
+    def finish(self, sol: Solution, done: list[Outage]) -> None:
+        self.rows.append(sol)
+        self.finished += 1
+
+
+@pytest.fixture(scope="module")
+def drive(simulated) -> Path:
+    return simulated("figure8", 90, 1)
+
+
+@pytest.mark.parametrize("method, can", [("kf", False), ("dkf", False), ("kf", True)])
+def test_sinks_get_the_rows_fuse_writes(simulated, tmp_path: Path, method: str, can: bool) -> None:
+    drive = simulated("figure8", 90, 1, can=True) if can else simulated("figure8", 90, 1)
+    cfg = drive_config(drive)
+    imap = resolve(drive)
+    fused = fuse(drive, method, tmp_path / "f.mcap", cfg, inputs=imap, keep=True)
+    assert (fused.odometer is not None) == can  # with wheel speeds, the loop feeds them to the odometer
+    want = fused.solution
+    a, b = Collect(), Collect()
+    done = []
+    tops = [t for t in reader.topics(drive) if t.topic in imap.topics and t.count]
+    span = (min(t.first_ns for t in tops), max(t.last_ns for t in tops))
+    res = run(InputStream(drive, imap, BLOCK_S), Engine(method, cfg), [a, b], Pace(0.0, span, done.append))
+    got = Solution.concat(a.rows)
+    assert len(want.t_ns) > 100 and res.blocks == len(a.spans) > 2
+    np.testing.assert_array_equal(got.t_ns, want.t_ns)
+    np.testing.assert_array_equal(got.lat, want.lat)
+    np.testing.assert_array_equal(got.v_n, want.v_n)
+    assert a.spans == b.spans and a.finished == b.finished == 1
+    assert all(s1 >= s0 for (s0, _), (s1, _) in zip(a.spans, a.spans[1:]))  # in log-time order
+    assert res.data_s == pytest.approx((a.spans[-1][1] - a.spans[0][0]) * 1e-9)
+    assert len(done) == res.blocks and done[0] < 0.5 and done[-1] == 1.0 and done == sorted(done)
+
+
+def test_an_error_taken_stops_the_sinks_and_drains_the_source(drive: Path) -> None:
+    imap = resolve(drive)
+    cfg = drive_config(drive)
+    whole = run(InputStream(drive, imap, 5.0).inputs(), Engine("kf", cfg), [Collect()])
+    errors: list[Exception] = []
+    bad, good = Collect(fail_at=3), Collect()
+    res = run(InputStream(drive, imap, 5.0).inputs(), Engine("kf", cfg), [good, bad], on_error=errors.append)
+    assert res.failed and len(errors) == 1 and "block 3" in str(errors[0])
+    assert res.blocks == whole.blocks > 4  # the source read to its end
+    assert len(bad.spans) == 3 and len(good.spans) == 4  # the sink before the failing one got that block
+    assert good.finished == bad.finished == 0
+    with pytest.raises(RuntimeError, match="block 3"):  # without on_error it propagates
+        run(InputStream(drive, imap, 5.0).inputs(), Engine("kf", cfg), [Collect(fail_at=3)])
