@@ -55,7 +55,7 @@ from fieldlog.acquire import calib
 from fieldlog.drive import messages, metavalue, outputs
 from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import hinf, imugrade, installation, measurements
+from fieldlog.fusion import adaptive, hinf, imugrade, installation, measurements
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
@@ -126,6 +126,7 @@ class FuseResult:
     alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
     virtual_odometer: dict | None = None  # dkf-rbfn, predictor_mode "pseudo": its held-out score and whether it ran
+    noise: dict[str, tuple[float, str]] | None = None  # adapt_noise: the figures the drive set (Adaptation.figures)
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -421,7 +422,22 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
                       odometer_summary(engine), Solution.concat(kept) if keep else None,
                       dict(engine.alignment.summary), tuple(stream.warnings()),
-                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None))
+                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None),
+                      engine.adapt.figures() if engine.adapt is not None else None)
+
+
+NOISE_KEYS = ("gyro_noise_dps_rthz", "accel_noise_ug_rthz", "gyro_bias_rw_dps_rts", "accel_bias_rw_ug_rts")
+
+
+def noise_sources(st: Settings, res: FuseResult) -> dict[str, dict[str, object]]:
+    """Each noise figure the run used: key -> {"value", "source"}: the settings' source (default, the config,
+    its grade or datasheet key) unless the drive set it (``adapt_noise``: estimated from the still start,
+    adapted; ``fusion.adaptive``)."""
+    out: dict[str, dict[str, object]] = {k: {"value": st.config.get(k), "source": st.sources[k]} for k in NOISE_KEYS}
+    for k, (value, src) in (res.noise or {}).items():
+        if src != adaptive.CONFIGURED:
+            out[k] = {"value": value, "source": src}
+    return out
 
 
 def odometer_summary(engine: Engine) -> dict[str, float] | None:
