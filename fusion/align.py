@@ -361,6 +361,7 @@ class Alignment:
         self.lever = cfg.gps.lever_rfu()
         self.note = ""
         self.summary: dict[str, object] = {}  # which alignment ran and on which still interval (class docstring)
+        self.static_intervals: list[tuple[ImuSums, float]] = []  # the static interval levelled on: sums, seconds
         self._run: list[tuple[ImuSums, float, float]] = []  # the current run of still intervals, with their seconds
         # and end times (s from the first IMU sample)
         self._run_first = True  # the run started with the drive (its start needs no trimming)
@@ -502,6 +503,7 @@ class Alignment:
             _, first_dt, first_end = intervals[0]
             span = (first_end - first_dt if first_dt else 0.0, intervals[-1][2])
         self.summary = {"method": method, "start_s": span[0], "end_s": span[1], "epoch_s": t_k}
+        self.static_intervals = [(s, dt) for s, dt, _ in intervals] if static else []
         return Aligned(nav, bg, self._P0(pos_var, sd_level, sd_head, sd_bg))
 
     def configured(self) -> Aligned:

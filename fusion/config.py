@@ -53,6 +53,8 @@ class SensorConfig:
     # steps (S + M) dx of each cycle's change of rate and specific force (fusion.errmodel.scale_factor_steps)
     gyro_range_dps: float = 20.0  # a gyro flat at this rate (or beyond) is clipped (Table 2: +-20 deg/s)
     clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
+    adapt_noise: bool = False  # the white noise from the still start and Q and R by covariance matching
+    # (fusion.adaptive); false: the figures as given
 
     def noise_psd(self) -> np.ndarray:
         """The filter's noise PSD (12, 12) (``fusion.errmodel.noise_psd``) in SI units."""

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from fieldlog.fusion import align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output, ukf
+from fieldlog.fusion import adaptive, align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output, ukf
 from fieldlog.fusion.config import GPS_ERROR_MODELS, FusionConfig
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import OutageTracker, PredictorBridge, Silence
@@ -58,6 +58,9 @@ class Engine:
         if self.cfg.gps.gps_error_model == "gm-states" and (not self.spec.gps_error_states or log is not None):
             self.cfg = self.cfg.replace(gps_error_model="consider")  # the states are the KF's, without smoothing
         self.q = self.cfg.sensor.noise_psd()
+        sc = self.cfg.sensor
+        self.adapt = (adaptive.Adaptation(self.q, sc.gyro_noise_dps_rthz, sc.accel_noise_ug_rthz)
+                      if sc.adapt_noise else None)  # noise from the drive (fusion.adaptive)
         self.measurements = self.spec.measurements(self.cfg)
         self.gps_errors = listeners.GpsErrorBook(self.cfg.gps.gps_error_tau_s, log)
         self.listeners: list[listeners.Listener] = ([listeners.SmootherRecorder(log)] if log is not None else []) + [
@@ -170,6 +173,9 @@ class Engine:
     def _start(self, a: align.Aligned, t_k: float, t_k_ns: int) -> None:
         """Start the INS and the filter from the initial state a at time t_k (s from t_ref_ns), t_k_ns UTC."""
         self.nav, self.bg, self._anchor = a.nav, a.bg, t_k
+        if self.adapt is not None:
+            self.adapt.still_start(self.alignment.static_intervals)
+            self.q = self.adapt.q
         self.filter = self.spec.filter(a.P0, self.q, self.cfg)
         s = self.cfg.sensor
         if s.scale_factor_model == "consider" and (s.gyro_scale_factor_ppm > 0.0 or s.gyro_misalignment_mrad > 0.0):
@@ -210,7 +216,12 @@ class Engine:
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
             at.nav, at.P = self.nav, self.filter.covariance
             obs = self._observe(fixes, at)
+        if self.adapt is not None:
+            obs = self.adapt.before(obs, self.filter.state, self.filter.covariance)
         self._update(self.status.fix(ep.t_ns, obs, self.filter))
+        if self.adapt is not None:
+            self.adapt.after(self.filter.state, self.filter.covariance)
+            self.q = self.adapt.q
         period = self.silence.period_ns * 1e-9 if self.silence.period_ns else 1.0
         for x in self.listeners:
             x.fix(ep, self.filter, period)

@@ -42,7 +42,7 @@ from fieldlog.drive import outputs
 from fieldlog.drive.files import DriveSpec, label
 from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import hinf, installation, measurements
+from fieldlog.fusion import adaptive, hinf, installation, measurements
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
@@ -54,7 +54,7 @@ from fieldlog.replay.ahead import Remote
 from fieldlog.replay.inputs import InputMap, InputStream
 from fieldlog.replay.loop import Pace, run
 from fieldlog.tools.fuse_output import FusedOutput
-from fieldlog.tools.fuse_settings import drive_config, drive_mounting
+from fieldlog.tools.fuse_settings import Settings, drive_config, drive_mounting
 
 BLOCK_S = 10.0
 
@@ -84,6 +84,7 @@ class FuseResult:
     alignment_summary: dict | None = None  # which alignment ran on which interval (fusion.align.Alignment.summary)
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
     virtual_odometer: dict | None = None  # dkf-rbfn, predictor_mode "pseudo": its held-out score and whether it ran
+    noise: dict[str, tuple[float, str]] | None = None  # adapt_noise: the figures the drive set (Adaptation.figures)
 
 
 def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> dict[str, object]:
@@ -179,9 +180,24 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
                       engine.predicted, stream.rate_hz, stream.gaps, stream.missing,
                       getattr(engine.filter, "raised", 0), engine.used("Stationary"), engine.alignment.note,
                       hinf_note or None, engine.used("Stationary", "zaru_skipped"),
-                      odometer_summary(engine), written.solution, dict(engine.alignment.summary),
-                      tuple(stream.warnings()),
-                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None))
+                      odometer_summary(engine), written.solution,
+                      dict(engine.alignment.summary), tuple(stream.warnings()),
+                      next((m.summary() for m in engine.measurements if hasattr(m, "summary")), None),
+                      engine.adapt.figures() if engine.adapt is not None else None)
+
+
+NOISE_KEYS = ("gyro_noise_dps_rthz", "accel_noise_ug_rthz", "gyro_bias_rw_dps_rts", "accel_bias_rw_ug_rts")
+
+
+def noise_sources(st: Settings, res: FuseResult) -> dict[str, dict[str, object]]:
+    """Each noise figure the run used: key -> {"value", "source"}: the settings' source (default, the config,
+    its grade or datasheet key) unless the drive set it (``adapt_noise``: estimated from the still start,
+    adapted; ``fusion.adaptive``)."""
+    out: dict[str, dict[str, object]] = {k: {"value": st.config.get(k), "source": st.sources[k]} for k in NOISE_KEYS}
+    for k, (value, src) in (res.noise or {}).items():
+        if src != adaptive.CONFIGURED:
+            out[k] = {"value": value, "source": src}
+    return out
 
 
 def run_record(drive: DriveSpec, method: str, config: FusionConfig, inputs: InputMap, smooth: bool

@@ -1,7 +1,8 @@
 """``fieldlog fuse``: run one fusion method over a drive and write its solution (``tools.fuse``).
 
 By default one summary line (what was read, what was written, the method, the outages) and how the heading was
-aligned; the settings and their sources with -v (they are always in the fused file's ``fusion`` metadata
+aligned; the settings and their sources with -v, and each noise figure's value and source (default, the
+config, an IMU grade or datasheet key, estimated from the still start, adapted: ``fusion.adaptive``) (they are always in the fused file's ``fusion`` metadata
 record); ``--json``: the summary as one JSON object instead."""
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def _installation_line(s: dict) -> str:
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
-    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse
+    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, noise_sources
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
@@ -74,6 +75,7 @@ def run(a: argparse.Namespace) -> int:
                    odometer_scale_sigma=res.odometer["scale_sigma"] if res.odometer else None,
                    odometer_slip_skipped=res.odometer["slip_skipped"] if res.odometer else None,
                    predictor_mode=st.config.get("predictor_mode"), virtual_odometer=res.virtual_odometer,
+                   noise=noise_sources(st, res),
                    wall_s=round(time.monotonic() - t0, 3))
     if a.method != INS.name:
         summary.update(estimate_installation(drive, st.config, imap))
@@ -86,6 +88,8 @@ def run(a: argparse.Namespace) -> int:
                  f"bridged, {res.imu_missing} samples missing), fixes {imap.fix_topic}, velocity "
                  f"{imap.vel_topic or 'none'}: {res.updates} GPS updates, {res.outages} outage windows{windows}; "
                  f"wrote {res.path}: {res.rows} solutions in {summary['wall_s']:.1f} s")
+        for key, fig in summary["noise"].items():
+            log.debug(f"noise {key} = {fig['value']:.4g}: {fig['source']}")
         if res.alignment:
             how = res.alignment_summary or {}
             where = (f" (static interval {how['start_s']:.1f}-{how['end_s']:.1f} s)" if how.get("start_s") is not None
