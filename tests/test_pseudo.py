@@ -65,6 +65,30 @@ def test_peak_frequency_finds_a_line_between_the_bins(seed):
         assert abs(pseudo.peak_frequency(freq, power) - f0) < 0.15, f0
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_line_odometer_follows_the_wheel_line_beyond_the_trained_speeds(seed):
+    """Trained at 8-10 m/s on features whose line is speed / (2 pi r) plus scatter (and a few wrong picks), it
+    predicts 12-14 m/s from the line within a few tenths of a m/s, where a network clipped to its trained
+    targets could not go above 10."""
+    rng = np.random.default_rng(seed)
+    r = 0.31
+
+    def features(v: float) -> np.ndarray:
+        x = rng.normal(0.0, 0.05, pseudo.N_FEATURES)
+        x[-1] = v / (2 * math.pi * r) * (1 + 0.01 * rng.standard_normal())
+        if rng.uniform() < 0.05:
+            x[-1] *= 0.5
+        return x
+
+    model = pseudo.new_network(PredictorConfig())
+    for v in rng.uniform(8.0, 10.0, 200):
+        model.train(features(v), float(v))
+    assert model.ready and model.k == pytest.approx(2 * math.pi * r, rel=0.01)
+    frozen = model.frozen()
+    err = [frozen.predict(features(v)) - v for v in np.linspace(12.0, 14.0, 20)]
+    assert np.median(np.abs(err)) < 0.3, err
+
+
 def test_reckoner_holds_the_speed_of_a_level_car_and_drifts_with_a_gyro_bias():
     """Standing level with the specific force of gravity, the dead reckoning holds its start speed; with an
     uncorrected pitch-rate bias eps it drifts as g eps t^2 / 2 (the INS's along-track error)."""
@@ -141,3 +165,17 @@ def test_virtual_odometer_beats_dkf_in_gps_only_outages_over_seeds(simulated, tm
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["predictor_mode"] == "pseudo" and summary["virtual_odometer"]["ran"] is True
     assert summary["virtual_odometer"]["held_out_skill"] > 0
+
+
+def test_on_a_real_car_the_switch_agrees_with_the_can_wheel_speeds_held_out():
+    """comma2k19's minute (a phone in a RAV4 on a highway, tests/data/comma2k19): trained on the receiver's speed
+    and scored 30-60 s after each freeze against the CAN rear wheels' speed. A phone's vibration has no wheel line
+    to follow: the held-out residuals choose the network over the line (which errs by tens of m/s), and the
+    engine's switch (the held-out skill against the IMU's dead reckoning) is on exactly when the chosen model's
+    RMS error against the CAN speed is below the zero-skill baseline's (the speed at the freeze, held)."""
+    from comma2k19 import load, virtual_odometer_held_out
+
+    res = virtual_odometer_held_out(load())
+    rms = res["rms"]
+    assert res["pairs"] >= 100 and res["candidate"] == "network" and rms["line"] > rms["network"], res
+    assert res["on"] == (rms["model"] < rms["hold"]), res
