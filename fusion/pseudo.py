@@ -17,24 +17,32 @@ Features (:func:`imu_features`, body RFU of the IMU):
   ``tools/sim/vibration.py`` makes it; the samples Hann-windowed for both. The line's frequency is proportional
   to the speed (a wheel turns speed / (2 pi r) times a second), which :class:`SpeedModel` uses.
 
-What the set assumes: the car's vibration carries its speed, as a car's does through its wheel orders (a wheel
-turns speed / (2 pi r) times a second) and a road's roughness (its power grows with the speed), and the
-engine's orders in one gear; the IMU samples fast enough to see those lines (a few to a few tens of Hz: the
-default band edges assume a rate of at least 120 Hz); the mounting, the tyres, the road and the gear stay what
-they were over the training window, which is the last ``window`` GNSS epochs (``fusion.predictors.
-PredictorConfig``), so a changed road or a new gear is learnt again only after GNSS returns. The speed before the
-outage is not an input: the model would learn to repeat it (the next epoch's speed is the last one's, to a few
-cm/s), which says nothing at 30-60 s. A car that does not vibrate (an electric car on smooth asphalt) gives the
-network only the mean force and rate and the turn speed; its held-out R then says so (a large R, a measurement the
-filter weighs little).
+Models (:class:`SpeedModel`): two candidates, chosen between by their held-out residuals: the wheel's line times
+a learnt scale (the distance of one of its periods: the tyre's circumference), which extrapolates to speeds the
+training window did not hold; and an RBF network (``fusion.predictors.SpeedNetwork``) on all the features, for a
+car whose vibration has no line that follows the speed.
 
-Held-out score (:class:`HeldOut`): every ``SNAPSHOT_S`` while GNSS is good a copy of the network is frozen, with
+What the set assumes: the car's vibration carries its speed, as a car's does through its wheel orders and a road's
+roughness (its power grows with the speed), and the engine's orders in one gear; the wheel's first order is the
+strongest line of the specific force between ``PEAK_HZ`` most of the time (the median of ``LINE_MEDIAN`` epochs
+drops the rest); the IMU samples fast enough to see those lines (a few to a few tens of Hz: the default band
+edges assume a rate of at least 120 Hz); the mounting, the tyres, the road and the gear stay what they were over
+the training window, which is the last ``window`` GNSS epochs (``fusion.predictors.PredictorConfig``), so a
+changed road or a new gear is learnt again only after GNSS returns. The features lag the speed by about half of
+``SPECTRUM_S`` plus half of ``LINE_MEDIAN`` epochs: while the speed changes the prediction trails it. The speed
+before the outage is not an input: a model would learn to repeat it (the next epoch's speed is the last one's, to
+a few cm/s), which says nothing at 30-60 s. A car whose vibration has no such line (a phone in a car on the
+highway, ``tests/comma2k19.py``; an electric car on smooth asphalt) leaves the network, whose held-out R and skill
+then say what it is worth.
+
+Held-out score (:class:`HeldOut`): every ``SNAPSHOT_S`` while GNSS is good a copy of the model is frozen, with
 a dead reckoning of the forward speed started from the GNSS's (:class:`ForwardReckoner`: the INS's along-track
 channel alone, the IMU with the bias estimates of that moment). At each later good epoch the copies frozen
-``HORIZON_S`` (30-60 s) before predict the current target, before any training on it: what a network frozen at an
-outage's start would have said 30-60 s into it. R is the mean square of those residuals; the skill is
-1 - that mean square over the dead reckoning's, i.e. against what the IMU alone gives the filter along track over
-the same horizon. The measurement is used only when the skill is positive.
+``HORIZON_S`` (30-60 s) before predict the current target with each candidate, before any training on it: what a
+model frozen at an outage's start would have said 30-60 s into it. The candidate used is the one with the smaller
+R, the variance of a normal distribution with the residuals' median square (:attr:`HeldOut.R`); its skill is
+1 - its residuals' mean square over the dead reckoning's, i.e. against what the IMU alone gives the filter along
+track over the same horizon. The measurement is used only when the skill is positive.
 """
 from __future__ import annotations
 
@@ -51,7 +59,7 @@ FEATURE_S = 1.0  # s of IMU samples the means and the turn speed are taken over
 SPECTRUM_S = 4.0  # s of IMU samples the band powers and the wheel's line are taken over
 BANDS_HZ = ((0.5, 3.0), (3.0, 6.0), (6.0, 12.0), (12.0, 25.0), (25.0, 60.0))
 PEAK_HZ = (2.0, 15.0)  # a wheel's first order from 4 to 30 m/s with a 0.31 m tyre
-LINE_MEDIAN = 3  # epochs: the line's frequency is the median of its last estimates (one-off wrong picks dropped)
+LINE_MEDIAN = 7  # epochs: the line's frequency is the median of its last estimates (3 wrong in a row dropped)
 LINE_MIN_SPEED = 1.0  # m/s: slower targets do not enter the wheel's scale (a standing car has no wheel line)
 CHI2_1_MEDIAN = 0.4549364231195724  # the median of the square of a standard normal variable
 TURN_RATE_FLOOR = 0.05  # rad/s: below about this yaw rate the turn speed fades to zero
@@ -250,7 +258,9 @@ class SpeedModel:
     - 1, the network: a :class:`fusion.predictors.SpeedNetwork` on all the features, for a car whose vibration
       has no line that follows the speed.
 
-    ``use``: the candidate :meth:`predict` gives (set by :meth:`HeldOut.freeze`)."""
+    ``use``: the candidate :meth:`predict` gives (set by :meth:`HeldOut.freeze`), named in ``CANDIDATES``."""
+
+    CANDIDATES = ("wheel line", "network")
 
     def __init__(self, cfg: PredictorConfig) -> None:
         self.ratios: deque[float] = deque(maxlen=cfg.window)

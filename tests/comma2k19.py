@@ -219,8 +219,8 @@ def virtual_odometer_held_out(seg: dict[str, np.ndarray]) -> dict:
     Returns
     -------
     dict
-        ``rms``: RMS error (m/s) against the CAN speed of the candidate in use at each fix (``model``), of each candidate
-        (``line``, ``network``) and of the baselines (``hold``, ``mean``); ``pairs`` scored; ``on``, ``skill``,
+        ``rms``: RMS error (m/s) against the CAN speed of the candidate in use at each fix (``model``), of each
+        candidate (``line``, ``network``) and of the baselines (``hold``, ``mean``); ``pairs`` scored; ``on``, ``skill``,
         ``sigma_mps``, ``candidate``: the engine's switch, its held-out skill and sigma and the candidate it uses.
     """
     from fieldlog.fusion import pseudo
@@ -265,12 +265,13 @@ def virtual_odometer_held_out(seg: dict[str, np.ndarray]) -> dict:
     rms = {k: float(np.sqrt(np.nanmean(np.square(v)))) for k, v in e.items()}
     on = held.scored >= pseudo.MIN_SCORED and held.skill > 0.0
     return dict(rms=rms, pairs=len(e["model"]), on=on, skill=held.skill, sigma_mps=math.sqrt(held.R),
-                candidate=("line", "network")[held.best])
+                candidate=pseudo.SpeedModel.CANDIDATES[held.best])
 
 
 def score(seg: dict[str, np.ndarray], drive: Path) -> None:
     """Print docs/results.md's "Real drives" table: kf with each aid switch and free INS, GNSS withheld in
-    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m)."""
+    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m); then the
+    virtual odometer's held-out errors (:func:`virtual_odometer_held_out`)."""
     import contextlib
     import io
     import json
@@ -302,6 +303,11 @@ def score(seg: dict[str, np.ndarray], drive: Path) -> None:
     fix = seg["gnss_value"]
     e_fix = horizontal_error_m(ref, (fix[:, 3] * 1e6).astype(np.int64), fix[:, 0], fix[:, 1])
     print(f"fixes: median {np.nanmedian(e_fix):.2f} m")
+    vo = virtual_odometer_held_out(seg)
+    print("virtual odometer, held out 30-60 s against the CAN rear wheels, RMS m/s: "
+          + ", ".join(f"{k} {v:.2f}" for k, v in vo["rms"].items())
+          + f"; {vo['pairs']} pairs, uses the {vo['candidate']}, sigma {vo['sigma_mps']:.2f} m/s, "
+          f"skill against the IMU {vo['skill']:.2f}, {'on' if vo['on'] else 'off'}")
 
 
 if __name__ == "__main__":

@@ -130,41 +130,48 @@ OUTAGE = (180.0, 60.0)
 
 
 @pytest.mark.slow
-def test_virtual_odometer_beats_dkf_in_gps_only_outages_over_seeds(simulated, tmp_path, capsys):
-    """figure8-varied-real (laps whose speed varies, a car whose vibration carries it), GPS only as the paper's
-    set-up, one 60 s outage per drive: the virtual odometer runs (positive held-out skill, reported by
-    ``fuse --json``) and its 2D RMS in the outage is below dkf's on every drive, the paired t test of the log
-    ratios resolving it, and the mean at most 0.7 of dkf's (the full study: docs/studies/pseudo)."""
+@pytest.mark.parametrize("setup", ["gps-only", "car-aids"])
+def test_virtual_odometer_beats_dkf_in_outages_over_seeds(simulated, tmp_path, capsys, setup):
+    """figure8-varied-real (laps whose speed varies, a car whose vibration carries it), one 60 s outage per drive,
+    the issue's targets as relations over seeds: with GPS only (the paper's set-up) the 2D RMS in the outage is
+    below dkf's on every drive, the paired t test of the log ratios resolving it, and the mean at most 0.7 of
+    dkf's; with the car's aids (NHC and ZUPT, no wheel odometer) the drift over the outage (the error less its
+    value at the start) likewise, at most 0.8 of dkf's. The virtual odometer runs (positive held-out skill,
+    reported by ``fuse --json``; the full study: docs/studies/pseudo)."""
     from fieldlog.tools.cli import main
-    from fieldlog.tools.evaluation.evaluate import fix_quality, outage_error_series, paired
+    from fieldlog.tools.evaluation.evaluate import drift_2d, fix_quality, outage_error_series, paired
     from fieldlog.tools.fuse import drive_config, fuse
 
-    d2 = {"dkf": [], "pseudo": []}
+    aids = dict(nhc=False, zupt=False) if setup == "gps-only" else {}
+    target = 0.7 if setup == "gps-only" else 0.8
+    err = {"dkf": [], "pseudo": []}
     for seed in SEEDS:
         drive = simulated("figure8-varied-real", DRIVE_S, seed)
-        cfg = drive_config(drive).replace(nhc=False, zupt=False, odometer=False, outages=(OUTAGE,))
+        cfg = drive_config(drive).replace(odometer=False, outages=(OUTAGE,), **aids)
         _, _, t0 = fix_quality(drive, cfg.gps.max_fix_sigma_m)
         win = [(t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))]
         for name, method, c in (("dkf", "dkf", cfg), ("pseudo", "dkf-rbfn", cfg.replace(predictor_mode="pseudo"))):
             res = fuse(drive, method, tmp_path / f"{seed}_{name}.mcap", c, keep=True)
-            _, e = outage_error_series(drive, res.solution, method, win)
-            d2[name].append(float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))))
+            t, e = outage_error_series(drive, res.solution, method, win)
+            err[name].append(float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))) if setup == "gps-only"
+                             else drift_2d(t, e, win))
         vo = res.virtual_odometer
         assert vo["ran"] and vo["held_out_skill"] > 0 and vo["epochs_used"] >= 50, vo
-    dkf, ours = np.array(d2["dkf"]), np.array(d2["pseudo"])
+    dkf, ours = np.array(err["dkf"]), np.array(err["pseudo"])
     pt = paired(np.log(ours / dkf))  # dkf's error spreads over drives with its gyro biases: compare ratios
-    assert (ours < dkf).all() and pt.resolved and pt.mean < 0, (d2, pt)
-    assert ours.mean() <= 0.7 * dkf.mean(), d2
+    assert (ours < dkf).all() and pt.resolved and pt.mean < 0, (err, pt)
+    assert ours.mean() <= target * dkf.mean(), err
     # fuse --json reports the held-out skill and whether it ran
     cfg_file = tmp_path / "pseudo.toml"
-    cfg_file.write_text('[fusion]\npredictor_mode = "pseudo"\nnhc = false\nzupt = false\nodometer = false\n')
+    cfg_file.write_text('[fusion]\npredictor_mode = "pseudo"\nodometer = false\n'
+                        + "".join(f"{k} = false\n" for k in aids))
     capsys.readouterr()
     assert main(["fuse", str(simulated("figure8-varied-real", DRIVE_S, SEEDS[0])), "--method", "dkf-rbfn",
                  "--config", str(cfg_file), "--outage", f"{OUTAGE[0]:g}:{OUTAGE[1]:g}", "--json",
                  "--out", str(tmp_path / "cli.mcap")]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["predictor_mode"] == "pseudo" and summary["virtual_odometer"]["ran"] is True
-    assert summary["virtual_odometer"]["held_out_skill"] > 0
+    assert summary["virtual_odometer"]["held_out_skill"] > 0 and summary["virtual_odometer"]["model"] == "wheel line"
 
 
 def test_on_a_real_car_the_switch_agrees_with_the_can_wheel_speeds_held_out():
