@@ -80,14 +80,37 @@ class ImuWindow:
         self.lines: deque[float] = deque(maxlen=LINE_MEDIAN)
 
     def add(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int, imu_dt: float) -> None:
-        """Samples (i0, i1] of w, f (n, 3); imu_dt the sample period, s."""
+        """Append samples (i0, i1] and keep the last ``SPECTRUM_S``.
+
+        Parameters
+        ----------
+        w, f : np.ndarray
+            (n, 3) raw angular rate (rad/s) and specific force (m/s^2), body RFU.
+        i0, i1 : int
+            The samples taken are i0 + 1 to i1.
+        imu_dt : float
+            The sample period, s.
+        """
         keep = max(int(round(SPECTRUM_S / imu_dt)), 1)
         self.w = np.concatenate([self.w, w[i0 + 1:i1 + 1]])[-keep:]
         self.f = np.concatenate([self.f, f[i0 + 1:i1 + 1]])[-keep:]
 
     def features(self, nav: NavState, imu_dt: float) -> np.ndarray | None:
-        """:func:`imu_features` of the window, the line's frequency the median of its last ``LINE_MEDIAN`` (one
-        call per epoch); None while the window holds less than half of ``SPECTRUM_S``."""
+        """The features of the window, the line's frequency the median of its last ``LINE_MEDIAN`` (one call
+        per epoch).
+
+        Parameters
+        ----------
+        nav : NavState
+            The INS state at the epoch.
+        imu_dt : float
+            The sample period, s.
+
+        Returns
+        -------
+        np.ndarray or None
+            (``N_FEATURES``,) :func:`imu_features`; None while the window holds less than half of ``SPECTRUM_S``.
+        """
         if len(self.w) * imu_dt < 0.5 * SPECTRUM_S:
             return None
         x = imu_features(self.w, self.f, imu_dt, nav)
@@ -131,9 +154,22 @@ def imu_features(w: np.ndarray, f: np.ndarray, dt: float, nav: NavState) -> np.n
 
 
 def peak_frequency(freq: np.ndarray, power: np.ndarray) -> float:
-    """The frequency (Hz) of the strongest line of a power spectrum within ``PEAK_HZ``, between bins by a parabola
+    """The frequency of the strongest line of a power spectrum within ``PEAK_HZ``, between bins by a parabola
     through the log power of the peak bin and its neighbours (a Hann-windowed line's log power is close to a
-    parabola near its top); 0 when the band holds fewer than three bins."""
+    parabola near its top).
+
+    Parameters
+    ----------
+    freq : np.ndarray
+        (m,) the spectrum's frequencies, Hz, evenly spaced from 0 (``np.fft.rfftfreq``).
+    power : np.ndarray
+        (m,) its power, any unit.
+
+    Returns
+    -------
+    float
+        The line's frequency, Hz; 0 when the band holds fewer than three bins.
+    """
     idx = np.flatnonzero((freq >= PEAK_HZ[0]) & (freq <= PEAK_HZ[1]))
     if len(idx) < 3:
         return 0.0
@@ -146,7 +182,20 @@ def peak_frequency(freq: np.ndarray, power: np.ndarray) -> float:
 
 
 def forward_speed(nav: NavState, v_n: np.ndarray) -> float:
-    """The component of an ENU velocity v_n (3,) along the IMU's forward (y) axis, m/s (NaN vertical: the INS's)."""
+    """The component of a velocity along the IMU's forward (y) axis.
+
+    Parameters
+    ----------
+    nav : NavState
+        The INS state: its attitude C_bn, and its velocity for any NaN component of v_n.
+    v_n : np.ndarray
+        (3,) the velocity, ENU, m/s (a NaN vertical: the INS's).
+
+    Returns
+    -------
+    float
+        The forward speed, m/s.
+    """
     v = np.where(np.isfinite(v_n), v_n, nav.v_n)
     return float(nav.C_bn[:, 1] @ v)
 
@@ -166,7 +215,15 @@ class ForwardReckoner:
         self.g_n = earth.gravity_n(nav.lat, nav.h)
 
     def step(self, mean_w: np.ndarray, mean_f: np.ndarray, seconds: float) -> None:
-        """An interval of ``seconds`` with mean raw rate (rad/s) and specific force (m/s^2), body."""
+        """Carry the attitude and forward speed over an interval.
+
+        Parameters
+        ----------
+        mean_w, mean_f : np.ndarray
+            (3,) the interval's mean raw rate (rad/s) and specific force (m/s^2), body RFU.
+        seconds : float
+            Its length, s.
+        """
         C_nb = self.C_bn.T
         g_b = C_nb @ self.g_n
         self.v += (mean_f[1] - self.ba[1] + g_b[1]) * seconds
@@ -187,8 +244,22 @@ class HeldOut:
 
     def score(self, t: float, x: np.ndarray, y: float, mean_w: np.ndarray, mean_f: np.ndarray,
               seconds: float) -> None:
-        """A good epoch at t (s) with input x and target y: the reckoners step over the interval (its mean raw rate
-        and force, its length in s), the copies within the horizon are scored on (x, y), the too-old dropped."""
+        """A good epoch: the reckoners step over the interval, the copies within the horizon are scored on (x, y),
+        the too-old dropped.
+
+        Parameters
+        ----------
+        t : float
+            The epoch, s.
+        x : np.ndarray
+            (``N_FEATURES``,) its features.
+        y : float
+            Its target, the forward speed, m/s.
+        mean_w, mean_f : np.ndarray
+            (3,) the interval's mean raw rate (rad/s) and specific force (m/s^2), body RFU.
+        seconds : float
+            The interval's length, s.
+        """
         for t0, model, dr in self.snapshots:
             dr.step(mean_w, mean_f, seconds)
             if HORIZON_S[0] <= t - t0 <= HORIZON_S[1]:
@@ -201,8 +272,22 @@ class HeldOut:
 
     def freeze(self, t: float, model: SpeedModel, nav: NavState, y: float, bg: np.ndarray, ba: np.ndarray
                ) -> None:
-        """A new copy at t when ``SNAPSHOT_S`` has passed since the last (the model trained up to t); the live
-        model is told which candidate the residuals so far choose."""
+        """A new copy when ``SNAPSHOT_S`` has passed since the last; the live model is told which candidate the
+        residuals so far choose.
+
+        Parameters
+        ----------
+        t : float
+            The epoch, s (the model trained up to it).
+        model : SpeedModel
+            The live model.
+        nav : NavState
+            The INS state at t (the reckoner's start attitude).
+        y : float
+            The GNSS's forward speed at t, m/s (the reckoner's start).
+        bg, ba : np.ndarray
+            (3,) the gyro (rad/s) and accelerometer (m/s^2) bias estimates at t.
+        """
         model.use = self.best
         if model.ready and t - self._last >= SNAPSHOT_S:
             self.snapshots.append((t, model.frozen(), ForwardReckoner(nav, y, bg, ba)))
@@ -290,12 +375,33 @@ class SpeedModel:
         self.net.train(x, y)
 
     def predict_each(self, x: np.ndarray) -> np.ndarray:
-        """(2,) each candidate's forward speed, m/s, for the features x (``N_FEATURES``,); NaN where not fitted."""
+        """Each candidate's forward speed.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (``N_FEATURES``,) the features.
+
+        Returns
+        -------
+        np.ndarray
+            (2,) the speeds in the order of ``CANDIDATES``, m/s; NaN where not fitted.
+        """
         return np.array([self.k * float(x[-1]), self.net.predict(x)])
 
     def predict(self, x: np.ndarray) -> float:
-        """The forward speed, m/s, of the candidate in use, for the features x (``N_FEATURES``,); NaN before
-        it is fitted."""
+        """The forward speed of the candidate in use.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (``N_FEATURES``,) the features of the epoch (:func:`imu_features`).
+
+        Returns
+        -------
+        float
+            m/s; NaN before it is fitted.
+        """
         return float(self.predict_each(x)[self.use])
 
     def frozen(self) -> SpeedModel:
