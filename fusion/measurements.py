@@ -282,11 +282,11 @@ class Odometer:
 class VirtualOdometer:
     """The learnt forward speed (``[fusion] predictor_mode = "pseudo"``, ``fusion.pseudo``): a virtual odometer.
 
-    While GNSS is good it trains an RBF network (``fusion.predictors.SpeedNetwork``) on the IMU's features
+    While GNSS is good it trains a model (``fusion.pseudo.SpeedModel``) on the IMU's features
     (``fusion.pseudo.imu_features``) to the GNSS velocity's component along the IMU's forward axis, scoring
     copies frozen 30-60 s before first (``fusion.pseudo.HeldOut``). At an epoch without a usable fix it gives the
     predicted speed as the forward row of the wheel odometer's measurement (``odometer.odometer_measurement``
-    at the IMU, scale 1): z = (C_nb v_n)_y - v_pred, R the held-out residuals' mean square; only when the held-out
+    at the IMU, scale 1): z = (C_nb v_n)_y - v_pred, R the held-out residuals' variance; only when the held-out
     skill is positive and ``MIN_SCORED`` residuals were scored. No lateral or vertical zeros: those are the
     NHC's, when it is on. ``preempted_by``: aids whose measurement at the same epoch replaces this one (the
     wheel odometer, the stationary update). ``feed_imu`` takes the raw samples as the engine integrates them;
@@ -348,10 +348,11 @@ class VirtualOdometer:
         return self.held_out.scored >= pseudo.MIN_SCORED and self.held_out.skill > 0.0
 
     def summary(self) -> dict:
-        """Held-out skill and R (m/s, as a sigma), residuals scored, epochs trained, outage epochs it ran at, and
-        the skill at each outage's start."""
+        """The model in use (``fusion.pseudo.SpeedModel.CANDIDATES``), held-out skill and R (m/s, as a sigma),
+        residuals scored, epochs trained, outage epochs it ran at, and the skill at each outage's start."""
         r = self.held_out.R
-        return dict(held_out_skill=_finite(self.held_out.skill), held_out_sigma_mps=_finite(math.sqrt(r)),
+        return dict(model=pseudo.SpeedModel.CANDIDATES[self.held_out.best],
+                    held_out_skill=_finite(self.held_out.skill), held_out_sigma_mps=_finite(math.sqrt(r)),
                     scored=self.held_out.scored, trained=self.trained, ran=len(self.times) > 0,
                     epochs_used=len(self.times), outage_skills=[_finite(s) for s in self.outage_skills])
 

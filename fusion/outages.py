@@ -41,12 +41,32 @@ class OutageTracker:
         self._outages: list[Outage] = []
 
     def force(self, t_ref_ns: int, windows: tuple[tuple[float, float], ...]) -> None:
-        """Forced windows (start_s, length_s) from t_ref_ns (the first IMU sample)."""
+        """Force the outage windows of ``[fusion] outages``.
+
+        Parameters
+        ----------
+        t_ref_ns : int
+            The first IMU sample, ns: the windows' origin.
+        windows : tuple of (float, float)
+            (start, length) of each window, s from t_ref_ns.
+        """
         self._forced = [(t_ref_ns + int(s * NS), t_ref_ns + int((s + n) * NS)) for s, n in windows]
         self._outages += [Outage(a, b, "injected") for a, b in self._forced]
 
     def classify(self, ep: Epoch) -> bool:
-        """Whether an epoch's fix is usable; opens and closes the detected outage windows."""
+        """Whether an epoch's fix is usable; opens and closes the detected outage windows.
+
+        Parameters
+        ----------
+        ep : Epoch
+            The GPS epoch.
+
+        Returns
+        -------
+        bool
+            True when its fix is usable: a fix, finite, its horizontal sigma within ``max_fix_sigma_m``, and outside
+            the forced windows.
+        """
         t = ep.t_ns
         good_fix = ep.status >= 0 and math.isfinite(ep.lat) and math.isfinite(ep.lon)  # h may be NaN
         low = good_fix and not math.sqrt(max(ep.pos_cov[0, 0], ep.pos_cov[1, 1])) <= self.max_fix_sigma_m
@@ -61,7 +81,13 @@ class OutageTracker:
         return usable and not forced
 
     def finish(self, end_ns: int | None) -> None:
-        """Close an outage still open at end_ns (the last IMU sample; None: at its start)."""
+        """Close an outage still open.
+
+        Parameters
+        ----------
+        end_ns : int or None
+            Its end, ns (the last IMU sample); None: at its start.
+        """
         if self._open is not None:
             self._open.end_ns = end_ns if end_ns is not None else self._open.start_ns
             self._outages.append(self._open)
@@ -86,9 +112,20 @@ class Silence:
         self.period_ns: float | None = None
 
     def add(self, queue: list[Epoch], epochs: list[Epoch], horizon_ns: int | None) -> None:
-        """Append ``epochs`` (real, time order) to ``queue``. In a silence (more than 1.5 intervals since the last
-        real epoch) a silent epoch goes in at every nominal interval up to the next real epoch (not within half an
-        interval of it) and up to ``horizon_ns`` (the IMU's last sample: a fix before it would be in this block)."""
+        """Append ``epochs`` to ``queue``. In a silence (more than 1.5 intervals since the last real epoch) a
+        silent epoch goes in at every nominal interval up to the next real epoch (not within half an interval of
+        it) and up to ``horizon_ns``.
+
+        Parameters
+        ----------
+        queue : list of Epoch
+            The engine's epoch queue, appended to in place.
+        epochs : list of Epoch
+            The block's real epochs, in time order.
+        horizon_ns : int or None
+            The IMU's last sample, ns (a fix before it would be in this block); None: no silent epochs after the
+            last real one.
+        """
         for ep in epochs:
             t = ep.t_ns
             if self.real_ns is not None and t > self.real_ns:
@@ -130,14 +167,36 @@ class PredictorBridge:
         self.origin: tuple[float, float, float] | None = None  # lat, lon, h of the alignment point
 
     def input(self, nav: NavState) -> np.ndarray:
-        """INS position (ENU m from the alignment point) and velocity (ENU m/s), (6,)."""
+        """The networks' input.
+
+        Parameters
+        ----------
+        nav : NavState
+            The INS state.
+
+        Returns
+        -------
+        np.ndarray
+            (6,) its position (ENU, m from the alignment point) and velocity (ENU, m/s).
+        """
         r = kf.enu_offset(nav.lat, nav.lon, nav.h, *self.origin)
         return np.concatenate([r, nav.v_n])
 
     def train(self, t_s: float, u: np.ndarray, innovations: tuple[np.ndarray, np.ndarray], pos: kf.Measurement,
               vel: kf.Measurement | None) -> None:
-        """A usable epoch at t_s: input u (6,) before the update; the local filters' innovation components
-        (KF_I, KF_II) (15,) each of this update; the GPS measurements."""
+        """Train on a usable epoch.
+
+        Parameters
+        ----------
+        t_s : float
+            The epoch, s.
+        u : np.ndarray
+            (6,) the input (:meth:`input`) before the update.
+        innovations : tuple of np.ndarray
+            The local filters' innovation components (KF_I, KF_II) of this update, (15,) each.
+        pos, vel : kf.Measurement
+            The GPS position and velocity measurements (vel None without one).
+        """
         if self.hybrid:
             dx_vel, dx_pos = innovations
             y = np.concatenate([dx_pos[POS], dx_vel[VEL]])
@@ -148,13 +207,36 @@ class PredictorBridge:
         self.predictor.train(t_s, u, y)
 
     def prediction(self, nav: NavState) -> np.ndarray | None:
-        """An outage epoch: the predicted target (6,) (position E, N, U m; velocity m/s), NaN-free; None if none."""
+        """The prediction at an outage epoch.
+
+        Parameters
+        ----------
+        nav : NavState
+            The INS state at the epoch (the networks' input, :meth:`input`).
+
+        Returns
+        -------
+        np.ndarray or None
+            (6,) the predicted target (position E, N, U, m; velocity ENU, m/s), NaN-free; None if no channel
+            predicts.
+        """
         d = np.nan_to_num(self.predictor.predict(self.input(nav)))  # a channel without a model: none
         return d if d.any() else None
 
     @staticmethod
     def as_state(d: np.ndarray) -> np.ndarray:
-        """A predicted (6,) position and velocity as an error state (15,)."""
+        """A prediction as an error state.
+
+        Parameters
+        ----------
+        d : np.ndarray
+            (6,) predicted position (m) and velocity (m/s), ENU.
+
+        Returns
+        -------
+        np.ndarray
+            (15,) the error state with them in its position and velocity rows.
+        """
         x = np.zeros(N_STATES)
         x[POS], x[VEL] = d[:3], d[3:]
         return x

@@ -123,7 +123,22 @@ def ridge_solve(A: np.ndarray, y: np.ndarray, ridge: float | None = None) -> tup
     """argmin |A w - y|^2 + lam |w|^2 with lam = ridge * mean(diag(A^T A)); returns (w, ridge).
 
     ridge None: chosen from ``RIDGE_GRID`` by generalised cross-validation, GCV = n RSS / (n - tr H)^2
-    (Golub, Heath & Wahba), all candidates from one SVD of A."""
+    (Golub, Heath & Wahba), all candidates from one SVD of A.
+
+    Parameters
+    ----------
+    A : np.ndarray
+        (n, m) the design matrix.
+    y : np.ndarray
+        (n,) the targets.
+    ridge : float or None
+        The relative ridge; None: by GCV.
+
+    Returns
+    -------
+    tuple of (np.ndarray, float)
+        The weights (m,) and the relative ridge used.
+    """
     U, s, Vt = np.linalg.svd(A, full_matrices=False)
     scale = max(float(np.sum(s * s)) / A.shape[1], 1e-300)
     grid = RIDGE_GRID if ridge is None else np.array([ridge])
@@ -140,7 +155,22 @@ def ridge_solve(A: np.ndarray, y: np.ndarray, ridge: float | None = None) -> tup
 
 
 def kmeans_centres(x: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
-    """Sorted distinct 1-D k-means centres (at most k) of samples x (n,)."""
+    """Sorted distinct 1-D k-means centres (at most k).
+
+    Parameters
+    ----------
+    x : np.ndarray
+        (n,) the samples.
+    k : int
+        The number of centres asked for.
+    seed : int
+        The k-means++ draws' seed.
+
+    Returns
+    -------
+    np.ndarray
+        (at most k,) the centres, ascending.
+    """
     x = np.asarray(x, dtype=float)
     k = max(1, min(k, len(np.unique(x))))
     c = np.sort(kmeans_1d(x, k, np.random.default_rng(seed)))
@@ -154,13 +184,43 @@ def kmeans_1d(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int =
     The algorithm of ``scipy.cluster.vq.kmeans2(x[:, None], k, minit="++", rng=rng)``, step for step and draw
     for draw, so the centres equal its to the bit (tests/test_predictors.py holds the two against each other);
     written out in numpy because importing ``scipy.cluster`` costs a predictor method more than all its k-means
-    runs over a drive."""
+    runs over a drive.
+
+    Parameters
+    ----------
+    x : np.ndarray
+        (n,) the samples.
+    k, rng, iterations
+        As :func:`kmeans`.
+
+    Returns
+    -------
+    np.ndarray
+        (k,) the centres.
+    """
     return kmeans(np.asarray(x, float)[:, None], k, rng, iterations)[:, 0]
 
 
 def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 10) -> np.ndarray:
     """k centres (k, d) of samples x (n, d): k-means++ seeding (Arthur and Vassilvitskii), then ``iterations``
-    Lloyd steps; an emptied cluster keeps its centre. Each step's memory is (n, k, d)."""
+    Lloyd steps; an emptied cluster keeps its centre. Each step's memory is (n, k, d).
+
+    Parameters
+    ----------
+    x : np.ndarray
+        (n, d) the samples.
+    k : int
+        The number of centres.
+    rng : np.random.Generator
+        The k-means++ draws.
+    iterations : int
+        Lloyd steps.
+
+    Returns
+    -------
+    np.ndarray
+        (k, d) the centres.
+    """
     centres = np.empty((k, x.shape[1]))
     for i in range(k):
         if i == 0:
@@ -179,7 +239,20 @@ def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 10
 
 
 def rbf_design(x: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Gaussian unit outputs (eq. 5) for inputs x (n,), centres c (l,), widths s (l,): (n, l)."""
+    """Gaussian unit outputs (eq. 5).
+
+    Parameters
+    ----------
+    x : np.ndarray
+        (n,) the inputs.
+    c, s : np.ndarray
+        (l,) the units' centres and widths, in the inputs' unit.
+
+    Returns
+    -------
+    np.ndarray
+        (n, l) the outputs.
+    """
     return np.exp(-0.5 * ((np.asarray(x, float)[:, None] - c) / s) ** 2)
 
 
@@ -193,7 +266,18 @@ class Rbfn:
         self.mean, self.std = 0.0, 1.0
 
     def fit(self, x: np.ndarray, y: np.ndarray) -> "Rbfn":
-        """Train on samples x (n,), y (n,): normalise x, k-means centres, widths, least-squares weights."""
+        """Train: normalise x, k-means centres, widths, least-squares weights.
+
+        Parameters
+        ----------
+        x, y : np.ndarray
+            (n,) the inputs and targets.
+
+        Returns
+        -------
+        Rbfn
+            self, trained.
+        """
         x, y = np.asarray(x, float), np.asarray(y, float)
         self.mean, self.std = _normaliser(x)
         xn = (x - self.mean) / self.std
@@ -213,12 +297,36 @@ class Rbfn:
         return self.mean + self.std * self.c
 
     def predict(self, x: np.ndarray) -> np.ndarray:
-        """Outputs (n,) for inputs x (n,) (eq. 6)."""
+        """The network's outputs (eq. 6).
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (n,) the inputs.
+
+        Returns
+        -------
+        np.ndarray
+            (n,) the outputs.
+        """
         return rbf_design((np.asarray(x, float) - self.mean) / self.std, self.c, self.s) @ self.w
 
 
 def delay_rows(x: np.ndarray, taps: int) -> np.ndarray:
-    """Tapped-delay rows (n, taps) of a series x (n,): row n = [x_n, x_{n-1}, ...], padded with x_0."""
+    """Tapped-delay rows of a series: row n = [x_n, x_{n-1}, ...], padded with x_0.
+
+    Parameters
+    ----------
+    x : np.ndarray
+        (n,) the series.
+    taps : int
+        The delay line's length.
+
+    Returns
+    -------
+    np.ndarray
+        (n, taps) the rows.
+    """
     x = np.asarray(x, float)
     padded = np.concatenate([np.full(taps - 1, x[0]), x])
     return sliding_window_view(padded, taps)[:, ::-1]
@@ -233,7 +341,20 @@ class Tdln:
         self.mean, self.std = 0.0, 1.0
 
     def fit(self, x: np.ndarray, y: np.ndarray) -> "Tdln":
-        """x (n,) the input series, one sample per step; y (n,) targets, NaN where there is none."""
+        """Train on a series.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (n,) the input series, one sample per step.
+        y : np.ndarray
+            (n,) the targets, NaN where there is none.
+
+        Returns
+        -------
+        Tdln
+            self, trained.
+        """
         x, y = np.asarray(x, float), np.asarray(y, float)
         ok = np.isfinite(y)
         self.mean, self.std = _normaliser(x[ok])
@@ -252,7 +373,18 @@ class Tdln:
         return float(self.w[0] - h.sum() * self.mean), h
 
     def predict(self, x: np.ndarray) -> np.ndarray:
-        """Outputs (n,) along a series x (n,) (the delay line starts at x_0)."""
+        """The outputs along a series (the delay line starts at x_0).
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (n,) the series.
+
+        Returns
+        -------
+        np.ndarray
+            (n,) the outputs.
+        """
         return self._rows(np.asarray(x, float)) @ self.w
 
 
@@ -299,7 +431,18 @@ class OnlineChannel:
         self.since = 0
 
     def features(self, x: np.ndarray) -> np.ndarray:
-        """Feature rows (n, l) for inputs: RBFN the current inputs x (n,); TDLN a series x (n,), one row per step."""
+        """The feature rows.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (n,) RBFN: the current inputs; TDLN: a series, one row per step.
+
+        Returns
+        -------
+        np.ndarray
+            (n, l) the rows.
+        """
         xn = (np.asarray(x, float) - self.mean) / self.std
         if self.kind == RBF:
             return rbf_design(xn, self.c, self.s)
@@ -307,7 +450,15 @@ class OnlineChannel:
         return np.hstack([np.ones((len(d), 1)), d])
 
     def refresh(self, U: np.ndarray, Y: np.ndarray) -> None:
-        """New centres and normaliser from the window's inputs U (n,) and targets Y (n,) (NaN: none); RLS rerun."""
+        """New centres and normaliser from the window; the RLS rerun over it.
+
+        Parameters
+        ----------
+        U : np.ndarray
+            (n,) the window's inputs.
+        Y : np.ndarray
+            (n,) its targets (NaN: none).
+        """
         ok = np.isfinite(Y)
         self.mean, self.std = _normaliser(U[ok])
         if self.kind == RBF:
@@ -327,8 +478,19 @@ class OnlineChannel:
         self.since = 0
 
     def stale(self, x: float) -> bool:
-        """RBFN: an input beyond the outer centres by more than their width (the vehicle left the trained
-        region), so the centres are due now."""
+        """Whether the centres are due now.
+
+        Parameters
+        ----------
+        x : float
+            The current input.
+
+        Returns
+        -------
+        bool
+            RBFN: the input is beyond the outer centres by more than their width (the vehicle left the
+            trained region); TDLN: False.
+        """
         if self.kind != RBF:
             return False
         xn = (x - self.mean) / self.std
@@ -341,6 +503,18 @@ class OnlineChannel:
         self.since += 1
 
     def predict(self, U: np.ndarray) -> float:
+        """The channel's output.
+
+        Parameters
+        ----------
+        U : np.ndarray
+            The input series (the last one is current).
+
+        Returns
+        -------
+        float
+            The output, in the target's unit.
+        """
         phi = self.features(U[-1:] if self.kind == RBF else U[-self.cfg.taps:])[-1]
         return float(phi @ self.rls.w)
 
@@ -359,6 +533,13 @@ class History:
         return self._end - self._start
 
     def append(self, row: np.ndarray) -> None:
+        """Append a row, dropping the oldest beyond ``cap``.
+
+        Parameters
+        ----------
+        row : np.ndarray
+            (width,) the row.
+        """
         if self._end == len(self._buf):
             n = len(self)
             self._buf[:n] = self._buf[self._start:self._end]
@@ -403,7 +584,17 @@ class OutagePredictor:
                        if self.cfg.training == "online" else None)
 
     def train(self, t_s: float, u: np.ndarray, y: np.ndarray) -> None:
-        """A usable epoch at t_s (s): input u (6,), target y (6,) (NaN for a component not observed)."""
+        """Train on a usable epoch.
+
+        Parameters
+        ----------
+        t_s : float
+            The epoch, s.
+        u : np.ndarray
+            (6,) the input.
+        y : np.ndarray
+            (6,) the target (NaN for a component not observed).
+        """
         if self._in_outage:
             self._settle_until = t_s + self.cfg.settle_s
             self._in_outage = False
@@ -431,7 +622,18 @@ class OutagePredictor:
                 ch.step(U[:, i], Y[-1, i])
 
     def predict(self, u: np.ndarray) -> np.ndarray:
-        """An outage epoch with input u (6,): the predicted target (6,), NaN for a channel without a model."""
+        """The prediction at an outage epoch.
+
+        Parameters
+        ----------
+        u : np.ndarray
+            (6,) the input.
+
+        Returns
+        -------
+        np.ndarray
+            (6,) the predicted target, NaN for a channel without a model.
+        """
         self._in_outage = True
         self._push(u, np.full(N_CHANNELS, np.nan))
         out = np.full(N_CHANNELS, np.nan)
@@ -499,13 +701,32 @@ class SpeedNetwork:
         return self.rls is not None
 
     def features(self, x: np.ndarray) -> np.ndarray:
-        """Feature rows (n, 1 + d + l) for inputs x (n, d)."""
+        """The feature rows: bias, normalised inputs, Gaussian units.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (n, d) or (d,) the inputs.
+
+        Returns
+        -------
+        np.ndarray
+            (n, 1 + d + l) the rows.
+        """
         xn = (np.atleast_2d(x) - self.mean) / self.std
         d2 = ((xn[:, None, :] - self.c[None, :, :]) ** 2).sum(axis=2)
         return np.hstack([np.ones((len(xn), 1)), xn, np.exp(-0.5 * d2 / self.s ** 2)])
 
     def train(self, x: np.ndarray, y: float) -> None:
-        """One epoch: input x (d,), target y; an RLS step, or a refresh when due."""
+        """One epoch: an RLS step, or a refresh when due.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (d,) the input.
+        y : float
+            The target.
+        """
         if not (np.isfinite(x).all() and math.isfinite(y)):
             return
         self._x.append(x)
@@ -549,7 +770,18 @@ class SpeedNetwork:
         return out
 
     def predict(self, x: np.ndarray) -> float:
-        """The output for input x (d,), clipped to the trained targets' range; NaN before the first fit."""
+        """The output, clipped to the trained targets' range.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (d,) the input.
+
+        Returns
+        -------
+        float
+            The output, in the target's unit; NaN before the first fit.
+        """
         if self.rls is None or not np.isfinite(x).all():
             return math.nan
         return float(np.clip(self.features(x)[0] @ self.rls.w, self.lo, self.hi))

@@ -21,6 +21,7 @@ DBC there, and with ``--score`` prints the figures of docs/results.md, "Real dri
 """
 from __future__ import annotations
 
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -205,9 +206,72 @@ SWITCHES = {"defaults": "", "nhc = false": "nhc = false\n", "odometer = false": 
             "aids off": "nhc = false\nodometer = false\n"}
 
 
+def virtual_odometer_held_out(seg: dict[str, np.ndarray]) -> dict:
+    """The virtual odometer (``fusion.pseudo``) on the segment, scored held out against the CAN wheel speeds.
+
+    Trained at each u-blox fix on the receiver's speed (the car drives forward) from the phone's IMU (FRD taken to
+    RFU) and the reference's attitude (the INS's pitch input), as the engine trains it while GNSS is good; copies
+    frozen every ``pseudo.SNAPSHOT_S`` predict each later fix ``pseudo.HORIZON_S`` (30-60 s) after their freeze,
+    before any training on it, against the rear wheels' mean speed (m/s). Zero-skill baselines on the same pairs:
+    the receiver's speed at the freeze, held; the mean trained speed. ``pseudo.HeldOut`` scores the same copies
+    against the receiver's speed, as the engine does, and says whether the engine would use the prediction.
+
+    Returns
+    -------
+    dict
+        ``rms``: RMS error (m/s) against the CAN speed of the candidate in use at each fix (``model``), of each
+        candidate (``line``, ``network``) and of the baselines (``hold``, ``mean``); ``pairs`` scored; ``on``, ``skill``,
+        ``sigma_mps``, ``candidate``: the engine's switch, its held-out skill and sigma and the candidate it uses.
+    """
+    from fieldlog.fusion import pseudo
+    from fieldlog.fusion.ins import NavState
+    from fieldlog.fusion.predictors import PredictorConfig
+
+    C = earth.C_rfu_from("frd")
+    w_b, f_b = seg["imu_gyro"] @ C.T, seg["imu_accel"] @ C.T
+    t_imu, t_fix, v_fix = seg["imu_t"], seg["gnss_t"], seg["gnss_value"][:, 2]
+    dt = float(np.median(np.diff(t_imu)))
+    ref = reference(seg)
+    v_can = np.interp(t_fix, seg["wheel_speed_t"], seg["wheel_speed"][:, 2:].mean(axis=1))
+    cfg = PredictorConfig()
+    model, window, held = pseudo.new_network(cfg), pseudo.ImuWindow(), pseudo.HeldOut(cfg.window)
+    copies: list[tuple[float, object, float, float]] = []  # (freeze time s, copy, speed then, mean trained speed)
+    e: dict[str, list[float]] = {"model": [], "line": [], "network": [], "hold": [], "mean": []}
+    trained: list[float] = []
+    i_prev = int(np.searchsorted(t_imu, t_fix[0], side="right")) - 1
+    for t, v, v_true in zip(t_fix[1:], v_fix[1:], v_can[1:]):
+        i = int(np.searchsorted(t_imu, t, side="right")) - 1
+        if i <= i_prev:
+            continue
+        window.add(w_b, f_b, i_prev, i, dt)
+        k = min(int(np.searchsorted(seg["pose_times"], t)), len(seg["pose_times"]) - 1)
+        nav = NavState(float(t), 0.0, 0.0, 0.0, ref["v_n"][k], earth.dcm_to_quat(ref["C_fn"][k] @ C.T))
+        x = window.features(nav, dt)
+        if x is not None:
+            held.score(float(t), x, float(v), w_b[i_prev + 1:i + 1].mean(axis=0), f_b[i_prev + 1:i + 1].mean(axis=0),
+                       (i - i_prev) * dt)
+            for t0, copy, v0, m0 in copies:
+                if pseudo.HORIZON_S[0] <= t - t0 <= pseudo.HORIZON_S[1]:
+                    line, net = copy.predict_each(x)
+                    for name, p in (("model", (line, net)[held.best]), ("line", line), ("network", net), ("hold", v0),
+                                    ("mean", m0)):
+                        e[name].append(v_true - p)
+            model.train(x, float(v))
+            trained.append(float(v))
+            held.freeze(float(t), model, nav, float(v), np.zeros(3), np.zeros(3))
+            if model.ready and (not copies or t - copies[-1][0] >= pseudo.SNAPSHOT_S):
+                copies.append((float(t), model.frozen(), float(v), float(np.mean(trained))))
+        i_prev = i
+    rms = {k: float(np.sqrt(np.nanmean(np.square(v)))) for k, v in e.items()}
+    on = held.scored >= pseudo.MIN_SCORED and held.skill > 0.0
+    return dict(rms=rms, pairs=len(e["model"]), on=on, skill=held.skill, sigma_mps=math.sqrt(held.R),
+                candidate=pseudo.SpeedModel.CANDIDATES[held.best])
+
+
 def score(seg: dict[str, np.ndarray], drive: Path) -> None:
     """Print docs/results.md's "Real drives" table: kf with each aid switch and free INS, GNSS withheld in
-    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m)."""
+    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m); then the
+    virtual odometer's held-out errors (:func:`virtual_odometer_held_out`)."""
     import contextlib
     import io
     import json
@@ -239,6 +303,11 @@ def score(seg: dict[str, np.ndarray], drive: Path) -> None:
     fix = seg["gnss_value"]
     e_fix = horizontal_error_m(ref, (fix[:, 3] * 1e6).astype(np.int64), fix[:, 0], fix[:, 1])
     print(f"fixes: median {np.nanmedian(e_fix):.2f} m")
+    vo = virtual_odometer_held_out(seg)
+    print("virtual odometer, held out 30-60 s against the CAN rear wheels, RMS m/s: "
+          + ", ".join(f"{k} {v:.2f}" for k, v in vo["rms"].items())
+          + f"; {vo['pairs']} pairs, uses the {vo['candidate']}, sigma {vo['sigma_mps']:.2f} m/s, "
+          f"skill against the IMU {vo['skill']:.2f}, {'on' if vo['on'] else 'off'}")
 
 
 if __name__ == "__main__":

@@ -65,6 +65,30 @@ def test_peak_frequency_finds_a_line_between_the_bins(seed):
         assert abs(pseudo.peak_frequency(freq, power) - f0) < 0.15, f0
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_line_odometer_follows_the_wheel_line_beyond_the_trained_speeds(seed):
+    """Trained at 8-10 m/s on features whose line is speed / (2 pi r) plus scatter (and a few wrong picks), it
+    predicts 12-14 m/s from the line within a few tenths of a m/s, where a network clipped to its trained
+    targets could not go above 10."""
+    rng = np.random.default_rng(seed)
+    r = 0.31
+
+    def features(v: float) -> np.ndarray:
+        x = rng.normal(0.0, 0.05, pseudo.N_FEATURES)
+        x[-1] = v / (2 * math.pi * r) * (1 + 0.01 * rng.standard_normal())
+        if rng.uniform() < 0.05:
+            x[-1] *= 0.5
+        return x
+
+    model = pseudo.new_network(PredictorConfig())
+    for v in rng.uniform(8.0, 10.0, 200):
+        model.train(features(v), float(v))
+    assert model.ready and model.k == pytest.approx(2 * math.pi * r, rel=0.01)
+    frozen = model.frozen()
+    err = [frozen.predict(features(v)) - v for v in np.linspace(12.0, 14.0, 20)]
+    assert np.median(np.abs(err)) < 0.3, err
+
+
 def test_reckoner_holds_the_speed_of_a_level_car_and_drifts_with_a_gyro_bias():
     """Standing level with the specific force of gravity, the dead reckoning holds its start speed; with an
     uncorrected pitch-rate bias eps it drifts as g eps t^2 / 2 (the INS's along-track error)."""
@@ -100,44 +124,65 @@ def test_verdict_names_drives_windows_and_the_drift_ratio_of_the_virtual_odomete
     assert "not resolved against dkf" in one[2] and "%" not in one[2] and "(1 drive, 2 windows)" in one[2]
 
 
-SEEDS = (1, 2, 3)
+SEEDS = (1, 2, 3, 4)
 DRIVE_S = 250.0  # 60 s parked, then laps; one 60 s outage after the network has trained and been scored
 OUTAGE = (180.0, 60.0)
 
 
 @pytest.mark.slow
-def test_virtual_odometer_beats_dkf_in_gps_only_outages_over_seeds(simulated, tmp_path, capsys):
-    """figure8-varied-real (laps whose speed varies, a car whose vibration carries it), GPS only as the paper's
-    set-up, one 60 s outage per drive: the virtual odometer runs (positive held-out skill, reported by
-    ``fuse --json``) and its 2D RMS in the outage is below dkf's on every drive, the paired t test of the log
-    ratios resolving it, and the mean at most 0.7 of dkf's (the full study: docs/studies/pseudo)."""
+@pytest.mark.parametrize("setup", ["gps-only", "car-aids"])
+def test_virtual_odometer_beats_dkf_in_outages_over_seeds(simulated, tmp_path, capsys, setup):
+    """figure8-varied-real (laps whose speed varies, a car whose vibration carries it), one 60 s outage per drive,
+    the issue's targets as relations over seeds: with GPS only (the paper's set-up) the 2D RMS in the outage is
+    below dkf's on every drive, the paired t test of the log ratios resolving it, and the mean at most 0.7 of
+    dkf's; with the car's aids (NHC and ZUPT, no wheel odometer) the drift over the outage (the error less its
+    value at the start) likewise, at most 0.8 of dkf's. The virtual odometer runs (positive held-out skill,
+    reported by ``fuse --json``; the full study: docs/studies/pseudo)."""
     from fieldlog.tools.cli import main
-    from fieldlog.tools.evaluation.evaluate import fix_quality, outage_error_series, paired
+    from fieldlog.tools.evaluation.evaluate import drift_2d, fix_quality, outage_error_series, paired
     from fieldlog.tools.fuse import drive_config, fuse
 
-    d2 = {"dkf": [], "pseudo": []}
+    aids = dict(nhc=False, zupt=False) if setup == "gps-only" else {}
+    target = 0.7 if setup == "gps-only" else 0.8
+    err = {"dkf": [], "pseudo": []}
     for seed in SEEDS:
         drive = simulated("figure8-varied-real", DRIVE_S, seed)
-        cfg = drive_config(drive).replace(nhc=False, zupt=False, odometer=False, outages=(OUTAGE,))
+        cfg = drive_config(drive).replace(odometer=False, outages=(OUTAGE,), **aids)
         _, _, t0 = fix_quality(drive, cfg.gps.max_fix_sigma_m)
         win = [(t0 + int(OUTAGE[0] * 1e9), t0 + int(sum(OUTAGE) * 1e9))]
         for name, method, c in (("dkf", "dkf", cfg), ("pseudo", "dkf-rbfn", cfg.replace(predictor_mode="pseudo"))):
             res = fuse(drive, method, tmp_path / f"{seed}_{name}.mcap", c, keep=True)
-            _, e = outage_error_series(drive, res.solution, method, win)
-            d2[name].append(float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))))
+            t, e = outage_error_series(drive, res.solution, method, win)
+            err[name].append(float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))) if setup == "gps-only"
+                             else drift_2d(t, e, win))
         vo = res.virtual_odometer
         assert vo["ran"] and vo["held_out_skill"] > 0 and vo["epochs_used"] >= 50, vo
-    dkf, ours = np.array(d2["dkf"]), np.array(d2["pseudo"])
+    dkf, ours = np.array(err["dkf"]), np.array(err["pseudo"])
     pt = paired(np.log(ours / dkf))  # dkf's error spreads over drives with its gyro biases: compare ratios
-    assert (ours < dkf).all() and pt.resolved and pt.mean < 0, (d2, pt)
-    assert ours.mean() <= 0.7 * dkf.mean(), d2
+    assert (ours < dkf).all() and pt.resolved and pt.mean < 0, (err, pt)
+    assert ours.mean() <= target * dkf.mean(), err
     # fuse --json reports the held-out skill and whether it ran
     cfg_file = tmp_path / "pseudo.toml"
-    cfg_file.write_text('[fusion]\npredictor_mode = "pseudo"\nnhc = false\nzupt = false\nodometer = false\n')
+    cfg_file.write_text('[fusion]\npredictor_mode = "pseudo"\nodometer = false\n'
+                        + "".join(f"{k} = false\n" for k in aids))
     capsys.readouterr()
     assert main(["fuse", str(simulated("figure8-varied-real", DRIVE_S, SEEDS[0])), "--method", "dkf-rbfn",
                  "--config", str(cfg_file), "--outage", f"{OUTAGE[0]:g}:{OUTAGE[1]:g}", "--json",
                  "--out", str(tmp_path / "cli.mcap")]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["predictor_mode"] == "pseudo" and summary["virtual_odometer"]["ran"] is True
-    assert summary["virtual_odometer"]["held_out_skill"] > 0
+    assert summary["virtual_odometer"]["held_out_skill"] > 0 and summary["virtual_odometer"]["model"] == "wheel line"
+
+
+def test_on_a_real_car_the_switch_agrees_with_the_can_wheel_speeds_held_out():
+    """comma2k19's minute (a phone in a RAV4 on a highway, tests/data/comma2k19): trained on the receiver's speed
+    and scored 30-60 s after each freeze against the CAN rear wheels' speed. A phone's vibration has no wheel line
+    to follow: the held-out residuals choose the network over the line (which errs by tens of m/s), and the
+    engine's switch (the held-out skill against the IMU's dead reckoning) is on exactly when the chosen model's
+    RMS error against the CAN speed is below the zero-skill baseline's (the speed at the freeze, held)."""
+    from comma2k19 import load, virtual_odometer_held_out
+
+    res = virtual_odometer_held_out(load())
+    rms = res["rms"]
+    assert res["pairs"] >= 100 and res["candidate"] == "network" and rms["line"] > rms["network"], res
+    assert res["on"] == (rms["model"] < rms["hold"]), res

@@ -106,7 +106,8 @@ def run(a: argparse.Namespace) -> int:
         if res.virtual_odometer:
             v = res.virtual_odometer
             skill = "none yet" if v["held_out_skill"] is None else f"{v['held_out_skill']:.2f}"
-            log.info(f"virtual odometer: held-out skill {skill} over 30-60 s (against the IMU's dead reckoning), "
+            log.info(f"virtual odometer ({v['model']}): held-out skill {skill} over 30-60 s (against the IMU's dead "
+                     "reckoning), "
                      f"{'used at ' + str(v['epochs_used']) + ' outage epochs' if v['ran'] else 'did not run'}")
         if res.still_ns:
             log.info(f"stationary updates: {len(res.still_ns)}, of which {len(res.zaru_skipped_ns)} without the "
