@@ -570,7 +570,7 @@ class Pipeline:
                 t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))
 
     def _emit_sync(self) -> None:
-        implausible = self.sync.implausible_edges
+        implausible = self.sync.labeller.implausible_edges
         if implausible and not self.counters.pps_implausible:
             log.warning("the PPS is implausible: more than %d flags within %g s of DAQ samples (a floating or "
                         "miswired PPS line?); such flags are ignored and counted (acquire.counters pps_implausible)",
