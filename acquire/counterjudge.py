@@ -18,8 +18,8 @@ throws the time sync's fit away, so the counter is checked before anyone sees k 
     or dropped when no free slot follows from the bytes;
   - the next two frames continue this frame's counter: the counter really stepped. A forward step within what
     the host clock allows (frames lost when bytes were: ``host_time_scale * fs`` per host second since the
-    reference's read, plus ``slack_s`` of frames, or ``max_gap_s`` without host times) is a gap; anything else
-    (a board reset, a counter register that jumped) is counted as implausible and the new counter is *re-based*
+    reference's read plus ``slack_s`` of host read latency, or ``max_gap_s`` without host times) is a gap; anything
+    else (a board reset, a counter register that jumped) is counted as implausible and the new counter is *re-based*
     onto k at the slot its byte distance gives, so k never goes back and never jumps by more than time allows;
   - neither: the frame is dropped and counted.
   A frame *continues* another when its counter steps forward by no more than the bytes between them explain or
@@ -59,11 +59,13 @@ REPEAT_HISTORY = 4096            # frames taken that a frame stepping back is co
 
 @dataclass
 class JudgeConfig:
-    """How far a counter may step without byte evidence. Seconds of data."""
+    """How far a counter may step without byte evidence. Seconds of data, except ``slack_s``: host seconds."""
 
     fs_hz: float = 500.0
     host_time_scale: float = 1.0    # data seconds per host second (simulator playback only; see TimeSyncConfig)
-    slack_s: float = 1.0            # allowed on top of the host time since the reference's read (read latency)
+    # host read latency allowed on top of the host time since the reference's read, scaled by host_time_scale
+    # with it: a read late on the host holds host_time_scale times as much data in simulator playback
+    slack_s: float = 1.0
     max_gap_s: float = 60.0         # the largest step believed when the reads carry no host time (imports)
 
 
@@ -328,8 +330,8 @@ class CounterJudge:
         by_bytes = -(-(s_to - s_from) // FRAME_SIZE)
         if mono_ns is None or ref is None or ref.mono_ns is None:
             return max(by_bytes, cfg.max_gap_s * cfg.fs_hz)
-        host_s = max(0, mono_ns - ref.mono_ns) / 1e9 * cfg.host_time_scale
-        return max(by_bytes, math.ceil((host_s * 1.001 + cfg.slack_s) * cfg.fs_hz))
+        host_s = max(0, mono_ns - ref.mono_ns) / 1e9
+        return max(by_bytes, math.ceil((host_s * 1.001 + cfg.slack_s) * cfg.host_time_scale * cfg.fs_hz))
 
     def _corroborated(self, c: int, s: int, nxt: list[tuple[int, int]], mono_ns: int | None) -> bool:
         """The next frames ``nxt`` ((counter, stream offset), up to two) each continue the one before them,

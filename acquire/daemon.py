@@ -560,61 +560,49 @@ class ProvisionalImu:
         cm = timesync.forward_clamp(t - k, self._pmax)
         self._pmax = int(cm[-1])
         t = cm + k
-        self.bus.publish("/imu", t, self.pipe.imu_messages(t, counts), state=state, read_mono_ns=self._mono,
+        self.bus.publish("/imu", t, self.pipe.output.imu_messages(t, counts), state=state, read_mono_ns=self._mono,
                          flags=BUS_PROVISIONAL | (0 if fitted else BUS_HOST_CLOCK))
 
 
-def is_finished(path: Path) -> bool:
-    """A closed MCAP ends with the magic after its footer; a file cut by a crash does not."""
-    size = path.stat().st_size
-    if size < 2 * len(recorder.MAGIC):
-        return False
-    with open(path, "rb") as f:
-        f.seek(-len(recorder.MAGIC), os.SEEK_END)
-        return f.read() == recorder.MAGIC
+# a closed MCAP ends with its footer and the magic; a file cut by a crash does not
+is_finished = recovery.has_footer
 
 
 def recover_unfinished(out_dir: Path, log: Callable[[str], None]) -> list[tuple[Path, Path]]:
     """Recover every unfinished ``*.mcap`` in ``out_dir`` and its session directories (no summary) into
-    ``NAME.recovered.mcap`` next to it, once (``recovery.recover_drive``: the complete chunks and the re-derived
-    tail); the original is left as it is (a symbolic link is skipped), and a session's ``metadata.yaml`` is written
-    again. A recovery that fails (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next
-    start tries again; so is one the free space cannot take with room to record left (``RECOVER_SPACE_FACTOR``
-    times the file, plus ``RECOVER_RESERVE_BYTES``), so that the recovery after a full disk does not fill it
-    again. Returns (original, recovered) pairs."""
-    done = []
-    for p in sorted([*out_dir.glob("*.mcap"), *out_dir.glob("*/*.mcap")]):
-        if p.name.endswith(".recovered.mcap") or p.is_symlink() or p.parent.is_symlink() or is_finished(p):
-            continue
-        dst, state = recovery.recovered_state(p)
-        if state in ("link", "stale"):
-            what = ("is a symbolic link (never followed)" if state == "link"
-                    else "exists but does not stand in for it (older, or cut short)")
-            log(f"not recovering unfinished {p.name}: {dst} {what}; remove it, or run "
-                f"`fieldlog recover {p} --out FILE`")
-            continue
-        if state == "done":
-            continue
+    ``NAME.recovered.mcap`` next to it, once, by the folder policy ``recovery.recover_folder`` (the complete chunks
+    and the re-derived tail: ``recovery.recover_drive``); the original is left as it is (a symbolic link, or a file
+    in a linked directory, is skipped), and a session's ``metadata.yaml`` is written again. A recovery that fails
+    (a full disk, not an MCAP file) is logged and leaves nothing behind, so the next start tries again; so is one
+    the free space cannot take with room to record left (``RECOVER_SPACE_FACTOR`` times the file, plus
+    ``RECOVER_RESERVE_BYTES``), so that the recovery after a full disk does not fill it again. Returns (original,
+    recovered) pairs."""
+
+    def recover_file(p: Path, dst: Path) -> bool:
         need, free = RECOVER_SPACE_FACTOR * p.stat().st_size + RECOVER_RESERVE_BYTES, shutil.disk_usage(out_dir).free
         if free < need:
             log(f"not recovering unfinished {p.name} now: that may take {need >> 20} MB with room left to record, "
                 f"{free >> 20} MB are free (the next start tries again, or run `fieldlog recover {p} --out FILE` "
                 f"elsewhere)")
-            continue
+            return False
         try:
             rep = recovery.recover_drive(p, dst)
         except (OSError, ValueError) as e:
             log(f"could not recover unfinished {p.name}: {getattr(e, 'strerror', None) or e}; it is left as it is "
                 f"(the next start tries again, or run `fieldlog recover {p}`)")
-            continue
+            return False
         n = sum(rep.messages.values())
         tail = sum(rep.rederived.values())
         log(f"recovered unfinished {p.name} -> {dst.name}: {n} messages in {rep.chunks} chunks, "
             f"{rep.bytes_discarded} bytes after the last complete chunk discarded, {tail} tail messages "
             f"re-derived from the raw reads")
-        done.append((p, dst))
-        if p.parent != out_dir:              # a session directory
-            bagdir.rewrite_metadata(p.parent)
+        return True
+
+    files = [p for p in sorted([*out_dir.glob("*.mcap"), *out_dir.glob("*/*.mcap")])
+             if not (p.name.endswith(bagdir.RECOVERED) or p.is_symlink() or p.parent.is_symlink())]
+    done, _ = recovery.recover_folder(files, recover_file, lambda msg, _level: log(msg))
+    for session in dict.fromkeys(p.parent for p, _ in done if p.parent != out_dir):
+        bagdir.rewrite_metadata(session)
     return done
 
 
@@ -631,6 +619,66 @@ def make_session_dir(out_dir: Path, session_wall_ns: int, log: Callable[[str, in
             if d.is_symlink():
                 log(f"{d} is a symbolic link (never followed): the session goes to the next name", logging.WARNING)
     raise FileExistsError(f"{out_dir}: no free session directory name for {name}")
+
+
+class StatusLine:
+    """The daemon's status line (a terminal's, or a log line per tick): rates between two lines.
+
+    Parameters
+    ----------
+    daemon : Daemon
+        Whose ports, pipeline counters, file and derived path the line shows.
+    """
+
+    def __init__(self, daemon: "Daemon") -> None:
+        self._d = daemon
+        self._status_prev: tuple[float, int, int, int, int] | None = None
+        self._can_prev: int | None = None
+
+    def line(self, size: int) -> str:
+        """The status line now, the current file being ``size`` bytes: rates since the last line, the sync and
+        fix state, the file and the loss counters."""
+        d = self._d
+        c = d.pipe.counters
+        now = time.monotonic()
+        frames, lines = c.daq.frames, c.nmea.lines
+        db, gb = d.readers["daq"].stats.bytes, d.readers["gps"].stats.bytes
+        prev = self._status_prev or (now - 1.0, frames, lines, db, gb)
+        dt = max(now - prev[0], 1e-3)
+        self._status_prev = (now, frames, lines, db, gb)
+        sync = "FREE"
+        if d.sink.last_sync is not None:
+            s = messages.decode_time_sync([d.sink.last_sync])
+            sync = (f"{['FREE', 'HOLDOVER', 'LOCKED'][int(s['state'][0])]} {s['rate_ppm'][0]:+.2f} ppm "
+                    f"{s['residual_us'][0]:.0f} us")
+        fix = "no GGA"
+        if d.sink.last_gga is not None:
+            text = messages.decode_message("nmea_msgs/msg/Sentence", d.sink.last_gga).sentence
+            body, ok = nmea.split_checksum(text.encode())
+            g = nmea.decode_body(body) if ok else None
+            if isinstance(g, nmea.Gga):
+                fix = f"fix {g.quality} sats {g.num_sats}"
+
+        def port(name: str) -> str:
+            return "" if d.readers[name].stats.connected else " DOWN"
+
+        dq, n = c.daq, c.nmea
+        drop = sum(r.stats.dropped_reads for r in d.readers.values())
+        lag = d.derived_lag_s()
+        derived = (f"derived {lag:.1f} s behind, {d.derived_dropped_reads} reads not processed | "
+                   if lag >= 1.0 or d.derived_dropped_reads else "")
+        bus = ""
+        if "can" in d.readers and d.pipe.vehicle is not None:
+            cs = d.pipe.vehicle.stats
+            prev_can = cs.frames if self._can_prev is None else self._can_prev
+            self._can_prev = cs.frames
+            bus = (f"can {(cs.frames - prev_can) / dt:.0f} fr/s{port('can')} "
+                   f"err {cs.error_frames + cs.status_errors + cs.bad_records} | ")
+        return (f"daq {(frames - prev[1]) / dt:.0f} fr/s {(db - prev[3]) / dt / 1e3:.1f} kB/s{port('daq')} | "
+                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | {bus}{derived}"
+                f"pps {c.pps_edges - c.pps_rejected} ok {c.pps_rejected} rej | sync {sync} | {fix} | "
+                f"{d.sink.rec.path.name} {size / 1e6:.1f} MB | dropped {drop} lost {dq.lost_frames} "
+                f"crc {dq.bad_crc} resync {dq.resyncs} nmea-bad {n.bad_checksum} late {d.late_reads}")
 
 
 class Daemon:
@@ -673,8 +721,7 @@ class Daemon:
         self._dropping = 0                       # reads dropped since the dropping began (0: not dropping)
         self.stop_mono_ns: int | None = None     # host mono of SIGINT/SIGTERM
         self._last_mono = 0
-        self._status_prev: tuple[float, int, int, int, int] | None = None
-        self._can_prev: int | None = None
+        self.status = StatusLine(self)
         self.port_names: tuple[str, ...] = PORTS
 
     def log(self, msg: str, level: int = logging.INFO) -> None:
@@ -923,52 +970,10 @@ class Daemon:
             self.log(f"rotated to {path}")
             size = 0
         if self.tty and not self.quiet:
-            self.err.write("\r\033[K" + self.status_line(size))
+            self.err.write("\r\033[K" + self.status.line(size))
             self.err.flush()
         elif log.isEnabledFor(logging.DEBUG if self.quiet else logging.INFO):   # a log line (journal) per tick
-            log.log(logging.DEBUG if self.quiet else logging.INFO, self.status_line(size))
-
-    def status_line(self, size: int) -> str:
-        c = self.pipe.counters
-        now = time.monotonic()
-        frames, lines = c.daq.frames, c.nmea.lines
-        db, gb = self.readers["daq"].stats.bytes, self.readers["gps"].stats.bytes
-        prev = self._status_prev or (now - 1.0, frames, lines, db, gb)
-        dt = max(now - prev[0], 1e-3)
-        self._status_prev = (now, frames, lines, db, gb)
-        sync = "FREE"
-        if self.sink.last_sync is not None:
-            s = messages.decode_time_sync([self.sink.last_sync])
-            sync = (f"{['FREE', 'HOLDOVER', 'LOCKED'][int(s['state'][0])]} {s['rate_ppm'][0]:+.2f} ppm "
-                    f"{s['residual_us'][0]:.0f} us")
-        fix = "no GGA"
-        if self.sink.last_gga is not None:
-            text = messages.decode_message("nmea_msgs/msg/Sentence", self.sink.last_gga).sentence
-            body, ok = nmea.split_checksum(text.encode())
-            g = nmea.decode_body(body) if ok else None
-            if isinstance(g, nmea.Gga):
-                fix = f"fix {g.quality} sats {g.num_sats}"
-
-        def port(name: str) -> str:
-            return "" if self.readers[name].stats.connected else " DOWN"
-
-        d, n = c.daq, c.nmea
-        drop = sum(r.stats.dropped_reads for r in self.readers.values())
-        lag = self.derived_lag_s()
-        derived = (f"derived {lag:.1f} s behind, {self.derived_dropped_reads} reads not processed | "
-                   if lag >= 1.0 or self.derived_dropped_reads else "")
-        bus = ""
-        if "can" in self.readers and self.pipe.vehicle is not None:
-            cs = self.pipe.vehicle.stats
-            prev_can = cs.frames if self._can_prev is None else self._can_prev
-            self._can_prev = cs.frames
-            bus = (f"can {(cs.frames - prev_can) / dt:.0f} fr/s{port('can')} "
-                   f"err {cs.error_frames + cs.status_errors + cs.bad_records} | ")
-        return (f"daq {(frames - prev[1]) / dt:.0f} fr/s {(db - prev[3]) / dt / 1e3:.1f} kB/s{port('daq')} | "
-                f"gps {(lines - prev[2]) / dt:.0f} ln/s {(gb - prev[4]) / dt:.0f} B/s{port('gps')} | {bus}{derived}"
-                f"pps {c.pps_edges - c.pps_rejected} ok {c.pps_rejected} rej | sync {sync} | {fix} | "
-                f"{self.sink.rec.path.name} {size / 1e6:.1f} MB | dropped {drop} lost {d.lost_frames} "
-                f"crc {d.bad_crc} resync {d.resyncs} nmea-bad {n.bad_checksum} late {self.late_reads}")
+            log.log(logging.DEBUG if self.quiet else logging.INFO, self.status.line(size))
 
     def _close(self, code: int) -> None:
         complete = self.derive_done

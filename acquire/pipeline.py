@@ -69,7 +69,7 @@ class PipelineConfig:
     gps_service: int = 15                           # NavSatFix service mask: GPS|GLONASS|COMPASS|GALILEO
     gps_protocol: str = "auto"                      # [gps] protocol: which frames are decoded (gpsport.ACCEPTS)
     use_hnr: bool = False                           # [gps] use_hnr: u-blox HNR-PVT as the fixes (acquire/ubx.py)
-    receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (see _emit_solution)
+    receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (GpsInput)
     can: canbus.BusConfig | None = None             # the vehicle bus: how /raw/can is decoded (acquire/canbus.py)
 
 
@@ -114,6 +114,27 @@ class _Ahead:
         piece.end_offset = piece.end_offset - s
         return piece, self.base + s
 
+    @classmethod
+    def decode(cls, dec: daq.DaqDecoder, datas: list[bytes]) -> "_Ahead | None":
+        """The frames of these consecutive DAQ reads from one decoder call over their bytes; None (each read
+        then decoded as it is fed) if there are none or that call fails, the decoder put back as it was."""
+        if not datas:
+            return None
+        saved, stats = dict(vars(dec)), asdict(dec.stats)
+        base = dec.stats.bytes_in
+        try:
+            fr = dec.feed(b"".join(datas))
+        except Exception:  # noqa: BLE001 - the reads are then decoded one by one, under feed's guard
+            vars(dec).update(saved)
+            for k, v in stats.items():
+                setattr(dec.stats, k, v)
+            return None
+        lengths = np.array([len(d) for d in datas], np.int64)
+        ends = np.cumsum(lengths)
+        read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
+        cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
+        return cls(fr, cuts.tolist(), (ends - lengths).tolist(), base)
+
 
 class Pipeline:
     """Feed ``RawRead``-like records; derived messages go to ``sink.write_batch``."""
@@ -129,28 +150,13 @@ class Pipeline:
         self._judge = counterjudge.CounterJudge(self._daq.stats, counterjudge.JudgeConfig(
             fs_hz=self.fs, host_time_scale=self.sync.cfg.host_time_scale))
         self._last_daq_read = (0, 0)      # (mono_ns, wall_ns) of the last DAQ read
-        self._nmea = nmea.NmeaDecoder()
-        self._port = gpsport.Framer()
-        self._ubx = ubx.UbxDecoder(self.cfg.use_hnr)
-        self._oem = novatel.NovatelDecoder()
-        self._sbf = sbf.SbfDecoder()
-        self._accepts = gpsport.ACCEPTS[self.cfg.gps_protocol]
-        self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
-        self._epochs = nmea.EpochAssembler()
-        self._gps_prev_read: dict[int, int] = {}   # mono_ns of a recent GPS read -> of the GPS read before it
-        self._gps_last_read = 0
-        self._pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
-        self._last_fix_key: tuple | None = None
-        self._last_fix_ns = 0                # UTC ns of the latest /gps/fix written
-        self._date: _dt.date | None = None
-        self._last_tod = -1.0
         self._last_emit_ns = -(2**62)
         self._errors_logged: set[tuple[str, str]] = set()
         self._stuck_logged = False       # the stuck DAQ counter has been logged (until it advances again)
-        bw = self.fs / 2
-        self._gyro_cov = np.diag([self.cfg.gyro_noise_density**2 * bw] * 3).ravel()
-        self._accel_cov = np.diag([self.cfg.accel_noise_density**2 * bw] * 3).ravel()
-        self.counters = Counters(daq=self._daq.stats, nmea=self._nmea.stats)
+        decoder = nmea.NmeaDecoder()
+        self.counters = Counters(daq=self._daq.stats, nmea=decoder.stats)
+        self.gps = GpsInput(self.cfg, self.sync, sink, self.counters, decoder)
+        self.output = StampedOutput(self.cfg, self.cal, self.sync, sink, self.counters)
         # called with (read mono_ns, k, counts) for each read's decoded frames, once time sync has them (the
         # daemon's live bus publishes provisional /imu from it); it must not feed back into the pipeline
         self.on_frames: Callable[[int, np.ndarray, np.ndarray], None] | None = None
@@ -175,7 +181,7 @@ class Pipeline:
         after each block. Returns the number of reads."""
         n, it = 0, iter(reads)
         while block := list(itertools.islice(it, READ_BLOCK)):
-            ahead = self._decode_ahead([r.data for r in block if r.port == "daq"])
+            ahead = _Ahead.decode(self._daq, [r.data for r in block if r.port == "daq"])
             run: list[RawRead] = []       # DAQ reads in a row, recorded, not processed yet
             d = 0                         # the block's DAQ reads so far
             for r in block:
@@ -202,27 +208,6 @@ class Pipeline:
                 progress(n)
         return n
 
-    def _decode_ahead(self, datas: list[bytes]) -> "_Ahead | None":
-        """The frames of these consecutive DAQ reads from one decoder call over their bytes; None (each read
-        then decoded as it is fed) if there are none or that call fails, the decoder put back as it was."""
-        if not datas:
-            return None
-        dec = self._daq
-        saved, stats = dict(vars(dec)), asdict(dec.stats)
-        base = dec.stats.bytes_in
-        try:
-            fr = dec.feed(b"".join(datas))
-        except Exception:  # noqa: BLE001 - the reads are then decoded one by one, under feed's guard
-            vars(dec).update(saved)
-            for k, v in stats.items():
-                setattr(dec.stats, k, v)
-            return None
-        lengths = np.array([len(d) for d in datas], np.int64)
-        ends = np.cumsum(lengths)
-        read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
-        cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
-        return _Ahead(fr, cuts.tolist(), (ends - lengths).tolist(), base)
-
     def feed(self, port: str, mono_ns: int, wall_ns: int, data: bytes,
              decoded: tuple[daq.DaqFrames, int] | None = None) -> None:
         """Record one read in ``/raw/<port>`` and process it (``record``, then ``process``). ``decoded``: a DAQ
@@ -242,7 +227,7 @@ class Pipeline:
             if port == "daq":
                 self._feed_daq(mono_ns, wall_ns, data, decoded)
             elif port == "gps":
-                self._feed_gps(mono_ns, wall_ns, data)
+                self.gps.feed(mono_ns, wall_ns, data)
             elif port == "can" and self.vehicle is not None:
                 self.sync.add_host_time(mono_ns, wall_ns)
                 self.vehicle.feed(data, int(self.sync.mono_to_utc(np.array([mono_ns], np.int64))[0]), self.sink)
@@ -262,8 +247,8 @@ class Pipeline:
         """Derived output collected every ``EMIT_PERIOD_NS`` of reads."""
         if mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
             self._last_emit_ns = mono_ns
-            self._emit_sync()
-            self._emit_imu(final=False)
+            self.output.emit_sync()
+            self.output.emit_imu(final=False)
 
     def _feed_run(self, run: list[RawRead], ahead: "_Ahead", i: int) -> None:
         """Process DAQ reads in a row, recorded already, reads ``i..`` of ``ahead``; only the last can be due
@@ -280,7 +265,7 @@ class Pipeline:
                 self._last_daq_read = (last.mono_ns, last.wall_ns)
                 self.sync.add_run(usual.k, usual.pps, usual.latch, usual.latch_valid, ends,
                                   [r.mono_ns for r in run], [r.wall_ns for r in run])
-                self._pending.append((usual.k, usual.counts))
+                self.output.pending.append((usual.k, usual.counts))
                 self._emit_due(last.mono_ns)
                 return
         except OSError:
@@ -357,23 +342,7 @@ class Pipeline:
                                                     "pps_rejected", "pps_implausible", "nmea_superseded",
                                                     "gps_ignored", "processing_errors")})
         out.update({f"gps_no_fix.{k}": str(v) for k, v in c.no_fix.items()})
-        fs = self._port.stats
-        out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
-        out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
-        decoders = [("ubx", self._ubx.stats), ("novatel", self._oem.stats)]
-        if fs.frames.get("sbf"):
-            decoders.append(("sbf", self._sbf.stats))
-        for name, st in decoders:
-            out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
-            out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
-        ep = self._epochs
-        if ep.split or "GLL" in ep.position_from or ep.gll_ignored:   # which sentence gave the positions
-            out["nmea.split_seconds"] = str(ep.split)
-            out["nmea.gll_ignored"] = str(ep.gll_ignored)
-            out.update({f"nmea.position_from.{k}": str(v) for k, v in ep.position_from.items()})
-        if self._ubx.old_late:
-            out["ubx.late"] = str(self._ubx.old_late)
-        out["nmea.epoch_repeats"] = str(self._epochs.late)
+        self.gps.add_counters(out)
         out.update({f"reads.{k}": str(v) for k, v in c.reads.items()})
         if self.vehicle is not None:
             out.update(self.vehicle.counters())
@@ -387,13 +356,10 @@ class Pipeline:
         mono_ns, wall_ns = self._last_daq_read
         try:
             self._add_frames(self._judge.flush(), mono_ns, wall_ns)
-            for ep in self._epochs.flush():
-                self._emit_epoch(ep)
-            for sol in self._oem.flush() + self._sbf.flush():
-                self._emit_solution(sol)
+            self.gps.flush()
             self.sync.finish()
-            self._emit_sync()
-            self._emit_imu(final=True)
+            self.output.emit_sync()
+            self.output.emit_imu(final=True)
         except OSError:
             raise
         except Exception as e:  # noqa: BLE001 - as in feed
@@ -419,11 +385,132 @@ class Pipeline:
         if len(fr.k) == 0:
             return
         self.sync.add_frames(fr.k, fr.pps, fr.latch, fr.latch_valid, mono_ns, wall_ns)
-        self._pending.append((fr.k, fr.counts))
+        self.output.pending.append((fr.k, fr.counts))
         if self.on_frames is not None:
             self.on_frames(mono_ns, fr.k, fr.counts)
 
-    def _feed_gps(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
+
+class StampedOutput:
+    """The DAQ side's derived topics: ``/pps`` and ``/time/sync`` from time sync, and ``/imu`` of the judged
+    samples (queued in ``pending`` as (k, counts)) once their stamps are final.
+
+    Parameters
+    ----------
+    cfg : PipelineConfig
+        Noise densities for the /imu covariances and the IMU's frame id.
+    cal : calib.Calibration
+        ADC counts -> SI, body RFU.
+    sync : timesync.TimeSync
+        Stamps the samples and decides the edges.
+    sink : Sink
+        Where the messages go.
+    counters : Counters
+        The pipeline's counters (PPS edges, IMU samples).
+    """
+
+    def __init__(self, cfg: PipelineConfig, cal: calib.Calibration, sync: timesync.TimeSync, sink: Sink,
+                 counters: Counters) -> None:
+        self.cfg, self.cal, self.sync, self.sink, self.counters = cfg, cal, sync, sink, counters
+        self.fs = sync.cfg.fs_hz
+        self.pending: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (k, counts) awaiting final stamps
+        bw = self.fs / 2
+        self._gyro_cov = np.diag([cfg.gyro_noise_density**2 * bw] * 3).ravel()
+        self._accel_cov = np.diag([cfg.accel_noise_density**2 * bw] * 3).ravel()
+
+    def emit_sync(self) -> None:
+        """The edges decided and the /time/sync records made final since the last call: /pps, /time/sync."""
+        implausible = self.sync.labeller.implausible_edges
+        if implausible and not self.counters.pps_implausible:
+            log.warning("the PPS is implausible: more than %d flags within %g s of DAQ samples (a floating or "
+                        "miswired PPS line?); such flags are ignored and counted (acquire.counters pps_implausible)",
+                        timesync.PPS_BURST, timesync.PPS_BURST_S)
+        self.counters.pps_implausible = implausible
+        edges = self.sync.pop_edges()
+        if len(edges):
+            self.counters.pps_edges += len(edges)
+            self.counters.pps_rejected += int(np.count_nonzero(~edges.accepted))
+            stamp = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
+            daq_clock_ns = np.round(edges.k_edge / self.fs * NS).astype(np.int64)
+            for reason in dict.fromkeys(edges.reason):
+                sel = edges.reason == reason
+                utc = stamp[sel].astype(np.int64)
+                self.sink.write_batch("/pps", utc, messages.encode_time_reference(
+                    utc, daq_clock_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
+        st = self.sync.pop_status()
+        if len(st):
+            self.sink.write_batch("/time/sync", st.utc_ns, messages.encode_time_sync(
+                st.utc_ns, st.state, st.rate_ppm, st.residual_us, st.edges_used, st.edges_rejected))
+
+    def emit_imu(self, final: bool) -> None:
+        """Stamp, calibrate and write the buffered samples whose time stamps are final."""
+        fin = None if final else self.sync.final_until()
+        ks, cs = [], []
+        while self.pending:
+            k, c = self.pending[0]
+            if fin is None or k[-1] < fin:
+                self.pending.popleft()
+            elif k[0] < fin:
+                n = int(np.searchsorted(k, fin))
+                self.pending[0] = (k[n:], c[n:])
+                k, c = k[:n], c[:n]
+            else:
+                break
+            ks.append(k)
+            cs.append(c)
+        if not ks:
+            return
+        k = np.concatenate(ks)
+        t_ns, _state = self.sync.stamp(k)
+        self.counters.imu_samples += len(k)
+        self.sink.write_batch("/imu", t_ns, self.imu_messages(t_ns, np.concatenate(cs)))
+
+    def imu_messages(self, t_ns: np.ndarray, counts: np.ndarray) -> messages.Packed:
+        """/imu payloads of samples stamped ``t_ns`` (UTC ns) from their ADC ``counts`` (n, 6): calibrated to
+        SI in the body frame, with the configured covariances and frame id."""
+        omega_ib_b, f_b = calib.apply(self.cal, counts)
+        return messages.encode_imu(t_ns, omega_ib_b, f_b, self._gyro_cov, self._accel_cov,
+                                   frame_id=self.cfg.imu_frame_id)
+
+
+class GpsInput:
+    """The pipeline's GPS side: each GPS read in, ``/gps/nmea``, ``/gps/receiver``, ``/gps/fix`` and ``/gps/vel``
+    out, and the fixes (UTC seconds) and pulse errors to time sync.
+
+    Parameters
+    ----------
+    cfg : PipelineConfig
+        Frame ids, the protocol accepted, the accuracies assumed (m, m/s) and the receiver-time tolerance (s).
+    sync : timesync.TimeSync
+        Takes the fixes and maps host times to UTC.
+    sink : Sink
+        Where the messages go.
+    counters : Counters
+        The pipeline's counters (epochs, no-fix reasons, ignored frames).
+    decoder : nmea.NmeaDecoder
+        The NMEA decoder (its statistics are the counters' ``nmea``).
+    """
+
+    def __init__(self, cfg: PipelineConfig, sync: timesync.TimeSync, sink: Sink, counters: Counters,
+                 decoder: nmea.NmeaDecoder) -> None:
+        self.cfg, self.sync, self.sink, self.counters = cfg, sync, sink, counters
+        self._nmea = decoder
+        self._port = gpsport.Framer()
+        self._ubx = ubx.UbxDecoder(cfg.use_hnr)
+        self._oem = novatel.NovatelDecoder()
+        self._sbf = sbf.SbfDecoder()
+        self._accepts = gpsport.ACCEPTS[cfg.gps_protocol]
+        self._binary_solutions = False   # once the receiver sends UBX/NovAtel solutions, NMEA gives no epochs
+        self._epochs = nmea.EpochAssembler()
+        self._gps_prev_read: dict[int, int] = {}   # mono_ns of a recent GPS read -> of the GPS read before it
+        self._gps_last_read = 0
+        self._last_fix_key: int | None = None
+        self._last_fix_ns = 0                # UTC ns of the latest /gps/fix written
+        self._date: _dt.date | None = None
+        self._last_tod = -1.0
+
+    def feed(self, mono_ns: int, wall_ns: int, data: bytes) -> None:
+        """One GPS port read of ``data`` at host ``mono_ns``/``wall_ns`` (ns): its frames decoded, written to
+        /gps/nmea and /gps/receiver, its epochs to /gps/fix and /gps/vel, its times to time sync."""
         frames = self._port.feed(data)
         self._gps_prev_read[mono_ns] = self._gps_last_read or mono_ns
         self._gps_last_read = mono_ns
@@ -496,7 +583,6 @@ class Pipeline:
             self._last_fix_key = utc_s
             self.sync.add_fix(utc_s, mono_ns, wall_ns)
 
-    # -- output --------------------------------------------------------------------------------------
     def _emit_epoch(self, ep: nmea.GnssEpoch) -> None:
         """An NMEA epoch as a solution (unless the receiver also sends UBX/NovAtel ones)."""
         if self._binary_solutions:
@@ -569,55 +655,29 @@ class Pipeline:
             self.sink.write_batch("/gps/vel", t_ns, messages.encode_twist(
                 t_ns, lin, None, cov, frame_id=self.cfg.gps_frame_id))
 
-    def _emit_sync(self) -> None:
-        implausible = self.sync.implausible_edges
-        if implausible and not self.counters.pps_implausible:
-            log.warning("the PPS is implausible: more than %d flags within %g s of DAQ samples (a floating or "
-                        "miswired PPS line?); such flags are ignored and counted (acquire.counters pps_implausible)",
-                        timesync.PPS_BURST, timesync.PPS_BURST_S)
-        self.counters.pps_implausible = implausible
-        edges = self.sync.pop_edges()
-        if len(edges):
-            self.counters.pps_edges += len(edges)
-            self.counters.pps_rejected += int(np.count_nonzero(~edges.accepted))
-            stamp = np.where(edges.accepted, edges.label_s * NS, self.sync.mono_to_utc(edges.mono_ns))
-            daq_clock_ns = np.round(edges.k_edge / self.fs * NS).astype(np.int64)
-            for reason in dict.fromkeys(edges.reason):
-                sel = edges.reason == reason
-                utc = stamp[sel].astype(np.int64)
-                self.sink.write_batch("/pps", utc, messages.encode_time_reference(
-                    utc, daq_clock_ns[sel], "pps" if not reason else f"pps rejected: {reason}"))
-        st = self.sync.pop_status()
-        if len(st):
-            self.sink.write_batch("/time/sync", st.utc_ns, messages.encode_time_sync(
-                st.utc_ns, st.state, st.rate_ppm, st.residual_us, st.edges_used, st.edges_rejected))
+    def flush(self) -> None:
+        """End of the reads: the epochs and solutions the decoders still hold are written."""
+        for ep in self._epochs.flush():
+            self._emit_epoch(ep)
+        for sol in self._oem.flush() + self._sbf.flush():
+            self._emit_solution(sol)
 
-    def _emit_imu(self, final: bool) -> None:
-        """Stamp, calibrate and write the buffered samples whose time stamps are final."""
-        fin = None if final else self.sync.final_until()
-        ks, cs = [], []
-        while self._pending:
-            k, c = self._pending[0]
-            if fin is None or k[-1] < fin:
-                self._pending.popleft()
-            elif k[0] < fin:
-                n = int(np.searchsorted(k, fin))
-                self._pending[0] = (k[n:], c[n:])
-                k, c = k[:n], c[:n]
-            else:
-                break
-            ks.append(k)
-            cs.append(c)
-        if not ks:
-            return
-        k = np.concatenate(ks)
-        t_ns, _state = self.sync.stamp(k)
-        self.counters.imu_samples += len(k)
-        self.sink.write_batch("/imu", t_ns, self.imu_messages(t_ns, np.concatenate(cs)))
-
-    def imu_messages(self, t_ns: np.ndarray, counts: np.ndarray) -> messages.Packed:
-        """/imu payloads of samples stamped ``t_ns`` (UTC ns) from their ADC ``counts`` (n, 6): calibrated to
-        SI in the body frame, with the configured covariances and frame id."""
-        omega_ib_b, f_b = calib.apply(self.cal, counts)
-        return messages.encode_imu(t_ns, omega_ib_b, f_b, self._gyro_cov, self._accel_cov,
-                                   frame_id=self.cfg.imu_frame_id)
+    def add_counters(self, out: dict[str, str]) -> None:
+        """The GPS port's frame and decoder counters into ``out`` (the counters record, flattened)."""
+        fs = self._port.stats
+        out.update({f"gps.frames.{k}": str(v) for k, v in fs.frames.items()})
+        out.update({f"gps.bad_checksum.{k}": str(v) for k, v in fs.bad_checksum.items()})
+        decoders = [("ubx", self._ubx.stats), ("novatel", self._oem.stats)]
+        if fs.frames.get("sbf"):
+            decoders.append(("sbf", self._sbf.stats))
+        for name, st in decoders:
+            out.update({f"{name}.{k}": str(v) for k, v in asdict(st).items() if k != "by_type"})
+            out.update({f"{name}.{k}": str(v) for k, v in st.by_type.items()})
+        ep = self._epochs
+        if ep.split or "GLL" in ep.position_from or ep.gll_ignored:   # which sentence gave the positions
+            out["nmea.split_seconds"] = str(ep.split)
+            out["nmea.gll_ignored"] = str(ep.gll_ignored)
+            out.update({f"nmea.position_from.{k}": str(v) for k, v in ep.position_from.items()})
+        if self._ubx.old_late:
+            out["ubx.late"] = str(self._ubx.old_late)
+        out["nmea.epoch_repeats"] = str(self._epochs.late)

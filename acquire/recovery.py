@@ -11,16 +11,19 @@ topic are added. The tail is then stamped as at the end of a drive (``Pipeline.f
 """
 from __future__ import annotations
 
+import logging
 import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable, Iterable
 from typing import BinaryIO, Protocol
 
 import numpy as np
 
 from fieldlog.drive import bagdir, messages, outputs
 from fieldlog.drive.chunks import ChunkMessages, chunk_definitions, chunk_messages, decompress_chunk
+from fieldlog.drive.mcapfile import McapFile, TruncatedError
 from fieldlog.acquire.pipeline import Pipeline
 from fieldlog.drive.recorder import MAGIC, Recorder
 from fieldlog.drive.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Opcode, Schema, StreamReader
@@ -107,99 +110,113 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], extend: Ex
     return report
 
 
-def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Extend | None) -> RecoverReport:
-    kept: dict[int, int] = {}
-    meta: dict[str, dict[str, str]] = {}
-    rederived: dict[str, int] = {}
-    last_t = 0
-    good_end = 0
-    had_summary = False
-    loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
-    damaged: list[int] = []
+class _Walk:
+    """``_recover``'s walk over the records of a source: what it kept so far (messages per channel id, the latest
+    log time, the metadata), where the last complete record ends, and the damaged chunks it skipped."""
 
-    def keep(cm: ChunkMessages) -> None:
-        nonlocal last_t
-        _copy_chunk(rec, cm)
-        if extend is not None:
-            extend.chunk(rec, cm, meta)
+    def __init__(self, rec: Recorder, extend: Extend | None) -> None:
+        self.rec, self.extend = rec, extend
+        self.kept: dict[int, int] = {}
+        self.meta: dict[str, dict[str, str]] = {}
+        self.last_t = 0
+        self.good_end = 0
+        self.had_summary = False
+        self.loose = [0, 0]  # [start, end) in src of the pending run of messages outside chunks
+        self.damaged: list[int] = []
+
+    def keep(self, cm: ChunkMessages) -> None:
+        """One chunk's messages copied (and shown to ``extend``)."""
+        _copy_chunk(self.rec, cm)
+        if self.extend is not None:
+            self.extend.chunk(self.rec, cm, self.meta)
         for cid, cnt in zip(*np.unique(cm.channel_id, return_counts=True)):
-            kept[int(cid)] = kept.get(int(cid), 0) + int(cnt)
+            self.kept[int(cid)] = self.kept.get(int(cid), 0) + int(cnt)
         if len(cm.log_time):
-            last_t = max(last_t, int(cm.log_time.max()))
+            self.last_t = max(self.last_t, int(cm.log_time.max()))
 
-    def keep_loose(f: BinaryIO) -> None:
+    def keep_loose(self, f: BinaryIO) -> None:
         """The pending messages outside chunks (their records as they are in src) kept as one chunk."""
+        loose = self.loose
         if loose[1] > loose[0]:
-            keep(chunk_messages(os.pread(f.fileno(), loose[1] - loose[0], loose[0])))
+            self.keep(chunk_messages(os.pread(f.fileno(), loose[1] - loose[0], loose[0])))
         loose[0] = loose[1]
 
+    def walk(self, f: BinaryIO, size: int) -> None:
+        """Every record of ``f`` (``size`` bytes) up to the first truncated or invalid one, or the summary."""
+        rec, loose = self.rec, self.loose
+        reader = StreamReader(f, emit_chunks=True, record_size_limit=size)
+        it = reader.records
+        while True:
+            start = f.tell()
+            try:
+                record = next(it)
+            except StopIteration:
+                self.had_summary = True
+                break
+            except Exception:  # truncated or corrupt record: stop here
+                break
+            if isinstance(record, Chunk):
+                try:
+                    data = decompress_chunk(record)
+                    cm = chunk_messages(data)
+                    inner = chunk_definitions(record, data)
+                except Exception:  # a whole record with damaged content: skip it, go on
+                    self.damaged.append(start)
+                    self.keep_loose(f)
+                    loose[0] = loose[1] = self.good_end = f.tell()
+                    continue
+            if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
+                if record.channel_id not in rec.channels:
+                    break
+                loose[1] = self.good_end = f.tell()
+                if loose[1] - loose[0] >= 4 << 20:
+                    self.keep_loose(f)
+                continue
+            self.keep_loose(f)
+            loose[0] = loose[1] = f.tell()
+            if isinstance(record, Schema):
+                rec.add_schema(record)
+            elif isinstance(record, Channel):
+                rec.add_channel(record)
+            elif isinstance(record, Metadata):
+                rec.add_metadata(record.name, record.metadata)
+                self.meta[record.name] = dict(record.metadata)
+            elif isinstance(record, Chunk):
+                for r in inner:
+                    (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
+                if not set(np.unique(cm.channel_id).tolist()) <= set(rec.channels):
+                    break
+                self.keep(cm)
+            elif isinstance(record, (DataEnd, Footer)):
+                self.good_end = f.tell()
+                self.had_summary = True
+                break
+            self.good_end = f.tell()
+        self.keep_loose(f)
+
+
+def _recover(src: str | os.PathLike[str], rec: Recorder, size: int, extend: Extend | None) -> RecoverReport:
+    w = _Walk(rec, extend)
+    rederived: dict[str, int] = {}
     try:
         with open(src, "rb") as f:
-            reader = StreamReader(f, emit_chunks=True, record_size_limit=size)
-            it = reader.records
-            while True:
-                start = f.tell()
-                try:
-                    record = next(it)
-                except StopIteration:
-                    had_summary = True
-                    break
-                except Exception:  # truncated or corrupt record: stop here
-                    break
-                if isinstance(record, Chunk):
-                    try:
-                        data = decompress_chunk(record)
-                        cm = chunk_messages(data)
-                        inner = chunk_definitions(record, data)
-                    except Exception:  # a whole record with damaged content: skip it, go on
-                        damaged.append(start)
-                        keep_loose(f)
-                        loose[0] = loose[1] = good_end = f.tell()
-                        continue
-                if isinstance(record, Message):  # outside chunks: kept in runs of consecutive records
-                    if record.channel_id not in rec.channels:
-                        break
-                    loose[1] = good_end = f.tell()
-                    if loose[1] - loose[0] >= 4 << 20:
-                        keep_loose(f)
-                    continue
-                keep_loose(f)
-                loose[0] = loose[1] = f.tell()
-                if isinstance(record, Schema):
-                    rec.add_schema(record)
-                elif isinstance(record, Channel):
-                    rec.add_channel(record)
-                elif isinstance(record, Metadata):
-                    rec.add_metadata(record.name, record.metadata)
-                    meta[record.name] = dict(record.metadata)
-                elif isinstance(record, Chunk):
-                    for r in inner:
-                        (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
-                    if not set(np.unique(cm.channel_id).tolist()) <= set(rec.channels):
-                        break
-                    keep(cm)
-                elif isinstance(record, (DataEnd, Footer)):
-                    good_end = f.tell()
-                    had_summary = True
-                    break
-                good_end = f.tell()
-            keep_loose(f)
-        if extend is not None and not had_summary:
+            w.walk(f, size)
+        if extend is not None and not w.had_summary:
             rederived = extend.finish(rec)
             if rederived:
                 rec.add_metadata("recover", {"source": str(src), **{f"rederived.{k}": str(v)
                                                                      for k, v in rederived.items()}})
     finally:
         rec.close()
-    topics = {rec.channels[cid].topic: n for cid, n in kept.items()}
+    topics = {rec.channels[cid].topic: n for cid, n in w.kept.items()}
     return RecoverReport(
         messages=topics,
         chunks=rec.chunk_count,
-        bytes_discarded=size - good_end if not had_summary else 0,
-        last_log_time_ns=last_t,
-        had_summary=had_summary,
+        bytes_discarded=size - w.good_end if not w.had_summary else 0,
+        last_log_time_ns=w.last_t,
+        had_summary=w.had_summary,
         rederived=rederived,
-        damaged=damaged,
+        damaged=w.damaged,
     )
 
 
@@ -281,3 +298,75 @@ def recover_drive(src: str | os.PathLike[str], dst: str | os.PathLike[str], forc
             return rep
         force = True
     return recover(src, dst, TailDeriver(), force=force)
+
+
+def recover_folder(files: Iterable[Path], recover_file: Callable[[Path, Path], bool],
+                   say: Callable[[str, int], None], force: bool = False, complete_too: bool = False
+                   ) -> tuple[list[tuple[Path, Path]], bool]:
+    """The recovery policy for the files of a drive folder, the daemon's on start and ``fieldlog recover``'s.
+
+    Each file of ``files`` (``NAME.recovered.mcap`` stands for ``NAME.mcap`` when that exists, else it is recovered
+    already; each file once) that was cut short (no footer) is recovered, and with ``complete_too`` each complete
+    one with a damaged chunk (every chunk's CRC checked; a complete, sound one is said to be so; without it
+    complete files are not read). A file is recovered into ``NAME.recovered.mcap`` next to it, the original kept,
+    and once: a copy that stands in for it (``recovered_state``) is left (said with ``complete_too``); a symbolic
+    link there, or a copy that does not stand in (unless ``force``), is never replaced: one error line through
+    ``say`` names it and what to do, and the file is left.
+
+    Parameters
+    ----------
+    files : Iterable[Path]
+        The MCAP files of the folder.
+    recover_file : Callable[[Path, Path], bool]
+        Recovers one file into the name given (the caller's checks, messages and error handling); True when it
+        wrote it.
+    say : Callable[[str, int], None]
+        Takes one line for the user and its ``logging`` level.
+    force : bool
+        Replace a recovered copy that does not stand in for its file (never a symbolic link).
+    complete_too : bool
+        Check the complete files' chunks too, and say what is done with each file.
+
+    Returns
+    -------
+    list[tuple[Path, Path]]
+        The (original, recovered) pairs written.
+    bool
+        Whether a file was left because its recovered name is taken (a link, or a copy that does not stand in).
+    """
+    done, refused, seen = [], False, set()
+    for src in files:
+        if src.name.endswith(bagdir.RECOVERED):
+            orig = src.with_name(src.name[:-len(bagdir.RECOVERED)] + ".mcap")
+            if not orig.is_file():
+                if complete_too:
+                    say(f"{src}: recovered already", logging.INFO)
+                continue
+            src = orig
+        if src in seen:
+            continue
+        seen.add(src)
+        if has_footer(src):
+            if not complete_too:
+                continue
+            try:
+                damaged = McapFile(src).damaged()
+            except TruncatedError:
+                damaged = None
+            if damaged == []:
+                say(f"{src}: complete, nothing to recover", logging.INFO)
+                continue
+            if damaged:
+                say(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}", logging.INFO)
+        dst, state = recovered_state(src)
+        if state == "done":
+            if complete_too:
+                say(f"{src}: recovered already, as {dst}", logging.INFO)
+        elif state == "link" or (state == "stale" and not force):
+            say(f"{src}: not recovered: {dst} " + ("is a symbolic link (never followed): remove it" if state == "link"
+                else "exists but does not stand in for it (older, or cut short): remove it or give `fieldlog recover` "
+                "--force") + f", or run `fieldlog recover {src} --out FILE`", logging.ERROR)
+            refused = True
+        elif recover_file(src, dst):
+            done.append((src, dst))
+    return done, refused

@@ -242,74 +242,593 @@ def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: floa
     return _Fit(lr, kr, c, e, int(inl.sum()), rms, float(xm), sxx), inl
 
 
-class TimeSync:
-    """Streaming PPS/NMEA time sync; see the module docstring for the rules."""
+@dataclass(frozen=True)
+class _Samples:
+    """The settings the pieces compare sample indices with, in samples (``fs`` in Hz)."""
 
-    def __init__(self, cfg: TimeSyncConfig | None = None) -> None:
-        self.cfg = c = cfg or TimeSyncConfig()
-        self._fs = float(c.fs_hz)
-        self._ns_per_sample = 1e9 / self._fs
-        self._H = c.window_s / 2 * self._fs
-        self._G = c.max_edge_gap_s * self._fs
-        self._HO = c.holdover_s * self._fs
-        self._tol = c.inlier_tol_s * self._fs
-        self._bin = max(1, round(self._fs))                      # host-envelope bins of ~1 s of samples
-        self._bin_half = max(1, math.ceil(c.host_window_s / 2))
-        # inputs
+    fs: float
+    H: float                  # window_s / 2
+    G: float                  # max_edge_gap_s
+    HO: float                 # holdover_s
+    tol: float                # inlier_tol_s
+    bin: int                  # host-envelope bins of ~1 s of samples
+
+    @classmethod
+    def of(cls, c: TimeSyncConfig) -> "_Samples":
+        fs = float(c.fs_hz)
+        return cls(fs, c.window_s / 2 * fs, c.max_edge_gap_s * fs, c.holdover_s * fs, c.inlier_tol_s * fs,
+                   max(1, round(fs)))
+
+
+class HostClock:
+    """The host clocks: rule 4's host-clock stamps and ``mono_to_utc`` (module docstring).
+
+    Parameters
+    ----------
+    cfg : TimeSyncConfig
+        ``host_window_s`` (s) sizes the lower envelope, ``host_time_scale`` (data s per host s) scales host
+        durations.
+    s : _Samples
+        The settings in samples.
+    """
+
+    def __init__(self, cfg: TimeSyncConfig, s: _Samples) -> None:
+        self.cfg = cfg
+        self._bin = s.bin
+        self.ns_per_sample = 1e9 / s.fs
+        self._bin_half = max(1, math.ceil(cfg.host_window_s / 2))
+        self.bins: dict[int, int] = {}                           # bin -> min(wall_ns - k*ns_per_sample)
+        self.wall_minus_mono: int | None = None
+        self.offsets: deque[int] = deque(maxlen=16)              # label - edge mono (ns), accepted edges only
+
+    def put(self, b: int, v: int) -> None:
+        """Host offset ``v`` (wall ns - k * ns per sample) seen in envelope bin ``b``: the bin keeps the least."""
+        old = self.bins.get(b)
+        self.bins[b] = v if old is None else min(old, v)
+
+    def add_read(self, k: np.ndarray, wall_ns: int) -> None:
+        """The frames ``k`` (sample indices) of one read at host wall time ``wall_ns`` (ns) into the bins."""
+        b = k // self._bin
+        if b[0] == b[-1]:
+            last = [k.size - 1]
+        else:
+            last = np.flatnonzero(np.diff(b, append=b[-1] + 1)).tolist()   # last frame of each bin in this read
+        for i in last:
+            self.put(int(b[i]), wall_ns - round(int(k[i]) * self.ns_per_sample))
+
+    def _offset(self, b: int) -> int:
+        vals = [self.bins[x] for x in range(b - self._bin_half, b + self._bin_half + 1) if x in self.bins]
+        if vals:
+            return min(vals)
+        return self.bins[max(x for x in self.bins if x <= b)]     # a long frame gap: the last bin before
+
+    def stamps(self, k: np.ndarray) -> np.ndarray:
+        """Host-clock UTC (int64 ns) of samples ``k``: k / fs plus the lower envelope of the host offsets of their
+        bins."""
+        bins, inv = np.unique(k // self._bin, return_inverse=True)
+        off = np.array([self._offset(b) for b in bins.tolist()], np.int64)[inv]
+        return np.round(k * self.ns_per_sample).astype(np.int64) + off
+
+    def scaled(self, mono_ns: int | np.ndarray) -> int | np.ndarray:
+        """Host time ``mono_ns`` (ns) in data ns (``host_time_scale``; the identity at 1)."""
+        x = self.cfg.host_time_scale
+        return mono_ns if x == 1.0 else np.round(np.asarray(mono_ns, np.float64) * x).astype(np.int64)
+
+    def add_edge(self, label: int, mono_ns: int) -> None:
+        """An accepted edge of GPS second ``label`` read at host ``mono_ns`` (ns): a sample of the host latency."""
+        self.offsets.append(label * 1_000_000_000 - int(self.scaled(mono_ns)))
+
+    def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
+        """Host monotonic time (ns) -> UTC (int64 ns): see ``TimeSync.mono_to_utc``.
+
+        Parameters
+        ----------
+        mono_ns : np.ndarray
+            Host monotonic times, ns.
+
+        Returns
+        -------
+        np.ndarray
+            UTC, int64 ns.
+        """
+        if self.offsets:
+            return self.scaled(np.asarray(mono_ns, np.int64)) + np.int64(max(self.offsets))
+        if self.wall_minus_mono is None:
+            raise RuntimeError("mono_to_utc before any read: pass wall_ns to add_fix")
+        return np.asarray(mono_ns, np.int64) + np.int64(self.wall_minus_mono)
+
+    def prune(self, floor: int) -> None:
+        """Drop the bins no sample from ``floor`` (sample index) on can use."""
+        old = sorted(b for b in self.bins if b < floor // self._bin - self._bin_half - 1)
+        for b in old[:-1]:                                          # the last one may still be the nearest
+            del self.bins[b]
+
+
+class EdgeLabeller:
+    """PPS edges labelled, gated and locked (module docstring, "Edges" and "Implausible PPS").
+
+    Holds the accepted edges (``acc_k`` in samples, ``acc_label`` in GPS s) the clock fit uses, the rejected ones
+    (``rej_k``) the status counts, the lock candidates (``pending``) and the causal fit (``fit``) that gates new
+    edges.
+
+    Parameters
+    ----------
+    cfg : TimeSyncConfig
+        The gates' settings.
+    s : _Samples
+        The settings in samples.
+    host : HostClock
+        Scales host durations and takes the accepted edges' host latency.
+    """
+
+    def __init__(self, cfg: TimeSyncConfig, s: _Samples, host: HostClock) -> None:
+        self.cfg, self._s, self._host = cfg, s, host
         self._fix: tuple[int, int] | None = None                 # (utc_s, mono_ns) of the last fix
         self._pulse_late: dict[int, float] = {}                  # utc_s -> receiver's pulse error (s)
-        self._k_first: int | None = None
-        self._k_max = -1
-        self._wall_minus_mono: int | None = None
-        self.frames_out_of_order = 0
-        self._finished = False
-        # edges
-        self._edges: deque[PpsEdge] = deque()                    # in k order, until popped
-        self._pending: list[PpsEdge] = []                        # lock candidates
-        self._offsets: deque[int] = deque(maxlen=9)              # label - edge mono (ns), recent labelled edges
-        self._host_offsets: deque[int] = deque(maxlen=16)        # the same, accepted edges only
-        self._fit: _Fit | None = None                            # causal fit: the acceptance gate
-        self._acc_k: list[float] = []                            # accepted edges (retained)
-        self._acc_label: list[int] = []
-        self._acc_first: float | None = None                     # first accepted edge ever
-        self._n_knotted = 0                                      # accepted edges already turned into knots
-        self._rej_k: list[float] = []                            # rejected edges (retained)
-        self._rej_dropped = 0
-        # knots: (k_edge, label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n)
-        self._knot_k: list[float] = []
-        self._knot: list[tuple[int, float, float, float, float, int]] = []
-        self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
-        self._bins: dict[int, int] = {}                          # bin -> min(wall_ns - k*ns_per_sample)
-        # outputs
         self._flags = np.zeros(0, np.int64)                      # the last PPS_BURST flagged samples
         self.implausible_edges = 0
         self.fit_edges = 0                                       # edges taken by all robust fits (their work)
-        self._final = 0
-        self._floor = 0
-        self._pmax: int | None = None                            # max over final samples of raw(k) - k
-        self._clamps: list[tuple[int, int, int]] = []            # [k0, k1) stamped P + k
-        self._status: list[SyncStatus] = []
-        self._status_sec: int | None = None
+        self._edges: deque[PpsEdge] = deque()                    # in k order, until popped
+        self.pending: list[PpsEdge] = []                         # lock candidates
+        self._offsets: deque[int] = deque(maxlen=9)              # label - edge mono (ns), recent labelled edges
+        self.fit: _Fit | None = None                             # causal fit: the acceptance gate
+        self.acc_k: list[float] = []                             # accepted edges (retained)
+        self.acc_label: list[int] = []
+        self.acc_first: float | None = None                      # first accepted edge ever
+        self.rej_k: list[float] = []                             # rejected edges (retained)
+        self.rej_dropped = 0
 
-    # ---------------------------------------------------------------- input
-    def add_fix(self, utc_s: int, mono_ns: int, wall_ns: int | None = None) -> None:
-        """An NMEA epoch for the whole UTC second ``utc_s`` whose first sentence was read at ``mono_ns``."""
+    def add_fix(self, utc_s: int, mono_ns: int) -> None:
+        """An NMEA epoch of the whole UTC second ``utc_s`` read at host ``mono_ns`` (ns): the next edges' label."""
         self._fix = (int(utc_s), int(mono_ns))
-        if wall_ns is not None:
-            self.add_host_time(mono_ns, wall_ns)
 
     def add_pulse_error(self, utc_s: int, late_s: float) -> None:
-        """The receiver's own figure for the time pulse of UTC second ``utc_s``: it comes ``late_s`` late (u-blox
-        TIM-TP qErr); the edge labelled ``utc_s`` is moved back by that much before it is used."""
+        """The receiver's time pulse of UTC second ``utc_s`` comes ``late_s`` (s) late: see
+        ``TimeSync.add_pulse_error``."""
         if not self.cfg.pulse_error:
             return
         self._pulse_late[int(utc_s)] = float(late_s)
         while len(self._pulse_late) > 16:
             del self._pulse_late[next(iter(self._pulse_late))]
 
+    def add_flags(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
+                  mono_ns: int) -> None:
+        """The PPS flags of one read's frames (sample index ``k``, flag, latch in 1/65536 sample) read at host
+        ``mono_ns`` (ns): each plausible flag is an edge, labelled and judged."""
+        for i in self._plausible(k, np.flatnonzero(pps)).tolist():
+            ke = float(k[i] - 1) + (float(latch[i]) / 65536.0 if latch_valid[i] else 0.5)
+            self._on_edge(PpsEdge(ke, mono_ns))
+
+    def _plausible(self, k: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+        """The flagged frames (indices into k) that may be PPS edges: not preceded by ``PPS_BURST`` flags within
+        ``PPS_BURST_S`` of samples; the others are counted in ``implausible_edges``."""
+        ks = np.concatenate((self._flags, k[flagged]))
+        n0 = len(self._flags)
+        p = np.arange(n0, len(ks))
+        back = p - PPS_BURST
+        bad = (back >= 0) & (ks[np.maximum(back, 0)] >= ks[p] - PPS_BURST_S * self._s.fs)
+        self._flags = ks[-PPS_BURST:]
+        self.implausible_edges += int(bad.sum())
+        return flagged[~bad]
+
+    def _reject(self, e: PpsEdge, reason: str) -> None:
+        e.reason = reason
+        insort(self.rej_k, e.k_edge)
+
+    def _accept(self, e: PpsEdge) -> None:
+        e.accepted = True
+        if self.acc_first is None:
+            self.acc_first = e.k_edge
+        self.acc_k.append(e.k_edge)
+        self.acc_label.append(e.label)
+        self._host.add_edge(e.label, e.mono_ns)
+
+    def _on_edge(self, e: PpsEdge) -> None:
+        self._edges.append(e)
+        c, s = self.cfg, self._s
+        if self._fix is None:
+            return self._reject(e, "no_fix")
+        fix_utc, fix_mono = self._fix
+        if int(self._host.scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
+            return self._reject(e, "stale_fix")
+        e.label = fix_utc + 1
+        e.k_edge -= self._pulse_late.pop(e.label, 0.0) * s.fs
+        off = e.label * 1_000_000_000 - int(self._host.scaled(e.mono_ns))
+        ref = float(np.median(self._offsets)) if self._offsets else off
+        self._offsets.append(off)
+        if abs(off - ref) > c.max_disagree_s * 1e9:
+            return self._reject(e, "disagree")
+        if self.fit is None:
+            return self._acquire(e)
+        if self.acc_label and e.label <= self.acc_label[-1]:
+            return self._reject(e, "duplicate")
+        f = self.fit
+        dx = e.label - f.lr - f.x_mean
+        sigma = max(f.rms, 0.1 * s.tol) * math.sqrt(1.0 / f.n + dx * dx / f.sxx)
+        gate = s.tol + 4.0 * sigma + c.rate_tol_ppm * 1e-6 * s.fs * (e.label - self.acc_label[-1])
+        if abs(e.k_edge - f.predict_k(e.label, s.fs)) > gate:
+            return self._reject(e, "outlier")
+        self._accept(e)
+        self._refit(e)
+
+    def counted_fit(self, label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, min_inliers: int
+               ) -> tuple[_Fit, np.ndarray] | None:
+        """``robust_fit`` of edges ``k_edge`` (samples) labelled ``label`` (GPS s) within the inlier tolerance,
+        counted in ``fit_edges``."""
+        self.fit_edges += len(label)
+        return robust_fit(label, k_edge, lr, kr, self._s.fs, self._s.tol, min_inliers)
+
+    def _refit(self, e: PpsEdge) -> None:
+        """Causal fit over the accepted edges within window_s before ``e``."""
+        i0 = bisect_left(self.acc_k, e.k_edge - 2 * self._s.H)
+        fit = self.counted_fit(np.asarray(self.acc_label[i0:]), np.asarray(self.acc_k[i0:]), e.label,
+                               math.floor(e.k_edge), 2)
+        if fit is not None:
+            self.fit = fit[0]
+
+    def _acquire(self, e: PpsEdge) -> None:
+        span = self.cfg.acquire_s * self._s.fs
+        for old in [p for p in self.pending if p.k_edge < e.k_edge - span]:
+            self._reject(old, "unlocked")
+        self.pending = [p for p in self.pending if p.k_edge >= e.k_edge - span] + [e]
+        labels = np.array([p.label for p in self.pending])
+        ks = np.array([p.k_edge for p in self.pending])
+        fit = self.counted_fit(labels, ks, e.label, math.floor(e.k_edge), self.cfg.min_edges)
+        if fit is None:
+            return
+        f, inl = fit
+        if abs(f.e / self._s.fs * 1e6) > self.cfg.max_rate_ppm or len(set(labels[inl].tolist())) < inl.sum():
+            return
+        for p, good in zip(self.pending, inl):
+            self._accept(p) if good else self._reject(p, "outlier")
+        self.pending = []
+        self.fit = f
+
+    def expire(self, k_max: int) -> None:
+        """Reject the lock candidates further than acquire_s from any edge still to come after sample ``k_max``."""
+        limit = k_max - 1 - self.cfg.acquire_s * self._s.fs
+        while self.pending and self.pending[0].k_edge < limit:
+            self._reject(self.pending.pop(0), "unlocked")
+
+    def finish(self) -> None:
+        """End of stream: the lock candidates left are ``unlocked``."""
+        for e in self.pending:
+            self._reject(e, "unlocked")
+        self.pending = []
+
+    def pop(self) -> list[PpsEdge]:
+        """The edges whose fate is decided, in k order (each returned once)."""
+        out = []
+        while self._edges and (self._edges[0].accepted or self._edges[0].reason):
+            out.append(self._edges.popleft())
+        return out
+
+    def prune(self, floor: int, keep_from: float, n_knotted: int) -> int:
+        """Drop the edges no stamp from sample ``floor`` on needs: accepted ones before ``keep_from`` (samples)
+        not left to turn into knots (of the first ``n_knotted``), and rejected ones before ``floor`` (counted in
+        ``rej_dropped``). Returns the number of accepted edges dropped."""
+        na = min(bisect_left(self.acc_k, keep_from), n_knotted, max(0, bisect_right(self.acc_k, floor) - 1))
+        if na > 0:
+            del self.acc_k[:na], self.acc_label[:na]
+        nr = bisect_right(self.rej_k, floor)
+        if nr > 0:
+            self.rej_dropped += nr
+            del self.rej_k[:nr]
+        return na
+
+
+class ClockFit:
+    """The knots (module docstring, "Clock fit") and the stamping rule over them.
+
+    Parameters
+    ----------
+    cfg : TimeSyncConfig
+        ``pps_mode`` and ``min_edges``.
+    s : _Samples
+        The settings in samples.
+    edges : EdgeLabeller
+        The accepted edges the knots are fitted to (and the fits counted by).
+    host : HostClock
+        Stamps the samples no knot governs (rule 4).
+    """
+
+    def __init__(self, cfg: TimeSyncConfig, s: _Samples, edges: EdgeLabeller, host: HostClock) -> None:
+        self.cfg, self._s, self._edges, self._host = cfg, s, edges, host
+        self.n_knotted = 0                                       # accepted edges already turned into knots
+        # knots: (label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n) at knot_k
+        self.knot_k: list[float] = []
+        self.knot: list[tuple[int, float, float, float, float, int]] = []
+        self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
+
+    def _window(self, idx: int, finished: bool) -> tuple[float, float]:
+        """DAQ-clock span of knot idx's fit: +-window_s/2, stretched to the full window_s at the data's ends."""
+        acc_k, H = self._edges.acc_k, self._s.H
+        ke = acc_k[idx]
+        lo, hi = ke - H, max(ke + H, self._edges.acc_first + 2 * H)
+        if finished and hi > acc_k[-1]:
+            lo = min(lo, acc_k[-1] - 2 * H)
+        return lo, hi
+
+    def due(self, kd: float, finished: bool) -> bool:
+        """Whether the next knot's window is complete once every edge up to sample ``kd`` is in."""
+        return self.n_knotted < len(self._edges.acc_k) and self._window(self.n_knotted, finished)[1] <= kd
+
+    def _fit_span(self, lo: float, hi: float, lab: int, kr: int) -> _Fit | None:
+        acc_k = self._edges.acc_k
+        i0, i1 = bisect_left(acc_k, lo), bisect_right(acc_k, hi)
+        fit = self._edges.counted_fit(np.asarray(self._edges.acc_label[i0:i1]), np.asarray(acc_k[i0:i1]), lab, kr,
+                                      self.cfg.min_edges)
+        return None if fit is None else fit[0]
+
+    def fit_next(self, finished: bool) -> None:
+        """The knot of the next accepted edge (none when its window has too few inliers)."""
+        idx = self.n_knotted
+        self.n_knotted += 1
+        fs = self._s.fs
+        ke, lab = self._edges.acc_k[idx], self._edges.acc_label[idx]
+        lo, hi = self._window(idx, finished)
+        kr = math.floor(ke)
+        f = fc = self._fit_span(lo, hi, lab, kr)
+        if f is not None and self.cfg.pps_mode == "flag":
+            # The flag's quantisation error is a sawtooth: the edge slips by frac(samples per second) each
+            # second. A window of whole beat periods centred on the knot averages it out; other windows leave
+            # part of a period. At the data's ends (no centred window) the full window does better.
+            slip = abs((fs + f.e + 0.5) % 1.0 - 0.5)
+            n_beats = math.floor((hi - lo) / fs * slip)
+            half = n_beats / slip * fs / 2 if n_beats >= 1 else 0.0   # slip 0: a whole number of samples
+            # (Its slope is biased by the sawtooth: the rate and the statistics come from the full window.)
+            if n_beats >= 1 and lo <= ke - half and ke + half <= hi:
+                fc = self._fit_span(ke - half, ke + half, lab, kr) or f
+        if f is None:
+            return
+        rate = fs + f.e
+        d = (ke - kr - fc.c) / (fs + fc.e)
+        self.knot_k.append(ke)
+        self.knot.append((lab, d, 1.0 / rate, f.e / fs * 1e6, f.rms / rate * 1e6, f.n))
+
+    def _trail_slope(self, j: int) -> float:
+        """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
+        ke = self.knot_k[j]
+        if ke not in self._trail:
+            acc_k = self._edges.acc_k
+            i0, i1 = bisect_left(acc_k, ke - 2 * self._s.H), bisect_right(acc_k, ke)
+            fit = self._edges.counted_fit(np.asarray(self._edges.acc_label[i0:i1]), np.asarray(acc_k[i0:i1]),
+                                          self.knot[j][0], math.floor(ke), self.cfg.min_edges)
+            self._trail[ke] = 1.0 / (self._s.fs + fit[0].e) if fit is not None else self.knot[j][2]
+        return self._trail[ke]
+
+    def stamps(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unclamped stamp (int64 ns), state (uint8) and governing knot (-1: host clock) of samples ``k``, by the
+        module docstring's stamping rule."""
+        n = len(k)
+        raw = np.zeros(n, np.int64)
+        state = np.full(n, SyncState.FREE, np.uint8)
+        gov = np.full(n, -1, np.int64)
+        kk = k.astype(np.float64)
+        K = np.asarray(self.knot_k)
+        nk = len(K)
+        if nk:
+            HO = self._s.HO
+            kn = np.asarray(self.knot, dtype=np.float64)
+            i = np.searchsorted(K, kk, "right") - 1
+            ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
+            has_i, has_j = i >= 0, i + 1 < nk
+            interp = has_i & has_j & (K[jj] - K[ii] <= HO)
+            extrap = has_i & ~interp
+            back = ~has_i & has_j & (K[jj] - kk <= self._s.H)
+            lab = np.asarray([kn_[0] for kn_ in self.knot], np.int64)
+            d = kn[:, 1]
+            if interp.any():
+                a, b = ii[interp], jj[interp]
+                span = (lab[b] - lab[a]) + (d[b] - d[a])
+                frac = (kk[interp] - K[a]) / (K[b] - K[a])
+                raw[interp] = lab[a] * 1_000_000_000 + np.round((d[a] + frac * span) * 1e9).astype(np.int64)
+            if extrap.any():
+                a = ii[extrap]
+                slope = np.array([self._trail_slope(j) for j in a.tolist()])
+                raw[extrap] = lab[a] * 1_000_000_000 + np.round((d[a] + (kk[extrap] - K[a]) * slope) * 1e9).astype(
+                    np.int64)
+            if back.any():
+                b = jj[back]
+                raw[back] = lab[b] * 1_000_000_000 + np.round((d[b] + (kk[back] - K[b]) * kn[b, 2]) * 1e9).astype(
+                    np.int64)
+            gov[interp | extrap] = ii[interp | extrap]
+            gov[back] = jj[back]
+            A = np.asarray(self._edges.acc_k)
+            a = np.searchsorted(A, kk, "right") - 1
+            age = np.where(a >= 0, kk - A[np.maximum(a, 0)], np.inf)
+            age[back] = K[jj[back]] - kk[back]
+            synced = interp | extrap | back
+            state[synced & (age <= HO)] = SyncState.HOLDOVER
+            state[synced & (age <= self._s.G)] = SyncState.LOCKED
+        host = gov < 0
+        if host.any():
+            raw[host] = self._host.stamps(k[host])
+        return raw, state, gov
+
+    def prune(self, floor: int) -> float:
+        """Drop the knots before the last one at or before sample ``floor``; returns the first accepted edge (in
+        samples) a knot kept or still to fit may need."""
+        nk = bisect_right(self.knot_k, floor) - 1                   # keep the last knot at or before the floor
+        if nk > 0:
+            for ke in self.knot_k[:nk]:
+                self._trail.pop(ke, None)
+            del self.knot_k[:nk], self.knot[:nk]
+        return (self.knot_k[0] if self.knot_k else floor) - 2 * self._s.H - 1
+
+
+class Finaliser:
+    """Final stamps: the knots fitted when their windows are complete, the samples they decide stamped, clamped
+    forward and reported in /time/sync records, and memory pruned (module docstring, end).
+
+    Parameters
+    ----------
+    cfg : TimeSyncConfig
+        ``retain_s``.
+    s : _Samples
+        The settings in samples.
+    edges, clock, host : EdgeLabeller, ClockFit, HostClock
+        The pieces whose state decides and makes the stamps.
+    """
+
+    def __init__(self, cfg: TimeSyncConfig, s: _Samples, edges: EdgeLabeller, clock: ClockFit,
+                 host: HostClock) -> None:
+        self.cfg, self._s, self._edges, self._clock, self._host = cfg, s, edges, clock, host
+        self.first: int | None = None                            # the first sample index seen
+        self.final = 0                                           # samples before this one are final
+        self.floor = 0                                           # ... and retained from this one
+        self._pmax: int | None = None                            # max over final samples of raw(k) - k
+        self._clamps: list[tuple[int, int, int]] = []            # [k0, k1) stamped P + k
+        self._status: list[SyncStatus] = []
+        self._status_sec: int | None = None
+
+    def begin(self, k0: int) -> None:
+        """The stream starts at sample ``k0``."""
+        self.first = self.final = self.floor = k0
+
+    def _decided(self, k_max: int, finished: bool) -> float:
+        """The last sample before any edge still to be decided (every edge up to it is in)."""
+        if finished:
+            return math.inf
+        kd = k_max - 1
+        if self._edges.pending:
+            kd = min(kd, math.floor(self._edges.pending[0].k_edge) - 1)
+        return kd
+
+    def _target(self, kd: float, k_max: int) -> int:
+        """Samples before this one have final stamps once the knots up to kd are fitted."""
+        kf = kd                                # every knot at or before kf is known
+        acc_k, knot_k = self._edges.acc_k, self._clock.knot_k
+        if self._clock.n_knotted < len(acc_k):
+            kf = min(kf, math.nextafter(acc_k[self._clock.n_knotted], -math.inf))
+        end = k_max + 1
+        if knot_k:
+            last = knot_k[-1]
+            fu = end if kf >= last + self._s.HO else math.ceil(last)
+        else:
+            fu = end if kf == math.inf else math.floor(kf - self._s.H) + 1
+        return min(fu, end)
+
+    def _ready(self, fu: int, finished: bool) -> bool:
+        # host-clock stamps (no knot yet) are finalised in steps of >= 1 s, not on every read
+        return fu > self.final and bool(self._clock.knot_k or finished or fu - self.final >= self._s.bin)
+
+    def due(self, k_max: int, finished: bool) -> bool:
+        """Whether ``advance`` would change anything now."""
+        if self.first is None:
+            return False
+        kd = self._decided(k_max, finished)
+        return self._clock.due(kd, finished) or self._ready(self._target(kd, k_max), finished)
+
+    def advance(self, k_max: int, finished: bool) -> None:
+        """Fit the knots whose windows are complete, then make final the stamps they decide, with the frames up to
+        sample ``k_max`` in (``finished``: and no more to come)."""
+        if self.first is None:
+            return
+        kd = self._decided(k_max, finished)
+        while self._clock.due(kd, finished):
+            self._clock.fit_next(finished)
+        fu = self._target(kd, k_max)
+        if self._ready(fu, finished):
+            while self.final < fu:       # in blocks: memory stays bounded across a long frame gap
+                self._finalise(self.final, min(fu, self.final + FINALISE_BLOCK))
+
+    def _finalise(self, f0: int, f1: int) -> None:
+        k = np.arange(f0, f1, dtype=np.int64)
+        raw, state, gov = self._clock.stamps(k)
+        r = raw - k
+        cm = forward_clamp(r, self._pmax)
+        clamped = cm > r
+        if clamped.any():
+            starts = np.flatnonzero(clamped & ~np.concatenate(([False], clamped[:-1])))
+            ends = np.flatnonzero(clamped & ~np.concatenate((clamped[1:], [False]))) + 1
+            for s, e in zip(starts.tolist(), ends.tolist()):
+                self._clamps.append((f0 + s, f0 + e, int(cm[s])))
+        self._pmax = int(cm[-1])
+        stamp = cm + k
+        sec = stamp // 1_000_000_000
+        first = np.flatnonzero(np.diff(sec, prepend=sec[0] - 1) > 0)
+        rej = np.asarray(self._edges.rej_k)
+        for i in first.tolist():
+            s = int(sec[i])
+            if self._status_sec is not None and s <= self._status_sec:
+                continue
+            self._status_sec = s
+            g = int(gov[i])
+            n_rej = self._edges.rej_dropped + int(np.searchsorted(rej, k[i], "right"))
+            if g >= 0:
+                _, _, _, ppm, rms_us, used = self._clock.knot[g]
+                self._status.append(SyncStatus(s * 1_000_000_000, SyncState(int(state[i])), ppm, rms_us, used, n_rej))
+            else:
+                self._status.append(SyncStatus(s * 1_000_000_000, SyncState.FREE, math.nan, math.nan, 0, n_rej))
+        self.final = f1
+        self._prune()
+
+    def _prune(self) -> None:
+        floor = max(self.first, self.final - int(self.cfg.retain_s * self._s.fs))
+        self.floor = floor
+        keep_from = self._clock.prune(floor)
+        self._clock.n_knotted -= self._edges.prune(floor, keep_from, self._clock.n_knotted)
+        self._clamps = [c for c in self._clamps if c[1] > floor]
+        self._host.prune(floor)
+
+    def stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """UTC (int64 ns) and SyncState (uint8) of final samples ``k``: see ``TimeSync.stamp``."""
+        k = np.asarray(k, np.int64)
+        if k.size and (k.min() < self.floor or k.max() >= self.final):
+            raise ValueError(f"stamp: k outside the final, retained range [{self.floor}, {self.final})")
+        raw, state, _ = self._clock.stamps(k)
+        for k0, k1, p in self._clamps:
+            m = (k >= k0) & (k < k1)
+            raw[m] = p + k[m]
+        return raw, state
+
+    def pop_status(self) -> list[SyncStatus]:
+        """The /time/sync records of the samples made final since the last call."""
+        out, self._status = self._status, []
+        return out
+
+
+class TimeSync:
+    """Streaming PPS/NMEA time sync; see the module docstring for the rules.
+
+    Its loop feeds the pieces: ``labeller`` (an ``EdgeLabeller``: edges labelled and gated, the lock) and ``host``
+    (a ``HostClock``) take each read, then the ``Finaliser`` has the ``ClockFit`` fit the knots whose windows are
+    complete and makes final the stamps they decide. ``labeller.implausible_edges`` counts the implausible PPS
+    flags, ``labeller.fit_edges`` the edges all robust fits took.
+
+    Parameters
+    ----------
+    cfg : TimeSyncConfig, optional
+        The settings (default: ``TimeSyncConfig()``).
+    """
+
+    def __init__(self, cfg: TimeSyncConfig | None = None) -> None:
+        self.cfg = c = cfg or TimeSyncConfig()
+        self._s = s = _Samples.of(c)
+        self.host = HostClock(c, s)
+        self.labeller = EdgeLabeller(c, s, self.host)
+        self._clock = ClockFit(c, s, self.labeller, self.host)
+        self._final = Finaliser(c, s, self.labeller, self._clock, self.host)
+        self._k_max = -1
+        self.frames_out_of_order = 0
+        self._finished = False
+
+    # ---------------------------------------------------------------- input
+    def add_fix(self, utc_s: int, mono_ns: int, wall_ns: int | None = None) -> None:
+        """An NMEA epoch for the whole UTC second ``utc_s`` whose first sentence was read at ``mono_ns``."""
+        self.labeller.add_fix(utc_s, mono_ns)
+        if wall_ns is not None:
+            self.add_host_time(mono_ns, wall_ns)
+
+    def add_pulse_error(self, utc_s: int, late_s: float) -> None:
+        """The receiver's own figure for the time pulse of UTC second ``utc_s``: it comes ``late_s`` late (u-blox
+        TIM-TP qErr); the edge labelled ``utc_s`` is moved back by that much before it is used."""
+        self.labeller.add_pulse_error(utc_s, late_s)
+
     def add_host_time(self, mono_ns: int, wall_ns: int) -> None:
         """A read's host clocks: what ``mono_to_utc`` falls back on before the first lock."""
-        self._wall_minus_mono = int(wall_ns) - int(mono_ns)
+        self.host.wall_minus_mono = int(wall_ns) - int(mono_ns)
 
     def add_frames(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
                    mono_ns: int, wall_ns: int) -> None:
@@ -329,18 +848,16 @@ class TimeSync:
             k, pps, latch, latch_valid = k[ok], pps[ok], np.asarray(latch)[ok], np.asarray(latch_valid)[ok]
             if k.size == 0:
                 return
-        if self._k_first is None:
-            self._k_first = self._final = self._floor = int(k[0])
+        if self._final.first is None:
+            self._final.begin(int(k[0]))
         mono_ns, wall_ns = int(mono_ns), int(wall_ns)
-        self._wall_minus_mono = wall_ns - mono_ns
-        self._add_host(k, wall_ns)
+        self.host.wall_minus_mono = wall_ns - mono_ns
+        self.host.add_read(k, wall_ns)
         if pps.any():
-            for i in self._plausible(k, np.flatnonzero(pps)).tolist():
-                ke = float(k[i] - 1) + (float(latch[i]) / 65536.0 if latch_valid[i] else 0.5)
-                self._on_edge(PpsEdge(ke, mono_ns))
+            self.labeller.add_flags(k, pps, latch, latch_valid, mono_ns)
         self._k_max = int(k[-1])
-        self._expire_pending()
-        self._advance()
+        self.labeller.expire(self._k_max)
+        self._final.advance(self._k_max, self._finished)
 
     def add_run(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
                 ends: list[int], mono_ns: list[int], wall_ns: list[int]) -> None:
@@ -350,7 +867,7 @@ class TimeSync:
         Once frames came before, the reads without a PPS edge go in one pass (``_add_quiet``), and each read
         with one through ``add_frames``; otherwise every read goes through ``add_frames``.
         """
-        if self._finished or self._k_first is None or not len(k) or k[0] <= self._k_max or not (k[1:] > k[:-1]).all():
+        if self._finished or self._final.first is None or not len(k) or k[0] <= self._k_max or not (k[1:] > k[:-1]).all():
             a = 0
             for b, m, w in zip(ends, mono_ns, wall_ns):
                 self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
@@ -367,18 +884,6 @@ class TimeSync:
         if r0 < len(ends):
             self._add_quiet(k[f0:], read[f0:] - r0, mono_ns[r0:], wall_ns[r0:])
 
-    def _plausible(self, k: np.ndarray, flagged: np.ndarray) -> np.ndarray:
-        """The flagged frames (indices into k) that may be PPS edges: not preceded by ``PPS_BURST`` flags within
-        ``PPS_BURST_S`` of samples; the others are counted in ``implausible_edges``."""
-        ks = np.concatenate((self._flags, k[flagged]))
-        n0 = len(self._flags)
-        p = np.arange(n0, len(ks))
-        back = p - PPS_BURST
-        bad = (back >= 0) & (ks[np.maximum(back, 0)] >= ks[p] - PPS_BURST_S * self._fs)
-        self._flags = ks[-PPS_BURST:]
-        self.implausible_edges += int(bad.sum())
-        return flagged[~bad]
-
     def _add_quiet(self, k: np.ndarray, read: np.ndarray, mono_ns: list[int], wall_ns: list[int]) -> None:
         """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
         ``read[j]``'s. Each read's host time goes into the host-clock bins, and the knots and final stamps are
@@ -386,54 +891,44 @@ class TimeSync:
         to there, so each step sees the state it would."""
         if not len(k):
             return
-        b = k // self._bin
+        b = k // self._s.bin
         last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
-        v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self._ns_per_sample).astype(np.int64)
+        v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self.host.ns_per_sample).astype(np.int64)
         host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
         h = 0
 
         def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
             nonlocal h
             while h < len(host) and host[h][0] <= i:
-                _, bb, vv = host[h]
-                old = self._bins.get(bb)
-                self._bins[bb] = vv if old is None else min(old, vv)
+                self.host.put(*host[h][1:])
                 h += 1
 
         ends = np.flatnonzero(np.diff(read, append=-1) != 0)   # the last frame of each read with frames
         for i, e in zip(read[ends].tolist(), k[ends].tolist()):
             self._k_max = e
-            self._expire_pending()
-            if self._advance_due():
+            self.labeller.expire(e)
+            if self._final.due(e, self._finished):
                 bins_until(i)
-                self._advance()
+                self._final.advance(e, self._finished)
         bins_until(math.inf)
         j = int(read[-1])                      # the last read with frames
-        self._wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
+        self.host.wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
+
 
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""
-        for e in self._pending:
-            self._reject(e, "unlocked")
-        self._pending = []
+        self.labeller.finish()
         self._finished = True
-        self._advance()
+        self._final.advance(self._k_max, True)
 
     # ---------------------------------------------------------------- output
     def final_until(self) -> int:
         """First sample index whose stamp is not final yet."""
-        return self._final
+        return self._final.final
 
     def stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """UTC (int64 ns) and SyncState (uint8) of final samples k, in [final_until() - retain_s, final_until())."""
-        k = np.asarray(k, np.int64)
-        if k.size and (k.min() < self._floor or k.max() >= self._final):
-            raise ValueError(f"stamp: k outside the final, retained range [{self._floor}, {self._final})")
-        raw, state, _ = self._raw(k)
-        for k0, k1, p in self._clamps:
-            m = (k >= k0) & (k < k1)
-            raw[m] = p + k[m]
-        return raw, state
+        return self._final.stamp(k)
 
     def causal_stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """Provisional UTC (int64 ns) and SyncState (uint8) of samples k from what has been fed so far, and
@@ -447,22 +942,22 @@ class TimeSync:
         """
         k = np.asarray(k, np.int64)
         state = np.full(k.size, SyncState.FREE, np.uint8)
-        f = self._fit
+        f = self.labeller.fit
         if f is None:
-            if not self._bins:
+            if not self.host.bins:
                 raise RuntimeError("causal_stamp before any frame")
-            return self._host_stamps(k), state, False
-        s = (k - f.kr - f.c) / (self._fs + f.e)
+            return self.host.stamps(k), state, False
+        s = (k - f.kr - f.c) / (self._s.fs + f.e)
         t = np.int64(f.lr) * 1_000_000_000 + np.round(s * 1e9).astype(np.int64)
-        age = k - self._acc_k[-1]
-        state[age <= self._HO] = SyncState.HOLDOVER
-        state[age <= self._G] = SyncState.LOCKED
+        age = k - self.labeller.acc_k[-1]
+        state[age <= self._s.HO] = SyncState.HOLDOVER
+        state[age <= self._s.G] = SyncState.LOCKED
         return t, state, True
 
     @property
     def gps_clock(self) -> bool:
         """True once a PPS edge has been accepted: ``mono_to_utc`` then follows GPS time, not the host clock."""
-        return bool(self._host_offsets)
+        return bool(self.host.offsets)
 
     def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
         """Host monotonic time -> UTC (int64 ns), with the data fed so far.
@@ -470,325 +965,12 @@ class TimeSync:
         Locked: the largest (label - host read time) of the last 16 accepted edges (the read with the least
         latency). Before that: the host wall clock of the latest read or fix.
         """
-        if self._host_offsets:
-            return self._scaled(np.asarray(mono_ns, np.int64)) + np.int64(max(self._host_offsets))
-        if self._wall_minus_mono is None:
-            raise RuntimeError("mono_to_utc before any read: pass wall_ns to add_fix")
-        return np.asarray(mono_ns, np.int64) + np.int64(self._wall_minus_mono)
-
-    def _scaled(self, mono_ns: int | np.ndarray) -> int | np.ndarray:
-        """Host time in data seconds (``host_time_scale``; the identity at 1)."""
-        x = self.cfg.host_time_scale
-        return mono_ns if x == 1.0 else np.round(np.asarray(mono_ns, np.float64) * x).astype(np.int64)
+        return self.host.mono_to_utc(mono_ns)
 
     def pop_edges(self) -> EdgeBatch:
         """Edges whose fate is decided, in k order (each returned once)."""
-        out = []
-        while self._edges and (self._edges[0].accepted or self._edges[0].reason):
-            out.append(self._edges.popleft())
-        return EdgeBatch.of(out)
+        return EdgeBatch.of(self.labeller.pop())
 
     def pop_status(self) -> StatusBatch:
         """/time/sync records of the samples made final since the last call, at most one per UTC second."""
-        out, self._status = self._status, []
-        return StatusBatch.of(out)
-
-    # ---------------------------------------------------------------- edges
-    def _reject(self, e: PpsEdge, reason: str) -> None:
-        e.reason = reason
-        insort(self._rej_k, e.k_edge)
-
-    def _accept(self, e: PpsEdge) -> None:
-        e.accepted = True
-        if self._acc_first is None:
-            self._acc_first = e.k_edge
-        self._acc_k.append(e.k_edge)
-        self._acc_label.append(e.label)
-        self._host_offsets.append(e.label * 1_000_000_000 - int(self._scaled(e.mono_ns)))
-
-    def _on_edge(self, e: PpsEdge) -> None:
-        self._edges.append(e)
-        c = self.cfg
-        if self._fix is None:
-            return self._reject(e, "no_fix")
-        fix_utc, fix_mono = self._fix
-        if int(self._scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
-            return self._reject(e, "stale_fix")
-        e.label = fix_utc + 1
-        e.k_edge -= self._pulse_late.pop(e.label, 0.0) * self._fs
-        off = e.label * 1_000_000_000 - int(self._scaled(e.mono_ns))
-        ref = float(np.median(self._offsets)) if self._offsets else off
-        self._offsets.append(off)
-        if abs(off - ref) > c.max_disagree_s * 1e9:
-            return self._reject(e, "disagree")
-        if self._fit is None:
-            return self._acquire(e)
-        if self._acc_label and e.label <= self._acc_label[-1]:
-            return self._reject(e, "duplicate")
-        f = self._fit
-        dx = e.label - f.lr - f.x_mean
-        sigma = max(f.rms, 0.1 * self._tol) * math.sqrt(1.0 / f.n + dx * dx / f.sxx)
-        gate = self._tol + 4.0 * sigma + c.rate_tol_ppm * 1e-6 * self._fs * (e.label - self._acc_label[-1])
-        if abs(e.k_edge - f.predict_k(e.label, self._fs)) > gate:
-            return self._reject(e, "outlier")
-        self._accept(e)
-        self._refit(e)
-
-    def _robust_fit(self, label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
-                    min_inliers: int) -> tuple[_Fit, np.ndarray] | None:
-        """``robust_fit``, its edges counted in ``fit_edges``."""
-        self.fit_edges += len(label)
-        return robust_fit(label, k_edge, lr, kr, fs, tol, min_inliers)
-
-    def _refit(self, e: PpsEdge) -> None:
-        """Causal fit over the accepted edges within window_s before ``e``."""
-        i0 = bisect_left(self._acc_k, e.k_edge - 2 * self._H)
-        fit = self._robust_fit(np.asarray(self._acc_label[i0:]), np.asarray(self._acc_k[i0:]), e.label,
-                         math.floor(e.k_edge), self._fs, self._tol, 2)
-        if fit is not None:
-            self._fit = fit[0]
-
-    def _acquire(self, e: PpsEdge) -> None:
-        span = self.cfg.acquire_s * self._fs
-        for old in [p for p in self._pending if p.k_edge < e.k_edge - span]:
-            self._reject(old, "unlocked")
-        self._pending = [p for p in self._pending if p.k_edge >= e.k_edge - span] + [e]
-        labels = np.array([p.label for p in self._pending])
-        ks = np.array([p.k_edge for p in self._pending])
-        fit = self._robust_fit(labels, ks, e.label, math.floor(e.k_edge), self._fs, self._tol, self.cfg.min_edges)
-        if fit is None:
-            return
-        f, inl = fit
-        if abs(f.e / self._fs * 1e6) > self.cfg.max_rate_ppm or len(set(labels[inl].tolist())) < inl.sum():
-            return
-        for p, good in zip(self._pending, inl):
-            self._accept(p) if good else self._reject(p, "outlier")
-        self._pending = []
-        self._fit = f
-
-    def _expire_pending(self) -> None:
-        # a candidate further than acquire_s from any edge still to come can no longer join a lock
-        limit = self._k_max - 1 - self.cfg.acquire_s * self._fs
-        while self._pending and self._pending[0].k_edge < limit:
-            self._reject(self._pending.pop(0), "unlocked")
-
-    # ---------------------------------------------------------------- host clock
-    def _add_host(self, k: np.ndarray, wall_ns: int) -> None:
-        b = k // self._bin
-        if b[0] == b[-1]:
-            last = [k.size - 1]
-        else:
-            last = np.flatnonzero(np.diff(b, append=b[-1] + 1)).tolist()   # last frame of each bin in this read
-        for i in last:
-            bb = int(b[i])
-            v = wall_ns - round(int(k[i]) * self._ns_per_sample)
-            old = self._bins.get(bb)
-            self._bins[bb] = v if old is None else min(old, v)
-
-    def _host_offset(self, b: int) -> int:
-        vals = [self._bins[x] for x in range(b - self._bin_half, b + self._bin_half + 1) if x in self._bins]
-        if vals:
-            return min(vals)
-        return self._bins[max(x for x in self._bins if x <= b)]    # a long frame gap: the last bin before
-
-    # ---------------------------------------------------------------- knots and finality
-    def _knot_window(self, idx: int) -> tuple[float, float]:
-        """DAQ-clock span of knot idx's fit: +-window_s/2, stretched to the full window_s at the data's ends."""
-        ke = self._acc_k[idx]
-        lo, hi = ke - self._H, max(ke + self._H, self._acc_first + 2 * self._H)
-        if self._finished and hi > self._acc_k[-1]:
-            lo = min(lo, self._acc_k[-1] - 2 * self._H)
-        return lo, hi
-
-    def _fit_span(self, lo: float, hi: float, lab: int, kr: int) -> _Fit | None:
-        i0, i1 = bisect_left(self._acc_k, lo), bisect_right(self._acc_k, hi)
-        fit = self._robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), lab, kr, self._fs,
-                         self._tol, self.cfg.min_edges)
-        return None if fit is None else fit[0]
-
-    def _knot_fit(self, idx: int) -> None:
-        ke, lab = self._acc_k[idx], self._acc_label[idx]
-        lo, hi = self._knot_window(idx)
-        kr = math.floor(ke)
-        f = fc = self._fit_span(lo, hi, lab, kr)
-        if f is not None and self.cfg.pps_mode == "flag":
-            # The flag's quantisation error is a sawtooth: the edge slips by frac(samples per second) each
-            # second. A window of whole beat periods centred on the knot averages it out; other windows leave
-            # part of a period. At the data's ends (no centred window) the full window does better.
-            slip = abs((self._fs + f.e + 0.5) % 1.0 - 0.5)
-            n_beats = math.floor((hi - lo) / self._fs * slip)
-            half = n_beats / slip * self._fs / 2 if n_beats >= 1 else 0.0   # slip 0: a whole number of samples
-            # (Its slope is biased by the sawtooth: the rate and the statistics come from the full window.)
-            if n_beats >= 1 and lo <= ke - half and ke + half <= hi:
-                fc = self._fit_span(ke - half, ke + half, lab, kr) or f
-        if f is None:
-            return
-        rate = self._fs + f.e
-        d = (ke - kr - fc.c) / (self._fs + fc.e)
-        self._knot_k.append(ke)
-        self._knot.append((lab, d, 1.0 / rate, f.e / self._fs * 1e6, f.rms / rate * 1e6, f.n))
-
-    def _trail_slope(self, j: int) -> float:
-        """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
-        ke = self._knot_k[j]
-        if ke not in self._trail:
-            i0, i1 = bisect_left(self._acc_k, ke - 2 * self._H), bisect_right(self._acc_k, ke)
-            fit = self._robust_fit(np.asarray(self._acc_label[i0:i1]), np.asarray(self._acc_k[i0:i1]), self._knot[j][0],
-                             math.floor(ke), self._fs, self._tol, self.cfg.min_edges)
-            self._trail[ke] = 1.0 / (self._fs + fit[0].e) if fit is not None else self._knot[j][2]
-        return self._trail[ke]
-
-    def _advance(self) -> None:
-        """Fit the knots whose windows are complete, then make final the stamps they decide."""
-        if self._k_first is None:
-            return
-        kd = self._decided()
-        while self._knot_due(kd):
-            self._knot_fit(self._n_knotted)
-            self._n_knotted += 1
-        fu = self._final_target(kd)
-        if self._finalise_due(fu):
-            while self._final < fu:       # in blocks: memory stays bounded across a long frame gap
-                self._finalise(self._final, min(fu, self._final + FINALISE_BLOCK))
-
-    def _advance_due(self) -> bool:
-        """Whether ``_advance`` would change anything now."""
-        if self._k_first is None:
-            return False
-        kd = self._decided()
-        return self._knot_due(kd) or self._finalise_due(self._final_target(kd))
-
-    def _decided(self) -> float:
-        """The last sample before any edge still to be decided (every edge up to it is in)."""
-        if self._finished:
-            return math.inf
-        kd = self._k_max - 1
-        if self._pending:
-            kd = min(kd, math.floor(self._pending[0].k_edge) - 1)
-        return kd
-
-    def _knot_due(self, kd: float) -> bool:
-        return self._n_knotted < len(self._acc_k) and self._knot_window(self._n_knotted)[1] <= kd
-
-    def _final_target(self, kd: float) -> int:
-        """Samples before this one have final stamps once the knots up to kd are fitted."""
-        kf = kd                                # every knot at or before kf is known
-        if self._n_knotted < len(self._acc_k):
-            kf = min(kf, math.nextafter(self._acc_k[self._n_knotted], -math.inf))
-        end = self._k_max + 1
-        if self._knot_k:
-            last = self._knot_k[-1]
-            fu = end if kf >= last + self._HO else math.ceil(last)
-        else:
-            fu = end if kf == math.inf else math.floor(kf - self._H) + 1
-        return min(fu, end)
-
-    def _finalise_due(self, fu: int) -> bool:
-        # host-clock stamps (no knot yet) are finalised in steps of >= 1 s, not on every read
-        return fu > self._final and bool(self._knot_k or self._finished or fu - self._final >= self._bin)
-
-    def _raw(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Unclamped stamp (int64 ns), state (uint8) and governing knot (-1: host clock) of samples k."""
-        n = len(k)
-        raw = np.zeros(n, np.int64)
-        state = np.full(n, SyncState.FREE, np.uint8)
-        gov = np.full(n, -1, np.int64)
-        kk = k.astype(np.float64)
-        K = np.asarray(self._knot_k)
-        nk = len(K)
-        if nk:
-            kn = np.asarray(self._knot, dtype=np.float64)
-            i = np.searchsorted(K, kk, "right") - 1
-            ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
-            has_i, has_j = i >= 0, i + 1 < nk
-            interp = has_i & has_j & (K[jj] - K[ii] <= self._HO)
-            extrap = has_i & ~interp
-            back = ~has_i & has_j & (K[jj] - kk <= self._H)
-            lab = np.asarray([kn_[0] for kn_ in self._knot], np.int64)
-            d = kn[:, 1]
-            if interp.any():
-                a, b = ii[interp], jj[interp]
-                span = (lab[b] - lab[a]) + (d[b] - d[a])
-                frac = (kk[interp] - K[a]) / (K[b] - K[a])
-                raw[interp] = lab[a] * 1_000_000_000 + np.round((d[a] + frac * span) * 1e9).astype(np.int64)
-            if extrap.any():
-                a = ii[extrap]
-                slope = np.array([self._trail_slope(j) for j in a.tolist()])
-                raw[extrap] = lab[a] * 1_000_000_000 + np.round((d[a] + (kk[extrap] - K[a]) * slope) * 1e9).astype(
-                    np.int64)
-            if back.any():
-                b = jj[back]
-                raw[back] = lab[b] * 1_000_000_000 + np.round((d[b] + (kk[back] - K[b]) * kn[b, 2]) * 1e9).astype(
-                    np.int64)
-            gov[interp | extrap] = ii[interp | extrap]
-            gov[back] = jj[back]
-            A = np.asarray(self._acc_k)
-            a = np.searchsorted(A, kk, "right") - 1
-            age = np.where(a >= 0, kk - A[np.maximum(a, 0)], np.inf)
-            age[back] = K[jj[back]] - kk[back]
-            synced = interp | extrap | back
-            state[synced & (age <= self._HO)] = SyncState.HOLDOVER
-            state[synced & (age <= self._G)] = SyncState.LOCKED
-        host = gov < 0
-        if host.any():
-            raw[host] = self._host_stamps(k[host])
-        return raw, state, gov
-
-    def _host_stamps(self, k: np.ndarray) -> np.ndarray:
-        """Host-clock UTC ns of samples k: k / fs plus the lower envelope of the host offsets of their bins."""
-        bins, inv = np.unique(k // self._bin, return_inverse=True)
-        off = np.array([self._host_offset(b) for b in bins.tolist()], np.int64)[inv]
-        return np.round(k * self._ns_per_sample).astype(np.int64) + off
-
-    def _finalise(self, f0: int, f1: int) -> None:
-        k = np.arange(f0, f1, dtype=np.int64)
-        raw, state, gov = self._raw(k)
-        r = raw - k
-        cm = forward_clamp(r, self._pmax)
-        clamped = cm > r
-        if clamped.any():
-            starts = np.flatnonzero(clamped & ~np.concatenate(([False], clamped[:-1])))
-            ends = np.flatnonzero(clamped & ~np.concatenate((clamped[1:], [False]))) + 1
-            for s, e in zip(starts.tolist(), ends.tolist()):
-                self._clamps.append((f0 + s, f0 + e, int(cm[s])))
-        self._pmax = int(cm[-1])
-        stamp = cm + k
-        sec = stamp // 1_000_000_000
-        first = np.flatnonzero(np.diff(sec, prepend=sec[0] - 1) > 0)
-        rej = np.asarray(self._rej_k)
-        for i in first.tolist():
-            s = int(sec[i])
-            if self._status_sec is not None and s <= self._status_sec:
-                continue
-            self._status_sec = s
-            g = int(gov[i])
-            n_rej = self._rej_dropped + int(np.searchsorted(rej, k[i], "right"))
-            if g >= 0:
-                _, _, _, ppm, rms_us, used = self._knot[g]
-                self._status.append(SyncStatus(s * 1_000_000_000, SyncState(int(state[i])), ppm, rms_us, used, n_rej))
-            else:
-                self._status.append(SyncStatus(s * 1_000_000_000, SyncState.FREE, math.nan, math.nan, 0, n_rej))
-        self._final = f1
-        self._prune()
-
-    def _prune(self) -> None:
-        floor = max(self._k_first, self._final - int(self.cfg.retain_s * self._fs))
-        self._floor = floor
-        nk = bisect_right(self._knot_k, floor) - 1                  # keep the last knot at or before the floor
-        if nk > 0:
-            for ke in self._knot_k[:nk]:
-                self._trail.pop(ke, None)
-            del self._knot_k[:nk], self._knot[:nk]
-        keep_from = (self._knot_k[0] if self._knot_k else floor) - 2 * self._H - 1
-        na = min(bisect_left(self._acc_k, keep_from), self._n_knotted, max(0, bisect_right(self._acc_k, floor) - 1))
-        if na > 0:
-            del self._acc_k[:na], self._acc_label[:na]
-            self._n_knotted -= na
-        nr = bisect_right(self._rej_k, floor)
-        if nr > 0:
-            self._rej_dropped += nr
-            del self._rej_k[:nr]
-        self._clamps = [c for c in self._clamps if c[1] > floor]
-        old = sorted(b for b in self._bins if b < floor // self._bin - self._bin_half - 1)
-        for b in old[:-1]:                                          # the last one may still be the nearest
-            del self._bins[b]
+        return StatusBatch.of(self._final.pop_status())

@@ -101,6 +101,38 @@ def test_a_real_gap_within_host_time_is_kept_a_jump_beyond_it_is_rebased() -> No
     assert (st_.counter_implausible, st_.lost_frames) == (1, 0)
 
 
+
+@pytest.mark.parametrize("scale", [1.0, 20.0])
+@pytest.mark.parametrize("late_s", [0.0, 0.1, 0.5])
+def test_a_gap_after_a_late_read_is_kept_at_any_host_time_scale(scale: float, late_s: float) -> None:
+    # Playback at host_time_scale X: frame i read at i / fs / X host s, except the reads before an unplug, which
+    # come late_s late (a busy host). The gap then looks longer than the host time between the reads explains,
+    # by late_s of host time: X * late_s of data, within the read latency the judge allows at any X.
+    n_gap = int(2 * scale * FS * max(late_s, 0.1))                 # the data of 2 * late_s host s (at least 0.2)
+    counter = np.arange(300 + n_gap + 600)
+    gap = np.s_[300:300 + n_gap]
+    s = frames(counter)
+    keep = np.delete(counter, gap)
+    lost = b"".join(bytes(s[i * L:(i + 1) * L]) for i in keep)
+    mono = keep / FS / scale * 1e9 + np.where(keep < 300, late_s * 1e9, 0.0)
+    dec = daq.DaqDecoder()
+    judge = counterjudge.CounterJudge(dec.stats, counterjudge.JudgeConfig(fs_hz=FS, host_time_scale=scale))
+    ks = [judge.judge(dec.feed(lost[i * L:(i + 10) * L]), i * L, int(mono[i + 9])).k for i in range(0, len(keep), 10)]
+    k = np.concatenate(ks + [judge.flush().k])
+    np.testing.assert_array_equal(k, keep)
+    assert (dec.stats.counter_gaps, dec.stats.lost_frames, dec.stats.counter_implausible) == (1, n_gap, 0)
+    # the same late reads with the counter register jumped far beyond what any latency explains: re-based
+    jumped = np.where(counter >= 300, counter + int(100 * scale * FS), counter)
+    s = frames(jumped)
+    judge = counterjudge.CounterJudge((dec := daq.DaqDecoder()).stats,
+                                      counterjudge.JudgeConfig(fs_hz=FS, host_time_scale=scale))
+    mono = counter / FS / scale * 1e9 + np.where(counter < 300, late_s * 1e9, 0.0)
+    ks = [judge.judge(dec.feed(bytes(s[i * L:(i + 10) * L])), i * L, int(mono[i + 9])).k
+          for i in range(0, len(counter), 10)]
+    np.testing.assert_array_equal(np.concatenate(ks + [judge.flush().k]), counter)
+    assert (dec.stats.counter_implausible, dec.stats.lost_frames) == (1, 0)
+
+
 def test_truncated_frame_loss_is_a_gap() -> None:
     counter = np.arange(3)
     s = frames(counter)

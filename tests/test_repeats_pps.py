@@ -199,7 +199,7 @@ def fit_work(tmp_path: Path, reads: list, pps_mode: str) -> tuple[int, Pipeline]
         pipe = Pipeline(rec, sync_cfg=timesync.TimeSyncConfig(pps_mode=pps_mode))
         pipe.feed_reads(reads)
         pipe.finish()
-    return pipe.sync.fit_edges, pipe
+    return pipe.sync.labeller.fit_edges, pipe
 
 
 @pytest.mark.parametrize("pps_mode", ["flag", "latch"])

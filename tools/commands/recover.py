@@ -26,9 +26,8 @@ def run(a: argparse.Namespace) -> int:
     not stand in for its file (a symbolic link, or an older or cut-short file: ``recovery.recovered_state``) is
     never followed nor replaced without --force: one line says what to do, exit code 2."""
     from fieldlog.drive.bagdir import METADATA, RECOVERED, rewrite_metadata, session_files
-    from fieldlog.acquire.recovery import recovered_state
+    from fieldlog.acquire.recovery import recover_folder
     from fieldlog.drive.files import drive_files
-    from fieldlog.drive.mcapfile import McapFile, TruncatedError
 
     if len(a.drive) == 1 and not Path(a.drive[0]).is_dir():
         return recover_one(Path(a.drive[0]), Path(a.out) if a.out else None, a.force)
@@ -38,34 +37,11 @@ def run(a: argparse.Namespace) -> int:
     code = 0
     for spec in a.drive:
         d = Path(spec)
-        recovered = False
-        for src in session_files(d) if d.is_dir() else drive_files(spec):
-            if src.name.endswith(RECOVERED):
-                orig = src.with_name(src.name[:-len(RECOVERED)] + ".mcap")
-                if not orig.is_file():
-                    log.info(f"{src}: recovered already")
-                    continue
-                src = orig
-            try:
-                damaged = McapFile(src).damaged()
-            except TruncatedError:
-                damaged = None
-            if damaged == []:
-                log.info(f"{src}: complete, nothing to recover")
-                continue
-            if damaged:
-                log.info(f"{src}: damaged chunk{'s' * (len(damaged) > 1)} at byte {', '.join(map(str, damaged))}")
-            dst, state = recovered_state(src)
-            if state == "done":
-                log.info(f"{src}: recovered already, as {dst}")
-            elif state == "link" or (state == "stale" and not a.force):
-                log.error(f"{src}: not recovered: {dst} " + ("is a symbolic link (never followed): remove it"
-                          if state == "link" else "exists but does not stand in for it (older, or cut short): "
-                          "remove it or give --force") + f" and run again, or run `fieldlog recover {src} --out FILE`")
-                code = 2
-            else:
-                recovered = recover_one(src, None, a.force) == 0 or recovered
-        if d.is_dir() and (recovered or not (d / METADATA).exists()):
+        done, refused = recover_folder(session_files(d) if d.is_dir() else drive_files(spec),
+                                       lambda src, _dst: recover_one(src, None, a.force) == 0,
+                                       lambda msg, level: log.log(level, msg), a.force, complete_too=True)
+        code = 2 if refused else code
+        if d.is_dir() and (done or not (d / METADATA).exists()):
             meta, left = rewrite_metadata(d)
             log.info(f"wrote {meta}" + (f" (left out, no summary: {', '.join(str(f) for f in left)})" if left else ""))
     return code
