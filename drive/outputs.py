@@ -30,7 +30,7 @@ import shutil
 import stat
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Self
 
 CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -80,6 +80,17 @@ class Output(io.BufferedWriter):
             now = os.lstat(self.path)
             if (now.st_dev, now.st_ino) == self._id:
                 os.unlink(self.path)
+
+    def __exit__(self, kind, value, tb) -> None:
+        end(kind, self.close, self.discard)
+
+
+class Closing:
+    """An output used in a ``with`` block: ``close``d at its end, or ``discard``ed on an error other than Ctrl-C, in
+    the block or in closing (``end``). The class defines ``close`` and ``discard``."""
+
+    def __enter__(self) -> Self:
+        return self
 
     def __exit__(self, kind, value, tb) -> None:
         end(kind, self.close, self.discard)
