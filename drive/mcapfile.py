@@ -118,7 +118,12 @@ class McapFile(MappedFile):
 
     def metadata(self) -> list[Metadata]:
         """The metadata records in file order; a damaged one (its fields overrun it, a name or value is not
-        UTF-8) is left out with a warning naming it: the messages can still be read."""
+        UTF-8) is left out with a warning naming it: the messages can still be read.
+
+        Returns
+        -------
+        list[Metadata] : the records that read whole
+        """
         out = []
         for s, n in self._metadata:
             try:
@@ -129,6 +134,16 @@ class McapFile(MappedFile):
         return out
 
     def type_of(self, cid: int) -> str:
+        """The schema name of channel ``cid`` ("" when its schema is not defined).
+
+        Parameters
+        ----------
+        cid : a channel id of the file
+
+        Returns
+        -------
+        str : e.g. "sensor_msgs/msg/Imu"
+        """
         schema = self.schemas.get(self.channels[cid].schema_id)
         return schema.name if schema is not None else ""
 
@@ -136,7 +151,16 @@ class McapFile(MappedFile):
 
     def may_hold(self, cids: set[int] | list[int]) -> np.ndarray:
         """Per piece: whether it may hold messages of channels ``cids`` (it does not say which channels it
-        holds, or it holds one of them, or one not defined yet: defined inside a chunk)."""
+        holds, or it holds one of them, or one not defined yet: defined inside a chunk).
+
+        Parameters
+        ----------
+        cids : channel ids
+
+        Returns
+        -------
+        (len(pieces),) bool
+        """
         p = self.pieces
         cols = np.isin(p.cids, list(cids)) | ~np.isin(p.cids, list(self.channels))
         return ~p.indexed | p.has[:, cols].any(axis=1)
@@ -144,12 +168,31 @@ class McapFile(MappedFile):
     @staticmethod
     def groups(idx: np.ndarray, size: np.ndarray) -> list[np.ndarray]:
         """``idx`` (pieces to read in this order, with uncompressed ``size``) cut into consecutive groups of
-        about ``READ_BYTES``."""
+        about ``READ_BYTES``.
+
+        Parameters
+        ----------
+        idx : (k,) piece indexes, in reading order
+        size : (k,) their uncompressed sizes, bytes
+
+        Returns
+        -------
+        list of int64 arrays : the groups, in order
+        """
         c = np.cumsum(size) // READ_BYTES
         return np.split(idx, np.flatnonzero(np.diff(c)) + 1) if len(idx) else []
 
     def records(self, i: int) -> bytes | memoryview:
-        """The uncompressed records of piece ``i`` (a chunk's content, or the run's bytes in place)."""
+        """The uncompressed records of piece ``i`` (a chunk's content, or the run's bytes in place).
+
+        Parameters
+        ----------
+        i : a piece index
+
+        Returns
+        -------
+        bytes | memoryview : its records
+        """
         return self._chunks(decompress_many, np.array([i]))
 
     def _chunks(self, read: Callable, idx: np.ndarray, *args: object):
@@ -174,7 +217,12 @@ class McapFile(MappedFile):
 
     def damaged(self) -> list[int]:
         """Byte offsets of the chunks whose content does not decompress to its size and CRC-32 (what ``fieldlog
-        recover`` skips): each chunk decompressed and checked once, in groups, nothing copied out."""
+        recover`` skips): each chunk decompressed and checked once, in groups, nothing copied out.
+
+        Returns
+        -------
+        list[int] : file offsets, bytes, ascending
+        """
         p = self.pieces
         todo, out = np.flatnonzero(p.chunk), []
         none = np.zeros(1 << 16, bool)
@@ -201,7 +249,17 @@ class McapFile(MappedFile):
         their records walked once (``chunks.read_chunks``); schema and channel records found inside are added to
         the file's tables (and the pieces read again when they define a channel on ``topics``). The batch's
         ``data`` may be this thread's read buffer (``_scratch``): it holds until the next read in the thread, so
-        take what you keep (``ChunkMessages.packed`` copies) before the next."""
+        take what you keep (``ChunkMessages.packed`` copies) before the next.
+
+        Parameters
+        ----------
+        idx : piece indexes, in reading order
+        topics : the topics to keep (None: every channel)
+
+        Returns
+        -------
+        ChunkMessages : the messages, in record order
+        """
         idx = np.asarray(idx, np.int64)
         want = self._want(topics)
         cm, defs = self._chunks(read_chunks, idx, want, _scratch)
@@ -223,7 +281,12 @@ class McapFile(MappedFile):
 
     def message_counts(self) -> dict[int, int] | None:
         """channel id -> message count from the message indexes alone (no read); None when a chunk has none or
-        messages are outside chunks (``channel_stats`` counts those)."""
+        messages are outside chunks (``channel_stats`` counts those).
+
+        Returns
+        -------
+        dict[int, int] | None : by channel id
+        """
         p = self.pieces
         if not (p.chunk.all() and p.indexed.all()):
             return None
@@ -233,7 +296,12 @@ class McapFile(MappedFile):
 
     def channel_stats(self) -> dict[int, tuple[int, int, int]]:
         """channel id -> (message count, first log_time, last log_time): from the message indexes and the
-        loose messages' headers; chunks without message indexes are read (once per file object)."""
+        loose messages' headers; chunks without message indexes are read (once per file object).
+
+        Returns
+        -------
+        dict[int, tuple[int, int, int]] : by channel id; times UTC ns
+        """
         if self._topics is not None:
             return self._topics
         owner, cid, off, n = self._index
