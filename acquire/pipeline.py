@@ -71,6 +71,8 @@ class PipelineConfig:
     use_hnr: bool = False                           # [gps] use_hnr: u-blox HNR-PVT as the fixes (acquire/ubx.py)
     receiver_time_tolerance_s: float = 0.5          # receiver time vs the GPS clock fit (GpsInput)
     can: canbus.BusConfig | None = None             # the vehicle bus: how /raw/can is decoded (acquire/canbus.py)
+    tf_static: bool = True                          # write /tf_static: off when there is no IMU or antenna (a
+                                                    # CAN log imported alone), so the file claims no frame of them
 
 
 @dataclass
@@ -166,7 +168,7 @@ class Pipeline:
     def _write_tf_static(self, wall_ns: int) -> None:
         """/tf_static (acquire/frames.py) at the start of every file, stamped with the host clock of its first read."""
         target = getattr(self.sink, "rec", self.sink)
-        if target is not self._tf_file:
+        if target is not self._tf_file and self.cfg.tf_static:
             self._tf_file = target
             self.sink.write("/tf_static", wall_ns, frames.tf_static_message(self.cal.mounting, wall_ns))
 

@@ -51,7 +51,16 @@ class FileInfo:
 
 
 def file_info(path: Path) -> FileInfo:
-    """What the metadata says of one finished MCAP file, from its summary; ValueError when it has none."""
+    """What the metadata says of one finished MCAP file, from its summary; ValueError when it has none.
+
+    Parameters
+    ----------
+    path : a finished MCAP file
+
+    Returns
+    -------
+    FileInfo : its path, duration and per-topic counts
+    """
     from mcap.reader import make_reader  # here, not at the top: it would add to every command's start-up
 
     with open(path, "rb") as f:
@@ -76,7 +85,17 @@ def file_info(path: Path) -> FileInfo:
 
 
 def metadata(files: list[FileInfo], custom_data: dict[str, str] | None = None) -> dict:
-    """The ``metadata.yaml`` content for ``files`` (in bag order, all in one directory)."""
+    """The ``metadata.yaml`` content for ``files`` (in bag order, all in one directory).
+
+    Parameters
+    ----------
+    files : the bag's files, in bag order
+    custom_data : rosbag2's ``custom_data`` (None: none)
+
+    Returns
+    -------
+    dict : the YAML document
+    """
     with_msgs = [f for f in files if f.message_count]
     start = min((f.start_ns for f in with_msgs), default=0)
     end = max((f.end_ns for f in with_msgs), default=0)
@@ -112,7 +131,19 @@ def metadata(files: list[FileInfo], custom_data: dict[str, str] | None = None) -
 def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str, str] | None = None,
                    fsync: bool = True) -> Path:
     """Write ``directory/metadata.yaml`` for ``files`` atomically: a new file (never an existing path or a
-    symlink: O_EXCL | O_NOFOLLOW), fsynced, renamed over the old one. Returns its path."""
+    symlink: O_EXCL | O_NOFOLLOW), fsynced, renamed over the old one. Returns its path.
+
+    Parameters
+    ----------
+    directory : the bag directory
+    files : its files, in bag order
+    custom_data : rosbag2's ``custom_data`` (None: none)
+    fsync : fsync the file and the directory
+
+    Returns
+    -------
+    Path : ``directory/metadata.yaml``
+    """
     import yaml
 
     text = yaml.safe_dump(metadata(files, custom_data), sort_keys=False, default_flow_style=False)
@@ -137,7 +168,16 @@ def write_metadata(directory: Path, files: list[FileInfo], custom_data: dict[str
 
 def session_files(directory: Path) -> list[Path]:
     """A directory's MCAP files on disk by name (a session's in rotation order), each ``NAME.mcap`` replaced by
-    ``NAME.recovered.mcap`` when that stands in for it (``stand_in``)."""
+    ``NAME.recovered.mcap`` when that stands in for it (``stand_in``).
+
+    Parameters
+    ----------
+    directory : a session or rosbag2 directory
+
+    Returns
+    -------
+    list[Path] : its MCAP files
+    """
     names = sorted({f.with_name(f.name[: -len(RECOVERED)] + ".mcap") if f.name.endswith(RECOVERED) else f
                     for f in directory.glob("*.mcap")})
     return [stand_in(f) for f in names]
@@ -145,7 +185,16 @@ def session_files(directory: Path) -> list[Path]:
 
 def stand_in(f: Path) -> Path:
     """``NAME.recovered.mcap`` in place of ``f`` (``NAME.mcap``) when it is a regular file (a symbolic link never
-    stands in) at least as new as ``f``; else ``f``."""
+    stands in) at least as new as ``f``; else ``f``.
+
+    Parameters
+    ----------
+    f : a session's file, ``NAME.mcap``
+
+    Returns
+    -------
+    Path : the file that stands for it
+    """
     r = f.with_name(f.stem + RECOVERED)
     try:
         st = os.lstat(r)
@@ -161,7 +210,17 @@ def stand_in(f: Path) -> Path:
 
 def rewrite_metadata(directory: Path) -> tuple[Path, list[Path]]:
     """``metadata.yaml`` of a session directory written again from its files on disk (``session_files``);
-    files without a summary (not recovered yet) are left out and returned."""
+    files without a summary (not recovered yet) are left out and returned.
+
+    Parameters
+    ----------
+    directory : the session directory
+
+    Returns
+    -------
+    path : the ``metadata.yaml`` written
+    left_out : the files without a summary
+    """
     infos, unfinished = [], []
     for f in session_files(directory):
         try:
@@ -174,7 +233,16 @@ def rewrite_metadata(directory: Path) -> tuple[Path, list[Path]]:
 def bag_file(out: Path) -> Path:
     """The MCAP file of a one-file bag ``out`` (``--bag``): ``out/<name>.mcap``, ``name`` = ``out`` without a
     ``.mcap`` suffix; the directory is made as every output folder is (``outputs.out_dir``: a symbolic link there
-    is refused, ``outputs.Refused``; a file there raises ValueError)."""
+    is refused, ``outputs.Refused``; a file there raises ValueError).
+
+    Parameters
+    ----------
+    out : the bag directory (``--out``)
+
+    Returns
+    -------
+    Path : the MCAP file inside it
+    """
     d = out.with_suffix("") if out.suffix == ".mcap" else out
     if not d.is_symlink() and d.exists() and not d.is_dir():
         raise ValueError(f"{d}: exists and is not a directory; --bag writes a rosbag2 directory there")
@@ -183,5 +251,14 @@ def bag_file(out: Path) -> Path:
 
 
 def write_bag_metadata(mcap: Path) -> Path:
-    """``metadata.yaml`` for the one-file bag whose file ``bag_file`` gave."""
+    """``metadata.yaml`` for the one-file bag whose file ``bag_file`` gave.
+
+    Parameters
+    ----------
+    mcap : the bag's finished MCAP file
+
+    Returns
+    -------
+    Path : the ``metadata.yaml`` beside it
+    """
     return write_metadata(mcap.parent, [file_info(mcap)])

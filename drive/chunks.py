@@ -35,7 +35,20 @@ def _walk(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 def walk_records(buf, pos: int, cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Records in ``buf`` (a uint8 array or a bytes-like object) from byte ``pos`` on (a chunk's content, or a
     whole file after its magic): opcode, start of the record body, body length; and the end of the last complete
-    record. ``cap``: the number of records expected (the arrays grow past it). Compiled (drive/_chunks.c)."""
+    record. ``cap``: the number of records expected (the arrays grow past it). Compiled (drive/_chunks.c).
+
+    Parameters
+    ----------
+    buf : the bytes
+    pos : where to start, bytes
+    cap : records expected
+
+    Returns
+    -------
+    ops : (k,) uint8 opcodes
+    starts, lengths : (k,) int64 body offset in ``buf`` and body length, bytes
+    end : the offset after the last complete record
+    """
     data = np.frombuffer(buf, np.uint8) if not isinstance(buf, np.ndarray) else np.ascontiguousarray(buf, np.uint8)
     if pos < 0:
         raise ValueError(f"walk_records: pos {pos} < 0")
@@ -68,6 +81,16 @@ class ChunkMessages:
     length: np.ndarray  # int64, payload length
 
     def select(self, mask: np.ndarray) -> "ChunkMessages":
+        """The messages where ``mask`` is true (the same ``data``).
+
+        Parameters
+        ----------
+        mask : (n,) bool, or indexes
+
+        Returns
+        -------
+        ChunkMessages
+        """
         return ChunkMessages(
             self.data,
             self.channel_id[mask],
@@ -79,7 +102,12 @@ class ChunkMessages:
         )
 
     def packed(self) -> "messages.Packed":
-        """Payloads as a Packed batch: one vectorised gather (of whole rows when they have one length)."""
+        """Payloads as a Packed batch: one vectorised gather (of whole rows when they have one length).
+
+        Returns
+        -------
+        messages.Packed : a copy of the payloads
+        """
         n = len(self.start)
         if n and np.all(self.length == self.length[0]):
             w = int(self.length[0])
@@ -91,7 +119,16 @@ class ChunkMessages:
 
 
 def decompress_chunk(chunk: Chunk) -> bytes:
-    """Uncompressed chunk bytes; raises ValueError if the size or CRC does not match."""
+    """Uncompressed chunk bytes; raises ValueError if the size or CRC does not match.
+
+    Parameters
+    ----------
+    chunk : a Chunk record
+
+    Returns
+    -------
+    bytes : its records
+    """
     return decompress(chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc)
 
 
@@ -108,7 +145,19 @@ def _zstd() -> "zstandard.ZstdDecompressor":
 
 def decompress(compression: str, data, size: int, crc: int):
     """A chunk's records, uncompressed (``data``: bytes or a buffer; returned as it is when not compressed);
-    raises ValueError if the size or the CRC (0: none) does not match."""
+    raises ValueError if the size or the CRC (0: none) does not match.
+
+    Parameters
+    ----------
+    compression : "zstd", "lz4" or ""
+    data : the compressed records
+    size : uncompressed size, bytes
+    crc : CRC-32 of the uncompressed records (0: none)
+
+    Returns
+    -------
+    the records (bytes, or ``data`` itself)
+    """
     out = decompress_many(data, [compression], [0], [0], [len(data)], [size], [crc])
     return data if compression == "" else out
 
@@ -129,7 +178,12 @@ MAX_CHUNK_BYTES = 256 << 20
 def max_chunk_bytes() -> int:
     """The most uncompressed bytes one chunk (or one run of messages outside chunks) may hold to be read:
     ``FIELDLOG_MAX_CHUNK_BYTES`` from the environment, else ``MAX_CHUNK_BYTES`` (256 MiB: 64 times the chunks
-    ``Recorder`` writes, and of any writer we know of; a chunk claiming more is damaged, or a decompression bomb)."""
+    ``Recorder`` writes, and of any writer we know of; a chunk claiming more is damaged, or a decompression bomb).
+
+    Returns
+    -------
+    int : bytes
+    """
     text = os.environ.get(MAX_CHUNK_ENV, "").strip()
     if not text:
         return MAX_CHUNK_BYTES
@@ -144,7 +198,12 @@ def max_chunk_bytes() -> int:
 
 def check_sizes(size: np.ndarray) -> None:
     """``ChunkError`` for the first chunk whose claimed uncompressed ``size`` (int64: one that does not fit is
-    negative) exceeds ``max_chunk_bytes``, before any buffer is sized by it."""
+    negative) exceeds ``max_chunk_bytes``, before any buffer is sized by it.
+
+    Parameters
+    ----------
+    size : (k,) int64 claimed sizes, bytes
+    """
     limit = max_chunk_bytes()
     over = np.flatnonzero((size < 0) | (size > limit))
     if len(over):
@@ -162,7 +221,20 @@ def decompress_many(buf, names: Sequence[str], comp: Sequence[int], at: Sequence
     ``ChunkError`` for the first chunk that does not match. Small chunks are many, so each run of zstd chunks is
     decompressed in one call (python-zstandard's ``multi_decompress_to_buffer``: in C, without the GIL, and it
     checks the sizes) and the CRCs are taken with zlib-ng's SIMD CRC-32. No chunk is decompressed past its claimed
-    size, and none claiming more than ``max_chunk_bytes`` is decompressed at all (``check_sizes``)."""
+    size, and none claiming more than ``max_chunk_bytes`` is decompressed at all (``check_sizes``).
+
+    Parameters
+    ----------
+    buf : the file's bytes
+    names : compression names
+    comp : (k,) index into ``names`` per chunk
+    at, length : (k,) offset and length of each chunk's compressed records, bytes
+    size, crc : (k,) uncompressed size, bytes, and CRC-32 (0: none)
+
+    Returns
+    -------
+    the joined records (bytes-like)
+    """
     comp, at, length, size, crc = (np.asarray(x, np.int64) for x in (comp, at, length, size, crc))
     check_sizes(size)
     mv = memoryview(buf).cast("B")
@@ -218,14 +290,33 @@ def _one(compression: str, data, size: int, k: int):
 
 
 def chunk_messages(data: bytes) -> ChunkMessages:
-    """Parse the Message records of an uncompressed chunk, vectorised (compiled record walk)."""
+    """Parse the Message records of an uncompressed chunk, vectorised (compiled record walk).
+
+    Parameters
+    ----------
+    data : a chunk's records, uncompressed
+
+    Returns
+    -------
+    ChunkMessages
+    """
     buf = np.frombuffer(data, dtype=np.uint8)
     return messages_of(buf, *_walk(buf)[:3])
 
 
 def byte_windows(buf: np.ndarray, k: int) -> np.ndarray:
     """A read-only view (len(buf) - k + 1, k) of a uint8 buffer: row i holds the k bytes from byte i (no copy;
-    index it with record positions to gather fixed-size heads or payloads in one step)."""
+    index it with record positions to gather fixed-size heads or payloads in one step).
+
+    Parameters
+    ----------
+    buf : (m,) uint8
+    k : window length, bytes
+
+    Returns
+    -------
+    (m - k + 1, k) uint8 view
+    """
     return np.lib.stride_tricks.as_strided(buf, shape=(max(len(buf) - k + 1, 0), k), strides=(1, 1),
                                            writeable=False)
 
@@ -233,7 +324,18 @@ def byte_windows(buf: np.ndarray, k: int) -> np.ndarray:
 def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
     """Little-endian ``dtype`` values (or records of a structured dtype) at byte positions ``pos`` of a uint8
     buffer (each must leave room for the value). Integers are put together from one ``take`` per byte (twice as
-    fast as gathering rows of ``byte_windows``, which the records use)."""
+    fast as gathering rows of ``byte_windows``, which the records use).
+
+    Parameters
+    ----------
+    buf : (m,) uint8
+    pos : (n,) int64 byte positions
+    dtype : the value's dtype (little-endian)
+
+    Returns
+    -------
+    (n,) array of ``dtype``
+    """
     dt, pos = np.dtype(dtype), np.asarray(pos, np.int64)
     if dt.kind not in "iu":
         return byte_windows(buf, dt.itemsize)[pos].view(dt).ravel()
@@ -247,7 +349,18 @@ def le(buf: np.ndarray, pos: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
 def messages_of(buf: np.ndarray, ops: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
                 channels: Sequence[int] | None = None) -> ChunkMessages:
     """The Message records among walked records (``walk_records``) of ``buf``, as arrays (only those on
-    ``channels``, when given)."""
+    ``channels``, when given).
+
+    Parameters
+    ----------
+    buf : (m,) uint8 the records
+    ops, starts, lengths : the walked records (``walk_records``)
+    channels : channel ids to keep (None: all)
+
+    Returns
+    -------
+    ChunkMessages
+    """
     is_msg = (ops == Opcode.MESSAGE) & (lengths >= 22)
     s, ln = starts[is_msg], lengths[is_msg]
     windows = byte_windows(buf, 22)
@@ -285,7 +398,19 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
     the batch's ``data``, body length). When zstd chunks are among them (and uncompressed ones only besides) and
     ``drive.native`` is ready, in one compiled pass that keeps only those records: ``scratch(a, b)`` gives a
     staging buffer of ``a`` bytes and the batch's buffer of ``b`` bytes. Else the chunks are decompressed and joined
-    (``decompress_many``), walked (``walk_records``) and their messages picked (``messages_of``)."""
+    (``decompress_many``), walked (``walk_records``) and their messages picked (``messages_of``).
+
+    Parameters
+    ----------
+    buf, names, comp, at, length, size, crc : the chunks, as ``decompress_many`` takes them
+    want : (65536,) bool per channel id
+    scratch : (staging bytes, batch bytes) -> two uint8 buffers
+
+    Returns
+    -------
+    messages : ChunkMessages
+    definitions : (opcode, body start, body length) of the schema and channel records
+    """
     comp, size = np.asarray(comp, np.int64), np.asarray(size, np.int64)
     check_sizes(size)
     used = {names[c] for c in np.unique(comp).tolist()}
@@ -307,7 +432,17 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
 
 def chunk_definitions(chunk: Chunk, data: bytes) -> list[Schema | Channel]:
     """Schema and Channel records inside a chunk (other writers put them there); ``data``: its records,
-    uncompressed (``decompress_chunk``)."""
+    uncompressed (``decompress_chunk``).
+
+    Parameters
+    ----------
+    chunk : the Chunk record
+    data : its records, uncompressed
+
+    Returns
+    -------
+    list[Schema | Channel]
+    """
     ops, _, _, _ = _walk(np.frombuffer(data, dtype=np.uint8))
     if not np.isin(ops, (Opcode.SCHEMA, Opcode.CHANNEL)).any():
         return []

@@ -52,7 +52,16 @@ class Source:
 
 def file_transforms(path: Path) -> dict[str, Transform]:
     """One file's static transforms: child frame -> (parent frame, translation (3,) m, C_parent_child (3, 3)),
-    the last message's for a frame given twice."""
+    the last message's for a frame given twice.
+
+    Parameters
+    ----------
+    path : one MCAP file
+
+    Returns
+    -------
+    dict[str, Transform] : by child frame
+    """
     out: dict[str, Transform] = {}
     for msg in reader.iter_decoded(path, TF_STATIC):
         for tr in msg.transforms:
@@ -83,7 +92,18 @@ class Drive(list):
         """Open every file of ``spec`` once and check the files as one drive (module docstring). ``tf_from``:
         the file (one of the drive's) whose /tf_static wins; ``imu_axes_given``: the IMU's axes are given
         (``--imu-frame``), so files may differ on the ``imu`` frame. Raises DriveError (one line) when the files
-        are not one drive, FileNotFoundError for a missing file."""
+        are not one drive, FileNotFoundError for a missing file.
+
+        Parameters
+        ----------
+        spec : the drive (``drive.files.DriveSpec``)
+        tf_from : the file whose transforms win (None: files must agree)
+        imu_axes_given : the IMU's axes come from an option
+
+        Returns
+        -------
+        Drive : the paths of ``spec``, with their sources and transforms
+        """
         items = [spec] if isinstance(spec, (str, os.PathLike)) else list(spec)
         d = cls(items)
         open_drive(d)  # every file mapped and its summary read, once
@@ -147,7 +167,12 @@ class Drive(list):
 
     def tf_static(self) -> dict[str, Transform]:
         """The drive's static transforms (child frame -> parent, translation, C_parent_child): every file's, in
-        log-time order, ``tf_from``'s last so that it wins."""
+        log-time order, ``tf_from``'s last so that it wins.
+
+        Returns
+        -------
+        dict[str, Transform] : by child frame; translations m, rotations C_parent_child
+        """
         out: dict[str, Transform] = {}
         for p in sorted(self.transforms, key=lambda p: p == self.tf_from):
             out.update(self.transforms[p])

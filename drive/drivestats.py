@@ -86,6 +86,12 @@ class QuantisedMedian:
         self.nan = False
 
     def add(self, x: np.ndarray) -> None:
+        """Count the values ``x`` (NaN: the median becomes NaN).
+
+        Parameters
+        ----------
+        x : (n,) values, in the units of ``quantum``
+        """
         x = np.asarray(x, np.float64)
         finite = np.isfinite(x)
         if not finite.all():
@@ -107,12 +113,23 @@ class QuantisedMedian:
 
     def table(self) -> tuple[np.ndarray, np.ndarray]:
         """Each key's value (the middle of its interval; the quantised value itself before any doubling) and
-        count, in ascending order."""
+        count, in ascending order.
+
+        Returns
+        -------
+        values, counts : (k,) float64 and int64
+        """
         k = np.array(sorted(self.counts), np.int64)
         w = 1 << self.shift
         return (k * w + (w - 1) / 2) * self.quantum, np.array([self.counts[i] for i in k.tolist()], np.int64)
 
     def median(self) -> float:
+        """The median of the quantised values (NaN when none, or a NaN was counted).
+
+        Returns
+        -------
+        float : in the units of ``quantum``
+        """
         if self.nan or self.n == 0:
             return float("nan")
         v, n = self.table()
@@ -131,6 +148,12 @@ class Steps:
         self._last: int | None = None
 
     def add(self, t_ns: np.ndarray) -> None:
+        """Count the steps of the next batch of stamps (and the step from the last batch's last stamp).
+
+        Parameters
+        ----------
+        t_ns : (n,) int64 stamps, ns, in order
+        """
         t = np.asarray(t_ns, np.int64)
         if len(t) == 0:
             return
@@ -220,10 +243,22 @@ class TimingPairs:
         self.one, self.near = _ErrorSums(), _ErrorSums()
 
     def set_lock(self, lock_ns: int) -> None:
+        """The first time-sync lock: errors count from it on.
+
+        Parameters
+        ----------
+        lock_ns : UTC ns
+        """
         self.one.set_lock(lock_ns)
         self.near.set_lock(lock_ns)
 
     def truth(self, t_ns: np.ndarray) -> None:
+        """The next /truth/imu sample times.
+
+        Parameters
+        ----------
+        t_ns : (n,) int64 UTC ns
+        """
         t = np.sort(np.asarray(t_ns, np.int64))
         if len(t) == 0:
             return
@@ -234,6 +269,12 @@ class TimingPairs:
         self._pair()
 
     def imu(self, t_ns: np.ndarray) -> None:
+        """The next /imu stamps (before any truth: not paired, ``incomplete``).
+
+        Parameters
+        ----------
+        t_ns : (n,) int64 UTC ns
+        """
         t = np.asarray(t_ns, np.int64)
         if len(t) == 0:
             return
@@ -264,6 +305,12 @@ class TimingPairs:
             self._window = self._window[max(int(j.min()) - self.MARGIN, 0):]
 
     def result(self) -> TimingError | None:
+        """The stamps' error against the truth: the one-to-one pairing when the counts agree, else the nearest.
+
+        Returns
+        -------
+        TimingError | None : None without both topics
+        """
         if self.n_truth == 0 or self.n_imu == 0:
             return None
         if self.n_imu == self.n_truth:
@@ -302,14 +349,28 @@ class DriveStats:
             s[0], s[1] = min(s[0], lo), max(s[1], hi)
 
     def observe_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        """One message (``Recorder.write``: raw reads, sentences, outages; cheap for those)."""
+        """One message (``Recorder.write``: raw reads, sentences, outages; cheap for those).
+
+        Parameters
+        ----------
+        topic : its topic
+        log_time_ns : UTC ns
+        data : its CDR payload
+        """
         if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
             self.observe(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
         else:
             self._span(topic, log_time_ns, log_time_ns)
 
     def observe(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed) -> None:
-        """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times."""
+        """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times.
+
+        Parameters
+        ----------
+        topic : its topic
+        log_time_ns : (n,) int64 UTC ns
+        p : the n CDR payloads
+        """
         self._span(topic, int(log_time_ns.min()), int(log_time_ns.max()))
         if topic == "/imu":
             self.imu(log_time_ns)
@@ -324,7 +385,12 @@ class DriveStats:
 
     def imu(self, stamp_ns: np.ndarray) -> None:
         """/imu stamps; their steps are counted IMU_HOLD at a time: the daemon writes /imu a DAQ read at a time
-        (a few dozen samples), and the per-call cost of counting dominates such small batches."""
+        (a few dozen samples), and the per-call cost of counting dominates such small batches.
+
+        Parameters
+        ----------
+        stamp_ns : (n,) int64 UTC ns
+        """
         t = np.array(stamp_ns, np.int64)
         self._imu_held.append(t)
         self._imu_n_held += len(t)
@@ -338,14 +404,35 @@ class DriveStats:
             self._imu_held, self._imu_n_held = [], 0
 
     def truth(self, stamp_ns: np.ndarray) -> None:
+        """/truth/imu sample times (``TimingPairs.truth``).
+
+        Parameters
+        ----------
+        stamp_ns : (n,) int64 UTC ns
+        """
         self._timing.truth(stamp_ns)
 
     def fix(self, stamp_ns: np.ndarray, status: np.ndarray) -> None:
+        """/gps/fix stamps and statuses: the epoch steps and the epochs without a fix.
+
+        Parameters
+        ----------
+        stamp_ns : (n,) int64 UTC ns
+        status : (n,) NavSatStatus status (< 0: no fix)
+        """
         self._fix.add(stamp_ns)
         self._no_fix += int(np.count_nonzero(np.asarray(status) < 0))
 
     def sync(self, stamp_ns: np.ndarray, state: np.ndarray, rate_ppm: np.ndarray, residual_us: np.ndarray) -> None:
-        """/time/sync records: the states, the first lock, the rate and residual while locked."""
+        """/time/sync records: the states, the first lock, the rate and residual while locked.
+
+        Parameters
+        ----------
+        stamp_ns : (n,) int64 UTC ns
+        state : (n,) FREE=0, HOLDOVER=1, LOCKED=2
+        rate_ppm : (n,) DAQ oscillator rate error, ppm
+        residual_us : (n,) fit residual RMS, µs
+        """
         state = np.asarray(state)
         for s, n in zip(*(a.tolist() for a in np.unique(state, return_counts=True))):
             self._states[s] = self._states.get(s, 0) + n
@@ -359,6 +446,12 @@ class DriveStats:
             self._residual.add(np.asarray(residual_us)[locked])
 
     def quality(self) -> Quality:
+        """The figures of what was observed.
+
+        Returns
+        -------
+        Quality
+        """
         self._fold_imu()
         q = Quality(first_lock_ns=self._first_lock, gps_no_fix=self._no_fix, timing=self._timing.result())
         q.sync_states = {SYNC_NAMES.get(s, str(s)): self._states[s] / self._n_sync for s in sorted(self._states)}
@@ -377,7 +470,12 @@ class DriveStats:
 
     def record(self) -> dict[str, str]:
         """The ``fieldlog.info`` metadata record: JSON values (``drive.metavalue``), one key each (no ``timing``
-        when /imu came before /truth/imu: ``info`` scans for it)."""
+        when /imu came before /truth/imu: ``info`` scans for it).
+
+        Returns
+        -------
+        dict[str, str] : key -> JSON text
+        """
         out = {f"span.{topic}": metavalue.dump(list(s)) for topic, s in self.span.items()}
         d = asdict(self.quality())
         if self._timing.incomplete and self._timing.n_truth:
@@ -386,7 +484,16 @@ class DriveStats:
         return out
 def quality_from_record(rec: dict[str, str]) -> Quality | None:
     """The inverse of ``DriveStats.record`` (also of older drives' Python literals); None when the record lacks a
-    figure or holds one that is not what ``record`` writes: scan the file instead."""
+    figure or holds one that is not what ``record`` writes: scan the file instead.
+
+    Parameters
+    ----------
+    rec : the ``fieldlog.info`` record's keys and values
+
+    Returns
+    -------
+    Quality | None
+    """
     names = set(Quality.__dataclass_fields__)
     if not names <= set(rec):
         return None

@@ -70,7 +70,16 @@ def _dir_files(d: Path) -> list[Path]:
 
 
 def drive_files(spec: DriveSpec) -> list[Path]:
-    """The files of a drive (module docstring), in the order given; FileNotFoundError naming what is missing."""
+    """The files of a drive (module docstring), in the order given; FileNotFoundError naming what is missing.
+
+    Parameters
+    ----------
+    spec : a file, a session or rosbag2 directory, or a list of them
+
+    Returns
+    -------
+    list[Path] : the MCAP files
+    """
     if isinstance(spec, (str, os.PathLike)):
         spec = [spec]
     out: list[Path] = []
@@ -91,14 +100,32 @@ def drive_files(spec: DriveSpec) -> list[Path]:
 
 
 def label(spec: DriveSpec) -> str:
-    """A drive as text: its path, or its paths joined by spaces."""
+    """A drive as text: its path, or its paths joined by spaces.
+
+    Parameters
+    ----------
+    spec : the drive
+
+    Returns
+    -------
+    str : for messages to the user
+    """
     if isinstance(spec, (str, os.PathLike)):
         return str(spec)
     return " ".join(str(s) for s in spec)
 
 
 def open_file(path: Path) -> McapFile:
-    """``McapFile(path)``, reused while the file is unchanged (a command reads a drive several times)."""
+    """``McapFile(path)``, reused while the file is unchanged (a command reads a drive several times).
+
+    Parameters
+    ----------
+    path : an MCAP file
+
+    Returns
+    -------
+    McapFile : the open file (``ValueError`` subclasses when it is not a whole MCAP file)
+    """
     st = path.stat()
     key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
     f = _OPEN.get(key)
@@ -111,7 +138,16 @@ def open_file(path: Path) -> McapFile:
 
 
 def open_drive(spec: DriveSpec) -> list[McapFile]:
-    """The drive's files, opened, ordered by their first log time (then as given)."""
+    """The drive's files, opened, ordered by their first log time (then as given).
+
+    Parameters
+    ----------
+    spec : the drive
+
+    Returns
+    -------
+    list[McapFile] : its files
+    """
     files = [open_file(p) for p in drive_files(spec)]
     first = [int(f.pieces.start_ns.min()) if len(f.pieces) else 0 for f in files]
     return [f for _, _, f in sorted(zip(first, range(len(files)), files), key=lambda x: x[:2])]

@@ -175,7 +175,16 @@ def _deps(type_name: str) -> list[str]:
 
 @lru_cache(maxsize=None)
 def schema_text(type_name: str) -> str:
-    """Concatenated ros2msg definition (as rosbag2 / mcap_ros2 expect) for ``type_name``."""
+    """Concatenated ros2msg definition (as rosbag2 / mcap_ros2 expect) for ``type_name``.
+
+    Parameters
+    ----------
+    type_name : a registered type, e.g. "sensor_msgs/msg/Imu"
+
+    Returns
+    -------
+    str : its definition and those of the types it uses
+    """
     parts = [MSG_DEFS[type_name]]
     for dep in _deps(type_name):
         pkg, _, name = dep.split("/")
@@ -247,6 +256,14 @@ def topic_type(topic: str) -> str:
     and the distributed filter's local solutions ``/fusion/<method>/kf{1,2}/{fix,vel}``.
 
     Raises KeyError for a topic outside the contract.
+
+    Parameters
+    ----------
+    topic : a topic name
+
+    Returns
+    -------
+    str : its type name
     """
     if topic in TOPICS:
         return TOPICS[topic]
@@ -266,7 +283,16 @@ _INFINITE = "\n    sec: 9223372036\n    nsec: 854775807"
 @lru_cache(maxsize=None)
 def offered_qos_profiles(topic: str) -> str:
     """The YAML text rosbag2 writes for one publisher of ``topic`` (reliable; volatile except the latched
-    /tf_static and /fusion/<method>/datum)."""
+    /tf_static and /fusion/<method>/datum).
+
+    Parameters
+    ----------
+    topic : a topic name
+
+    Returns
+    -------
+    str : the YAML text
+    """
     latched = topic == "/tf_static" or (topic.startswith("/fusion/") and topic.endswith("/datum"))
     durability = "transient_local" if latched else "volatile"
     history, depth = ("keep_last", 1) if latched else ("unknown", 0)
@@ -298,6 +324,12 @@ class Packed:
         return (raw[o[i] : o[i + 1]] for i in range(len(o) - 1))
 
     def to_list(self) -> list[bytes]:
+        """The messages as a list of bytes.
+
+        Returns
+        -------
+        list[bytes]
+        """
         return list(self)
 
     @property
@@ -305,21 +337,40 @@ class Packed:
         return np.diff(self.offsets)
 
     def width(self) -> int | None:
-        """The common message length, or None when lengths differ (or the batch is empty)."""
+        """The common message length, or None when lengths differ (or the batch is empty).
+
+        Returns
+        -------
+        int | None : bytes
+        """
         lens = self.lengths
         if len(lens) == 0 or not np.all(lens == lens[0]):
             return None
         return int(lens[0])
 
     def matrix(self) -> np.ndarray:
-        """(n, width) uint8 view of a batch of equal-length messages."""
+        """(n, width) uint8 view of a batch of equal-length messages.
+
+        Returns
+        -------
+        (n, width) uint8 array; ValueError when lengths differ
+        """
         w = self.width()
         if w is None:
             raise ValueError("messages differ in length")
         return self.buf[self.offsets[0] : self.offsets[-1]].reshape(len(self), w)
 
     def take(self, idx: np.ndarray) -> "Packed":
-        """Messages ``idx`` (any order) as a new batch: one vectorised byte gather, no per-message Python."""
+        """Messages ``idx`` (any order) as a new batch: one vectorised byte gather, no per-message Python.
+
+        Parameters
+        ----------
+        idx : (k,) message indexes
+
+        Returns
+        -------
+        Packed : k messages
+        """
         idx = np.asarray(idx, dtype=np.int64)
         if self.width() is not None:
             return Packed.from_matrix(self.matrix()[idx])
@@ -332,11 +383,31 @@ class Packed:
 
     @classmethod
     def from_matrix(cls, mat: np.ndarray) -> "Packed":
+        """A batch of equal-length messages, one per row of ``mat``.
+
+        Parameters
+        ----------
+        mat : (n, width) uint8
+
+        Returns
+        -------
+        Packed : n messages
+        """
         n, w = mat.shape
         return cls(np.ascontiguousarray(mat).reshape(-1), np.arange(n + 1, dtype=np.int64) * w)
 
     @classmethod
     def from_list(cls, msgs: Sequence[bytes]) -> "Packed":
+        """A batch of the messages ``msgs``, joined.
+
+        Parameters
+        ----------
+        msgs : the messages
+
+        Returns
+        -------
+        Packed : len(msgs) messages
+        """
         lens = np.fromiter((len(m) for m in msgs), dtype=np.int64, count=len(msgs))
         offsets = np.zeros(len(msgs) + 1, dtype=np.int64)
         np.cumsum(lens, out=offsets[1:])
@@ -344,6 +415,16 @@ class Packed:
 
 
 def as_packed(msgs: "Packed | Sequence[bytes]") -> Packed:
+    """``msgs`` as a ``Packed`` batch (a Packed as it is, a list joined).
+
+    Parameters
+    ----------
+    msgs : the messages
+
+    Returns
+    -------
+    Packed : the batch
+    """
     return msgs if isinstance(msgs, Packed) else Packed.from_list(msgs)
 
 
@@ -438,14 +519,32 @@ def _dtype(fields: tuple[_Field, ...], string_lengths: tuple[int, ...]) -> np.dt
 
 
 def split_stamp(stamp_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """int64 ns -> (sec: the low 32 bits of the floor seconds, as int32; nanosec uint32 in [0, 1e9))."""
+    """int64 ns -> (sec: the low 32 bits of the floor seconds, as int32; nanosec uint32 in [0, 1e9)).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+
+    Returns
+    -------
+    sec, nanosec : (n,) int32 and uint32
+    """
     stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
     sec, nsec = np.divmod(stamp_ns, 1_000_000_000)
     return sec.astype(np.int32), nsec.astype(np.uint32)
 
 
 def join_stamp(sec: np.ndarray, nanosec: np.ndarray) -> np.ndarray:
-    """The inverse of ``split_stamp``: int64 ns from ``sec`` read unsigned (1970 to 2106) and ``nanosec``."""
+    """The inverse of ``split_stamp``: int64 ns from ``sec`` read unsigned (1970 to 2106) and ``nanosec``.
+
+    Parameters
+    ----------
+    sec, nanosec : (n,) header stamp fields
+
+    Returns
+    -------
+    (n,) int64 UTC ns
+    """
     return (np.asarray(sec).astype(np.int64) & 0xFFFFFFFF) * 1_000_000_000 + np.asarray(nanosec, dtype=np.int64)
 
 
@@ -491,6 +590,19 @@ def encode_imu(
     (right-forward-up); gyro_cov / accel_cov (9,) or (n,9) row-major 3x3 in (rad/s)^2, (m/s^2)^2.
     orientation_xyzw (n,4) body->ENU quaternion; None -> orientation_covariance[0] = -1
     ("orientation unknown", as REP 145 says).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    omega_ib_b : (n, 3) angular rate, rad/s, body RFU
+    f_b : (n, 3) specific force, m/s^2, body RFU
+    gyro_cov, accel_cov : (9,) or (n, 9) covariances, (rad/s)^2 and (m/s^2)^2 (None: zeros)
+    orientation_xyzw : (n, 4) quaternion body -> ENU (None: unknown)
+    frame_id : the IMU's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
     """
     stamp_ns = np.asarray(stamp_ns)
     n = len(stamp_ns)
@@ -522,6 +634,21 @@ def encode_navsatfix(
     Latitude/longitude in degrees, altitude in metres above the WGS-84 ellipsoid;
     position_covariance (9,) or (n,9) ENU in m^2; covariance_type 0..3 (2 = diagonal known);
     status -1 no fix, 0 fix, 1 SBAS, 2 GBAS; service bit mask (1 = GPS).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    lat_deg, lon_deg : (n,) geodetic latitude and longitude, deg
+    alt_m : (n,) height above the WGS-84 ellipsoid, m
+    position_covariance : (9,) or (n, 9) ENU, m^2 (None: zeros)
+    covariance_type : 0..3, scalar or (n,)
+    status : NavSatStatus status, scalar or (n,)
+    service : NavSatStatus service bit mask, scalar or (n,)
+    frame_id : the antenna's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
     """
     stamp_ns = np.asarray(stamp_ns)
     n = len(stamp_ns)
@@ -544,6 +671,18 @@ def encode_twist(
 
     v_n (n,3) ENU velocity in m/s; omega (n,3) rad/s (zeros if None); covariance (36,) or (n,36)
     row-major 6x6 over (vE, vN, vU, wx, wy, wz).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    v_n : (n, 3) velocity, m/s, in ``frame_id``'s axes (ENU for "map")
+    omega : (n, 3) angular rate, rad/s (None: zeros)
+    covariance : (36,) or (n, 36) (None: zeros)
+    frame_id : the twist's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
     """
     stamp_ns = np.asarray(stamp_ns)
     n = len(stamp_ns)
@@ -556,7 +695,18 @@ def encode_twist(
 
 
 def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = "map") -> Packed:
-    """``geometry_msgs/msg/QuaternionStamped`` batch: q_xyzw (n,4) rotation body -> ENU (C_bn)."""
+    """``geometry_msgs/msg/QuaternionStamped`` batch: q_xyzw (n,4) rotation body -> ENU (C_bn).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    q_xyzw : (n, 4) quaternion body -> ENU
+    frame_id : the frame it rotates into
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(QUATERNION, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
     arr["quaternion"] = q_xyzw
@@ -564,7 +714,18 @@ def encode_quaternion(stamp_ns: np.ndarray, q_xyzw: np.ndarray, frame_id: str = 
 
 
 def encode_vector3(stamp_ns: np.ndarray, xyz: np.ndarray, frame_id: str = "map") -> Packed:
-    """``geometry_msgs/msg/Vector3Stamped`` batch; xyz (n,3), units set by the topic."""
+    """``geometry_msgs/msg/Vector3Stamped`` batch; xyz (n,3), units set by the topic.
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    xyz : (n, 3) vectors, in the topic's units
+    frame_id : their frame
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(VECTOR3, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
     arr["vector"] = xyz
@@ -584,7 +745,22 @@ def encode_odometry(
 ) -> Packed:
     """``nav_msgs/msg/Odometry`` batch (REP-105): pose of ``child_frame_id`` in ``frame_id`` (position (n,3) m,
     orientation (n,4) x, y, z, w of child -> frame), twist in ``child_frame_id`` (linear (n,3) m/s, angular (n,3)
-    rad/s); covariances (36,) or (n,36), row-major 6x6 over (x, y, z, rotation about x, y, z), m^2, rad^2."""
+    rad/s); covariances (36,) or (n,36), row-major 6x6 over (x, y, z, rotation about x, y, z), m^2, rad^2.
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    position : (n, 3) m, in ``frame_id``
+    orientation_xyzw : (n, 4) quaternion child -> frame
+    pose_covariance, twist_covariance : (36,) or (n, 36), m^2 and rad^2 (twist: (m/s)^2, (rad/s)^2)
+    linear : (n, 3) m/s, in ``child_frame_id``
+    angular : (n, 3) rad/s, in ``child_frame_id``
+    frame_id, child_frame_id : the REP-105 frames
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     n = len(stamp_ns)
     arr = _new(ODOMETRY, n, {"frame_id": frame_id, "child_frame_id": child_frame_id}, stamp_ns)
@@ -600,7 +776,19 @@ def encode_time_reference(
 ) -> Packed:
     """``sensor_msgs/msg/TimeReference`` batch (``/pps``): stamp = the edge in UTC ns (the GPS second it marks,
     or the host's estimate for an edge that could not be labelled), time_ref = the edge on the DAQ clock
-    (k_edge / fs, ns)."""
+    (k_edge / fs, ns).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 the edges, UTC ns
+    time_ref_ns : (n,) int64 the edges on the DAQ clock, ns
+    source : the reference's name
+    frame_id : the header's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(TIMEREF, len(stamp_ns), {"frame_id": frame_id, "source": source}, stamp_ns)
     arr["ref_sec"], arr["ref_nanosec"] = split_stamp(time_ref_ns)
@@ -617,7 +805,21 @@ def encode_time_sync(
     frame_id: str = "imu",
 ) -> Packed:
     """``fieldlog_msgs/msg/TimeSyncState`` batch; state FREE=0, HOLDOVER=1, LOCKED=2;
-    rate_ppm = DAQ oscillator rate error (ppm); residual_us = fit residual RMS (µs)."""
+    rate_ppm = DAQ oscillator rate error (ppm); residual_us = fit residual RMS (µs).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    state : (n,) FREE=0, HOLDOVER=1, LOCKED=2
+    rate_ppm : (n,) DAQ oscillator rate error, ppm
+    residual_us : (n,) µs, the fit's residual RMS
+    edges_used, edges_rejected : (n,) PPS edge counts
+    frame_id : the header's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(TIMESYNC, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
     arr["state"], arr["rate_ppm"], arr["residual_us"] = state, rate_ppm, residual_us
@@ -629,7 +831,21 @@ def encode_solution_status(stamp_ns: np.ndarray, status: np.ndarray, since_updat
                            sigma_h_m: np.ndarray, nis: np.ndarray, frame_id: str = "imu") -> Packed:
     """``fieldlog_msgs/msg/SolutionStatus`` batch: status ALIGNING=0 .. DIVERGED=5 (``fusion.output.STATUS``);
     since_update_s (s) from the last GNSS update, sigma_h_m (m) the horizontal position sigma, nis the mean
-    normalised innovation square per degree of freedom of the last updates (NaN where not known)."""
+    normalised innovation square per degree of freedom of the last updates (NaN where not known).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    status : (n,) ALIGNING=0 .. DIVERGED=5
+    since_update_s : (n,) time since the last GNSS update, s
+    sigma_h_m : (n,) horizontal position sigma, m
+    nis : (n,) mean NIS per degree of freedom (NaN: not known)
+    frame_id : the header's frame
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns)
     arr = _new(SOLUTION_STATUS, len(stamp_ns), {"frame_id": frame_id}, stamp_ns)
     arr["status"], arr["since_update_s"], arr["sigma_h_m"], arr["nis"] = status, since_update_s, sigma_h_m, nis
@@ -648,7 +864,16 @@ STATUS_UNKNOWN, STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -2
 
 
 def fix_status(gga_quality: int) -> int:
-    """NMEA GGA fix quality -> NavSatFix status: 0 none, 1 GPS, 2 DGPS/SBAS, 4/5 RTK (ground based)."""
+    """NMEA GGA fix quality -> NavSatFix status: 0 none, 1 GPS, 2 DGPS/SBAS, 4/5 RTK (ground based).
+
+    Parameters
+    ----------
+    gga_quality : GGA fix quality, 0..9
+
+    Returns
+    -------
+    int : NavSatStatus status (-1: no fix)
+    """
     return {0: STATUS_NO_FIX, 2: STATUS_SBAS_FIX, 4: STATUS_GBAS_FIX, 5: STATUS_GBAS_FIX}.get(gga_quality,
                                                                                                STATUS_FIX)
 
@@ -698,7 +923,18 @@ class _Cdr:
 
 
 def encode_sentence(stamp_ns: int, sentence: str, frame_id: str = "gps") -> bytes:
-    """``nmea_msgs/msg/Sentence``: one NMEA line without CR/LF, stamp = read time mapped to UTC."""
+    """``nmea_msgs/msg/Sentence``: one NMEA line without CR/LF, stamp = read time mapped to UTC.
+
+    Parameters
+    ----------
+    stamp_ns : read time mapped to UTC, ns
+    sentence : the NMEA line without CR/LF
+    frame_id : the header's frame
+
+    Returns
+    -------
+    bytes : one CDR message
+    """
     return _Cdr().header(stamp_ns, frame_id).string(sentence).bytes()
 
 
@@ -707,7 +943,20 @@ def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: st
     mono_ns = host monotonic clock at read, port = the port's role ("daq" or "gps").
 
     Every read of the daemon is one: laid out here in one go rather than field by field (``_Cdr``), the same
-    bytes (CDR alignment counts from the end of the encapsulation header)."""
+    bytes (CDR alignment counts from the end of the encapsulation header).
+
+    Parameters
+    ----------
+    stamp_ns : host wall clock at read, UTC ns
+    mono_ns : host monotonic clock at read, ns
+    port : the port's role
+    data : the bytes read
+    frame_id : the header's frame
+
+    Returns
+    -------
+    bytes : one CDR message
+    """
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
     f, p = frame_id.encode() + b"\x00", port.encode() + b"\x00"
     pad_mono = -(12 + len(f)) % 8                       # int64 mono_ns after sec, nanosec and the frame id
@@ -718,7 +967,16 @@ def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: st
 
 
 def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:
-    """``fieldlog_msgs/msg/RawBytes`` -> (wall_ns, mono_ns, port, data); the inverse of ``encode_raw``."""
+    """``fieldlog_msgs/msg/RawBytes`` -> (wall_ns, mono_ns, port, data); the inverse of ``encode_raw``.
+
+    Parameters
+    ----------
+    data : one CDR message
+
+    Returns
+    -------
+    wall_ns, mono_ns, port, data : as ``encode_raw`` took them
+    """
     sec, nsec, flen = struct.unpack_from("<III", data, 4)
     pos = 12 + flen
     pos += -pos % 8
@@ -737,7 +995,23 @@ def encode_wheel_speeds(stamp_ns: int, can_id: int, wheel_speed: Sequence[float]
                         frame_id: str = "base_link") -> bytes:
     """``fieldlog_msgs/msg/WheelSpeeds``: wheel speeds (front left, front right, rear left, rear right) and the
     vehicle speed in m/s, the steering angle in rad (NaN: not known), reverse 1/0 (-1: not known), and the
-    configured signals of the frame ``can_id`` by name with their values in the DBC's units."""
+    configured signals of the frame ``can_id`` by name with their values in the DBC's units.
+
+    Parameters
+    ----------
+    stamp_ns : UTC ns
+    can_id : the CAN frame's id
+    wheel_speed : FL, FR, RL, RR, m/s
+    vehicle_speed : m/s
+    steering_angle : rad (NaN: not known)
+    reverse : 1, 0, or -1 (not known)
+    names, values : the configured signals and their values, DBC units
+    frame_id : the header's frame
+
+    Returns
+    -------
+    bytes : one CDR message
+    """
     w = _Cdr().header(stamp_ns, frame_id).put("I", can_id).put("dddd", *map(float, wheel_speed))
     w.put("dd", float(vehicle_speed), float(steering_angle)).put("b", int(reverse)).put("I", len(names))
     for n in names:
@@ -750,7 +1024,17 @@ def encode_wheel_speeds(stamp_ns: int, can_id: int, wheel_speed: Sequence[float]
 
 def encode_tf(stamp_ns: int, transforms: Sequence[tuple[str, str, Sequence[float], Sequence[float]]]) -> bytes:
     """``tf2_msgs/msg/TFMessage``: transforms (parent frame, child frame, translation x, y, z in m in the parent
-    frame, rotation x, y, z, w of child -> parent), all stamped ``stamp_ns`` (UTC ns)."""
+    frame, rotation x, y, z, w of child -> parent), all stamped ``stamp_ns`` (UTC ns).
+
+    Parameters
+    ----------
+    stamp_ns : UTC ns
+    transforms : (parent, child, translation (3,) m, rotation (4,) x, y, z, w) each
+
+    Returns
+    -------
+    bytes : one CDR message
+    """
     w = _Cdr().put("I", len(transforms))
     for parent, child, xyz, q_xyzw in transforms:
         w.header(stamp_ns, parent).string(child).put("ddd", *map(float, xyz)).put("dddd", *map(float, q_xyzw))
@@ -760,7 +1044,17 @@ def encode_tf(stamp_ns: int, transforms: Sequence[tuple[str, str, Sequence[float
 def encode_tf_rows(stamp_ns: np.ndarray, transforms: Sequence[tuple[str, str, np.ndarray, np.ndarray]]) -> Packed:
     """``encode_tf`` of n rows at once: row i holds every transform (parent frame, child frame, translations
     (n, 3) m, rotations x, y, z, w (n, 4)) at its row i, stamped ``stamp_ns[i]``. The same bytes as
-    ``encode_tf`` row by row."""
+    ``encode_tf`` row by row.
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 UTC ns
+    transforms : (parent, child, translations (n, 3) m, rotations (n, 4) x, y, z, w) each
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
     stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
     fields: list[_Field] = [("count", "<u4", ())]
     lengths = []
@@ -784,7 +1078,19 @@ def encode_tf_rows(stamp_ns: np.ndarray, transforms: Sequence[tuple[str, str, np
 
 def encode_outage(stamp_ns: int, start_ns: int, end_ns: int, reason: str, frame_id: str = "") -> bytes:
     """``fieldlog_msgs/msg/Outage``: GPS outage window [start_ns, end_ns) in UTC ns;
-    reason e.g. "injected", "no_fix", "low_quality"."""
+    reason e.g. "injected", "no_fix", "low_quality".
+
+    Parameters
+    ----------
+    stamp_ns : the header's stamp, UTC ns
+    start_ns, end_ns : the window, UTC ns
+    reason : why GPS is out
+    frame_id : the header's frame
+
+    Returns
+    -------
+    bytes : one CDR message
+    """
     return _Cdr().header(stamp_ns, frame_id).put("qq", start_ns, end_ns).string(reason).bytes()
 
 
@@ -865,7 +1171,16 @@ def _common_dtype(type_name: str) -> np.dtype:
 
 def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """Imu batch -> stamp_ns (n,) int64, omega_ib_b (n,3), f_b (n,3), orientation_xyzw (n,4),
-    gyro_cov / accel_cov / orientation_cov (n,9), valid (n,) bool."""
+    gyro_cov / accel_cov / orientation_cov (n,9), valid (n,) bool.
+
+    Parameters
+    ----------
+    msgs : n Imu messages
+
+    Returns
+    -------
+    dict[str, np.ndarray]
+    """
     a, ok = _decode_fixed(IMU, msgs)
     return {
         "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
@@ -881,7 +1196,16 @@ def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
 
 def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """NavSatFix batch -> stamp_ns, lat_deg, lon_deg, alt_m, position_covariance (n,9) ENU m^2,
-    covariance_type, status, service, valid."""
+    covariance_type, status, service, valid.
+
+    Parameters
+    ----------
+    msgs : the NavSatFix batch, n messages in CDR
+
+    Returns
+    -------
+    dict : n fixes, one row each (degrees, metres)
+    """
     a, ok = _decode_fixed(NAVSATFIX, msgs)
     return {
         "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
@@ -898,7 +1222,16 @@ def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
 
 def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """TwistWithCovarianceStamped batch -> stamp_ns, v_n (n,3) ENU m/s, omega (n,3),
-    covariance (n,36), valid."""
+    covariance (n,36), valid.
+
+    Parameters
+    ----------
+    msgs : n twists (CDR)
+
+    Returns
+    -------
+    dict[str, np.ndarray] : n rows; v_n in m/s
+    """
     a, ok = _decode_fixed(TWIST, msgs)
     return {
         "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
@@ -910,19 +1243,46 @@ def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
 
 
 def decode_quaternion(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
-    """QuaternionStamped batch -> stamp_ns, q_xyzw (n,4), valid."""
+    """QuaternionStamped batch -> stamp_ns, q_xyzw (n,4), valid.
+
+    Parameters
+    ----------
+    msgs : QuaternionStamped messages
+
+    Returns
+    -------
+    dict : q_xyzw is body -> ENU
+    """
     a, ok = _decode_fixed(QUATERNION, msgs)
     return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "q_xyzw": a["quaternion"], "valid": ok}
 
 
 def decode_vector3(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
-    """Vector3Stamped batch -> stamp_ns, xyz (n,3), valid."""
+    """Vector3Stamped batch -> stamp_ns, xyz (n,3), valid.
+
+    Parameters
+    ----------
+    msgs : a batch of n Vector3Stamped
+
+    Returns
+    -------
+    dict[str, np.ndarray] : xyz in the units of the topic
+    """
     a, ok = _decode_fixed(VECTOR3, msgs)
     return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "xyz": a["vector"], "valid": ok}
 
 
 def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
-    """TimeReference batch -> stamp_ns (the edge in UTC), time_ref_ns (the edge on the DAQ clock), valid."""
+    """TimeReference batch -> stamp_ns (the edge in UTC), time_ref_ns (the edge on the DAQ clock), valid.
+
+    Parameters
+    ----------
+    msgs : n /pps messages
+
+    Returns
+    -------
+    dict : both times in ns
+    """
     a, ok = _decode_fixed(TIMEREF, msgs)
     return {
         "stamp_ns": join_stamp(a["sec"], a["nanosec"]),
@@ -933,7 +1293,16 @@ def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndar
 
 def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """TimeSyncState batch -> stamp_ns, state, rate_ppm, residual_us, edges_used,
-    edges_rejected, valid."""
+    edges_rejected, valid.
+
+    Parameters
+    ----------
+    msgs : the /time/sync batch
+
+    Returns
+    -------
+    dict[str, np.ndarray] : the state and fit of each record
+    """
     a, ok = _decode_fixed(TIMESYNC, msgs)
     out = {"stamp_ns": join_stamp(a["sec"], a["nanosec"])}
     out.update({k: a[k] for k in ("state", "rate_ppm", "residual_us", "edges_used", "edges_rejected")})
@@ -942,7 +1311,16 @@ def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
 
 
 def decode_solution_status(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
-    """SolutionStatus batch -> stamp_ns, status, since_update_s, sigma_h_m, nis, valid."""
+    """SolutionStatus batch -> stamp_ns, status, since_update_s, sigma_h_m, nis, valid.
+
+    Parameters
+    ----------
+    msgs : n SolutionStatus messages, as written by ``encode_solution_status``
+
+    Returns
+    -------
+    dict : n statuses
+    """
     a, ok = _decode_fixed(SOLUTION_STATUS, msgs)
     out = {"stamp_ns": join_stamp(a["sec"], a["nanosec"])}
     out.update({k: a[k] for k in ("status", "since_update_s", "sigma_h_m", "nis")})
@@ -968,7 +1346,16 @@ _schema_ids = {name: i + 1 for i, name in enumerate(MSG_DEFS)}
 
 
 def schema_record(type_name: str) -> Schema:
-    """An mcap Schema record for ``type_name`` (id is a stable local number)."""
+    """An mcap Schema record for ``type_name`` (id is a stable local number).
+
+    Parameters
+    ----------
+    type_name : a registered type
+
+    Returns
+    -------
+    Schema : the record (ros2msg encoding)
+    """
     return Schema(
         id=_schema_ids[type_name],
         name=type_name,
@@ -986,12 +1373,31 @@ def _factory():
 
 
 def decoder_for(type_name: str) -> Callable[[bytes], Any]:
-    """mcap_ros2's decoder for one registered type: bytes -> message object."""
+    """mcap_ros2's decoder for one registered type: bytes -> message object.
+
+    Parameters
+    ----------
+    type_name : a registered type
+
+    Returns
+    -------
+    callable : CDR bytes -> message object
+    """
     dec = _factory().decoder_for(MESSAGE_ENCODING, schema_record(type_name))
     assert dec is not None
     return dec
 
 
 def decode_message(type_name: str, data: bytes) -> Any:
-    """Decode one message of any registered type (attribute access, e.g. ``m.header.stamp``)."""
+    """Decode one message of any registered type (attribute access, e.g. ``m.header.stamp``).
+
+    Parameters
+    ----------
+    type_name : a registered type
+    data : one CDR message
+
+    Returns
+    -------
+    object : the message
+    """
     return decoder_for(type_name)(data)

@@ -25,12 +25,30 @@ _CLOSE = {"[": "]", "(": ")", "{": "}"}
 
 
 def dump(v: Any) -> str:
-    """``v`` as JSON (tuples as lists)."""
+    """``v`` as JSON (tuples as lists).
+
+    Parameters
+    ----------
+    v : a JSON value (tuples allowed)
+
+    Returns
+    -------
+    str : its JSON text
+    """
     return json.dumps(v)
 
 
 def load(text: str) -> Any:
-    """The value of a metadata string written by ``dump`` (or a Python literal of an older drive)."""
+    """The value of a metadata string written by ``dump`` (or a Python literal of an older drive).
+
+    Parameters
+    ----------
+    text : a metadata value
+
+    Returns
+    -------
+    object : the value
+    """
     if not isinstance(text, str) or len(text) > MAX_CHARS:
         raise ValueError("metadata value is not a short text")
     toks = [m for m in _tokens(text)]
@@ -109,7 +127,17 @@ def _string(tok: str) -> str:
 # ------------------------------------------------------------------------------------------ type checks
 
 def number(v: Any, what: str) -> float:
-    """``v`` as a float (int, float, NaN; None is NaN), else ValueError naming ``what``."""
+    """``v`` as a float (int, float, NaN; None is NaN), else ValueError naming ``what``.
+
+    Parameters
+    ----------
+    v : a metadata value
+    what : its name, for the error
+
+    Returns
+    -------
+    float
+    """
     if v is None:
         return math.nan
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -118,13 +146,35 @@ def number(v: Any, what: str) -> float:
 
 
 def whole(v: Any, what: str) -> int:
+    """``v`` as an int (an int, or a float with an integral value), else ValueError naming ``what``.
+
+    Parameters
+    ----------
+    v : the value read
+    what : the value's name in the error
+
+    Returns
+    -------
+    int
+    """
     if isinstance(v, bool) or not isinstance(v, int):
         raise ValueError(f"{what}: {_short(str(v))} is not a whole number")
     return v
 
 
 def wholes(v: Any, what: str, n: int) -> tuple[int, ...]:
-    """``v`` as a tuple of ``n`` ints, else ValueError naming ``what``."""
+    """``v`` as a tuple of ``n`` ints, else ValueError naming ``what``.
+
+    Parameters
+    ----------
+    v : a metadata value
+    what : its name, for the error
+    n : how many ints
+
+    Returns
+    -------
+    tuple[int, ...]
+    """
     if not isinstance(v, list) or len(v) != n:
         raise ValueError(f"{what}: {_short(str(v))} is not a list of {n} whole numbers")
     return tuple(whole(x, what) for x in v)

@@ -43,7 +43,17 @@ CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # drive/_chun
 def library(module: str, signatures: dict[str, tuple[object, list]]) -> ctypes.CDLL:
     """The compiled kernels of extension ``module`` (``fieldlog.drive._chunks``, ...), loaded once per process,
     with the C ``signatures`` of its functions (name -> (restype, argtypes)) set. ImportError, naming the fix,
-    when the package was installed without them."""
+    when the package was installed without them.
+
+    Parameters
+    ----------
+    module : the extension's module name
+    signatures : C function name -> (restype, argtypes)
+
+    Returns
+    -------
+    ctypes.CDLL : the library
+    """
     if module not in _libs:
         spec = importlib.util.find_spec(module)
         if spec is None or spec.origin is None:
@@ -67,7 +77,12 @@ def _shipped() -> dict[str, ctypes.CDLL]:
 
 def ready() -> bool:
     """Whether ``read_chunks`` can run (the C functions of zstandard and zlib_ng found): decided once per
-    process."""
+    process.
+
+    Returns
+    -------
+    bool
+    """
     if "ok" not in _state:
         _state["ok"] = False
         try:
@@ -95,7 +110,22 @@ def read_chunks(buf, comp: np.ndarray, at: np.ndarray, length: np.ndarray, size:
     (-1, ``OK``, the bytes of ``out`` used, the messages as rows (record start in ``out``, body length, log_time,
     publish_time), their channel ids (uint16), the schema and channel records as rows (opcode, body start in
     ``out``, body length)), or the first bad chunk and what is wrong with it (``CODEC``, ``SIZE``, ``CRC``). Only
-    when ``ready()``."""
+    when ``ready()``.
+
+    Parameters
+    ----------
+    buf : the file's bytes (mmap or array)
+    comp : (k,) codec per chunk
+    at, length : (k,) file offset and length of each chunk's compressed records, bytes
+    size, crc : (k,) uncompressed size, bytes, and CRC-32 of each
+    stage : uint8 scratch of at least ``size.max()`` bytes
+    out : uint8 output of at least ``size.sum()`` bytes
+    want : (65536,) bool per channel id
+
+    Returns
+    -------
+    tuple : as said above
+    """
     n = int(size.sum())
     # rows for as many records as the bytes could hold: a message record is 31 bytes at least, a schema or
     # channel record kept 23

@@ -30,7 +30,7 @@ import shutil
 import stat
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Self
 
 CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -41,7 +41,17 @@ class Refused(ValueError):
 
 
 def named(e: OSError, path: str | os.PathLike[str]) -> OSError:
-    """``e`` with the file ``path`` named in it when it names none (write errors such as ENOSPC do not)."""
+    """``e`` with the file ``path`` named in it when it names none (write errors such as ENOSPC do not).
+
+    Parameters
+    ----------
+    e : the error
+    path : the file written
+
+    Returns
+    -------
+    OSError : ``e``, or a copy naming ``path``
+    """
     return e if e.filename is not None or not e.errno else OSError(e.errno, e.strerror, str(path))
 
 
@@ -56,6 +66,16 @@ class Output(io.BufferedWriter):
         self._id = (st.st_dev, st.st_ino)
 
     def write(self, b) -> int:
+        """Write ``b``; an OSError names the file.
+
+        Parameters
+        ----------
+        b : bytes-like
+
+        Returns
+        -------
+        int : bytes written
+        """
         try:
             return super().write(b)
         except OSError as e:
@@ -85,9 +105,26 @@ class Output(io.BufferedWriter):
         end(kind, self.close, self.discard)
 
 
+class Closing:
+    """An output used in a ``with`` block: ``close``d at its end, or ``discard``ed on an error other than Ctrl-C, in
+    the block or in closing (``end``). The class defines ``close`` and ``discard``."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        end(kind, self.close, self.discard)
+
+
 def end(kind: type[BaseException] | None, close: Callable[[], None], discard: Callable[[], None]) -> None:
     """How an output's ``with`` block ends (``kind``: the exception leaving it, or None): ``close``d, or
-    ``discard``ed on an error other than Ctrl-C (which keeps what was written), in the block or in closing."""
+    ``discard``ed on an error other than Ctrl-C (which keeps what was written), in the block or in closing.
+
+    Parameters
+    ----------
+    kind : the exception's type leaving the block, or None
+    close, discard : the output's
+    """
     if kind is not None and not issubclass(kind, KeyboardInterrupt):
         discard()
         return
@@ -122,7 +159,13 @@ def _may_replace(st_mode: int, path: Path, force: bool) -> None:
 
 def check_new(path: str | os.PathLike[str], force: bool = False) -> None:
     """Raise ``Refused`` now (before any work) unless ``path`` can be created: it does not exist, or it is a
-    regular file and ``force``."""
+    regular file and ``force``.
+
+    Parameters
+    ----------
+    path : the output
+    force : a regular file may be replaced
+    """
     try:
         st = os.lstat(path)
     except FileNotFoundError:
@@ -144,7 +187,19 @@ def create(path: str | os.PathLike[str], force: bool = False, root: str | os.Pat
            mode: int = 0o644) -> Output:
     """A new file at ``path``, open for binary writing (``Refused`` if the name exists, unless it is a regular
     file and ``force``; always if it is a symbolic link). ``root``: ``path`` lies inside this output folder
-    (``out_dir``), and the folders between are made as needed, each refused if it is a symbolic link."""
+    (``out_dir``), and the folders between are made as needed, each refused if it is a symbolic link.
+
+    Parameters
+    ----------
+    path : the new file
+    force : a regular file there may be replaced
+    root : the output folder ``path`` lies in (None: its parent is made by the caller)
+    mode : permission bits of a new file
+
+    Returns
+    -------
+    Output : the file, open
+    """
     p = Path(path)
     if root is None:
         return Output(_open(p, p, force, mode, None), p)
@@ -182,14 +237,34 @@ def _walk(fd: int, parts: tuple[str, ...], root: Path) -> int:
 
 def write_bytes(path: str | os.PathLike[str], data: bytes, force: bool = False,
                 root: str | os.PathLike[str] | None = None) -> Path:
-    """``data`` as the new file ``path`` (``create``); returns ``path``."""
+    """``data`` as the new file ``path`` (``create``); returns ``path``.
+
+    Parameters
+    ----------
+    path : the new file
+    data : its content
+    force, root : as ``create``'s
+
+    Returns
+    -------
+    Path : ``path``
+    """
     with create(path, force, root) as f:
         f.write(data)
     return Path(path)
 
 
 def open_dir(path: str | os.PathLike[str]) -> int:
-    """A directory file descriptor of the output folder ``path`` (``Refused`` if it is a symbolic link)."""
+    """A directory file descriptor of the output folder ``path`` (``Refused`` if it is a symbolic link).
+
+    Parameters
+    ----------
+    path : the output folder
+
+    Returns
+    -------
+    int : the descriptor (the caller closes it)
+    """
     p = Path(path)
     try:
         return os.open(p, DIRECTORY)
@@ -201,7 +276,17 @@ def open_dir(path: str | os.PathLike[str]) -> int:
 
 def out_dir(path: str | os.PathLike[str], *parts: str) -> Path:
     """The output folder ``path`` (its parents made as needed), and ``parts`` inside it, made if missing;
-    ``Refused`` if ``path`` or one of ``parts`` is a symbolic link (the folders above ``path`` are the user's)."""
+    ``Refused`` if ``path`` or one of ``parts`` is a symbolic link (the folders above ``path`` are the user's).
+
+    Parameters
+    ----------
+    path : the output folder
+    parts : folders inside it, one in the other
+
+    Returns
+    -------
+    Path : the innermost folder
+    """
     p = Path(path)
     if p.is_symlink():
         _refuse_link(p, " where the output folder should be")
@@ -215,7 +300,17 @@ def staged(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
     """A path for a writer that takes only a path: in a fresh private folder next to ``path``; when the block
     ends without an error (or on Ctrl-C: what was written so far is kept), its file is put at ``path``
     (``Refused`` if the name was taken meanwhile, unless ``force`` and a regular file), and the folder removed in
-    any case."""
+    any case.
+
+    Parameters
+    ----------
+    path : the final file
+    force : a regular file there may be replaced
+
+    Returns
+    -------
+    Iterator[Path] : yields the temporary path to write
+    """
     p = Path(path)
     check_new(p, force)
     tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.", dir=p.parent))
@@ -235,7 +330,14 @@ def staged(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
 def publish(tmp: str | os.PathLike[str], path: str | os.PathLike[str], force: bool = False) -> None:
     """Put the finished file ``tmp`` at ``path`` (same folder): a new name (``os.link``; ``Refused`` if it exists),
     or with ``force`` in place of a regular file (``os.replace``, which never follows a link at ``path``); ``tmp``
-    is removed."""
+    is removed.
+
+    Parameters
+    ----------
+    tmp : the finished file
+    path : its final name
+    force : a regular file there may be replaced
+    """
     p = Path(path)
     if force and os.path.lexists(p):
         check_new(p, force)

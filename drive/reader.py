@@ -52,7 +52,18 @@ class Block:
 
 
 def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -> dict[str, object]:
-    """Decode a batch of one type; rows are sorted by log_time (stable)."""
+    """Decode a batch of one type; rows are sorted by log_time (stable).
+
+    Parameters
+    ----------
+    type_name : the messages' type
+    log_time_ns : (n,) int64 UTC ns
+    payloads : the n CDR payloads
+
+    Returns
+    -------
+    dict : ``log_time_ns`` and the type's decoded fields (``drive.messages.decode_*``), n rows each
+    """
     order = np.argsort(log_time_ns, kind="stable")
     if not np.all(order == np.arange(len(order))):
         log_time_ns = log_time_ns[order]
@@ -77,7 +88,16 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
 
 
 def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
-    """Batches (log_time_ns, payloads) joined in order into one."""
+    """Batches (log_time_ns, payloads) joined in order into one.
+
+    Parameters
+    ----------
+    parts : (log_time_ns, payloads) batches
+
+    Returns
+    -------
+    log_time_ns, payloads : one batch
+    """
     if len(parts) == 1:
         return parts[0]
     t = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
@@ -98,7 +118,19 @@ def piece_groups(files: list[McapFile], topics: Sequence[str], file_order: bool 
                  keep: Callable[[McapFile], np.ndarray] | None = None) -> Iterator[Group]:
     """The pieces that may hold ``topics`` (and pass ``keep``: a mask over a file's pieces), in log-time order
     (by first log_time; ``file_order``: file by file, in file order), grouped so that consecutive pieces of one
-    file are read together (``McapFile.read``) up to about ``READ_BYTES``. Vectorised over the pieces."""
+    file are read together (``McapFile.read``) up to about ``READ_BYTES``. Vectorised over the pieces.
+
+    Parameters
+    ----------
+    files : the drive's open files
+    topics : the topics wanted
+    file_order : file by file instead of in log-time order
+    keep : a file -> bool mask over its pieces (None: all)
+
+    Returns
+    -------
+    Iterator[Group] : (file, piece indexes) groups
+    """
     rows = []
     for k, f in enumerate(files):
         mask = f.may_hold({c for c, ch in f.channels.items() if ch.topic in topics})
@@ -141,7 +173,16 @@ def _type(files: list[McapFile], topic: str) -> str | None:
 def topics(path: DriveSpec) -> list[TopicInfo]:
     """Topics in a drive: type, message count, first/last log_time (exact: from the message indexes, the
     headers of messages outside chunks, or the messages of chunks without indexes). Several files: summed
-    per topic."""
+    per topic.
+
+    Parameters
+    ----------
+    path : the drive
+
+    Returns
+    -------
+    list[TopicInfo] : by topic name
+    """
     out: dict[str, list] = {}
     for f in open_drive(path):
         stats = f.channel_stats()
@@ -158,7 +199,19 @@ def topics(path: DriveSpec) -> list[TopicInfo]:
 def read_payloads(path: DriveSpec, topic: str, file_order: bool = False
                   ) -> tuple[np.ndarray, np.ndarray, messages.Packed]:
     """All messages of one topic, undecoded: (log_time_ns, publish_time_ns, payloads), sorted by log_time
-    (stable), or as recorded (``file_order``). KeyError when no file of the drive has the topic."""
+    (stable), or as recorded (``file_order``). KeyError when no file of the drive has the topic.
+
+    Parameters
+    ----------
+    path : the drive
+    topic : the topic
+    file_order : keep the recorded order
+
+    Returns
+    -------
+    log_time_ns, publish_time_ns : (n,) int64 UTC ns
+    payloads : the n payloads
+    """
     files = open_drive(path)
     parts = []
     for f, group in piece_groups(files, [topic], file_order):
@@ -177,14 +230,34 @@ def read_payloads(path: DriveSpec, topic: str, file_order: bool = False
 
 
 def read_topic(path: DriveSpec, topic: str) -> dict[str, object]:
-    """All messages of one topic, decoded into arrays, sorted by log_time."""
+    """All messages of one topic, decoded into arrays, sorted by log_time.
+
+    Parameters
+    ----------
+    path : the drive
+    topic : a topic of a type ``decode`` knows
+
+    Returns
+    -------
+    dict : as ``decode``
+    """
     t, _, p = read_payloads(path, topic)
     return decode(_type(open_drive(path), topic) or "", t, p)
 
 
 def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
     """The messages of one topic decoded one by one with mcap_ros2 from the file's own schema (any type; slow:
-    for low-rate topics such as /tf_static), in log-time order."""
+    for low-rate topics such as /tf_static), in log-time order.
+
+    Parameters
+    ----------
+    path : the drive
+    topic : the topic
+
+    Returns
+    -------
+    Iterator[object] : mcap_ros2 message objects
+    """
     from mcap_ros2.decoder import DecoderFactory
 
     factory = DecoderFactory()
@@ -206,12 +279,30 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
 
 def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:
     """Every metadata record of the drive, in file order (names may repeat, e.g. ``acquire.port_event``); a drive
-    of several files: file by file, in log-time order."""
+    of several files: file by file, in log-time order.
+
+    Parameters
+    ----------
+    path : the drive
+
+    Returns
+    -------
+    list of (name, keys and values)
+    """
     return [(m.name, dict(m.metadata)) for f in open_drive(path) for m in f.metadata()]
 
 
 def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
-    """The drive's metadata records by name; for a repeated name, the last record."""
+    """The drive's metadata records by name; for a repeated name, the last record.
+
+    Parameters
+    ----------
+    path : the drive
+
+    Returns
+    -------
+    dict : name -> keys and values
+    """
     return dict(read_metadata_records(path))
 
 
@@ -222,6 +313,16 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Itera
     gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
     messages outside chunks) that overlap the block being built. Several files are one drive: their
     pieces are read in one log-time order, across the file boundaries.
+
+    Parameters
+    ----------
+    path : the drive
+    topics : the topics to read
+    block_s : block length, s of log time
+
+    Returns
+    -------
+    Iterator[Block] : the blocks, in log-time order
     """
     step = int(round(block_s * 1e9))
     if step <= 0:
@@ -288,6 +389,14 @@ def decode_raw_batch(payloads: messages.Packed) -> dict[str, object]:
     Vectorised over the batch: header.frame_id and port are strings of any length, so every field offset is
     computed per row from the lengths before it. A row that is not a whole RawBytes message gets
     ``valid=False``, zeros, port "" and no data; it never raises.
+
+    Parameters
+    ----------
+    payloads : n RawBytes payloads
+
+    Returns
+    -------
+    dict : the fields named above, n rows each
     """
     n = len(payloads)
     buf, start, lens = payloads.buf, payloads.offsets[:-1], payloads.lengths
@@ -371,7 +480,17 @@ def _raw_type(path: DriveSpec, topic: str) -> None:
 
 
 def read_raw(path: DriveSpec, topic: str) -> dict[str, object]:
-    """All reads of a ``/raw/*`` topic in log_time order: ``log_time_ns`` plus the ``decode_raw_batch`` fields."""
+    """All reads of a ``/raw/*`` topic in log_time order: ``log_time_ns`` plus the ``decode_raw_batch`` fields.
+
+    Parameters
+    ----------
+    path : the drive
+    topic : a ``/raw/*`` topic
+
+    Returns
+    -------
+    dict : ``log_time_ns`` (UTC ns) and the ``decode_raw_batch`` fields
+    """
     t, _, p = read_payloads(path, topic)  # KeyError without the topic
     _raw_type(path, topic)
     return {"log_time_ns": t, **decode_raw_batch(p)}
@@ -380,7 +499,17 @@ def read_raw(path: DriveSpec, topic: str) -> dict[str, object]:
 def iter_raw_batches(path: DriveSpec, topic: str) -> Iterator[dict[str, object]]:
     """The reads of a ``/raw/*`` topic in the order they were recorded (file by file, in file order; one batch
     per group of chunks; not sorted by log_time, which is the host wall clock): ``log_time_ns`` plus the
-    ``decode_raw_batch`` fields. A drive without ``topic`` yields nothing (a port that never delivered a byte)."""
+    ``decode_raw_batch`` fields. A drive without ``topic`` yields nothing (a port that never delivered a byte).
+
+    Parameters
+    ----------
+    path : the drive
+    topic : ``/raw/daq``, ``/raw/gps`` or ``/raw/can``
+
+    Returns
+    -------
+    Iterator[dict] : as ``read_raw``'s, a batch at a time
+    """
     files = open_drive(path)
     for f, group in piece_groups(files, [topic], file_order=True):
         cm = f.read(group, [topic])
@@ -400,7 +529,17 @@ IN_TOPICS = ("/imu", "/gps/fix", "/gps/vel")   # the topics ``fusion.engine`` ru
 
 
 def gps_block(fix: dict, vel: dict) -> "GpsBlock":
-    """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs."""
+    """Join a block's /gps/fix and /gps/vel (matched by stamp) into engine epochs.
+
+    Parameters
+    ----------
+    fix : the block's decoded /gps/fix (``decode``)
+    vel : its decoded /gps/vel (may be empty)
+
+    Returns
+    -------
+    GpsBlock : the valid fixes, with the velocity (ENU, m/s) and its covariance where a /gps/vel has the same stamp
+    """
     from fieldlog.fusion.types import GpsBlock  # here, so reading a drive never loads the fusion stack
 
     n = len(fix.get("log_time_ns", ()))

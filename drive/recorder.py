@@ -85,7 +85,14 @@ class _OpenChunk:
     index: dict[int, list[tuple[np.ndarray | int, np.ndarray | int]]] = field(default_factory=dict)
 
     def add_one(self, channel_id: int, log_time: int, data: bytes) -> None:
-        """One message record ``data`` logged at ``log_time`` (the single-message path: no arrays)."""
+        """One message record ``data`` logged at ``log_time`` (the single-message path: no arrays).
+
+        Parameters
+        ----------
+        channel_id : the record's channel id
+        log_time : its log time, UTC ns
+        data : the whole message record (header and payload)
+        """
         self.start = log_time if self.count == 0 else min(self.start, log_time)
         self.end = max(self.end, log_time)
         self.count += 1
@@ -93,14 +100,49 @@ class _OpenChunk:
         self.parts.append(data)
         self.size += len(data)
 
-    def add(self, channel_id: int, log_times: np.ndarray, offsets: np.ndarray, data, nbytes: int) -> None:
-        lo, hi = int(log_times.min()), int(log_times.max())
+    def add(self, cid: int, log_t: np.ndarray, pub_t: np.ndarray, p: "messages.Packed", i: int, j: int) -> None:
+        """Messages ``i`` to ``j`` of ``p`` as message records of channel ``cid``: equal-length messages
+        (fixed-layout types) laid out as one byte matrix, others joined.
+
+        Parameters
+        ----------
+        cid : channel id
+        log_t, pub_t : (j - i,) int64 log and publish times of the messages, UTC ns
+        p : the batch's payloads
+        i, j : the messages of ``p`` to add, ``p[i:j]``
+        """
+        m = j - i
+        hdr = np.zeros(m, dtype=_MSG_HDR)
+        lens = p.offsets[i + 1 : j + 1] - p.offsets[i:j]
+        hdr["op"] = Opcode.MESSAGE
+        hdr["length"] = lens + 22
+        hdr["channel"] = cid
+        hdr["log_time"] = log_t
+        hdr["publish_time"] = pub_t
+        payload = p.buf[p.offsets[i] : p.offsets[j]]
+        if np.all(lens == lens[0]):
+            w = int(lens[0])
+            block = np.empty((m, 31 + w), dtype=np.uint8)
+            block[:, :31] = hdr.view(np.uint8).reshape(m, 31)
+            block[:, 31:] = payload.reshape(m, w)
+            offsets = self.size + np.arange(m, dtype=np.uint64) * np.uint64(31 + w)
+        else:
+            hb = hdr.tobytes()
+            raw = payload.tobytes()
+            o = (p.offsets[i : j + 1] - p.offsets[i]).tolist()
+            parts = [b""] * (2 * m)
+            parts[0::2] = [hb[31 * k : 31 * k + 31] for k in range(m)]
+            parts[1::2] = [raw[o[k] : o[k + 1]] for k in range(m)]
+            block = b"".join(parts)
+            rec = lens + 31
+            offsets = (self.size + np.concatenate(([0], np.cumsum(rec[:-1])))).astype(np.uint64)
+        lo, hi = int(log_t.min()), int(log_t.max())
         self.start = lo if self.count == 0 else min(self.start, lo)
         self.end = max(self.end, hi)
-        self.count += len(log_times)
-        self.index.setdefault(channel_id, []).append((log_times, offsets))
-        self.parts.append(data)
-        self.size += nbytes
+        self.count += m
+        self.index.setdefault(cid, []).append((log_t.astype(np.uint64), offsets))
+        self.parts.append(block)
+        self.size += int(lens.sum()) + 31 * m
 
 
 def _index_column(pieces: list, i: int) -> np.ndarray:
@@ -120,74 +162,29 @@ def _index_column(pieces: list, i: int) -> np.ndarray:
     return np.concatenate(out)
 
 
-class Recorder:
-    """Write a drive to one MCAP file.
+class _FileWriter:
+    """The file side of a ``Recorder``: records outside chunks, closed chunks (compressed, with their message
+    indexes; with ``behind``, on a thread of its own), what the summary counts, and the summary and footer at the
+    end. ``f``: the new output file (``outputs.create``); the other arguments are the Recorder's."""
 
-    path: output file. chunk_size: uncompressed bytes per chunk before it is closed.
-    flush_interval_s: close and flush the open chunk once this much host monotonic time has
-    passed since the last flush (None: only by size or explicit ``flush()``, for offline
-    writers that flush by data time). fsync: fsync after every flush (power-cut safety).
-    compression: "zstd", "lz4" or "" (none); compression_level: zstd level (1 is about twice as
-    fast as 3 on IMU data for ~5 % larger files). metadata: written as an MCAP Metadata record named
-    "drive" (string values; e.g. scenario, seed, config, calibration TOML, software version).
-    stats: gather what ``fieldlog info`` shows while writing and store it at close as the ``fieldlog.info``
-    record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``).
-    The file is created new (``drive.outputs.create``: ``outputs.Refused`` if ``path`` exists, unless it is a
-    regular file and ``force``; always if it is a symbolic link; ``root``: the output folder ``path`` lies in,
-    walked without following a link). behind: compress and write each closed chunk on a thread while the caller
-    goes on (at most one chunk in flight), for offline writers: a chunk is sure to be in the file only when the
-    next one closes, at the next record outside chunks, or at ``close``, so ``flush`` does not bound what a power
-    cut loses.
-    """
-
-    def __init__(
-        self,
-        path: str | os.PathLike[str],
-        chunk_size: int = 4 * 1024 * 1024,
-        flush_interval_s: float | None = 1.0,
-        compression: str = "zstd",
-        metadata: dict[str, str] | None = None,
-        fsync: bool = True,
-        compression_level: int = 1,
-        stats: bool = True,
-        force: bool = False,
-        root: str | os.PathLike[str] | None = None,
-        behind: bool = False,
-    ) -> None:
-        if compression not in ("zstd", "lz4", ""):
-            raise ValueError(f"unknown compression {compression!r}")
-        self.path = Path(path)
-        self._f = outputs.create(self.path, force, root)
-        self._chunk_size = chunk_size
-        self._flush_interval_s = flush_interval_s
+    def __init__(self, f: outputs.Output, compression: str, compression_level: int, fsync: bool,
+                 behind: bool) -> None:
+        self._f = f
         self._compression = compression
         self._zstd = zstandard.ZstdCompressor(level=compression_level) if compression == "zstd" else None
         self._fsync = fsync
-        self._schemas: dict[int, Schema] = {}
-        self._schema_ids: dict[str, int] = {}
-        self._channels: dict[int, Channel] = {}
-        self._channel_ids: dict[str, int] = {}
-        self._chunk = _OpenChunk()
         self._chunk_indexes = bytearray()   # the ChunkIndex records, as the summary holds them (~150 B a chunk,
-        self._chunks = 0                    # far less than as ChunkIndex objects)
+        self.chunks = 0                     # far less than as ChunkIndex objects)
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: dict[int, int] = {}
         self._msg_start = 0
         self._msg_end = 0
-        self._last_flush = time.monotonic()
-        self.flush_seconds = 0.0  # host time spent in flush (compress + write + fsync)
-        self.stats = DriveStats() if stats else None
-        self.closed = False
         self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
         self._pending: Future | None = None   # the chunk being compressed and written behind
         self._f.write(MAGIC)
-        self._write_record(Header(PROFILE, LIBRARY))
-        if metadata:
-            self.add_metadata("drive", metadata)
+        self.write_record(Header(PROFILE, LIBRARY))
 
-    # -- records outside chunks --------------------------------------------------------------
-
-    def _write_record(self, record) -> int:
+    def write_record(self, record) -> int:
         """Write one record to the data section (after the chunk written behind); return its length in bytes."""
         self._drain()
         return self._put_record(record)
@@ -199,197 +196,24 @@ class Recorder:
         self._f.write(data)
         return len(data)
 
-    @property
-    def channels(self) -> Mapping[int, Channel]:
-        """The channels defined so far, by id (read only)."""
-        return MappingProxyType(self._channels)
-
-    @property
-    def chunk_count(self) -> int:
-        """Chunks written so far."""
-        return self._chunks
-
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        """Write a Metadata record (string keys and values)."""
+        """``Recorder.add_metadata``."""
         self._drain()
         offset = self._f.tell()
-        length = self._write_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
+        length = self.write_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
 
-    def add_schema(self, schema: Schema) -> int:
-        """Register a schema record as it is (keeps its id); returns the id."""
-        if schema.id not in self._schemas:
-            self._schemas[schema.id] = schema
-            self._schema_ids[schema.name] = schema.id
-            self._write_record(schema)
-        return schema.id
-
-    def add_channel(self, channel: Channel) -> int:
-        """Register a channel record as it is (keeps its id); returns the id."""
-        if channel.id not in self._channels:
-            self._channels[channel.id] = channel
-            self._channel_ids[channel.topic] = channel.id
-            self._write_record(channel)
-        return channel.id
-
-    def channel_id(self, topic: str) -> int:
-        """Channel id of a contract topic, registering its schema and channel on first use."""
-        cid = self._channel_ids.get(topic)
-        if cid is not None:
-            return cid
-        type_name = messages.topic_type(topic)
-        sid = self._schema_ids.get(type_name)
-        if sid is None:
-            sid = self.add_schema(
-                Schema(
-                    id=len(self._schemas) + 1,
-                    name=type_name,
-                    encoding=messages.SCHEMA_ENCODING,
-                    data=messages.schema_text(type_name).encode(),
-                )
-            )
-        return self.add_channel(
-            Channel(
-                id=len(self._channels) + 1,
-                topic=topic,
-                message_encoding=messages.MESSAGE_ENCODING,
-                schema_id=sid,
-                metadata={"offered_qos_profiles": messages.offered_qos_profiles(topic),
-                          "topic_type_hash": typehash.rihs01(type_name)},
-            )
-        )
-
-    # -- messages ----------------------------------------------------------------------------
-
-    def write(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        """Write one message. log_time_ns: int64 UTC ns (> 0)."""
-        log_time_ns = int(log_time_ns)
-        if log_time_ns <= 0:
-            raise ValueError("log_time must be > 0")
-        cid = self.channel_id(topic)
-        if self.stats is not None:
-            self.stats.observe_message(topic, log_time_ns, data)
-        pub = log_time_ns if publish_time_ns is None else publish_time_ns
-        self._chunk.add_one(cid, log_time_ns, _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns,
-                                                                   pub) + data)
-        self._after_write()
-
-    def write_batch(
-        self,
-        topic: str,
-        log_time_ns: np.ndarray,
-        msgs: "messages.Packed | Sequence[bytes]",
-        publish_time_ns: np.ndarray | None = None,
-    ) -> None:
-        """Write n messages of one topic; log_time_ns (n,) int64 UTC ns, all > 0.
-
-        Equal-length messages (fixed-layout types) are laid out as one byte matrix; a batch
-        larger than the chunk size is split over several chunks.
-        """
-        if len(msgs) == 0:   # no channel for a topic without messages
-            return
-        self.write_channel(self.channel_id(topic), log_time_ns, msgs, publish_time_ns)
-
-    def write_channel(
-        self,
-        channel_id: int,
-        log_time_ns: np.ndarray,
-        msgs: "messages.Packed | Sequence[bytes]",
-        publish_time_ns: np.ndarray | None = None,
-    ) -> None:
-        """``write_batch`` to a channel already registered (``add_channel``), for any topic and type."""
-        log_time_ns = np.asarray(log_time_ns, dtype=np.int64)
-        p = messages.as_packed(msgs)
-        n = len(p)
-        if len(log_time_ns) != n:
-            raise ValueError("log_time_ns and msgs differ in length")
-        if n == 0:
-            return
-        if log_time_ns.min() <= 0:
-            raise ValueError("log_time must be > 0")
-        pub = log_time_ns if publish_time_ns is None else np.asarray(publish_time_ns, np.int64)
-        cid = channel_id
-        if self.stats is not None:
-            self.stats.observe(self._channels[cid].topic, log_time_ns, p)
-        lens = p.lengths
-        rec_lens = lens + 31
-        ends = np.cumsum(rec_lens)
-        i = 0
-        while i < n:
-            room = max(self._chunk_size - self._chunk.size, 1)
-            base = ends[i - 1] if i else 0
-            j = min(int(np.searchsorted(ends, base + room, side="right")), n)
-            if j == i:  # the next message does not fit: close this chunk (or overfill an empty one)
-                if self._chunk.count:
-                    self.flush()
-                    continue
-                j = i + 1
-            self._append(cid, log_time_ns[i:j], pub[i:j], p, i, j)
-            self._after_write()
-            i = j
-
-    def _append(self, cid: int, log_t: np.ndarray, pub_t: np.ndarray, p: "messages.Packed", i: int, j: int) -> None:
-        m = j - i
-        hdr = np.zeros(m, dtype=_MSG_HDR)
-        lens = p.offsets[i + 1 : j + 1] - p.offsets[i:j]
-        hdr["op"] = Opcode.MESSAGE
-        hdr["length"] = lens + 22
-        hdr["channel"] = cid
-        hdr["log_time"] = log_t
-        hdr["publish_time"] = pub_t
-        c = self._chunk
-        payload = p.buf[p.offsets[i] : p.offsets[j]]
-        if np.all(lens == lens[0]):
-            w = int(lens[0])
-            block = np.empty((m, 31 + w), dtype=np.uint8)
-            block[:, :31] = hdr.view(np.uint8).reshape(m, 31)
-            block[:, 31:] = payload.reshape(m, w)
-            offsets = c.size + np.arange(m, dtype=np.uint64) * np.uint64(31 + w)
-        else:
-            hb = hdr.tobytes()
-            raw = payload.tobytes()
-            o = (p.offsets[i : j + 1] - p.offsets[i]).tolist()
-            parts = [b""] * (2 * m)
-            parts[0::2] = [hb[31 * k : 31 * k + 31] for k in range(m)]
-            parts[1::2] = [raw[o[k] : o[k + 1]] for k in range(m)]
-            block = b"".join(parts)
-            rec = lens + 31
-            offsets = (c.size + np.concatenate(([0], np.cumsum(rec[:-1])))).astype(np.uint64)
-        c.add(cid, log_t.astype(np.uint64), offsets, block, int(lens.sum()) + 31 * m)
-
-    def _after_write(self) -> None:
-        if self._chunk.size >= self._chunk_size:
-            self.flush()
-        elif (
-            self._flush_interval_s is not None
-            and time.monotonic() - self._last_flush >= self._flush_interval_s
-        ):
-            self.flush()
-
-    def maybe_flush(self) -> None:
-        """Flush if flush_interval_s of host time has passed (call from an idle loop)."""
-        if self._flush_interval_s is not None and time.monotonic() - self._last_flush >= self._flush_interval_s:
-            self.flush()
-
-    # -- chunks ------------------------------------------------------------------------------
-
-    def flush(self) -> None:
-        """Close the open chunk (if it has messages), write it and its message indexes,
-        flush to the OS and fsync (if enabled); with ``behind``, hand it to the thread that does."""
-        t0 = time.perf_counter()
-        c = self._chunk
+    def flush(self, c: _OpenChunk) -> None:
+        """Write the closed chunk ``c`` (when it has messages) and its message indexes, flush to the OS and fsync
+        (if enabled); with ``behind``, hand it to the thread that does."""
         if self._behind is None:
             if c.count:
                 self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
-                self._chunk = _OpenChunk()
             self._sync()
         elif c.count:
             data = b"".join(c.parts)
             self._drain()
             self._pending = self._behind.submit(self._write_behind, data, c.start, c.end, c.index)
-            self._chunk = _OpenChunk()
-        self._last_flush = time.monotonic()
-        self.flush_seconds += time.perf_counter() - t0
 
     def _sync(self) -> None:
         self._f.flush()
@@ -402,13 +226,9 @@ class Recorder:
         self._write_data(data, start, end, index)
         self._sync()
 
-    def write_chunk(
-        self, data: bytes, start: int, end: int, index: dict[int, list[tuple[np.ndarray, np.ndarray]]]
-    ) -> None:
-        """Write message records as one chunk with its message indexes: ``data`` the records (a chunk's
-        content), log times from ``start`` to ``end`` (ns), ``index`` channel id -> pieces of (log times, offsets
-        into ``data``) (uint64 arrays, or ints: ``_OpenChunk``). The open chunk's flush, and recovery's copy of a
-        file's chunks."""
+    def write_chunk(self, data: bytes, start: int, end: int,
+                    index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
+        """``Recorder.write_chunk``."""
         self._drain()
         self._write_data(data, start, end, index)
 
@@ -429,6 +249,14 @@ class Recorder:
         if self._pending is not None:
             future, self._pending = self._pending, None
             future.result()
+
+    def settle(self) -> None:
+        """Wait for the chunk written behind (its error is raised here), then stop the thread."""
+        try:
+            self._drain()
+        finally:
+            if self._behind is not None:
+                self._behind.shutdown()
 
     def _write_data(self, data: bytes, start: int, end: int,
                     index: dict[int, list[tuple[np.ndarray, np.ndarray]]]) -> None:
@@ -469,26 +297,14 @@ class Recorder:
             uncompressed_size=len(data),
         ).write(rb)
         self._chunk_indexes += rb.end()
-        self._chunks += 1
-        self._msg_start = start if self._chunks == 1 else min(self._msg_start, start)
+        self.chunks += 1
+        self._msg_start = start if self.chunks == 1 else min(self._msg_start, start)
         self._msg_end = max(self._msg_end, end)
 
-    # -- finish ------------------------------------------------------------------------------
-
-    def close(self) -> None:
-        """Flush, then write DataEnd, the summary (schemas, channels, statistics, chunk and
-        metadata indexes, summary offsets), the footer and the closing magic."""
-        if self.closed:
-            return
-        try:
-            self.flush()
-            self._drain()
-        finally:
-            if self._behind is not None:
-                self._behind.shutdown()
-        if self.stats is not None:   # after the last chunk: a file cut short keeps it only if all chunks are whole
-            self.add_metadata(INFO_RECORD, self.stats.record())
-        self._write_record(DataEnd(0))
+    def close(self, schemas: Mapping[int, Schema], channels: Mapping[int, Channel]) -> None:
+        """Write DataEnd, the summary (``schemas``, ``channels``, statistics, chunk and metadata indexes, summary
+        offsets), the footer and the closing magic; flush, fsync (if enabled) and close the file."""
+        self.write_record(DataEnd(0))
         summary_start = self._f.tell()
         sb = RecordBuilder()
         offsets: list[SummaryOffset] = []
@@ -501,21 +317,21 @@ class Recorder:
             if sb.count > start:
                 offsets.append(SummaryOffset(opcode, summary_start + start, sb.count - start))
 
-        group(Opcode.SCHEMA, list(self._schemas.values()))
-        group(Opcode.CHANNEL, list(self._channels.values()))
+        group(Opcode.SCHEMA, list(schemas.values()))
+        group(Opcode.CHANNEL, list(channels.values()))
         group(
             Opcode.STATISTICS,
             [
                 Statistics(
                     attachment_count=0,
-                    channel_count=len(self._channels),
+                    channel_count=len(channels),
                     channel_message_counts=dict(self._counts),
-                    chunk_count=self._chunks,
+                    chunk_count=self.chunks,
                     message_count=sum(self._counts.values()),
                     message_end_time=self._msg_end,
                     message_start_time=self._msg_start,
                     metadata_count=len(self._metadata_indexes),
-                    schema_count=len(self._schemas),
+                    schema_count=len(schemas),
                 )
             ],
         )
@@ -528,12 +344,313 @@ class Recorder:
         crc = crc32(summary)
         crc = crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._f.write(summary)
-        self._write_record(Footer(summary_start, summary_offset_start, crc))
+        self.write_record(Footer(summary_start, summary_offset_start, crc))
         self._f.write(MAGIC)
         self._f.flush()
         if self._fsync:
             os.fsync(self._f.fileno())
         self._f.close()
+
+    def discard(self) -> None:
+        """Stop the thread (dropping a chunk not begun) and remove the file (``outputs.Output.discard``)."""
+        if self._behind is not None:
+            self._behind.shutdown(cancel_futures=True)
+        self._f.discard()
+
+
+class Recorder(outputs.Closing):
+    """Write a drive to one MCAP file.
+
+    The recorder lays out message records into the open chunk (``_OpenChunk``) and decides when to close it; the
+    file side (``_FileWriter``) writes records, chunks and the summary. Used in a ``with`` block, it is closed at
+    its end, or discarded on an error (``outputs.Closing``).
+
+    Parameters
+    ----------
+    path : output file, created new (``drive.outputs.create``: ``outputs.Refused`` if it exists, unless it is a
+        regular file and ``force``; always if it is a symbolic link)
+    chunk_size : uncompressed bytes per chunk before it is closed
+    flush_interval_s : close and flush the open chunk once this much host monotonic time, s, has passed since the
+        last flush (None: only by size or explicit ``flush()``, for offline writers that flush by data time)
+    compression : "zstd", "lz4" or "" (none)
+    metadata : written as an MCAP Metadata record named "drive" (string values; e.g. scenario, seed, config,
+        calibration TOML, software version)
+    fsync : fsync after every flush (power-cut safety)
+    compression_level : zstd level (1 is about twice as fast as 3 on IMU data for ~5 % larger files)
+    stats : gather what ``fieldlog info`` shows while writing and store it at close as the ``fieldlog.info``
+        record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``)
+    force : replace a regular file at ``path``
+    root : the output folder ``path`` lies in, walked without following a link
+    behind : compress and write each closed chunk on a thread while the caller goes on (at most one chunk in
+        flight), for offline writers: a chunk is sure to be in the file only when the next one closes, at the
+        next record outside chunks, or at ``close``, so ``flush`` does not bound what a power cut loses
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        chunk_size: int = 4 * 1024 * 1024,
+        flush_interval_s: float | None = 1.0,
+        compression: str = "zstd",
+        metadata: dict[str, str] | None = None,
+        fsync: bool = True,
+        compression_level: int = 1,
+        stats: bool = True,
+        force: bool = False,
+        root: str | os.PathLike[str] | None = None,
+        behind: bool = False,
+    ) -> None:
+        if compression not in ("zstd", "lz4", ""):
+            raise ValueError(f"unknown compression {compression!r}")
+        self.path = Path(path)
+        self._chunk_size = chunk_size
+        self._flush_interval_s = flush_interval_s
+        self._schemas: dict[int, Schema] = {}
+        self._schema_ids: dict[str, int] = {}
+        self._channels: dict[int, Channel] = {}
+        self._channel_ids: dict[str, int] = {}
+        self._chunk = _OpenChunk()
+        self._last_flush = time.monotonic()
+        self.flush_seconds = 0.0  # host time spent in flush (compress + write + fsync)
+        self.stats = DriveStats() if stats else None
+        self.closed = False
+        self._file = _FileWriter(outputs.create(self.path, force, root), compression, compression_level, fsync,
+                                 behind)
+        if metadata:
+            self.add_metadata("drive", metadata)
+
+    # -- records outside chunks --------------------------------------------------------------
+
+    @property
+    def channels(self) -> Mapping[int, Channel]:
+        """The channels defined so far, by id (read only)."""
+        return MappingProxyType(self._channels)
+
+    @property
+    def chunk_count(self) -> int:
+        """Chunks written so far."""
+        return self._file.chunks
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write a Metadata record.
+
+        Parameters
+        ----------
+        name : the record's name
+        data : its keys and values (values written as ``str(value)``)
+        """
+        self._file.add_metadata(name, data)
+
+    def add_schema(self, schema: Schema) -> int:
+        """Register a schema record as it is (keeps its id), written on first use.
+
+        Parameters
+        ----------
+        schema : the record
+
+        Returns
+        -------
+        int : its id
+        """
+        if schema.id not in self._schemas:
+            self._schemas[schema.id] = schema
+            self._schema_ids[schema.name] = schema.id
+            self._file.write_record(schema)
+        return schema.id
+
+    def add_channel(self, channel: Channel) -> int:
+        """Register a channel record as it is (keeps its id), written on first use.
+
+        Parameters
+        ----------
+        channel : the record (its schema registered before)
+
+        Returns
+        -------
+        int : its id
+        """
+        if channel.id not in self._channels:
+            self._channels[channel.id] = channel
+            self._channel_ids[channel.topic] = channel.id
+            self._file.write_record(channel)
+        return channel.id
+
+    def channel_id(self, topic: str) -> int:
+        """Channel id of a contract topic, registering its schema and channel on first use.
+
+        Parameters
+        ----------
+        topic : a topic of the data model (``messages.topic_type``)
+
+        Returns
+        -------
+        int : its channel id
+        """
+        cid = self._channel_ids.get(topic)
+        if cid is not None:
+            return cid
+        type_name = messages.topic_type(topic)
+        sid = self._schema_ids.get(type_name)
+        if sid is None:
+            sid = self.add_schema(
+                Schema(
+                    id=len(self._schemas) + 1,
+                    name=type_name,
+                    encoding=messages.SCHEMA_ENCODING,
+                    data=messages.schema_text(type_name).encode(),
+                )
+            )
+        return self.add_channel(
+            Channel(
+                id=len(self._channels) + 1,
+                topic=topic,
+                message_encoding=messages.MESSAGE_ENCODING,
+                schema_id=sid,
+                metadata={"offered_qos_profiles": messages.offered_qos_profiles(topic),
+                          "topic_type_hash": typehash.rihs01(type_name)},
+            )
+        )
+
+    # -- messages ----------------------------------------------------------------------------
+
+    def write(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
+        """Write one message.
+
+        Parameters
+        ----------
+        topic : a topic of the data model (``channel_id``)
+        log_time_ns : log time, UTC ns (> 0)
+        data : the CDR payload
+        publish_time_ns : publish time, UTC ns (None: ``log_time_ns``)
+        """
+        log_time_ns = int(log_time_ns)
+        if log_time_ns <= 0:
+            raise ValueError("log_time must be > 0")
+        cid = self.channel_id(topic)
+        if self.stats is not None:
+            self.stats.observe_message(topic, log_time_ns, data)
+        pub = log_time_ns if publish_time_ns is None else publish_time_ns
+        self._chunk.add_one(cid, log_time_ns, _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns,
+                                                                   pub) + data)
+        self.maybe_flush()
+
+    def write_batch(
+        self,
+        topic: str,
+        log_time_ns: np.ndarray,
+        msgs: "messages.Packed | Sequence[bytes]",
+        publish_time_ns: np.ndarray | None = None,
+    ) -> None:
+        """Write n messages of one topic (none: no channel either).
+
+        Equal-length messages (fixed-layout types) are laid out as one byte matrix; a batch
+        larger than the chunk size is split over several chunks.
+
+        Parameters
+        ----------
+        topic : a topic of the data model (``channel_id``)
+        log_time_ns : (n,) int64 log times, UTC ns, all > 0
+        msgs : the n CDR payloads
+        publish_time_ns : (n,) int64 publish times, UTC ns (None: ``log_time_ns``)
+        """
+        if len(msgs) == 0:   # no channel for a topic without messages
+            return
+        self.write_channel(self.channel_id(topic), log_time_ns, msgs, publish_time_ns)
+
+    def write_channel(
+        self,
+        channel_id: int,
+        log_time_ns: np.ndarray,
+        msgs: "messages.Packed | Sequence[bytes]",
+        publish_time_ns: np.ndarray | None = None,
+    ) -> None:
+        """``write_batch`` to a channel already registered (``add_channel``), for any topic and type.
+
+        Parameters
+        ----------
+        channel_id : the channel's id
+        log_time_ns : (n,) int64 log times, UTC ns, all > 0
+        msgs : the n payloads, in the channel's encoding
+        publish_time_ns : (n,) int64 publish times, UTC ns (None: ``log_time_ns``)
+        """
+        log_time_ns = np.asarray(log_time_ns, dtype=np.int64)
+        p = messages.as_packed(msgs)
+        n = len(p)
+        if len(log_time_ns) != n:
+            raise ValueError("log_time_ns and msgs differ in length")
+        if n == 0:
+            return
+        if log_time_ns.min() <= 0:
+            raise ValueError("log_time must be > 0")
+        pub = log_time_ns if publish_time_ns is None else np.asarray(publish_time_ns, np.int64)
+        cid = channel_id
+        if self.stats is not None:
+            self.stats.observe(self._channels[cid].topic, log_time_ns, p)
+        lens = p.lengths
+        rec_lens = lens + 31
+        ends = np.cumsum(rec_lens)
+        i = 0
+        while i < n:
+            room = max(self._chunk_size - self._chunk.size, 1)
+            base = ends[i - 1] if i else 0
+            j = min(int(np.searchsorted(ends, base + room, side="right")), n)
+            if j == i:  # the next message does not fit: close this chunk (or overfill an empty one)
+                if self._chunk.count:
+                    self.flush()
+                    continue
+                j = i + 1
+            self._chunk.add(cid, log_time_ns[i:j], pub[i:j], p, i, j)
+            self.maybe_flush()
+            i = j
+
+    def maybe_flush(self) -> None:
+        """Flush if the open chunk is full or flush_interval_s of host time has passed (also from an idle loop)."""
+        if self._chunk.size >= self._chunk_size or (
+            self._flush_interval_s is not None and time.monotonic() - self._last_flush >= self._flush_interval_s
+        ):
+            self.flush()
+
+    # -- chunks ------------------------------------------------------------------------------
+
+    def flush(self) -> None:
+        """Close the open chunk (if it has messages), write it and its message indexes,
+        flush to the OS and fsync (if enabled); with ``behind``, hand it to the thread that does."""
+        t0 = time.perf_counter()
+        self._file.flush(self._chunk)
+        if self._chunk.count:
+            self._chunk = _OpenChunk()
+        self._last_flush = time.monotonic()
+        self.flush_seconds += time.perf_counter() - t0
+
+    def write_chunk(
+        self, data: bytes, start: int, end: int, index: dict[int, list[tuple[np.ndarray, np.ndarray]]]
+    ) -> None:
+        """Write message records as one chunk with its message indexes: the open chunk's flush, and recovery's
+        copy of a file's chunks.
+
+        Parameters
+        ----------
+        data : the message records (a chunk's content)
+        start, end : the first and last log time of its messages, UTC ns
+        index : channel id -> pieces of (log times, offsets into ``data``): uint64 arrays, or ints
+            (``_OpenChunk``)
+        """
+        self._file.write_chunk(data, start, end, index)
+
+    # -- finish ------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Flush, then write DataEnd, the summary (schemas, channels, statistics, chunk and
+        metadata indexes, summary offsets), the footer and the closing magic."""
+        if self.closed:
+            return
+        try:
+            self.flush()
+        finally:
+            self._file.settle()
+        if self.stats is not None:   # after the last chunk: a file cut short keeps it only if all chunks are whole
+            self.add_metadata(INFO_RECORD, self.stats.record())
+        self._file.close(self._schemas, self._channels)
         self.closed = True
 
     def discard(self) -> None:
@@ -542,14 +659,4 @@ class Recorder:
         if self.closed:
             return
         self.closed = True
-        if self._behind is not None:
-            self._behind.shutdown(cancel_futures=True)
-        self._f.discard()
-
-    def __enter__(self) -> "Recorder":
-        return self
-
-    def __exit__(self, kind, value, tb) -> None:
-        """Close the file; on an error other than Ctrl-C (which keeps what was written, finished), in the block or
-        in closing, ``discard`` it."""
-        outputs.end(kind, self.close, self.discard)
+        self._file.discard()

@@ -27,7 +27,18 @@ class ConfigError(ValueError):
 
 def from_table(cls: type[T], table: str, d: dict[str, Any]) -> T:
     """Dataclass ``cls`` from the TOML table ``[table]``; an unknown key raises ConfigError naming it.
-    Value checks are the dataclass's own (``__post_init__``)."""
+    Value checks are the dataclass's own (``__post_init__``).
+
+    Parameters
+    ----------
+    cls : the dataclass
+    table : the table's name, for errors
+    d : the table's keys and values
+
+    Returns
+    -------
+    an instance of ``cls``
+    """
     known = {f.name for f in fields(cls)}
     bad = sorted(set(d) - known)
     if bad:
@@ -36,13 +47,32 @@ def from_table(cls: type[T], table: str, d: dict[str, Any]) -> T:
 
 
 def one_line(e: BaseException) -> str:
-    """An exception's text on one line (parsers' messages span several, with a pointer under the line)."""
+    """An exception's text on one line (parsers' messages span several, with a pointer under the line).
+
+    Parameters
+    ----------
+    e : the exception
+
+    Returns
+    -------
+    str
+    """
     return " ".join(str(e).split()) or type(e).__name__
 
 
 def read_text(path: str | os.PathLike[str], what: str) -> str:
     """The text of file ``path`` (UTF-8, at most ``MAX_FILE_BYTES``); ConfigError ``"{what} {path} ..."`` in one
-    line when it is missing, a directory, larger or not text. ``what`` says what the file is ("config file")."""
+    line when it is missing, a directory, larger or not text. ``what`` says what the file is ("config file").
+
+    Parameters
+    ----------
+    path : the file
+    what : what it is, for errors
+
+    Returns
+    -------
+    str : its text
+    """
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_FILE_BYTES + 1)
@@ -61,12 +91,32 @@ def read_text(path: str | os.PathLike[str], what: str) -> str:
 
 
 def load_toml(text: str, name: str) -> dict[str, Any]:
-    """TOML ``text`` (from ``name``: "config file PATH") as a dict, its nesting checked (``check_nesting``)."""
+    """TOML ``text`` (from ``name``: "config file PATH") as a dict, its nesting checked (``check_nesting``).
+
+    Parameters
+    ----------
+    text : the TOML text
+    name : where it comes from, for errors
+
+    Returns
+    -------
+    dict : the tables
+    """
     return _parse(tomllib.loads, tomllib.TOMLDecodeError, "TOML", text, name)
 
 
 def load_yaml(text: str, name: str) -> Any:
-    """YAML ``text`` (from ``name``) through ``yaml.safe_load`` (no object construction), nesting checked."""
+    """YAML ``text`` (from ``name``) through ``yaml.safe_load`` (no object construction), nesting checked.
+
+    Parameters
+    ----------
+    text : YAML
+    name : its source, named in errors
+
+    Returns
+    -------
+    object : the document
+    """
     import yaml
 
     return _parse(yaml.safe_load, yaml.YAMLError, "YAML", text, name)
@@ -85,7 +135,13 @@ def _parse(parse: Callable[[str], Any], errors: type[Exception], kind: str, text
 
 def check_nesting(value: Any, name: str) -> None:
     """ConfigError naming the key where ``value`` (parsed TOML or YAML) nests more than ``MAX_DEPTH`` tables or
-    arrays deep, or when it holds more than ``MAX_VALUES`` values; walked without recursion."""
+    arrays deep, or when it holds more than ``MAX_VALUES`` values; walked without recursion.
+
+    Parameters
+    ----------
+    value : parsed TOML or YAML
+    name : where it comes from, for errors
+    """
     stack: list[tuple[Any, tuple[str, ...]]] = [(value, ())]
     seen = 0
     while stack:

@@ -59,7 +59,16 @@ def _fields(type_name: str) -> list[dict]:
 
 @lru_cache(maxsize=None)
 def rihs01(type_name: str) -> str:
-    """``RIHS01_<sha256 hex>`` of ``type_name`` (a key of MSG_DEFS, e.g. ``sensor_msgs/msg/Imu``)."""
+    """``RIHS01_<sha256 hex>`` of ``type_name`` (a key of MSG_DEFS, e.g. ``sensor_msgs/msg/Imu``).
+
+    Parameters
+    ----------
+    type_name : a registered type
+
+    Returns
+    -------
+    str : the type hash
+    """
     structs: dict[str, dict] = {}
 
     def visit(t: str) -> None:

@@ -105,13 +105,17 @@ def test_a_boot_relative_can_log_needs_a_time_base(frd_drive, tmp_path):
     r = _cli("import", "-q", "--can", log, "--align-to", frd_drive, "--out", tmp_path / "can.mcap", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     can_t = reader.read_topic(tmp_path / "can.mcap", "/raw/can")["log_time_ns"]
-    drive = Drive.open([frd_drive, tmp_path / "can.mcap"], tf_from=frd_drive)  # the import's /tf_static: RFU
+    drive = Drive.open([frd_drive, tmp_path / "can.mcap"])  # the import has no IMU: it claims no transform
     assert int(can_t[0]) == drive.sources[0].start_ns
     assert drive.sources[1].start_ns <= drive.sources[0].end_ns
-    # the import's default /tf_static (imu in RFU) against the drive's FRD: named, not applied in silence
-    _one_line(_cli("fuse", frd_drive, tmp_path / "can.mcap", "--imu-topic", "/sensors/imu", "--fix-topic",
-                   "/sensors/gnss/fix", "--out", tmp_path / "fused.mcap", cwd=tmp_path),
-              str(frd_drive), "can.mcap", "'imu'")
+    assert drive.transforms[tmp_path / "can.mcap"] == {}
+    assert "/tf_static" not in {t.topic for t in reader.topics(tmp_path / "can.mcap")}
+    # so the drive's own /tf_static places the IMU: read in FRD, with no option
+    r = _cli("fuse", "-q", frd_drive, tmp_path / "can.mcap", "--imu-topic", "/sensors/imu", "--fix-topic",
+             "/sensors/gnss/fix", "--out", tmp_path / "fused.mcap", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "frd" in reader.read_metadata(tmp_path / "fused.mcap")["fusion"]["inputs"]
+    (tmp_path / "fused.mcap").unlink()
     # placed years before the drive: fuse refuses the pair before reading a block
     r = _cli("import", "-q", "--can", log, "--start", "2018-03-01T08:00:00Z", "--out", tmp_path / "old.mcap",
              cwd=tmp_path)

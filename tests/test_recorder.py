@@ -340,7 +340,7 @@ def test_behind_writes_the_same_bytes_and_raises_its_errors(tmp_path, monkeypatc
     def broken(data: bytes) -> tuple[bytes, int]:
         raise MemoryError("no room to compress")
 
-    monkeypatch.setattr(rec, "_compress", broken)
+    monkeypatch.setattr(rec._file, "_compress", broken)
     rec.write("/gps/nmea", T0, m.encode_sentence(T0, "$GPGGA,1*00"))
     rec.flush()                           # submitted: the error comes with the next record
     with pytest.raises(MemoryError, match="no room"):

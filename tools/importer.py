@@ -24,7 +24,9 @@ invented, and the rule is stated here because time sync depends on it:
   adapter time: absolute times (after 2001, e.g. candump's and an ASC file's ``date``) as they are; relative
   (boot) ones from the UTC given for the first frame (``--start``, or ``--align-to DRIVE``: the drive's first log
   time), else from the GPS log's first second (the captures started together). Without either a relative log is
-  refused: a file's modification time says nothing of when the log began.
+  refused: a file's modification time says nothing of when the log began. A CAN log imported without a GPS log
+  writes no ``/tf_static``: it has no IMU or antenna to place (its ``/vehicle/twist`` is in ``base_link``), so
+  the file claims no frame that a drive it is fused with gives.
 """
 from __future__ import annotations
 
@@ -281,7 +283,8 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
     meta = {"source": "fieldlog import", "gps": str(gps or ""), "daq": str(daq_path or ""), "can": str(can_log or "")}
     with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,
                            behind=True) as rec:
-        pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None))
+        pipe = Pipeline(rec, sync_cfg=sync_cfg, cfg=PipelineConfig(can=can_bus if can_log is not None else None,
+                                                                   tf_static=gps is not None))
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
         pipe.feed_reads(reads)

@@ -899,8 +899,8 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
 # drive/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
-_WRITE = {"Recorder", "_OpenChunk", "write", "write_batch", "write_channel", "_append", "_after_write", "maybe_flush",
-          "flush", "write_chunk", "_write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
+_WRITE = {"Recorder", "_OpenChunk", "_FileWriter", "write", "write_batch", "write_channel", "maybe_flush",
+          "flush", "write_chunk", "write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
           "close", "__enter__", "__exit__", "add"}
 _CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_matrices", "discretise"}
 
