@@ -110,11 +110,11 @@ class AlignConfig:
 
 @dataclass
 class StillConfig:
-    """The still detector (``fusion.align.still``), shared by the alignment and the stationary update."""
+    """The still detector (``fusion.still``), shared by the alignment and the stationary update."""
 
     still_speed_mps: float = 0.5  # still: INS speed below this without GPS velocity, ...
     still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity of the last second below this (or 1.5 of its
-    # sigmas from the reported velocity covariance, fusion.align.GpsSpeed), ...
+    # sigmas from the reported velocity covariance, fusion.still.GpsSpeed), ...
     still_accel_std_mps2: float = 0.1  # ... specific force and rate varying less than these over the interval,
     still_gyro_std_dps: float = 0.5
     still_rate_tol_dps: float = 0.01  # ... and their means within 3 sigma plus these of standing still

@@ -25,9 +25,9 @@ from typing import Protocol
 import numpy as np
 
 from fieldlog.fusion import earth, kf, odometer, pseudo
-from fieldlog.fusion.align import GATE, GpsSpeed, ImuSums, StillRun
+from fieldlog.fusion.still import GATE, GpsSpeed, ImuSums, StillRun
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.fusion.errmodel import BA, BG
+from fieldlog.fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.predictors import PredictorConfig
 from fieldlog.fusion.ins import NavState
 from fieldlog.fusion.types import Epoch, OdomBlock
@@ -71,7 +71,7 @@ class MeasurementModel(Protocol):
 
 @dataclass
 class GpsPosition:
-    """The fix: z = INS antenna position - GPS position, ENU m (``kf.position_measurement``); lever_b (3,) IMU ->
+    """The fix: z = INS antenna position - GPS position, ENU m (``position_measurement``); lever_b (3,) IMU ->
     antenna, body RFU, m. R is the fix's covariance; a fix without height gives the horizontal rows only."""
 
     lever_b: np.ndarray
@@ -83,12 +83,12 @@ class GpsPosition:
         e = m.epoch
         if not m.usable:
             return None
-        return kf.position_measurement(m.nav, m.t_fix, e.lat, e.lon, e.h, e.pos_cov, self.lever_b)
+        return position_measurement(m.nav, m.t_fix, e.lat, e.lon, e.h, e.pos_cov, self.lever_b)
 
 
 @dataclass
 class GpsVelocity:
-    """The receiver's velocity: z = INS antenna velocity - GPS velocity, ENU m/s (``kf.velocity_measurement``);
+    """The receiver's velocity: z = INS antenna velocity - GPS velocity, ENU m/s (``velocity_measurement``);
     components with a variance above max_var ((m/s)^2, NMEA's unobserved vertical) are left out."""
 
     lever_b: np.ndarray
@@ -100,12 +100,12 @@ class GpsVelocity:
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
         if not m.usable:
             return None
-        return kf.velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
+        return velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
 
 
 @dataclass
 class NonHolonomic:
-    """A car's body lateral and vertical velocity are zero (``kf.nhc_measurement``), sigma_mps each; not when the
+    """A car's body lateral and vertical velocity are zero (``nhc_measurement``), sigma_mps each; not when the
     car is slow: GPS speed below slow_gps_mps, or (without a GPS velocity) INS speed below slow_ins_mps."""
 
     sigma_mps: float
@@ -119,13 +119,13 @@ class NonHolonomic:
         v = m.v_aid
         slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
                 else float(np.linalg.norm(m.nav.v_n)) < self.slow_ins_mps)
-        return None if slow else kf.nhc_measurement(m.nav, self.sigma_mps)
+        return None if slow else nhc_measurement(m.nav, self.sigma_mps)
 
 
 @dataclass
 class Stationary:
-    """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``kf.stationary_measurement``) when the vehicle
-    stood still over the interval since the last epoch and the one before it (``fusion.align.StillRun``).
+    """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``stationary_measurement``) when the vehicle
+    stood still over the interval since the last epoch and the one before it (``fusion.still.StillRun``).
 
     A standing car is not still to a good gyro (the engine idles, the body rocks on its springs, people move),
     so the noise comes from the interval itself and from what the still detector admits, never tighter:
@@ -133,7 +133,7 @@ class Stationary:
     - ZARU, per body axis: sigma_w^2 = gyro_noise^2 / T (white noise over the interval's T s) + the squared
       standard error of the interval's mean rate (its samples' spread over sqrt(n)) + (still_rate_tol / gate)^2,
       the mean rate the detector lets through as "still" (``[fusion] still_rate_tol_dps`` at its gate of
-      ``align.GATE`` sigmas);
+      ``still.GATE`` sigmas);
     - ZUPT, per ENU axis: sigma_v^2 = sigma_mps^2 + (a T)^2, the velocity the admitted mean specific force error
       a would build over the interval: a = the larger of still_accel_tol / gate (the detector's floor) and the
       standard error of the interval's mean specific force (its samples' largest per-axis spread over sqrt(n):
@@ -175,7 +175,7 @@ class Stationary:
         if float(r @ np.linalg.solve(S, r)) > ZARU_CHI2:
             self.zaru_skipped.append(m.epoch.t_ns)
             sigma_w = None
-        return kf.stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
+        return stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
 
     def noise(self, interval: ImuSums, seconds: float) -> tuple[np.ndarray, np.ndarray]:
         """(sigma_v (3,) m/s, sigma_w (3,) rad/s) of the ZUPT and ZARU from a still interval of ``seconds``
@@ -410,3 +410,75 @@ def _still_references(nav: NavState, bg: np.ndarray, ba: np.ndarray, P: np.ndarr
     sd_f = math.hypot(math.sqrt(max(float(P[6, 6] + P[7, 7]), 0.0)) * float(np.linalg.norm(f_ref)),
                       math.sqrt(max(float(np.trace(P[BA, BA])), 0.0)))
     return w_ref, sd_w, f_ref, sd_f
+
+
+def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h: float, cov_enu: np.ndarray,
+                         lever_b: np.ndarray) -> kf.Measurement:
+    """GPS position measurement: z = INS antenna position - GPS position, ENU m.
+
+    The INS state is extrapolated from nav.t to the fix time t_gps (s) with its velocity. lat, lon in
+    rad, h in m (NaN for a fix without height: horizontal rows only); cov_enu (3, 3) ENU m^2 (the fix's
+    covariance); lever_b (3,) IMU -> antenna, body RFU, m.
+    """
+    C = nav.C_bn
+    arm_n = C @ lever_b
+    z = kf.enu_offset(nav.lat, nav.lon, nav.h, lat, lon, h) + arm_n + nav.v_n * (t_gps - nav.t)
+    H = np.zeros((3, N_STATES))
+    H[:, POS] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_n)
+    keep = np.flatnonzero(np.isfinite(z))
+    return z[keep], H[keep], np.asarray(cov_enu, dtype=float)[np.ix_(keep, keep)]
+
+
+def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omega_ib_b: np.ndarray,
+                         lever_b: np.ndarray, max_var: float) -> kf.Measurement | None:
+    """GPS velocity measurement: z = INS antenna velocity - GPS velocity, ENU m/s.
+
+    cov (3, 3) ENU (m/s)^2; components with variance above max_var (NMEA's unobserved vertical
+    velocity) are left out. omega_ib_b (3,) bias-corrected rate, rad/s. None when nothing is left.
+    """
+    cov = np.asarray(cov, dtype=float)
+    keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
+    if len(keep) == 0:
+        return None
+    C = nav.C_bn
+    arm_v = C @ earth.cross(omega_ib_b, lever_b)
+    z = nav.v_n + arm_v - v_gps
+    H = np.zeros((3, N_STATES))
+    H[:, VEL] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_v)
+    H[:, BG] = -C @ earth.skew(lever_b)
+    return z[keep], H[keep], cov[np.ix_(keep, keep)]
+
+
+def nhc_measurement(nav: NavState, sigma_mps: float) -> kf.Measurement:
+    """Non-holonomic constraint of a car: the IMU's body lateral (x) and vertical (z) velocity are zero.
+
+    z = (C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
+    dv_b = C_nb dv_n - C_nb [v_n x] phi. sigma_mps: 1-sigma of the constraint (side slip, suspension).
+    Assumes the IMU sits near the rear axle's centre line (no lever arm to the non-holonomic point).
+    """
+    C_nb = nav.C_bn.T[[0, 2]]
+    H = np.zeros((2, N_STATES))
+    H[:, VEL] = C_nb
+    H[:, ATT] = -C_nb @ earth.skew(nav.v_n)
+    return C_nb @ nav.v_n, H, np.eye(2) * sigma_mps ** 2
+
+
+def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
+                           sigma_w: np.ndarray | None) -> kf.Measurement:
+    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still.
+
+    z = [v_n of the INS (m/s); mean bias-corrected gyro output over the still interval minus the Earth
+    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_v (3,) m/s: the ZUPT
+    1-sigma per ENU axis; sigma_w (3,) rad/s: the ZARU 1-sigma per body axis, None: ZUPT alone (3 rows).
+    """
+    C_nb = nav.C_bn.T
+    rows = 3 if sigma_w is None else 6
+    H = np.zeros((rows, N_STATES))
+    H[0:3, VEL] = np.eye(3)
+    if sigma_w is None:
+        return nav.v_n.copy(), H, np.diag(np.asarray(sigma_v, float) ** 2)
+    H[3:6, BG] = np.eye(3)
+    z = np.concatenate([nav.v_n, mean_omega_b - C_nb @ earth.omega_ie_n(nav.lat)])
+    return z, H, np.diag(np.concatenate([sigma_v, sigma_w]) ** 2)

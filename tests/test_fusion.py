@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from fieldlog.fusion import earth, errmodel, ins, kf
+from fieldlog.fusion import earth, errmodel, ins, kf, measurements
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
@@ -170,18 +170,18 @@ def _perturbed(true: ins.NavState, x: np.ndarray) -> ins.NavState:
 
 def test_nhc_measurement_is_linear_in_the_velocity_and_attitude_errors():
     true = _nav(0.7, 0.03, -0.02, np.array([0.0, 12.0, 0.0]))  # a car: moving along its forward axis
-    z0, H, R = kf.nhc_measurement(true, 0.1)
+    z0, H, R = measurements.nhc_measurement(true, 0.1)
     assert np.allclose(z0, 0.0, atol=1e-12) and R.shape == (2, 2)
     rng = np.random.default_rng(1)
     for _ in range(5):
         x = np.zeros(15)
         x[3:6] = rng.standard_normal(3) * 0.05
         x[6:9] = rng.standard_normal(3) * 2e-3  # 0.1 deg: a heading error shows as lateral velocity
-        z = kf.nhc_measurement(_perturbed(true, x), 0.1)[0]
+        z = measurements.nhc_measurement(_perturbed(true, x), 0.1)[0]
         assert np.allclose(z, H @ x, atol=2e-2 * np.abs(H @ x).max())  # second order: phi x dv
     x = np.zeros(15)
     x[8] = 0.01  # 0.57 deg of heading error at 12 m/s: 0.12 m/s sideways
-    assert abs(kf.nhc_measurement(_perturbed(true, x), 0.1)[0][0]) == pytest.approx(0.12, rel=0.01)
+    assert abs(measurements.nhc_measurement(_perturbed(true, x), 0.1)[0][0]) == pytest.approx(0.12, rel=0.01)
 
 
 def test_stationary_measurement_sees_velocity_and_residual_gyro_bias():
@@ -191,11 +191,11 @@ def test_stationary_measurement_sees_velocity_and_residual_gyro_bias():
     nav = _perturbed(true, x)
     bias = np.radians([0.01, -0.02, 0.03])  # residual bias of the corrected gyro output
     w_mean = true.C_bn.T @ earth.omega_ie_n(true.lat) + bias
-    z, H, R = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), np.full(3, np.radians(0.03)))
+    z, H, R = measurements.stationary_measurement(nav, w_mean, np.full(3, 0.02), np.full(3, np.radians(0.03)))
     x[9:12] = bias
     assert np.allclose(z, H @ x, atol=1e-9)
     assert np.allclose(np.diag(R), np.repeat([0.02 ** 2, np.radians(0.03) ** 2], 3))
-    z3, H3, R3 = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), None)  # ZUPT alone
+    z3, H3, R3 = measurements.stationary_measurement(nav, w_mean, np.full(3, 0.02), None)  # ZUPT alone
     assert np.allclose(z3, z[:3]) and np.array_equal(H3, H[:3]) and np.allclose(R3, R[:3, :3])
 
 
@@ -207,7 +207,7 @@ def test_aid_to_the_distributed_filter_equals_the_centralised_update():
     P0 = A @ A.T * 1e-3 + 1e-2 * np.eye(15)
     q = errmodel.noise_psd(1e-3, 1e-2, 1e-5, 1e-4)
     c, d = kf.KalmanFilter(P0, q), DistributedKF(P0, q, "federated")
-    m = kf.nhc_measurement(_nav(0.3, 0.0, 0.0, np.array([0.05, 10.0, -0.02])), 0.1)
+    m = measurements.nhc_measurement(_nav(0.3, 0.0, 0.0, np.array([0.05, 10.0, -0.02])), 0.1)
     c.update_aid(m)
     d.update_aid(m)
     assert np.abs(c.state).max() > 0
