@@ -53,6 +53,8 @@ class SensorConfig:
     # steps (S + M) dx of each cycle's change of rate and specific force (fusion.errmodel.scale_factor_steps)
     gyro_range_dps: float = 20.0  # a gyro flat at this rate (or beyond) is clipped (Table 2: +-20 deg/s)
     clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
+    imu_time_offset_s: float = 0.0  # how late the IMU's stamps are against the GPS's, s: the engine takes it off
+    # every IMU stamp; `fuse` estimates it from the drive (fusion.installation) with this as its start value
 
     def noise_psd(self) -> np.ndarray:
         """The filter's noise PSD (12, 12) (``fusion.errmodel.noise_psd``) in SI units."""
@@ -135,6 +137,14 @@ class AidConfig:
     # (false: the NHC alone; fusion.odometer, "With the NHC and without")
     odometer_lever_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> rear axle centre, body RFU, m
     odometer_sigma_mps: float = 0.02  # the wheel speed's sigma when the topic gives no variance
+    mounting_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the IMU's axes from the car's (base_link),
+    # [roll, pitch, yaw] deg, C_bm = fusion.earth.euler_to_dcm(yaw, pitch, roll) maps IMU axes to the car's: the NHC
+    # and the odometer constrain the car's velocity, C_bm C_nb v_n; `fuse` estimates it from the drive
+    # (fusion.installation) with this as its initial value
+    mounting_sigma_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # its 1-sigma, deg, added to the NHC's and the
+    # odometer's lateral (yaw) and vertical (pitch) variance; all 0 to `fuse`: nobody measured it (the estimate alone)
+    estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
+    # first and uses them (false: the configured values as they are)
 
 
 @dataclass
@@ -229,6 +239,13 @@ class FusionConfig:
                 raise ValueError(f"[fusion] {key}: must be >= 0")
         if g.gps_error_model not in GPS_ERROR_MODELS:
             raise ValueError(f"[fusion] gps_error_model: {g.gps_error_model!r}; one of {', '.join(GPS_ERROR_MODELS)}")
+        a = self.aids
+        for key in ("mounting_rpy_deg", "mounting_sigma_deg"):
+            v = getattr(a, key)
+            if len(v) != 3 or not all(math.isfinite(x) for x in v) or (key == "mounting_sigma_deg" and min(v) < 0):
+                raise ValueError(f"[fusion] {key}: expected 3 finite numbers (sigmas >= 0), got {list(v)!r}")
+        if not abs(self.sensor.imu_time_offset_s) < 10.0:
+            raise ValueError("[fusion] imu_time_offset_s: must be within +-10 s")
         for n, o in enumerate(g.outages):
             if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
                 raise ValueError(f"[fusion] outages[{n}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")

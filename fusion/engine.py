@@ -79,6 +79,7 @@ class Engine:
         self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
         self._interval = still.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
+        self._imu_late_ns = int(round(self.cfg.sensor.imu_time_offset_s * 1e9))  # taken off every IMU stamp
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
         self._steps = errmodel.BiasSteps.of(self.cfg.sensor)  # scale factors as bias steps, or None
@@ -93,13 +94,14 @@ class Engine:
         return [p for m in self.measurements for p in getattr(m, "parts", (m,))]
 
     def process(self, imu: ImuBlock, gps: GpsBlock, odom: OdomBlock | None = None) -> tuple[Solution, list[Outage]]:
-        """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages."""
+        """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages.
+        The IMU's stamps are taken on the GPS's time: less ``[fusion] imu_time_offset_s``."""
         if odom is not None and len(odom.t_ns):
             for p in self._parts():
                 if hasattr(p, "feed"):
                     p.feed(odom)
         ok = np.isfinite(imu.omega_ib_b).all(axis=1) & np.isfinite(imu.f_b).all(axis=1)
-        t_ns = np.asarray(imu.t_ns, np.int64)[ok]
+        t_ns = np.asarray(imu.t_ns, np.int64)[ok] - self._imu_late_ns  # on the GPS's time
         w, f = np.asarray(imu.omega_ib_b, float)[ok], np.asarray(imu.f_b, float)[ok]
         if self._carry is not None:
             keep = t_ns > self._carry[0][-1]

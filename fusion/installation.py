@@ -16,9 +16,12 @@ INS heading at the epochs. The yaw rate only: the receiver's acceleration is noi
 
 **Mounting** (``mounting``): the car's attitude is taken from the velocity, heading = the course, pitch = the
 flight-path angle, roll = 0 (a car does not side-slip at its rear axle and rolls only in turns, as much either
-way), so C_bm = C_bn^T C_mn (IMU frame -> car body frame, RFU) at each solution row where the car moves at
-``MIN_SPEED_MPS`` or more on a straight (yaw rate below ``MAX_YAW_RATE``: the IMU's time offset would turn the
-INS heading against the course in a turn), read as [roll, pitch, yaw] (``fusion.earth``'s conventions:
+way; the IMU's point ahead of the rear axle by r moves at an angle atan(yaw rate r / speed) to the car's heading
+in a turn, taken off), so C_bm = C_bn^T C_mn (IMU frame -> car body frame, RFU) at each row of an aids-off
+solution, its IMU on the GPS's time (the time offset applied: a late IMU turns the INS heading against the
+course in a turn) and smoothed (the RTS pass: the forward filter's heading error in the straights is of the
+order of the mounting's wanted accuracy), where the car moves at ``MIN_SPEED_MPS`` or more and turns slower
+than ``MAX_YAW_RATE``, read as [roll, pitch, yaw] (``fusion.earth``'s conventions:
 ``C_bm = euler_to_dcm(yaw, pitch, roll)``). The angles are averaged over ``BLOCK_S`` blocks; sigma, in
 quadrature: the blocks' spread over the root of their number, the INS's own attitude sigma (level for roll and
 pitch, heading for yaw: an error common to every row, not averaged away), for pitch the flight-path angle's
@@ -38,7 +41,7 @@ from fieldlog.fusion import earth
 from fieldlog.fusion.types import Solution
 
 MIN_SPEED_MPS = 3.0  # the course is the car's heading from this speed
-MAX_YAW_RATE = 0.02  # rad/s: the rows of a straight, for the mounting
+MAX_YAW_RATE = 0.2  # rad/s: the rows of the mounting, sharp turns left out (side slip, roll)
 BLOCK_S = 10.0  # s: the mounting's averaging blocks
 ROLL_ROAD_DEG = 1.0  # deg: a road's crossfall, the roll's floor
 MAX_OFFSET_S = 0.5  # s: the time offsets searched
@@ -135,9 +138,18 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     return d, math.sqrt(float(c1) / max(len(k) - 2, 1) / s2)
 
 
-def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
-    """([roll, pitch, yaw], their sigmas), deg: the IMU's mounting to the car's body frame (module docstring),
-    from the aids-off solution ``sol`` (its IMU on GPS time); None without enough straight driving."""
+def mounting(sol: Solution, lever_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The IMU's mounting to the car's body frame (module docstring).
+
+    Parameters
+    ----------
+    sol : the aids-off solution, its IMU on the GPS's time (smoothed: its attitude sigma is the estimate's floor).
+    lever_b : (3,) IMU -> the rear axle's centre, IMU axes (taken as the car's), m; None: zero.
+
+    Returns
+    -------
+    ([roll, pitch, yaw], their sigmas), deg (3,) each; None without enough driving.
+    """
     if len(sol.t_ns) < 3:
         return None
     ts = (sol.t_ns - sol.t_ns[0]) * 1e-9
@@ -149,7 +161,9 @@ def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
     rows = np.flatnonzero(sel)
     C_mn = earth.quat_to_dcm(sol.q[rows])
     gamma = np.arctan2(sol.v_n[rows, 2], speed[rows])
-    C_bn = earth.euler_to_dcm(course[rows], gamma, np.zeros(len(rows)))
+    r_fwd = 0.0 if lever_b is None else float(lever_b[1])
+    heading = course[rows] + np.arctan2(yaw_rate[rows] * r_fwd, speed[rows])  # the IMU's point swings out in turns
+    C_bn = earth.euler_to_dcm(heading, gamma, np.zeros(len(rows)))
     C_bm = np.einsum("nji,njk->nik", C_bn, C_mn)
     yaw, pitch, roll = earth.dcm_to_euler(C_bm)
     rpy = np.stack([roll, pitch, np.remainder(yaw + math.pi, 2.0 * math.pi) - math.pi], axis=1)
@@ -166,3 +180,21 @@ def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
     sigma = np.sqrt(spread ** 2 + np.array([level, math.hypot(level, climb), head]) ** 2
                     + np.array([math.radians(ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
     return np.degrees(means.mean(axis=0)), np.degrees(sigma)
+
+
+def combine(prior: np.ndarray, prior_sigma: np.ndarray, estimate: np.ndarray, sigma: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The configured mounting and the drive's estimate, each angle weighted by its inverse variance.
+
+    Parameters
+    ----------
+    prior, prior_sigma : (3,) the configured [roll, pitch, yaw] and their 1-sigma, deg (a sigma of inf: none).
+    estimate, sigma : (3,) the drive's (:func:`mounting`), deg.
+
+    Returns
+    -------
+    ((3,) the combined angles, (3,) their 1-sigma), deg.
+    """
+    w0, w1 = 1.0 / np.square(prior_sigma), 1.0 / np.square(sigma)
+    return (w0 * prior + w1 * estimate) / (w0 + w1), 1.0 / np.sqrt(w0 + w1)
+

@@ -103,14 +103,89 @@ class GpsVelocity:
         return velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
 
 
+@dataclass(frozen=True)
+class CarFrame:
+    """How the IMU sits in the car, for the aids that constrain the car's velocity (the NHC, the odometer).
+
+    C_bm (3, 3): IMU axes -> the car's body axes (RFU), ``fusion.earth.euler_to_dcm(yaw, pitch, roll)`` of the
+    mounting (``[fusion] mounting_rpy_deg``); None: the IMU's axes are the car's. sigma_rad (3,): the mounting's
+    1-sigma, roll, pitch, yaw, rad: a yaw error turns the forward speed v into a lateral velocity v sigma_yaw, a
+    pitch error into a vertical one v sigma_pitch, added to those rows' variances (roll mixes two zeros)."""
+
+    C_bm: np.ndarray | None = None
+    sigma_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def of(cls, rpy_deg: tuple[float, float, float], sigma_deg: tuple[float, float, float]) -> CarFrame:
+        """The frame of a mounting.
+
+        Parameters
+        ----------
+        rpy_deg : (3,) roll, pitch, yaw of the IMU's axes from the car's, deg (all 0: the car's axes).
+        sigma_deg : (3,) their 1-sigma, deg.
+
+        Returns
+        -------
+        CarFrame
+        """
+        roll, pitch, yaw = (float(x) * _DEG for x in rpy_deg)
+        C = earth.euler_to_dcm(yaw, pitch, roll) if any(rpy_deg) else None
+        return cls(C, np.asarray(sigma_deg, float) * _DEG)
+
+    def axes(self, C_nb: np.ndarray) -> np.ndarray:
+        """The car's axes in the navigation frame's terms.
+
+        Parameters
+        ----------
+        C_nb : (3, 3) navigation (ENU) -> IMU axes.
+
+        Returns
+        -------
+        (3, 3) navigation (ENU) -> car axes (RFU), C_bm C_nb.
+        """
+        return C_nb if self.C_bm is None else self.C_bm @ C_nb
+
+    def extra_var(self, v_fwd: float) -> np.ndarray:
+        """The mounting's share of the car-axis velocity variances.
+
+        Parameters
+        ----------
+        v_fwd : the car's forward speed, m/s.
+
+        Returns
+        -------
+        (3,) (m/s)^2 on the lateral, forward and vertical car axes: (v sigma_yaw)^2, 0, (v sigma_pitch)^2.
+        """
+        return np.array([(v_fwd * self.sigma_rad[2]) ** 2, 0.0, (v_fwd * self.sigma_rad[1]) ** 2])
+
+    def rotate(self, z: np.ndarray, H: np.ndarray, w_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A body-velocity measurement from the IMU's axes into the car's.
+
+        Parameters
+        ----------
+        z : (3,) m/s, the INS's velocity in IMU axes less w_b (``odometer.odometer_measurement``).
+        H : (3, 15) its rows over the error states.
+        w_b : (3,) m/s, the measured velocity in car axes.
+
+        Returns
+        -------
+        z (3,) = C_bm (z + w_b) - w_b and H (3, 15) = C_bm H: the same measurement in car axes.
+        """
+        if self.C_bm is None:
+            return z, H
+        return self.C_bm @ (z + w_b) - w_b, self.C_bm @ H
+
+
 @dataclass
 class NonHolonomic:
-    """A car's body lateral and vertical velocity are zero (``nhc_measurement``), sigma_mps each; not when the
-    car is slow: GPS speed below slow_gps_mps, or (without a GPS velocity) INS speed below slow_ins_mps."""
+    """A car's body lateral and vertical velocity are zero (``nhc_measurement``), sigma_mps each, in the car's axes
+    (``car``: the IMU's mounting); not when the car is slow: GPS speed below slow_gps_mps, or (without a GPS
+    velocity) INS speed below slow_ins_mps."""
 
     sigma_mps: float
     slow_gps_mps: float
     slow_ins_mps: float
+    car: CarFrame = field(default_factory=CarFrame)
     kind = "velocity"
     stage = "aid"
     receiver = False
@@ -119,7 +194,7 @@ class NonHolonomic:
         v = m.v_aid
         slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
                 else float(np.linalg.norm(m.nav.v_n)) < self.slow_ins_mps)
-        return None if slow else nhc_measurement(m.nav, self.sigma_mps)
+        return None if slow else nhc_measurement(m.nav, self.sigma_mps, self.car)
 
 
 @dataclass
@@ -213,6 +288,7 @@ class Odometer:
     sigma_mps: float
     nhc_sigma_mps: float
     nhc: bool = True
+    car: CarFrame = field(default_factory=CarFrame)
     window_s: float = 0.3
     min_samples: int = 3
     max_age_s: float = 0.1
@@ -261,13 +337,15 @@ class Odometer:
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
         z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
                                                 self.scale.sigma, self.nhc_sigma_mps)
+        z, H = self.car.rotate(z, H, np.array([0.0, v_wheel / self.scale.scale, 0.0]))
+        R = R + np.diag(self.car.extra_var(v_wheel / self.scale.scale))
         if z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
             self.slip_skipped.append(m.epoch.t_ns)
             rows = [0, 2] if self.nhc else []
         else:
             rows = [0, 1, 2] if self.nhc else [1]
             if m.usable and np.isfinite(m.epoch.v_n[:2]).all() and np.isfinite(m.epoch.vel_cov[:2, :2]).all():
-                e = C_nb[1]
+                e = self.car.axes(C_nb)[1]
                 v_gps = m.epoch.v_n.copy()
                 if not np.isfinite(v_gps[2]):
                     v_gps[2] = m.nav.v_n[2]
@@ -389,10 +467,11 @@ def aids_and_gps(cfg: FusionConfig, learnt_speed: bool = False) -> list[Measurem
     then the GPS velocity and position."""
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
+    car = CarFrame.of(a.mounting_rpy_deg, a.mounting_sigma_deg)
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
-        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc)]
+        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc, car)]
         if a.odometer else []) + (
-        [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
+        [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps, car)] if a.nhc else [])
     learnt = ([VirtualOdometer(cfg.predictor, tuple(p for p in aids if not isinstance(p, NonHolonomic)))]
               if learnt_speed else [])
     return ([FirstOf(tuple(aids))] if aids else []) + learnt + [GpsVelocity(lever, cfg.gps.vel_var_max),
@@ -451,18 +530,31 @@ def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omeg
     return z[keep], H[keep], cov[np.ix_(keep, keep)]
 
 
-def nhc_measurement(nav: NavState, sigma_mps: float) -> kf.Measurement:
-    """Non-holonomic constraint of a car: the IMU's body lateral (x) and vertical (z) velocity are zero.
+def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame()) -> kf.Measurement:
+    """Non-holonomic constraint of a car: the car's body lateral (x) and vertical (z) velocity are zero.
 
-    z = (C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
-    dv_b = C_nb dv_n - C_nb [v_n x] phi. sigma_mps: 1-sigma of the constraint (side slip, suspension).
-    Assumes the IMU sits near the rear axle's centre line (no lever arm to the non-holonomic point).
+    z = (C_bm C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
+    dv_b = C_bm C_nb dv_n - C_bm C_nb [v_n x] phi. Assumes the IMU sits near the rear axle's centre line (no
+    lever arm to the non-holonomic point).
+
+    Parameters
+    ----------
+    nav : the INS state (ENU; its attitude the IMU's axes).
+    sigma_mps : 1-sigma of the constraint (side slip, suspension), m/s.
+    car : the IMU's mounting in the car (:class:`CarFrame`; default: the IMU's axes are the car's); its sigma
+        adds to R (``CarFrame.extra_var``).
+
+    Returns
+    -------
+    (z (2,) m/s, H (2, 15), R (2, 2) (m/s)^2).
     """
-    C_nb = nav.C_bn.T[[0, 2]]
+    C_cn = car.axes(nav.C_bn.T)
+    A = C_cn[[0, 2]]
     H = np.zeros((2, N_STATES))
-    H[:, VEL] = C_nb
-    H[:, ATT] = -C_nb @ earth.skew(nav.v_n)
-    return C_nb @ nav.v_n, H, np.eye(2) * sigma_mps ** 2
+    H[:, VEL] = A
+    H[:, ATT] = -A @ earth.skew(nav.v_n)
+    extra = car.extra_var(float(C_cn[1] @ nav.v_n))
+    return A @ nav.v_n, H, np.eye(2) * sigma_mps ** 2 + np.diag(extra[[0, 2]])
 
 
 def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
