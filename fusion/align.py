@@ -67,13 +67,31 @@ _MIN_STATIC_S = 1.0  # a still run shorter than this after its trimmed ends does
 
 
 def level(f_b: np.ndarray) -> tuple[float, float]:
-    """Pitch and roll (rad) of a vehicle at rest from its mean specific force f_b (3,) body RFU, m/s^2."""
+    """Pitch and roll of a vehicle at rest.
+
+    Parameters
+    ----------
+    f_b : (3,) its mean specific force, body RFU, m/s^2.
+
+    Returns
+    -------
+    (pitch, roll), rad.
+    """
     return math.atan2(f_b[1], math.hypot(f_b[0], f_b[2])), math.atan2(-f_b[0], f_b[2])
 
 
 def gyrocompass(w_b: np.ndarray, pitch: float, roll: float) -> float:
-    """Heading (rad, clockwise from north) from the mean rate w_b (3,) rad/s body RFU of a vehicle at rest with
-    the given pitch and roll: the horizontal Earth rate, levelled, points north."""
+    """Heading of a vehicle at rest from the Earth rate its gyros see: the horizontal rate, levelled, points north.
+
+    Parameters
+    ----------
+    w_b : (3,) the mean rate, body RFU, rad/s.
+    pitch, roll : its attitude, rad.
+
+    Returns
+    -------
+    float, the heading, rad clockwise from north.
+    """
     w_l = earth.euler_to_dcm(0.0, pitch, roll) @ w_b
     return math.atan2(-w_l[0], w_l[1])
 
@@ -111,8 +129,17 @@ class Aligned:
 
 
 def chi2_quantile(dof: int, z: float = 3.719) -> float:
-    """Upper quantile of the chi-square distribution with dof degrees of freedom at the standard-normal
-    quantile z (3.719: probability 1e-4), Wilson-Hilferty (within 1 % from 6 degrees of freedom)."""
+    """Upper quantile of the chi-square distribution, Wilson-Hilferty (within 1 % from 6 degrees of freedom).
+
+    Parameters
+    ----------
+    dof : the degrees of freedom.
+    z : the standard-normal quantile (3.719: probability 1e-4).
+
+    Returns
+    -------
+    float
+    """
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 
@@ -127,9 +154,22 @@ class HeadingCheck:
         self.done = not cfg.align.realign_window_s > 0
 
     def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, x: np.ndarray, P: np.ndarray) -> bool:
-        """Add an epoch's measurement z (m,), H (m, 15), R (m, m) with the filter's predicted error state x (15,)
-        and covariance P (15, 15) at time t (s); True when the heading should be taken again. x is zero in the
-        closed-loop filters; the paper's distributed filter carries a fused prediction between epochs."""
+        """Add an epoch's GPS velocity measurement to the test.
+
+        Parameters
+        ----------
+        t : the epoch's time, s.
+        z : (m,) the measurement, m/s.
+        H : (m, 15) its rows over the error states.
+        R : (m, m) its covariance, (m/s)^2.
+        x : (15,) the filter's predicted error state (zero in the closed-loop filters; the paper's distributed filter
+            carries a fused prediction between epochs).
+        P : (15, 15) the filter's covariance.
+
+        Returns
+        -------
+        bool, True when the heading should be taken again.
+        """
         if self.done or t > self.t_end or len(z) == 0:
             return False
         nu = z - H @ x
@@ -141,9 +181,20 @@ class HeadingCheck:
         return nis > chi2_quantile(dof)
 
     def realign(self, nav: ins.NavState, ep: Epoch, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
-        """The INS state with the heading from the epoch's GPS course and the covariance with its heading sigma
-        and the gyro bias prior; None while the GPS speed is below ``align_speed_mps``, or while the course agrees
-        with the INS heading within 3 sigma of the course (try again later)."""
+        """The state with the heading taken again from the epoch's GPS course.
+
+        Parameters
+        ----------
+        nav : the INS state.
+        ep : the epoch (its velocity, ENU m/s, and covariance).
+        P : (15, 15) the filter's covariance.
+
+        Returns
+        -------
+        (the INS state with the course's heading, the covariance with its heading sigma and the gyro bias prior), or
+        None while the GPS speed is below ``align_speed_mps`` or the course agrees with the INS heading within 3 sigma of
+        the course (try again later).
+        """
         c = self.cfg
         v = ep.v_n
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else 0.0
@@ -200,9 +251,20 @@ class Alignment:
         return kf.enu_offset(ep.lat, ep.lon, ep.h, lat0, lon0, h0) / (ts - t0)
 
     def epoch(self, ep: Epoch, usable: bool, interval: ImuSums, t_k: float, t_ref_ns: int) -> Aligned | None:
-        """A GPS epoch before the alignment: ep, whether its fix is usable, the IMU sums of the interval that ends
-        here, the current sample's time t_k (s from t_ref_ns). Returns the initial state when this epoch aligns
-        the INS, else None."""
+        """A GPS epoch before the alignment.
+
+        Parameters
+        ----------
+        ep : the epoch.
+        usable : whether its fix is used.
+        interval : the IMU sums of the interval that ends here (rad/s, m/s^2, body RFU).
+        t_k : the current sample's time, s from t_ref_ns.
+        t_ref_ns : the drive's reference time, UTC ns.
+
+        Returns
+        -------
+        The initial state when this epoch aligns the INS, else None.
+        """
         v = self._velocity(ep, t_ref_ns) if usable else np.full(3, np.nan)
         if usable:
             self._last_fix = ((ep.t_ns - t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)

@@ -68,7 +68,14 @@ class GyroTrack:
         self.n = 0
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
-        """IMU samples: stamps (n,) ns, rate (n, 3) rad/s and specific force (n, 3) m/s^2, IMU frame."""
+        """Add IMU samples.
+
+        Parameters
+        ----------
+        t_ns : (n,) their stamps, UTC ns.
+        omega_m : (n, 3) rate, rad/s, IMU frame.
+        f_m : (n, 3) specific force, m/s^2, IMU frame.
+        """
         if not len(t_ns):
             return
         t = np.asarray(t_ns, np.int64)
@@ -90,7 +97,16 @@ class GyroTrack:
         self.n += len(t_ns)
 
     def heading_change(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
-        """The heading change (rad, clockwise) from a_ns to b_ns (m,): minus the rate about the mean up."""
+        """The heading change over intervals: minus the integrated rate about the mean up.
+
+        Parameters
+        ----------
+        a_ns, b_ns : (m,) the intervals' ends, UTC ns.
+
+        Returns
+        -------
+        (m,) rad, clockwise.
+        """
         t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
         angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
         up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
@@ -103,9 +119,19 @@ class GyroTrack:
 
 
 def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> tuple[float, float] | None:
-    """(d, sigma), s: how late the IMU's stamps are against the GPS's (module docstring), from the IMU's rate
-    integral ``gyro`` and the receiver's velocities v_gps_n (m, 3) ENU m/s at t_gps_ns (m,); None when the drive
-    has too few moving epochs. A constant rate (the gyro bias, the Earth rate) is fitted with d."""
+    """How late the IMU's stamps are against the GPS's (module docstring); a constant rate (the gyro bias, the Earth
+    rate) is fitted with it.
+
+    Parameters
+    ----------
+    gyro : the IMU's rate integral.
+    t_gps_ns : (m,) the receiver's epochs, UTC ns.
+    v_gps_n : (m, 3) its velocities, ENU m/s.
+
+    Returns
+    -------
+    (d, sigma), s; None when the drive has too few moving epochs.
+    """
     tg = np.asarray(t_gps_ns, np.int64)
     if len(tg) < 12:
         return None
@@ -121,12 +147,12 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     d_course = np.remainder(course[k + 1] - course[k] + math.pi, 2.0 * math.pi) - math.pi
     a, b, span = tg[k], tg[k + 1], dt[k]
 
-    def resid(d: float) -> np.ndarray:
+    def _resid(d: float) -> np.ndarray:
         r = d_course - gyro.heading_change(a + int(round(d * 1e9)), b + int(round(d * 1e9)))
         return r - span * (np.sum(r * span) / np.sum(span * span))   # less the best constant rate
 
     lags = np.arange(-MAX_OFFSET_S, MAX_OFFSET_S + 0.5 * _STEP_S, _STEP_S)
-    cost = np.array([np.sum(resid(d) ** 2) for d in lags])
+    cost = np.array([np.sum(_resid(d) ** 2) for d in lags])
     i = int(np.clip(np.argmin(cost), 1, len(lags) - 2))
     c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
     curv = c0 - 2.0 * c1 + c2

@@ -66,7 +66,16 @@ class MeasurementModel(Protocol):
     receiver: bool
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """(z, H, R) at the moment, or None."""
+        """(z, H, R) at the moment, or None.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
 
 
 @dataclass
@@ -80,6 +89,16 @@ class GpsPosition:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The fix's position measurement at a usable epoch.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         e = m.epoch
         if not m.usable:
             return None
@@ -98,6 +117,16 @@ class GpsVelocity:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The receiver's velocity measurement at a usable epoch.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         if not m.usable:
             return None
         return velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
@@ -191,6 +220,16 @@ class NonHolonomic:
     receiver = False
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The NHC's two rows in the car's axes, unless the car is slow.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         v = m.v_aid
         slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
                 else float(np.linalg.norm(m.nav.v_n)) < self.slow_ins_mps)
@@ -234,6 +273,16 @@ class Stationary:
         self.run = StillRun(self.cfg)
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The ZUPT (+ ZARU) when the car stood still over this interval and the one before (class docstring).
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         v_gps = m.epoch.v_n if m.usable else np.full(3, np.nan)
         speed = self.speed.add(m.t_fix, v_gps, m.epoch)
         if not (math.isfinite(speed[0]) or float(np.linalg.norm(m.nav.v_n)) < self.cfg.still.still_speed_mps):
@@ -253,8 +302,17 @@ class Stationary:
         return stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
 
     def noise(self, interval: ImuSums, seconds: float) -> tuple[np.ndarray, np.ndarray]:
-        """(sigma_v (3,) m/s, sigma_w (3,) rad/s) of the ZUPT and ZARU from a still interval of ``seconds``
-        (class docstring)."""
+        """The ZUPT's and the ZARU's sigmas from a still interval (class docstring).
+
+        Parameters
+        ----------
+        interval : the interval's IMU sums (rad/s, m/s^2, body RFU).
+        seconds : its length, s.
+
+        Returns
+        -------
+        (sigma_v (3,) m/s per ENU axis, sigma_w (3,) rad/s per body axis).
+        """
         st = self.cfg.still
         n = max(interval.n, 1)
         mean = interval.sum_w / n
@@ -282,7 +340,9 @@ class Odometer:
     engine reads them; ``times``: the epochs it gave a measurement at; ``slip_skipped``: the epochs whose wheel
     speed failed the slip test (then the NHC's zeros only; without ``nhc`` no measurement). Without rows near an
     epoch it gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the
-    forward row alone)."""
+    forward row alone). ``car``: the IMU's mounting (:class:`CarFrame`): the rows are the car's axes, the
+    mounting's sigma widens the lateral and vertical ones, and the scale fit takes the GPS velocity along the car's
+    forward axis."""
 
     lever_b: np.ndarray
     sigma_mps: float
@@ -305,15 +365,29 @@ class Odometer:
         self._var = np.zeros(0)
 
     def feed(self, block: OdomBlock) -> None:
-        """More rows (UTC ns, m/s, (m/s)^2); those before the last epoch's window are dropped there, so a block's
-        rows are held until its epochs have passed."""
+        """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are held until
+        its epochs have passed.
+
+        Parameters
+        ----------
+        block : the rows (UTC ns, forward speed m/s, its variance (m/s)^2).
+        """
         ok = np.isfinite(block.v)
         self._t = np.concatenate([self._t, np.asarray(block.t_ns, np.int64)[ok]])
         self._v = np.concatenate([self._v, np.asarray(block.v, float)[ok]])
         self._var = np.concatenate([self._var, np.asarray(block.var, float)[ok]])
 
     def speed_at(self, t_ns: int) -> tuple[float, float] | None:
-        """The wheel speed (m/s) at t_ns and its variance, or None (module docstring of the class)."""
+        """The wheel speed at an epoch: the line through the window's rows, taken there (class docstring).
+
+        Parameters
+        ----------
+        t_ns : the epoch, UTC ns.
+
+        Returns
+        -------
+        (speed m/s, its variance (m/s)^2 with ``sigma_mps`` added), or None without enough recent rows.
+        """
         keep = self._t > t_ns - int(self.window_s * 1e9)
         if not keep.all():
             self._t, self._v, self._var = self._t[keep], self._v[keep], self._var[keep]
@@ -329,6 +403,16 @@ class Odometer:
         return float(coef[0]), var + self.sigma_mps ** 2
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The wheel speed with the NHC's zeros in the car's axes (class docstring), or the rows that pass the slip test.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         got = self.speed_at(m.epoch.t_ns)
         if got is None:
             return None
@@ -386,10 +470,27 @@ class VirtualOdometer:
         self._in_outage = False
 
     def feed_imu(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int, imu_dt: float) -> None:
-        """Raw IMU samples (i0, i1] of w, f (n, 3), body RFU, at period imu_dt (s)."""
+        """Raw IMU samples for the features.
+
+        Parameters
+        ----------
+        w, f : (n, 3) rate, rad/s, and specific force, m/s^2, body RFU.
+        i0, i1 : the samples after i0 up to i1 are new.
+        imu_dt : the sample period, s.
+        """
         self.window.add(w, f, i0, i1, imu_dt)
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The predicted forward speed at an epoch without a usable fix; trains at the others (class docstring).
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         x = self.window.features(m.nav, m.imu_dt)
         if m.usable and np.isfinite(m.epoch.v_n[:2]).all():
             self._in_outage = False
@@ -453,6 +554,16 @@ class FirstOf:
         self.kind, self.stage, self.receiver = kinds.pop()
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The first of the parts' measurements.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        """
         for p in self.parts:
             out = p.compute_matrices(m)
             if out is not None:
@@ -461,10 +572,20 @@ class FirstOf:
 
 
 def aids_and_gps(cfg: FusionConfig, learnt_speed: bool = False) -> list[MeasurementModel]:
-    """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids
-    (``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), the virtual odometer when
-    ``learnt_speed`` (``fusion.methods.Method.learns_speed``: ``dkf-rbfn`` with ``predictor_mode = "pseudo"``),
-    then the GPS velocity and position."""
+    """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids (``[fusion]
+    zupt``, ``odometer``, ``nhc``: the first that gives one; the NHC and the odometer in the car's axes of
+    ``mounting_rpy_deg``), the virtual odometer when asked, then the GPS velocity and position.
+
+    Parameters
+    ----------
+    cfg : the settings.
+    learnt_speed : with the virtual odometer (``fusion.methods.Method.learns_speed``: ``dkf-rbfn`` with
+        ``predictor_mode = "pseudo"``).
+
+    Returns
+    -------
+    list of the measurements.
+    """
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
     car = CarFrame.of(a.mounting_rpy_deg, a.mounting_sigma_deg)
@@ -493,11 +614,21 @@ def _still_references(nav: NavState, bg: np.ndarray, ba: np.ndarray, P: np.ndarr
 
 def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h: float, cov_enu: np.ndarray,
                          lever_b: np.ndarray) -> kf.Measurement:
-    """GPS position measurement: z = INS antenna position - GPS position, ENU m.
+    """GPS position measurement: z = INS antenna position - GPS position, ENU m; the INS state extrapolated from nav.t
+    to the fix time with its velocity.
 
-    The INS state is extrapolated from nav.t to the fix time t_gps (s) with its velocity. lat, lon in
-    rad, h in m (NaN for a fix without height: horizontal rows only); cov_enu (3, 3) ENU m^2 (the fix's
-    covariance); lever_b (3,) IMU -> antenna, body RFU, m.
+    Parameters
+    ----------
+    nav : the INS state.
+    t_gps : the fix time, s (the INS's time base).
+    lat, lon : the fix, rad.
+    h : its height, m (NaN: a fix without height, horizontal rows only).
+    cov_enu : (3, 3) the fix's covariance, ENU m^2.
+    lever_b : (3,) IMU -> antenna, body RFU, m.
+
+    Returns
+    -------
+    (z (k,) m, H (k, 15), R (k, k) m^2).
     """
     C = nav.C_bn
     arm_n = C @ lever_b
@@ -513,8 +644,18 @@ def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omeg
                          lever_b: np.ndarray, max_var: float) -> kf.Measurement | None:
     """GPS velocity measurement: z = INS antenna velocity - GPS velocity, ENU m/s.
 
-    cov (3, 3) ENU (m/s)^2; components with variance above max_var (NMEA's unobserved vertical
-    velocity) are left out. omega_ib_b (3,) bias-corrected rate, rad/s. None when nothing is left.
+    Parameters
+    ----------
+    nav : the INS state.
+    v_gps : (3,) the receiver's velocity, ENU m/s.
+    cov : (3, 3) its covariance, ENU (m/s)^2.
+    omega_ib_b : (3,) the bias-corrected rate, body RFU, rad/s.
+    lever_b : (3,) IMU -> antenna, body RFU, m.
+    max_var : components with a variance above this, (m/s)^2, are left out (NMEA's unobserved vertical).
+
+    Returns
+    -------
+    (z (k,) m/s, H (k, 15), R (k, k) (m/s)^2), or None when nothing is left.
     """
     cov = np.asarray(cov, dtype=float)
     keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
@@ -559,11 +700,20 @@ def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame())
 
 def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
                            sigma_w: np.ndarray | None) -> kf.Measurement:
-    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still.
+    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still: z = [v_n of the INS; the
+    mean bias-corrected gyro output over the still interval less the Earth rate in the body frame], the velocity
+    error and the residual gyro bias.
 
-    z = [v_n of the INS (m/s); mean bias-corrected gyro output over the still interval minus the Earth
-    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_v (3,) m/s: the ZUPT
-    1-sigma per ENU axis; sigma_w (3,) rad/s: the ZARU 1-sigma per body axis, None: ZUPT alone (3 rows).
+    Parameters
+    ----------
+    nav : the INS state.
+    mean_omega_b : (3,) the interval's mean bias-corrected rate, body RFU, rad/s.
+    sigma_v : (3,) the ZUPT's 1-sigma per ENU axis, m/s.
+    sigma_w : (3,) the ZARU's 1-sigma per body axis, rad/s; None: the ZUPT alone (3 rows).
+
+    Returns
+    -------
+    (z (6,) or (3,) m/s and rad/s, H, R).
     """
     C_nb = nav.C_bn.T
     rows = 3 if sigma_w is None else 6

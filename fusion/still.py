@@ -56,12 +56,29 @@ class ImuSums:
     sum_ff: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def std(self, total: np.ndarray, squares: np.ndarray) -> float:
-        """Root of the summed per-axis variances of the samples, e.g. std(sum_f, sum_ff)."""
+        """Root of the summed per-axis variances of the samples, e.g. std(sum_f, sum_ff).
+
+        Parameters
+        ----------
+        total : (3,) one of the sums (``sum_w`` rad/s or ``sum_f`` m/s^2).
+        squares : (3,) its sums of squares (``sum_ww`` or ``sum_ff``).
+
+        Returns
+        -------
+        float, the samples' spread in the unit of ``total``.
+        """
         m = total / max(self.n, 1)
         return math.sqrt(max(float(np.sum(squares / max(self.n, 1) - m * m)), 0.0))
 
     def add(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
-        """Add samples (i0, i1] of w, f (n, 3)."""
+        """Add samples (i0, i1] of w, f.
+
+        Parameters
+        ----------
+        w : (n, 3) rate, rad/s, body RFU.
+        f : (n, 3) specific force, m/s^2, body RFU.
+        i0, i1 : the samples after i0 up to i1 are added.
+        """
         ws, fs = w[i0 + 1:i1 + 1], f[i0 + 1:i1 + 1]
         self.sum_w += ws.sum(axis=0)
         self.sum_f += fs.sum(axis=0)
@@ -70,6 +87,12 @@ class ImuSums:
         self.n += max(i1 - i0, 0)
 
     def merge(self, other: ImuSums) -> None:
+        """Add another interval's sums.
+
+        Parameters
+        ----------
+        other : the interval whose samples join these.
+        """
         self.sum_w += other.sum_w
         self.sum_f += other.sum_f
         self.sum_ww += other.sum_ww
@@ -90,9 +113,19 @@ class GpsSpeed:
         self.recent: list[tuple[float, np.ndarray, float]] = []  # t (s), horizontal velocity (2,), sigma per axis
 
     def add(self, t: float, v: np.ndarray, ep: Epoch) -> tuple[float, float]:
-        """The epoch ep at t (s) with its GPS velocity v (3,) ENU m/s (NaN: none): (the horizontal speed of the
-        mean velocity of the last second and the epoch before it, m/s, NaN without two velocities in a row; the
-        limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma))."""
+        """The GPS speed the still detector tests at an epoch, and its limit.
+
+        Parameters
+        ----------
+        t : the epoch's time, s.
+        v : (3,) its GPS velocity, ENU m/s (NaN: none).
+        ep : the epoch (its covariances give the velocity's sigma, :func:`vel_sigma`).
+
+        Returns
+        -------
+        (the horizontal speed of the mean velocity of the last second and the epoch before it, m/s, NaN without two
+        velocities in a row; the limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma)).
+        """
         if not np.isfinite(v[:2]).all():
             self.recent = []
             return math.nan, self.floor
@@ -113,12 +146,22 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_re
           w_sigma: float, f_ref: np.ndarray | None, f_sigma: float, baseline: ImuSums | None = None) -> bool:
     """Whether the vehicle stood still over a GPS interval (module docstring).
 
-    speed: (the GPS speed, m/s, NaN: no GPS velocity, not tested; its limit, m/s) (:class:`GpsSpeed`); w_ref (3,)
-    rad/s and f_ref (3,)
-    m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
-    sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added; baseline:
-    the still run the interval would join (None: it starts one), whose spread a vibrating interval's must match
-    (:func:`steady`)."""
+    Parameters
+    ----------
+    cfg : the settings (``[fusion]`` still keys).
+    interval : the interval's IMU sums.
+    speed : (the GPS speed, m/s, NaN: no GPS velocity, not tested; its limit, m/s) (:class:`GpsSpeed`).
+    w_ref : (3,) rad/s, body: the mean rate standing still would give (None: not tested).
+    w_sigma : its sigma, rad/s, to which the interval's own standard error is added.
+    f_ref : (3,) m/s^2, body: the mean specific force standing still would give (None: not tested).
+    f_sigma : its sigma, m/s^2.
+    baseline : the still run the interval would join (None: it starts one), whose spread a vibrating interval's
+        must match (:func:`steady`).
+
+    Returns
+    -------
+    bool
+    """
     if interval.n < _MIN_SAMPLES or (math.isfinite(speed[0]) and not speed[0] < speed[1]):
         return False
     sd_f = interval.std(interval.sum_f, interval.sum_ff)
@@ -137,8 +180,18 @@ def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_re
 
 
 def steady(interval: ImuSums, baseline: ImuSums | None) -> bool:
-    """Whether the interval's spreads of rate and of specific force are each within a factor ``STEADY_RATIO`` of
-    the baseline's (a still run's: the same vibration); True without a baseline (the interval starts one)."""
+    """Whether the interval's spreads of rate and of specific force are each within a factor ``STEADY_RATIO`` of the
+    baseline's (a still run's: the same vibration).
+
+    Parameters
+    ----------
+    interval : the interval's IMU sums.
+    baseline : the still run's (None or empty: the interval starts one).
+
+    Returns
+    -------
+    bool, True without a baseline.
+    """
     if baseline is None or baseline.n == 0:
         return True
     for total, squares in (("sum_w", "sum_ww"), ("sum_f", "sum_ff")):
@@ -150,10 +203,20 @@ def steady(interval: ImuSums, baseline: ImuSums | None) -> bool:
 
 
 def verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple],
-             baseline: ImuSums | None = None) -> str:
-    """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma)
-    and the baseline; "unsure" when it fails only on a GPS speed below twice its limit (a noisy velocity: the
-    interval is left out, the still run goes on); else "moving"."""
+            baseline: ImuSums | None = None) -> str:
+    """The still detector's word on an interval.
+
+    Parameters
+    ----------
+    cfg, interval, speed, baseline : as :func:`still`.
+    refs : the references (w_ref, w_sigma, f_ref, f_sigma) the interval is tested against, each as :func:`still`.
+
+    Returns
+    -------
+    "still" when the interval passes :func:`still` against every reference and the baseline; "unsure" when it
+    fails only on a GPS speed below twice its limit (a noisy velocity: the interval is left out, the still run goes
+    on); else "moving".
+    """
     if all(still(cfg, interval, speed, *r, baseline) for r in refs):
         return "still"
     if math.isfinite(speed[0]) and all(still(cfg, interval, (0.5 * speed[0], speed[1]), *r, baseline)
@@ -178,8 +241,16 @@ class StillRun:
 
     def update(self, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray, w_sigma: float,
                f_ref: np.ndarray, f_sigma: float) -> bool:
-        """Test the interval (arguments of :func:`still`); True when the vehicle stood still over it and over
-        the interval before it."""
+        """Test the next interval against the references and the run.
+
+        Parameters
+        ----------
+        interval, speed, w_ref, w_sigma, f_ref, f_sigma : as :func:`still`.
+
+        Returns
+        -------
+        bool, True when the vehicle stood still over this interval and over the one before it.
+        """
         c = self.cfg
         refs = [(w_ref, w_sigma, f_ref, f_sigma)]
         if self.count:
@@ -196,8 +267,17 @@ class StillRun:
 
 
 def vel_sigma(ep: Epoch) -> float:
-    """1-sigma of a horizontal GPS velocity component at the epoch, m/s: from its covariance, else (a drive
-    without velocity: differenced fixes 1 s apart) sqrt(2) x the fix's horizontal sigma, else 1 m/s."""
+    """1-sigma of a horizontal GPS velocity component at an epoch.
+
+    Parameters
+    ----------
+    ep : the epoch.
+
+    Returns
+    -------
+    float, m/s: from its velocity covariance, else (a drive without velocity: differenced fixes 1 s apart) sqrt(2) x
+    the fix's horizontal sigma, else 1.
+    """
     for cov, k in ((ep.vel_cov, 1.0), (ep.pos_cov, math.sqrt(2.0))):
         var = 0.5 * (float(cov[0, 0]) + float(cov[1, 1]))
         if math.isfinite(var) and var > 0:
