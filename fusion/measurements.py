@@ -74,7 +74,7 @@ class MeasurementModel(Protocol):
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (k,), H (k, 15), R (k, k)), or None.
         """
 
 
@@ -89,15 +89,15 @@ class GpsPosition:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """The fix's position measurement at a usable epoch.
+        """The fix's position measurement.
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the epoch (its fix and covariance), whether it is usable, the fix time and the INS there.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (3,) ENU m, or (2,) for a fix without height; H; R m^2), None at an unusable epoch.
         """
         e = m.epoch
         if not m.usable:
@@ -117,15 +117,15 @@ class GpsVelocity:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """The receiver's velocity measurement at a usable epoch.
+        """The receiver's velocity measurement.
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the epoch (its velocity and covariance), whether it is usable, the INS and the bias-corrected rate.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (k,) ENU m/s, H (k, 15), R (k, k) (m/s)^2), None at an unusable epoch or with no component left.
         """
         if not m.usable:
             return None
@@ -224,11 +224,11 @@ class NonHolonomic:
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the INS and the receiver's velocity the slowness is tested on.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (2,) m/s, the car's lateral and vertical velocity; H (2, 15); R (2, 2)), None when slow.
         """
         v = m.v_aid
         slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
@@ -277,11 +277,11 @@ class Stationary:
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the epoch's GPS velocity, the interval's IMU sums, the INS, the bias estimates and P.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (6,) m/s and rad/s, or (3,) when the ZARU fails its test; H; R), None unless still.
         """
         v_gps = m.epoch.v_n if m.usable else np.full(3, np.nan)
         speed = self.speed.add(m.t_fix, v_gps, m.epoch)
@@ -365,8 +365,8 @@ class Odometer:
         self._var = np.zeros(0)
 
     def feed(self, block: OdomBlock) -> None:
-        """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are held until
-        its epochs have passed.
+        """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are
+        held until its epochs have passed.
 
         Parameters
         ----------
@@ -403,15 +403,16 @@ class Odometer:
         return float(coef[0]), var + self.sigma_mps ** 2
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """The wheel speed with the NHC's zeros in the car's axes (class docstring), or the rows that pass the slip test.
+        """The wheel speed with the NHC's zeros in the car's axes (class docstring).
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the epoch's time and velocity (for the scale fit), the INS, the bias-corrected rate and P (slip test).
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (k,) m/s in the car's axes, the rows that pass the slip test; H; R), None without wheel speeds near the
+        epoch.
         """
         got = self.speed_at(m.epoch.t_ns)
         if got is None:
@@ -481,15 +482,15 @@ class VirtualOdometer:
         self.window.add(w, f, i0, i1, imu_dt)
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """The predicted forward speed at an epoch without a usable fix; trains at the others (class docstring).
+        """The predicted forward speed at an epoch without a usable fix; at the others it trains (class docstring).
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : the epoch, whether its fix is usable, the INS, the interval's IMU sums and the bias estimates.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        (z (1,) m/s along the IMU's forward axis, H (1, 15), R (1, 1)), None while trained or not trusted.
         """
         x = self.window.features(m.nav, m.imu_dt)
         if m.usable and np.isfinite(m.epoch.v_n[:2]).all():
@@ -558,11 +559,11 @@ class FirstOf:
 
         Parameters
         ----------
-        m : what the loop knows at the epoch.
+        m : handed to each part in turn.
 
         Returns
         -------
-        (z (k,), H (k, 15), R (k, k)) in the units of the measured quantity, or None.
+        the first part's (z, H, R) that is not None, or None.
         """
         for p in self.parts:
             out = p.compute_matrices(m)

@@ -297,10 +297,10 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     Two reads: the IMU's time offset from its rate integral (stamps less the configured start value ``[fusion]
     imu_time_offset_s``) and the receiver's velocities; then ``kf`` without the vehicle aids and the forced
     outages (they would pull the attitude onto the nominal mounting), its IMU on the GPS's time, smoothed (RTS),
-    and the mounting from its rows. The mounting used is the estimate and the configured one (``[fusion] mounting_rpy_deg``, else
-    the drive's calibration record) weighted by their inverse variances, the configured sigma
-    ``mounting_sigma_deg`` (all 0: a mounting nobody measured, the estimate alone); where the drive does not show
-    one, the configured value and sigma stay. Memory grows by the rows (10 Hz) and the rate integral (50 Hz);
+    and the mounting from its rows. The mounting used is the estimate and the configured one (``[fusion]
+    mounting_rpy_deg``, else the drive's calibration record) weighted by their inverse variances, the configured
+    sigma ``mounting_sigma_deg`` (all 0: a mounting nobody measured, the estimate alone); where the drive does not
+    show one, the configured value and sigma stay. Memory grows by the rows (10 Hz) and the rate integral (50 Hz);
     the smoother's records go to a temporary file (5.5 kB per 0.1 s).
 
     Parameters

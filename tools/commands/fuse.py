@@ -45,7 +45,8 @@ def _installation_line(s: dict) -> str:
         sigma = s.get("imu_time_offset_sigma_s")
         parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f}"
                      + (f" ± {sigma * 1e3:.1f} ms" if sigma is not None else " ms (configured)"))
-    return "installation (estimated from the drive, used by the NHC, the odometer and the IMU's stamps): " + "; ".join(parts)
+    return ("installation (estimated from the drive, used by the NHC, the odometer and the IMU's stamps): "
+            + "; ".join(parts))
 
 
 def run(a: argparse.Namespace) -> int:
