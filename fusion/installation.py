@@ -66,6 +66,7 @@ class GyroTrack:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
         self.sum_f = np.zeros(3)
         self.n = 0
+        self._about: tuple[int, np.ndarray, np.ndarray] | None = None  # n, stamps, integral about the mean up
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
         """Add IMU samples.
@@ -107,10 +108,12 @@ class GyroTrack:
         -------
         (m,) rad, clockwise.
         """
-        t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
-        angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
-        up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
-        about_up = angle @ up
+        if self._about is None or self._about[0] != self.n:  # joined once per state of the track, not per call
+            t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
+            angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
+            up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
+            self._about = (self.n, t, angle @ up)
+        _, t, about_up = self._about
         return -(np.interp(b_ns, t, about_up) - np.interp(a_ns, t, about_up))
 
     @property
