@@ -144,7 +144,8 @@ class AidConfig:
     mounting_sigma_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # its 1-sigma, deg, added to the NHC's and the
     # odometer's lateral (yaw) and vertical (pitch) variance; all 0 to `fuse`: nobody measured it (the estimate alone)
     estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
-    # first and uses them (false: the configured values as they are)
+    # first and uses them, with the car aids on (nhc or odometer: its estimators assume a car, heading = course);
+    # false: the configured values as they are
 
 
 @dataclass

@@ -133,7 +133,8 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
 
     Returns
     -------
-    (d, sigma), s; None when the drive has too few moving epochs.
+    (d, sigma), s; None when the drive has too few moving epochs or the least squares lie at the edge of the
+    search (too few turns: a straight flight).
     """
     tg = np.asarray(t_gps_ns, np.int64)
     if len(tg) < 12:
@@ -156,7 +157,9 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
 
     lags = np.arange(-MAX_OFFSET_S, MAX_OFFSET_S + 0.5 * _STEP_S, _STEP_S)
     cost = np.array([np.sum(_resid(d) ** 2) for d in lags])
-    i = int(np.clip(np.argmin(cost), 1, len(lags) - 2))
+    i = int(np.argmin(cost))
+    if not 0 < i < len(lags) - 1:  # at the edge of the search: the turns do not show the offset
+        return None
     c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
     curv = c0 - 2.0 * c1 + c2
     if not curv > 0:

@@ -67,7 +67,7 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     out = out_file(a)
     config, installed = st.config, {}
-    if a.method != INS.name and config.aids.estimate_installation:
+    if a.method != INS.name and config.aids.estimate_installation and (config.aids.nhc or config.aids.odometer):
         config, installed = estimate_installation(drive, config, st.inputs)
     res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                inputs=st.inputs, force=a.force, installation=installed)
