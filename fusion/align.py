@@ -1,28 +1,5 @@
-"""Initial alignment of the INS from a standing start and the first GPS epochs, and the still detector.
-
-Still detection (:func:`still`, shared by the alignment and the stationary update of
-``fusion.measurements.Stationary``): the vehicle stood still over a GPS interval when
-
-- the GPS speed is below its limit (:class:`GpsSpeed`): the horizontal speed of the mean of the GPS velocities
-  of the last second (at least the interval's two ends), below ``still_gps_speed_mps`` or, for a noisier
-  receiver, below ``SPEED_K`` = 1.5 sigmas of that mean (from the reported velocity covariance: sigma_v /
-  sqrt(N) for N velocities). Between the limit and twice it the interval is "unsure" (left out; the still run
-  goes on), beyond twice it "moving": a standing car's speed (Rayleigh) passes 2 x 1.5 = 3 sigmas in 1.1 % of
-  its intervals, and a 10 Hz receiver's 0.1 m/s per axis averages to 0.03 m/s over a second. Skipped when the
-  drive has no velocity;
-- the specific force and rate vary less than ``still_accel_std_mps2`` and ``still_gyro_std_dps`` over it, or,
-  for a car whose engine idles (its vibration alone is of order 1 deg/s and 0.1 m/s^2, above those limits), they
-  vary as steadily as the still run they would join: a GPS speed measured and below its limit, and the
-  interval's spread of rate and of specific force each within a factor ``STEADY_RATIO`` of the run's own (the
-  signal's moving baseline; the first interval of a run is its own baseline). The vibration is fast (the engine
-  fires at tens of Hz) and averages out of the interval's mean, so the mean tests below, whose gates grow with
-  the interval's standard error, still tell a car that moves from one that shakes; a creeping car has a GPS
-  speed, a car that pulls away or is bumped changes its spread;
-- the mean rate and the mean specific force are where standing still puts them, within 4 sigma plus the
-  floors ``still_rate_tol_dps`` and ``still_accel_tol_mps2``: before the alignment the means of the still
-  interval so far (and a rate within the Earth rate plus the bias prior), after it the Earth rate plus the
-  estimated gyro bias and gravity through the estimated attitude. A steady turn or a creep has a small spread
-  but a mean rate or force that is off.
+"""Initial alignment of the INS from a standing start and the first GPS epochs (the still intervals from
+``fusion.still``, the still detector it shares with the stationary aid).
 
 Alignment (:class:`Alignment`):
 
@@ -71,12 +48,13 @@ IMU sums in rad/s and m/s^2.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fieldlog.fusion import earth, ins, kf
+from fieldlog.fusion import earth, ins, kf, still
+from fieldlog.fusion.still import GpsSpeed, ImuSums
 from fieldlog.fusion.types import Epoch
 
 if TYPE_CHECKING:
@@ -85,168 +63,35 @@ if TYPE_CHECKING:
 _DEG = math.pi / 180.0
 _UG = 9.80665e-6
 _G = 9.80665
-GATE = 4.0  # sigmas: a bias's flicker gives the interval means heavier tails than white noise
-
-
-@dataclass
-class ImuSums:
-    """Sums of IMU samples over an interval: rate (rad/s) and specific force (m/s^2), body RFU, and squares."""
-
-    sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    n: int = 0
-    sum_ww: np.ndarray = field(default_factory=lambda: np.zeros(3))  # squares: the interval's variances
-    sum_ff: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def std(self, total: np.ndarray, squares: np.ndarray) -> float:
-        """Root of the summed per-axis variances of the samples, e.g. std(sum_f, sum_ff)."""
-        m = total / max(self.n, 1)
-        return math.sqrt(max(float(np.sum(squares / max(self.n, 1) - m * m)), 0.0))
-
-    def add(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
-        """Add samples (i0, i1] of w, f (n, 3)."""
-        ws, fs = w[i0 + 1:i1 + 1], f[i0 + 1:i1 + 1]
-        self.sum_w += ws.sum(axis=0)
-        self.sum_f += fs.sum(axis=0)
-        self.sum_ww += np.einsum("ij,ij->j", ws, ws)
-        self.sum_ff += np.einsum("ij,ij->j", fs, fs)
-        self.n += max(i1 - i0, 0)
-
-    def merge(self, other: ImuSums) -> None:
-        self.sum_w += other.sum_w
-        self.sum_f += other.sum_f
-        self.sum_ww += other.sum_ww
-        self.sum_ff += other.sum_ff
-        self.n += other.n
-
-
-STEADY_RATIO = 2.0  # a vibrating interval's spread within this factor of its still run's: the run goes on
-SPEED_K = 1.5  # the GPS speed limit of the still detector: at least this many sigmas of the tested mean
-_SPEED_SPAN_S = 1.0  # the GPS velocities of the last second are averaged for the tested speed
-
-
-class GpsSpeed:
-    """The GPS speed the still detector tests at each epoch, and its limit (module docstring)."""
-
-    def __init__(self, cfg: FusionConfig) -> None:
-        self.floor = cfg.still.still_gps_speed_mps
-        self.recent: list[tuple[float, np.ndarray, float]] = []  # t (s), horizontal velocity (2,), sigma per axis
-
-    def add(self, t: float, v: np.ndarray, ep: Epoch) -> tuple[float, float]:
-        """The epoch ep at t (s) with its GPS velocity v (3,) ENU m/s (NaN: none): (the horizontal speed of the
-        mean velocity of the last second and the epoch before it, m/s, NaN without two velocities in a row; the
-        limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma))."""
-        if not np.isfinite(v[:2]).all():
-            self.recent = []
-            return math.nan, self.floor
-        keep = [r for r in self.recent if r[0] >= t - _SPEED_SPAN_S - 1e-6]
-        self.recent = (keep or self.recent[-1:]) + [(t, np.asarray(v[:2], float), _vel_sigma(ep))]
-        if len(self.recent) < 2:
-            return math.nan, self.floor
-        n = len(self.recent)
-        mean = sum(r[1] for r in self.recent) / n
-        sigma = math.sqrt(sum(r[2] ** 2 for r in self.recent)) / n
-        return float(np.hypot(mean[0], mean[1])), max(self.floor, SPEED_K * sigma)
-
-
 _MIN_STATIC_S = 1.0  # a still run shorter than this after its trimmed ends does not replace an earlier one
-_MIN_SAMPLES = 10  # per GPS interval, for its spread: 20 at 200 Hz with a 10 Hz receiver (aircraft)
-
-
-def still(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray | None,
-          w_sigma: float, f_ref: np.ndarray | None, f_sigma: float, baseline: ImuSums | None = None) -> bool:
-    """Whether the vehicle stood still over a GPS interval (module docstring).
-
-    speed: (the GPS speed, m/s, NaN: no GPS velocity, not tested; its limit, m/s) (:class:`GpsSpeed`); w_ref (3,)
-    rad/s and f_ref (3,)
-    m/s^2, body: the mean rate and specific force standing still would give (None: not tested), with the
-    sigmas (rad/s, m/s^2) of those references, to which the interval's own standard error is added; baseline:
-    the still run the interval would join (None: it starts one), whose spread a vibrating interval's must match
-    (:func:`steady`)."""
-    if interval.n < _MIN_SAMPLES or (math.isfinite(speed[0]) and not speed[0] < speed[1]):
-        return False
-    sd_f = interval.std(interval.sum_f, interval.sum_ff)
-    sd_w = interval.std(interval.sum_w, interval.sum_ww)
-    if not ((sd_f < cfg.still.still_accel_std_mps2 and sd_w < cfg.still.still_gyro_std_dps * _DEG)
-            or (math.isfinite(speed[0]) and steady(interval, baseline))):
-        return False
-    rn = math.sqrt(interval.n)
-    if w_ref is not None and np.linalg.norm(interval.sum_w / interval.n - w_ref) > (
-            GATE * math.hypot(sd_w / rn, w_sigma) + cfg.still.still_rate_tol_dps * _DEG):
-        return False
-    if f_ref is not None and np.linalg.norm(interval.sum_f / interval.n - f_ref) > (
-            GATE * math.hypot(sd_f / rn, f_sigma) + cfg.still.still_accel_tol_mps2):
-        return False
-    return True
-
-
-def steady(interval: ImuSums, baseline: ImuSums | None) -> bool:
-    """Whether the interval's spreads of rate and of specific force are each within a factor ``STEADY_RATIO`` of
-    the baseline's (a still run's: the same vibration); True without a baseline (the interval starts one)."""
-    if baseline is None or baseline.n == 0:
-        return True
-    for total, squares in (("sum_w", "sum_ww"), ("sum_f", "sum_ff")):
-        sd = interval.std(getattr(interval, total), getattr(interval, squares))
-        ref = baseline.std(getattr(baseline, total), getattr(baseline, squares))
-        if not ref / STEADY_RATIO <= sd <= ref * STEADY_RATIO:
-            return False
-    return True
-
-
-def _verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple],
-             baseline: ImuSums | None = None) -> str:
-    """"still" when the interval passes :func:`still` against every reference (w_ref, w_sigma, f_ref, f_sigma)
-    and the baseline; "unsure" when it fails only on a GPS speed below twice its limit (a noisy velocity: the
-    interval is left out, the still run goes on); else "moving"."""
-    if all(still(cfg, interval, speed, *r, baseline) for r in refs):
-        return "still"
-    if math.isfinite(speed[0]) and all(still(cfg, interval, (0.5 * speed[0], speed[1]), *r, baseline)
-                                       for r in refs):
-        return "unsure"
-    return "moving"
-
-
-class StillRun:
-    """The current run of still intervals (a stop), for the ZUPT aid: an interval is still when it passes
-    :func:`still` against the absolute references and, within a run, against the run's own mean rate and
-    specific force (a creep starting from a stop shows against the stop itself). The first still interval of
-    a stop only starts the run (``trimmed``: it may hold the last of the braking)."""
-
-    def __init__(self, cfg: FusionConfig) -> None:
-        self.cfg = cfg
-        self.run = ImuSums()
-        self.count = 0
-
-    def reset(self) -> None:
-        self.run, self.count = ImuSums(), 0
-
-    def update(self, interval: ImuSums, speed: tuple[float, float], w_ref: np.ndarray, w_sigma: float,
-               f_ref: np.ndarray, f_sigma: float) -> bool:
-        """Test the interval (arguments of :func:`still`); True when the vehicle stood still over it and over
-        the interval before it."""
-        c = self.cfg
-        refs = [(w_ref, w_sigma, f_ref, f_sigma)]
-        if self.count:
-            refs.append((self.run.sum_w / self.run.n, c.init.init_gyro_bias_sigma_dps * _DEG, self.run.sum_f / self.run.n,
-                         0.0))
-        verdict = _verdict(c, interval, speed, refs, self.run if self.count else None)
-        if verdict == "moving":
-            self.reset()
-        if verdict != "still":
-            return False
-        self.run.merge(interval)
-        self.count += 1
-        return self.count > 1
 
 
 def level(f_b: np.ndarray) -> tuple[float, float]:
-    """Pitch and roll (rad) of a vehicle at rest from its mean specific force f_b (3,) body RFU, m/s^2."""
+    """Pitch and roll of a vehicle at rest.
+
+    Parameters
+    ----------
+    f_b : (3,) its mean specific force, body RFU, m/s^2.
+
+    Returns
+    -------
+    (pitch, roll), rad.
+    """
     return math.atan2(f_b[1], math.hypot(f_b[0], f_b[2])), math.atan2(-f_b[0], f_b[2])
 
 
 def gyrocompass(w_b: np.ndarray, pitch: float, roll: float) -> float:
-    """Heading (rad, clockwise from north) from the mean rate w_b (3,) rad/s body RFU of a vehicle at rest with
-    the given pitch and roll: the horizontal Earth rate, levelled, points north."""
+    """Heading of a vehicle at rest from the Earth rate its gyros see: the horizontal rate, levelled, points north.
+
+    Parameters
+    ----------
+    w_b : (3,) the mean rate, body RFU, rad/s.
+    pitch, roll : its attitude, rad.
+
+    Returns
+    -------
+    float, the heading, rad clockwise from north.
+    """
     w_l = earth.euler_to_dcm(0.0, pitch, roll) @ w_b
     return math.atan2(-w_l[0], w_l[1])
 
@@ -274,16 +119,6 @@ def _standard_errors(intervals: list[ImuSums]) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def _vel_sigma(ep: Epoch) -> float:
-    """1-sigma of a horizontal GPS velocity component at the epoch, m/s: from its covariance, else (a drive
-    without velocity: differenced fixes 1 s apart) sqrt(2) x the fix's horizontal sigma, else 1 m/s."""
-    for cov, k in ((ep.vel_cov, 1.0), (ep.pos_cov, math.sqrt(2.0))):
-        var = 0.5 * (float(cov[0, 0]) + float(cov[1, 1]))
-        if math.isfinite(var) and var > 0:
-            return k * math.sqrt(var)
-    return 1.0
-
-
 @dataclass
 class Aligned:
     """The result of the alignment: the INS state, the initial gyro bias (rad/s, body) and covariance P0 (15, 15)."""
@@ -294,8 +129,17 @@ class Aligned:
 
 
 def chi2_quantile(dof: int, z: float = 3.719) -> float:
-    """Upper quantile of the chi-square distribution with dof degrees of freedom at the standard-normal
-    quantile z (3.719: probability 1e-4), Wilson-Hilferty (within 1 % from 6 degrees of freedom)."""
+    """Upper quantile of the chi-square distribution, Wilson-Hilferty (within 1 % from 6 degrees of freedom).
+
+    Parameters
+    ----------
+    dof : the degrees of freedom.
+    z : the standard-normal quantile (3.719: probability 1e-4).
+
+    Returns
+    -------
+    float
+    """
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 
@@ -310,9 +154,22 @@ class HeadingCheck:
         self.done = not cfg.align.realign_window_s > 0
 
     def far_off(self, t: float, z: np.ndarray, H: np.ndarray, R: np.ndarray, x: np.ndarray, P: np.ndarray) -> bool:
-        """Add an epoch's measurement z (m,), H (m, 15), R (m, m) with the filter's predicted error state x (15,)
-        and covariance P (15, 15) at time t (s); True when the heading should be taken again. x is zero in the
-        closed-loop filters; the paper's distributed filter carries a fused prediction between epochs."""
+        """Add an epoch's GPS velocity measurement to the test.
+
+        Parameters
+        ----------
+        t : the epoch's time, s.
+        z : (m,) the measurement, m/s.
+        H : (m, 15) its rows over the error states.
+        R : (m, m) its covariance, (m/s)^2.
+        x : (15,) the filter's predicted error state (zero in the closed-loop filters; the paper's distributed filter
+            carries a fused prediction between epochs).
+        P : (15, 15) the filter's covariance.
+
+        Returns
+        -------
+        bool, True when the heading should be taken again.
+        """
         if self.done or t > self.t_end or len(z) == 0:
             return False
         nu = z - H @ x
@@ -324,9 +181,20 @@ class HeadingCheck:
         return nis > chi2_quantile(dof)
 
     def realign(self, nav: ins.NavState, ep: Epoch, P: np.ndarray) -> tuple[ins.NavState, np.ndarray] | None:
-        """The INS state with the heading from the epoch's GPS course and the covariance with its heading sigma
-        and the gyro bias prior; None while the GPS speed is below ``align_speed_mps``, or while the course agrees
-        with the INS heading within 3 sigma of the course (try again later)."""
+        """The state with the heading taken again from the epoch's GPS course.
+
+        Parameters
+        ----------
+        nav : the INS state.
+        ep : the epoch (its velocity, ENU m/s, and covariance).
+        P : (15, 15) the filter's covariance.
+
+        Returns
+        -------
+        (the INS state with the course's heading, the covariance with its heading sigma and the gyro bias prior), or
+        None while the GPS speed is below ``align_speed_mps`` or the course agrees with the INS heading within 3 sigma of
+        the course (try again later).
+        """
         c = self.cfg
         v = ep.v_n
         speed = float(np.hypot(v[0], v[1])) if np.isfinite(v[:2]).all() else 0.0
@@ -334,7 +202,7 @@ class HeadingCheck:
             return None
         heading, pitch, roll = (float(x) for x in earth.dcm_to_euler(nav.C_bn))
         course = math.atan2(v[0], v[1])
-        sd = math.hypot(_vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
+        sd = math.hypot(still.vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
         if abs(math.remainder(course - heading, 2.0 * math.pi)) <= 3.0 * sd:
             return None  # the course agrees with the heading: the innovations are large for another reason
         self.done = True
@@ -384,9 +252,20 @@ class Alignment:
         return kf.enu_offset(ep.lat, ep.lon, ep.h, lat0, lon0, h0) / (ts - t0)
 
     def epoch(self, ep: Epoch, usable: bool, interval: ImuSums, t_k: float, t_ref_ns: int) -> Aligned | None:
-        """A GPS epoch before the alignment: ep, whether its fix is usable, the IMU sums of the interval that ends
-        here, the current sample's time t_k (s from t_ref_ns). Returns the initial state when this epoch aligns
-        the INS, else None."""
+        """A GPS epoch before the alignment.
+
+        Parameters
+        ----------
+        ep : the epoch.
+        usable : whether its fix is used.
+        interval : the IMU sums of the interval that ends here (rad/s, m/s^2, body RFU).
+        t_k : the current sample's time, s from t_ref_ns.
+        t_ref_ns : the drive's reference time, UTC ns.
+
+        Returns
+        -------
+        The initial state when this epoch aligns the INS, else None.
+        """
         v = self._velocity(ep, t_ref_ns) if usable else np.full(3, np.nan)
         if usable:
             self._last_fix = ((ep.t_ns - t_ref_ns) * 1e-9, ep.lat, ep.lon, ep.h)
@@ -416,9 +295,9 @@ class Alignment:
         c = self.cfg
         if not self._run:
             prior = math.hypot(c.init.gyro_bias_prior_sigma_dps * _DEG, earth.OMEGA_IE)
-            return _verdict(c, interval, speed, [(np.zeros(3), prior, None, 0.0)])
+            return still.verdict(c, interval, speed, [(np.zeros(3), prior, None, 0.0)])
         run = _total(s for s, _, _ in self._run)  # the bias instability moves the rate between intervals too
-        return _verdict(c, interval, speed, [(run.sum_w / run.n, c.init.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
+        return still.verdict(c, interval, speed, [(run.sum_w / run.n, c.init.init_gyro_bias_sigma_dps * _DEG, run.sum_f / run.n,
                                               0.0)], run)
 
     def _static_interval(self) -> tuple[list[tuple[ImuSums, float]], list[tuple[ImuSums, float]]]:
@@ -444,7 +323,7 @@ class Alignment:
         static = tot.n >= 200
         speed = math.hypot(v[0], v[1])
         w_h = earth.OMEGA_IE * math.cos(lat)  # horizontal Earth rate, rad/s
-        sd_course = math.hypot(_vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
+        sd_course = math.hypot(still.vel_sigma(ep) / speed, c.align.align_sideslip_deg * _DEG)
         if static:
             fm, wm = tot.sum_f / tot.n, tot.sum_w / tot.n
             pitch, roll = level(fm)

@@ -55,6 +55,8 @@ class SensorConfig:
     clip_rate_sigma_dps: float = 0.5  # 1-sigma of a clipped yaw rate rebuilt from the lateral acceleration
     adapt_noise: bool = False  # the white noise from the still start and Q and R by covariance matching
     # (fusion.adaptive); false: the figures as given
+    imu_time_offset_s: float = 0.0  # how late the IMU's stamps are against the GPS's, s: the engine takes it off
+    # every IMU stamp; `fuse` estimates it from the drive (fusion.installation) with this as its start value
 
     def noise_psd(self) -> np.ndarray:
         """The filter's noise PSD (12, 12) (``fusion.errmodel.noise_psd``) in SI units."""
@@ -112,11 +114,11 @@ class AlignConfig:
 
 @dataclass
 class StillConfig:
-    """The still detector (``fusion.align.still``), shared by the alignment and the stationary update."""
+    """The still detector (``fusion.still``), shared by the alignment and the stationary update."""
 
     still_speed_mps: float = 0.5  # still: INS speed below this without GPS velocity, ...
     still_gps_speed_mps: float = 0.1  # ... or the mean GPS velocity of the last second below this (or 1.5 of its
-    # sigmas from the reported velocity covariance, fusion.align.GpsSpeed), ...
+    # sigmas from the reported velocity covariance, fusion.still.GpsSpeed), ...
     still_accel_std_mps2: float = 0.1  # ... specific force and rate varying less than these over the interval,
     still_gyro_std_dps: float = 0.5
     still_rate_tol_dps: float = 0.01  # ... and their means within 3 sigma plus these of standing still
@@ -137,6 +139,15 @@ class AidConfig:
     # (false: the NHC alone; fusion.odometer, "With the NHC and without")
     odometer_lever_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> rear axle centre, body RFU, m
     odometer_sigma_mps: float = 0.02  # the wheel speed's sigma when the topic gives no variance
+    mounting_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the IMU's axes from the car's (base_link),
+    # [roll, pitch, yaw] deg, C_bm = fusion.earth.euler_to_dcm(yaw, pitch, roll) maps IMU axes to the car's: the NHC
+    # and the odometer constrain the car's velocity, C_bm C_nb v_n; `fuse` estimates it from the drive
+    # (fusion.installation) with this as its initial value
+    mounting_sigma_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # its 1-sigma, deg, added to the NHC's and the
+    # odometer's lateral (yaw) and vertical (pitch) variance; all 0 to `fuse`: nobody measured it (the estimate alone)
+    estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
+    # first and uses them, with the car aids on (nhc or odometer: its estimators assume a car, heading = course);
+    # false: the configured values as they are
 
 
 @dataclass
@@ -265,6 +276,13 @@ class FusionConfig:
                 raise ValueError(f"[fusion] {key}: must be >= 0")
         if g.gps_error_model not in GPS_ERROR_MODELS:
             raise ValueError(f"[fusion] gps_error_model: {g.gps_error_model!r}; one of {', '.join(GPS_ERROR_MODELS)}")
+        a = self.aids
+        for key in ("mounting_rpy_deg", "mounting_sigma_deg"):
+            v = getattr(a, key)
+            if len(v) != 3 or not all(math.isfinite(x) for x in v) or (key == "mounting_sigma_deg" and min(v) < 0):
+                raise ValueError(f"[fusion] {key}: expected 3 finite numbers (sigmas >= 0), got {list(v)!r}")
+        if not abs(self.sensor.imu_time_offset_s) < 10.0:
+            raise ValueError("[fusion] imu_time_offset_s: must be within +-10 s")
         for n, o in enumerate(g.outages):
             if len(o) != 2 or not (o[0] >= 0 and o[1] > 0):
                 raise ValueError(f"[fusion] outages[{n}]: expected [start_s >= 0, length_s > 0], got {list(o)!r}")

@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from fieldlog.fusion import adaptive, align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output, ukf
+from fieldlog.fusion import (adaptive, align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output,
+                            still, ukf)
 from fieldlog.fusion.config import GPS_ERROR_MODELS, FusionConfig
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import OutageTracker, PredictorBridge, Silence
@@ -80,8 +81,9 @@ class Engine:
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
         self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
-        self._interval = align.ImuSums()  # IMU sums since the last GPS epoch
+        self._interval = still.ImuSums()  # IMU sums since the last GPS epoch
         self._imu_dt = 0.002  # median IMU sample period, s
+        self._imu_late_ns = int(round(self.cfg.sensor.imu_time_offset_s * 1e9))  # taken off every IMU stamp
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
         self._steps = errmodel.BiasSteps.of(self.cfg.sensor)  # scale factors as bias steps, or None
@@ -96,13 +98,14 @@ class Engine:
         return [p for m in self.measurements for p in getattr(m, "parts", (m,))]
 
     def process(self, imu: ImuBlock, gps: GpsBlock, odom: OdomBlock | None = None) -> tuple[Solution, list[Outage]]:
-        """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages."""
+        """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages.
+        The IMU's stamps are taken on the GPS's time: less ``[fusion] imu_time_offset_s``."""
         if odom is not None and len(odom.t_ns):
             for p in self._parts():
                 if hasattr(p, "feed"):
                     p.feed(odom)
         ok = np.isfinite(imu.omega_ib_b).all(axis=1) & np.isfinite(imu.f_b).all(axis=1)
-        t_ns = np.asarray(imu.t_ns, np.int64)[ok]
+        t_ns = np.asarray(imu.t_ns, np.int64)[ok] - self._imu_late_ns  # on the GPS's time
         w, f = np.asarray(imu.omega_ib_b, float)[ok], np.asarray(imu.f_b, float)[ok]
         if self._carry is not None:
             keep = t_ns > self._carry[0][-1]
@@ -165,7 +168,7 @@ class Engine:
     def _pre_init_epoch(self, ep: Epoch, t_k: float, t_k_ns: int) -> None:
         """A GPS epoch before the alignment (``fusion.align``); at the alignment epoch, the filter starts."""
         usable = self.outages.classify(ep)
-        interval, self._interval = self._interval, align.ImuSums()
+        interval, self._interval = self._interval, still.ImuSums()
         a = self.alignment.epoch(ep, usable, interval, t_k, self.t_ref_ns)
         if a is not None:
             self._start(a, t_k, t_k_ns)
@@ -190,7 +193,7 @@ class Engine:
     def _epoch(self, ep: Epoch, omega_k: np.ndarray) -> None:
         """GPS epoch at the current sample: the aids, then the fix or the outage (module docstring)."""
         usable = self.status.epoch(self.outages.classify(ep))
-        interval, self._interval = self._interval, align.ImuSums()
+        interval, self._interval = self._interval, still.ImuSums()
         v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
         t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
         at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._imu_dt, self.bg, self.ba,

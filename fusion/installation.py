@@ -16,9 +16,12 @@ INS heading at the epochs. The yaw rate only: the receiver's acceleration is noi
 
 **Mounting** (``mounting``): the car's attitude is taken from the velocity, heading = the course, pitch = the
 flight-path angle, roll = 0 (a car does not side-slip at its rear axle and rolls only in turns, as much either
-way), so C_bm = C_bn^T C_mn (IMU frame -> car body frame, RFU) at each solution row where the car moves at
-``MIN_SPEED_MPS`` or more on a straight (yaw rate below ``MAX_YAW_RATE``: the IMU's time offset would turn the
-INS heading against the course in a turn), read as [roll, pitch, yaw] (``fusion.earth``'s conventions:
+way; the IMU's point ahead of the rear axle by r moves at an angle atan(yaw rate r / speed) to the car's heading
+in a turn, taken off), so C_bm = C_bn^T C_mn (IMU frame -> car body frame, RFU) at each row of an aids-off
+solution, its IMU on the GPS's time (the time offset applied: a late IMU turns the INS heading against the
+course in a turn) and smoothed (the RTS pass: the forward filter's heading error in the straights is of the
+order of the mounting's wanted accuracy), where the car moves at ``MIN_SPEED_MPS`` or more and turns slower
+than ``MAX_YAW_RATE``, read as [roll, pitch, yaw] (``fusion.earth``'s conventions:
 ``C_bm = euler_to_dcm(yaw, pitch, roll)``). The angles are averaged over ``BLOCK_S`` blocks; sigma, in
 quadrature: the blocks' spread over the root of their number, the INS's own attitude sigma (level for roll and
 pitch, heading for yaw: an error common to every row, not averaged away), for pitch the flight-path angle's
@@ -38,7 +41,7 @@ from fieldlog.fusion import earth
 from fieldlog.fusion.types import Solution
 
 MIN_SPEED_MPS = 3.0  # the course is the car's heading from this speed
-MAX_YAW_RATE = 0.02  # rad/s: the rows of a straight, for the mounting
+MAX_YAW_RATE = 0.2  # rad/s: the rows of the mounting, sharp turns left out (side slip, roll)
 BLOCK_S = 10.0  # s: the mounting's averaging blocks
 ROLL_ROAD_DEG = 1.0  # deg: a road's crossfall, the roll's floor
 MAX_OFFSET_S = 0.5  # s: the time offsets searched
@@ -63,9 +66,17 @@ class GyroTrack:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
         self.sum_f = np.zeros(3)
         self.n = 0
+        self._about: tuple[int, np.ndarray, np.ndarray] | None = None  # n, stamps, integral about the mean up
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
-        """IMU samples: stamps (n,) ns, rate (n, 3) rad/s and specific force (n, 3) m/s^2, IMU frame."""
+        """Add IMU samples.
+
+        Parameters
+        ----------
+        t_ns : (n,) their stamps, UTC ns.
+        omega_m : (n, 3) rate, rad/s, IMU frame.
+        f_m : (n, 3) specific force, m/s^2, IMU frame.
+        """
         if not len(t_ns):
             return
         t = np.asarray(t_ns, np.int64)
@@ -87,11 +98,22 @@ class GyroTrack:
         self.n += len(t_ns)
 
     def heading_change(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
-        """The heading change (rad, clockwise) from a_ns to b_ns (m,): minus the rate about the mean up."""
-        t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
-        angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
-        up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
-        about_up = angle @ up
+        """The heading change over intervals: minus the integrated rate about the mean up.
+
+        Parameters
+        ----------
+        a_ns, b_ns : (m,) the intervals' ends, UTC ns.
+
+        Returns
+        -------
+        (m,) rad, clockwise.
+        """
+        if self._about is None or self._about[0] != self.n:  # joined once per state of the track, not per call
+            t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
+            angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
+            up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
+            self._about = (self.n, t, angle @ up)
+        _, t, about_up = self._about
         return -(np.interp(b_ns, t, about_up) - np.interp(a_ns, t, about_up))
 
     @property
@@ -100,9 +122,20 @@ class GyroTrack:
 
 
 def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> tuple[float, float] | None:
-    """(d, sigma), s: how late the IMU's stamps are against the GPS's (module docstring), from the IMU's rate
-    integral ``gyro`` and the receiver's velocities v_gps_n (m, 3) ENU m/s at t_gps_ns (m,); None when the drive
-    has too few moving epochs. A constant rate (the gyro bias, the Earth rate) is fitted with d."""
+    """How late the IMU's stamps are against the GPS's (module docstring); a constant rate (the gyro bias, the Earth
+    rate) is fitted with it.
+
+    Parameters
+    ----------
+    gyro : the IMU's rate integral.
+    t_gps_ns : (m,) the receiver's epochs, UTC ns.
+    v_gps_n : (m, 3) its velocities, ENU m/s.
+
+    Returns
+    -------
+    (d, sigma), s; None when the drive has too few moving epochs or the least squares lie at the edge of the
+    search (too few turns: a straight flight).
+    """
     tg = np.asarray(t_gps_ns, np.int64)
     if len(tg) < 12:
         return None
@@ -118,13 +151,15 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     d_course = np.remainder(course[k + 1] - course[k] + math.pi, 2.0 * math.pi) - math.pi
     a, b, span = tg[k], tg[k + 1], dt[k]
 
-    def resid(d: float) -> np.ndarray:
+    def _resid(d: float) -> np.ndarray:
         r = d_course - gyro.heading_change(a + int(round(d * 1e9)), b + int(round(d * 1e9)))
         return r - span * (np.sum(r * span) / np.sum(span * span))   # less the best constant rate
 
     lags = np.arange(-MAX_OFFSET_S, MAX_OFFSET_S + 0.5 * _STEP_S, _STEP_S)
-    cost = np.array([np.sum(resid(d) ** 2) for d in lags])
-    i = int(np.clip(np.argmin(cost), 1, len(lags) - 2))
+    cost = np.array([np.sum(_resid(d) ** 2) for d in lags])
+    i = int(np.argmin(cost))
+    if not 0 < i < len(lags) - 1:  # at the edge of the search: the turns do not show the offset
+        return None
     c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
     curv = c0 - 2.0 * c1 + c2
     if not curv > 0:
@@ -135,9 +170,18 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     return d, math.sqrt(float(c1) / max(len(k) - 2, 1) / s2)
 
 
-def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
-    """([roll, pitch, yaw], their sigmas), deg: the IMU's mounting to the car's body frame (module docstring),
-    from the aids-off solution ``sol`` (its IMU on GPS time); None without enough straight driving."""
+def mounting(sol: Solution, lever_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The IMU's mounting to the car's body frame (module docstring).
+
+    Parameters
+    ----------
+    sol : the aids-off solution, its IMU on the GPS's time (smoothed: its attitude sigma is the estimate's floor).
+    lever_b : (3,) IMU -> the rear axle's centre, IMU axes (taken as the car's), m; None: zero.
+
+    Returns
+    -------
+    ([roll, pitch, yaw], their sigmas), deg (3,) each; None without enough driving.
+    """
     if len(sol.t_ns) < 3:
         return None
     ts = (sol.t_ns - sol.t_ns[0]) * 1e-9
@@ -149,7 +193,9 @@ def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
     rows = np.flatnonzero(sel)
     C_mn = earth.quat_to_dcm(sol.q[rows])
     gamma = np.arctan2(sol.v_n[rows, 2], speed[rows])
-    C_bn = earth.euler_to_dcm(course[rows], gamma, np.zeros(len(rows)))
+    r_fwd = 0.0 if lever_b is None else float(lever_b[1])
+    heading = course[rows] + np.arctan2(yaw_rate[rows] * r_fwd, speed[rows])  # the IMU's point swings out in turns
+    C_bn = earth.euler_to_dcm(heading, gamma, np.zeros(len(rows)))
     C_bm = np.einsum("nji,njk->nik", C_bn, C_mn)
     yaw, pitch, roll = earth.dcm_to_euler(C_bm)
     rpy = np.stack([roll, pitch, np.remainder(yaw + math.pi, 2.0 * math.pi) - math.pi], axis=1)
@@ -166,3 +212,21 @@ def mounting(sol: Solution) -> tuple[np.ndarray, np.ndarray] | None:
     sigma = np.sqrt(spread ** 2 + np.array([level, math.hypot(level, climb), head]) ** 2
                     + np.array([math.radians(ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
     return np.degrees(means.mean(axis=0)), np.degrees(sigma)
+
+
+def combine(prior: np.ndarray, prior_sigma: np.ndarray, estimate: np.ndarray, sigma: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The configured mounting and the drive's estimate, each angle weighted by its inverse variance.
+
+    Parameters
+    ----------
+    prior, prior_sigma : (3,) the configured [roll, pitch, yaw] and their 1-sigma, deg (a sigma of inf: none).
+    estimate, sigma : (3,) the drive's (:func:`mounting`), deg.
+
+    Returns
+    -------
+    ((3,) the combined angles, (3,) their 1-sigma), deg.
+    """
+    w0, w1 = 1.0 / np.square(prior_sigma), 1.0 / np.square(sigma)
+    return (w0 * prior + w1 * estimate) / (w0 + w1), 1.0 / np.sqrt(w0 + w1)
+

@@ -1,4 +1,5 @@
-"""The shared error-state Kalman filter, GPS measurement models and the closed-loop INS correction.
+"""The shared error-state Kalman filter and the closed-loop INS correction (the measurement models are
+``fusion.measurements``').
 
 Every filter of the project exposes the interface of design section 6: ``predict(dt, ins_state, imu)``,
 ``update(z, H, R)``, ``state``, ``covariance``, and the loop's ``update_batch(observations)`` (the measurements of
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldlog.fusion import earth, errmodel
-from fieldlog.fusion.errmodel import ATT, BG, N_STATES, POS, VEL
+from fieldlog.fusion.errmodel import ATT, N_STATES, VEL
 from fieldlog.fusion.ins import NavState
 
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]  # (z (m,), H (m, 15), R (m, m))
@@ -118,7 +119,7 @@ class KalmanFilter:
         self.update_batch(gps_observations(vel, pos))
 
     def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (``nhc_measurement``, ``stationary_measurement``), a velocity-kind observation."""
+        """A vehicle-motion aid (``fusion.measurements``), a velocity-kind observation."""
         self.update_batch([Observation("velocity", m)])
 
     def start_outage(self) -> None:
@@ -171,78 +172,6 @@ def enu_offset(lat: float, lon: float, h: float, lat_ref: float, lon_ref: float,
     """Small ENU displacement (m) of (lat, lon, h) from (lat_ref, lon_ref, h_ref) (rad, rad, m)."""
     rm, rn = earth.principal_radii(lat_ref, h_ref)
     return np.array([(lon - lon_ref) * rn * np.cos(lat_ref), (lat - lat_ref) * rm, h - h_ref])
-
-
-def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h: float, cov_enu: np.ndarray,
-                         lever_b: np.ndarray) -> Measurement:
-    """GPS position measurement: z = INS antenna position - GPS position, ENU m.
-
-    The INS state is extrapolated from nav.t to the fix time t_gps (s) with its velocity. lat, lon in
-    rad, h in m (NaN for a fix without height: horizontal rows only); cov_enu (3, 3) ENU m^2 (the fix's
-    covariance); lever_b (3,) IMU -> antenna, body RFU, m.
-    """
-    C = nav.C_bn
-    arm_n = C @ lever_b
-    z = enu_offset(nav.lat, nav.lon, nav.h, lat, lon, h) + arm_n + nav.v_n * (t_gps - nav.t)
-    H = np.zeros((3, N_STATES))
-    H[:, POS] = np.eye(3)
-    H[:, ATT] = earth.skew(arm_n)
-    keep = np.flatnonzero(np.isfinite(z))
-    return z[keep], H[keep], np.asarray(cov_enu, dtype=float)[np.ix_(keep, keep)]
-
-
-def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omega_ib_b: np.ndarray,
-                         lever_b: np.ndarray, max_var: float) -> Measurement | None:
-    """GPS velocity measurement: z = INS antenna velocity - GPS velocity, ENU m/s.
-
-    cov (3, 3) ENU (m/s)^2; components with variance above max_var (NMEA's unobserved vertical
-    velocity) are left out. omega_ib_b (3,) bias-corrected rate, rad/s. None when nothing is left.
-    """
-    cov = np.asarray(cov, dtype=float)
-    keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
-    if len(keep) == 0:
-        return None
-    C = nav.C_bn
-    arm_v = C @ earth.cross(omega_ib_b, lever_b)
-    z = nav.v_n + arm_v - v_gps
-    H = np.zeros((3, N_STATES))
-    H[:, VEL] = np.eye(3)
-    H[:, ATT] = earth.skew(arm_v)
-    H[:, BG] = -C @ earth.skew(lever_b)
-    return z[keep], H[keep], cov[np.ix_(keep, keep)]
-
-
-def nhc_measurement(nav: NavState, sigma_mps: float) -> Measurement:
-    """Non-holonomic constraint of a car: the IMU's body lateral (x) and vertical (z) velocity are zero.
-
-    z = (C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
-    dv_b = C_nb dv_n - C_nb [v_n x] phi. sigma_mps: 1-sigma of the constraint (side slip, suspension).
-    Assumes the IMU sits near the rear axle's centre line (no lever arm to the non-holonomic point).
-    """
-    C_nb = nav.C_bn.T[[0, 2]]
-    H = np.zeros((2, N_STATES))
-    H[:, VEL] = C_nb
-    H[:, ATT] = -C_nb @ earth.skew(nav.v_n)
-    return C_nb @ nav.v_n, H, np.eye(2) * sigma_mps ** 2
-
-
-def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
-                           sigma_w: np.ndarray | None) -> Measurement:
-    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still.
-
-    z = [v_n of the INS (m/s); mean bias-corrected gyro output over the still interval minus the Earth
-    rate in the body frame (rad/s)]: the velocity error and the residual gyro bias. sigma_v (3,) m/s: the ZUPT
-    1-sigma per ENU axis; sigma_w (3,) rad/s: the ZARU 1-sigma per body axis, None: ZUPT alone (3 rows).
-    """
-    C_nb = nav.C_bn.T
-    rows = 3 if sigma_w is None else 6
-    H = np.zeros((rows, N_STATES))
-    H[0:3, VEL] = np.eye(3)
-    if sigma_w is None:
-        return nav.v_n.copy(), H, np.diag(np.asarray(sigma_v, float) ** 2)
-    H[3:6, BG] = np.eye(3)
-    z = np.concatenate([nav.v_n, mean_omega_b - C_nb @ earth.omega_ie_n(nav.lat)])
-    return z, H, np.diag(np.concatenate([sigma_v, sigma_w]) ** 2)
 
 
 def correct_ins(nav: NavState, x: np.ndarray) -> NavState:

@@ -25,9 +25,9 @@ from typing import Protocol
 import numpy as np
 
 from fieldlog.fusion import earth, kf, odometer, pseudo
-from fieldlog.fusion.align import GATE, GpsSpeed, ImuSums, StillRun
+from fieldlog.fusion.still import GATE, GpsSpeed, ImuSums, StillRun
 from fieldlog.fusion.config import FusionConfig
-from fieldlog.fusion.errmodel import BA, BG
+from fieldlog.fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.predictors import PredictorConfig
 from fieldlog.fusion.ins import NavState
 from fieldlog.fusion.types import Epoch, OdomBlock
@@ -66,12 +66,21 @@ class MeasurementModel(Protocol):
     receiver: bool
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
-        """(z, H, R) at the moment, or None."""
+        """(z, H, R) at the moment, or None.
+
+        Parameters
+        ----------
+        m : what the loop knows at the epoch.
+
+        Returns
+        -------
+        (z (k,), H (k, 15), R (k, k)), or None.
+        """
 
 
 @dataclass
 class GpsPosition:
-    """The fix: z = INS antenna position - GPS position, ENU m (``kf.position_measurement``); lever_b (3,) IMU ->
+    """The fix: z = INS antenna position - GPS position, ENU m (``position_measurement``); lever_b (3,) IMU ->
     antenna, body RFU, m. R is the fix's covariance; a fix without height gives the horizontal rows only."""
 
     lever_b: np.ndarray
@@ -80,15 +89,25 @@ class GpsPosition:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The fix's position measurement.
+
+        Parameters
+        ----------
+        m : the epoch (its fix and covariance), whether it is usable, the fix time and the INS there.
+
+        Returns
+        -------
+        (z (3,) ENU m, or (2,) for a fix without height; H; R m^2), None at an unusable epoch.
+        """
         e = m.epoch
         if not m.usable:
             return None
-        return kf.position_measurement(m.nav, m.t_fix, e.lat, e.lon, e.h, e.pos_cov, self.lever_b)
+        return position_measurement(m.nav, m.t_fix, e.lat, e.lon, e.h, e.pos_cov, self.lever_b)
 
 
 @dataclass
 class GpsVelocity:
-    """The receiver's velocity: z = INS antenna velocity - GPS velocity, ENU m/s (``kf.velocity_measurement``);
+    """The receiver's velocity: z = INS antenna velocity - GPS velocity, ENU m/s (``velocity_measurement``);
     components with a variance above max_var ((m/s)^2, NMEA's unobserved vertical) are left out."""
 
     lever_b: np.ndarray
@@ -98,34 +117,129 @@ class GpsVelocity:
     receiver = True
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The receiver's velocity measurement.
+
+        Parameters
+        ----------
+        m : the epoch (its velocity and covariance), whether it is usable, the INS and the bias-corrected rate.
+
+        Returns
+        -------
+        (z (k,) ENU m/s, H (k, 15), R (k, k) (m/s)^2), None at an unusable epoch or with no component left.
+        """
         if not m.usable:
             return None
-        return kf.velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
+        return velocity_measurement(m.nav, m.epoch.v_n, m.epoch.vel_cov, m.omega_b, self.lever_b, self.max_var)
+
+
+@dataclass(frozen=True)
+class CarFrame:
+    """How the IMU sits in the car, for the aids that constrain the car's velocity (the NHC, the odometer).
+
+    C_bm (3, 3): IMU axes -> the car's body axes (RFU), ``fusion.earth.euler_to_dcm(yaw, pitch, roll)`` of the
+    mounting (``[fusion] mounting_rpy_deg``); None: the IMU's axes are the car's. sigma_rad (3,): the mounting's
+    1-sigma, roll, pitch, yaw, rad: a yaw error turns the forward speed v into a lateral velocity v sigma_yaw, a
+    pitch error into a vertical one v sigma_pitch, added to those rows' variances (roll mixes two zeros)."""
+
+    C_bm: np.ndarray | None = None
+    sigma_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def of(cls, rpy_deg: tuple[float, float, float], sigma_deg: tuple[float, float, float]) -> CarFrame:
+        """The frame of a mounting.
+
+        Parameters
+        ----------
+        rpy_deg : (3,) roll, pitch, yaw of the IMU's axes from the car's, deg (all 0: the car's axes).
+        sigma_deg : (3,) their 1-sigma, deg.
+
+        Returns
+        -------
+        CarFrame
+        """
+        roll, pitch, yaw = (float(x) * _DEG for x in rpy_deg)
+        C = earth.euler_to_dcm(yaw, pitch, roll) if any(rpy_deg) else None
+        return cls(C, np.asarray(sigma_deg, float) * _DEG)
+
+    def axes(self, C_nb: np.ndarray) -> np.ndarray:
+        """The car's axes in the navigation frame's terms.
+
+        Parameters
+        ----------
+        C_nb : (3, 3) navigation (ENU) -> IMU axes.
+
+        Returns
+        -------
+        (3, 3) navigation (ENU) -> car axes (RFU), C_bm C_nb.
+        """
+        return C_nb if self.C_bm is None else self.C_bm @ C_nb
+
+    def extra_var(self, v_fwd: float) -> np.ndarray:
+        """The mounting's share of the car-axis velocity variances.
+
+        Parameters
+        ----------
+        v_fwd : the car's forward speed, m/s.
+
+        Returns
+        -------
+        (3,) (m/s)^2 on the lateral, forward and vertical car axes: (v sigma_yaw)^2, 0, (v sigma_pitch)^2.
+        """
+        return np.array([(v_fwd * self.sigma_rad[2]) ** 2, 0.0, (v_fwd * self.sigma_rad[1]) ** 2])
+
+    def rotate(self, z: np.ndarray, H: np.ndarray, w_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A body-velocity measurement from the IMU's axes into the car's.
+
+        Parameters
+        ----------
+        z : (3,) m/s, the INS's velocity in IMU axes less w_b (``odometer.odometer_measurement``).
+        H : (3, 15) its rows over the error states.
+        w_b : (3,) m/s, the measured velocity in car axes.
+
+        Returns
+        -------
+        z (3,) = C_bm (z + w_b) - w_b and H (3, 15) = C_bm H: the same measurement in car axes.
+        """
+        if self.C_bm is None:
+            return z, H
+        return self.C_bm @ (z + w_b) - w_b, self.C_bm @ H
 
 
 @dataclass
 class NonHolonomic:
-    """A car's body lateral and vertical velocity are zero (``kf.nhc_measurement``), sigma_mps each; not when the
-    car is slow: GPS speed below slow_gps_mps, or (without a GPS velocity) INS speed below slow_ins_mps."""
+    """A car's body lateral and vertical velocity are zero (``nhc_measurement``), sigma_mps each, in the car's axes
+    (``car``: the IMU's mounting); not when the car is slow: GPS speed below slow_gps_mps, or (without a GPS
+    velocity) INS speed below slow_ins_mps."""
 
     sigma_mps: float
     slow_gps_mps: float
     slow_ins_mps: float
+    car: CarFrame = field(default_factory=CarFrame)
     kind = "velocity"
     stage = "aid"
     receiver = False
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The NHC's two rows in the car's axes, unless the car is slow.
+
+        Parameters
+        ----------
+        m : the INS and the receiver's velocity the slowness is tested on.
+
+        Returns
+        -------
+        (z (2,) m/s, the car's lateral and vertical velocity; H (2, 15); R (2, 2)), None when slow.
+        """
         v = m.v_aid
         slow = (float(np.hypot(v[0], v[1])) < self.slow_gps_mps if np.isfinite(v[:2]).all()
                 else float(np.linalg.norm(m.nav.v_n)) < self.slow_ins_mps)
-        return None if slow else kf.nhc_measurement(m.nav, self.sigma_mps)
+        return None if slow else nhc_measurement(m.nav, self.sigma_mps, self.car)
 
 
 @dataclass
 class Stationary:
-    """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``kf.stationary_measurement``) when the vehicle
-    stood still over the interval since the last epoch and the one before it (``fusion.align.StillRun``).
+    """Zero-velocity and zero-angular-rate update (ZUPT + ZARU, ``stationary_measurement``) when the vehicle
+    stood still over the interval since the last epoch and the one before it (``fusion.still.StillRun``).
 
     A standing car is not still to a good gyro (the engine idles, the body rocks on its springs, people move),
     so the noise comes from the interval itself and from what the still detector admits, never tighter:
@@ -133,7 +247,7 @@ class Stationary:
     - ZARU, per body axis: sigma_w^2 = gyro_noise^2 / T (white noise over the interval's T s) + the squared
       standard error of the interval's mean rate (its samples' spread over sqrt(n)) + (still_rate_tol / gate)^2,
       the mean rate the detector lets through as "still" (``[fusion] still_rate_tol_dps`` at its gate of
-      ``align.GATE`` sigmas);
+      ``still.GATE`` sigmas);
     - ZUPT, per ENU axis: sigma_v^2 = sigma_mps^2 + (a T)^2, the velocity the admitted mean specific force error
       a would build over the interval: a = the larger of still_accel_tol / gate (the detector's floor) and the
       standard error of the interval's mean specific force (its samples' largest per-axis spread over sqrt(n):
@@ -159,6 +273,16 @@ class Stationary:
         self.run = StillRun(self.cfg)
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The ZUPT (+ ZARU) when the car stood still over this interval and the one before (class docstring).
+
+        Parameters
+        ----------
+        m : the epoch's GPS velocity, the interval's IMU sums, the INS, the bias estimates and P.
+
+        Returns
+        -------
+        (z (6,) m/s and rad/s, or (3,) when the ZARU fails its test; H; R), None unless still.
+        """
         v_gps = m.epoch.v_n if m.usable else np.full(3, np.nan)
         speed = self.speed.add(m.t_fix, v_gps, m.epoch)
         if not (math.isfinite(speed[0]) or float(np.linalg.norm(m.nav.v_n)) < self.cfg.still.still_speed_mps):
@@ -175,11 +299,20 @@ class Stationary:
         if float(r @ np.linalg.solve(S, r)) > ZARU_CHI2:
             self.zaru_skipped.append(m.epoch.t_ns)
             sigma_w = None
-        return kf.stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
+        return stationary_measurement(m.nav, mean_w, sigma_v, sigma_w)
 
     def noise(self, interval: ImuSums, seconds: float) -> tuple[np.ndarray, np.ndarray]:
-        """(sigma_v (3,) m/s, sigma_w (3,) rad/s) of the ZUPT and ZARU from a still interval of ``seconds``
-        (class docstring)."""
+        """The ZUPT's and the ZARU's sigmas from a still interval (class docstring).
+
+        Parameters
+        ----------
+        interval : the interval's IMU sums (rad/s, m/s^2, body RFU).
+        seconds : its length, s.
+
+        Returns
+        -------
+        (sigma_v (3,) m/s per ENU axis, sigma_w (3,) rad/s per body axis).
+        """
         st = self.cfg.still
         n = max(interval.n, 1)
         mean = interval.sum_w / n
@@ -207,12 +340,15 @@ class Odometer:
     engine reads them; ``times``: the epochs it gave a measurement at; ``slip_skipped``: the epochs whose wheel
     speed failed the slip test (then the NHC's zeros only; without ``nhc`` no measurement). Without rows near an
     epoch it gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the
-    forward row alone)."""
+    forward row alone). ``car``: the IMU's mounting (:class:`CarFrame`): the rows are the car's axes, the
+    mounting's sigma widens the lateral and vertical ones, and the scale fit takes the GPS velocity along the car's
+    forward axis."""
 
     lever_b: np.ndarray
     sigma_mps: float
     nhc_sigma_mps: float
     nhc: bool = True
+    car: CarFrame = field(default_factory=CarFrame)
     window_s: float = 0.3
     min_samples: int = 3
     max_age_s: float = 0.1
@@ -229,15 +365,29 @@ class Odometer:
         self._var = np.zeros(0)
 
     def feed(self, block: OdomBlock) -> None:
-        """More rows (UTC ns, m/s, (m/s)^2); those before the last epoch's window are dropped there, so a block's
-        rows are held until its epochs have passed."""
+        """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are
+        held until its epochs have passed.
+
+        Parameters
+        ----------
+        block : the rows (UTC ns, forward speed m/s, its variance (m/s)^2).
+        """
         ok = np.isfinite(block.v)
         self._t = np.concatenate([self._t, np.asarray(block.t_ns, np.int64)[ok]])
         self._v = np.concatenate([self._v, np.asarray(block.v, float)[ok]])
         self._var = np.concatenate([self._var, np.asarray(block.var, float)[ok]])
 
     def speed_at(self, t_ns: int) -> tuple[float, float] | None:
-        """The wheel speed (m/s) at t_ns and its variance, or None (module docstring of the class)."""
+        """The wheel speed at an epoch: the line through the window's rows, taken there (class docstring).
+
+        Parameters
+        ----------
+        t_ns : the epoch, UTC ns.
+
+        Returns
+        -------
+        (speed m/s, its variance (m/s)^2 with ``sigma_mps`` added), or None without enough recent rows.
+        """
         keep = self._t > t_ns - int(self.window_s * 1e9)
         if not keep.all():
             self._t, self._v, self._var = self._t[keep], self._v[keep], self._var[keep]
@@ -253,6 +403,17 @@ class Odometer:
         return float(coef[0]), var + self.sigma_mps ** 2
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The wheel speed with the NHC's zeros in the car's axes (class docstring).
+
+        Parameters
+        ----------
+        m : the epoch's time and velocity (for the scale fit), the INS, the bias-corrected rate and P (slip test).
+
+        Returns
+        -------
+        (z (k,) m/s in the car's axes, the rows that pass the slip test; H; R), None without wheel speeds near the
+        epoch.
+        """
         got = self.speed_at(m.epoch.t_ns)
         if got is None:
             return None
@@ -261,13 +422,15 @@ class Odometer:
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
         z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
                                                 self.scale.sigma, self.nhc_sigma_mps)
+        z, H = self.car.rotate(z, H, np.array([0.0, v_wheel / self.scale.scale, 0.0]))
+        R = R + np.diag(self.car.extra_var(v_wheel / self.scale.scale))
         if z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
             self.slip_skipped.append(m.epoch.t_ns)
             rows = [0, 2] if self.nhc else []
         else:
             rows = [0, 1, 2] if self.nhc else [1]
             if m.usable and np.isfinite(m.epoch.v_n[:2]).all() and np.isfinite(m.epoch.vel_cov[:2, :2]).all():
-                e = C_nb[1]
+                e = self.car.axes(C_nb)[1]
                 v_gps = m.epoch.v_n.copy()
                 if not np.isfinite(v_gps[2]):
                     v_gps[2] = m.nav.v_n[2]
@@ -308,10 +471,27 @@ class VirtualOdometer:
         self._in_outage = False
 
     def feed_imu(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int, imu_dt: float) -> None:
-        """Raw IMU samples (i0, i1] of w, f (n, 3), body RFU, at period imu_dt (s)."""
+        """Raw IMU samples for the features.
+
+        Parameters
+        ----------
+        w, f : (n, 3) rate, rad/s, and specific force, m/s^2, body RFU.
+        i0, i1 : the samples after i0 up to i1 are new.
+        imu_dt : the sample period, s.
+        """
         self.window.add(w, f, i0, i1, imu_dt)
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The predicted forward speed at an epoch without a usable fix; at the others it trains (class docstring).
+
+        Parameters
+        ----------
+        m : the epoch, whether its fix is usable, the INS, the interval's IMU sums and the bias estimates.
+
+        Returns
+        -------
+        (z (1,) m/s along the IMU's forward axis, H (1, 15), R (1, 1)), None while trained or not trusted.
+        """
         x = self.window.features(m.nav, m.imu_dt)
         if m.usable and np.isfinite(m.epoch.v_n[:2]).all():
             self._in_outage = False
@@ -376,6 +556,16 @@ class FirstOf:
         self.kind, self.stage, self.receiver = kinds.pop()
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
+        """The first of the parts' measurements.
+
+        Parameters
+        ----------
+        m : handed to each part in turn.
+
+        Returns
+        -------
+        the first part's (z, H, R) that is not None, or None.
+        """
         for p in self.parts:
             out = p.compute_matrices(m)
             if out is not None:
@@ -384,16 +574,27 @@ class FirstOf:
 
 
 def aids_and_gps(cfg: FusionConfig, learnt_speed: bool = False) -> list[MeasurementModel]:
-    """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids
-    (``[fusion] zupt``, ``odometer``, ``nhc``: the first that gives one), the virtual odometer when
-    ``learnt_speed`` (``fusion.methods.Method.learns_speed``: ``dkf-rbfn`` with ``predictor_mode = "pseudo"``),
-    then the GPS velocity and position."""
+    """The measurements an aided method runs with, in the order the loop applies them: the vehicle aids (``[fusion]
+    zupt``, ``odometer``, ``nhc``: the first that gives one; the NHC and the odometer in the car's axes of
+    ``mounting_rpy_deg``), the virtual odometer when asked, then the GPS velocity and position.
+
+    Parameters
+    ----------
+    cfg : the settings.
+    learnt_speed : with the virtual odometer (``fusion.methods.Method.learns_speed``: ``dkf-rbfn`` with
+        ``predictor_mode = "pseudo"``).
+
+    Returns
+    -------
+    list of the measurements.
+    """
     lever = cfg.gps.lever_rfu()
     a = cfg.aids
+    car = CarFrame.of(a.mounting_rpy_deg, a.mounting_sigma_deg)
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
-        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc)]
+        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc, car)]
         if a.odometer else []) + (
-        [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps)] if a.nhc else [])
+        [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps, car)] if a.nhc else [])
     learnt = ([VirtualOdometer(cfg.predictor, tuple(p for p in aids if not isinstance(p, NonHolonomic)))]
               if learnt_speed else [])
     return ([FirstOf(tuple(aids))] if aids else []) + learnt + [GpsVelocity(lever, cfg.gps.vel_var_max),
@@ -411,3 +612,117 @@ def _still_references(nav: NavState, bg: np.ndarray, ba: np.ndarray, P: np.ndarr
     sd_f = math.hypot(math.sqrt(max(float(P[6, 6] + P[7, 7]), 0.0)) * float(np.linalg.norm(f_ref)),
                       math.sqrt(max(float(np.trace(P[BA, BA])), 0.0)))
     return w_ref, sd_w, f_ref, sd_f
+
+
+def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h: float, cov_enu: np.ndarray,
+                         lever_b: np.ndarray) -> kf.Measurement:
+    """GPS position measurement: z = INS antenna position - GPS position, ENU m; the INS state extrapolated from nav.t
+    to the fix time with its velocity.
+
+    Parameters
+    ----------
+    nav : the INS state.
+    t_gps : the fix time, s (the INS's time base).
+    lat, lon : the fix, rad.
+    h : its height, m (NaN: a fix without height, horizontal rows only).
+    cov_enu : (3, 3) the fix's covariance, ENU m^2.
+    lever_b : (3,) IMU -> antenna, body RFU, m.
+
+    Returns
+    -------
+    (z (k,) m, H (k, 15), R (k, k) m^2).
+    """
+    C = nav.C_bn
+    arm_n = C @ lever_b
+    z = kf.enu_offset(nav.lat, nav.lon, nav.h, lat, lon, h) + arm_n + nav.v_n * (t_gps - nav.t)
+    H = np.zeros((3, N_STATES))
+    H[:, POS] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_n)
+    keep = np.flatnonzero(np.isfinite(z))
+    return z[keep], H[keep], np.asarray(cov_enu, dtype=float)[np.ix_(keep, keep)]
+
+
+def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omega_ib_b: np.ndarray,
+                         lever_b: np.ndarray, max_var: float) -> kf.Measurement | None:
+    """GPS velocity measurement: z = INS antenna velocity - GPS velocity, ENU m/s.
+
+    Parameters
+    ----------
+    nav : the INS state.
+    v_gps : (3,) the receiver's velocity, ENU m/s.
+    cov : (3, 3) its covariance, ENU (m/s)^2.
+    omega_ib_b : (3,) the bias-corrected rate, body RFU, rad/s.
+    lever_b : (3,) IMU -> antenna, body RFU, m.
+    max_var : components with a variance above this, (m/s)^2, are left out (NMEA's unobserved vertical).
+
+    Returns
+    -------
+    (z (k,) m/s, H (k, 15), R (k, k) (m/s)^2), or None when nothing is left.
+    """
+    cov = np.asarray(cov, dtype=float)
+    keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
+    if len(keep) == 0:
+        return None
+    C = nav.C_bn
+    arm_v = C @ earth.cross(omega_ib_b, lever_b)
+    z = nav.v_n + arm_v - v_gps
+    H = np.zeros((3, N_STATES))
+    H[:, VEL] = np.eye(3)
+    H[:, ATT] = earth.skew(arm_v)
+    H[:, BG] = -C @ earth.skew(lever_b)
+    return z[keep], H[keep], cov[np.ix_(keep, keep)]
+
+
+def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame()) -> kf.Measurement:
+    """Non-holonomic constraint of a car: the car's body lateral (x) and vertical (z) velocity are zero.
+
+    z = (C_bm C_bn^T v_n)[x, z] of the INS, m/s; with C_computed = (I - [phi x]) C_true,
+    dv_b = C_bm C_nb dv_n - C_bm C_nb [v_n x] phi. Assumes the IMU sits near the rear axle's centre line (no
+    lever arm to the non-holonomic point).
+
+    Parameters
+    ----------
+    nav : the INS state (ENU; its attitude the IMU's axes).
+    sigma_mps : 1-sigma of the constraint (side slip, suspension), m/s.
+    car : the IMU's mounting in the car (:class:`CarFrame`; default: the IMU's axes are the car's); its sigma
+        adds to R (``CarFrame.extra_var``).
+
+    Returns
+    -------
+    (z (2,) m/s, H (2, 15), R (2, 2) (m/s)^2).
+    """
+    C_cn = car.axes(nav.C_bn.T)
+    A = C_cn[[0, 2]]
+    H = np.zeros((2, N_STATES))
+    H[:, VEL] = A
+    H[:, ATT] = -A @ earth.skew(nav.v_n)
+    extra = car.extra_var(float(C_cn[1] @ nav.v_n))
+    return A @ nav.v_n, H, np.eye(2) * sigma_mps ** 2 + np.diag(extra[[0, 2]])
+
+
+def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,
+                           sigma_w: np.ndarray | None) -> kf.Measurement:
+    """Zero-velocity (ZUPT) and zero-angular-rate update (ZARU) of a vehicle standing still: z = [v_n of the INS; the
+    mean bias-corrected gyro output over the still interval less the Earth rate in the body frame], the velocity
+    error and the residual gyro bias.
+
+    Parameters
+    ----------
+    nav : the INS state.
+    mean_omega_b : (3,) the interval's mean bias-corrected rate, body RFU, rad/s.
+    sigma_v : (3,) the ZUPT's 1-sigma per ENU axis, m/s.
+    sigma_w : (3,) the ZARU's 1-sigma per body axis, rad/s; None: the ZUPT alone (3 rows).
+
+    Returns
+    -------
+    (z (6,) or (3,) m/s and rad/s, H, R).
+    """
+    C_nb = nav.C_bn.T
+    rows = 3 if sigma_w is None else 6
+    H = np.zeros((rows, N_STATES))
+    H[0:3, VEL] = np.eye(3)
+    if sigma_w is None:
+        return nav.v_n.copy(), H, np.diag(np.asarray(sigma_v, float) ** 2)
+    H[3:6, BG] = np.eye(3)
+    z = np.concatenate([nav.v_n, mean_omega_b - C_nb @ earth.omega_ie_n(nav.lat)])
+    return z, H, np.diag(np.concatenate([sigma_v, sigma_w]) ** 2)

@@ -5,10 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from fieldlog.fusion import earth, errmodel, ins, kf
+from fieldlog.fusion import earth, errmodel, ins, kf, measurements
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.types import OdomBlock
 from fieldlog.drive.reader import read_topic
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
@@ -170,18 +171,18 @@ def _perturbed(true: ins.NavState, x: np.ndarray) -> ins.NavState:
 
 def test_nhc_measurement_is_linear_in_the_velocity_and_attitude_errors():
     true = _nav(0.7, 0.03, -0.02, np.array([0.0, 12.0, 0.0]))  # a car: moving along its forward axis
-    z0, H, R = kf.nhc_measurement(true, 0.1)
+    z0, H, R = measurements.nhc_measurement(true, 0.1)
     assert np.allclose(z0, 0.0, atol=1e-12) and R.shape == (2, 2)
     rng = np.random.default_rng(1)
     for _ in range(5):
         x = np.zeros(15)
         x[3:6] = rng.standard_normal(3) * 0.05
         x[6:9] = rng.standard_normal(3) * 2e-3  # 0.1 deg: a heading error shows as lateral velocity
-        z = kf.nhc_measurement(_perturbed(true, x), 0.1)[0]
+        z = measurements.nhc_measurement(_perturbed(true, x), 0.1)[0]
         assert np.allclose(z, H @ x, atol=2e-2 * np.abs(H @ x).max())  # second order: phi x dv
     x = np.zeros(15)
     x[8] = 0.01  # 0.57 deg of heading error at 12 m/s: 0.12 m/s sideways
-    assert abs(kf.nhc_measurement(_perturbed(true, x), 0.1)[0][0]) == pytest.approx(0.12, rel=0.01)
+    assert abs(measurements.nhc_measurement(_perturbed(true, x), 0.1)[0][0]) == pytest.approx(0.12, rel=0.01)
 
 
 def test_stationary_measurement_sees_velocity_and_residual_gyro_bias():
@@ -191,11 +192,11 @@ def test_stationary_measurement_sees_velocity_and_residual_gyro_bias():
     nav = _perturbed(true, x)
     bias = np.radians([0.01, -0.02, 0.03])  # residual bias of the corrected gyro output
     w_mean = true.C_bn.T @ earth.omega_ie_n(true.lat) + bias
-    z, H, R = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), np.full(3, np.radians(0.03)))
+    z, H, R = measurements.stationary_measurement(nav, w_mean, np.full(3, 0.02), np.full(3, np.radians(0.03)))
     x[9:12] = bias
     assert np.allclose(z, H @ x, atol=1e-9)
     assert np.allclose(np.diag(R), np.repeat([0.02 ** 2, np.radians(0.03) ** 2], 3))
-    z3, H3, R3 = kf.stationary_measurement(nav, w_mean, np.full(3, 0.02), None)  # ZUPT alone
+    z3, H3, R3 = measurements.stationary_measurement(nav, w_mean, np.full(3, 0.02), None)  # ZUPT alone
     assert np.allclose(z3, z[:3]) and np.array_equal(H3, H[:3]) and np.allclose(R3, R[:3, :3])
 
 
@@ -207,7 +208,7 @@ def test_aid_to_the_distributed_filter_equals_the_centralised_update():
     P0 = A @ A.T * 1e-3 + 1e-2 * np.eye(15)
     q = errmodel.noise_psd(1e-3, 1e-2, 1e-5, 1e-4)
     c, d = kf.KalmanFilter(P0, q), DistributedKF(P0, q, "federated")
-    m = kf.nhc_measurement(_nav(0.3, 0.0, 0.0, np.array([0.05, 10.0, -0.02])), 0.1)
+    m = measurements.nhc_measurement(_nav(0.3, 0.0, 0.0, np.array([0.05, 10.0, -0.02])), 0.1)
     c.update_aid(m)
     d.update_aid(m)
     assert np.abs(c.state).max() > 0
@@ -258,7 +259,8 @@ def test_closed_loop_resets_and_keeps_covariance_spd(drive):
         assert checked >= 8 and eng.updates > 150
 
 
-def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
+def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig, late_ns: int = 0):
+    """The engine's rows over the drive in blocks of block_s, the IMU's stamps made late_ns late."""
     from fieldlog.fusion.output import Solution
     from fieldlog.drive.reader import IN_TOPICS, gps_block, iter_blocks
     from fieldlog.fusion.types import ImuBlock
@@ -268,7 +270,7 @@ def _fused_in_blocks(drive, method: str, block_s: float, cfg: FusionConfig):
         imu = b.data.get("/imu")
         if imu is None:
             continue
-        parts.append(eng.process(ImuBlock(imu["log_time_ns"], imu["omega_ib_b"], imu["f_b"]),
+        parts.append(eng.process(ImuBlock(imu["log_time_ns"] + late_ns, imu["omega_ib_b"], imu["f_b"]),
                                  gps_block(b.data.get("/gps/fix", {}), b.data.get("/gps/vel", {})))[0])
     parts.append(eng.finish()[0])
     return Solution.concat(parts), eng
@@ -287,6 +289,67 @@ def test_the_solution_does_not_depend_on_the_block_length(drive, method):
           f"sigma {np.abs(a.sigma - b.sigma).max():.2e}")
     assert d.max() < 1e-9
     assert np.allclose(a.sigma, b.sigma, rtol=1e-9, atol=0.0)
+
+
+def test_the_imu_time_offset_puts_a_late_imu_back_on_the_gps_time(drive):
+    """IMU stamps 0.1 s late with ``imu_time_offset_s = 0.1``: the rows of the prompt IMU, to the bit; without
+    it the late IMU's rows differ."""
+    cfg = FusionConfig.from_flat(outages=(OUTAGE,))
+    late = 100_000_000
+    a, _ = _fused_in_blocks(drive, "kf", 10.0, cfg)
+    b, _ = _fused_in_blocks(drive, "kf", 10.0, cfg.replace(imu_time_offset_s=late * 1e-9), late)
+    c, _ = _fused_in_blocks(drive, "kf", 10.0, cfg, late)
+    assert np.array_equal(a.t_ns, b.t_ns) and np.array_equal(a.lat, b.lat) and np.array_equal(a.q, b.q)
+    assert not np.array_equal(a.t_ns, c.t_ns)
+
+
+def _car_nav(C_bm: np.ndarray, v_fwd: float) -> ins.NavState:
+    """A car heading 0.7 rad, pitched 0.03 rad, moving v_fwd m/s along its forward axis; the INS's attitude is
+    the IMU's, mounted C_bm (IMU axes -> car axes) in it."""
+    C_car_n = earth.euler_to_dcm(0.7, 0.03, 0.0)
+    C_bn = C_car_n @ C_bm
+    return ins.NavState(0.0, 0.5, 1.8, 400.0, C_car_n @ np.array([0.0, v_fwd, 0.0]), earth.dcm_to_quat(C_bn))
+
+
+def test_the_nhc_and_the_odometer_constrain_the_cars_axes_not_the_imus():
+    """An IMU mounted 2, -4, 5 deg askew: with its mounting the NHC's and the odometer's z vanish for a car
+    moving along its own axis, without it they read the forward speed's share; a yaw 0.2 deg off reads
+    v x 0.2 deg sideways; the mounting's sigma adds (v sigma)^2 to the lateral and vertical variance; H stays
+    the linearisation of z."""
+    rpy = (2.0, -4.0, 5.0)
+    car = measurements.CarFrame.of(rpy, (0.0, 0.0, 0.0))
+    v = 12.0
+    true = _car_nav(car.C_bm, v)
+    z0, H, R = measurements.nhc_measurement(true, 0.1, car)
+    assert np.allclose(z0, 0.0, atol=1e-12)
+    plain = measurements.nhc_measurement(true, 0.1)[0]
+    assert abs(plain[0]) > v * math.radians(4.0) and abs(plain[1]) > v * math.radians(3.0)
+    off = measurements.CarFrame.of((2.0, -4.0, 5.2), (0.0, 0.3, 0.4))
+    z1, _, R1 = measurements.nhc_measurement(true, 0.1, off)
+    assert abs(z1[0]) == pytest.approx(v * math.radians(0.2), rel=0.02)
+    assert np.allclose(np.diag(R1) - np.diag(R), (v * np.radians([0.4, 0.3])) ** 2, rtol=1e-4)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        x = np.zeros(15)
+        x[3:6] = rng.standard_normal(3) * 0.05
+        x[6:9] = rng.standard_normal(3) * 2e-3
+        z = measurements.nhc_measurement(_perturbed(true, x), 0.1, car)[0]
+        assert np.allclose(z, H @ x, atol=2e-2 * np.abs(H @ x).max())
+    odo = measurements.Odometer(np.zeros(3), 0.02, 0.1, car=car)
+    t_ns = np.arange(10) * 10_000_000
+    odo.feed(OdomBlock(t_ns, np.full(10, v), np.full(10, 1e-4)))
+    m = measurements.Moment(epoch=_epoch(int(t_ns[-1])), usable=False, t_fix=0.09, v_aid=np.full(3, np.nan),
+                            nav=true, omega_b=np.zeros(3), interval=None, imu_dt=0.01, bg=np.zeros(3),
+                            ba=np.zeros(3), P=np.eye(15) * 1e-4)
+    z, _, _ = odo.compute_matrices(m)
+    assert np.allclose(z, 0.0, atol=1e-9)
+
+
+def _epoch(t_ns: int):
+    from fieldlog.fusion.types import Epoch
+
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    return Epoch(t_ns, 0.5, 1.8, 400.0, nan33, 0, nan3, nan33)
 
 
 def test_gyro_bias_estimate_is_published_and_its_sigma_covers_the_truth(drive, tmp_path):

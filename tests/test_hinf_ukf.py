@@ -144,7 +144,8 @@ def test_hinf_defaults_say_which_gamma_ran_and_that_it_equals_kf(drive, tmp_path
     assert f"configured {g:g}" in line and "equal to kf here" in line and meta["note"] in line
     assert float(meta["gamma_run_min"]) >= g and meta["equals_kf"] == "true"
     assert 1.0 <= float(meta["worst_inflation"]) < hinf.KF_EQUAL_INFLATION
-    kf_fix = read_topic(fuse(drive, "kf", tmp_path / "kf.mcap").path, "/fusion/kf/fix")
+    assert cli_main(["fuse", str(drive), "--method", "kf", "--out", str(tmp_path / "kf.mcap")]) == 0  # same settings
+    kf_fix = read_topic(tmp_path / "kf.mcap", "/fusion/kf/fix")
     hinf_fix = read_topic(out, "/fusion/hinf/fix")
     assert np.abs(hinf_fix["lat_deg"] - kf_fix["lat_deg"]).max() * 111e3 < 0.01  # m: "equal" means to the cm
 

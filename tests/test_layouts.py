@@ -283,7 +283,8 @@ def test_a_rotated_session_fuses_as_one_drive(original, kf_original, session, tm
     assert len(info.files) == 3 and got == want
     out = tmp_path / "kf.mcap"
     assert fieldlog(["fuse", *map(str, files), "--method", "kf", "--out", str(out)]) == 0
-    ref = reader.read_topic(kf_original[0], "/fusion/kf/fix")
+    assert fieldlog(["fuse", str(original), "--method", "kf", "--out", str(tmp_path / "one.mcap")]) == 0
+    ref = reader.read_topic(tmp_path / "one.mcap", "/fusion/kf/fix")   # the same command on the one file
     got = reader.read_topic(out, "/fusion/kf/fix")
     assert np.array_equal(ref["log_time_ns"], got["log_time_ns"])          # no re-alignment at the boundaries
     for k in ("lat_deg", "lon_deg", "alt_m"):

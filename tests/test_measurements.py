@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from fieldlog.fusion import earth, kf, measurements, methods
-from fieldlog.fusion.align import ImuSums
+from fieldlog.fusion.still import ImuSums
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.dkf import DistributedKF
 from fieldlog.fusion.ins import NavState

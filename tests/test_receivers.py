@@ -373,7 +373,7 @@ def test_every_scenario_plays_in_every_receiver_protocol(receiver):
 def test_fusion_takes_the_receivers_accuracy_and_the_vertical_velocity(imported, name):
     """The engine's GPS epochs carry the receiver's per-epoch covariances, and the velocity update keeps the
     vertical row (NMEA's unobserved vertical is left out)."""
-    from fieldlog.fusion import kf
+    from fieldlog.fusion import measurements
     from fieldlog.fusion.config import FusionConfig
     from fieldlog.fusion.ins import NavState
 
@@ -383,11 +383,11 @@ def test_fusion_takes_the_receivers_accuracy_and_the_vertical_velocity(imported,
                                rtol=1e-3)
     nav = NavState(0.0, math.radians(tr["lat"][0]), math.radians(tr["lon"][0]), tr["h"][0], tr["v"][0],
                    np.array([0.0, 0.0, 0.0, 1.0]))
-    z, H, R = kf.velocity_measurement(nav, g.v_n[0], g.vel_cov[0], np.zeros(3), np.zeros(3),
+    z, H, R = measurements.velocity_measurement(nav, g.v_n[0], g.vel_cov[0], np.zeros(3), np.zeros(3),
                                       FusionConfig().gps.vel_var_max)
     assert len(z) == 3 and abs(z[2]) < 1e-3
     np.testing.assert_allclose(np.diag(R), np.diag(g.vel_cov[0]))
-    z_p, _, R_p = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, g.pos_cov[0], np.zeros(3))
+    z_p, _, R_p = measurements.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, g.pos_cov[0], np.zeros(3))
     np.testing.assert_allclose(R_p, g.pos_cov[0])
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_fusion import _errors
 
-from fieldlog.fusion import earth, errmodel, ins, kf, sckf, ukf
+from fieldlog.fusion import earth, errmodel, ins, kf, measurements, sckf, ukf
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
@@ -57,8 +57,8 @@ def _system(rng):
 def _gps(nav, rng, pos_sd=1.5, vel_sd=0.1):
     """Real GPS rows (lever arm 1 m: H has attitude and gyro-bias columns) with random z."""
     lever = np.array([0.3, 1.0, 1.2])
-    pos = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, pos_sd ** 2 * np.eye(3), lever)
-    vel = kf.velocity_measurement(nav, nav.v_n, vel_sd ** 2 * np.eye(3), np.array([0.0, 0.0, 0.2]), lever, 100.0)
+    pos = measurements.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, pos_sd ** 2 * np.eye(3), lever)
+    vel = measurements.velocity_measurement(nav, nav.v_n, vel_sd ** 2 * np.eye(3), np.array([0.0, 0.0, 0.2]), lever, 100.0)
     pos = (rng.standard_normal(3) * pos_sd, pos[1], pos[2])
     vel = (rng.standard_normal(3) * vel_sd, vel[1], vel[2])
     return vel, pos

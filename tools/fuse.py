@@ -31,6 +31,8 @@ Settings: ``tools.fuse_settings`` (``--config FILE``, the drive's own record, th
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,12 +44,13 @@ from fieldlog.drive import outputs
 from fieldlog.drive.files import DriveSpec, label
 from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion import adaptive, hinf, installation, measurements
+from fieldlog.acquire import calib
+from fieldlog.fusion import adaptive, earth, hinf, installation, measurements
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
-from fieldlog.fusion.smoother import SmootherLog
+from fieldlog.fusion.smoother import SmootherLog, smooth_solution
 from fieldlog.fusion.types import Solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.ahead import Remote
@@ -87,37 +90,92 @@ class FuseResult:
     noise: dict[str, tuple[float, str]] | None = None  # adapt_noise: the figures the drive set (Adaptation.figures)
 
 
-def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> dict[str, object]:
-    """``fusion.installation``'s first pass over ``drive``, in two reads: the IMU's time offset from its rate
-    integral and the receiver's velocities; then ``kf`` without the vehicle aids and the forced outages (they would
-    pull the attitude onto the nominal mounting) on the IMU stamps less that offset (a late IMU tilts the INS in
-    the turns), and the mounting from its rows. The ``fuse --json`` keys ``imu_time_offset_s``,
-    ``imu_time_offset_sigma_s`` (s, the IMU's stamps late against the GPS's), ``mounting_rpy_deg`` and
-    ``mounting_sigma_deg`` (IMU -> base_link, deg), None where the drive does not show them. Reported, not yet
-    applied: the run's NHC and odometer take the IMU's axes for the car's. Memory grows by the rows (10 Hz) and
-    the rate integral (50 Hz)."""
-    out: dict[str, object] = dict.fromkeys(("imu_time_offset_s", "imu_time_offset_sigma_s", "mounting_rpy_deg",
-                                            "mounting_sigma_deg"))
+def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> tuple[FusionConfig, dict]:
+    """``fusion.installation``'s first pass over ``drive`` and the settings that apply it.
+
+    Two reads: the IMU's time offset from its rate integral (stamps less the configured start value ``[fusion]
+    imu_time_offset_s``) and the receiver's velocities; then ``kf`` without the vehicle aids and the forced
+    outages (they would pull the attitude onto the nominal mounting), its IMU on the GPS's time, smoothed (RTS),
+    and the mounting from its rows. The mounting used is the estimate and the configured one (``[fusion]
+    mounting_rpy_deg``, else the drive's calibration record) weighted by their inverse variances, the configured
+    sigma ``mounting_sigma_deg`` (all 0: a mounting nobody measured, the estimate alone); where the drive does not
+    show one, the configured value and sigma stay. Memory grows by the rows (10 Hz) and the rate integral (50 Hz);
+    the smoother's records go to a temporary file (5.5 kB per 0.1 s).
+
+    Parameters
+    ----------
+    drive : the drive.
+    config : the settings of the run (its aids, noise, start values).
+    inputs : the drive's topics.
+
+    Returns
+    -------
+    (config with ``imu_time_offset_s``, ``mounting_rpy_deg`` and ``mounting_sigma_deg`` replaced by what is used,
+    the ``fuse --json`` keys: ``imu_time_offset_s``, ``imu_time_offset_sigma_s`` (s, the IMU's stamps late against
+    the GPS's; the sigma None when not estimated), ``mounting_rpy_deg``, ``mounting_sigma_deg`` (IMU -> base_link,
+    deg, the values used) and ``mounting_estimate_rpy_deg``, ``mounting_estimate_sigma_deg`` (the drive's own
+    estimate, None when it shows none)).
+    """
+    start = config.sensor.imu_time_offset_s
+    late_ns = int(round(start * 1e9))
     gyro = installation.GyroTrack()
     t_gps, v_gps = [], []
     for block in InputStream(drive, inputs, BLOCK_S):
-        gyro.add(block.imu.t_ns, block.imu.omega_ib_b, block.imu.f_b)
+        gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
         t_gps.append(block.gps.t_ns)
         v_gps.append(block.gps.v_n)
     offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
-    if offset is not None:
-        out["imu_time_offset_s"], out["imu_time_offset_sigma_s"] = offset
-    shift = int(round(offset[0] * 1e9)) if offset is not None else 0
-    engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()))
-    parts = []
-    for block in InputStream(drive, inputs, BLOCK_S):
-        imu = block.imu
-        parts.append(engine.process(type(imu)(imu.t_ns - shift, imu.omega_ib_b, imu.f_b), block.gps)[0])
+    late, late_sigma = (start + offset[0], offset[1]) if offset is not None else (start, None)
+    config = config.replace(imu_time_offset_s=late)
+    log = SmootherLog()
+    engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
+    parts = [engine.process(block.imu, block.gps)[0] for block in InputStream(drive, inputs, BLOCK_S)]
     parts.append(engine.finish()[0])
-    mount = installation.mounting(Solution.concat(parts))
+    mount = installation.mounting(smooth_solution(Solution.concat(parts), log),
+                                  np.asarray(config.aids.odometer_lever_b, float))
+    log.close()
+    prior = np.array(config.aids.mounting_rpy_deg, float)
+    if not prior.any():
+        prior = calibration_mounting_rpy(drive_mounting(drive))
+    prior_sigma = np.array(config.aids.mounting_sigma_deg, float)
+    used, used_sigma = prior, prior_sigma
     if mount is not None:
-        out["mounting_rpy_deg"], out["mounting_sigma_deg"] = ([round(float(x), 4) for x in a] for a in mount)
-    return out
+        used, used_sigma = installation.combine(prior, prior_sigma if prior_sigma.any() else np.full(3, np.inf), *mount)
+    config = config.replace(mounting_rpy_deg=tuple(float(x) for x in used),
+                            mounting_sigma_deg=tuple(float(x) for x in used_sigma))
+
+    def rounded(a) -> list[float] | None:
+        return None if a is None else [round(float(x), 4) for x in a]
+
+    return config, {"imu_time_offset_s": late, "imu_time_offset_sigma_s": late_sigma,
+                    "mounting_rpy_deg": rounded(used), "mounting_sigma_deg": rounded(used_sigma),
+                    "mounting_estimate_rpy_deg": rounded(mount and mount[0]),
+                    "mounting_estimate_sigma_deg": rounded(mount and mount[1])}
+
+
+def calibration_mounting_rpy(mounting: calib.Mounting) -> np.ndarray:
+    """The calibration's IMU mounting (``[mounting] imu_rpy_deg``: fixed-axis roll, pitch, yaw, REP-103) as
+    ``[fusion] mounting_rpy_deg`` (C_bm = ``fusion.earth.euler_to_dcm(yaw, pitch, roll)``), deg (3,)."""
+    if not any(mounting.imu_rpy_deg):
+        return np.zeros(3)
+    from scipy.spatial.transform import Rotation
+
+    C_bm = Rotation.from_euler("xyz", mounting.imu_rpy_deg, degrees=True).as_matrix()
+    yaw, pitch, roll = earth.dcm_to_euler(C_bm)
+    return np.degrees([roll, pitch, yaw])
+
+
+def fused_mounting(mounting: calib.Mounting, config: FusionConfig) -> calib.Mounting:
+    """The mounting the fused file's ``/tf_static`` gives: the drive's, its IMU angles replaced by the ones the
+    NHC and the odometer used (``[fusion] mounting_rpy_deg``) when those are not zero."""
+    rpy = config.aids.mounting_rpy_deg
+    if not any(rpy):
+        return mounting
+    from scipy.spatial.transform import Rotation
+
+    roll, pitch, yaw = np.radians(rpy)
+    C_bm = earth.euler_to_dcm(yaw, pitch, roll)
+    return dataclasses.replace(mounting, imu_rpy_deg=Rotation.from_matrix(C_bm).as_euler("xyz", degrees=True))
 
 
 class RemotePredictor:
@@ -147,27 +205,30 @@ def worker_predictors(workers: contextlib.ExitStack) -> Callable[[str, Predictor
 
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
-         smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False
-         ) -> FuseResult:
+         smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False,
+         installation: dict[str, object] | None = None) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
     ``replay.inputs.resolve(drive)``. A drive of several files (``drive.files``) is fused once, across the file
     boundaries. Raises ``replay.solutions.Diverged`` (nothing past the first bad row written) when the
     solution turns NaN or inf. ``out`` must be new, unless ``force`` (``drive.outputs``). ``keep``: the rows
     written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
-    back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``."""
+    back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``. ``installation``: the
+    keys of :func:`estimate_installation`, written as the ``fusion.installation`` record (JSON values)."""
     outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
     span = [t for t in reader_topics(drive) if t.topic in imap.topics and t.count]
     pace = Pace(0.0, (min(t.first_ns for t in span), max(t.last_ns for t in span)), progress)
     log = SmootherLog() if smooth else None
-    mounting = drive_mounting(drive)
+    mounting = fused_mounting(drive_mounting(drive), cfg)
     stream = InputStream(drive, imap, BLOCK_S)
     with contextlib.ExitStack() as workers:  # the predictor's worker, if the method has one; then the file
         engine = Engine(method, cfg, log=log, make_predictor=worker_predictors(workers))
         rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))
         rec.add_metadata("fusion", run_record(drive, method, cfg, imap, smooth))
+        if installation:
+            rec.add_metadata("fusion.installation", {k: json.dumps(v) for k, v in installation.items()})
         written = FusedOutput(rec, method, mounting, log, keep)
         run(stream, engine, [written], pace)
         hinf_note = hinf.summary(engine.filter) if isinstance(engine.filter, hinf.HInfinityFilter) else {}

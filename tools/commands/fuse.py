@@ -41,8 +41,11 @@ def _installation_line(s: dict) -> str:
         parts.append("mounting roll, pitch, yaw " + ", ".join(
             f"{x:.2f} ± {e:.2f}" for x, e in zip(s["mounting_rpy_deg"], s["mounting_sigma_deg"])) + " deg")
     if s.get("imu_time_offset_s") is not None:
-        parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f} ± {s['imu_time_offset_sigma_s'] * 1e3:.1f} ms")
-    return "installation (first pass, aids off; reported, not applied): " + "; ".join(parts)
+        sigma = s.get("imu_time_offset_sigma_s")
+        parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f}"
+                     + (f" ± {sigma * 1e3:.1f} ms" if sigma is not None else " ms (configured)"))
+    return ("installation (estimated from the drive, used by the NHC, the odometer and the IMU's stamps): "
+            + "; ".join(parts))
 
 
 def run(a: argparse.Namespace) -> int:
@@ -61,9 +64,12 @@ def run(a: argparse.Namespace) -> int:
             log.debug(line)
     t0 = time.monotonic()
     out = out_file(a)
-    res = fuse(drive, a.method, out, st.config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
-               inputs=st.inputs, force=a.force)
-    imap, forced = st.inputs, st.config.get("outages")
+    config, installed = st.config, {}
+    if a.method != INS.name and config.aids.estimate_installation and (config.aids.nhc or config.aids.odometer):
+        config, installed = estimate_installation(drive, config, st.inputs)
+    res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+               inputs=st.inputs, force=a.force, installation=installed)
+    imap, forced = st.inputs, config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
                    vel_topic=imap.vel_topic, imu_samples=res.imu_samples, imu_rate_hz=res.imu_rate_hz,
@@ -74,11 +80,10 @@ def run(a: argparse.Namespace) -> int:
                    odometer_scale=res.odometer["scale"] if res.odometer else None,
                    odometer_scale_sigma=res.odometer["scale_sigma"] if res.odometer else None,
                    odometer_slip_skipped=res.odometer["slip_skipped"] if res.odometer else None,
-                   predictor_mode=st.config.get("predictor_mode"), virtual_odometer=res.virtual_odometer,
+                   predictor_mode=config.get("predictor_mode"), virtual_odometer=res.virtual_odometer,
                    noise=noise_sources(st, res),
                    wall_s=round(time.monotonic() - t0, 3))
-    if a.method != INS.name:
-        summary.update(estimate_installation(drive, st.config, imap))
+    summary.update(installed)
     if a.json:
         print(json.dumps(summary))
     else:

@@ -301,7 +301,7 @@ def cycle_costs(runs: int) -> dict[str, dict[str, float]]:
     CYCLE_REPS cycles: method -> predict_us (prediction alone), total_us (prediction + GPS update + reset),
     update_us (the update's part of the total). kf-ukf runs in outage mode (the UT every cycle); the adaptive
     window of ssr-sckf is filled first (its steady state)."""
-    from fieldlog.fusion import earth, errmodel, hinf, ins, kf, sckf, ukf
+    from fieldlog.fusion import earth, errmodel, hinf, ins, kf, measurements, sckf, ukf
 
     reps = CYCLE_REPS
     C = earth.euler_to_dcm(0.3, 0.02, -0.01)
@@ -314,8 +314,8 @@ def cycle_costs(runs: int) -> dict[str, dict[str, float]]:
     sd = np.r_[np.full(3, 2.0), np.full(3, 0.1), np.radians([0.5, 0.5, 3.0]), np.full(3, 3e-4), np.full(3, 0.02)]
     lever = np.array([0.3, 1.0, 1.2])
     rng = np.random.default_rng(0)
-    pos = kf.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, 2.0 * np.eye(3), lever)
-    vel = kf.velocity_measurement(nav, nav.v_n, 0.01 * np.eye(3), np.array([0.0, 0.0, 0.1]), lever, 100.0)
+    pos = measurements.position_measurement(nav, 0.0, nav.lat, nav.lon, nav.h, 2.0 * np.eye(3), lever)
+    vel = measurements.velocity_measurement(nav, nav.v_n, 0.01 * np.eye(3), np.array([0.0, 0.0, 0.1]), lever, 100.0)
     zs = [(rng.standard_normal(3) * 0.1, rng.standard_normal(3) * 1.4) for _ in range(reps)]
     makers = {KF.name: lambda P: kf.KalmanFilter(P, q), KF_UKF.name: lambda P: ukf.HybridKfUkf(P, q),
               SCKF.name: lambda P: sckf.sckf(P, q), SSR_SCKF.name: lambda P: sckf.ssr_sckf(P, q),

@@ -20,7 +20,7 @@ smooth one, the vibration is what a filter sees as noise. Three sources:
 Each harmonic's phase is the integral of its frequency, so its frequency follows the speed continuously, and
 it moves along one direction in the body frame (drawn once per drive from the seed; no coning, no sculling):
 the frequencies of the engine and wheel lines carry the speed. A figure is the RMS of the vector, the root of
-the summed per-axis variances (what ``fusion.align.ImuSums.std`` measures), rad/s or m/s^2 in the SI form.
+the summed per-axis variances (what ``fusion.still.ImuSums.std`` measures), rad/s or m/s^2 in the SI form.
 Speeds are the true horizontal speed at the IMU, m/s.
 """
 from __future__ import annotations
