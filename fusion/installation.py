@@ -63,11 +63,13 @@ class GyroTrack:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
         self.sum_f = np.zeros(3)
         self.n = 0
+        self._about_up: tuple[np.ndarray, np.ndarray] | None = None  # (t_ns, rate integral about up), heading_change's
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
         """IMU samples: stamps (n,) ns, rate (n, 3) rad/s and specific force (n, 3) m/s^2, IMU frame."""
         if not len(t_ns):
             return
+        self._about_up = None
         t = np.asarray(t_ns, np.int64)
         w = np.asarray(omega_m, float)
         if self._last is not None:
@@ -88,10 +90,12 @@ class GyroTrack:
 
     def heading_change(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
         """The heading change (rad, clockwise) from a_ns to b_ns (m,): minus the rate about the mean up."""
-        t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
-        angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
-        up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
-        about_up = angle @ up
+        if self._about_up is None:  # the track as one series, kept until the next samples (time_offset asks often)
+            t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
+            angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
+            up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
+            self._about_up = t, angle @ up
+        t, about_up = self._about_up
         return -(np.interp(b_ns, t, about_up) - np.interp(a_ns, t, about_up))
 
     @property
