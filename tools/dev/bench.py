@@ -937,6 +937,47 @@ def _rerun_ratios(cmds: dict, runs: int, tmp: Path, pin: bool, drive: str) -> No
             f" s; {load})", target)
 
 
+def bench_peer(runs: int, tmp: Path, kfgins: Path | None = None, duration_s: float = 600.0) -> None:
+    """fieldlog against a C++ filter: `fuse --method kf` and KF-GINS on one KF-GINS-format data set, CPU time.
+
+    ``kfgins``: a KF-GINS checkout (built there with its CMake when it has no bin/KF-GINS) or its executable
+    (tools/dev/README.md); its own example set when the checkout has its IMU file, else a set made from a
+    simulated figure8 drive of ``duration_s``. The set is converted to a drive, both run alternated with the same
+    IMU figures and the vehicle aids off; the ratio is of CPU seconds (each with the workers it waited for)."""
+    from fieldlog.tools.dev import kfgins as peer
+
+    if kfgins is None:
+        print("skipped: give --kfgins PATH (a KF-GINS checkout or executable; tools/dev/README.md)")
+        return
+    exe = peer.kfgins_binary(kfgins)
+    yaml_path, what, sim = peer.copy_dataset(kfgins, tmp / "kfgins"), "its example set", tmp / "peer_sim.mcap"
+    if yaml_path is None:
+        what = f"made from a simulated figure8 drive of {duration_s:g} s"
+        _run_s([sys.executable, "-m", "fieldlog", "sim", "--duration", str(duration_s), "--seed", "1", "--out",
+                str(sim), "-q", "--force"], tmp)
+        yaml_path = peer.dataset_from_drive(sim, tmp / "kfgins" / "dataset")
+    drive = peer.drive_from_dataset(yaml_path, tmp / "peer.mcap")
+    (tmp / "peer.toml").write_text(peer.fusion_toml(yaml_path))
+    fuse = [sys.executable, "-m", "fieldlog", "fuse", str(drive), "--method", KF.name, "--config",
+            str(tmp / "peer.toml"), "--out", str(tmp / "peer_kf.mcap"), "--force", "-q"]
+    run_peer = lambda: _run_cpu([str(exe), str(yaml_path.resolve())], yaml_path.resolve().parent.parent)  # noqa: E731
+    run_peer(), _run_s(fuse, tmp)  # warm runs outside the figures (page cache)
+    ours, theirs = [], []
+    for _ in range(runs):
+        theirs.append(run_peer())
+        ours.append(_run_cpu(fuse, tmp))
+    q = statistics.median(o[1] / t[1] for o, t in zip(ours, theirs))
+    cpu, load = [statistics.median(c for _, c in x) for x in (ours, theirs)], f"load {os.getloadavg()[0]:.1f}"
+    print(f"{machine_line()}\n{drive.stat().st_size / 1e6:.0f} MB drive from the KF-GINS set ({what}), {runs} "
+          f"alternated rounds: fieldlog fuse kf CPU {cpu[0]:.2f} s (wall {fmt_times([w for w, _ in ours])}), "
+          f"KF-GINS CPU {cpu[1]:.2f} s (wall {fmt_times([w for w, _ in theirs])}): median CPU ratio x{q:.2f}; {load}")
+    if sim.exists():  # the same accuracy, or the ratio would compare unequal work
+        rms = peer.horizontal_rms(sim, yaml_path.parent / "KF_GINS_Navresult.nav", tmp / "peer_kf.mcap")
+        print(f"horizontal RMS against the truth: KF-GINS {rms[0]:.2f} m, fieldlog kf {rms[1]:.2f} m")
+    row("`fieldlog fuse --method kf` against KF-GINS on a KF-GINS-format set, same IMU figures, aids off: CPU "
+        "[peer]", f"×{q:.2f} ({cpu[0]:.2f} s against {cpu[1]:.2f} s; {load})", "≤ ×0.5")
+
+
 # The stages of `make bench --only profile`: a profiled function's own time goes to the stage of its file (and, in
 # drive/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
@@ -1096,7 +1137,7 @@ BENCHES = {"cli": bench_cli, "reader": bench_reader, "codecs": bench_codecs, "re
            "allan": bench_allan, "fusion": bench_fusion, "grades": bench_grades, "daemon": bench_daemon, "soak": bench_soak, "bus": bench_bus, "view": bench_view,
            "export": bench_export, "qerr": bench_qerr,
            "batch": bench_batch, "cycle": bench_cycle, "fuse-long": bench_fuse_long, "recover": bench_recover,
-           "rerun": bench_rerun, "profile": bench_profile}
+           "rerun": bench_rerun, "profile": bench_profile, "peer": bench_peer}
 
 
 def main() -> None:
@@ -1104,6 +1145,8 @@ def main() -> None:
     p.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--soak-minutes", type=float, default=30.0, help="minutes of data the soak records (30)")
+    p.add_argument("--kfgins", type=Path, default=None,
+                   help="the peer bench's KF-GINS: a checkout of its repository or its executable (tools/dev/README.md)")
     p.add_argument("--markdown", action="store_true",
                    help="print the headline figures as rows of docs/results.md's table (the full output to stderr)")
     a = p.parse_args()
@@ -1118,6 +1161,7 @@ def main() -> None:
         for name in a.only or BENCHES:
             print(f"--- {name}: {BENCHES[name].__doc__.splitlines()[0]}")
             extra = {"duration_s": a.soak_minutes * 60} if name == "soak" else {}
+            extra = {"kfgins": a.kfgins} if name == "peer" else extra
             BENCHES[name](a.runs, Path(d), **extra)
     if a.markdown:
         print("| what [bench] | figure | target |\n|---|---|---|")
