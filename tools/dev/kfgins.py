@@ -106,10 +106,10 @@ def horizontal_rms(sim: Path, nav_file: Path, fused: Path, topic: str = "/fusion
 
     truth = reader.read_topic(sim, "/truth/fix")
     t_truth = (truth["stamp_ns"] - int(reader.read_topic(sim, "/imu")["stamp_ns"][0])) * 1e-9 + SOW0
+    nav, ours = np.loadtxt(nav_file, ndmin=2), reader.read_topic(fused, topic)
     out = []
-    for sow, lat, lon in ((lambda n: (n[:, 1], n[:, 2], n[:, 3]))(np.loadtxt(nav_file, ndmin=2)),
-                          (lambda f: ((f["stamp_ns"] - WEEK_START_NS) * 1e-9, f["lat_deg"], f["lon_deg"]))(
-                              reader.read_topic(fused, topic))):
+    for sow, lat, lon in ((nav[:, 1], nav[:, 2], nav[:, 3]),
+                          ((ours["stamp_ns"] - WEEK_START_NS) * 1e-9, ours["lat_deg"], ours["lon_deg"])):
         lat_t, lon_t = (np.interp(sow, t_truth, truth[k]) for k in ("lat_deg", "lon_deg"))
         rm, rn = earth.principal_radii(np.radians(lat_t), 0.0)
         d2 = (np.radians(lat - lat_t) * rm) ** 2 + (np.radians(lon - lon_t) * rn * np.cos(np.radians(lat_t))) ** 2
