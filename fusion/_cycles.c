@@ -1,7 +1,9 @@
-/* The filter cycles' matrices of fusion/errmodel.py and the covariance propagation of fusion/kf.py, in C.
+/* The filter cycles' matrices of fusion/errmodel.py, the covariance propagation and the updates of fusion/kf.py,
+ * and the distributed filter's fusion (fusion/dkf.py), in C.
  *
- * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and
- * KalmanFilter.propagate; it needs no Python headers. It evaluates errmodel.system_matrices (from the
+ * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles,
+ * KalmanFilter.propagate, kf.joseph_update, consider.gain and dkf.fuse; it needs no Python headers. The cycles
+ * (the updates and fusion below say what they keep) evaluate errmodel.system_matrices (from the
  * Earth terms on), errmodel.discretise and the P cycle of KalmanFilter.propagate in the order their numpy
  * source writes them, so the results equal numpy's to the bit where numpy's matrix products are the
  * sequential fused multiply-add sums of an optimised BLAS: each product element c_ij is
@@ -177,4 +179,207 @@ KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double 
             S[i] = A[i] + 0.5 * (Bk[i] + B[i]);
         memcpy(hist + k * N * K, S, sizeof(double) * N * K);
     }
+}
+
+/* ---- the per-epoch updates: KalmanFilter.update (Joseph form) and DistributedKF's fusion (fusion/dkf.py) ----
+ * Not bound to numpy's bits: LAPACK's solve and Cholesky order their sums their own way; these follow the same
+ * formulas, and tests/test_cycles_kernel.py and the engine reference compare them with numpy to rounding. */
+
+#define MAXM 32  /* measurement rows of one update (the callers fall back to numpy beyond) */
+
+/* B (m x p, row stride p) <- S^-1 B, S (m x m) overwritten: Gaussian elimination with partial pivoting (as
+ * LAPACK's gesv). Returns 1 when S is singular (a zero pivot), else 0. */
+static int lu_solve(int m, double *S, int p, double *B)
+{
+    for (int c = 0; c < m; c++) {
+        int piv = c;
+        for (int r = c + 1; r < m; r++)
+            if (fabs(S[r * m + c]) > fabs(S[piv * m + c]))
+                piv = r;
+        if (S[piv * m + c] == 0.0)
+            return 1;
+        if (piv != c) {
+            for (int j = 0; j < m; j++) {
+                double t = S[c * m + j]; S[c * m + j] = S[piv * m + j]; S[piv * m + j] = t;
+            }
+            for (int j = 0; j < p; j++) {
+                double t = B[c * p + j]; B[c * p + j] = B[piv * p + j]; B[piv * p + j] = t;
+            }
+        }
+        for (int r = c + 1; r < m; r++) {
+            double l = S[r * m + c] / S[c * m + c];
+            for (int j = c + 1; j < m; j++)
+                S[r * m + j] -= l * S[c * m + j];
+            for (int j = 0; j < p; j++)
+                B[r * p + j] -= l * B[c * p + j];
+        }
+    }
+    for (int c = m - 1; c >= 0; c--) {
+        for (int j = 0; j < p; j++) {
+            double s = B[c * p + j];
+            for (int k = c + 1; k < m; k++)
+                s -= S[c * m + k] * B[k * p + j];
+            B[c * p + j] = s / S[c * m + c];
+        }
+    }
+    return 0;
+}
+
+/* K (15 x m) = P H^T (H P H^T + R)^-1 of covariance P (15 x 15), H (m x 15), R (m x m). Returns 1 when the
+ * innovation covariance is singular. */
+static int kalman_gain(int m, const double *H, const double *R, const double *P, double *K)
+{
+    double HP[MAXM * N], S[MAXM * MAXM];
+    matmul(m, N, N, H, N, P, N, 0, HP, N);
+    matmul(m, N, m, HP, N, H, N, 1, S, m);
+    for (int i = 0; i < m * m; i++)
+        S[i] += R[i];
+    if (lu_solve(m, S, N, HP))  /* HP <- S^-1 H P = K^T */
+        return 1;
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < m; j++)
+            K[i * m + j] = HP[j * N + i];
+    return 0;
+}
+
+/* consider.gain: K (15 x m) of an update of covariance P with H (m x 15), R (m x m); 1 when singular */
+KERNEL int32_t fieldlog_kf_gain(int64_t m, const double *H, const double *R, const double *P, double *K)
+{
+    return m < 0 || m > MAXM ? 1 : kalman_gain((int)m, H, R, P, K);
+}
+
+/* KalmanFilter.update: x (15) and P (15 x 15) in place through the update with z (m), H (m x 15), R (m x m):
+ * K = P H^T S^-1, dx = K (z - H x), x += dx, P <- sym(A P A^T + K R K^T) with A = I - K H (Joseph form). K
+ * (15 x m) and dx (15) out; P12 (15 x 15, may be NULL) in place: A P12 (side 0) or P12 A^T (side 1), the
+ * distributed filter's cross-covariance. Returns 1 (nothing changed) when S is singular. */
+KERNEL int32_t fieldlog_kf_update(int64_t m, const double *z, const double *H, const double *R, double *x,
+                                  double *P, double *K, double *dx, double *P12, int32_t side)
+{
+    double nu[MAXM], A[N * N], T[N * N], KR[N * MAXM], KRK[N * N];
+    if (m < 0 || m > MAXM || kalman_gain((int)m, H, R, P, K))
+        return 1;
+    const int mm = (int)m;
+    for (int i = 0; i < mm; i++) {
+        double s = 0.0;
+        for (int k = 0; k < N; k++)
+            s = fma(H[i * N + k], x[k], s);
+        nu[i] = z[i] - s;
+    }
+    for (int i = 0; i < N; i++) {
+        double s = 0.0;
+        for (int k = 0; k < mm; k++)
+            s = fma(K[i * mm + k], nu[k], s);
+        dx[i] = s;
+        x[i] += s;
+    }
+    matmul(N, mm, N, K, mm, H, N, 0, A, N);
+    for (int i = 0; i < N * N; i++)
+        A[i] = ((i % (N + 1)) == 0 ? 1.0 : 0.0) - A[i];
+    matmul(N, N, N, A, N, P, N, 0, T, N);
+    matmul(N, N, N, T, N, A, N, 1, P, N);  /* A P A^T */
+    matmul(N, mm, mm, K, mm, R, mm, 0, KR, mm);
+    matmul(N, mm, N, KR, mm, K, mm, 1, KRK, N);
+    for (int i = 0; i < N * N; i++)
+        T[i] = P[i] + KRK[i];
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            P[i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    if (P12) {
+        memcpy(T, P12, sizeof T);
+        if (side == 0)
+            matmul(N, N, N, A, N, T, N, 0, P12, N);
+        else
+            matmul(N, N, N, T, N, A, N, 1, P12, N);
+    }
+    return 0;
+}
+
+/* out (15 x 15) = P^-1 of a symmetric positive definite P through its Cholesky factor L: L^-T L^-1. Returns 1
+ * when P is not positive definite. */
+static int inv_spd(const double *P, double *out)
+{
+    double L[N * N] = {0.0}, Li[N * N] = {0.0};
+    for (int j = 0; j < N; j++) {
+        double d = P[j * N + j];
+        for (int k = 0; k < j; k++)
+            d -= L[j * N + k] * L[j * N + k];
+        if (!(d > 0.0))
+            return 1;
+        L[j * N + j] = sqrt(d);
+        for (int i = j + 1; i < N; i++) {
+            double s = P[i * N + j];
+            for (int k = 0; k < j; k++)
+                s -= L[i * N + k] * L[j * N + k];
+            L[i * N + j] = s / L[j * N + j];
+        }
+    }
+    for (int c = 0; c < N; c++)  /* Li = L^-1, column by column (lower triangular) */
+        for (int i = c; i < N; i++) {
+            double s = i == c ? 1.0 : 0.0;
+            for (int k = c; k < i; k++)
+                s -= L[i * N + k] * Li[k * N + c];
+            Li[i * N + c] = s / L[i * N + i];
+        }
+    for (int i = 0; i < N; i++)  /* (L^-T L^-1)_ij = sum over k >= i, j of Li_ki Li_kj: symmetric */
+        for (int j = 0; j <= i; j++) {
+            double s = 0.0;
+            for (int k = i; k < N; k++)
+                s = fma(Li[k * N + i], Li[k * N + j], s);
+            out[i * N + j] = out[j * N + i] = s;
+        }
+    return 0;
+}
+
+/* The distributed filter's fusion (paper eqs. 3-4) of m cycles' local estimates x1, x2 (m, 15) with covariances
+ * P1, P2 (m, 15, 15): P4 = (P1^-1 + P2^-1)^-1 and x = P4 (P1^-1 x1 + P2^-1 x2) (m, 15); with the cross-covariance
+ * P12 (m, 15, 15; NULL: none), Pe (m, 15, 15) the covariance of that estimate's error, sym(W1 P1 W1^T + W2 P2 W2^T
+ * + C + C^T), C = W1 P12 W2^T, W_i = P4 P_i^-1. Returns 1 when a covariance is not positive definite. */
+KERNEL int32_t fieldlog_dkf_fuse(int64_t m, const double *P1, const double *P2, const double *P12, const double *x1,
+                                 const double *x2, double *x, double *P4, double *Pe)
+{
+    double I1[N * N], I2[N * N], Is[N * N], W1[N * N], W2[N * N], T[N * N], U[N * N], V[N * N];
+    for (int64_t k = 0; k < m; k++) {
+        const size_t o = (size_t)k * N * N;
+        double *P = P4 + o, *xk = x + k * N;
+        if (inv_spd(P1 + o, I1) || inv_spd(P2 + o, I2))
+            return 1;
+        for (int i = 0; i < N * N; i++)
+            Is[i] = I1[i] + I2[i];
+        if (inv_spd(Is, P))
+            return 1;
+        double vec[N];
+        for (int i = 0; i < N; i++) {
+            double s = 0.0;
+            for (int j = 0; j < N; j++)
+                s = fma(I1[i * N + j], x1[k * N + j], s);
+            for (int j = 0; j < N; j++)
+                s = fma(I2[i * N + j], x2[k * N + j], s);
+            vec[i] = s;
+        }
+        for (int i = 0; i < N; i++) {
+            double s = 0.0;
+            for (int j = 0; j < N; j++)
+                s = fma(P[i * N + j], vec[j], s);
+            xk[i] = s;
+        }
+        if (!P12)
+            continue;
+        matmul(N, N, N, P, N, I1, N, 0, W1, N);
+        matmul(N, N, N, P, N, I2, N, 0, W2, N);
+        matmul(N, N, N, W1, N, P1 + o, N, 0, T, N);
+        matmul(N, N, N, T, N, W1, N, 1, U, N);        /* W1 P1 W1^T */
+        matmul(N, N, N, W2, N, P2 + o, N, 0, T, N);
+        matmul(N, N, N, T, N, W2, N, 1, V, N);        /* W2 P2 W2^T */
+        for (int i = 0; i < N * N; i++)
+            U[i] += V[i];
+        matmul(N, N, N, W1, N, P12 + o, N, 0, T, N);
+        matmul(N, N, N, T, N, W2, N, 1, V, N);        /* C */
+        for (int i = 0; i < N; i++)
+            for (int j = 0; j < N; j++)
+                T[i * N + j] = U[i * N + j] + V[i * N + j] + V[j * N + i];
+        for (int i = 0; i < N; i++)
+            for (int j = 0; j < N; j++)
+                Pe[o + i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    }
+    return 0;
 }

@@ -42,22 +42,54 @@ from fieldlog.fusion.errmodel import ATT, N_STATES
 
 N_PARAMS = 9
 _MA = [(i, j) for i in range(3) for j in range(3) if i != j]  # misalignment m_ij: rate j read on axis i
+_AXIS = np.array([0, 1, 2] + [i for i, _ in _MA])  # per parameter of c: the axis i that reads rate j
+_RATE = np.array([0, 1, 2] + [j for _, j in _MA])
 
 
 def gyro_sensitivity(C_bn: np.ndarray, omega_b: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """B dt (m, 15, 9): the error-state change over cycles of dt (m,) s per unit of c (module docstring), with the
-    cycle's C_bn (m, 3, 3) body RFU -> ENU and mean bias-corrected rate omega_b (m, 3) rad/s."""
+    """B dt: the error-state change over each cycle per unit of c (module docstring).
+
+    Parameters
+    ----------
+    C_bn : ndarray (m, 3, 3)
+        Each cycle's attitude, body RFU -> ENU.
+    omega_b : ndarray (m, 3)
+        Each cycle's mean bias-corrected rate, rad/s, body RFU.
+    dt : ndarray (m,)
+        Cycle lengths, s.
+
+    Returns
+    -------
+    ndarray (m, 15, 9)
+        B dt per cycle (``fusion.errmodel`` state order; c as the module docstring orders it).
+    """
     B = np.zeros((len(dt), N_STATES, N_PARAMS))
-    for i in range(3):
-        B[:, ATT, i] = -C_bn[:, :, i] * omega_b[:, i:i + 1]
-    for k, (i, j) in enumerate(_MA):
-        B[:, ATT, 3 + k] = -C_bn[:, :, i] * omega_b[:, j:j + 1]
+    B[:, ATT] = -C_bn[:, :, _AXIS] * omega_b[:, None, _RATE]  # column p: -C_bn[:, i] times rate j (one pass)
     return B * np.asarray(dt, float)[:, None, None]
 
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """K (15, m) of a linear KF update of covariance P (15, 15) with H (m, 15), R (m, m)."""
-    return np.linalg.solve(H @ P @ H.T + R, H @ P).T
+    """K (15, m) of a linear KF update, compiled (fusion/_cycles.c): K = P H^T (H P H^T + R)^-1.
+
+    Parameters
+    ----------
+    P : ndarray (15, 15)
+        The filter's covariance before the update (``fusion.errmodel`` order and units).
+    H : ndarray (m, 15)
+        The measurement's sensitivity to the error state (m <= 32).
+    R : ndarray (m, m)
+        Its noise covariance.
+
+    Returns
+    -------
+    ndarray (15, m)
+        The gain.
+    """
+    P, H, R = (np.ascontiguousarray(a, dtype=float) for a in (P, H, R))
+    K = np.empty((N_STATES, len(H)))
+    if errmodel.cycle_kernel().fieldlog_kf_gain(len(H), H.ctypes.data, R.ctypes.data, P.ctypes.data, K.ctypes.data):
+        raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
+    return K
 
 
 class GyroConsider:
@@ -69,12 +101,36 @@ class GyroConsider:
         self.var_c = np.repeat([scale_factor ** 2, misalignment ** 2], [3, 6])
 
     def variance(self, S: np.ndarray | None = None) -> np.ndarray:
-        """diag(S diag(var_c) S^T) (..., 15) of sensitivities S (..., 15, 9); the current one by default."""
+        """The consider variance diag(S diag(var_c) S^T).
+
+        Parameters
+        ----------
+        S : ndarray (..., 15, 9), optional
+            Sensitivities; the current one by default.
+
+        Returns
+        -------
+        ndarray (..., 15)
+            The variance each state's error gets from c, in the state's units squared.
+        """
         S = self.S if S is None else S
         return (S * S) @ self.var_c
 
     def propagate(self, Phi: np.ndarray, Bdt: np.ndarray) -> np.ndarray:
-        """Cycles Phi (m, 15, 15) with their ``gyro_sensitivity`` Bdt (m, 15, 9); S after each (m, 15, 9)."""
+        """S through cycles, compiled (fusion/_cycles.c): S <- Phi S + 0.5 (Bdt + Phi Bdt) per cycle.
+
+        Parameters
+        ----------
+        Phi : ndarray (m, 15, 15)
+            The cycles' transition matrices.
+        Bdt : ndarray (m, 15, 9)
+            Their :func:`gyro_sensitivity`.
+
+        Returns
+        -------
+        ndarray (m, 15, 9)
+            S after each cycle.
+        """
         Phi, Bdt = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Bdt, dtype=float)
         if Phi.shape[1:] != (N_STATES, N_STATES) or Bdt.shape != (len(Phi), N_STATES, N_PARAMS):
             raise ValueError(f"consider cycles need Phi (m, 15, 15) and Bdt (m, 15, 9): {Phi.shape}, {Bdt.shape}")
@@ -87,5 +143,13 @@ class GyroConsider:
         return out
 
     def update(self, K: np.ndarray, H: np.ndarray) -> None:
-        """The update x <- x + K (z - H x) leaves the error (I - K H) times the one before it."""
+        """The update x <- x + K (z - H x) leaves the error (I - K H) times the one before it: S likewise.
+
+        Parameters
+        ----------
+        K : ndarray (15, m)
+            The update's gain (:func:`gain`).
+        H : ndarray (m, 15)
+            Its measurement sensitivity.
+        """
         self.S = self.S - K @ (H @ self.S)

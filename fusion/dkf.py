@@ -47,24 +47,23 @@ innovation (:meth:`DistributedKF.predicted_update`).
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 
-from fieldlog.fusion.errmodel import N_STATES, propagate_covariance
-from fieldlog.fusion.ins import NavState
-from fieldlog.fusion.kf import (KalmanFilter, Measurement, Observation, cycle_matrices, gps_observations,
+from fieldlog.fusion.errmodel import N_STATES, cycle_kernel, propagate_covariance
+from fieldlog.fusion.kf import (BatchUpdates, KalmanFilter, Measurement, Observation, joseph_update,
                                 propagate_state, stack)
 
 BETA = 0.5  # information share of each local filter (federated)
 FUSIONS = ("paper", "federated")
 
 
-class DistributedKF:
+class DistributedKF(BatchUpdates):
     """KF_I (velocity) + KF_II (position) with eqs. 3-4 fusion; the interface of :class:`fusion.kf.KalmanFilter`.
 
     P0 (15, 15), q (12, 12) as KalmanFilter; fusion "paper" (default) or "federated". Its declarations
-    (:class:`fusion.kf.KalmanFilter`): local filters, and the fused state prediction fed back between fixes."""
+    (:class:`fusion.kf.KalmanFilter`): local filters, and the fused state prediction fed back between fixes.
+    ``update_gps`` gives KF_I the GPS velocity and KF_II the position, ``update_aid`` a vehicle aid (a
+    velocity-domain constraint) to KF_I only (``fusion.kf.BatchUpdates``, through :meth:`update_batch`)."""
 
     wants_nodes = False
     wants_cycle_lengths = False
@@ -79,6 +78,7 @@ class DistributedKF:
         scale = 1.0 / BETA if self.federated else 1.0
         self.kf_vel = KalmanFilter(P0 * scale, q, q_scale=scale)
         self.kf_pos = KalmanFilter(P0 * scale, q, q_scale=scale)
+        self.q = self.kf_vel.q  # the noise PSD (12, 12) of one filter cycle (``predict``)
         self.P12 = None if self.federated else np.array(P0, dtype=float)
         self.innovations = (np.zeros(N_STATES), np.zeros(N_STATES))  # K_i nu_i of the last GPS update
         self._fuse()
@@ -104,14 +104,23 @@ class DistributedKF:
         """(KF_I, KF_II)."""
         return self.kf_vel, self.kf_pos
 
-    def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
-        """One filter cycle (``KalmanFilter.predict`` for the arguments)."""
-        self.propagate(*cycle_matrices(dt, ins_state, imu, self.kf_vel.q))
-
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Both local filters over a sequence of cycles Phi, Q (m, 15, 15); returns the diagonal of the fused
-        error covariance after each (m, 15). ``local_states`` (m, 2, 15) and ``local_diag`` (m, 2, 15) hold the
-        local estimates and variances after each cycle."""
+        """Both local filters (and, paper fusion, their cross-covariance) over a sequence of cycles, fused after
+        each (compiled, :func:`fuse`); ``local_states`` and ``local_diag`` (m, 2, 15) get the local estimates and
+        variances after each cycle.
+
+        Parameters
+        ----------
+        Phi : ndarray (m, 15, 15)
+            Transition matrix of each cycle.
+        Q : ndarray (m, 15, 15)
+            Its process noise, shared by both locals (``fusion.errmodel`` order and units).
+
+        Returns
+        -------
+        ndarray (m, 15)
+            diag of the fused estimate's error covariance (``covariance``) after each cycle.
+        """
         m = len(Phi)
         if self.federated:  # between fusions P_i = P / beta each, so the fused P is beta * P_i
             d1 = self.kf_vel.propagate(Phi, Q)
@@ -123,23 +132,28 @@ class DistributedKF:
         xs = np.stack([propagate_state(Phi, self.kf_vel.x), propagate_state(Phi, self.kf_pos.x)], axis=1)
         Ps = np.stack([propagate_covariance(Phi, Q, self.kf_vel.P), propagate_covariance(Phi, Q, self.kf_pos.P),
                        propagate_covariance(Phi, Q, self.P12, sym=False)])  # P1, P2, P12 after each cycle
-        # every cycle's information matrices and fused error covariance at once: the same per-matrix LAPACK and
-        # BLAS calls as one by one, so the last cycle's are what _fuse would compute again
-        infos = _inv_spd(Ps[0]), _inv_spd(Ps[1])
-        Pe = _fused_error_cov(*Ps, *infos)[1]
+        x, P4, Pe = fuse(Ps[0], Ps[1], Ps[2], xs[:, 0], xs[:, 1])  # every cycle's fusion, for its variances
         if m:
             self.kf_vel.x, self.kf_pos.x = xs[-1, 0], xs[-1, 1]
             self.kf_vel.P, self.kf_pos.P, self.P12 = Ps[0, -1].copy(), Ps[1, -1].copy(), Ps[2, -1].copy()
-            self._fuse((infos[0][-1], infos[1][-1]), Pe[-1])
-        else:
-            self._fuse()
+            self.x, self.P4, self.P = x[-1], P4[-1], Pe[-1]
         self.local_states = xs
         self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
         return np.diagonal(Pe, axis1=1, axis2=2).copy()
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """A measurement of the shared interface: to KF_II when it observes position, else to KF_I; then fusion.
-        Returns the change of the fused estimate (15,)."""
+
+        Parameters
+        ----------
+        z, H, R : ndarray (m,), (m, 15), (m, m)
+            The measurement, its sensitivity to the error state and its noise covariance.
+
+        Returns
+        -------
+        ndarray (15,)
+            The change of the fused estimate.
+        """
         before = self.x.copy()
         if np.any(H[:, 0:3]):
             self._update_local(1, (z, H, R))
@@ -150,7 +164,13 @@ class DistributedKF:
 
     def update_batch(self, obs: list[Observation]) -> None:
         """The velocity kind (stacked) to KF_I, the position kind to KF_II, then fusion by eqs. 3-4. The
-        innovation components K_i nu_i are kept in ``innovations``."""
+        innovation components K_i nu_i are kept in ``innovations``.
+
+        Parameters
+        ----------
+        obs : list of Observation
+            One epoch's observations (``fusion.kf.Observation``), routed by their kind.
+        """
         vel = stack(*(o.m for o in obs if o.kind == "velocity"))
         pos = stack(*(o.m for o in obs if o.kind == "position"))
         dx1 = self._update_local(0, vel) if vel is not None else np.zeros(N_STATES)
@@ -158,31 +178,32 @@ class DistributedKF:
         self.innovations = (dx1, dx2)
         self._fuse()
 
-    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        """KF_I with the GPS velocity, KF_II with the position (:meth:`update_batch`)."""
-        self.update_batch(gps_observations(vel, pos))
-
-    def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (velocity-domain constraint): to KF_I only (:meth:`update_batch`)."""
-        self.update_batch([Observation("velocity", m)])
-
     def predicted_update(self, dx_vel: np.ndarray, dx_pos: np.ndarray) -> None:
-        """Paper eq. 7 in an outage: X_i(n) = X_i(n|n-1) + predicted innovation dx_i (15,) (KF_I: dx_vel,
-        KF_II: dx_pos); the covariances are untouched (a prediction is not a measurement); then fusion."""
+        """Paper eq. 7 in an outage: X_i(n) = X_i(n|n-1) + predicted innovation dx_i; the covariances are
+        untouched (a prediction is not a measurement); then fusion.
+
+        Parameters
+        ----------
+        dx_vel, dx_pos : ndarray (15,)
+            The predicted innovation components of KF_I and KF_II (``fusion.errmodel`` order and units).
+        """
         self.kf_vel.x = self.kf_vel.x + dx_vel
         self.kf_pos.x = self.kf_pos.x + dx_pos
         self._fuse()
 
     def shift(self, b: np.ndarray) -> None:
-        """A known correction b (15,) was applied to the INS (an outage predictor's): the local estimates, of the
-        INS error, move by it (paper); the federated filter's are zero and stay so."""
+        """A known correction was applied to the INS (an outage predictor's): the local estimates, of the INS
+        error, move by it (paper); the federated filter's are zero and stay so.
+
+        Parameters
+        ----------
+        b : ndarray (15,)
+            The correction, in the error state's order and units.
+        """
         if not self.federated:
             for f in self.locals:
                 f.x = f.x - b
             self._fuse()
-
-    def start_outage(self) -> None:
-        """Told at each unusable GPS epoch: nothing to do."""
 
     def reset(self) -> None:
         """After the fused estimate has been fed back: paper, each local estimate shifted by it, covariances
@@ -195,68 +216,55 @@ class DistributedKF:
 
     def _update_local(self, i: int, m: Measurement) -> np.ndarray:
         f = self.locals[i]
-        dx = f.update(*m)
-        if self.P12 is not None:
-            A = np.eye(N_STATES) - f.gain @ m[1]
-            self.P12 = A @ self.P12 if i == 0 else self.P12 @ A.T
+        f.x, f.P, f.gain, dx, P12 = joseph_update(f.x, f.P, *m, self.P12, i)
+        self.P12 = P12 if P12 is not None else self.P12
         return dx
 
-    def _fuse(self, infos: tuple[np.ndarray, np.ndarray] | None = None, P: np.ndarray | None = None) -> None:
-        """Eqs. 3-4 on the local filters as they stand; ``infos`` (their inverse covariances) and ``P`` (the
-        fused estimate's error covariance, paper fusion) when the caller has them."""
-        if infos is None:
-            infos = tuple(_inv_spd(f.covariance) for f in self.locals)  # each local information matrix, once
-        self.x, self.P4 = fuse(self.locals, list(infos))
-        if self.P12 is None:
-            self.P = self.P4
-        else:
-            self.P = _fused_error_cov(self.kf_vel.P, self.kf_pos.P, self.P12, *infos)[1] if P is None else P
+    def _fuse(self) -> None:
+        """Eqs. 3-4 on the local filters as they stand, and the fused estimate's error covariance (paper)."""
+        x, P4, Pe = fuse(*(f.P[None] for f in self.locals), None if self.P12 is None else self.P12[None],
+                         *(f.x[None] for f in self.locals))
+        self.x, self.P4 = x[0], P4[0]
+        self.P = self.P4 if Pe is None else Pe[0]
 
 
-def fuse(filters, infos: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse-covariance fusion of local estimates (paper eqs. 3-4): returns (x, P). ``infos``: the filters'
-    inverse covariances when the caller has them."""
-    info = np.zeros_like(filters[0].covariance)
-    vec = np.zeros_like(filters[0].state)
-    if infos is None:
-        infos = [_inv_spd(f.covariance) for f in filters]
-    for f, Pi in zip(filters, infos):
-        info += Pi
-        vec += Pi @ f.state
-    P = _inv_spd(info)
-    return P @ vec, P
+def fuse(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray | None, x1: np.ndarray, x2: np.ndarray
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Inverse-covariance fusion (paper eqs. 3-4) of m cycles' local estimates, compiled (fusion/_cycles.c).
 
+    Parameters
+    ----------
+    P1, P2 : ndarray (m, 15, 15)
+        The local filters' error covariances (``fusion.errmodel`` order and units).
+    P12 : ndarray (m, 15, 15) or None
+        Their cross-covariance E[e_1 e_2^T]; None: not tracked (federated).
+    x1, x2 : ndarray (m, 15)
+        The local error-state estimates.
 
-def _fused_error_cov(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray, I1: np.ndarray | None = None,
-                     I2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(eq. 4's P, the covariance of the eqs. 3-4 estimate's error given the cross-covariance P12); of one
-    cycle's (15, 15) matrices or of a stack of them (m, 15, 15). I1, I2: the inverses of P1, P2 when the caller
-    has them. P is inverted again from I1 + I2 rather than taken from ``fuse``, whose sum starts from zeros."""
-    I1 = _inv_spd(P1) if I1 is None else I1
-    I2 = _inv_spd(P2) if I2 is None else I2
-    P = _inv_spd(I1 + I2)
-    W1, W2 = P @ I1, P @ I2
-    C = W1 @ P12 @ _t(W2)
-    return P, _sym(W1 @ P1 @ _t(W1) + W2 @ P2 @ _t(W2) + C + _t(C))
+    Returns
+    -------
+    x : ndarray (m, 15)
+        The fused estimate, P (P1^-1 x1 + P2^-1 x2).
+    P : ndarray (m, 15, 15)
+        Eq. 4's covariance, (P1^-1 + P2^-1)^-1.
+    Pe : ndarray (m, 15, 15) or None
+        The covariance of the fused estimate's error given P12 (module docstring); None without P12.
 
-
-def _t(A: np.ndarray) -> np.ndarray:
-    """The transpose of a matrix, or of each of a stack."""
-    return np.swapaxes(A, -1, -2)
-
-
-def _sym(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + _t(P))
-
-
-def _inv_spd(P: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix (or of each of a stack) through Cholesky, symmetrised."""
-    L = np.linalg.cholesky(P)
-    Li = np.linalg.solve(L, _identity(P.shape))
-    return _t(Li) @ Li
-
-
-@lru_cache(maxsize=32)
-def _identity(shape: tuple[int, ...]) -> np.ndarray:
-    """The identity broadcast to a matrix's or a stack's shape (read-only; shared, as it is asked for per cycle)."""
-    return np.broadcast_to(np.eye(shape[-1]), shape)
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        When a local covariance, or the sum of their inverses, is not positive definite.
+    """
+    arrays = [np.ascontiguousarray(a, dtype=float) for a in (P1, P2, x1, x2)]
+    m = len(arrays[0])
+    P12 = None if P12 is None else np.ascontiguousarray(P12, dtype=float)
+    shapes = [(m, N_STATES, N_STATES)] * 2 + [(m, N_STATES)] * 2
+    if [a.shape for a in arrays] != shapes or (P12 is not None and P12.shape != shapes[0]):
+        raise ValueError(f"fusion needs P1, P2, P12 (m, 15, 15) and x1, x2 (m, 15): {[a.shape for a in arrays]}")
+    x, P, Pe = np.empty((m, N_STATES)), np.empty((m, N_STATES, N_STATES)), None if P12 is None else np.empty(
+        (m, N_STATES, N_STATES))
+    P1, P2, x1, x2 = (a.ctypes.data for a in arrays)
+    if cycle_kernel().fieldlog_dkf_fuse(m, P1, P2, None if P12 is None else P12.ctypes.data, x1, x2, x.ctypes.data,
+                                        P.ctypes.data, None if Pe is None else Pe.ctypes.data):
+        raise np.linalg.LinAlgError("Matrix is not positive definite: a local or fused covariance")
+    return x, P, Pe

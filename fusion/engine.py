@@ -140,7 +140,8 @@ class Engine:
                 self._epoch(ep, w[k] - self.bg)
                 self._anchor = float(t[k])
         # the tail after the last cycle start waits for the next block, so blocks never cut a cycle short
-        held = self._cycle_start(t, cursor, len(t) - 1) if self.nav is not None else len(t) - 1
+        held = (_cycle_start(t, cursor, len(t) - 1, self._anchor, self.cfg.filter.cov_step_s)
+                if self.nav is not None else len(t) - 1)
         self._add_interval(w, f, cursor, held)
         out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
                    else self.status.aligning(t_ns[cursor:held + 1]))
@@ -199,7 +200,7 @@ class Engine:
         at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._imu_dt, self.bg, self.ba,
                                  self.filter.covariance)
         for m in self.measurements:
-            if m.stage == "aid" and self._update(self._observe([m], at)):
+            if m.stage == "aid" and self._update(_observe([m], at)):
                 self._feedback(self.filter.state)
                 at.nav, at.P, at.bg, at.ba = self.nav, self.filter.covariance, self.bg, self.ba
         if not usable:
@@ -210,7 +211,7 @@ class Engine:
                 self._feedback(self.filter.state)  # the fused state prediction X(n|n-1) of the local filters
             return
         fixes = [m for m in self.measurements if m.stage == "fix"]
-        obs = self._observe(fixes, at)
+        obs = _observe(fixes, at)
         if not obs:
             return
         u = self.bridge.input(self.nav) if self.bridge is not None else None
@@ -218,7 +219,7 @@ class Engine:
         if (self._check is not None and vel is not None
                 and self._check.far_off(t_g, *vel, self.filter.state, self.filter.covariance) and self._realign(ep)):
             at.nav, at.P = self.nav, self.filter.covariance
-            obs = self._observe(fixes, at)
+            obs = _observe(fixes, at)
         if self.adapt is not None:
             obs = self.adapt.before(obs, self.filter.state, self.filter.covariance)
         self._update(self.status.fix(ep.t_ns, obs, self.filter))
@@ -233,16 +234,6 @@ class Engine:
                               kf.stack(*(o.m for o in obs if o.kind == "velocity")))
         self._feedback(self.filter.state)
         self.updates += 1
-
-    @staticmethod
-    def _observe(ms: list[measurements.MeasurementModel], at: measurements.Moment) -> list[kf.Observation]:
-        """The observations the measurements ms give at the moment."""
-        out = []
-        for m in ms:
-            z_H_R = m.compute_matrices(at)
-            if z_H_R is not None:
-                out.append(kf.Observation(m.kind, z_H_R, m.receiver))
-        return out
 
     def _update(self, obs: list[kf.Observation]) -> bool:
         """One filter update with the observations (the listeners told first); False when there are none."""
@@ -315,7 +306,7 @@ class Engine:
         self.nav = sol.state(-1)
         # filter cycles: end at the first sample of each cov_step_s slot after i0, and at i1
         tt = sol.t
-        ends = self._slot_starts(tt)
+        ends = _slot_starts(tt, self._anchor, self.cfg.filter.cov_step_s)
         if len(ends) == 0 or ends[-1] != len(tt) - 1:
             ends = np.append(ends, len(tt) - 1)
         c = errmodel.segment_cycles(sol, ends, wc, fc, self.q, self._steps)
@@ -331,39 +322,52 @@ class Engine:
         if self.filter.wants_nodes:  # the nodes of its RK4 through the nonlinear model
             self.filter.queue(ukf.cycles_from_ins(sol.lat, sol.h, sol.v_n, sol.q, c.starts, c.mid, ends, c.f_mean,
                                                   c.dt))
-        diag, P, local = self._propagate(c.Phi, Q)
+        diag, P, local = _propagate(self.filter, c.Phi, Q, self._history)
         diag = diag.copy()
         for x in self.listeners:
             x.cycles(t_ns[i0:i1 + 1][ends], c.Phi, P, c.C_bn, c.w_mean, c.dt, diag)
         return self.status.of(output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate(
             [self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local))
 
-    def _propagate(self, Phi: np.ndarray, Q: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
-        """``filter.propagate`` over the cycles: diag(P) after each (m, 15); each predicted P (m, 15, 15) when a
-        listener records the history (one cycle per call), else None; the local states and variances after each
-        cycle ((m, 2, 15) each) of a filter with local filters, else None."""
-        f = self.filter
-        if not self._history:
-            diag = f.propagate(Phi, Q)
-            return diag, None, ((f.local_states, f.local_diag) if f.has_locals else None)
-        P = np.empty_like(Phi)
-        local = np.empty((2, len(Phi), 2, N_STATES))
-        for i in range(len(Phi)):
-            f.propagate(Phi[i:i + 1], Q[i:i + 1])
-            P[i] = f.covariance
-            if f.has_locals:
-                local[:, i] = f.local_states[-1], f.local_diag[-1]
-        return np.diagonal(P, axis1=1, axis2=2).copy(), P, (tuple(local) if f.has_locals else None)
 
-    def _slot_starts(self, t: np.ndarray) -> np.ndarray:
-        """Indexes into t (s) of the samples that start a ``cov_step_s`` slot counted from the last GPS epoch (the
-        anchor; t[0] before the first), after t[0]."""
-        anchor = t[0] if self._anchor is None else self._anchor
-        slot = np.floor((t - anchor) / self.cfg.filter.cov_step_s).astype(np.int64)
-        return np.flatnonzero(np.diff(slot) != 0) + 1
 
-    def _cycle_start(self, t: np.ndarray, i0: int, i1: int) -> int:
-        """The last sample in [i0, i1] that starts a covariance cycle (i0 if none after it)."""
-        s = self._slot_starts(t[i0:i1 + 1])
-        return i0 + int(s[-1]) if len(s) else i0
+def _observe(ms: list[measurements.MeasurementModel], at: measurements.Moment) -> list[kf.Observation]:
+    """The observations the measurements ms give at the moment."""
+    out = []
+    for m in ms:
+        z_H_R = m.compute_matrices(at)
+        if z_H_R is not None:
+            out.append(kf.Observation(m.kind, z_H_R, m.receiver))
+    return out
+
+
+def _propagate(f, Phi: np.ndarray, Q: np.ndarray, history: bool
+               ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+    """``f.propagate`` of the filter f over the cycles: diag(P) after each (m, 15); each predicted P (m, 15, 15)
+    when a listener records the ``history`` (one cycle per call), else None; the local states and variances after
+    each cycle ((m, 2, 15) each) of a filter with local filters, else None."""
+    if not history:
+        diag = f.propagate(Phi, Q)
+        return diag, None, ((f.local_states, f.local_diag) if f.has_locals else None)
+    P = np.empty_like(Phi)
+    local = np.empty((2, len(Phi), 2, N_STATES))
+    for i in range(len(Phi)):
+        f.propagate(Phi[i:i + 1], Q[i:i + 1])
+        P[i] = f.covariance
+        if f.has_locals:
+            local[:, i] = f.local_states[-1], f.local_diag[-1]
+    return np.diagonal(P, axis1=1, axis2=2).copy(), P, (tuple(local) if f.has_locals else None)
+
+
+def _slot_starts(t: np.ndarray, anchor: float | None, step_s: float) -> np.ndarray:
+    """Indexes into t (s) of the samples that start a ``step_s`` slot counted from the anchor (s, the last GPS
+    epoch; t[0] when None), after t[0]."""
+    anchor = t[0] if anchor is None else anchor
+    slot = np.floor((t - anchor) / step_s).astype(np.int64)
+    return np.flatnonzero(np.diff(slot) != 0) + 1
+
+
+def _cycle_start(t: np.ndarray, i0: int, i1: int, anchor: float | None, step_s: float) -> int:
+    """The last sample in [i0, i1] that starts a covariance cycle (i0 if none after it)."""
+    s = _slot_starts(t[i0:i1 + 1], anchor, step_s)
+    return i0 + int(s[-1]) if len(s) else i0

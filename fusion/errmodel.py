@@ -45,6 +45,7 @@ by a compiled kernel (fusion/_cycles.c); the numpy functions are the reference i
 from __future__ import annotations
 
 import ctypes
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,10 +60,23 @@ POS, VEL, ATT, BG, BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), sli
 
 def system_matrices(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike, C_bn: ArrayLike, f_n: ArrayLike
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous-time ``(F, G)``: shapes (..., 15, 15) and (..., 15, 12).
+    """Continuous-time ``(F, G)`` of the error model (module docstring), vectorised over leading axes.
 
-    lat rad, h m, v_n (..., 3) ENU m/s, C_bn (..., 3, 3) body RFU -> ENU, f_n (..., 3) specific force
-    in ENU m/s^2 (the mean over the filter cycle).
+    Parameters
+    ----------
+    lat, h : array_like (...)
+        Latitude, rad, and ellipsoidal height, m.
+    v_n : array_like (..., 3)
+        Velocity, ENU m/s.
+    C_bn : array_like (..., 3, 3)
+        Attitude, body RFU -> ENU.
+    f_n : array_like (..., 3)
+        Specific force in ENU, m/s^2 (the mean over the filter cycle).
+
+    Returns
+    -------
+    F : ndarray (..., 15, 15)
+    G : ndarray (..., 15, 12)
     """
     lat = np.asarray(lat, dtype=float)
     h = np.asarray(h, dtype=float)
@@ -116,8 +130,22 @@ def system_matrices(lat: ArrayLike, h: ArrayLike, v_n: ArrayLike, C_bn: ArrayLik
 
 
 def noise_psd(gyro_noise: float, accel_noise: float, gyro_bias_rw: float, accel_bias_rw: float) -> np.ndarray:
-    """Diagonal noise PSD matrix q (12, 12) from densities: gyro rad/s/sqrt(Hz), accel m/s^2/sqrt(Hz),
-    gyro bias random walk rad/s/sqrt(s), accel bias random walk m/s^2/sqrt(s)."""
+    """Diagonal noise PSD matrix from densities.
+
+    Parameters
+    ----------
+    gyro_noise : float
+        Gyro white noise, rad/s/sqrt(Hz).
+    accel_noise : float
+        Accelerometer white noise, m/s^2/sqrt(Hz).
+    gyro_bias_rw, accel_bias_rw : float
+        Bias random walks, rad/s/sqrt(s) and m/s^2/sqrt(s).
+
+    Returns
+    -------
+    ndarray (12, 12)
+        q, in the order of the noise vector w (module docstring).
+    """
     d = np.repeat([gyro_noise, accel_noise, gyro_bias_rw, accel_bias_rw], 3) ** 2
     return np.diag(d)
 
@@ -128,7 +156,22 @@ def scale_factor_steps(x: np.ndarray, x_prev: np.ndarray, scale_factor: float, m
     1-sigma ``scale_factor`` (fraction) and ``misalignment`` (rad) per entry, in the signal's unit (rad/s, m/s^2).
 
     The step of axis i is s_i dx_i + sum_j m_ij dx_j with dx = x_k - x_{k-1}: variance s^2 dx_i^2 + m^2 (|dx|^2 -
-    dx_i^2), independent across the axes (each axis has its own s_i and m_ij)."""
+    dx_i^2), independent across the axes (each axis has its own s_i and m_ij).
+
+    Parameters
+    ----------
+    x : ndarray (m, 3)
+        The cycles' mean signals, rad/s or m/s^2, body RFU.
+    x_prev : ndarray (3,)
+        The mean before the first cycle.
+    scale_factor, misalignment : float
+        1-sigma per entry, fraction and rad.
+
+    Returns
+    -------
+    ndarray (m, 3)
+        The variance of each cycle's bias step per axis, the signal's unit squared.
+    """
     dx2 = np.diff(np.vstack([np.asarray(x_prev, float)[None, :], x]), axis=0) ** 2
     return scale_factor ** 2 * dx2 + misalignment ** 2 * (dx2.sum(axis=1, keepdims=True) - dx2)
 
@@ -136,7 +179,19 @@ def scale_factor_steps(x: np.ndarray, x_prev: np.ndarray, scale_factor: float, m
 def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """``(Phi, Q)`` over a filter cycle of dt seconds (module docstring: hybrid KF-UKF paper eq. 13 + dT^3).
 
-    F (..., 15, 15), G (..., 15, 12), q (12, 12), dt scalar or (...,).
+    Parameters
+    ----------
+    F : ndarray (..., 15, 15)
+    G : ndarray (..., 15, 12)
+        The continuous model (:func:`system_matrices`).
+    q : ndarray (12, 12)
+        Noise PSD (:func:`noise_psd`).
+    dt : float or array_like (...)
+        Cycle length, s.
+
+    Returns
+    -------
+    Phi, Q : ndarray (..., 15, 15)
     """
     dt = np.asarray(dt, dtype=float)[..., None, None]
     Fdt = F * dt
@@ -148,21 +203,43 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
     return Phi, Q
 
 
+@functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices and covariance cycles (fusion/_cycles.c)."""
-    p, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+    """The compiled cycle matrices, covariance cycles, updates and fusion (fusion/_cycles.c), loaded once."""
+    p, i64, f64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int32
     return kernels.load("fieldlog.fusion._cycles", {
         "fieldlog_cycle_matrices": [i64, f64] + [p] * 8,
-        "fieldlog_propagate_cov": [i64, p, p, f64, ctypes.c_int32, p, p],
-        "fieldlog_consider_cycles": [i64, p, p, p, p]})
+        "fieldlog_propagate_cov": [i64, p, p, f64, i32, p, p],
+        "fieldlog_consider_cycles": [i64, p, p, p, p],
+        "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
+        "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
+        "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32)})
 
 
 def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.ndarray, f_n: np.ndarray,
                     q: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(Phi, Q)`` (m, 15, 15) of m cycles: ``discretise(*system_matrices(lat, h, v_n, C_bn, f_n), q, dt)`` to the
-    bit (on a machine whose BLAS sums a matrix product as sequential fused multiply-adds), compiled.
+    """``(Phi, Q)`` of m cycles: ``discretise(*system_matrices(lat, h, v_n, C_bn, f_n), q, dt)`` to the bit (on a
+    machine whose BLAS sums a matrix product as sequential fused multiply-adds), compiled.
 
-    lat (m,) rad, h (m,) m, v_n (m, 3) ENU m/s, C_bn (m, 3, 3), f_n (m, 3) ENU m/s^2, q (12, 12), dt (m,) s."""
+    Parameters
+    ----------
+    lat, h : ndarray (m,)
+        Latitude, rad, and height, m, at each cycle's middle.
+    v_n : ndarray (m, 3)
+        Velocity, ENU m/s.
+    C_bn : ndarray (m, 3, 3)
+        Attitude, body RFU -> ENU.
+    f_n : ndarray (m, 3)
+        Mean specific force, ENU m/s^2.
+    q : ndarray (12, 12)
+        Noise PSD.
+    dt : ndarray (m,)
+        Cycle lengths, s.
+
+    Returns
+    -------
+    Phi, Q : ndarray (m, 15, 15)
+    """
     lat, h = np.asarray(lat, dtype=float), np.asarray(h, dtype=float)
     v = np.ascontiguousarray(v_n, dtype=float)
     rm, rn = earth.principal_radii(lat, h)
@@ -182,8 +259,24 @@ def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.nd
 
 def propagate_covariance(Phi: np.ndarray, Q: np.ndarray, P: np.ndarray, q_scale: float = 1.0, sym: bool = True
                          ) -> np.ndarray:
-    """P (n, n) through the cycles Phi, Q (m, n, n): P <- Phi_i P Phi_i^T + q_scale Q_i, made symmetric
-    (0.5 (P + P^T)) after each when ``sym``; returns P after each cycle (m, n, n). P itself is left alone.
+    """P through the cycles: P <- Phi_i P Phi_i^T + q_scale Q_i, made symmetric (0.5 (P + P^T)) after each when
+    ``sym``. P itself is left alone.
+
+    Parameters
+    ----------
+    Phi, Q : ndarray (m, n, n)
+        The cycles' transition matrices and process noise.
+    P : ndarray (n, n)
+        The covariance before the first cycle (error-state units squared).
+    q_scale : float
+        Multiplies Q (a federated local filter's 1/beta).
+    sym : bool
+        Symmetrise after each cycle (False: a cross-covariance).
+
+    Returns
+    -------
+    ndarray (m, n, n)
+        P after each cycle.
 
     15 states: compiled (fusion/_cycles.c), the same numbers as the numpy loop under the condition of
     :func:`discrete_cycles`. A filter with more states (the GPS error's, ``fusion.gpserror``) runs the numpy loop:
@@ -231,15 +324,37 @@ class BiasSteps:
 
     @classmethod
     def of(cls, sensor) -> BiasSteps | None:
-        """From a ``fusion.config.SensorConfig``; None unless its scale_factor_model is "bias-steps" with a
-        figure above 0."""
+        """The steps of a sensor configuration.
+
+        Parameters
+        ----------
+        sensor : fusion.config.SensorConfig
+            Its scale factors (ppm) and misalignments (mrad).
+
+        Returns
+        -------
+        BiasSteps or None
+            None unless its scale_factor_model is "bias-steps" with a figure above 0.
+        """
         f = (sensor.gyro_scale_factor_ppm * 1e-6, sensor.gyro_misalignment_mrad * 1e-3,
              sensor.accel_scale_factor_ppm * 1e-6, sensor.accel_misalignment_mrad * 1e-3)
         return cls(*f) if sensor.scale_factor_model == "bias-steps" and max(f) > 0.0 else None
 
     def noise(self, Phi: np.ndarray, w_mean: np.ndarray, f_mean: np.ndarray) -> np.ndarray:
-        """The covariance (m, 15, 15) the steps of cycles Phi (m, 15, 15) with mean bias-corrected rate w_mean and
-        specific force f_mean (m, 3) add; the last cycle's means become the reference."""
+        """The covariance the steps of the cycles add; the last cycle's means become the reference.
+
+        Parameters
+        ----------
+        Phi : ndarray (m, 15, 15)
+            The cycles' transition matrices.
+        w_mean, f_mean : ndarray (m, 3)
+            Their mean bias-corrected rate (rad/s) and specific force (m/s^2), body RFU.
+
+        Returns
+        -------
+        ndarray (m, 15, 15)
+            Added to each cycle's Q.
+        """
         var = np.hstack([scale_factor_steps(w_mean, self.ref[:3], *self.gyro),
                          scale_factor_steps(f_mean, self.ref[3:], *self.accel)])
         self.ref = np.concatenate([w_mean[-1], f_mean[-1]])
@@ -252,7 +367,26 @@ def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: n
     """The cycles of an INS solution ``sol`` (``fusion.ins.NavSolution``: t, lat, h, v_n, q per sample) over
     bias-corrected samples w_b, f_b (n, 3), each cycle ending at a sample of ``ends`` (the first cycle starts at
     sample 0); F taken at each cycle's middle sample with its mean specific force, noise PSD q (12, 12), and the
-    scale factors' bias ``steps`` (``BiasSteps``) added to Q when given."""
+    scale factors' bias ``steps`` (``BiasSteps``) added to Q when given.
+
+    Parameters
+    ----------
+    sol : fusion.ins.NavSolution
+        The INS solution over the segment.
+    ends : ndarray of int (m,)
+        The sample each cycle ends at.
+    w_b, f_b : ndarray (n, 3)
+        The bias-corrected samples, rad/s and m/s^2, body RFU.
+    q : ndarray (12, 12)
+        Noise PSD.
+    steps : BiasSteps, optional
+        The scale factors as bias steps.
+
+    Returns
+    -------
+    Cycles
+        The cycles with their Phi and Q.
+    """
     starts = np.concatenate([[0], ends[:-1]])
     mid = (starts + ends) // 2
     dt = sol.t[ends] - sol.t[starts]

@@ -12,18 +12,31 @@ import importlib.util
 _loaded: dict[str, ctypes.CDLL] = {}
 
 
-def load(module: str, signatures: dict[str, list]) -> ctypes.CDLL:
+def load(module: str, signatures: dict[str, list | tuple[list, type]]) -> ctypes.CDLL:
     """The kernel ``module`` (e.g. "fieldlog.fusion._ins") with its functions' argtypes set from ``signatures``
-    (name: argtypes; every function returns nothing). Raises ImportError, naming the module, when it is not
-    built."""
+    (name: argtypes, for a function that returns nothing; or name: (argtypes, restype)). Raises ImportError,
+    naming the module, when it is not built.
+
+    Parameters
+    ----------
+    module : str
+        The kernel's module name.
+    signatures : dict
+        Each function's argtypes, or (argtypes, restype).
+
+    Returns
+    -------
+    ctypes.CDLL
+        The loaded library, once per process.
+    """
     if module not in _loaded:
         spec = importlib.util.find_spec(module)
         if spec is None or spec.origin is None:
             raise ImportError(f"fieldlog's compiled kernel {module} is not built: reinstall fieldlog "
                               "(pip install -e . builds it; needs a C compiler)", name=module)
         lib = ctypes.CDLL(spec.origin)
-        for name, argtypes in signatures.items():
+        for name, sig in signatures.items():
             fn = getattr(lib, name)
-            fn.restype, fn.argtypes = None, argtypes
+            fn.argtypes, fn.restype = sig if isinstance(sig, tuple) else (sig, None)
         _loaded[module] = lib
     return _loaded[module]

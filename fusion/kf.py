@@ -22,6 +22,7 @@ from fieldlog.fusion.errmodel import ATT, N_STATES, VEL
 from fieldlog.fusion.ins import NavState
 
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]  # (z (m,), H (m, 15), R (m, m))
+MAX_ROWS = 32  # rows of one update the compiled update takes (fusion/_cycles.c MAXM)
 
 
 @dataclass(frozen=True)
@@ -35,11 +36,66 @@ class Observation:
 
 
 def gps_observations(vel: Measurement | None, pos: Measurement | None) -> list[Observation]:
-    """The GPS velocity and position measurements given (None: left out) as observations, in that order."""
+    """The GPS velocity and position measurements given as observations, in that order.
+
+    Parameters
+    ----------
+    vel, pos : Measurement or None
+        (z, H, R) of the GPS velocity and position; None: left out.
+
+    Returns
+    -------
+    list of Observation
+        Of kind "velocity" and "position", R the receiver's own.
+    """
     return [Observation(k, m, True) for k, m in (("velocity", vel), ("position", pos)) if m is not None]
 
 
-class KalmanFilter:
+class BatchUpdates:
+    """What :class:`KalmanFilter` and ``fusion.dkf.DistributedKF`` share: one cycle's prediction through the
+    ``propagate`` and noise PSD ``q`` the filter defines, the GPS and vehicle-aid updates through its
+    ``update_batch``, and the outage notice (nothing to do)."""
+
+    def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
+        """Propagate over one filter cycle (``propagate`` of its Phi and Q, the noise PSD ``q``).
+
+        Parameters
+        ----------
+        dt : float
+            Cycle length, s.
+        ins_state : NavState
+            The INS state in the middle of the cycle.
+        imu : tuple of ndarray (3,)
+            (omega_ib_b rad/s, f_b m/s^2): the mean bias-corrected rate and specific force over the cycle, body RFU.
+        """
+        self.propagate(*cycle_matrices(dt, ins_state, imu, self.q))
+
+    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
+        """Update with the available GPS measurements (:meth:`update_batch`, velocity then position).
+
+        Parameters
+        ----------
+        vel, pos : Measurement or None
+            The GPS velocity and position measurements (z, H, R); None: left out.
+        """
+        self.update_batch(gps_observations(vel, pos))
+
+    def update_aid(self, m: Measurement) -> None:
+        """A vehicle-motion aid (``fusion.measurements``), a velocity-kind observation.
+
+        Parameters
+        ----------
+        m : Measurement
+            (z (k,), H (k, 15), R (k, k)).
+        """
+        self.update_batch([Observation("velocity", m)])
+
+    def start_outage(self) -> None:
+        """Told at each unusable GPS epoch; nothing to do for a linear filter (``fusion.ukf.HybridKfUkf`` acts
+        on it)."""
+
+
+class KalmanFilter(BatchUpdates):
     """Linear KF on the 15-state INS error (``fusion.errmodel``).
 
     P0 (15, 15) initial covariance; q (12, 12) noise PSD (``errmodel.noise_psd``); q_scale multiplies
@@ -76,16 +132,19 @@ class KalmanFilter:
         """Error covariance (15, 15)."""
         return self.P
 
-    def predict(self, dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray]) -> None:
-        """Propagate over one filter cycle of dt s.
-
-        ins_state: the INS state in the middle of the cycle; imu = (omega_ib_b, f_b), the mean
-        bias-corrected rate (rad/s) and specific force (m/s^2) over the cycle, body RFU.
-        """
-        self.propagate(*cycle_matrices(dt, ins_state, imu, self.q))
-
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Apply a sequence of discrete cycles: Phi, Q (m, 15, 15). Returns diag(P) after each, (m, 15)."""
+        """Apply a sequence of discrete cycles (the covariance compiled, ``errmodel.propagate_covariance``).
+
+        Parameters
+        ----------
+        Phi, Q : ndarray (m, 15, 15)
+            The cycles' transition matrices and process noise (``fusion.errmodel`` order and units).
+
+        Returns
+        -------
+        ndarray (m, 15)
+            diag(P) after each cycle.
+        """
         self.x = propagate_state(Phi, self.x)[-1] if len(Phi) else self.x
         hist = errmodel.propagate_covariance(Phi, Q, self.P, self.q_scale)
         if len(hist):
@@ -93,46 +152,105 @@ class KalmanFilter:
         return np.diagonal(hist, axis1=1, axis2=2).copy()
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Measurement update (Joseph form). z (m,), H (m, 15), R (m, m).
+        """Measurement update (Joseph form, :func:`joseph_update`); the gain K (15, m) is kept in ``gain``.
 
-        Returns the innovation component of the estimate, K (z - H x) (15,) (the distributed-KF
-        paper's Delta X, eq. 7).
+        Parameters
+        ----------
+        z : ndarray (m,)
+            Measurement (the observation's units, ``fusion.measurements``).
+        H : ndarray (m, 15)
+            Its sensitivity to the error state (``fusion.errmodel`` order).
+        R : ndarray (m, m)
+            Its noise covariance.
+
+        Returns
+        -------
+        ndarray (15,)
+            The innovation component of the estimate, K (z - H x) (the distributed-KF paper's Delta X, eq. 7).
         """
-        S = H @ self.P @ H.T + R
-        K = np.linalg.solve(S, H @ self.P).T
-        self.gain = K
-        dx = K @ (z - H @ self.x)
-        self.x = self.x + dx
-        A = np.eye(len(self.x)) - K @ H
-        P = A @ self.P @ A.T + K @ R @ K.T
-        self.P = 0.5 * (P + P.T)
+        self.x, self.P, self.gain, dx, _ = joseph_update(self.x, self.P, z, H, R)
         return dx
 
     def update_batch(self, obs: list[Observation]) -> None:
-        """One update with the observations' matrices stacked in their order (the centralised filter: one z)."""
+        """One update with the observations' matrices stacked in their order (the centralised filter: one z).
+
+        Parameters
+        ----------
+        obs : list of Observation
+            One epoch's observations; none: no update.
+        """
         m = stack(*(o.m for o in obs))
         if m is not None:
             self.update(*m)
-
-    def update_gps(self, vel: Measurement | None, pos: Measurement | None) -> None:
-        """Update with the available GPS measurements, z = [dv; dp] (:meth:`update_batch`)."""
-        self.update_batch(gps_observations(vel, pos))
-
-    def update_aid(self, m: Measurement) -> None:
-        """A vehicle-motion aid (``fusion.measurements``), a velocity-kind observation."""
-        self.update_batch([Observation("velocity", m)])
-
-    def start_outage(self) -> None:
-        """Told at each unusable GPS epoch; nothing to do for a linear KF (``fusion.ukf.HybridKfUkf`` acts on it)."""
 
     def reset(self) -> None:
         """Closed-loop reset after the estimate has been fed back: x = 0 (P unchanged)."""
         self.x = np.zeros(N_STATES)
 
 
+def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.ndarray,
+                  P12: np.ndarray | None = None, side: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """One Kalman update in Joseph form, compiled (fusion/_cycles.c); new arrays, the given ones left alone.
+
+    K = P H^T (H P H^T + R)^-1, dx = K (z - H x), x + dx, and sym((I - K H) P (I - K H)^T + K R K^T).
+
+    Parameters
+    ----------
+    x : ndarray (15,)
+        Error state (``fusion.errmodel`` order and units).
+    P : ndarray (15, 15)
+        Its covariance.
+    z, H, R : ndarray (m,), (m, 15), (m, m)
+        The measurement, its sensitivity to the error state and its noise covariance (at most 32 rows).
+    P12 : ndarray (15, 15), optional
+        A cross-covariance of this filter's error with another's (``fusion.dkf``): A P12 (side 0, this filter's
+        error first) or P12 A^T (side 1) after the update, A = I - K H.
+    side : int
+        0 or 1 (P12).
+
+    Returns
+    -------
+    x, P, K, dx, P12 : ndarray
+        The updated state (15,) and covariance (15, 15), the gain K (15, m), the change K (z - H x) (15,), and
+        the updated P12 (None when not given).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        When H P H^T + R is singular.
+    """
+    z, H, R = (np.ascontiguousarray(a, dtype=float) for a in (z, H, R))
+    m = len(z)
+    if H.shape != (m, N_STATES) or R.shape != (m, m) or m > MAX_ROWS:
+        raise ValueError(f"an update needs z (m,), H (m, 15), R (m, m) with m <= {MAX_ROWS}: "
+                         f"{z.shape}, {H.shape}, {R.shape}")
+    x, P = np.array(x, dtype=float), np.array(P, dtype=float, order="C")
+    K, dx = np.empty((N_STATES, m)), np.empty(N_STATES)
+    P12 = None if P12 is None else np.array(P12, dtype=float, order="C")
+    if errmodel.cycle_kernel().fieldlog_kf_update(m, z.ctypes.data, H.ctypes.data, R.ctypes.data, x.ctypes.data,
+                                                  P.ctypes.data, K.ctypes.data, dx.ctypes.data,
+                                                  None if P12 is None else P12.ctypes.data, side):
+        raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
+    return x, P, K, dx, P12
+
+
 def propagate_state(Phi: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """The error state x (15,) through the cycles Phi (m, 15, 15): x after each, (m, 15). A zero state (the closed
-    loop's, between updates) stays zero without a product."""
+    """The error state through the cycles. A zero state (the closed loop's, between updates) stays zero without a
+    product.
+
+    Parameters
+    ----------
+    Phi : ndarray (m, 15, 15)
+        The cycles' transition matrices.
+    x : ndarray (15,)
+        The state before the first.
+
+    Returns
+    -------
+    ndarray (m, 15)
+        x after each cycle.
+    """
     if not x.any():
         return np.zeros((len(Phi), len(x)))
     out = np.empty((len(Phi), len(x)))
@@ -144,14 +262,37 @@ def propagate_state(Phi: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def cycle_matrices(dt: float, ins_state: NavState, imu: tuple[np.ndarray, np.ndarray], q: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Phi, Q (1, 15, 15) of one filter cycle (``KalmanFilter.predict`` for the arguments; q the noise PSD)."""
+    """Phi, Q of one filter cycle.
+
+    Parameters
+    ----------
+    dt, ins_state, imu
+        As :meth:`KalmanFilter.predict`.
+    q : ndarray (12, 12)
+        Noise PSD (``errmodel.noise_psd``).
+
+    Returns
+    -------
+    Phi, Q : ndarray (1, 15, 15)
+    """
     C = ins_state.C_bn
     F, G = errmodel.system_matrices(ins_state.lat, ins_state.h, ins_state.v_n, C, C @ np.asarray(imu[1]))
     return errmodel.discretise(F[None], G[None], q, np.array([dt]))
 
 
 def stack(*ms: Measurement | None) -> Measurement | None:
-    """The given measurements as one (z, H, R), R block-diagonal; None when there is none."""
+    """The given measurements as one.
+
+    Parameters
+    ----------
+    *ms : Measurement or None
+        (z, H, R) each; None ones are left out.
+
+    Returns
+    -------
+    Measurement or None
+        z and H stacked in order, R block-diagonal; None when there is none.
+    """
     ms = tuple(m for m in ms if m is not None)
     if not ms:
         return None
@@ -175,7 +316,20 @@ def enu_offset(lat: float, lon: float, h: float, lat_ref: float, lon_ref: float,
 
 
 def correct_ins(nav: NavState, x: np.ndarray) -> NavState:
-    """Feed the error estimate x (15,) back into the navigation state (errors are computed - true)."""
+    """Feed the error estimate back into the navigation state (errors are computed - true).
+
+    Parameters
+    ----------
+    nav : NavState
+        The INS state.
+    x : ndarray (15,)
+        The error estimate (``fusion.errmodel`` order and units).
+
+    Returns
+    -------
+    NavState
+        The corrected state.
+    """
     rm, rn = earth.principal_radii(nav.lat, nav.h)
     lat = nav.lat - x[1] / rm
     lon = nav.lon - x[0] / (rn * np.cos(nav.lat))

@@ -1,7 +1,8 @@
 """The compiled filter cycles (fusion/_cycles.c) against their numpy reference (fusion/errmodel.py, the loops of
 fusion/kf.py and fusion/consider.py): the same numbers to the bit where numpy's BLAS sums a matrix product as
 sequential fused multiply-adds (OpenBLAS on x86-64 with FMA; the probe below checks the sizes taken); within
-rounding elsewhere."""
+rounding elsewhere. The compiled updates (Joseph form, the consider gain) and the distributed filter's fusion
+against the numpy formulas they replace, to the rounding their conditioning allows."""
 import functools
 from fractions import Fraction
 
@@ -123,3 +124,85 @@ def test_compiled_consider_cycles_equal_numpy():
         S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
         _same(out[i], S)
     _same(c.S, S)
+
+
+def _spd(rng: np.random.Generator, n: int, cond: float) -> np.ndarray:
+    """A random symmetric positive definite (n, n) matrix with eigenvalues spread over ``cond``, as a filter's."""
+    U = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    return (U * np.geomspace(1.0, 1.0 / cond, n)) @ U.T
+
+
+def _close(a: np.ndarray, b: np.ndarray, cond: float) -> None:
+    """Equal to the rounding a well-posed problem of that condition number allows (the update and fusion kernels
+    sum in their own order, not LAPACK's)."""
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a, b, rtol=0, atol=64 * cond * np.finfo(float).eps * float(np.abs(b).max()))
+
+
+@pytest.mark.parametrize("m, seed", [(1, 0), (3, 1), (6, 2), (9, 3), (32, 4)])
+def test_compiled_update_equals_numpy_joseph_form(m, seed):
+    rng = np.random.default_rng(seed)
+    P, R = _spd(rng, 15, 1e6), _spd(rng, m, 1e2)
+    H, z, x, P12 = rng.normal(size=(m, 15)), rng.normal(size=m), rng.normal(size=15), rng.normal(size=(15, 15))
+    K = np.linalg.solve(H @ P @ H.T + R, H @ P).T
+    A = np.eye(15) - K @ H
+    want = A @ P @ A.T + K @ R @ K.T
+    for side, P12_want in ((0, A @ P12), (1, P12 @ A.T)):
+        x1, P1, K1, dx, P12_1 = kf.joseph_update(x, P, z, H, R, P12, side)
+        _close(K1, K, 1e6)
+        _close(dx, K @ (z - H @ x), 1e6)
+        _close(x1, x + K @ (z - H @ x), 1e6)
+        _close(P1, 0.5 * (want + want.T), 1e6)
+        assert np.array_equal(P1, P1.T)
+        _close(P12_1, P12_want, 1e6)
+        _close(consider.gain(P, H, R), K, 1e6)
+    f = kf.KalmanFilter(P, np.eye(12))
+    f.x = x.copy()
+    dx = f.update(z, H, R)
+    assert np.array_equal(f.x, x1) and np.array_equal(f.P, P1) and np.array_equal(f.gain, K1)
+    assert np.array_equal(dx, kf.joseph_update(x, P, z, H, R)[3])
+
+
+def test_the_compiled_update_refuses_what_numpy_would():
+    rng = np.random.default_rng(5)
+    P, x = _spd(rng, 15, 10.0), np.zeros(15)
+    H = np.zeros((2, 15))
+    H[0, 0] = H[1, 0] = 1.0
+    with pytest.raises(np.linalg.LinAlgError):  # S = [[p, p], [p, p]]: singular
+        kf.joseph_update(x, np.diag(np.diag(P)), np.zeros(2), H, np.zeros((2, 2)))
+    x0, P0 = rng.normal(size=15), P + 1e-9 * rng.normal(size=(15, 15))  # no rows (a fix without finite ones)
+    x1, P1, K, dx, _ = kf.joseph_update(x0, P0, np.zeros(0), np.zeros((0, 15)), np.zeros((0, 0)))
+    assert np.array_equal(x1, x0) and np.array_equal(P1, 0.5 * (P0 + P0.T)) and K.shape == (15, 0) and not dx.any()
+    with pytest.raises(ValueError):
+        kf.joseph_update(x, P, np.zeros(33), np.zeros((33, 15)), np.eye(33))
+    with pytest.raises(ValueError):
+        kf.joseph_update(x, P, np.zeros(2), np.zeros((2, 14)), np.eye(2))
+
+
+@pytest.mark.parametrize("cross", [True, False])
+def test_compiled_fusion_equals_numpy(cross):
+    """The distributed filter's eqs. 3-4 and the error covariance with the cross-covariance, per cycle."""
+    from fieldlog.fusion import dkf
+
+    rng = np.random.default_rng(9)
+    m, cond = 4, 1e6
+    P1 = np.stack([_spd(rng, 15, cond) for _ in range(m)])
+    P2 = np.stack([_spd(rng, 15, cond) for _ in range(m)])
+    P12 = 0.1 * rng.normal(size=(m, 15, 15)) if cross else None
+    x1, x2 = rng.normal(size=(m, 15)), rng.normal(size=(m, 15))
+    x, P, Pe = dkf.fuse(P1, P2, P12, x1, x2)
+    for k in range(m):
+        I1, I2 = np.linalg.inv(P1[k]), np.linalg.inv(P2[k])
+        Pw = np.linalg.inv(I1 + I2)
+        _close(P[k], Pw, cond ** 2)
+        _close(x[k], Pw @ (I1 @ x1[k] + I2 @ x2[k]), cond ** 2)
+        assert np.array_equal(P[k], P[k].T)
+        if cross:
+            W1, W2 = Pw @ I1, Pw @ I2
+            C = W1 @ P12[k] @ W2.T
+            _close(Pe[k], W1 @ P1[k] @ W1.T + W2 @ P2[k] @ W2.T + C + C.T, cond ** 2)
+        else:
+            assert Pe is None
+    P1[1, 3, 3] = -1.0
+    with pytest.raises(np.linalg.LinAlgError):
+        dkf.fuse(P1, P2, P12, x1, x2)
