@@ -137,6 +137,8 @@ class AidConfig:
     # (false: the NHC alone; fusion.odometer, "With the NHC and without")
     odometer_lever_b: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> rear axle centre, body RFU, m
     odometer_sigma_mps: float = 0.02  # the wheel speed's sigma when the topic gives no variance
+    odometer_track_m: float = 1.6  # the car's track (left to right wheel centres) and wheelbase, m: the per-wheel
+    odometer_wheelbase_m: float = 2.7  # slip test's kinematics (fusion.odometer, "Per-wheel slip")
 
 
 @dataclass
