@@ -148,6 +148,8 @@ class AidConfig:
     estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
     # first and uses them, with the car aids on (nhc or odometer: its estimators assume a car, heading = course);
     # false: the configured values as they are
+    odometer_track_m: float = 1.6  # the car's track (left to right wheel centres) and wheelbase, m: the per-wheel
+    odometer_wheelbase_m: float = 2.7  # slip test's kinematics (fusion.odometer, "Per-wheel slip")
 
 
 @dataclass

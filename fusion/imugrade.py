@@ -135,9 +135,22 @@ BIAS_LEAN_S = 60.0  # s: the time over which the filter leans on its bias estima
 
 
 def flicker_bias(b: float, t_corr: float) -> tuple[float, float]:
-    """Standard deviation (b's unit) and equivalent random walk (b's unit per sqrt(s)) of a bias instability b
-    with correlation time t_corr (s): the more conservative of the Gauss-Markov and the flicker readings (module
-    docstring): (max(b, s), max(b sqrt(2 / T), sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S)))."""
+    """The bias process of a bias instability: the more conservative of the Gauss-Markov and the flicker readings
+    (module docstring).
+
+    Parameters
+    ----------
+    b : float
+        The bias instability B, per axis, 1 sigma, in the sensor's bias unit (deg/s or ug).
+    t_corr : float
+        Its correlation time T, s.
+
+    Returns
+    -------
+    tuple of float
+        (max(b, s), max(b sqrt(2 / T), sqrt(D(BIAS_LEAN_S) / BIAS_LEAN_S))): the bias's standard deviation, in
+        b's unit, and its equivalent random walk, in b's unit per sqrt(s).
+    """
     span = math.log(max(t_corr, FLICKER_TO_S) / FLICKER_FROM_S)
     n = 200  # midpoint rule in ln T': the integrand is smooth
     change = sum(1.0 - math.exp(-BIAS_LEAN_S / (FLICKER_FROM_S * math.exp((k + 0.5) * span / n)))
@@ -185,7 +198,18 @@ GRADES: dict[str, ImuGrade] = {
 
 
 def grade(name: str) -> ImuGrade:
-    """The grade called ``name``; ValueError listing the known ones."""
+    """A grade by name.
+
+    Parameters
+    ----------
+    name : str
+        A key of ``GRADES``.
+
+    Returns
+    -------
+    ImuGrade
+        The grade called ``name``; ValueError listing the known ones.
+    """
     if name not in GRADES:
         raise ValueError(f"unknown IMU grade {name!r}; one of {', '.join(GRADES)}")
     return GRADES[name]
@@ -198,7 +222,18 @@ def settings(table: dict) -> dict:
     that the given datasheet keys set (their companions, e.g. the correlation time of a bias instability given
     alone, from the grade's datasheet or table2-mems'), then the explicit FusionConfig keys of the table. A
     datasheet key and the FusionConfig key it sets may not both be given.
-    ValueError names the problem."""
+
+    Parameters
+    ----------
+    table : dict
+        The ``[fusion]`` table: flat keys with ``imu`` (a grade's name), datasheet keys (``DATASHEET_KEYS``, units
+        in their names) and FusionConfig keys.
+
+    Returns
+    -------
+    dict
+        The table as FusionConfig keys (units in their names); ValueError names the problem.
+    """
     sheet = {k: table[k] for k in DATASHEET_KEYS if k in table}
     name = table.get("imu", "")
     if not isinstance(name, str):
@@ -223,8 +258,19 @@ def settings(table: dict) -> dict:
 
 
 def sources(table: dict) -> dict[str, str]:
-    """For each FusionConfig key ``settings(table)`` sets from the grade or the datasheet keys (not the table's
-    own FusionConfig keys): where it came from, ``"grade NAME"`` or ``"datasheet KEY[, KEY]"``."""
+    """Where the settings of ``settings(table)`` came from.
+
+    Parameters
+    ----------
+    table : dict
+        The ``[fusion]`` table, as ``settings`` takes it.
+
+    Returns
+    -------
+    dict of str to str
+        For each FusionConfig key ``settings(table)`` sets from the grade or the datasheet keys (not the table's
+        own FusionConfig keys): ``"grade NAME"`` or ``"datasheet KEY[, KEY]"``.
+    """
     sheet = [k for k in DATASHEET_KEYS if k in table]
     name = table.get("imu", "")
     out = {k: f"grade {name}" for k in grade(name).filter_settings()} if isinstance(name, str) and name else {}

@@ -342,13 +342,16 @@ class Odometer:
     epoch it gives none (the NHC then, ``FirstOf``). ``nhc``: with the NHC's lateral and vertical zeros (else the
     forward row alone). ``car``: the IMU's mounting (:class:`CarFrame`): the rows are the car's axes, the
     mounting's sigma widens the lateral and vertical ones, and the scale fit takes the GPS velocity along the car's
-    forward axis."""
+    forward axis. With the four wheel speeds, ``wheels`` tests each (``odometer.WheelSlip``: ``track_m``,
+    ``wheelbase_m``) and the forward speed is the mean of those kept."""
 
     lever_b: np.ndarray
     sigma_mps: float
     nhc_sigma_mps: float
     nhc: bool = True
     car: CarFrame = field(default_factory=CarFrame)
+    track_m: float = 1.6
+    wheelbase_m: float = 2.7
     window_s: float = 0.3
     min_samples: int = 3
     max_age_s: float = 0.1
@@ -363,6 +366,8 @@ class Odometer:
         self._t = np.zeros(0, np.int64)
         self._v = np.zeros(0)
         self._var = np.zeros(0)
+        self._w = np.zeros((0, len(odometer.WHEELS)))
+        self.wheels = odometer.WheelSlip(odometer.wheel_positions(self.lever_b, self.track_m, self.wheelbase_m))
 
     def feed(self, block: OdomBlock) -> None:
         """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are
@@ -376,8 +381,10 @@ class Odometer:
         self._t = np.concatenate([self._t, np.asarray(block.t_ns, np.int64)[ok]])
         self._v = np.concatenate([self._v, np.asarray(block.v, float)[ok]])
         self._var = np.concatenate([self._var, np.asarray(block.var, float)[ok]])
+        w = np.full((len(ok), len(odometer.WHEELS)), np.nan) if block.wheels is None else block.wheels
+        self._w = np.concatenate([self._w, np.asarray(w, float)[ok]])
 
-    def speed_at(self, t_ns: int) -> tuple[float, float] | None:
+    def speed_at(self, t_ns: int) -> tuple[float, float, np.ndarray | None] | None:
         """The wheel speed at an epoch: the line through the window's rows, taken there (class docstring).
 
         Parameters
@@ -386,11 +393,12 @@ class Odometer:
 
         Returns
         -------
-        (speed m/s, its variance (m/s)^2 with ``sigma_mps`` added), or None without enough recent rows.
+        (speed m/s, its variance (m/s)^2 with ``sigma_mps`` added, the four wheels' speeds m/s (None: not all
+        given)), or None without enough recent rows.
         """
         keep = self._t > t_ns - int(self.window_s * 1e9)
         if not keep.all():
-            self._t, self._v, self._var = self._t[keep], self._v[keep], self._var[keep]
+            self._t, self._v, self._var, self._w = self._t[keep], self._v[keep], self._var[keep], self._w[keep]
         sel = self._t <= t_ns + int(0.02e9)
         if sel.sum() < self.min_samples or t_ns - int(self._t[sel].max()) > self.max_age_s * 1e9:
             return None
@@ -400,7 +408,10 @@ class Odometer:
         coef = np.linalg.lstsq(A, v, rcond=None)[0] if np.ptp(dt) > 0 else np.array([v.mean(), 0.0])
         var = self._var[sel]
         var = float(np.median(var[np.isfinite(var)])) if np.isfinite(var).any() else 0.0
-        return float(coef[0]), var + self.sigma_mps ** 2
+        w = self._w[sel]
+        wheels = (np.linalg.lstsq(A, w, rcond=None)[0][0] if np.ptp(dt) > 0 else w.mean(axis=0)
+                  ) if np.isfinite(w).all() else None
+        return float(coef[0]), var + self.sigma_mps ** 2, wheels
 
     def compute_matrices(self, m: Moment) -> kf.Measurement | None:
         """The wheel speed with the NHC's zeros in the car's axes (class docstring).
@@ -417,14 +428,22 @@ class Odometer:
         got = self.speed_at(m.epoch.t_ns)
         if got is None:
             return None
-        v_wheel, var = got
+        v_wheel, var, wheels = got
         C_nb = m.nav.C_bn.T
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
-        z, H, R = odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v_wheel, var, self.scale.scale,
-                                                self.scale.sigma, self.nhc_sigma_mps)
+        def measure(v: float) -> kf.Measurement:
+            return odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v, var, self.scale.scale,
+                                                 self.scale.sigma, self.nhc_sigma_mps)
+
+        z, H, R = measure(v_wheel)
+        v_kept = None if wheels is None else self.wheels.forward_speed(m.nav, omega_nb_b, self.lever_b, wheels, var,
+                                                                       float(H[1] @ m.P @ H[1]))
+        if v_kept is not None:
+            v_wheel = v_kept
+            z, H, R = measure(v_wheel)
         z, H = self.car.rotate(z, H, np.array([0.0, v_wheel / self.scale.scale, 0.0]))
         R = R + np.diag(self.car.extra_var(v_wheel / self.scale.scale))
-        if z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
+        if not math.isfinite(z[1]) or z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
             self.slip_skipped.append(m.epoch.t_ns)
             rows = [0, 2] if self.nhc else []
         else:
@@ -434,7 +453,9 @@ class Odometer:
                 v_gps = m.epoch.v_n.copy()
                 if not np.isfinite(v_gps[2]):
                     v_gps[2] = m.nav.v_n[2]
-                self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2]))
+                var_gps = float(e[:2] @ m.epoch.vel_cov[:2, :2] @ e[:2])
+                self.scale.add(m.t_fix, v_wheel, float(e @ v_gps), var_gps)
+                self.wheels.learn(m.t_fix, var_gps)
         if not rows:
             return None
         self.times.append(m.epoch.t_ns)
@@ -592,7 +613,8 @@ def aids_and_gps(cfg: FusionConfig, learnt_speed: bool = False) -> list[Measurem
     a = cfg.aids
     car = CarFrame.of(a.mounting_rpy_deg, a.mounting_sigma_deg)
     aids = ([Stationary(cfg, a.zupt_sigma_mps, cfg.sensor.gyro_noise_dps_rthz * _DEG)] if a.zupt else []) + (
-        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc, car)]
+        [Odometer(np.asarray(a.odometer_lever_b, float), a.odometer_sigma_mps, a.nhc_sigma_mps, a.nhc, car,
+                  a.odometer_track_m, a.odometer_wheelbase_m)]
         if a.odometer else []) + (
         [NonHolonomic(a.nhc_sigma_mps, a.static_speed_mps, cfg.still.still_speed_mps, car)] if a.nhc else [])
     learnt = ([VirtualOdometer(cfg.predictor, tuple(p for p in aids if not isinstance(p, NonHolonomic)))]

@@ -24,6 +24,20 @@ Slip. A wheel that slips or locks breaks v_wheel = s v: the forward row's innova
 variance (the filter's covariance through H plus R), chi^2 over one degree of freedom above ``SLIP_CHI2``
 (99.9 %), and such an epoch gives the NHC's zeros only (no wheel speed, and no sample for the scale fit).
 
+Per-wheel slip. With the four wheel speeds (``/vehicle/wheel_speeds``: front left, front right, rear left, rear
+right), each wheel is tested against what the car's motion predicts for it: its hub at r_w (``wheel_positions``:
+the rear wheels at the rear axle's centre -+ half the track along the body's right axis, the front wheels a
+wheelbase ahead) moves with C_nb v_n + omega_nb_b x r_w and rolls along its own heading (the front wheels are
+steered), so its speed is the horizontal magnitude of that velocity (``hub_speeds``): the forward speed -+ yaw
+rate x half the track for the rear pair, with the steering's part for the front. Each wheel's own scale s_w
+(``ScaleEstimator`` on the predicted hub speed, fed only while GPS is good and the wheel kept) scales the
+prediction; a wheel whose speed is off it by more than chi^2 (``SLIP_CHI2``) over the sum of the wheel speed's
+variance, the INS's forward-speed variance (s_w^2 H P H^T) and its scale's (v sigma_s_w)^2 is skipped at that
+epoch (``WheelSlip.skipped`` counts them per wheel). The forward speed is then the mean of the kept wheels, each
+taken to the rear axle's centre by the ratio of the predicted speeds; no wheel kept is a slip of the whole car.
+Below ``WHEEL_MIN_SPEED_MPS`` (the ratios are ill-conditioned) and where a drive gives one forward speed only, the
+forward speed is the topic's and no wheel is tested.
+
 With the NHC and without. The aid carries the NHC's lateral and vertical zeros (``[fusion] nhc``); with
 ``nhc = false`` it is the forward row alone, and ``[fusion] odometer = false`` leaves the NHC alone (the
 ``FirstOf`` in ``fusion.measurements``: the odometer where it has wheel speeds, the NHC elsewhere).
@@ -31,7 +45,7 @@ With the NHC and without. The aid carries the NHC's lateral and vertical zeros (
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,18 +55,99 @@ from fieldlog.fusion.ins import NavState
 
 Measurement = tuple[np.ndarray, np.ndarray, np.ndarray]
 SLIP_CHI2 = 10.83  # chi^2, 1 degree of freedom, 99.9 %: a wheel speed off the INS's forward speed by more slips
+WHEELS = ("FL", "FR", "RL", "RR")  # the order of the wheel speeds
+WHEEL_MIN_SPEED_MPS = 1.0  # no wheel is tested while a hub is slower than this (module docstring, Per-wheel slip)
 
 
 def body_velocity_at(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray) -> np.ndarray:
-    """The INS's velocity of the point ``r_b`` (body RFU axes from the IMU, m), in body axes, m/s."""
+    """The INS's velocity of a point fixed to the body.
+
+    Parameters
+    ----------
+    nav : NavState
+        The INS's state: C_bn (body RFU to ENU), v_n (ENU, m/s).
+    omega_nb_b : np.ndarray
+        (3,) the body's rate against the navigation frame, body RFU, rad/s.
+    r_b : np.ndarray
+        (3,) the point from the IMU, body RFU, m; or (k, 3) k points.
+
+    Returns
+    -------
+    np.ndarray
+        (3,) its velocity in body RFU axes, m/s; or (k, 3).
+    """
     return nav.C_bn.T @ nav.v_n + earth.cross(omega_nb_b, r_b)
+
+
+def wheel_positions(r_b: np.ndarray, track_m: float, wheelbase_m: float) -> np.ndarray:
+    """The wheels' hubs (module docstring, Per-wheel slip).
+
+    Parameters
+    ----------
+    r_b : np.ndarray
+        (3,) the rear axle's centre from the IMU, body RFU, m.
+    track_m : float
+        The distance between the left and right wheels' centres, m.
+    wheelbase_m : float
+        The distance from the rear axle to the front axle, m.
+
+    Returns
+    -------
+    np.ndarray
+        (4, 3) the hubs of the front left, front right, rear left and rear right wheels from the IMU, body RFU, m.
+    """
+    half = track_m / 2
+    return np.asarray(r_b, float) + np.array([[-half, wheelbase_m, 0.0], [half, wheelbase_m, 0.0],
+                                              [-half, 0.0, 0.0], [half, 0.0, 0.0]])
+
+
+def hub_speeds(nav: NavState, omega_nb_b: np.ndarray, r_w: np.ndarray) -> np.ndarray:
+    """The speeds the car's motion predicts for its wheels: each hub's horizontal speed, along its own heading.
+
+    Parameters
+    ----------
+    nav, omega_nb_b : NavState, np.ndarray
+        As ``body_velocity_at``.
+    r_w : np.ndarray
+        (k, 3) the hubs from the IMU, body RFU, m (``wheel_positions``).
+
+    Returns
+    -------
+    np.ndarray
+        (k,) the hubs' speeds, m/s, negative where a hub moves backwards.
+    """
+    v = body_velocity_at(nav, omega_nb_b, r_w)
+    return np.hypot(v[:, 0], v[:, 1]) * np.sign(v[:, 1])
 
 
 def odometer_measurement(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray, v_wheel: float,
                          var_wheel: float, scale: float, sigma_scale: float, sigma_nhc: float) -> Measurement:
-    """The 3-D body-velocity aid of one wheel-speed sample (module docstring). omega_nb_b (3,) rad/s: the
-    bias-corrected body rate less the navigation frame's; r_b (3,) m; v_wheel m/s (negative in reverse) and its
-    variance (m/s)^2; scale, sigma_scale: the wheels' scale factor and its sigma; sigma_nhc m/s."""
+    """The 3-D body-velocity aid of one wheel-speed sample (module docstring).
+
+    Parameters
+    ----------
+    nav : NavState
+        The INS's state: C_bn (body RFU to ENU), v_n (ENU, m/s).
+    omega_nb_b : np.ndarray
+        (3,) the bias-corrected body rate less the navigation frame's, body RFU, rad/s.
+    r_b : np.ndarray
+        (3,) the rear axle's centre from the IMU, body RFU, m.
+    v_wheel : float
+        The wheel-speed forward speed, m/s (negative in reverse).
+    var_wheel : float
+        Its variance, (m/s)^2.
+    scale : float
+        The wheels' scale factor s (v_wheel = s v_true), dimensionless.
+    sigma_scale : float
+        Its sigma, dimensionless.
+    sigma_nhc : float
+        The NHC's lateral and vertical sigma, m/s.
+
+    Returns
+    -------
+    Measurement
+        (z (3,) body RFU m/s, H (3, N_STATES), R (3, 3) (m/s)^2): the innovation, lateral, forward, vertical.
+    """
     C_nb = nav.C_bn.T
     v_meas = v_wheel / scale
     z = body_velocity_at(nav, omega_nb_b, r_b) - np.array([0.0, v_meas, 0.0])
@@ -81,7 +176,19 @@ class ScaleEstimator:
     t_last: float | None = None
 
     def add(self, t: float, v_wheel: float, v_ins: float, var_ins: float) -> None:
-        """One sample at time t (s) with GPS good: the wheel speed and the INS's forward speed (m/s) and variance."""
+        """One sample, taken while GPS is good.
+
+        Parameters
+        ----------
+        t : float
+            Its time, s (any origin, increasing).
+        v_wheel : float
+            The wheel speed, m/s.
+        v_ins : float
+            The reference forward speed (GPS-aided), m/s.
+        var_ins : float
+            The reference's variance, (m/s)^2.
+        """
         if abs(v_ins) < self.min_speed_mps or not (math.isfinite(v_wheel) and math.isfinite(v_ins)):
             return
         dt = 0.0 if self.t_last is None else max(t - self.t_last, 0.0)
@@ -112,3 +219,72 @@ class ScaleEstimator:
         independent = max(self.seconds, 1.0)
         residual = max(self.syy - self.sxy ** 2 / self.sxx, 0.0) / max(self.n - 1.0, 1.0)
         return math.sqrt(max(self.var_ins / self.n, residual) / mean_v2 / independent)
+
+
+@dataclass
+class WheelSlip:
+    """The per-wheel slip test and the forward speed of the wheels kept (module docstring, Per-wheel slip).
+
+    ``r_w`` (4, 3): the hubs from the IMU, body RFU, m (``wheel_positions``); ``tested``: the epochs the wheels
+    were tested at; ``skipped`` (4,): those each wheel (``WHEELS`` order) was skipped at."""
+
+    r_w: np.ndarray
+    tested: int = 0
+    skipped: np.ndarray = field(default_factory=lambda: np.zeros(len(WHEELS), np.int64))
+
+    def __post_init__(self) -> None:
+        self.scales = [ScaleEstimator(min_samples=30, prior_sigma=0.005) for _ in WHEELS]
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # speeds, predicted, kept
+
+    def forward_speed(self, nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray, wheels: np.ndarray,
+                      var_wheel: float, var_ins: float) -> float | None:
+        """The rear axle centre's forward speed from the wheels that pass the slip test.
+
+        Parameters
+        ----------
+        nav, omega_nb_b, r_b : NavState, np.ndarray, np.ndarray
+            As ``odometer_measurement``.
+        wheels : np.ndarray
+            (4,) the wheel speeds (``WHEELS`` order), m/s, negative in reverse.
+        var_wheel : float
+            A wheel speed's variance, (m/s)^2.
+        var_ins : float
+            The variance of the INS's forward speed at the rear axle (H P H^T of the forward row), (m/s)^2.
+
+        Returns
+        -------
+        float or None
+            The mean of the kept wheels taken to the rear axle's centre, m/s (NaN: every wheel skipped); None when
+            no wheel is tested (a wheel speed missing, or a hub slower than ``WHEEL_MIN_SPEED_MPS``).
+        """
+        self._last = None
+        pred = hub_speeds(nav, omega_nb_b, self.r_w)
+        if not np.isfinite(wheels).all() or np.min(np.abs(pred)) < WHEEL_MIN_SPEED_MPS:
+            return None
+        s = np.array([e.scale for e in self.scales])
+        sigma_s = np.array([e.sigma for e in self.scales])
+        var = var_wheel + s ** 2 * var_ins + (pred * sigma_s) ** 2
+        kept = (wheels - s * pred) ** 2 <= SLIP_CHI2 * var
+        self.tested += 1
+        self.skipped += ~kept
+        self._last = wheels, pred, kept
+        if not kept.any():
+            return math.nan
+        v_centre = body_velocity_at(nav, omega_nb_b, r_b)[1]
+        return float(np.mean(wheels[kept] * v_centre / pred[kept]))
+
+    def learn(self, t: float, var_ref: float) -> None:
+        """Feed each wheel kept at the last ``forward_speed`` to its scale estimator (call only while GPS is good).
+
+        Parameters
+        ----------
+        t : float
+            The epoch's time, s.
+        var_ref : float
+            The variance of the reference forward speed, (m/s)^2.
+        """
+        if self._last is None:
+            return
+        for est, w, p, k in zip(self.scales, *self._last):
+            if k:
+                est.add(t, float(w), float(p), var_ref)

@@ -52,11 +52,13 @@ class GpsBlock:
 @dataclass
 class OdomBlock:
     """Wheel-speed odometry rows: t_ns (n,) int64 UTC ns; v (n,) the forward speed, m/s (negative in reverse);
-    var (n,) its variance, (m/s)^2 (NaN: not given)."""
+    var (n,) its variance, (m/s)^2 (NaN: not given); wheels (n, 4) the speeds of the front left, front right, rear
+    left and rear right wheels, m/s, signed as v (NaN, or None: the drive gives the forward speed alone)."""
 
     t_ns: np.ndarray
     v: np.ndarray
     var: np.ndarray
+    wheels: np.ndarray | None = None
 
 
 @dataclass

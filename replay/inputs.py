@@ -45,6 +45,7 @@ NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
 _COUNTERS = ("samples", "gaps", "missing", "repeated", "_last_t", "_period_ns", "_first_t", "_dev_sq", "_steps",
              "longest_gap_ns", "longest_gap_at_ns")  # InputStream's
 ODOM = "/vehicle/twist"  # fieldlog's own wheel-speed odometry (forward speed in base_link, linear.x)
+WHEEL_SPEEDS = "/vehicle/wheel_speeds"  # the four wheel speeds beside ODOM (``acquire.canbus``), same stamps
 ODOM_TYPES = (messages.TWIST, messages.ODOMETRY, messages.TWIST_STAMPED)  # what --odom-topic reads: linear.x
 TF_STATIC = "/tf_static"
 HOLD_S = 1.0  # rows held back per block (Resequencer): longer than a fix's logging latency
@@ -354,13 +355,15 @@ class InputStream:
         odom = (self.imap.odom_topic,) if self.imap.odom_topic else ()
         if odom:
             names[odom[0]] = ODOM
+        wheels = (WHEEL_SPEEDS,) if odom == (ODOM,) and WHEEL_SPEEDS not in self.extra else ()
         seq = Resequencer()
         t1 = None
-        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *self.extra), self.block_s):
+        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *wheels, *self.extra), self.block_s):
             t1 = b.t1_ns
             data = dict(b.data)
+            w = data.pop(WHEEL_SPEEDS, {}) if wheels else None
             if odom and odom[0] in data:
-                data[odom[0]] = odom_rows(data[odom[0]])
+                data[odom[0]] = odom_rows(data[odom[0]], w)
             yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, data), names))
         if t1 is not None:
             yield reader.Block(t1, t1, self._canonical(seq.flush(), names))
@@ -454,13 +457,18 @@ def imu_block(imu: dict | None) -> ImuBlock:
     return ImuBlock(imu["log_time_ns"][ok], imu["omega_ib_b"][ok], imu["f_b"][ok])
 
 
-def odom_rows(d: dict) -> dict:
+def odom_rows(d: dict, wheel_speeds: dict | None = None) -> dict:
     """A decoded odometry batch (``ODOM_TYPES``) as rows: stamp_ns (header), v (forward speed, linear.x, m/s),
-    var (its covariance[0]; NaN when the type has none or it is not positive), valid."""
+    var (its covariance[0]; NaN when the type has none or it is not positive), valid; with ``wheel_speeds`` (the
+    decoded ``WHEEL_SPEEDS`` batch of the same block), wheels (n, 4) FL, FR, RL, RR m/s, signed as v, of the
+    wheel-speed message with the row's stamp (NaN where none has it)."""
     if "v_n" in d:   # TwistWithCovarianceStamped, batch-decoded
         var = d["covariance"][:, 0].copy()
-        return {"log_time_ns": d["log_time_ns"], "stamp_ns": d["stamp_ns"], "valid": d["valid"],
+        rows = {"log_time_ns": d["log_time_ns"], "stamp_ns": d["stamp_ns"], "valid": d["valid"],
                 "v": d["v_n"][:, 0].copy(), "var": np.where(var > 0, var, np.nan)}
+        if wheel_speeds is not None:
+            rows["wheels"] = _wheels_at(rows["stamp_ns"], rows["v"], wheel_speeds)
+        return rows
     n = len(d["log_time_ns"])
     stamp, v, var = np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan)
     for i, m in enumerate(d.get("msgs", [])):
@@ -475,12 +483,28 @@ def odom_rows(d: dict) -> dict:
             "v": v, "var": var}
 
 
+def _wheels_at(stamp_ns: np.ndarray, v: np.ndarray, d: dict) -> np.ndarray:
+    """(n, 4) the wheel speeds (m/s, signed as v) of the ``WHEEL_SPEEDS`` messages of ``d`` stamped as
+    ``stamp_ns`` (the last such message; NaN where none)."""
+    out = np.full((len(stamp_ns), 4), np.nan)
+    msgs = [m for m in d.get("msgs", []) if m is not None]
+    if not msgs:
+        return out
+    t = np.array([messages.join_stamp(m.header.stamp.sec, m.header.stamp.nanosec) for m in msgs], np.int64)
+    order = np.argsort(t, kind="stable")
+    t, w = t[order], np.array([m.wheel_speed for m in msgs], float)[order]
+    i = np.searchsorted(t, stamp_ns, side="right") - 1
+    hit = (i >= 0) & (t[np.maximum(i, 0)] == stamp_ns)
+    out[hit] = np.abs(w[i[hit]]) * np.where(v[hit] < 0, -1.0, 1.0)[:, None]
+    return out
+
+
 def odom_block(rows: dict | None) -> OdomBlock | None:
     """A block's odometry rows (``odom_rows``, re-sequenced) as the engine's OdomBlock; None without."""
     from fieldlog.fusion.types import OdomBlock
     if not rows or not len(rows.get("log_time_ns", ())):
         return None
-    return OdomBlock(rows["log_time_ns"], rows["v"], rows["var"])
+    return OdomBlock(rows["log_time_ns"], rows["v"], rows["var"], rows.get("wheels"))
 
 
 def canonical_blocks(path: str | os.PathLike[str], imap: InputMap, block_s: float, extra: tuple[str, ...] = ()

@@ -36,9 +36,8 @@ def test_the_boot_clock_maps_to_gps_time_by_one_offset(segment):
     assert 0.0 < np.median(lag_s) < 0.5 and np.ptp(lag_s) < 0.2, (np.median(lag_s), np.ptp(lag_s))
 
 
-def test_can_import_decodes_the_segments_wheel_speeds(segment, tmp_path):
-    """``fieldlog import --can`` of the segment's frames (a candump log by python-can) through opendbc's Toyota
-    DBC gives, frame by frame, the four wheel speeds comma's own processing gives, to the DBC's resolution."""
+def _import_can(segment, tmp_path):
+    """``fieldlog import --can`` of the segment's frames (a candump log by python-can): the imported file."""
     from fieldlog.tools.cli import main as fieldlog
 
     log = write_candump(segment, tmp_path / "wheels.log")
@@ -47,6 +46,13 @@ def test_can_import_decodes_the_segments_wheel_speeds(segment, tmp_path):
     for key, ref in WHEEL_SIGNALS.items():
         args += ["--signal", f"{key}={ref}"]
     assert fieldlog(args) == 0
+    return out
+
+
+def test_can_import_decodes_the_segments_wheel_speeds(segment, tmp_path):
+    """``fieldlog import --can`` of the segment's frames (a candump log by python-can) through opendbc's Toyota
+    DBC gives, frame by frame, the four wheel speeds comma's own processing gives, to the DBC's resolution."""
+    out = _import_can(segment, tmp_path)
     w = reader.read_topic(out, "/vehicle/wheel_speeds")
     wheels = np.array([m.wheel_speed for m in w["msgs"]])
     want = segment["wheel_speed"]
@@ -144,6 +150,23 @@ def test_the_wheel_scale_is_estimated_with_its_sigma(segment, drive, tmp_path, c
     assert abs(scale - ratio) < 3 * sigma, (scale, sigma, ratio)
     assert sigma > 3 * DBC_RESOLUTION_MPS / np.sqrt(12) / np.mean(v_ref[fast]), sigma  # not the quantisation
     assert summary["odometer_slip_skipped"] < 0.05 * len(segment["gnss_t"]), summary["odometer_slip_skipped"]
+
+
+def test_no_wheel_slips_on_the_ordinary_drive(segment, tmp_path, capsys):
+    """The segment with its four CAN wheel speeds (the imported file beside the IMU and fixes: one drive of two
+    files, ``/vehicle/twist`` and ``/vehicle/wheel_speeds`` found as fieldlog's own): the wheels are tested for
+    slip at most GPS epochs, and none is skipped at more than 5 % of them on this ordinary drive."""
+    from fieldlog.tools.cli import main as fieldlog
+
+    imported = _import_can(segment, tmp_path)
+    base = write_drive(segment, tmp_path / "drive.mcap", odometer=False)
+    capsys.readouterr()
+    assert fieldlog(["fuse", str(base), str(imported), "--method", "kf", "--out", str(tmp_path / "kf.mcap"),
+                     "--imu-topic", IMU_TOPIC, "--fix-topic", FIX_TOPIC, "--vel-topic", VEL_TOPIC, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    tested, skipped = summary["odometer_wheel_epochs"], summary["odometer_wheels_skipped"]
+    assert tested > 0.5 * len(segment["gnss_t"]), (tested, len(segment["gnss_t"]))
+    assert max(skipped.values()) < 0.05 * tested, (skipped, tested)
 
 
 def test_nhc_and_odometer_switch_off_one_by_one(drive, tmp_path):

@@ -45,7 +45,7 @@ from fieldlog.drive.files import DriveSpec, label
 from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.drive.recorder import Recorder
 from fieldlog.acquire import calib
-from fieldlog.fusion import adaptive, earth, hinf, installation, measurements
+from fieldlog.fusion import adaptive, earth, hinf, installation, measurements, odometer
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
@@ -272,9 +272,12 @@ def run_record(drive: DriveSpec, method: str, config: FusionConfig, inputs: Inpu
 
 def odometer_summary(engine: Engine) -> dict[str, float] | None:
     """The wheel odometer's fitted scale factor and its sigma (``fusion.odometer.ScaleEstimator``), the epochs it
-    updated at and those among them skipped as slip; None when the run had no odometer or no wheel speed."""
+    updated at, those among them skipped as slip, those the four wheels were tested at and those each wheel (FL,
+    FR, RL, RR) was skipped at (``fusion.odometer.WheelSlip``); None when the run had no odometer or no wheel speed."""
     odo = [p for m in engine.measurements for p in getattr(m, "parts", (m,)) if isinstance(p, measurements.Odometer)]
     if not odo or not odo[0].times:
         return None
     return {"scale": odo[0].scale.scale, "scale_sigma": odo[0].scale.sigma, "epochs": len(odo[0].times),
-            "slip_skipped": len(odo[0].slip_skipped)}
+            "slip_skipped": len(odo[0].slip_skipped),
+            "wheel_epochs": odo[0].wheels.tested,
+            "wheels_skipped": dict(zip(odometer.WHEELS, odo[0].wheels.skipped.tolist()))}

@@ -80,6 +80,8 @@ def run(a: argparse.Namespace) -> int:
                    odometer_scale=res.odometer["scale"] if res.odometer else None,
                    odometer_scale_sigma=res.odometer["scale_sigma"] if res.odometer else None,
                    odometer_slip_skipped=res.odometer["slip_skipped"] if res.odometer else None,
+                   odometer_wheel_epochs=res.odometer["wheel_epochs"] if res.odometer else None,
+                   odometer_wheels_skipped=res.odometer["wheels_skipped"] if res.odometer else None,
                    predictor_mode=config.get("predictor_mode"), virtual_odometer=res.virtual_odometer,
                    noise=noise_sources(st, res),
                    wall_s=round(time.monotonic() - t0, 3))
@@ -107,7 +109,8 @@ def run(a: argparse.Namespace) -> int:
         if res.odometer:
             o = res.odometer
             log.info(f"odometer: wheel-speed scale {o['scale']:.5f} +- {o['scale_sigma']:.5f} (1 sigma), "
-                     f"{o['epochs']} epochs, {o['slip_skipped']} of them skipped as slip")
+                     f"{o['epochs']} epochs, {o['slip_skipped']} of them skipped as slip; wheels tested at "
+                     f"{o['wheel_epochs']}, skipped " + ", ".join(f"{k} {n}" for k, n in o["wheels_skipped"].items()))
         if res.virtual_odometer:
             v = res.virtual_odometer
             skill = "none yet" if v["held_out_skill"] is None else f"{v['held_out_skill']:.2f}"

@@ -8,7 +8,9 @@ front at (-+track/2, wheelbase, 0)); its speed is the horizontal magnitude of v_
 own heading; front wheels are steered) and it reports that times (1 + its tyre-radius scale error: a common
 part, drawn in +-``tyre_scale_max`` or set by ``tyre_scale``, plus each wheel's own) times (1 + its slip),
 quantised by the DBC signal's resolution. Slip: the driven front wheels spin up by ``traction_slip`` x (a / g)^2
-under acceleration a > 0, every wheel locks up by ``brake_slip`` x (a / g)^2 when braking. The road wheel angle is the bicycle model's atan(wheelbase x yaw rate / speed).
+under acceleration a > 0, every wheel locks up by ``brake_slip`` x (a / g)^2 when braking; a scenario's
+``[vehicle] spin_wheel`` makes one wheel spin by ``spin_ratio`` for ``spin_s`` from ``spin_start_s`` (a slip event
+the odometer's per-wheel test must find). The road wheel angle is the bicycle model's atan(wheelbase x yaw rate / speed).
 
 Timing: each ECU samples at its own rate with a random phase; a frame reaches the bus ``latency_s`` plus a
 uniform jitter in [0, ``jitter_s``) after its sample; the adapter stamps the frame's end with its own ms clock
@@ -27,6 +29,7 @@ from fieldlog.acquire import can, canbus
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.acquire.pipeline import RawRead
 from fieldlog.fusion import earth
+from fieldlog.fusion.odometer import WHEELS
 from fieldlog.tools.sim.emit import HostClock, serial_reads
 
 NS = 1_000_000_000
@@ -53,6 +56,10 @@ class CanSimConfig:
     tyre_scale: float | None = None     # the common scale error instead of the draw (the draw is made still)
     traction_slip: float = 0.2          # slip ratio per (a/g)^2 of the driven (front) wheels accelerating
     brake_slip: float = 0.1             # ... of every wheel braking
+    spin_wheel: str = ""                # a wheel (FL, FR, RL, RR) that spins: its speed x (1 + spin_ratio) ...
+    spin_start_s: float = 0.0           # ... from this time, s from the drive's start, ...
+    spin_s: float = 2.0                 # ... for this long (none: "")
+    spin_ratio: float = 0.2
     latency_s: float = 0.004            # sample -> bus (ECU processing)
     jitter_s: float = 0.002
     adapter_ppm: float = 30.0           # the adapter's ms clock runs this fast
@@ -72,7 +79,10 @@ def from_scenario(table: dict) -> tuple[bool, CanSimConfig]:
     can_on = d.pop("can", False)
     if not isinstance(can_on, bool):
         raise ConfigError(f"[vehicle] can: expected true or false, got {can_on!r}")
-    return can_on, from_table(CanSimConfig, "vehicle", d)
+    cfg = from_table(CanSimConfig, "vehicle", d)
+    if cfg.spin_wheel not in ("", *WHEELS):
+        raise ConfigError(f"[vehicle] spin_wheel: expected one of {', '.join(WHEELS)}, got {cfg.spin_wheel!r}")
+    return can_on, cfg
 
 
 def bus_config(cfg: CanSimConfig | None = None) -> canbus.BusConfig:
@@ -125,6 +135,9 @@ def can_frames(truth, duration_s: float, cfg: CanSimConfig, rng: np.random.Gener
     slip = np.zeros((len(t_ws), 4))
     slip[:, :2] += np.where(a_g > 0, cfg.traction_slip * a_g ** 2, 0.0)[:, None]
     slip -= np.where(a_g < 0, cfg.brake_slip * a_g ** 2, 0.0)[:, None]
+    if cfg.spin_wheel:
+        spinning = (t_ws >= cfg.spin_start_s) & (t_ws < cfg.spin_start_s + cfg.spin_s)
+        slip[spinning, WHEELS.index(cfg.spin_wheel)] += cfg.spin_ratio
     reported = np.abs(w["wheels"]) * (1 + scale) * (1 + slip)
     res = [s.scale for s in m_ws.signals]
     raw = np.clip(np.round(reported * 3.6 / np.array(res)), 0, 65535).astype(int)
