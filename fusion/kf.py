@@ -197,11 +197,11 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
 
     Parameters
     ----------
-    x : ndarray (15,)
-        Error state (``fusion.errmodel`` order and units).
-    P : ndarray (15, 15)
+    x : ndarray (n,)
+        Error state (``fusion.errmodel`` order and units; n = 15 compiled, an augmented state in numpy).
+    P : ndarray (n, n)
         Its covariance.
-    z, H, R : ndarray (m,), (m, 15), (m, m)
+    z, H, R : ndarray (m,), (m, n), (m, m)
         The measurement, its sensitivity to the error state and its noise covariance (at most 32 rows).
     P12 : ndarray (15, 15), optional
         A cross-covariance of this filter's error with another's (``fusion.dkf``): A P12 (side 0, this filter's
@@ -221,10 +221,16 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
         When H P H^T + R is singular.
     """
     z, H, R = (np.ascontiguousarray(a, dtype=float) for a in (z, H, R))
-    m = len(z)
-    if H.shape != (m, N_STATES) or R.shape != (m, m) or m > MAX_ROWS:
-        raise ValueError(f"an update needs z (m,), H (m, 15), R (m, m) with m <= {MAX_ROWS}: "
+    m, n = len(z), len(x)
+    if H.shape != (m, n) or R.shape != (m, m) or m > MAX_ROWS or (n != N_STATES and P12 is not None):
+        raise ValueError(f"an update needs z (m,), H (m, {n}), R (m, m) with m <= {MAX_ROWS}: "
                          f"{z.shape}, {H.shape}, {R.shape}")
+    if n != N_STATES:  # an augmented state (fusion.gpserror's GPS error states): the same formulas in numpy
+        K = np.linalg.solve(H @ P @ H.T + R, H @ P).T
+        dx = K @ (z - H @ x)
+        A = np.eye(n) - K @ H
+        P = A @ P @ A.T + K @ R @ K.T
+        return x + dx, 0.5 * (P + P.T), K, dx, None
     x, P = np.array(x, dtype=float), np.array(P, dtype=float, order="C")
     K, dx = np.empty((N_STATES, m)), np.empty(N_STATES)
     P12 = None if P12 is None else np.array(P12, dtype=float, order="C")

@@ -431,6 +431,7 @@ class Odometer:
         v_wheel, var, wheels = got
         C_nb = m.nav.C_bn.T
         omega_nb_b = m.omega_b - C_nb @ earth.omega_ie_n(m.nav.lat)
+
         def measure(v: float) -> kf.Measurement:
             return odometer.odometer_measurement(m.nav, omega_nb_b, self.lever_b, v, var, self.scale.scale,
                                                  self.scale.sigma, self.nhc_sigma_mps)
@@ -438,12 +439,13 @@ class Odometer:
         z, H, R = measure(v_wheel)
         v_kept = None if wheels is None else self.wheels.forward_speed(m.nav, omega_nb_b, self.lever_b, wheels, var,
                                                                        float(H[1] @ m.P @ H[1]))
-        if v_kept is not None:
+        every_wheel_slips = v_kept is not None and not math.isfinite(v_kept)  # then the NHC rows alone
+        if v_kept is not None and not every_wheel_slips:
             v_wheel = v_kept
             z, H, R = measure(v_wheel)
         z, H = self.car.rotate(z, H, np.array([0.0, v_wheel / self.scale.scale, 0.0]))
         R = R + np.diag(self.car.extra_var(v_wheel / self.scale.scale))
-        if not math.isfinite(z[1]) or z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
+        if every_wheel_slips or z[1] ** 2 > odometer.SLIP_CHI2 * (H[1] @ m.P @ H[1] + R[1, 1]):
             self.slip_skipped.append(m.epoch.t_ns)
             rows = [0, 2] if self.nhc else []
         else:
