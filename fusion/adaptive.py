@@ -104,7 +104,14 @@ class Adaptation:
 
     def still_start(self, intervals: list[tuple[align.ImuSums, float]]) -> None:
         """The parked start's intervals (their IMU sums and seconds, ``fusion.align.Alignment.static_intervals``):
-        a density of ``still_densities`` above the configured one replaces it in Q."""
+        a density of ``still_densities`` above the configured one replaces it in Q.
+
+        Parameters
+        ----------
+        intervals : list of (ImuSums, float)
+            Each parked interval in time order: its IMU sums (rate rad/s and specific force m/s^2 summed over its
+            samples, body RFU) and its length, s. Fewer than 3 intervals with samples change nothing.
+        """
         full = [(s, dt) for s, dt in intervals if s.n and dt > 0]
         if len(full) < 3:
             return
@@ -129,8 +136,24 @@ class Adaptation:
         return out
 
     def before(self, obs: list[kf.Observation], x: np.ndarray, P: np.ndarray) -> list[kf.Observation]:
-        """A fix's observations before the update (x (15,), P (15, 15) the prior): the receiver's R scaled by
-        lambda_R of its kind, the innovations' NIS summed; returns the observations to update with."""
+        """A fix's observations before the update: the receiver's R scaled by lambda_R of its kind, the
+        innovations' NIS summed.
+
+        Parameters
+        ----------
+        obs : list of Observation
+            The fix's observations (``fusion.kf.Observation``); only the receiver's ``KIND`` ones are adapted.
+        x : np.ndarray
+            (15,) the prior error state (``fusion.errmodel`` order and units).
+        P : np.ndarray
+            (15, 15) its covariance.
+
+        Returns
+        -------
+        list of Observation
+            The observations to update with, in the given order: the receiver's velocities with R (m/s)^2 times
+            lambda_R, the others as given.
+        """
         out = [kf.Observation(o.kind, (o.m[0], o.m[1], o.m[2] * self.r_scale[KIND]), o.receiver)
                if o.receiver and o.kind == KIND else o for o in obs]
         rec = [o for o in out if o.receiver and o.kind == KIND]
@@ -143,7 +166,15 @@ class Adaptation:
         return out
 
     def after(self, x: np.ndarray, P: np.ndarray) -> None:
-        """After the update (x (15,), P (15, 15) the posterior): the residuals summed; a full window rescales."""
+        """After the update: the residuals summed; a full window rescales.
+
+        Parameters
+        ----------
+        x : np.ndarray
+            (15,) the posterior error state (``fusion.errmodel`` order and units), before the feedback resets it.
+        P : np.ndarray
+            (15, 15) its covariance.
+        """
         for o in self._pending:
             z, H, R = o.m
             eps = z - H @ x
@@ -170,9 +201,16 @@ class Adaptation:
         self.windows += 1
 
     def figures(self) -> dict[str, tuple[float, str]]:
-        """The white densities the run ended with: key -> (value in the key's unit, where it came from:
-        ``CONFIGURED``, or the still start's estimate, with the adaptation's factor when it scaled Q), and the
-        receiver's velocity variance factor (``gnss_velocity_variance_scale``)."""
+        """The white densities the run ended with, and the receiver's velocity variance factor.
+
+        Returns
+        -------
+        dict
+            Key -> (value, source). ``gyro_noise_dps_rthz`` (deg/s/sqrt(Hz)) and ``accel_noise_ug_rthz``
+            (ug/sqrt(Hz)): the density in Q, sqrt(lambda_Q) times the configured one or the still start's; their
+            source ``CONFIGURED`` or the still start's estimate, with the adaptation's factor when it scaled Q.
+            ``gnss_velocity_variance_scale``: lambda_R, dimensionless, ``CONFIGURED`` (1) before a window closed.
+        """
         root = math.sqrt(self.q_scale)
         out = {k: (v * root, src if self.q_scale == 1.0 else
                    f"{src}, adapted x{root:.3g} from the GNSS velocity innovations over {self.windows} windows")

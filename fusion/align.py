@@ -388,7 +388,14 @@ class Alignment:
     def configured(self) -> Aligned:
         """The initial state from the config at the first IMU sample (t = 0): ``init_position_llh`` (IMU, not the
         antenna), ``init_velocity_enu`` (0: standing), ``init_attitude_deg``, with their sigmas; the gyro bias 0
-        with its prior sigma (no static mean: the filter learns it)."""
+        with its prior sigma (no static mean: the filter learns it).
+
+        Returns
+        -------
+        Aligned
+            nav at t = 0 s (lat, lon rad, h m, v_n ENU m/s, attitude body RFU -> ENU); bg (3,) zero, rad/s;
+            P0 (15, 15) diagonal, ``fusion.errmodel`` order and units squared.
+        """
         c = self.cfg
         roll, pitch, heading = (x * _DEG for x in c.init.init_attitude_deg)
         lat, lon, h = c.init.init_position_llh[0] * _DEG, c.init.init_position_llh[1] * _DEG, float(c.init.init_position_llh[2])

@@ -59,7 +59,14 @@ class SensorConfig:
     # every IMU stamp; `fuse` estimates it from the drive (fusion.installation) with this as its start value
 
     def noise_psd(self) -> np.ndarray:
-        """The filter's noise PSD (12, 12) (``fusion.errmodel.noise_psd``) in SI units."""
+        """The filter's noise PSD (12, 12) (``fusion.errmodel.noise_psd``) in SI units.
+
+        Returns
+        -------
+        np.ndarray
+            (12, 12) diagonal: gyro and accelerometer white noise, (rad/s)^2/Hz and (m/s^2)^2/Hz, then the gyro
+            and accelerometer bias random walks, (rad/s)^2/s and (m/s^2)^2/s, three axes each.
+        """
         return errmodel.noise_psd(self.gyro_noise_dps_rthz * _DEG, self.accel_noise_ug_rthz * _UG,
                                   self.gyro_bias_rw_dps_rts * _DEG, self.accel_bias_rw_ug_rts * _UG)
 
@@ -79,7 +86,13 @@ class GpsConfig:
     gps_error_white_share: float = 0.15  # gm-states: share of the fix's variance that is white (the rest correlated)
 
     def lever_rfu(self) -> np.ndarray:
-        """The lever arm IMU -> antenna (3,) in body RFU, m."""
+        """The lever arm IMU -> antenna (3,) in body RFU, m.
+
+        Returns
+        -------
+        np.ndarray
+            (3,) ``lever_arm_b`` rotated from ``lever_arm_frame`` into body RFU, m.
+        """
         return earth.C_rfu_from(self.lever_arm_frame) @ np.asarray(self.lever_arm_b, dtype=float)
 
 
@@ -239,7 +252,13 @@ class FusionConfig:
         return self.predictor if key == "predictor" else getattr(getattr(self, FLAT_KEYS[key]), key)
 
     def flat(self) -> dict[str, Any]:
-        """Every setting by its flat key (``predictor`` as a dict), in section order."""
+        """Every setting by its flat key (``predictor`` as a dict), in section order.
+
+        Returns
+        -------
+        dict
+            Flat key -> value, in the unit its field names; ``predictor`` -> the ``PredictorConfig`` as a dict.
+        """
         out: dict[str, Any] = {}
         for s in SECTIONS:
             out.update(dataclasses.asdict(getattr(self, s)))
@@ -247,7 +266,13 @@ class FusionConfig:
         return out
 
     def validate(self) -> FusionConfig:
-        """Self, when every value is in range; else ValueError naming the key, ``[fusion] KEY: ...``."""
+        """Self, when every value is in range; else ValueError naming the key, ``[fusion] KEY: ...``.
+
+        Returns
+        -------
+        FusionConfig
+            Self, unchanged (for chaining).
+        """
         g, i, f = self.gps, self.init, self.filter
         if g.lever_arm_frame.lower() not in ("rfu", "flu", "frd"):
             raise ValueError(f"[fusion] lever_arm_frame: one of rfu, flu, frd, got {g.lever_arm_frame!r}")
@@ -292,5 +317,11 @@ class FusionConfig:
 
 
 def known_keys() -> list[str]:
-    """The flat keys of a ``[fusion]`` table."""
+    """The flat keys of a ``[fusion]`` table.
+
+    Returns
+    -------
+    list of str
+        Every section's field names in section order, then ``predictor``.
+    """
     return [*FLAT_KEYS, "predictor"]

@@ -90,7 +90,20 @@ class Engine:
         self.status = output.StatusBook(self.cfg.filter)  # the rows' status, and before the alignment its own
 
     def used(self, name: str, times: str = "times") -> tuple[int, ...]:
-        """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at)."""
+        """Epochs (UTC ns) of the measurement class ``name``'s list ``times`` (default: those it updated at).
+
+        Parameters
+        ----------
+        name : str
+            The class name of a measurement of the method's (those inside a ``FirstOf`` count), e.g. "Stationary".
+        times : str
+            The name of that measurement's list of epochs, e.g. "zaru_skipped".
+
+        Returns
+        -------
+        tuple of int
+            The epochs, UTC ns, in the order recorded; empty when the method has no such measurement.
+        """
         return tuple(t for p in self._parts() if p.__class__.__name__ == name for t in getattr(p, times))
 
     def _parts(self) -> list[measurements.MeasurementModel]:
@@ -99,7 +112,25 @@ class Engine:
 
     def process(self, imu: ImuBlock, gps: GpsBlock, odom: OdomBlock | None = None) -> tuple[Solution, list[Outage]]:
         """Consume the next block (``odom``: wheel speeds, for measurements that ``feed``): its rows, closed outages.
-        The IMU's stamps are taken on the GPS's time: less ``[fusion] imu_time_offset_s``."""
+        The IMU's stamps are taken on the GPS's time: less ``[fusion] imu_time_offset_s``.
+
+        Parameters
+        ----------
+        imu : ImuBlock
+            The next IMU samples: stamps UTC ns, rate rad/s, specific force m/s^2, body RFU; rows with a non-finite
+            value are dropped.
+        gps : GpsBlock
+            The next GPS epochs (UTC ns, ENU covariances and velocities).
+        odom : OdomBlock or None
+            The next wheel-speed rows (UTC ns, m/s); None: none.
+
+        Returns
+        -------
+        (Solution, list of Outage)
+            The rows up to the last covariance-cycle start in this block (the tail waits for the next block or
+            :meth:`finish`; before the alignment no rows, only their status), and the outage windows closed since
+            the last call.
+        """
         if odom is not None and len(odom.t_ns):
             for p in self._parts():
                 if hasattr(p, "feed"):
@@ -155,7 +186,14 @@ class Engine:
             p.feed_imu(w, f, i0, i1, self._imu_dt)
 
     def finish(self) -> tuple[Solution, list[Outage]]:
-        """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed)."""
+        """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed).
+
+        Returns
+        -------
+        (Solution, list of Outage)
+            The rows held back (none before the alignment), and the outage windows not yet returned, one still
+            open closed at the last IMU sample.
+        """
         sol = Solution.concat([])
         if self._carry is not None and self.nav is not None:
             t_ns, w, f = self._carry

@@ -205,7 +205,13 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
 
 @functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices, covariance cycles, updates and fusion (fusion/_cycles.c), loaded once."""
+    """The compiled cycle matrices, covariance cycles, updates and fusion (fusion/_cycles.c), loaded once.
+
+    Returns
+    -------
+    ctypes.CDLL
+        The library, its ``fieldlog_*`` functions' argument and return types set.
+    """
     p, i64, f64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int32
     return kernels.load("fieldlog.fusion._cycles", {
         "fieldlog_cycle_matrices": [i64, f64] + [p] * 8,

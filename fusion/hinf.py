@@ -52,7 +52,12 @@ class GammaTooSmall(ValueError):
 
 
 def position_velocity_weights() -> np.ndarray:
-    """Default L (6, 15): picks the position (m) and velocity (m/s) errors."""
+    """Default L (6, 15): picks the position (m) and velocity (m/s) errors.
+
+    Returns
+    -------
+    (6, 15) ndarray, [I 0]: z = L x is the position error (ENU, m) then the velocity error (ENU, m/s).
+    """
     L = np.zeros((6, N_STATES))
     L[:, 0:6] = np.eye(6)
     return L
@@ -99,7 +104,13 @@ class HInfinityFilter(KalmanFilter):
 
     def inflated(self) -> np.ndarray:
         """Pbar = H_k^-1 = (P^-1 - gamma_k^-2 L^T L)^-1 (15, 15); raises GammaTooSmall if H_k is not > 0
-        (fixed gamma only)."""
+        (fixed gamma only).
+
+        Returns
+        -------
+        (15, 15) ndarray, Pbar, symmetric, ``fusion.errmodel`` order and units squared; gamma_k is gamma, or
+        ``min_ratio`` times the existence bound when that is larger.
+        """
         S = np.linalg.cholesky(self.P)
         LS = self.L @ S
         lt_l = LS.T @ LS  # S^T L^T L S; the bound is sqrt of its largest eigenvalue

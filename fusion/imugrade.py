@@ -99,7 +99,13 @@ class ImuGrade:
     accel_misalignment_mrad: float
 
     def simulator(self) -> dict[str, float]:
-        """The grade as the simulator's ``[imu]`` keys (``tools.sim.sensors.ImuErrorConfig``)."""
+        """The grade as the simulator's ``[imu]`` keys (``tools.sim.sensors.ImuErrorConfig``).
+
+        Returns
+        -------
+        dict of str to float
+            Key -> value in the unit its name says (deg/s/sqrt(Hz), deg/s, ug/sqrt(Hz), ug, ppm, mrad).
+        """
         return dict(gyro_noise_density_dps_rthz=self.gyro_arw_deg_rth / 60.0,
                     gyro_bias_instability_dps=self.gyro_bias_instability_dph / 3600.0,
                     gyro_turn_on_bias_dps=self.gyro_turn_on_bias_dph / 3600.0,
@@ -112,7 +118,15 @@ class ImuGrade:
                     accel_misalignment_mrad=self.accel_misalignment_mrad)
 
     def filter_settings(self) -> dict[str, float]:
-        """The datasheet converted into FusionConfig keys (module docstring)."""
+        """The datasheet converted into FusionConfig keys (module docstring).
+
+        Returns
+        -------
+        dict
+            Flat FusionConfig key -> value in the unit its name says: the white noise and bias random walk
+            densities, the initial bias sigmas, the scale factors and misalignments, and ``scale_factor_model``
+            "bias-steps".
+        """
         s_g, q_g = flicker_bias(self.gyro_bias_instability_dph / 3600.0, self.gyro_bias_corr_time_s)
         s_a, q_a = flicker_bias(self.accel_bias_instability_ug, self.accel_bias_corr_time_s)
         out = dict(gyro_noise_dps_rthz=self.gyro_arw_deg_rth / 60.0,

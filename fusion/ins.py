@@ -48,7 +48,12 @@ class NavState:
 
     @cached_property
     def C_bn(self) -> np.ndarray:
-        """DCM body RFU -> ENU (computed once: a state is replaced, never changed in place)."""
+        """DCM body RFU -> ENU (computed once: a state is replaced, never changed in place).
+
+        Returns
+        -------
+        (3, 3) ndarray, C_bn of ``q``: v_n = C_bn v_b.
+        """
         return earth.quat_to_dcm(self.q)
 
 
@@ -79,7 +84,13 @@ class NavSolution:
                         self.v_n[i].copy(), self.q[i].copy())
 
     def euler(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(heading, pitch, roll) in rad at every sample."""
+        """(heading, pitch, roll) in rad at every sample.
+
+        Returns
+        -------
+        heading, pitch, roll : (n,) ndarrays, rad (``fusion.earth.dcm_to_euler``): heading clockwise from north
+            in [0, 2 pi), pitch nose-up, roll right-side-down.
+        """
         return earth.dcm_to_euler(earth.quat_to_dcm(self.q))
 
 

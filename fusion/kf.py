@@ -316,7 +316,25 @@ def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
 
 
 def enu_offset(lat: float, lon: float, h: float, lat_ref: float, lon_ref: float, h_ref: float) -> np.ndarray:
-    """Small ENU displacement (m) of (lat, lon, h) from (lat_ref, lon_ref, h_ref) (rad, rad, m)."""
+    """Small ENU displacement (m) of (lat, lon, h) from (lat_ref, lon_ref, h_ref) (rad, rad, m).
+
+    Parameters
+    ----------
+    lat, lon : float
+        The point's geodetic latitude and longitude, rad.
+    h : float
+        Its ellipsoidal height, m.
+    lat_ref, lon_ref : float
+        The reference's latitude and longitude, rad.
+    h_ref : float
+        Its ellipsoidal height, m.
+
+    Returns
+    -------
+    ndarray (3,)
+        [E, N, U], m: the differences scaled by the principal radii at the reference (a flat-Earth step, for
+        offsets small against the Earth's radius).
+    """
     rm, rn = earth.principal_radii(lat_ref, h_ref)
     return np.array([(lon - lon_ref) * rn * np.cos(lat_ref), (lat - lat_ref) * rm, h - h_ref])
 

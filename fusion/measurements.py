@@ -552,7 +552,14 @@ class VirtualOdometer:
 
     def summary(self) -> dict:
         """The model in use (``fusion.pseudo.SpeedModel.CANDIDATES``), held-out skill and R (m/s, as a sigma),
-        residuals scored, epochs trained, outage epochs it ran at, and the skill at each outage's start."""
+        residuals scored, epochs trained, outage epochs it ran at, and the skill at each outage's start.
+
+        Returns
+        -------
+        dict, for the run's report: ``model`` (str); ``held_out_skill`` (dimensionless) and ``held_out_sigma_mps``
+        (m/s), None before any residual; ``scored``, ``trained`` and ``epochs_used`` (counts); ``ran`` (bool);
+        ``outage_skills`` (list, None where not yet scored).
+        """
         r = self.held_out.R
         return dict(model=pseudo.SpeedModel.CANDIDATES[self.held_out.best],
                     held_out_skill=_finite(self.held_out.skill), held_out_sigma_mps=_finite(math.sqrt(r)),

@@ -94,7 +94,14 @@ class OutageTracker:
             self._open = None
 
     def take(self) -> list[Outage]:
-        """The windows not yet returned."""
+        """The windows not yet returned.
+
+        Returns
+        -------
+        list of Outage
+            The outages closed since the last call, in time order ([start_ns, end_ns) UTC); the tracker forgets
+            them.
+        """
         out, self._outages = self._outages, []
         return out
 

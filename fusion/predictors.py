@@ -400,6 +400,15 @@ class Rls:
         self.updates = 0
 
     def update(self, phi: np.ndarray, y: float) -> None:
+        """One sample: the weights moved towards y, the past discounted by ``forget``.
+
+        Parameters
+        ----------
+        phi : np.ndarray
+            (n,) the sample's feature row.
+        y : float
+            Its target, in the output's unit.
+        """
         Pphi = self.P @ phi
         k = Pphi / (self.forget + phi @ Pphi)
         self.w = self.w + k * (y - phi @ self.w)
@@ -497,7 +506,15 @@ class OnlineChannel:
         return bool(xn < self.c[0] - self.s[0] or xn > self.c[-1] + self.s[-1])
 
     def step(self, U: np.ndarray, y: float) -> None:
-        """One RLS update with the newest sample: U the input series (the last one is current), y its target."""
+        """One RLS update with the newest sample.
+
+        Parameters
+        ----------
+        U : np.ndarray
+            (n,) the input series, the last one current (TDLN: at least ``taps`` of them).
+        y : float
+            The current input's target.
+        """
         phi = self.features(U[-1:] if self.kind == RBF else U[-self.cfg.taps:])[-1]
         self.rls.update(phi, y)
         self.since += 1
@@ -549,7 +566,13 @@ class History:
         self._start = max(self._start, self._end - self.cap)
 
     def rows(self) -> np.ndarray:
-        """(len, width): a copy, oldest row first."""
+        """The rows held, oldest first.
+
+        Returns
+        -------
+        np.ndarray
+            (len, width) a copy.
+        """
         return self._buf[self._start:self._end].copy()
 
 
@@ -761,7 +784,13 @@ class SpeedNetwork:
         self.since = 0
 
     def frozen(self) -> "SpeedNetwork":
-        """A copy that predicts as this one does now (its history not copied: it is not trained further)."""
+        """A copy that predicts as this one does now (its history not copied: it is not trained further).
+
+        Returns
+        -------
+        SpeedNetwork
+            Its centres, widths, normaliser, clip range and output weights; for :meth:`predict` only.
+        """
         out = SpeedNetwork.__new__(SpeedNetwork)
         out.cfg, out.c, out.s, out.mean, out.std, out.lo, out.hi = (self.cfg, self.c, self.s, self.mean, self.std,
                                                                     self.lo, self.hi)

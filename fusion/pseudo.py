@@ -405,7 +405,13 @@ class SpeedModel:
         return float(self.predict_each(x)[self.use])
 
     def frozen(self) -> SpeedModel:
-        """A copy that predicts as this one does now, not trained further."""
+        """A copy that predicts as this one does now, not trained further.
+
+        Returns
+        -------
+        SpeedModel
+            The line's k, the candidate in use and the network (:meth:`SpeedNetwork.frozen`) as they are now.
+        """
         out = SpeedModel.__new__(SpeedModel)
         out.ratios, out.k, out.use = deque(), self.k, self.use
         out.net = self.net.frozen()

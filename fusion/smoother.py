@@ -180,7 +180,14 @@ class SmootherLog:
         return np.concatenate(parts)
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """(t_ns (N,), Phi, P-, P+ (N, 15, 15), dx (N, 15)), all in memory (small logs, tests)."""
+        """(t_ns (N,), Phi, P-, P+ (N, 15, 15), dx (N, 15)), all in memory (small logs, tests).
+
+        Returns
+        -------
+        tuple of ndarray, one row per record: t_ns (N,) int64 UTC ns; Phi (N, 15, 15) from the record before;
+        P-, P+ (N, 15, 15) before and after its update, ``fusion.errmodel`` units squared; dx (N, 15) the
+        correction fed into the INS there, ``fusion.errmodel`` order and units.
+        """
         r = self.read(0, len(self))
         return r["t_ns"], r["phi"], r["pm"], r["pp"], r["dx"]
 

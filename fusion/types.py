@@ -38,12 +38,25 @@ class GpsBlock:
 
     @staticmethod
     def empty() -> GpsBlock:
+        """A block without epochs.
+
+        Returns
+        -------
+        GpsBlock
+            Every field with length 0 and the class's shapes and dtypes (t_ns int64, status int8).
+        """
         z = np.zeros(0)
         return GpsBlock(np.zeros(0, np.int64), z, z, z, np.zeros((0, 3, 3)), np.zeros(0, np.int8),
                         np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
     def epochs(self) -> list[Epoch]:
-        """The block's epochs as objects (1 Hz to 10 Hz: one Python object per epoch is cheap)."""
+        """The block's epochs as objects (1 Hz to 10 Hz: one Python object per epoch is cheap).
+
+        Returns
+        -------
+        list of Epoch
+            One per row, in the block's order: latitude and longitude in rad (degrees in the block).
+        """
         return [Epoch(int(self.t_ns[i]), math.radians(float(self.lat_deg[i])), math.radians(float(self.lon_deg[i])),
                       float(self.h[i]), self.pos_cov[i], int(self.status[i]), self.v_n[i], self.vel_cov[i])
                 for i in range(len(self.t_ns))]

@@ -102,13 +102,11 @@ def doc_offenders() -> list[str]:
     return out
 
 
-@pytest.mark.xfail(strict=False, reason="being fixed")
 def test_classes_and_functions_are_small():
     bad = shape_offenders()
     assert not bad, f"{len(bad)} classes or functions too big:\n" + "\n".join(bad)
 
 
-@pytest.mark.xfail(strict=False, reason="being fixed")
 def test_public_functions_have_numpydoc_sections():
     bad = doc_offenders()
     assert not bad, f"{len(bad)} public functions undocumented:\n" + "\n".join(bad)
