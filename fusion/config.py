@@ -159,7 +159,8 @@ class AidConfig:
     mounting_sigma_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # its 1-sigma, deg, added to the NHC's and the
     # odometer's lateral (yaw) and vertical (pitch) variance; all 0 to `fuse`: nobody measured it (the estimate alone)
     estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
-    # first and uses them, with the car aids on (nhc or odometer: its estimators assume a car, heading = course);
+    # first and uses them, with a car aid on (the NHC, or the odometer with wheel speeds: its estimators assume a
+    # car, heading = course; tools.fuse.installation_applies);
     # false: the configured values as they are
     odometer_track_m: float = 1.6  # the car's track (left to right wheel centres) and wheelbase, m: the per-wheel
     odometer_wheelbase_m: float = 2.7  # slip test's kinematics (fusion.odometer, "Per-wheel slip")

@@ -25,7 +25,8 @@ from fieldlog.fusion.types import Solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.drive import reader
 from fieldlog.replay.inputs import InputStream
-from fieldlog.tools.fuse import BLOCK_S, drive_config
+from fieldlog.tools.fuse import BLOCK_S
+from fieldlog.tools.fuse_settings import drive_config
 
 PATH = Path(__file__).resolve().parent / "data" / "engine_reference.npz"
 EVERY = 100

@@ -28,7 +28,8 @@ import numpy as np
 
 from fieldlog.fusion import imugrade
 from fieldlog.tools.evaluation.evaluate import fix_quality, outage_error_series
-from fieldlog.tools.fuse import drive_table, fuse, fusion_config
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.fuse_settings import drive_table, fusion_config
 
 SCENARIO = "figure8-real"
 DURATION_S = 600.0

@@ -388,7 +388,8 @@ def _drift(drive, fused, method):
 def test_the_odometer_cuts_the_outage_drift_and_keeps_sigma_honest(odo_drive, tmp_path, method):
     from fieldlog.fusion.engine import Engine
     from fieldlog.replay import inputs
-    from fieldlog.tools.fuse import BLOCK_S, drive_config, fuse
+    from fieldlog.tools.fuse import BLOCK_S, fuse
+    from fieldlog.tools.fuse_settings import drive_config
 
     base = drive_config(odo_drive).replace(outages=(OUTAGE,))
     got = {}
@@ -419,7 +420,8 @@ def test_odometry_of_another_logger_through_odom_topic(odo_drive, tmp_path, odom
     from foreign_drives import Foreign, write_foreign
 
     from fieldlog.replay import inputs
-    from fieldlog.tools.fuse import drive_config, fuse
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.fuse_settings import drive_config
 
     foreign = write_foreign(odo_drive, tmp_path / "foreign.mcap", Foreign(odom_topic="/wheel/odom",
                                                                           odom_type=odom_type))

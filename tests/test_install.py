@@ -19,7 +19,7 @@ from fieldlog.drive import chunks
 from fieldlog.acquire.recovery import recover_drive
 from fieldlog.drive import reader
 from fieldlog.drive.files import open_drive
-from fieldlog.tools.fuse import fuse
+from fieldlog.tools.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTIONAL = ("rerun", "dask", "distributed", "polars", "pyarrow", "matplotlib", "fastkml", "gpxpy", "jinja2")
@@ -94,7 +94,7 @@ def test_core_install_runs_the_car_commands(core, drive, tmp_path):
     # the car can fuse too: the core wheel's kernels, built here from the sources, give the same bytes
     r = _run([fl, "fuse", drive, "--method", "kf", "--out", tmp_path / "kf.mcap"], tmp_path)
     assert r.returncode == 0, r.stderr
-    fuse(drive, "kf", tmp_path / "kf_ref.mcap")
+    assert cli_main(["fuse", str(drive), "--method", "kf", "--out", str(tmp_path / "kf_ref.mcap")]) == 0
     assert (tmp_path / "kf.mcap").read_bytes() == (tmp_path / "kf_ref.mcap").read_bytes()
 
 

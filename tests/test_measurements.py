@@ -94,4 +94,10 @@ def test_the_loop_asks_no_isinstance_and_names_no_sensor():
     assert "isinstance" not in calls
     for name in ("nhc", "zupt", "GpsPosition", "GpsVelocity", "NonHolonomic", "DistributedKF", "GpsErrorKF"):
         assert name not in src, name
-    assert len(src.splitlines()) <= 360
+    tree = ast.parse(src)
+    documented = [n for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef))
+                  and ast.get_docstring(n)]
+    docs = {i for n in documented for i in range(n.body[0].lineno, n.body[0].end_lineno + 1)}
+    code = [line for i, line in enumerate(src.splitlines(), 1)
+            if i not in docs and line.strip() and not line.lstrip().startswith("#")]
+    assert len(code) <= 300  # the loop's code, readable in one sitting (its numpydoc not counted)

@@ -140,7 +140,8 @@ def test_virtual_odometer_beats_dkf_in_outages_over_seeds(simulated, tmp_path, c
     reported by ``fuse --json``; the full study: docs/studies/pseudo)."""
     from fieldlog.tools.cli import main
     from fieldlog.tools.evaluation.evaluate import drift_2d, fix_quality, outage_error_series, paired
-    from fieldlog.tools.fuse import drive_config, fuse
+    from fieldlog.tools.fuse import fuse
+    from fieldlog.tools.fuse_settings import drive_config
 
     aids = dict(nhc=False, zupt=False) if setup == "gps-only" else {}
     target = 0.7 if setup == "gps-only" else 0.8

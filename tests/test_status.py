@@ -11,7 +11,8 @@ from fieldlog.fusion import output
 from fieldlog.replay import solutions
 from fieldlog.drive import reader
 from fieldlog.tools.cli import main as cli_main
-from fieldlog.tools.fuse import drive_config, fuse
+from fieldlog.tools.fuse import fuse
+from fieldlog.tools.fuse_settings import drive_config
 
 from foreign_drives import Foreign, write_foreign
 

@@ -90,6 +90,24 @@ class FuseResult:
     noise: dict[str, tuple[float, str]] | None = None  # adapt_noise: the figures the drive set (Adaptation.figures)
 
 
+def installation_applies(config: FusionConfig, inputs: InputMap) -> bool:
+    """Whether ``fuse`` estimates the installation first: ``[fusion] estimate_installation`` and a car aid that
+    uses it, the NHC or the odometer with a wheel-speed topic (its estimators assume a car, heading = course; an
+    aircraft's is not).
+
+    Parameters
+    ----------
+    config : the settings of the run.
+    inputs : the drive's topics.
+
+    Returns
+    -------
+    bool
+    """
+    a = config.aids
+    return a.estimate_installation and (a.nhc or (a.odometer and inputs.odom_topic is not None))
+
+
 def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> tuple[FusionConfig, dict]:
     """``fusion.installation``'s first pass over ``drive`` and the settings that apply it.
 

@@ -51,7 +51,7 @@ def _installation_line(s: dict) -> str:
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
-    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, noise_sources
+    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, installation_applies, noise_sources
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
@@ -65,7 +65,7 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     out = out_file(a)
     config, installed = st.config, {}
-    if a.method != INS.name and config.aids.estimate_installation and (config.aids.nhc or config.aids.odometer):
+    if a.method != INS.name and installation_applies(config, st.inputs):
         config, installed = estimate_installation(drive, config, st.inputs)
     res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                inputs=st.inputs, force=a.force, installation=installed)
