@@ -31,9 +31,10 @@ def _once(folder: Path, file_name: str, build: Callable[[Path], object]) -> Path
     path = folder / file_name
     with open(folder / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (folder / ".done").exists():
+        done = folder / f".{file_name}.done"  # per file: two builders may share a folder name
+        if not done.exists():
             build(path)
-            (folder / ".done").touch()
+            done.touch()
     return path
 
 
