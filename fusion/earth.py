@@ -289,6 +289,44 @@ def dcm_to_euler(C_bn: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return heading, pitch, roll
 
 
+def rpy_to_dcm(rpy: ArrayLike) -> np.ndarray:
+    """The DCM of fixed-axis roll, pitch, yaw (REP-103, as ROS ``tf`` and a calibration's ``imu_rpy_deg``):
+    ``R_z(yaw) @ R_y(pitch) @ R_x(roll)``, right-handed active rotations about the parent's axes.
+
+    Parameters
+    ----------
+    rpy : (..., 3) array_like, [roll, pitch, yaw], rad
+
+    Returns
+    -------
+    C : (..., 3, 3) ndarray, child-frame vectors -> parent-frame vectors
+    """
+    r = np.asarray(rpy, dtype=float)
+    cr, cp, cy = np.cos(r[..., 0]), np.cos(r[..., 1]), np.cos(r[..., 2])
+    sr, sp, sy = np.sin(r[..., 0]), np.sin(r[..., 1]), np.sin(r[..., 2])
+    out = np.empty(r.shape[:-1] + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = -sp, cp * sr, cp * cr
+    return out
+
+
+def dcm_to_rpy(C: ArrayLike) -> np.ndarray:
+    """Fixed-axis roll, pitch, yaw (REP-103) of a DCM, the inverse of :func:`rpy_to_dcm`.
+
+    Parameters
+    ----------
+    C : (..., 3, 3) array_like, child-frame vectors -> parent-frame vectors
+
+    Returns
+    -------
+    rpy : (..., 3) ndarray, [roll in (-pi, pi], pitch in [-pi/2, pi/2], yaw in (-pi, pi]], rad
+    """
+    C = np.asarray(C, dtype=float)
+    return np.stack([np.arctan2(C[..., 2, 1], C[..., 2, 2]), np.arcsin(np.clip(-C[..., 2, 0], -1.0, 1.0)),
+                     np.arctan2(C[..., 1, 0], C[..., 0, 0])], axis=-1)
+
+
 def quat_to_dcm(q: ArrayLike) -> np.ndarray:
     """DCM of a Hamilton quaternion ``[x, y, z, w]`` (need not be exactly unit; it is normalised).
 

@@ -367,7 +367,8 @@ class Odometer:
         self._v = np.zeros(0)
         self._var = np.zeros(0)
         self._w = np.zeros((0, len(odometer.WHEELS)))
-        self.wheels = odometer.WheelSlip(odometer.wheel_positions(self.lever_b, self.track_m, self.wheelbase_m))
+        self.wheels = odometer.WheelSlip(odometer.wheel_positions(self.lever_b, self.track_m, self.wheelbase_m,
+                                                                  self.car.C_bm), self.car.C_bm)
 
     def feed(self, block: OdomBlock) -> None:
         """More wheel-speed rows; those before the last epoch's window are dropped there, so a block's rows are

@@ -26,7 +26,7 @@ variance (the filter's covariance through H plus R), chi^2 over one degree of fr
 
 Per-wheel slip. With the four wheel speeds (``/vehicle/wheel_speeds``: front left, front right, rear left, rear
 right), each wheel is tested against what the car's motion predicts for it: its hub at r_w (``wheel_positions``:
-the rear wheels at the rear axle's centre -+ half the track along the body's right axis, the front wheels a
+the rear wheels at the rear axle's centre -+ half the track along the car's right axis, the front wheels a
 wheelbase ahead) moves with C_nb v_n + omega_nb_b x r_w and rolls along its own heading (the front wheels are
 steered), so its speed is the horizontal magnitude of that velocity (``hub_speeds``): the forward speed -+ yaw
 rate x half the track for the rear pair, with the steering's part for the front. Each wheel's own scale s_w
@@ -79,7 +79,8 @@ def body_velocity_at(nav: NavState, omega_nb_b: np.ndarray, r_b: np.ndarray) -> 
     return nav.C_bn.T @ nav.v_n + earth.cross(omega_nb_b, r_b)
 
 
-def wheel_positions(r_b: np.ndarray, track_m: float, wheelbase_m: float) -> np.ndarray:
+def wheel_positions(r_b: np.ndarray, track_m: float, wheelbase_m: float, C_bm: np.ndarray | None = None
+                    ) -> np.ndarray:
     """The wheels' hubs (module docstring, Per-wheel slip).
 
     Parameters
@@ -90,6 +91,9 @@ def wheel_positions(r_b: np.ndarray, track_m: float, wheelbase_m: float) -> np.n
         The distance between the left and right wheels' centres, m.
     wheelbase_m : float
         The distance from the rear axle to the front axle, m.
+    C_bm : np.ndarray, optional
+        (3, 3) IMU axes -> the car's (``fusion.measurements.CarFrame``): the track and the wheelbase lie along the
+        car's right and forward axes; None: the IMU's axes are the car's.
 
     Returns
     -------
@@ -97,11 +101,12 @@ def wheel_positions(r_b: np.ndarray, track_m: float, wheelbase_m: float) -> np.n
         (4, 3) the hubs of the front left, front right, rear left and rear right wheels from the IMU, body RFU, m.
     """
     half = track_m / 2
-    return np.asarray(r_b, float) + np.array([[-half, wheelbase_m, 0.0], [half, wheelbase_m, 0.0],
-                                              [-half, 0.0, 0.0], [half, 0.0, 0.0]])
+    d_car = np.array([[-half, wheelbase_m, 0.0], [half, wheelbase_m, 0.0], [-half, 0.0, 0.0], [half, 0.0, 0.0]])
+    return np.asarray(r_b, float) + (d_car if C_bm is None else d_car @ C_bm)
 
 
-def hub_speeds(nav: NavState, omega_nb_b: np.ndarray, r_w: np.ndarray) -> np.ndarray:
+def hub_speeds(nav: NavState, omega_nb_b: np.ndarray, r_w: np.ndarray, C_bm: np.ndarray | None = None
+               ) -> np.ndarray:
     """The speeds the car's motion predicts for its wheels: each hub's horizontal speed, along its own heading.
 
     Parameters
@@ -110,6 +115,8 @@ def hub_speeds(nav: NavState, omega_nb_b: np.ndarray, r_w: np.ndarray) -> np.nda
         As ``body_velocity_at``.
     r_w : np.ndarray
         (k, 3) the hubs from the IMU, body RFU, m (``wheel_positions``).
+    C_bm : np.ndarray, optional
+        (3, 3) IMU axes -> the car's: the hubs roll in the car's horizontal plane; None: the IMU's axes are the car's.
 
     Returns
     -------
@@ -117,6 +124,7 @@ def hub_speeds(nav: NavState, omega_nb_b: np.ndarray, r_w: np.ndarray) -> np.nda
         (k,) the hubs' speeds, m/s, negative where a hub moves backwards.
     """
     v = body_velocity_at(nav, omega_nb_b, r_w)
+    v = v if C_bm is None else v @ C_bm.T
     return np.hypot(v[:, 0], v[:, 1]) * np.sign(v[:, 1])
 
 
@@ -225,10 +233,12 @@ class ScaleEstimator:
 class WheelSlip:
     """The per-wheel slip test and the forward speed of the wheels kept (module docstring, Per-wheel slip).
 
-    ``r_w`` (4, 3): the hubs from the IMU, body RFU, m (``wheel_positions``); ``tested``: the epochs the wheels
-    were tested at; ``skipped`` (4,): those each wheel (``WHEELS`` order) was skipped at."""
+    ``r_w`` (4, 3): the hubs from the IMU, body RFU, m (``wheel_positions``); ``C_bm`` (3, 3): IMU axes -> the
+    car's, the speeds are the car's (None: the IMU's axes are the car's); ``tested``: the epochs the wheels were
+    tested at; ``skipped`` (4,): those each wheel (``WHEELS`` order) was skipped at."""
 
     r_w: np.ndarray
+    C_bm: np.ndarray | None = None
     tested: int = 0
     skipped: np.ndarray = field(default_factory=lambda: np.zeros(len(WHEELS), np.int64))
 
@@ -254,11 +264,12 @@ class WheelSlip:
         Returns
         -------
         float or None
-            The mean of the kept wheels taken to the rear axle's centre, m/s (NaN: every wheel skipped); None when
-            no wheel is tested (a wheel speed missing, or a hub slower than ``WHEEL_MIN_SPEED_MPS``).
+            The mean of the kept wheels taken to the rear axle's centre, along the car's forward axis, m/s (NaN:
+            every wheel skipped); None when no wheel is tested (a wheel speed missing, or a hub slower than
+            ``WHEEL_MIN_SPEED_MPS``).
         """
         self._last = None
-        pred = hub_speeds(nav, omega_nb_b, self.r_w)
+        pred = hub_speeds(nav, omega_nb_b, self.r_w, self.C_bm)
         if not np.isfinite(wheels).all() or np.min(np.abs(pred)) < WHEEL_MIN_SPEED_MPS:
             return None
         s = np.array([e.scale for e in self.scales])
@@ -270,7 +281,8 @@ class WheelSlip:
         self._last = wheels, pred, kept
         if not kept.any():
             return math.nan
-        v_centre = body_velocity_at(nav, omega_nb_b, r_b)[1]
+        v_centre = body_velocity_at(nav, omega_nb_b, r_b)
+        v_centre = (v_centre if self.C_bm is None else self.C_bm @ v_centre)[1]
         return float(np.mean(wheels[kept] * v_centre / pred[kept]))
 
     def learn(self, t: float, var_ref: float) -> None:

@@ -119,3 +119,13 @@ def test_one_quaternion_and_cross_products_give_numpys_numbers():
     a, b = rng.normal(size=(2000, 3)), rng.normal(size=(2000, 3))
     assert np.array_equal(earth.cross(a, b).view(np.int64), np.cross(a, b).view(np.int64))
     assert np.array_equal(earth.cross(a[0], b).view(np.int64), np.cross(a[0], b).view(np.int64))
+
+
+def test_fixed_axis_rpy_is_scipys_xyz_and_round_trips():
+    """REP-103 roll, pitch, yaw (a calibration's imu_rpy_deg, a /tf_static rotation) as scipy's extrinsic xyz."""
+    rng = np.random.default_rng(7)
+    rpy = rng.uniform(-1.0, 1.0, (500, 3)) * [np.pi, 0.49 * np.pi, np.pi]
+    C = Rotation.from_euler("xyz", rpy).as_matrix()
+    np.testing.assert_allclose(earth.rpy_to_dcm(rpy), C, atol=1e-14)
+    np.testing.assert_allclose(earth.dcm_to_rpy(C), rpy, atol=1e-12)
+    assert np.array_equal(earth.rpy_to_dcm(np.zeros(3)), np.eye(3))

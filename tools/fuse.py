@@ -176,9 +176,7 @@ def calibration_mounting_rpy(mounting: calib.Mounting) -> np.ndarray:
     ``[fusion] mounting_rpy_deg`` (C_bm = ``fusion.earth.euler_to_dcm(yaw, pitch, roll)``), deg (3,)."""
     if not any(mounting.imu_rpy_deg):
         return np.zeros(3)
-    from scipy.spatial.transform import Rotation
-
-    C_bm = Rotation.from_euler("xyz", mounting.imu_rpy_deg, degrees=True).as_matrix()
+    C_bm = earth.rpy_to_dcm(np.radians(mounting.imu_rpy_deg))
     yaw, pitch, roll = earth.dcm_to_euler(C_bm)
     return np.degrees([roll, pitch, yaw])
 
@@ -189,11 +187,9 @@ def fused_mounting(mounting: calib.Mounting, config: FusionConfig) -> calib.Moun
     rpy = config.aids.mounting_rpy_deg
     if not any(rpy):
         return mounting
-    from scipy.spatial.transform import Rotation
-
     roll, pitch, yaw = np.radians(rpy)
     C_bm = earth.euler_to_dcm(yaw, pitch, roll)
-    return dataclasses.replace(mounting, imu_rpy_deg=Rotation.from_matrix(C_bm).as_euler("xyz", degrees=True))
+    return dataclasses.replace(mounting, imu_rpy_deg=np.degrees(earth.dcm_to_rpy(C_bm)))
 
 
 class RemotePredictor:
