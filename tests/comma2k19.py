@@ -190,15 +190,30 @@ def write_drive(seg: dict[str, np.ndarray], out: Path, odometer: bool = True) ->
     return out
 
 
-def horizontal_error_m(ref: dict[str, np.ndarray], t_ns: np.ndarray, lat_deg: np.ndarray,
-                       lon_deg: np.ndarray) -> np.ndarray:
-    """2-D distance (m) of a track from the reference interpolated at its times (NaN outside the reference)."""
+def horizontal_error_en(ref: dict[str, np.ndarray], t_ns: np.ndarray, lat_deg: np.ndarray,
+                        lon_deg: np.ndarray) -> np.ndarray:
+    """East and north error (m, (n, 2)) of a track against the reference interpolated at its times (NaN outside
+    the reference)."""
     inside = (t_ns >= ref["t_ns"][0]) & (t_ns <= ref["t_ns"][-1])
     lat = np.interp(t_ns, ref["t_ns"], ref["lat_deg"])
     lon = np.interp(t_ns, ref["t_ns"], ref["lon_deg"])
     de = np.radians(lon_deg - lon) * earth.A * np.cos(np.radians(lat))
     dn = np.radians(lat_deg - lat) * earth.A
-    return np.where(inside, np.hypot(de, dn), np.nan)
+    return np.where(inside[:, None], np.stack([de, dn], axis=1), np.nan)
+
+
+def horizontal_error_m(ref: dict[str, np.ndarray], t_ns: np.ndarray, lat_deg: np.ndarray,
+                       lon_deg: np.ndarray) -> np.ndarray:
+    """2-D distance (m) of a track from the reference interpolated at its times (NaN outside the reference)."""
+    return np.hypot(*horizontal_error_en(ref, t_ns, lat_deg, lon_deg).T)
+
+
+def growth_m(e_en: np.ndarray, window: np.ndarray) -> float:
+    """The largest 2-D distance (m) of the error in a window from its value at the window's first row: the drift
+    the outage adds, without the offset the aided solution already had against the reference (the fixes lie a
+    median 2.2 m from it)."""
+    i = np.flatnonzero(window)
+    return float(np.nanmax(np.hypot(*(e_en[i] - e_en[i[0]]).T)))
 
 
 OUTAGES = ((20.0, 15.0), (40.0, 12.0))  # s from the first IMU sample: GNSS withheld (the car moves throughout)
@@ -270,8 +285,9 @@ def virtual_odometer_held_out(seg: dict[str, np.ndarray]) -> dict:
 
 def score(seg: dict[str, np.ndarray], drive: Path) -> None:
     """Print docs/results.md's "Real drives" table: kf with each aid switch and free INS, GNSS withheld in
-    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m); then the
-    virtual odometer's held-out errors (:func:`virtual_odometer_held_out`)."""
+    ``OUTAGES``: the median error with GNSS and each window's maximum error against the reference (m), in brackets
+    its growth in the window (:func:`growth_m`); then the virtual odometer's held-out errors
+    (:func:`virtual_odometer_held_out`)."""
     import contextlib
     import io
     import json
@@ -294,11 +310,12 @@ def score(seg: dict[str, np.ndarray], drive: Path) -> None:
         js = json.loads(summary.getvalue())
         f = reader.read_topic(out, f"/fusion/{method}/fix")
         t = f["log_time_ns"]
-        e = horizontal_error_m(ref, t, f["lat_deg"], f["lon_deg"])
+        e_en = horizontal_error_en(ref, t, f["lat_deg"], f["lon_deg"])
+        e = np.hypot(*e_en.T)
         windows = [(t >= t0 + a * 1e9) & (t < t0 + (a + n) * 1e9) for a, n in OUTAGES]
         aided = ~np.any(windows, axis=0) & (t > t0 + 5e9)
         print(f"| {method} {name} | {np.nanmedian(e[aided]):.2f} | "
-              + " | ".join(f"{np.nanmax(e[w]):.2f}" for w in windows)
+              + " | ".join(f"{np.nanmax(e[w]):.2f} ({growth_m(e_en, w):.2f})" for w in windows)
               + f" | scale {js['odometer_scale']} +- {js['odometer_scale_sigma']}, slip {js['odometer_slip_skipped']}")
     fix = seg["gnss_value"]
     e_fix = horizontal_error_m(ref, (fix[:, 3] * 1e6).astype(np.int64), fix[:, 0], fix[:, 1])
