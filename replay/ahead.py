@@ -238,7 +238,9 @@ def _host(make: Callable[[], object], calls: int, results: int) -> None:
 
 
 def _can_fork() -> bool:
-    """Whether a worker may be forked: the platform has fork and no other thread runs (forking one is unsafe)."""
+    """Whether a worker may be forked: the platform has fork and no other Python thread runs (forking one is
+    unsafe). A library's native threads are not seen here: a caller that starts them (a WebSocket server,
+    ``tools.foxglove_live.serve``) reads in its own process."""
     return hasattr(os, "fork") and threading.active_count() == 1
 
 

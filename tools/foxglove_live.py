@@ -285,7 +285,8 @@ def serve(drive: DriveSpec, method: str, speed: float, address: str, imap: Input
         fused = FusedTopics(srv.sink, method, drive_mounting(drive))
         engine = Engine(method, config or drive_config(drive))
         on_ready(srv.address)
-        stream = InputStream(drive, imap, PLAY_BLOCK_S if speed > 0 else BLOCK_S)
+        # read in this process: the server's own (native) threads run, and forking a reader beside them is unsafe
+        stream = InputStream(drive, imap, PLAY_BLOCK_S if speed > 0 else BLOCK_S).inputs()
         ran = run(stream, engine, [DriveMessages(srv.sink, drive), fused], Pace(speed))
         res = ServeResult(srv.address, ran.blocks, fused.solutions, srv.sink.published)
         srv.drain()
