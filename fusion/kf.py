@@ -212,8 +212,8 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
     Returns
     -------
     x, P, K, dx, P12 : ndarray
-        The updated state (15,) and covariance (15, 15), the gain K (15, m), the change K (z - H x) (15,), and
-        the updated P12 (None when not given).
+        The updated state (n,) and covariance (n, n), the gain K (n, m), the change K (z - H x) (n,), and the
+        updated P12 (None when not given).
 
     Raises
     ------
