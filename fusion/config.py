@@ -309,6 +309,9 @@ class FusionConfig:
             v = getattr(a, key)
             if len(v) != 3 or not all(math.isfinite(x) for x in v) or (key == "mounting_sigma_deg" and min(v) < 0):
                 raise ValueError(f"[fusion] {key}: expected 3 finite numbers (sigmas >= 0), got {list(v)!r}")
+        for key in ("odometer_track_m", "odometer_wheelbase_m"):
+            if not getattr(a, key) > 0:
+                raise ValueError(f"[fusion] {key}: must be > 0")
         if not abs(self.sensor.imu_time_offset_s) < 10.0:
             raise ValueError("[fusion] imu_time_offset_s: must be within +-10 s")
         for n, o in enumerate(g.outages):
