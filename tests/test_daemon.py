@@ -87,6 +87,17 @@ def raw_stream(path: Path, port: str) -> tuple[bytes, np.ndarray]:
     return b"".join(bytes(m.data) for m in msgs), np.array([m.mono_ns for m in msgs], np.int64)
 
 
+def byte_difference(got: bytes, want: bytes) -> str | None:
+    """None when the two byte streams are equal; else one short line: their lengths and the first byte that
+    differs (pytest's own diff of megabytes would take longer than the test)."""
+    if got == want:
+        return None
+    n = min(len(got), len(want))
+    d = np.flatnonzero(np.frombuffer(got[:n], np.uint8) != np.frombuffer(want[:n], np.uint8))
+    i = int(d[0]) if len(d) else n
+    return f"{len(got)} bytes recorded, {len(want)} expected; first difference at byte {i}"
+
+
 def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "fieldlog", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=300)

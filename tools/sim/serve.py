@@ -91,7 +91,8 @@ ALL_PORTS = PORTS + ("can",)         # the SLCAN adapter with --can
 BOARDS = ("simulated", "emulated")
 TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
 TIOCPKT_FLUSHREAD = 0x01
-DRAIN_QUIET_S = 0.2     # the reader has drained a pty once its input queue stays empty this long (wall s)
+DRAIN_QUIET_S = 1.0     # the reader has drained a pty once its input queue stays empty this long (wall s): the
+# kernel moves the flip buffer into the queue in a worker thread, which a loaded host runs late
 DRAIN_MAX_S = 5.0       # an unplug closes the pty after this long (wall s) even if the reader did not drain it
 
 
