@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import math
 import os
+import pickle
+import tempfile
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Generator, Iterator
+from typing import IO, TYPE_CHECKING, Generator, Iterator
 
 import numpy as np
 
@@ -307,8 +309,9 @@ class InputStream:
     ``ImuBlock`` and ``GpsBlock``."""
 
     def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float,
-                 extra: tuple[str, ...] = ()) -> None:
-        self.path, self.imap, self.block_s = path, imap, block_s
+                 extra: tuple[str, ...] = (), keep: bool = False) -> None:
+        self.path, self.imap, self.block_s, self.keep = path, imap, block_s, keep
+        self._kept: IO[bytes] | None = None  # keep: the engine's blocks of the first pass to the end, pickled
         self.extra = tuple(t for t in extra if t not in imap.topics and t != imap.odom_topic)
         self.samples = 0
         self.gaps = 0  # steps longer than 1.5 sample periods (exact while the stamps jitter by < 1/4 period)
@@ -370,9 +373,27 @@ class InputStream:
 
     def __iter__(self) -> Iterator[InputBlock]:
         """The engine's blocks, read on the second core (``replay.ahead``); the counters are this object's
-        again once the drive has been read to its end."""
-        with Ahead(self._input_blocks) as blocks:
-            self.__dict__.update((yield from blocks))
+        again once the drive has been read to its end. With ``keep``, the first pass to the end also pickles the
+        blocks into an anonymous temporary file (about 1.2 times the IMU's rows as float64), and each later pass
+        reads them back from it instead of decoding the drive again (the same blocks; :meth:`close` deletes it)."""
+        if self._kept is not None:
+            self._kept.seek(0)
+            return (yield from _unpickled(self._kept))
+        kept = tempfile.TemporaryFile() if self.keep else None  # noqa: SIM115 (lives as long as this stream)
+        try:
+            with Ahead(self._input_blocks) as blocks:
+                self.__dict__.update((yield from _pickled(iter(blocks), kept) if kept else blocks))
+        except BaseException:
+            if kept is not None:
+                kept.close()
+            raise
+        self._kept = kept
+
+    def close(self) -> None:
+        """Delete the kept blocks (``keep``); a later pass reads the drive again."""
+        if self._kept is not None:
+            self._kept.close()
+            self._kept = None
 
     def inputs(self, keep_data: bool = False) -> Iterator[InputBlock]:
         """The engine's blocks, read in this process (``blocks()`` as ``input_block``s); ``keep_data``: each
@@ -425,6 +446,26 @@ class InputStream:
             self._last_t = int(t[-1])
         self.samples += len(t)
         return imu
+
+
+def _pickled(items: Generator[InputBlock, None, dict], file: IO[bytes]) -> Generator[InputBlock, None, dict]:
+    """``items``, each also pickled into ``file``; their generator's return value."""
+    while True:
+        try:
+            item = next(items)
+        except StopIteration as stop:
+            return stop.value
+        pickle.dump(item, file, protocol=pickle.HIGHEST_PROTOCOL)
+        yield item
+
+
+def _unpickled(file: IO[bytes]) -> Iterator[InputBlock]:
+    """The blocks :func:`_pickled` wrote into ``file``, from its position to its end."""
+    while True:
+        try:
+            yield pickle.load(file)
+        except EOFError:
+            return
 
 
 def input_block(b: reader.Block, keep_data: bool = False) -> InputBlock:

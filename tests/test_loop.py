@@ -80,3 +80,38 @@ def test_an_error_taken_stops_the_sinks_and_drains_the_source(drive: Path) -> No
     assert good.finished == bad.finished == 0
     with pytest.raises(RuntimeError, match="block 3"):  # without on_error it propagates
         run(InputStream(drive, imap, 5.0).inputs(), Engine("kf", cfg), [Collect(fail_at=3)])
+
+
+def _same_blocks(x: list[InputBlock], y: list[InputBlock]) -> bool:
+    fields = ("t_ns", "omega_ib_b", "f_b")
+    return len(x) == len(y) and all(
+        (a.t0_ns, a.t1_ns) == (b.t0_ns, b.t1_ns)
+        and all(np.array_equal(getattr(a.imu, k), getattr(b.imu, k)) for k in fields)
+        and len(a.gps.t_ns) == len(b.gps.t_ns) and np.array_equal(a.gps.t_ns, b.gps.t_ns)
+        and np.array_equal(a.gps.v_n, b.gps.v_n, equal_nan=True) for a, b in zip(x, y))
+
+
+def test_a_kept_stream_gives_its_blocks_again_without_the_drive(drive: Path, tmp_path: Path) -> None:
+    """``keep``: the second pass reads the blocks the first pass kept (the drive may be gone by then), the same
+    blocks and counters as a fresh stream's; a first pass left early keeps nothing, and the next one reads the
+    drive again."""
+    copy = tmp_path / "drive.mcap"
+    copy.write_bytes(drive.read_bytes())
+    imap = resolve(copy)
+    fresh = InputStream(copy, imap, BLOCK_S)
+    want = list(fresh)
+    kept = InputStream(copy, imap, BLOCK_S, keep=True)
+    for b in kept:
+        break
+    copy.rename(tmp_path / "moved.mcap")
+    with pytest.raises(FileNotFoundError):
+        list(kept)  # nothing was kept: the drive is read again, and it is gone
+    (tmp_path / "moved.mcap").rename(copy)
+    first = list(kept)
+    copy.unlink()
+    second = list(kept)
+    assert len(want) > 5 and _same_blocks(first, want) and _same_blocks(second, want)
+    assert (kept.samples, kept.gaps, kept.rate_hz) == (fresh.samples, fresh.gaps, fresh.rate_hz) and kept.samples > 0
+    kept.close()
+    with pytest.raises(FileNotFoundError):
+        list(kept)  # closed: read from the drive again, which is gone

@@ -108,7 +108,8 @@ def installation_applies(config: FusionConfig, inputs: InputMap) -> bool:
     return a.estimate_installation and (a.nhc or (a.odometer and inputs.odom_topic is not None))
 
 
-def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap) -> tuple[FusionConfig, dict]:
+def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap,
+                          stream: InputStream | None = None) -> tuple[FusionConfig, dict]:
     """``fusion.installation``'s first pass over ``drive`` and the settings that apply it.
 
     Two reads: the IMU's time offset from its rate integral (stamps less the configured start value ``[fusion]
@@ -125,6 +126,9 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     drive : the drive.
     config : the settings of the run (its aids, noise, start values).
     inputs : the drive's topics.
+    stream : the drive's input blocks over ``inputs`` (``BLOCK_S``); None: an ``InputStream`` that keeps them
+        (``keep``), so the drive is decoded once for both passes. Given one that keeps them, :func:`fuse` of the
+        same stream reads them back too.
 
     Returns
     -------
@@ -138,7 +142,8 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     late_ns = int(round(start * 1e9))
     gyro = installation.GyroTrack()
     t_gps, v_gps = [], []
-    for block in InputStream(drive, inputs, BLOCK_S):
+    stream = stream or InputStream(drive, inputs, BLOCK_S, keep=True)
+    for block in stream:
         gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
         t_gps.append(block.gps.t_ns)
         v_gps.append(block.gps.v_n)
@@ -147,7 +152,7 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     config = config.replace(imu_time_offset_s=late)
     log = SmootherLog()
     engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
-    parts = [engine.process(block.imu, block.gps)[0] for block in InputStream(drive, inputs, BLOCK_S)]
+    parts = [engine.process(block.imu, block.gps)[0] for block in stream]
     parts.append(engine.finish()[0])
     mount = installation.mounting(smooth_solution(Solution.concat(parts), log),
                                   np.asarray(config.aids.odometer_lever_b, float))
@@ -220,7 +225,7 @@ def worker_predictors(workers: contextlib.ExitStack) -> Callable[[str, Predictor
 def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
          config: FusionConfig | None = None, progress: Callable[[float], None] | None = None,
          smooth: bool = False, inputs: InputMap | None = None, force: bool = False, keep: bool = False,
-         installation: dict[str, object] | None = None) -> FuseResult:
+         installation: dict[str, object] | None = None, stream: InputStream | None = None) -> FuseResult:
     """Fuse ``drive`` with ``method`` into ``out`` (MCAP); streaming, memory bounded by one block unless
     ``smooth`` (RTS backward pass after the drive). ``config`` None: ``drive_config(drive)``; ``inputs`` None:
     ``replay.inputs.resolve(drive)``. A drive of several files (``drive.files``) is fused once, across the file
@@ -228,7 +233,9 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     solution turns NaN or inf. ``out`` must be new, unless ``force`` (``drive.outputs``). ``keep``: the rows
     written are also returned (``FuseResult.solution``), for a caller that scores them without reading ``out``
     back (``replay.solutions.read``); memory then grows by the rows, as with ``smooth``. ``installation``: the
-    keys of :func:`estimate_installation`, written as the ``fusion.installation`` record (JSON values)."""
+    keys of :func:`estimate_installation`, written as the ``fusion.installation`` record (JSON values).
+    ``stream``: the drive's input blocks over ``inputs`` (``BLOCK_S``), e.g. the one ``estimate_installation``
+    kept; None: read from the drive."""
     outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
@@ -236,7 +243,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     pace = Pace(0.0, (min(t.first_ns for t in span), max(t.last_ns for t in span)), progress)
     log = SmootherLog() if smooth else None
     mounting = fused_mounting(drive_mounting(drive), cfg)
-    stream = InputStream(drive, imap, BLOCK_S)
+    stream = stream or InputStream(drive, imap, BLOCK_S)
     with contextlib.ExitStack() as workers:  # the predictor's worker, if the method has one; then the file
         engine = Engine(method, cfg, log=log, make_predictor=worker_predictors(workers))
         rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))

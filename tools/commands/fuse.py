@@ -7,6 +7,7 @@ record); ``--json``: the summary as one JSON object instead."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 
@@ -51,7 +52,9 @@ def _installation_line(s: dict) -> str:
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
-    from fieldlog.tools.fuse import NO_ALIGNMENT, estimate_installation, fuse, installation_applies, noise_sources
+    from fieldlog.replay.inputs import InputStream
+    from fieldlog.tools.fuse import (BLOCK_S, NO_ALIGNMENT, estimate_installation, fuse, installation_applies,
+                                     noise_sources)
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
@@ -65,10 +68,11 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     out = out_file(a)
     config, installed = st.config, {}
-    if a.method != INS.name and installation_applies(config, st.inputs):
-        config, installed = estimate_installation(drive, config, st.inputs)
-    res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
-               inputs=st.inputs, force=a.force, installation=installed)
+    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=True)) as stream:  # decoded once
+        if a.method != INS.name and installation_applies(config, st.inputs):
+            config, installed = estimate_installation(drive, config, st.inputs, stream)
+        res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+                   inputs=st.inputs, force=a.force, installation=installed, stream=stream)
     imap, forced = st.inputs, config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
