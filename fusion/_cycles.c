@@ -2,8 +2,8 @@
  * and the distributed filter's fusion (fusion/dkf.py), in C.
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles,
- * KalmanFilter.propagate, kf.joseph_update, consider.gain and dkf.fuse; it needs no Python headers. The cycles
- * (the updates and fusion below say what they keep) evaluate errmodel.system_matrices (from the
+ * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse and smoother.rts; it needs no Python headers. The cycles
+ * (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from the
  * Earth terms on), errmodel.discretise and the P cycle of KalmanFilter.propagate in the order their numpy
  * source writes them, so the results equal numpy's to the bit where numpy's matrix products are the
  * sequential fused multiply-add sums of an optimised BLAS: each product element c_ij is
@@ -225,6 +225,16 @@ static int lu_solve(int m, double *S, int p, double *B)
     return 0;
 }
 
+/* out (15 x 15) = 0.5 (S + S^T) of S = a + b, kept in T (T may be a or b, out may be a) */
+static inline void sym_of_sum(const double *a, const double *b, double *T, double *out)
+{
+    for (int i = 0; i < N * N; i++)
+        T[i] = a[i] + b[i];
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            out[i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+}
+
 /* K (15 x m) = P H^T (H P H^T + R)^-1 of covariance P (15 x 15), H (m x 15), R (m x m). Returns 1 when the
  * innovation covariance is singular. */
 static int kalman_gain(int m, const double *H, const double *R, const double *P, double *K)
@@ -279,11 +289,7 @@ KERNEL int32_t fieldlog_kf_update(int64_t m, const double *z, const double *H, c
     matmul(N, N, N, T, N, A, N, 1, P, N);  /* A P A^T */
     matmul(N, mm, mm, K, mm, R, mm, 0, KR, mm);
     matmul(N, mm, N, KR, mm, K, mm, 1, KRK, N);
-    for (int i = 0; i < N * N; i++)
-        T[i] = P[i] + KRK[i];
-    for (int i = 0; i < N; i++)
-        for (int j = 0; j < N; j++)
-            P[i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    sym_of_sum(P, KRK, T, P);
     if (P12) {
         memcpy(T, P12, sizeof T);
         if (side == 0)
@@ -380,6 +386,72 @@ KERNEL int32_t fieldlog_dkf_fuse(int64_t m, const double *P1, const double *P2, 
         for (int i = 0; i < N; i++)
             for (int j = 0; j < N; j++)
                 Pe[o + i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    }
+    return 0;
+}
+
+/* The RTS backward pass (fusion/smoother.py rts) over the n records of one chunk, each `stride` bytes of
+ * smoother.RECORD with its fields phi, pm, pp, dx, sm, sp at the byte offsets off[0..5] (sm, sp: 15 x 9).
+ * `next`: the record after the chunk (NULL: the chunk ends the drive); Ps (15 x 15), Ss (15 x 9): its smoothed
+ * covariance and consider sensitivity in, record 0's out. y (n + 1, 15): y[n] the next record's smoothed error
+ * in, y[0..n) out; d (n, 15): the smoothed variances out. m_pred (n + 1, 15), m_upd (n, 15): the forward means
+ * of a bridged run (NULL: none). var_c (9): the consider parameters' variances (NULL: none). For each record k,
+ * from the last: C = (pm_{k+1}^-1 phi_{k+1} pp_k)^T, y_k = [m+_k +] C (y_{k+1} + dx_{k+1} [- m-_{k+1}]),
+ * Ps_k = sym(pp_k + C (Ps_{k+1} - pm_{k+1}) C^T), Ss_k = sp_k + C (Ss_{k+1} - sm_{k+1}), in numpy's order.
+ * Returns 1 when a predicted covariance is singular. */
+KERNEL int32_t fieldlog_rts_chunk(int64_t n, const uint8_t *rec, int64_t stride, const int64_t *off,
+                                  const uint8_t *next, double *Ps, double *Ss, const double *m_pred,
+                                  const double *m_upd, const double *var_c, double *y, double *d)
+{
+    enum { NP = 9 };
+    double A[N * N], X[N * N], C[N * N], D[N * N], CD[N * N], T[N * N], E[N * NP], v[N];
+    for (int64_t k = n - 1; k >= 0; k--) {
+        const uint8_t *r = rec + k * stride, *rn = k + 1 < n ? r + stride : next;
+        const double *pp = (const double *)(r + off[2]), *sp = (const double *)(r + off[5]);
+        double *yk = y + k * N;
+        if (!rn) {
+            memcpy(Ps, pp, sizeof(double) * N * N);
+            memcpy(Ss, sp, sizeof(double) * N * NP);
+            for (int i = 0; i < N; i++)
+                yk[i] = m_upd ? m_upd[k * N + i] : 0.0;
+        } else {
+            const double *phi = (const double *)(rn + off[0]), *pm = (const double *)(rn + off[1]);
+            const double *dx = (const double *)(rn + off[3]), *sm = (const double *)(rn + off[4]);
+            matmul(N, N, N, phi, N, pp, N, 0, A, N);
+            memcpy(X, pm, sizeof X);
+            if (lu_solve(N, X, N, A))  /* A <- pm^-1 phi pp = C^T */
+                return 1;
+            for (int i = 0; i < N; i++)
+                for (int j = 0; j < N; j++)
+                    C[i * N + j] = A[j * N + i];
+            for (int i = 0; i < N; i++)
+                v[i] = m_pred ? (yk[N + i] + dx[i]) - m_pred[(k + 1) * N + i] : yk[N + i] + dx[i];
+            for (int i = 0; i < N; i++) {
+                double s = 0.0;
+                for (int j = 0; j < N; j++)
+                    s = fma(C[i * N + j], v[j], s);
+                yk[i] = m_upd ? m_upd[k * N + i] + s : s;
+            }
+            for (int i = 0; i < N * N; i++)
+                D[i] = Ps[i] - pm[i];
+            matmul(N, N, N, C, N, D, N, 0, CD, N);
+            matmul(N, N, N, CD, N, C, N, 1, T, N);
+            sym_of_sum(pp, T, T, Ps);
+            for (int i = 0; i < N * NP; i++)
+                E[i] = Ss[i] - sm[i];
+            matmul(N, N, NP, C, N, E, NP, 0, T, NP);
+            for (int i = 0; i < N * NP; i++)
+                Ss[i] = sp[i] + T[i];
+        }
+        for (int i = 0; i < N; i++)
+            d[k * N + i] = Ps[i * N + i];
+        if (var_c)
+            for (int i = 12; i < 15; i++) {  /* BA: ((Ss * Ss) @ var_c)[BA] */
+                double s = 0.0;
+                for (int j = 0; j < NP; j++)
+                    s = fma(Ss[i * NP + j] * Ss[i * NP + j], var_c[j], s);
+                d[k * N + i] += s;
+            }
     }
     return 0;
 }

@@ -205,7 +205,7 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
 
 @functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices, covariance cycles, updates and fusion (fusion/_cycles.c), loaded once.
+    """The compiled cycle matrices, covariance cycles, updates, fusion and smoothing (fusion/_cycles.c), loaded once.
 
     Returns
     -------
@@ -219,7 +219,8 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_consider_cycles": [i64, p, p, p, p],
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
-        "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32)})
+        "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),
+        "fieldlog_rts_chunk": ([i64, p, i64] + [p] * 9, i32)})
 
 
 def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.ndarray, f_n: np.ndarray,

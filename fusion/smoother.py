@@ -52,12 +52,13 @@ import numpy as np
 
 from fieldlog.fusion import earth
 from fieldlog.fusion.consider import N_PARAMS
-from fieldlog.fusion.errmodel import ATT, BA, N_STATES, POS, VEL
+from fieldlog.fusion.errmodel import ATT, N_STATES, POS, VEL, cycle_kernel
 from fieldlog.fusion.types import Solution
 
 RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
                    ("pp", "<f8", (N_STATES, N_STATES)), ("dx", "<f8", N_STATES), ("b", "<f8", N_STATES),
                    ("sm", "<f8", (N_STATES, N_PARAMS)), ("sp", "<f8", (N_STATES, N_PARAMS))])
+_OFFSETS = np.array([RECORD.fields[k][1] for k in ("phi", "pm", "pp", "dx", "sm", "sp")], np.int64)  # bytes
 
 
 class SmootherLog:
@@ -204,8 +205,9 @@ class Smoothed:
 
 
 def rts(log: SmootherLog) -> Smoothed | None:
-    """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time; None
-    with fewer than two records (nothing to smooth).
+    """The backward pass (module docstring) over the records of a :class:`SmootherLog`, a chunk at a time, compiled
+    (``fieldlog_rts_chunk`` in fusion/_cycles.c: numpy's formulas, to rounding); None with fewer than two records
+    (nothing to smooth).
 
     Parameters
     ----------
@@ -223,32 +225,25 @@ def rts(log: SmootherLog) -> Smoothed | None:
     d = np.zeros((n, N_STATES))
     dx = np.zeros((n, N_STATES))
     m_pred, m_upd = _filtered_means(log) if log.bridged else (None, None)
-    nxt = None  # (record k + 1, Ps_{k+1}, Ss_{k+1})
+    Ps, Ss = np.zeros((N_STATES, N_STATES)), np.zeros((N_STATES, N_PARAMS))  # record k + 1's, then k's
+    var_c = None if log.var_c is None else np.ascontiguousarray(log.var_c, float)
+    nxt = None  # the record after the chunk
     for i1 in range(n, 0, -log.chunk):
         i0 = max(i1 - log.chunk, 0)
-        r = log.read(i0, i1)
+        r = np.ascontiguousarray(log.read(i0, i1))
         t_ns[i0:i1], dx[i0:i1] = r["t_ns"], r["dx"]
-        for j in range(len(r) - 1, -1, -1):
-            k = i0 + j
-            if nxt is None:
-                Ps, Ss = r["pp"][j], r["sp"][j]
-                if m_upd is not None:
-                    y[k] = m_upd[k]
-            else:
-                (rn, Ps1, Ss1) = nxt
-                C = np.linalg.solve(rn["pm"], rn["phi"] @ r["pp"][j]).T
-                if m_upd is None:
-                    y[k] = C @ (y[k + 1] + rn["dx"])
-                else:
-                    y[k] = m_upd[k] + C @ (y[k + 1] + rn["dx"] - m_pred[k + 1])
-                P = r["pp"][j] + C @ (Ps1 - rn["pm"]) @ C.T
-                Ps = 0.5 * (P + P.T)
-                Ss = r["sp"][j] + C @ (Ss1 - rn["sm"])
-            d[k] = np.diag(Ps)
-            if log.var_c is not None:  # the gyros' unmodelled errors in the accelerometer-bias sigma (fusion.consider)
-                d[k, BA] += ((Ss * Ss) @ log.var_c)[BA]
-            nxt = (r[j], Ps, Ss)
+        if cycle_kernel().fieldlog_rts_chunk(len(r), r.ctypes.data, RECORD.itemsize, _OFFSETS.ctypes.data,
+                                             _address(nxt), Ps.ctypes.data, Ss.ctypes.data, _address(m_pred, i0),
+                                             _address(m_upd, i0), _address(var_c), y[i0:].ctypes.data,
+                                             d[i0:].ctypes.data):
+            raise np.linalg.LinAlgError("Singular matrix: a predicted covariance of the smoother's records")
+        nxt = r[:1].copy()
     return Smoothed(t_ns, y, d, dx)
+
+
+def _address(a: np.ndarray | None, row: int = 0) -> int | None:
+    """The address of row ``row`` of a C-contiguous array, None for None (a NULL pointer)."""
+    return None if a is None else a[row:].ctypes.data
 
 
 def _filtered_means(log: SmootherLog) -> tuple[np.ndarray, np.ndarray]:

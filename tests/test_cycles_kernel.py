@@ -206,3 +206,67 @@ def test_compiled_fusion_equals_numpy(cross):
     P1[1, 3, 3] = -1.0
     with pytest.raises(np.linalg.LinAlgError):
         dkf.fuse(P1, P2, P12, x1, x2)
+
+
+def _numpy_rts(log) -> tuple[np.ndarray, np.ndarray]:
+    """The RTS backward pass as numpy writes it (fusion/smoother.py's module docstring): y and diag(Ps), (N, 15)."""
+    from fieldlog.fusion.smoother import _filtered_means
+
+    r = log.read(0, len(log))
+    n = len(r)
+    y, d = np.zeros((n, 15)), np.zeros((n, 15))
+    m_pred, m_upd = _filtered_means(log) if log.bridged else (None, None)
+    Ps, Ss = r["pp"][-1], r["sp"][-1]
+    y[-1] = 0.0 if m_upd is None else m_upd[-1]
+    for k in range(n - 1, -1, -1):
+        if k < n - 1:
+            rn = r[k + 1]
+            C = np.linalg.solve(rn["pm"], rn["phi"] @ r["pp"][k]).T
+            v = y[k + 1] + rn["dx"] - (0.0 if m_pred is None else m_pred[k + 1])
+            y[k] = C @ v + (0.0 if m_upd is None else m_upd[k])
+            P = r["pp"][k] + C @ (Ps - rn["pm"]) @ C.T
+            Ps, Ss = 0.5 * (P + P.T), r["sp"][k] + C @ (Ss - rn["sm"])
+        d[k] = np.diag(Ps)
+        if log.var_c is not None:
+            d[k, 12:] += ((Ss * Ss) @ log.var_c)[12:]
+    return y, d
+
+
+@pytest.mark.parametrize("bridged, consider_c", [(False, False), (True, False), (False, True)])
+def test_compiled_smoother_equals_numpy(bridged, consider_c):
+    """fieldlog_rts_chunk over records spilled to the log's file and kept in memory, chunks carried across, a
+    bridged run's forward means and the consider variances: numpy's backward pass to rounding."""
+    from fieldlog.fusion.smoother import SmootherLog, rts
+
+    rng = np.random.default_rng(11 + bridged + 2 * consider_c)
+    log = SmootherLog(chunk=7)
+    sd = np.repeat([1.0, 0.1, 1e-3, 1e-5, 1e-3], 3)  # the filter's scales: m, m/s, rad, rad/s, m/s^2
+    A = rng.normal(size=(15, 15)) + 4.0 * np.eye(15)
+    P = sd[:, None] * (A @ A.T) * sd
+    log.start(0, P)
+    log.sensitivity(rng.normal(size=(1, 15, 9)) * 1e-3)
+    H = np.hstack([np.eye(6), np.zeros((6, 9))])
+    for k in range(1, 60):
+        Phi = np.eye(15) + 0.01 * sd[:, None] * rng.normal(size=(15, 15)) / sd
+        Pm = Phi @ P @ Phi.T + np.diag((sd * rng.uniform(0.01, 0.1, 15)) ** 2)
+        Pm = 0.5 * (Pm + Pm.T)
+        log.cycles(np.array([k * 100_000_000]), Phi[None], Pm[None])
+        S = rng.normal(size=(1, 15, 9)) * 1e-3
+        log.sensitivity(S)
+        P = Pm
+        if k % 3 == 0:  # a GPS update: information form, and the correction fed back
+            P = np.linalg.inv(np.linalg.inv(Pm) + H.T @ H / 4.0)
+            P = 0.5 * (P + P.T)
+            log.update(rng.normal(size=15) * 0.1, P)
+            log.sensitivity_update(S[0] * 0.9)
+        elif bridged and k % 5 == 1:
+            log.bridge(rng.normal(size=15) * 0.05)
+    if consider_c:
+        log.var_c = rng.uniform(1e-8, 1e-4, 9)
+    assert log.bridged == bridged and log._spilled > 0
+    sm = rts(log)
+    y, d = _numpy_rts(log)
+    for got, want in ((sm.y, y), (sm.P_diag, d)):
+        scale = np.abs(want).max(axis=0)
+        assert np.all(np.abs(got - want) <= 1e-9 * scale + 1e-300), np.abs(got - want).max(axis=0) / scale
+    log.close()
