@@ -455,3 +455,39 @@ KERNEL int32_t fieldlog_rts_chunk(int64_t n, const uint8_t *rec, int64_t stride,
     }
     return 0;
 }
+
+/* predictors.Rls.update over m rows in turn: weights w (n) and matrix P (n x n) in place, each row phi (n) of
+ * Phi (m x n) with its target y: Pphi = P phi, k = Pphi / (forget + phi . Pphi), w += k (y - phi . w),
+ * P <- sym((P - k Pphi^T) / forget), in numpy's order. */
+KERNEL void fieldlog_rls_update(int64_t m, int64_t n, double *P, double *w, const double *Phi, const double *y,
+                                double forget)
+{
+    const int nn = (int)n;
+    double Pphi[nn > 0 ? nn : 1], k[nn > 0 ? nn : 1];
+    for (int64_t r = 0; r < m; r++) {
+        const double *phi = Phi + r * nn;
+        double den = 0.0, pred = 0.0;
+        for (int i = 0; i < nn; i++) {
+            double s = 0.0;
+            for (int j = 0; j < nn; j++)
+                s = fma(P[i * nn + j], phi[j], s);
+            Pphi[i] = s;
+        }
+        for (int i = 0; i < nn; i++)
+            den = fma(phi[i], Pphi[i], den);
+        den = forget + den;
+        for (int i = 0; i < nn; i++) {
+            k[i] = Pphi[i] / den;
+            pred = fma(phi[i], w[i], pred);
+        }
+        const double e = y[r] - pred;
+        for (int i = 0; i < nn; i++)
+            w[i] = w[i] + k[i] * e;
+        for (int i = 0; i < nn; i++)
+            for (int j = 0; j < nn; j++)
+                P[i * nn + j] = (P[i * nn + j] - k[i] * Pphi[j]) / forget;
+        for (int i = 0; i < nn; i++)
+            for (int j = 0; j < i; j++)
+                P[i * nn + j] = P[j * nn + i] = 0.5 * (P[i * nn + j] + P[j * nn + i]);
+    }
+}

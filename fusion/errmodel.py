@@ -205,7 +205,8 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
 
 @functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices, covariance cycles, updates, fusion and smoothing (fusion/_cycles.c), loaded once.
+    """The compiled cycle matrices, covariance cycles, updates, fusion, smoothing and the predictors' RLS step
+    (fusion/_cycles.c), loaded once.
 
     Returns
     -------
@@ -220,7 +221,8 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
         "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),
-        "fieldlog_rts_chunk": ([i64, p, i64] + [p] * 9, i32)})
+        "fieldlog_rts_chunk": ([i64, p, i64] + [p] * 9, i32),
+        "fieldlog_rls_update": [i64, i64, p, p, p, p, f64]})
 
 
 def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.ndarray, f_n: np.ndarray,

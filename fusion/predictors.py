@@ -84,6 +84,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from fieldlog.fusion.errmodel import cycle_kernel
+
 N_CHANNELS = 6  # position E, N, U (m), velocity E, N, U (m/s)
 RBF, TDL = "rbf", "tdl"  # the network kinds: radial basis functions (RBFN), time-delay linear (TDLN)
 NETWORKS = (RBF, TDL)
@@ -399,22 +401,26 @@ class Rls:
         self.forget = forget
         self.updates = 0
 
-    def update(self, phi: np.ndarray, y: float) -> None:
-        """One sample: the weights moved towards y, the past discounted by ``forget``.
+    def update(self, Phi: np.ndarray, y: np.ndarray) -> None:
+        """Samples in turn, each moving the weights towards its target and discounting the past by ``forget``:
+        Pphi = P phi, k = Pphi / (forget + phi Pphi), w += k (y - phi w), P = sym((P - k Pphi^T) / forget);
+        compiled (``fieldlog_rls_update`` in fusion/_cycles.c).
 
         Parameters
         ----------
-        phi : np.ndarray
-            (n,) the sample's feature row.
-        y : float
-            Its target, in the output's unit.
+        Phi : np.ndarray
+            (m, n) the samples' feature rows, or (n,) one sample's.
+        y : np.ndarray
+            (m,) their targets, in the output's unit (a float for one sample).
         """
-        Pphi = self.P @ phi
-        k = Pphi / (self.forget + phi @ Pphi)
-        self.w = self.w + k * (y - phi @ self.w)
-        P = (self.P - np.outer(k, Pphi)) / self.forget
-        self.P = 0.5 * (P + P.T)
-        self.updates += 1
+        Phi = np.ascontiguousarray(np.atleast_2d(Phi), dtype=float)
+        y = np.ascontiguousarray(np.atleast_1d(y), dtype=float)
+        if Phi.shape != (len(y), len(self.w)):
+            raise ValueError(f"RLS of {len(self.w)} weights needs (m, {len(self.w)}) rows and m targets: "
+                             f"{Phi.shape}, {y.shape}")
+        cycle_kernel().fieldlog_rls_update(len(y), len(self.w), self.P.ctypes.data, self.w.ctypes.data,
+                                           Phi.ctypes.data, y.ctypes.data, float(self.forget))
+        self.updates += len(y)
 
 
 class OnlineChannel:
@@ -482,8 +488,7 @@ class OnlineChannel:
         else:
             A = self.features(U)[ok]
         self.rls = Rls(A.shape[1], self.cfg.forget, self.cfg.rls_delta)
-        for phi, y in zip(A, Y[ok]):
-            self.rls.update(phi, y)
+        self.rls.update(A, Y[ok])
         self.since = 0
 
     def stale(self, x: float) -> bool:
@@ -779,8 +784,7 @@ class SpeedNetwork:
         self.c, self.s = c, self.cfg.width_scale * np.maximum(s, 1e-3)
         A = self.features(X)
         self.rls = Rls(A.shape[1], self.cfg.forget, self.cfg.rls_delta)
-        for phi, y in zip(A, Y):
-            self.rls.update(phi, y)
+        self.rls.update(A, Y)
         self.since = 0
 
     def frozen(self) -> "SpeedNetwork":

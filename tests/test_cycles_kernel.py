@@ -270,3 +270,31 @@ def test_compiled_smoother_equals_numpy(bridged, consider_c):
         scale = np.abs(want).max(axis=0)
         assert np.all(np.abs(got - want) <= 1e-9 * scale + 1e-300), np.abs(got - want).max(axis=0) / scale
     log.close()
+
+
+def test_compiled_rls_equals_numpy():
+    """predictors.Rls over rows at once (a refresh) and one by one (the epochs): numpy's step to rounding, and
+    a wrong shape refused."""
+    from fieldlog.fusion.predictors import Rls
+
+    rng = np.random.default_rng(5)
+    n, forget = 9, 0.995
+    A = np.exp(-rng.uniform(0.0, 3.0, (200, n)) ** 2)  # overlapping Gaussian units: correlated features
+    y = A @ rng.normal(size=n) + rng.normal(0.0, 0.01, 200)
+    w, P = np.zeros(n), np.eye(n) / 1e-3
+    for phi, t in zip(A, y):
+        Pphi = P @ phi
+        k = Pphi / (forget + phi @ Pphi)
+        w = w + k * (t - phi @ w)
+        P = (P - np.outer(k, Pphi)) / forget
+        P = 0.5 * (P + P.T)
+    batch, single = Rls(n, forget, 1e-3), Rls(n, forget, 1e-3)
+    batch.update(A, y)
+    for phi, t in zip(A, y):
+        single.update(phi, t)
+    for r in (batch, single):
+        assert r.updates == 200
+        np.testing.assert_allclose(r.w, w, rtol=0, atol=1e-9 * np.abs(w).max())
+        np.testing.assert_allclose(r.P, P, rtol=0, atol=1e-9 * np.abs(P).max())
+    with pytest.raises(ValueError, match="needs"):
+        batch.update(A[:, :-1], y)
