@@ -13,6 +13,7 @@ Both the centralised ``kf`` (one filter, z = [dv; dp]) and the two local filters
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -300,8 +301,8 @@ def stack(*ms: Measurement | None) -> Measurement | None:
         z and H stacked in order, R block-diagonal; None when there is none.
     """
     ms = tuple(m for m in ms if m is not None)
-    if not ms:
-        return None
+    if len(ms) <= 1:
+        return tuple(a.copy() for a in ms[0]) if ms else None
     return np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms]), _block_diag([m[2] for m in ms])
 
 
@@ -354,10 +355,17 @@ def correct_ins(nav: NavState, x: np.ndarray) -> NavState:
     NavState
         The corrected state.
     """
-    rm, rn = earth.principal_radii(nav.lat, nav.h)
-    lat = nav.lat - x[1] / rm
-    lon = nav.lon - x[0] / (rn * np.cos(nav.lat))
-    q = earth.quat_multiply(earth.rotvec_to_quat(x[ATT]), nav.q)  # C_true = (I + [phi x]) C_computed
-    q = q / np.linalg.norm(q)
+    # the quaternion in floats (one state: numpy's per-call cost would be most of the work), by the formulas of
+    # earth.rotvec_to_quat and earth.quat_multiply
+    e, n, u, px, py, pz = x[:3].tolist() + x[ATT].tolist()
+    rm, rn = (float(r) for r in earth.principal_radii(nav.lat, nav.h))
+    a = math.sqrt(px * px + py * py + pz * pz)
+    k = 0.5 - a * a / 48.0 + (a * a) * (a * a) / 3840.0 if a < 1e-4 else math.sin(0.5 * a) / a
+    px, py, pz, pw = k * px, k * py, k * pz, math.cos(0.5 * a)  # C_true = (I + [phi x]) C_computed
+    qx, qy, qz, qw = nav.q.tolist()
+    q = np.array([pw * qx + qw * px + (py * qz - pz * qy), pw * qy + qw * py + (pz * qx - px * qz),
+                  pw * qz + qw * pz + (px * qy - py * qx), pw * qw - (px * qx + py * qy + pz * qz)])
+    q /= math.sqrt(float(q @ q))
     q = q if q[3] >= 0.0 else -q
-    return NavState(nav.t, float(lat), float(lon), float(nav.h - x[2]), nav.v_n - x[VEL], q)
+    return NavState(nav.t, float(nav.lat - n / rm), float(nav.lon - e / (rn * math.cos(nav.lat))), float(nav.h - u),
+                    nav.v_n - x[VEL], q)
