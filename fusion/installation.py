@@ -121,6 +121,9 @@ class GyroTrack:
         return (int(self._t[0][0]), int(self._last[0])) if self._t else (0, 0)
 
 
+_CELLS = 1 << 18  # lag x interval residuals computed at once by time_offset
+
+
 def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> tuple[float, float] | None:
     """How late the IMU's stamps are against the GPS's (module docstring); a constant rate (the gyro bias, the Earth
     rate) is fitted with it.
@@ -151,12 +154,16 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     d_course = np.remainder(course[k + 1] - course[k] + math.pi, 2.0 * math.pi) - math.pi
     a, b, span = tg[k], tg[k + 1], dt[k]
 
-    def _resid(d: float) -> np.ndarray:
-        r = d_course - gyro.heading_change(a + int(round(d * 1e9)), b + int(round(d * 1e9)))
-        return r - span * (np.sum(r * span) / np.sum(span * span))   # less the best constant rate
+    def _cost(d: np.ndarray) -> np.ndarray:
+        """The squared residuals' sum at each lag of d (s), less the best constant rate."""
+        shift = np.round(d * 1e9).astype(np.int64)[:, None]
+        r = d_course - gyro.heading_change(a + shift, b + shift)
+        r = r - span * (np.sum(r * span, axis=1, keepdims=True) / np.sum(span * span))
+        return np.sum(r ** 2, axis=1)
 
     lags = np.arange(-MAX_OFFSET_S, MAX_OFFSET_S + 0.5 * _STEP_S, _STEP_S)
-    cost = np.array([np.sum(_resid(d) ** 2) for d in lags])
+    per = max(1, _CELLS // len(k))  # lags at a time: memory bounded on a long drive
+    cost = np.concatenate([_cost(lags[i:i + per]) for i in range(0, len(lags), per)])
     i = int(np.argmin(cost))
     if not 0 < i < len(lags) - 1:  # at the edge of the search: the turns do not show the offset
         return None
