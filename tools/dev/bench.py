@@ -254,11 +254,6 @@ def bench_grades(runs: int, tmp: Path) -> None:
 # RUSAGE_CHILDREN) would also carry the parent's RSS at fork time, which Linux keeps across exec: here the
 # bench's own simulated drive, several GB.
 _PEAK_MB = "int(re.search(r'VmHWM:\\s+(\\d+) kB', open('/proc/self/status').read()).group(1)) / 1024"
-_FUSE_CHILD = ("import json, re, sys, time\n"
-               "from fieldlog.tools.fuse import fuse\n"
-               "t0 = time.perf_counter()\n"
-               "r = fuse(sys.argv[1], sys.argv[2], sys.argv[3], smooth=sys.argv[4] == '1', force=True)\n"
-               f"print(json.dumps(dict(s=time.perf_counter() - t0, n=r.imu_samples, rss_mb={_PEAK_MB})))\n")
 _CLI_CHILD = ("import re, sys\n"
               "from fieldlog.tools.cli import main\n"
               "rc = main(sys.argv[1:])\n"
@@ -267,20 +262,26 @@ _CLI_CHILD = ("import re, sys\n"
 
 
 def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> dict:
-    """fieldlog fuse in a fresh Python process: seconds, IMU samples and the process's peak RSS (MB)."""
+    """``fieldlog fuse --json`` as a user runs it (the installation pass included) in a fresh Python process:
+    seconds (wall, start-up included), IMU samples and the process's peak RSS (MB)."""
     import json
 
-    res = subprocess.run([sys.executable, "-c", _FUSE_CHILD, str(drive), method, str(out), "1" if smooth else "0"],
-                         check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    cmd = [sys.executable, "-c", _CLI_CHILD, "fuse", str(drive), "--method", method, "--out", str(out), "--force",
+           "--json", "-q", *(["--smooth"] if smooth else [])]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
+    s = time.perf_counter() - t0
+    lines = res.stdout.strip().splitlines()
+    summary = json.loads(next(ln for ln in lines if ln.startswith("{")))
+    return {"s": s, "n": summary["imu_samples"], "rss_mb": float(lines[-1].split()[1])}
 
 
 _LONG_TARGETS = {KF.name: "≤ 2 s; RSS equal", DKF_RBFN.name: "≤ 4 s; RSS equal"}  # the 1-hour drive
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
-    """fieldlog fuse of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth), each in a
-    child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
+    """``fieldlog fuse`` of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth), each a
+    command in a child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
     from fieldlog.tools.sim.simulate import simulate
 
     drives = []
