@@ -68,8 +68,9 @@ def run(a: argparse.Namespace) -> int:
     t0 = time.monotonic()
     out = out_file(a)
     config, installed = st.config, {}
-    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=True)) as stream:  # decoded once
-        if a.method != INS.name and installation_applies(config, st.inputs):
+    install = a.method != INS.name and installation_applies(config, st.inputs)
+    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:  # decoded once
+        if install:
             config, installed = estimate_installation(drive, config, st.inputs, stream)
         res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                    inputs=st.inputs, force=a.force, installation=installed, stream=stream)
