@@ -93,11 +93,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -110,6 +112,38 @@ from fieldlog.replay.ahead import Ahead
 from fieldlog.drive.files import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
+
+
+
+class _WithoutPandas:
+    """An import finder that answers "not installed" for pandas (``_pyarrow_without_pandas``)."""
+
+    @staticmethod
+    def find_spec(name: str, path: object = None, target: object = None) -> None:
+        if name == "pandas":
+            raise ModuleNotFoundError("pandas is not imported by the view", name=name)
+
+
+def _pyarrow_without_pandas() -> None:
+    """Tell pyarrow, at its first look, that pandas is absent, so that logging never imports pandas.
+
+    rerun-sdk hands pyarrow Python lists (names, colours, blueprint fields); given a list, ``pyarrow.array`` asks
+    whether it is a pandas object, and the first such question imports pandas when it is installed (beside
+    rerun by another package, not for rerun), a large import on the view's path. pyarrow asks once and keeps
+    the answer; a list converts the same either way. Contract: in this process pyarrow is not given pandas
+    objects to convert (pyarrow's explicit pandas calls, such as ``to_pandas``, still import it).
+    """
+    if "pandas" in sys.modules:
+        return
+    finder = _WithoutPandas()
+    sys.meta_path.insert(0, finder)
+    try:
+        pa.array([0])
+    finally:
+        sys.meta_path.remove(finder)
+
+
+_pyarrow_without_pandas()
 
 TIMELINE = "gps_time"
 TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
