@@ -250,6 +250,32 @@ def read_topic(path: DriveSpec, topic: str) -> dict[str, object]:
     return decode(_type(open_drive(path), topic) or "", t, p)
 
 
+def read_topics(path: DriveSpec, wanted: Sequence[str]) -> dict[str, dict[str, object]]:
+    """Several whole topics in one pass over the drive (a piece that holds more than one of them is read once),
+    each decoded as ``read_topic`` decodes it.
+
+    Parameters
+    ----------
+    path : the drive
+    wanted : topics of types ``decode`` knows
+
+    Returns
+    -------
+    dict : topic -> as ``decode``, for the topics of ``wanted`` that a file of the drive has
+    """
+    files = open_drive(path)
+    parts: dict[str, list[tuple[np.ndarray, messages.Packed]]] = {t: [] for t in wanted}
+    for f, group in piece_groups(files, wanted):
+        cm = f.read(group, wanted)
+        for topic in wanted:
+            cids = _cids(f, topic)
+            if cids:
+                t, _, p = _select(cm, cids)
+                parts[topic].append((t, p))
+    types = {t: _type(files, t) for t in wanted}
+    return {t: decode(types[t], *concat(ps)) for t, ps in parts.items() if types[t] is not None}
+
+
 def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
     """The messages of one topic decoded one by one with mcap_ros2 from the file's own schema (any type; slow:
     for low-rate topics such as /tf_static), in log-time order.
