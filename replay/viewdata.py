@@ -146,5 +146,8 @@ def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Gene
 def start(drive: DriveSpec, resolve: Callable[[], InputMap | None] = lambda: None) -> Ahead[float, DrivePass]:
     """``drive_pass`` begun now on the second core, the drive's inputs resolved there too (``resolve`` raises
     ValueError for a bad input option: raised when the pass is iterated); iterate the result (once) inside its
-    ``with`` block."""
+    ``with`` block. The drive's topics are counted first, here: the pass and the caller both ask for them, and
+    the forked worker inherits the count (the opened files keep it) instead of reading the message indexes
+    again."""
+    topic_names(drive)
     return Ahead(lambda: drive_pass(drive, resolve))
