@@ -706,6 +706,10 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     files = [drive, *fused]
     methods = discover_methods(files if _one_path(drive) else fused)
     with early if early is not None else start(drive, lambda: inputs) as read:
+        # what the drive pass does not give is read while it runs
+        wheels = bool(topic_names(drive).get("/vehicle/twist"))
+        fused_rows = [_read_fused(p, m.split("@")[0], wheels) for m, p in methods]
+        mount = mounting(drive)
         got = _drain(read, progress)
     imu_rows = _log_imu(rec, got)
     low = got.low
@@ -713,7 +717,6 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     if "/gps/fix" in low:
         gps, epochs_t, no_fix = gps_track(low["/gps/fix"])
     truth = truth_track(low["/truth/fix"], low.get("/truth/vel")) if "/truth/fix" in low else None
-    fused_rows = [_read_fused(p, m.split("@")[0], "/vehicle/twist" in low) for m, p in methods]
     fused_trk = [(m, _fused(sol)) for (m, _), sol in zip(methods, fused_rows)]
     candidates = [t for t in [gps, truth, *(f for _, f in fused_trk)] if t is not None and len(t.t_ns)]
     if not candidates:
@@ -724,7 +727,6 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
 
     if gps is not None:
         _log_gps(rec, gps, epochs_t, no_fix, low, origin)
-    mount = mounting(drive)
     truth_map, truth_pose = _log_truth(rec, truth, low, mount, origin)
     ref = _Reference(truth if truth is not None else gps, truth is not None, truth_pose, mount)
     for i, ((m, trk), sol) in enumerate(zip(fused_trk, fused_rows)):
