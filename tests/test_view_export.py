@@ -156,6 +156,29 @@ def test_blueprint_shows_error_axes_and_attitude_side_by_side():
     assert sum(isinstance(v, rrb.Spatial3DView) for v in views) == 2  # the trajectory and the close-up
 
 
+def test_the_viewer_logs_without_importing_pandas(tmp_path):
+    """rerun-sdk hands pyarrow Python lists, and pyarrow's first look at a list imports pandas when it is
+    installed; the viewer answers that look. A fresh process that writes a recording with the blueprint and
+    logged lists never imports pandas, and pyarrow's own pandas conversions still work after it."""
+    pytest.importorskip("pandas")
+    code = """if True:
+        import sys
+        import rerun as rr
+        from fieldlog.replay import view
+        rec = rr.RecordingStream("fieldlog")
+        rec.save(sys.argv[1], default_blueprint=view.blueprint(follow="truth"))
+        rec.log("x", rr.SeriesLines(names=["a"], colors=[(1, 2, 3)]), static=True)
+        rec.flush()
+        rec.disconnect()
+        assert "pandas" not in sys.modules
+        import pandas as pd
+        import pyarrow as pa
+        assert pa.Table.from_pandas(pd.DataFrame({"a": [1, 2]})).to_pandas()["a"].tolist() == [1, 2]
+    """
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "x.rrd")], check=True)
+    assert (tmp_path / "x.rrd").stat().st_size > 0
+
+
 def test_attitude_and_pose_against_truth(drives):
     """The fused vehicle's roll, pitch and heading against the simulator's, within 3 sigma of the filter; the
     base_link pose through the drive's /tf_static mounting."""
