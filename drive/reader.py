@@ -20,7 +20,7 @@ generic types carry ``msgs`` (a list of decoded message objects).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Callable, Collection, Iterator, Sequence
 
 import numpy as np
 
@@ -64,10 +64,7 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
     -------
     dict : ``log_time_ns`` and the type's decoded fields (``drive.messages.decode_*``), n rows each
     """
-    order = np.argsort(log_time_ns, kind="stable")
-    if not np.all(order == np.arange(len(order))):
-        log_time_ns = log_time_ns[order]
-        payloads = payloads.take(order)
+    log_time_ns, payloads = _by_log_time(log_time_ns, payloads)
     batch = messages.BATCH_DECODERS.get(type_name)
     if batch is not None:
         out: dict[str, object] = {"log_time_ns": log_time_ns}
@@ -85,6 +82,14 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
             msgs.append(None)
             ok.append(False)
     return {"log_time_ns": log_time_ns, "msgs": msgs, "valid": np.array(ok, dtype=bool)}
+
+
+def _by_log_time(log_time_ns: np.ndarray, payloads: messages.Packed) -> tuple[np.ndarray, messages.Packed]:
+    """The batch sorted by log_time (stable)."""
+    order = np.argsort(log_time_ns, kind="stable")
+    if not np.all(order == np.arange(len(order))):
+        return log_time_ns[order], payloads.take(order)
+    return log_time_ns, payloads
 
 
 def concat(parts: list[tuple[np.ndarray, messages.Packed]]) -> tuple[np.ndarray, messages.Packed]:
@@ -245,6 +250,32 @@ def read_topic(path: DriveSpec, topic: str) -> dict[str, object]:
     return decode(_type(open_drive(path), topic) or "", t, p)
 
 
+def read_topics(path: DriveSpec, wanted: Sequence[str]) -> dict[str, dict[str, object]]:
+    """Several whole topics in one pass over the drive (a piece that holds more than one of them is read once),
+    each decoded as ``read_topic`` decodes it.
+
+    Parameters
+    ----------
+    path : the drive
+    wanted : topics of types ``decode`` knows
+
+    Returns
+    -------
+    dict : topic -> as ``decode``, for the topics of ``wanted`` that a file of the drive has
+    """
+    files = open_drive(path)
+    parts: dict[str, list[tuple[np.ndarray, messages.Packed]]] = {t: [] for t in wanted}
+    for f, group in piece_groups(files, wanted):
+        cm = f.read(group, wanted)
+        for topic in wanted:
+            cids = _cids(f, topic)
+            if cids:
+                t, _, p = _select(cm, cids)
+                parts[topic].append((t, p))
+    types = {t: _type(files, t) for t in wanted}
+    return {t: decode(types[t], *concat(ps)) for t, ps in parts.items() if types[t] is not None}
+
+
 def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
     """The messages of one topic decoded one by one with mcap_ros2 from the file's own schema (any type; slow:
     for low-rate topics such as /tf_static), in log-time order.
@@ -306,7 +337,8 @@ def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
     return dict(read_metadata_records(path))
 
 
-def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Iterator[Block]:
+def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
+                undecoded: Collection[str] = ()) -> Iterator[Block]:
     """Stream a drive in consecutive blocks of ``block_s`` seconds of log_time.
 
     Blocks start at the first message of the selected topics and follow each other without
@@ -319,6 +351,8 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Itera
     path : the drive
     topics : the topics to read
     block_s : block length, s of log time
+    undecoded : topics of ``topics`` whose rows are left as they are stored (``log_time_ns`` and ``payloads``,
+        sorted by log_time), for a reader that decodes only the few it wants
 
     Returns
     -------
@@ -342,7 +376,11 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float) -> Itera
                 t, p = concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
                 inside = t < t1
                 idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
-                data[topic] = decode(types[topic], t[idx_in], _take(p, idx_in))
+                if topic in undecoded:
+                    t_in, p_in = _by_log_time(t[idx_in], _take(p, idx_in))
+                    data[topic] = {"log_time_ns": t_in, "payloads": p_in}
+                else:
+                    data[topic] = decode(types[topic], t[idx_in], _take(p, idx_in))
                 pending[topic] = [(t[idx_out], _take(p, idx_out))] if len(idx_out) else []
                 left += len(idx_out)
             yield Block(t0, t1, data)

@@ -93,11 +93,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -110,6 +112,38 @@ from fieldlog.replay.ahead import Ahead
 from fieldlog.drive.files import DriveSpec, drive_files, label
 from fieldlog.replay.inputs import InputMap
 from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
+
+
+
+class _WithoutPandas:
+    """An import finder that answers "not installed" for pandas (``_pyarrow_without_pandas``)."""
+
+    @staticmethod
+    def find_spec(name: str, path: object = None, target: object = None) -> None:
+        if name == "pandas":
+            raise ModuleNotFoundError("pandas is not imported by the view", name=name)
+
+
+def _pyarrow_without_pandas() -> None:
+    """Tell pyarrow, at its first look, that pandas is absent, so that logging never imports pandas.
+
+    rerun-sdk hands pyarrow Python lists (names, colours, blueprint fields); given a list, ``pyarrow.array`` asks
+    whether it is a pandas object, and the first such question imports pandas when it is installed (beside
+    rerun by another package, not for rerun), a large import on the view's path. pyarrow asks once and keeps
+    the answer; a list converts the same either way. Contract: in this process pyarrow is not given pandas
+    objects to convert (pyarrow's explicit pandas calls, such as ``to_pandas``, still import it).
+    """
+    if "pandas" in sys.modules:
+        return
+    finder = _WithoutPandas()
+    sys.meta_path.insert(0, finder)
+    try:
+        pa.array([0])
+    finally:
+        sys.meta_path.remove(finder)
+
+
+_pyarrow_without_pandas()
 
 TIMELINE = "gps_time"
 TRUTH_DECIMATION = 10  # 100 Hz -> 10 Hz on the map and the 3D view
@@ -224,17 +258,31 @@ def truth_track(fix: dict, vel: dict | None) -> Track:
     return trk
 
 
-def _fused(path: str | os.PathLike[str], method: str) -> Track:
-    f = solutions.read(path, method, "fix")
+FUSED_NAMES = ("fix", "std", "vel", "kf1/fix", "kf2/fix", "attitude", "attitude_std", solutions.STATUS, "imu_bias")
+
+
+def _read_fused(path: str | os.PathLike[str], method: str, wheels: bool) -> dict[str, dict]:
+    """What the view shows of ``method`` in the fused file ``path``, read in one pass: name (``FUSED_NAMES``, and
+    ``odom`` with ``wheels``) -> its ``/fusion/<method>/<name>`` rows, for the names the file has messages of."""
+    names = [*FUSED_NAMES, *(("odom",) if wheels else ())]
+    got = reader.read_topics(path, [solutions.topic(method, n) for n in names])
+    rows = {n: got.get(solutions.topic(method, n)) for n in names}
+    return {n: d for n, d in rows.items() if d is not None and len(d["log_time_ns"])}
+
+
+def _fused(sol: dict[str, dict]) -> Track:
+    """The fused track of ``_read_fused``'s rows: positions, and their sigma and velocity where the file has them."""
+    if "fix" not in sol:
+        return Track(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0))
+    f = sol["fix"]
     ok = f["valid"]
     t = f["log_time_ns"][ok]
     trk = Track(t, f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
-    names = topic_names(path)
-    if names.get(solutions.topic(method, "std")):
-        s = solutions.read(path, method, "std")
+    if "std" in sol:
+        s = sol["std"]
         trk.sigma_pos = _interp(t, s["log_time_ns"][s["valid"]], s["xyz"][s["valid"]])
-    if names.get(solutions.topic(method, "vel")):
-        v = solutions.read(path, method, "vel")
+    if "vel" in sol:
+        v = sol["vel"]
         vok = v["valid"]
         trk.v_n = _interp(t, v["log_time_ns"][vok], v["v_n"][vok])
         var = v["covariance"][vok][:, [0, 7, 14]]
@@ -658,6 +706,10 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     files = [drive, *fused]
     methods = discover_methods(files if _one_path(drive) else fused)
     with early if early is not None else start(drive, lambda: inputs) as read:
+        # what the drive pass does not give is read while it runs
+        wheels = bool(topic_names(drive).get("/vehicle/twist"))
+        fused_rows = [_read_fused(p, m.split("@")[0], wheels) for m, p in methods]
+        mount = mounting(drive)
         got = _drain(read, progress)
     imu_rows = _log_imu(rec, got)
     low = got.low
@@ -665,7 +717,7 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
     if "/gps/fix" in low:
         gps, epochs_t, no_fix = gps_track(low["/gps/fix"])
     truth = truth_track(low["/truth/fix"], low.get("/truth/vel")) if "/truth/fix" in low else None
-    fused_trk = [(m, _fused(p, m.split("@")[0])) for m, p in methods]
+    fused_trk = [(m, _fused(sol)) for (m, _), sol in zip(methods, fused_rows)]
     candidates = [t for t in [gps, truth, *(f for _, f in fused_trk)] if t is not None and len(t.t_ns)]
     if not candidates:
         raise ValueError(f"{label(drive)}: no /gps/fix, /truth/fix or /fusion/*/fix positions to show")
@@ -675,12 +727,10 @@ def build(rec: rr.RecordingStream, drive: DriveSpec, fused: Sequence[str | os.Pa
 
     if gps is not None:
         _log_gps(rec, gps, epochs_t, no_fix, low, origin)
-    mount = mounting(drive)
     truth_map, truth_pose = _log_truth(rec, truth, low, mount, origin)
     ref = _Reference(truth if truth is not None else gps, truth is not None, truth_pose, mount)
-    for i, (m, trk) in enumerate(fused_trk):
-        _log_fused(rec, m, trk, dict(methods)[m], method_color(m.split("@")[0], i), origin, ref,
-                   "/vehicle/twist" in low)
+    for i, ((m, trk), sol) in enumerate(zip(fused_trk, fused_rows)):
+        _log_fused(rec, m, trk, sol, method_color(m.split("@")[0], i), origin, ref)
     for topic, src, color in (("/vehicle/twist", "wheels", WHEELS_COLOR), ("/truth/vehicle/twist", "truth",
                                                                            TRUTH_COLOR)):
         if topic in low:
@@ -751,45 +801,43 @@ class _Reference:
     mount: tuple[np.ndarray, np.ndarray]
 
 
-def _log_fused(rec: rr.RecordingStream, m: str, trk: Track, path: Path, color, origin: tuple[float, float, float],
-               ref: _Reference, wheels: bool) -> None:
-    """One fused method's track (labelled ``m``, read from ``path``), its local filters' tracks, its errors
-    against ``ref``, pose, attitude with its sigma and errors, status, IMU biases and (``wheels``: the drive has
-    wheel speeds) forward speed."""
-    method = m.split("@")[0]
-    names = topic_names(path)
+def _log_fused(rec: rr.RecordingStream, m: str, trk: Track, sol: dict[str, dict], color,
+               origin: tuple[float, float, float], ref: _Reference) -> None:
+    """One fused method's track (labelled ``m``; ``sol``: its rows, ``_read_fused``), its local filters' tracks,
+    its errors against ``ref``, pose, attitude with its sigma and errors, status, IMU biases and (with
+    ``odom``: the drive has wheel speeds) forward speed."""
     _log_track(rec, f"fusion/{m}", trk, color, origin, 2.5)
     for k, shade in (("kf1", 0.55), ("kf2", 0.8)):
-        if names.get(solutions.topic(method, f"{k}/fix")):
-            f = solutions.read(path, method, f"{k}/fix")
+        if f"{k}/fix" in sol:
+            f = sol[f"{k}/fix"]
             ok = f["valid"]
             local = Track(f["log_time_ns"][ok], f["lat_deg"][ok], f["lon_deg"][ok], f["alt_m"][ok])
             _log_track(rec, f"fusion/{m}/{k}", local, tuple(int(c * shade) for c in color), origin, 1.5)
     if ref.track is not None and len(ref.track.t_ns):
         _log_errors(rec, m, errors(trk, ref.track, ref.is_truth, origin), color)
-    if names.get(solutions.topic(method, "attitude")):
-        att = solutions.read(path, method, "attitude")
+    if "attitude" in sol:
+        att = sol["attitude"]
         q = _interp(trk.t_ns, att["log_time_ns"][att["valid"]], att["q_xyzw"][att["valid"]])
         ok = np.isfinite(q).all(axis=1)
         pose = base_pose(trk.take(ok), q[ok], ref.mount, origin)
         _log_pose(rec, f"fusion/{m}", pose, color)
         sigma = None
-        if names.get(solutions.topic(method, "attitude_std")):
-            a = solutions.read(path, method, "attitude_std")
+        if "attitude_std" in sol:
+            a = sol["attitude_std"]
             phi = _interp(pose.t_ns, a["log_time_ns"][a["valid"]], a["xyz"][a["valid"]])
             sigma = attitude_sigma_deg(phi, pose.euler_deg()[:, 2])
         _log_attitude(rec, m, pose, sigma, color)
         if ref.pose is not None and sigma is not None:
             _log_attitude_errors(rec, m, pose, sigma, ref.pose, color)
-    if names.get(solutions.topic(method, solutions.STATUS)):  # a fused file may have none
-        st = solutions.read(path, method, solutions.STATUS)
+    if solutions.STATUS in sol:  # a fused file may have none
+        st = sol[solutions.STATUS]
         ok = st["valid"]
         _log_scalar(rec, f"solution_status/{m}", st["log_time_ns"][ok], st["status"][ok].astype(float),
                     f"{m} status", [color], step=True)
-    if names.get(solutions.topic(method, "imu_bias")):  # fused files before it: none
-        _log_bias(rec, m, solutions.read(path, method, "imu_bias"), color)
-    if wheels and names.get(solutions.topic(method, "odom")):
-        od = solutions.read(path, method, "odom")
+    if "imu_bias" in sol:  # fused files before it: none
+        _log_bias(rec, m, sol["imu_bias"], color)
+    if "odom" in sol:
+        od = sol["odom"]
         keep = [i for i, msg in enumerate(od["msgs"]) if msg is not None]
         fwd = np.array([od["msgs"][i].twist.twist.linear.x for i in keep])
         _log_scalar(rec, f"speed/{m}", od["log_time_ns"][keep], fwd, f"{m} forward speed (m/s)", [color])

@@ -3,9 +3,9 @@
 ``start`` forks the pass (``replay.ahead``) so that it runs while the caller imports rerun-sdk, which takes
 about as long as the pass itself; ``replay.view`` then logs what it returns. The pass decimates ``/imu`` block by
 block (``IMU_BLOCK_S``) by means of ``IMU_DECIMATION`` valid samples, carried across blocks, so the 500 Hz rows
-are never held whole; the ``LOW_RATE`` topics and the GGA quality of ``/gps/nmea`` are returned whole. The
-worker yields the fraction of the drive read after each block (for a progress bar) and returns a
-:class:`DrivePass`.
+are never held whole; the ``LOW_RATE`` topics and the GGA quality of ``/gps/nmea`` (its messages read in the
+same pass, undecoded, and only the GGA sentences decoded) are returned whole. The worker yields the fraction of
+the drive read after each block (for a progress bar) and returns a :class:`DrivePass`.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from fieldlog.replay.inputs import InputMap
 
 IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
 IMU_BLOCK_S = 60.0
+NMEA = "/gps/nmea"  # read undecoded in the pass: only its GGA sentences are decoded
 
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
     "/gps/fix": ("lat_deg", "lon_deg", "alt_m", "status", "position_covariance", "covariance_type"),
@@ -73,23 +74,26 @@ def decimate_means(t_ns: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray,
     return t_mean, x[: m * n].reshape(m, n, x.shape[1]).mean(axis=1)
 
 
-def gga_quality(drive: DriveSpec, names: dict[str, int] | None = None) -> dict[str, np.ndarray]:
-    """The GGA sentences of ``/gps/nmea``: log_time_ns, satellites, hdop, fix_type (GGA quality), as float
-    (NaN: field empty). Only payloads holding ``GGA,`` are decoded. ``names``: the drive's topic_names."""
-    t_out, rows = [], []
-    if (names if names is not None else topic_names(drive)).get("/gps/nmea"):
-        log_ns, _, payloads = reader.read_payloads(drive, "/gps/nmea")
-        dec = messages.decoder_for(messages.SENTENCE)
-        for t, b in zip(log_ns, payloads):
-            if b"GGA," not in bytes(b):
-                continue
-            line = dec(bytes(b)).sentence.strip().encode("ascii", "replace")
-            gga = nmea.decode_body(nmea.split_checksum(line)[0])
-            if isinstance(gga, nmea.Gga):
-                t_out.append(int(t))
-                rows.append([np.nan if v is None else float(v) for v in (gga.num_sats, gga.hdop, gga.quality)])
-    x = np.array(rows, dtype=np.float64).reshape(-1, 3)
-    return {"log_time_ns": np.array(t_out, dtype=np.int64), "satellites": x[:, 0], "hdop": x[:, 1],
+def gga_quality(log_ns: np.ndarray, payloads: messages.Packed) -> list[tuple[int, list[float]]]:
+    """The GGA sentences among ``/gps/nmea`` messages (log_time_ns UTC ns and their payloads, in log-time order):
+    (log_time_ns, [satellites, hdop, fix_type (GGA quality)]) each, as float (NaN: field empty). Only payloads
+    holding ``GGA,`` are decoded."""
+    dec = messages.decoder_for(messages.SENTENCE)
+    rows = []
+    for t, b in zip(log_ns.tolist(), payloads):
+        if b"GGA," not in bytes(b):
+            continue
+        line = dec(bytes(b)).sentence.strip().encode("ascii", "replace")
+        gga = nmea.decode_body(nmea.split_checksum(line)[0])
+        if isinstance(gga, nmea.Gga):
+            rows.append((t, [np.nan if v is None else float(v) for v in (gga.num_sats, gga.hdop, gga.quality)]))
+    return rows
+
+
+def _gga_arrays(rows: list[tuple[int, list[float]]]) -> dict[str, np.ndarray]:
+    """``gga_quality``'s rows as arrays: log_time_ns, satellites, hdop, fix_type."""
+    x = np.array([r for _, r in rows], dtype=np.float64).reshape(-1, 3)
+    return {"log_time_ns": np.array([t for t, _ in rows], dtype=np.int64), "satellites": x[:, 0], "hdop": x[:, 1],
             "fix_type": x[:, 2]}
 
 
@@ -101,16 +105,23 @@ def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Gene
     names = topic_names(drive)
     if imap is not None and not imap.native:  # another logger's topics, under fieldlog's names
         names = {**names, **{n: names.get(t, 0) for t, n in zip(imap.topics, ("/imu", "/gps/fix", "/gps/vel"))}}
+    native = imap is None or imap.native
     wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
+    nmea_in_pass = native and bool(names.get(NMEA))
     span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
     t_first = min((t.first_ns for t in span), default=0)
     t_last = max((t.last_ns for t in span), default=1)
     parts: dict[str, list[dict[str, np.ndarray]]] = {t: [] for t in LOW_RATE if names.get(t)}
     carry_t, carry_x = np.zeros(0, np.int64), np.zeros((0, 6))
     imu_t, imu_x = [carry_t], [carry_x]
-    blocks = (reader.iter_blocks(drive, wanted, IMU_BLOCK_S) if imap is None or imap.native else
+    gga: list[tuple[int, list[float]]] = []
+    read = wanted + ([NMEA] if nmea_in_pass else [])
+    blocks = (reader.iter_blocks(drive, read, IMU_BLOCK_S, undecoded=(NMEA,)) if native else
               inputs.canonical_blocks(drive, imap, IMU_BLOCK_S, tuple(wanted)))
     for block in blocks:
+        sentences = block.data.get(NMEA)
+        if sentences is not None:
+            gga += gga_quality(sentences["log_time_ns"], sentences["payloads"])
         for topic, keep in LOW_RATE.items():
             d = block.data.get(topic)
             if d is not None and len(d["log_time_ns"]):
@@ -126,11 +137,17 @@ def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Gene
             imu_x.append(xm)
         yield min((block.t1_ns - t_first) / max(t_last - t_first, 1), 1.0)
     low = {t: {k: np.concatenate([p[k] for p in ps]) for k in ps[0]} for t, ps in parts.items() if ps}
-    return DrivePass(np.concatenate(imu_t), np.concatenate(imu_x), low, gga_quality(drive, names))
+    if names.get(NMEA) and not nmea_in_pass:  # another logger's drive: its sentences read apart
+        log_ns, _, payloads = reader.read_payloads(drive, NMEA)
+        gga = gga_quality(log_ns, payloads)
+    return DrivePass(np.concatenate(imu_t), np.concatenate(imu_x), low, _gga_arrays(gga))
 
 
 def start(drive: DriveSpec, resolve: Callable[[], InputMap | None] = lambda: None) -> Ahead[float, DrivePass]:
     """``drive_pass`` begun now on the second core, the drive's inputs resolved there too (``resolve`` raises
     ValueError for a bad input option: raised when the pass is iterated); iterate the result (once) inside its
-    ``with`` block."""
+    ``with`` block. The drive's topics are counted first, here: the pass and the caller both ask for them, and
+    the forked worker inherits the count (the opened files keep it) instead of reading the message indexes
+    again."""
+    topic_names(drive)
     return Ahead(lambda: drive_pass(drive, resolve))

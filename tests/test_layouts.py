@@ -393,6 +393,32 @@ def test_the_compiled_read_equals_the_numpy_read(layout, original, corpus, monke
     assert sum(len(a[0]) for a in compiled) > 0
 
 
+@pytest.mark.parametrize("layout", ["original", *LAYOUTS, "rosbag2-split"])
+def test_one_pass_reads_give_what_the_topic_reads_give(layout, original, corpus):
+    """``read_topics`` (several topics in one pass) decodes each topic as ``read_topic`` does, and a topic
+    ``iter_blocks`` leaves undecoded comes back, block after block, as ``read_payloads`` reads it, in every layout
+    (channels defined inside chunks, messages outside chunks, a drive of several files); a topic the drive does
+    not have is left out."""
+    src = original if layout == "original" else corpus[layout]
+    topics = ["/imu", "/gps/fix", "/gps/nmea", "/tf_static", "/no/such/topic"]
+    got = reader.read_topics(src, topics)
+    assert sorted(got) == sorted(topics[:-1])
+    for topic in topics[:-1]:
+        one = reader.read_topic(src, topic)
+        assert sorted(got[topic]) == sorted(one) and len(one["log_time_ns"]) > 0
+        for key, x in one.items():
+            if key == "msgs":
+                assert got[topic][key] == x
+            else:
+                np.testing.assert_array_equal(got[topic][key], x)
+    blocks = list(reader.iter_blocks(src, ["/imu", "/gps/nmea"], 7.0, undecoded=("/gps/nmea",)))
+    t, _, p = reader.read_payloads(src, "/gps/nmea")
+    rows = [b.data["/gps/nmea"] for b in blocks if "/gps/nmea" in b.data]
+    assert np.array_equal(np.concatenate([r["log_time_ns"] for r in rows]), t)
+    assert [bytes(x) for r in rows for x in r["payloads"]] == [bytes(x) for x in p]
+    assert all("payloads" not in b.data["/imu"] for b in blocks)
+
+
 def test_threads_reading_at_once_read_what_one_reads(original, corpus):
     """The compiled read releases the GIL: two threads reading the 4 KiB-chunk file at once (each with its own
     zstd context and buffers) get the messages one thread gets."""

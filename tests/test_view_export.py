@@ -156,6 +156,29 @@ def test_blueprint_shows_error_axes_and_attitude_side_by_side():
     assert sum(isinstance(v, rrb.Spatial3DView) for v in views) == 2  # the trajectory and the close-up
 
 
+def test_the_viewer_logs_without_importing_pandas(tmp_path):
+    """rerun-sdk hands pyarrow Python lists, and pyarrow's first look at a list imports pandas when it is
+    installed; the viewer answers that look. A fresh process that writes a recording with the blueprint and
+    logged lists never imports pandas, and pyarrow's own pandas conversions still work after it."""
+    pytest.importorskip("pandas")
+    code = """if True:
+        import sys
+        import rerun as rr
+        from fieldlog.replay import view
+        rec = rr.RecordingStream("fieldlog")
+        rec.save(sys.argv[1], default_blueprint=view.blueprint(follow="truth"))
+        rec.log("x", rr.SeriesLines(names=["a"], colors=[(1, 2, 3)]), static=True)
+        rec.flush()
+        rec.disconnect()
+        assert "pandas" not in sys.modules
+        import pandas as pd
+        import pyarrow as pa
+        assert pa.Table.from_pandas(pd.DataFrame({"a": [1, 2]})).to_pandas()["a"].tolist() == [1, 2]
+    """
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "x.rrd")], check=True)
+    assert (tmp_path / "x.rrd").stat().st_size > 0
+
+
 def test_attitude_and_pose_against_truth(drives):
     """The fused vehicle's roll, pitch and heading against the simulator's, within 3 sigma of the filter; the
     base_link pose through the drive's /tf_static mounting."""
@@ -169,7 +192,7 @@ def test_attitude_and_pose_against_truth(drives):
     q = rview._interp(truth.t_ns, att["log_time_ns"], att["q_xyzw"])
     ok = np.isfinite(q).all(axis=1)
     truth_pose = rview.base_pose(truth.take(ok), q[ok], mount, origin)
-    fused = rview._fused(kf, "kf")
+    fused = rview._fused(rview._read_fused(kf, "kf", wheels=False))
     pose = rview.base_pose(fused, read_topic(kf, "/fusion/kf/attitude")["q_xyzw"], mount, origin)
     np.testing.assert_allclose(np.linalg.det(pose.C_base_n), 1.0, atol=1e-9)
     err = pose.euler_deg() - rview._interp(pose.t_ns, truth_pose.t_ns, truth_pose.euler_deg(unwrap=True))
@@ -195,7 +218,7 @@ def test_errors_against_truth(drives):
     origin = (float(truth.lat_deg[0]), float(truth.lon_deg[0]), float(truth.alt_m[0]))
     self_err = rview.errors(truth, truth, True, origin)  # the truth against itself: zero
     assert np.abs(self_err.pos).max() < 1e-6 and np.abs(self_err.vel).max() < 1e-9
-    e = rview.errors(rview._fused(kf, "kf"), truth, True, origin)
+    e = rview.errors(rview._fused(rview._read_fused(kf, "kf", wheels=False)), truth, True, origin)
     t0 = int(read_topic(sim, "/imu")["log_time_ns"][0])
     with_gps = (e.t_ns > t0 + 50e9) & (e.t_ns < t0 + 60e9)  # the filter aligns at ~46 s
     in_outage = (e.t_ns > t0 + 65e9) & (e.t_ns < t0 + 75e9)
@@ -290,7 +313,7 @@ def test_errors_against_gps_and_an_imported_nmea_log_on_the_map(drives, tmp_path
     v = read_topic(sim, "/gps/vel")
     gps.v_n = rview._interp(gps.t_ns, v["log_time_ns"], v["v_n"])
     origin = (float(gps.lat_deg[0]), float(gps.lon_deg[0]), float(gps.alt_m[0]))
-    fused = rview._fused(kf, "kf")
+    fused = rview._fused(rview._read_fused(kf, "kf", wheels=False))
     e = rview.errors(fused, gps, False, origin)
     inside = (gps.t_ns >= fused.t_ns[0]) & (gps.t_ns <= fused.t_ns[-1])
     np.testing.assert_array_equal(e.t_ns, gps.t_ns[inside])  # evaluated at the GPS fix epochs

@@ -12,8 +12,14 @@ import logging
 import os
 import sys
 
-from fieldlog.tools.commands import COMMANDS
-from fieldlog.tools.commands.common import KERNELS, METHODS, HelpFormatter
+# One OpenBLAS thread, set before the commands import numpy (which starts OpenBLAS's threads when it loads):
+# the commands' matrix products are small and one thread gives the same floats, and a command's second core
+# goes to its forked worker; more BLAS threads would only spin waiting for work, at start-up and after each
+# product, which costs CPU. A setting in the environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from fieldlog.tools.commands import COMMANDS  # noqa: E402
+from fieldlog.tools.commands.common import KERNELS, METHODS, HelpFormatter  # noqa: E402
 
 __all__ = ["METHODS", "build_parser", "main", "setup_logging"]
 
