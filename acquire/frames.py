@@ -31,11 +31,29 @@ C_RFU_FLU = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 def C_imu_base(mounting: calib.Mounting) -> np.ndarray:
     """DCM IMU axes -> base_link axes (v_base = C @ v_imu): RFU -> FLU after the triad's mounting rotation
     (fixed-axis roll, then pitch, then yaw, as REP-103 RPY)."""
-    if not any(mounting.imu_rpy_deg):  # scipy's rotation of zero angles is the identity exactly
-        return C_RFU_FLU @ np.eye(3)
-    from scipy.spatial.transform import Rotation  # only here: importing scipy.spatial is slow, and fuse needs none
+    return C_RFU_FLU @ _rotation_xyz_deg(mounting.imu_rpy_deg)
 
-    return C_RFU_FLU @ Rotation.from_euler("xyz", mounting.imu_rpy_deg, degrees=True).as_matrix()
+
+def _rotation_xyz_deg(rpy_deg) -> np.ndarray:
+    """The rotation matrix of fixed-axis roll, pitch, yaw (deg) by scipy's ``Rotation.from_euler("xyz", rpy_deg,
+    degrees=True).as_matrix()`` operations, so the same floats (tests/test_frames.py) without importing
+    scipy.spatial (slow): the elementary quaternions composed extrinsically, then the matrix of the quaternion."""
+    q: list[float] = []
+    for axis, deg in enumerate(rpy_deg):
+        half = float(deg) * (math.pi / 180.0) / 2.0
+        e = [0.0, 0.0, 0.0, math.cos(half)]
+        e[axis] = math.sin(half)
+        if not q:
+            q = e
+            continue
+        c = (e[1] * q[2] - e[2] * q[1], e[2] * q[0] - e[0] * q[2], e[0] * q[1] - e[1] * q[0])  # e x q
+        q = [e[3] * q[i] + q[3] * e[i] + c[i] for i in range(3)] + [e[3] * q[3] - e[0] * q[0] - e[1] * q[1]
+                                                                   - e[2] * q[2]]
+    x, y, z, w = q
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    return np.array([[x2 - y2 - z2 + w2, 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), -x2 + y2 - z2 + w2, 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), -x2 - y2 + z2 + w2]])
 
 
 def quat_xyzw(C: np.ndarray) -> np.ndarray:

@@ -122,8 +122,8 @@ def test_tf_static_odom_and_datum_follow_rep_105(fused) -> None:
 
 
 def test_quaternions_and_mounting_are_scipy_s_floats() -> None:
-    """``frames`` computes the quaternions of rotations (and the zero mounting) without scipy on the fuse path:
-    the same floats as ``scipy.spatial.transform.Rotation``, which it still uses otherwise."""
+    """``frames`` computes the quaternions of rotations and the mounting's rotation without scipy on the fuse and
+    sim paths: the same floats as ``scipy.spatial.transform.Rotation``, which it still uses otherwise."""
     from scipy.spatial.transform import Rotation
 
     from fieldlog.acquire import frames
@@ -135,6 +135,9 @@ def test_quaternions_and_mounting_are_scipy_s_floats() -> None:
     for C in mats:
         q = Rotation.from_matrix(C).as_quat()
         assert np.array_equal(frames.quat_xyzw(C), q * (-1.0 if q[3] < 0 else 1.0)), C
-    zero = calib.Mounting()
-    assert np.array_equal(frames.C_imu_base(zero),
-                          frames.C_RFU_FLU @ Rotation.from_euler("xyz", zero.imu_rpy_deg, degrees=True).as_matrix())
+    angles = [np.zeros(3), np.array([0.0, -4.0, 5.0]), np.array([180.0, 90.0, -180.0])]
+    angles += list(rng.uniform(-180.0, 180.0, (5000, 3))) + list(rng.normal(0.0, 1e-6, (100, 3)))
+    for rpy in angles:
+        m = calib.Mounting(imu_rpy_deg=rpy)
+        assert np.array_equal(frames.C_imu_base(m),
+                              frames.C_RFU_FLU @ Rotation.from_euler("xyz", rpy, degrees=True).as_matrix()), rpy
