@@ -13,10 +13,12 @@ import os
 import sys
 
 # One OpenBLAS thread, set before the commands import numpy (which starts OpenBLAS's threads when it loads):
-# the commands' matrix products are small and one thread gives the same floats, and a command's second core
-# goes to its forked worker; more BLAS threads would only spin waiting for work, at start-up and after each
-# product, which costs CPU. A setting in the environment wins.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# the commands' matrix products are small, and a command's second core goes to its forked worker; more BLAS
+# threads would only spin waiting for work, at start-up and after each product, which costs CPU. A setting in
+# the environment wins. Not for ``sim``: its drive's timing record sums the stamps' squared errors with a BLAS
+# dot product, whose rounding depends on the thread count, and a simulated drive keeps its bytes.
+if sys.argv[1:2] != ["sim"]:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from fieldlog.tools.commands import COMMANDS  # noqa: E402
 from fieldlog.tools.commands.common import KERNELS, METHODS, HelpFormatter  # noqa: E402
