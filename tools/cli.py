@@ -15,9 +15,11 @@ import sys
 # One OpenBLAS thread, set before the commands import numpy (which starts OpenBLAS's threads when it loads):
 # the commands' matrix products are small, and a command's second core goes to its forked worker; more BLAS
 # threads would only spin waiting for work, at start-up and after each product, which costs CPU. A setting in
-# the environment wins. Not for ``sim``: its drive's timing record sums the stamps' squared errors with a BLAS
-# dot product, whose rounding depends on the thread count, and a simulated drive keeps its bytes.
-if sys.argv[1:2] != ["sim"]:
+# the environment wins. Not for the commands that write a drive: its timing record (drive.drivestats) sums the
+# stamps' squared errors with a BLAS dot product, whose rounding depends on the thread count, and a drive keeps
+# its bytes.
+DRIVE_WRITERS = ("acquire", "sim", "rebuild", "recover", "import", "filter")
+if sys.argv[1:2] and sys.argv[1] not in DRIVE_WRITERS:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from fieldlog.tools.commands import COMMANDS  # noqa: E402
