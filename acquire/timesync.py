@@ -888,11 +888,16 @@ class TimeSync:
         """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
         ``read[j]``'s. Each read's host time goes into the host-clock bins, and the knots and final stamps are
         advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads up
-        to there, so each step sees the state it would."""
+        to there, so each step sees the state it would.
+
+        Without lock candidates to expire, whether an advance is due only grows with the read's last sample
+        (``Finaliser.due`` is monotonic in ``k_max`` while nothing else changes), so the reads where one is due
+        are found by bisection rather than by asking after every read."""
         if not len(k):
             return
         b = k // self._s.bin
-        last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
+        new_read = np.append(read[1:] != read[:-1], True)              # the last frame of each read
+        last = np.flatnonzero(np.append(b[1:] != b[:-1], True) | new_read)   # ... and of each bin in a read
         v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self.host.ns_per_sample).astype(np.int64)
         host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
         h = 0
@@ -903,17 +908,30 @@ class TimeSync:
                 self.host.put(*host[h][1:])
                 h += 1
 
-        ends = np.flatnonzero(np.diff(read, append=-1) != 0)   # the last frame of each read with frames
-        for i, e in zip(read[ends].tolist(), k[ends].tolist()):
-            self._k_max = e
-            self.labeller.expire(e)
-            if self._final.due(e, self._finished):
-                bins_until(i)
-                self._final.advance(e, self._finished)
+        ends = np.flatnonzero(new_read)
+        reads, ks = read[ends].tolist(), k[ends].tolist()      # each read with frames and its last sample
+
+        def due(e: int) -> bool:
+            return self._final.due(e, self._finished)
+
+        j, n = 0, len(ks)
+        while j < n:
+            if self.labeller.pending:
+                self.labeller.expire(ks[j])
+                if not due(ks[j]):
+                    j += 1
+                    continue
+            else:
+                j = bisect_left(ks, True, j, n, key=due)
+                if j == n:
+                    break
+            bins_until(reads[j])
+            self._final.advance(ks[j], self._finished)
+            j += 1
+        self._k_max = ks[-1]
         bins_until(math.inf)
         j = int(read[-1])                      # the last read with frames
         self.host.wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
-
 
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""
