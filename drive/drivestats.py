@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -350,19 +351,20 @@ class DriveStats:
         else:
             s[0], s[1] = min(s[0], lo), max(s[1], hi)
 
-    def observe_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        """One message (``Recorder.write``: raw reads, sentences, outages; cheap for those).
+    def observe_messages(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes]) -> None:
+        """Single messages of one topic (``Recorder.write``, ``write_each``: raw reads, sentences, outages; cheap
+        for those).
 
         Parameters
         ----------
-        topic : its topic
-        log_time_ns : UTC ns
-        data : its CDR payload
+        topic : their topic
+        log_time_ns : UTC ns, one per message
+        msgs : their CDR payloads
         """
         if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
-            self.observe(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
+            self.observe(topic, np.array(log_time_ns, np.int64), messages.Packed.from_list(msgs))
         else:
-            self._span(topic, log_time_ns, log_time_ns)
+            self._span(topic, min(log_time_ns), max(log_time_ns))
 
     def observe(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed) -> None:
         """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times;
