@@ -549,6 +549,7 @@ class ClockFit:
         # knots: (label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n) at knot_k
         self.knot_k: list[float] = []
         self.knot: list[tuple[int, float, float, float, float, int]] = []
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # knot_k, knot, labels (stamps)
         self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
 
     def _window(self, idx: int, finished: bool) -> tuple[float, float]:
@@ -596,6 +597,7 @@ class ClockFit:
         d = (ke - kr - fc.c) / (fs + fc.e)
         self.knot_k.append(ke)
         self.knot.append((lab, d, 1.0 / rate, f.e / fs * 1e6, f.rms / rate * 1e6, f.n))
+        self._arrays = None
 
     def _trail_slope(self, j: int) -> float:
         """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
@@ -616,18 +618,19 @@ class ClockFit:
         state = np.full(n, SyncState.FREE, np.uint8)
         gov = np.full(n, -1, np.int64)
         kk = k.astype(np.float64)
-        K = np.asarray(self.knot_k)
+        if self._arrays is None:   # the knots as arrays, made again only when they change (every second or so)
+            self._arrays = (np.asarray(self.knot_k, np.float64), np.asarray(self.knot, np.float64).reshape(-1, 6),
+                            np.asarray([kn_[0] for kn_ in self.knot], np.int64))
+        K, kn, lab = self._arrays
         nk = len(K)
         if nk:
             HO = self._s.HO
-            kn = np.asarray(self.knot, dtype=np.float64)
             i = np.searchsorted(K, kk, "right") - 1
             ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
             has_i, has_j = i >= 0, i + 1 < nk
             interp = has_i & has_j & (K[jj] - K[ii] <= HO)
             extrap = has_i & ~interp
             back = ~has_i & has_j & (K[jj] - kk <= self._s.H)
-            lab = np.asarray([kn_[0] for kn_ in self.knot], np.int64)
             d = kn[:, 1]
             if interp.any():
                 a, b = ii[interp], jj[interp]
@@ -665,6 +668,7 @@ class ClockFit:
             for ke in self.knot_k[:nk]:
                 self._trail.pop(ke, None)
             del self.knot_k[:nk], self.knot[:nk]
+            self._arrays = None
         return (self.knot_k[0] if self.knot_k else floor) - 2 * self._s.H - 1
 
 
