@@ -888,33 +888,42 @@ class TimeSync:
                 self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
                 a = b
             return
-        read = np.repeat(np.arange(len(ends)), np.diff(ends, prepend=0))
-        r0 = f0 = 0                            # the first read and frame not added yet
-        for i in sorted(set(read[pps].tolist())):
+        kl = k.tolist()
+        r0 = 0                                 # the first read not added yet
+        for i in sorted(set(np.searchsorted(ends, np.flatnonzero(pps), "right").tolist())):   # reads with a flag
             a, b = (ends[i - 1] if i else 0), ends[i]
             if i > r0:
-                self._add_quiet(k[f0:a], read[f0:a] - r0, mono_ns[r0:i], wall_ns[r0:i])
+                self._add_quiet(kl, ends, r0, i, mono_ns, wall_ns)
             self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], mono_ns[i], wall_ns[i])
-            r0, f0 = i + 1, b
+            r0 = i + 1
         if r0 < len(ends):
-            self._add_quiet(k[f0:], read[f0:] - r0, mono_ns[r0:], wall_ns[r0:])
+            self._add_quiet(kl, ends, r0, len(ends), mono_ns, wall_ns)
 
-    def _add_quiet(self, k: np.ndarray, read: np.ndarray, mono_ns: list[int], wall_ns: list[int]) -> None:
-        """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
-        ``read[j]``'s. Each read's host time goes into the host-clock bins, and the knots and final stamps are
-        advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads up
-        to there, so each step sees the state it would.
+    def _add_quiet(self, k: list[int], ends: list[int], r0: int, r1: int, mono_ns: list[int],
+                   wall_ns: list[int]) -> None:
+        """``add_frames`` of reads ``r0``..``r1 - 1`` of ``add_run``, in a row without a PPS edge, after earlier
+        frames, in one pass. Each read's host time goes into the host-clock bins, and the knots and final stamps
+        are advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads
+        up to there, so each step sees the state it would.
 
         Without lock candidates to expire, whether an advance is due only grows with the read's last sample
         (``Finaliser.due`` is monotonic in ``k_max`` while nothing else changes), so the reads where one is due
         are found by bisection rather than by asking after every read."""
-        if not len(k):
+        bn, ns_per_sample = self._s.bin, self.host.ns_per_sample
+        host: list[tuple[int, int, int]] = []     # read, bin and host offset of each bin's last frame in a read
+        reads, ks = [], []                         # each read with frames and its last sample
+        for r in range(r0, r1):
+            a, b = (ends[r - 1] if r else 0), ends[r]
+            if a == b:
+                continue
+            while a < b:
+                j = bisect_left(k, (k[a] // bn + 1) * bn, a, b)      # past the last frame of k[a]'s bin
+                host.append((r, k[j - 1] // bn, wall_ns[r] - round(k[j - 1] * ns_per_sample)))
+                a = j
+            reads.append(r)
+            ks.append(k[b - 1])
+        if not reads:
             return
-        b = k // self._s.bin
-        new_read = np.append(read[1:] != read[:-1], True)              # the last frame of each read
-        last = np.flatnonzero(np.append(b[1:] != b[:-1], True) | new_read)   # ... and of each bin in a read
-        v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self.host.ns_per_sample).astype(np.int64)
-        host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
         h = 0
 
         def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
@@ -922,9 +931,6 @@ class TimeSync:
             while h < len(host) and host[h][0] <= i:
                 self.host.put(*host[h][1:])
                 h += 1
-
-        ends = np.flatnonzero(new_read)
-        reads, ks = read[ends].tolist(), k[ends].tolist()      # each read with frames and its last sample
 
         def due(e: int) -> bool:
             return self._final.due(e, self._finished)
@@ -945,8 +951,7 @@ class TimeSync:
             j += 1
         self._k_max = ks[-1]
         bins_until(math.inf)
-        j = int(read[-1])                      # the last read with frames
-        self.host.wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
+        self.host.wall_minus_mono = int(wall_ns[reads[-1]]) - int(mono_ns[reads[-1]])
 
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""
