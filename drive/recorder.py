@@ -215,19 +215,19 @@ class _FileWriter:
                 self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
             self._sync()
         elif c.count:
-            data = b"".join(c.parts)
             self._drain()
-            self._pending = self._behind.submit(self._write_behind, data, c.start, c.end, c.index)
+            self._pending = self._behind.submit(self._write_behind, c.parts, c.start, c.end, c.index)
 
     def _sync(self) -> None:
         self._f.flush()
         if self._fsync:
             os.fsync(self._f.fileno())
 
-    def _write_behind(self, data: bytes, start: int, end: int, index: dict) -> None:
-        """``write_chunk`` and ``_sync`` on the behind thread: the owner waits for it (``_drain``) before it
-        touches the file or the chunk bookkeeping."""
-        self._write_data(data, start, end, index)
+    def _write_behind(self, parts: list[bytes], start: int, end: int, index: dict) -> None:
+        """``write_chunk`` of the records ``parts`` joined, and ``_sync``, on the behind thread (the join too: it
+        copies the whole chunk): the owner waits for it (``_drain``) before it touches the file or the chunk
+        bookkeeping."""
+        self._write_data(b"".join(parts), start, end, index)
         self._sync()
 
     def write_chunk(self, data: bytes, start: int, end: int,
