@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fieldlog.acquire.daq import FRAME_SIZE, DaqFrames, DaqStats
+from fieldlog.acquire.daq import FRAME_SIZE, DaqFrames, DaqStats, counts_on
 
 _M32 = 0xFFFFFFFF
 _BACK = 2**31                    # a counter step of 2**31 or more modulo 2**32 is a backward step
@@ -147,9 +147,8 @@ class CounterJudge:
             return None
         counters, ends = fr.k.tolist(), fr.end_offset.tolist()
         first = stream_base + ends[0] - FRAME_SIZE
-        if first != ref.start + FRAME_SIZE or not all(
-                (c - ref.counter) & _M32 == i and e - ends[0] == (i - 1) * FRAME_SIZE
-                for i, (c, e) in enumerate(zip(counters, ends), 1)):
+        if (first != ref.start + FRAME_SIZE or ends != list(range(ends[0], ends[0] + n * FRAME_SIZE, FRAME_SIZE))
+                or not counts_on(ref.counter, counters)):
             return None
         self._ref = _Ref(counters[-1] & _M32, ref.k + n, first + (n - 1) * FRAME_SIZE, mono_ns)
         self._remember(fr.k & _M32, fr)

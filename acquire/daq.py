@@ -111,6 +111,16 @@ def encode_frames(counter: np.ndarray, counts: np.ndarray, pps: np.ndarray, latc
     return rec.tobytes()
 
 
+def counts_on(last: int, counters: list[int]) -> bool:
+    """Whether the frame counters ``counters`` are ``last`` + 1, + 2, ... modulo 2**32: a usual read. One list
+    comparison where they do not wrap (the usual read has a few dozen frames, checked a hundred times a
+    second), else one frame at a time."""
+    n = len(counters)
+    if counters == list(range(last + 1, last + n + 1)):
+        return True
+    return all((c - last) & 0xFFFFFFFF == i for i, c in enumerate(counters, 1))
+
+
 @dataclass
 class DaqFrames:
     """Decoded frames, one row per frame, in stream order.
@@ -296,7 +306,7 @@ class DaqDecoder:
         last = self._last_counter
         if nf == 0:
             k = np.zeros(0, np.int64)
-        elif last is not None and all(c == (last + i) & 0xFFFFFFFF for i, c in enumerate(counter.tolist(), 1)):
+        elif last is not None and counts_on(last, counter.tolist()):
             k = np.arange(self._last_k + 1, self._last_k + nf + 1, dtype=np.int64)   # the usual read
         else:
             k = self._unwrap(counter.astype(np.int64))

@@ -53,6 +53,8 @@ class Sink(Protocol):
 
     def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None: ...
 
+    def write_each(self, topic: str, log_time_ns: list[int], msgs: list[bytes]) -> None: ...   # feed_reads only
+
 
 @dataclass
 class PipelineConfig:
@@ -177,18 +179,17 @@ class Pipeline:
         """``feed`` each read (``RawRead``-like: port, mono_ns, wall_ns, data) in turn, with the same outputs,
         ``READ_BLOCK`` reads at a time: each block's DAQ reads are decoded ahead in one call of the decoder (the
         frames it finds, and its counts, do not depend on how the bytes are split into reads), and the DAQ reads
-        between two reads of another port or two emits are processed as one where the counter judge and time
-        sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``,
+        between two reads of another port or two emits are recorded in one ``Sink.write_each`` and processed as
+        one where the counter judge and time sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``,
         ``import``); the daemon feeds each read as it comes. ``progress``: called with the reads fed so far
         after each block. Returns the number of reads."""
         n, it = 0, iter(reads)
         while block := list(itertools.islice(it, READ_BLOCK)):
             ahead = _Ahead.decode(self._daq, [r.data for r in block if r.port == "daq"])
-            run: list[RawRead] = []       # DAQ reads in a row, recorded, not processed yet
+            run: list[RawRead] = []       # DAQ reads in a row, not recorded or processed yet
             d = 0                         # the block's DAQ reads so far
             for r in block:
                 if r.port == "daq" and ahead is not None and self.on_frames is None:
-                    self.record(r.port, r.mono_ns, r.wall_ns, r.data)
                     run.append(r)
                     d += 1
                     if r.mono_ns - self._last_emit_ns >= EMIT_PERIOD_NS:
@@ -253,9 +254,14 @@ class Pipeline:
             self.output.emit_imu(final=False)
 
     def _feed_run(self, run: list[RawRead], ahead: "_Ahead", i: int) -> None:
-        """Process DAQ reads in a row, recorded already, reads ``i..`` of ``ahead``; only the last can be due
-        an emit. As one when the counter judge takes all their frames as they are (``CounterJudge.usual``; time
-        sync then takes them as one, ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
+        """Record DAQ reads in a row, reads ``i..`` of ``ahead``, in one write (``Sink.write_each``: what
+        ``record`` of each gives), then process them; only the last can be due an emit. As one when the counter
+        judge takes all their frames as they are (``CounterJudge.usual``; time sync then takes them as one,
+        ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
+        self._write_tf_static(run[0].wall_ns)
+        self.sink.write_each("/raw/daq", [r.wall_ns for r in run],
+                             [messages.encode_raw(r.wall_ns, r.mono_ns, "daq", r.data) for r in run])
+        self.counters.reads["daq"] = self.counters.reads.get("daq", 0) + len(run)
         last = run[-1]
         fr, base = ahead.span(i, i + len(run))
         cuts = ahead.cuts[i:i + len(run) + 1]

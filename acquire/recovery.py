@@ -174,16 +174,14 @@ class _Walk:
                 continue
             self.keep_loose(f)
             loose[0] = loose[1] = f.tell()
-            if isinstance(record, Schema):
-                rec.add_schema(record)
-            elif isinstance(record, Channel):
-                rec.add_channel(record)
+            if isinstance(record, (Schema, Channel)):
+                rec.register(record)
             elif isinstance(record, Metadata):
                 rec.add_metadata(record.name, record.metadata)
                 self.meta[record.name] = dict(record.metadata)
             elif isinstance(record, Chunk):
                 for r in inner:
-                    (rec.add_schema if isinstance(r, Schema) else rec.add_channel)(r)
+                    rec.register(r)
                 if not set(np.unique(cm.channel_id).tolist()) <= set(rec.channels):
                     break
                 self.keep(cm)

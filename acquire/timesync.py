@@ -210,6 +210,17 @@ class _Fit:
         return self.kr + self.c + (fs + self.e) * (label - self.lr)
 
 
+def _median(a: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-d array, the same float (NaN if the array holds one) from one partition:
+    ``np.median``'s own steps cost more than the partition on the few hundred values of the fits."""
+    n = len(a)
+    h = n // 2
+    p = np.partition(a, (h - 1, h, n - 1) if n % 2 == 0 else (h, n - 1))
+    if p.dtype.kind == "f" and np.isnan(p[-1]):
+        return math.nan
+    return float(p[h]) if n % 2 else (float(p[h - 1]) + float(p[h])) / 2
+
+
 def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """(slope, intercept) of the Theil-Sen line: the median of the slopes over pairs with x_j > x_i, and
     median(y) - slope median(x). The same floats as ``scipy.stats.theilslopes(y, x)`` (method "separate"),
@@ -218,8 +229,8 @@ def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     dx = x[:, None] - x
     dy = y[:, None] - y
     pos = dx > 0
-    slope = np.median(dy[pos] / dx[pos])
-    return slope, np.median(y) - slope * np.median(x)
+    slope = _median(dy[pos] / dx[pos])
+    return slope, _median(y) - slope * _median(x)
 
 
 def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
@@ -434,7 +445,7 @@ class EdgeLabeller:
         e.label = fix_utc + 1
         e.k_edge -= self._pulse_late.pop(e.label, 0.0) * s.fs
         off = e.label * 1_000_000_000 - int(self._host.scaled(e.mono_ns))
-        ref = float(np.median(self._offsets)) if self._offsets else off
+        ref = _median(np.array(self._offsets)) if self._offsets else off
         self._offsets.append(off)
         if abs(off - ref) > c.max_disagree_s * 1e9:
             return self._reject(e, "disagree")
@@ -538,6 +549,7 @@ class ClockFit:
         # knots: (label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n) at knot_k
         self.knot_k: list[float] = []
         self.knot: list[tuple[int, float, float, float, float, int]] = []
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # knot_k, knot, labels (stamps)
         self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
 
     def _window(self, idx: int, finished: bool) -> tuple[float, float]:
@@ -585,6 +597,7 @@ class ClockFit:
         d = (ke - kr - fc.c) / (fs + fc.e)
         self.knot_k.append(ke)
         self.knot.append((lab, d, 1.0 / rate, f.e / fs * 1e6, f.rms / rate * 1e6, f.n))
+        self._arrays = None
 
     def _trail_slope(self, j: int) -> float:
         """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
@@ -605,18 +618,19 @@ class ClockFit:
         state = np.full(n, SyncState.FREE, np.uint8)
         gov = np.full(n, -1, np.int64)
         kk = k.astype(np.float64)
-        K = np.asarray(self.knot_k)
+        if self._arrays is None:   # the knots as arrays, made again only when they change (every second or so)
+            self._arrays = (np.asarray(self.knot_k, np.float64), np.asarray(self.knot, np.float64).reshape(-1, 6),
+                            np.asarray([kn_[0] for kn_ in self.knot], np.int64))
+        K, kn, lab = self._arrays
         nk = len(K)
         if nk:
             HO = self._s.HO
-            kn = np.asarray(self.knot, dtype=np.float64)
             i = np.searchsorted(K, kk, "right") - 1
             ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
             has_i, has_j = i >= 0, i + 1 < nk
             interp = has_i & has_j & (K[jj] - K[ii] <= HO)
             extrap = has_i & ~interp
             back = ~has_i & has_j & (K[jj] - kk <= self._s.H)
-            lab = np.asarray([kn_[0] for kn_ in self.knot], np.int64)
             d = kn[:, 1]
             if interp.any():
                 a, b = ii[interp], jj[interp]
@@ -654,6 +668,7 @@ class ClockFit:
             for ke in self.knot_k[:nk]:
                 self._trail.pop(ke, None)
             del self.knot_k[:nk], self.knot[:nk]
+            self._arrays = None
         return (self.knot_k[0] if self.knot_k else floor) - 2 * self._s.H - 1
 
 
@@ -873,28 +888,42 @@ class TimeSync:
                 self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], m, w)
                 a = b
             return
-        read = np.repeat(np.arange(len(ends)), np.diff(ends, prepend=0))
-        r0 = f0 = 0                            # the first read and frame not added yet
-        for i in sorted(set(read[pps].tolist())):
+        kl = k.tolist()
+        r0 = 0                                 # the first read not added yet
+        for i in sorted(set(np.searchsorted(ends, np.flatnonzero(pps), "right").tolist())):   # reads with a flag
             a, b = (ends[i - 1] if i else 0), ends[i]
             if i > r0:
-                self._add_quiet(k[f0:a], read[f0:a] - r0, mono_ns[r0:i], wall_ns[r0:i])
+                self._add_quiet(kl, ends, r0, i, mono_ns, wall_ns)
             self.add_frames(k[a:b], pps[a:b], latch[a:b], latch_valid[a:b], mono_ns[i], wall_ns[i])
-            r0, f0 = i + 1, b
+            r0 = i + 1
         if r0 < len(ends):
-            self._add_quiet(k[f0:], read[f0:] - r0, mono_ns[r0:], wall_ns[r0:])
+            self._add_quiet(kl, ends, r0, len(ends), mono_ns, wall_ns)
 
-    def _add_quiet(self, k: np.ndarray, read: np.ndarray, mono_ns: list[int], wall_ns: list[int]) -> None:
-        """``add_frames`` of reads in a row without a PPS edge, after earlier frames, in one pass: frame j is read
-        ``read[j]``'s. Each read's host time goes into the host-clock bins, and the knots and final stamps are
-        advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads up
-        to there, so each step sees the state it would."""
-        if not len(k):
+    def _add_quiet(self, k: list[int], ends: list[int], r0: int, r1: int, mono_ns: list[int],
+                   wall_ns: list[int]) -> None:
+        """``add_frames`` of reads ``r0``..``r1 - 1`` of ``add_run``, in a row without a PPS edge, after earlier
+        frames, in one pass. Each read's host time goes into the host-clock bins, and the knots and final stamps
+        are advanced after just those reads where ``add_frames`` would advance them, with the bins of the reads
+        up to there, so each step sees the state it would.
+
+        Without lock candidates to expire, whether an advance is due only grows with the read's last sample
+        (``Finaliser.due`` is monotonic in ``k_max`` while nothing else changes), so the reads where one is due
+        are found by bisection rather than by asking after every read."""
+        bn, ns_per_sample = self._s.bin, self.host.ns_per_sample
+        host: list[tuple[int, int, int]] = []     # read, bin and host offset of each bin's last frame in a read
+        reads, ks = [], []                         # each read with frames and its last sample
+        for r in range(r0, r1):
+            a, b = (ends[r - 1] if r else 0), ends[r]
+            if a == b:
+                continue
+            while a < b:
+                j = bisect_left(k, (k[a] // bn + 1) * bn, a, b)      # past the last frame of k[a]'s bin
+                host.append((r, k[j - 1] // bn, wall_ns[r] - round(k[j - 1] * ns_per_sample)))
+                a = j
+            reads.append(r)
+            ks.append(k[b - 1])
+        if not reads:
             return
-        b = k // self._s.bin
-        last = np.flatnonzero((np.diff(b, append=-1) != 0) | (np.diff(read, append=-1) != 0))  # of each bin, read
-        v = np.asarray(wall_ns, np.int64)[read[last]] - np.round(k[last] * self.host.ns_per_sample).astype(np.int64)
-        host = list(zip(read[last].tolist(), b[last].tolist(), v.tolist()))
         h = 0
 
         def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
@@ -903,17 +932,26 @@ class TimeSync:
                 self.host.put(*host[h][1:])
                 h += 1
 
-        ends = np.flatnonzero(np.diff(read, append=-1) != 0)   # the last frame of each read with frames
-        for i, e in zip(read[ends].tolist(), k[ends].tolist()):
-            self._k_max = e
-            self.labeller.expire(e)
-            if self._final.due(e, self._finished):
-                bins_until(i)
-                self._final.advance(e, self._finished)
-        bins_until(math.inf)
-        j = int(read[-1])                      # the last read with frames
-        self.host.wall_minus_mono = int(wall_ns[j]) - int(mono_ns[j])
+        def due(e: int) -> bool:
+            return self._final.due(e, self._finished)
 
+        j, n = 0, len(ks)
+        while j < n:
+            if self.labeller.pending:
+                self.labeller.expire(ks[j])
+                if not due(ks[j]):
+                    j += 1
+                    continue
+            else:
+                j = bisect_left(ks, True, j, n, key=due)
+                if j == n:
+                    break
+            bins_until(reads[j])
+            self._final.advance(ks[j], self._finished)
+            j += 1
+        self._k_max = ks[-1]
+        bins_until(math.inf)
+        self.host.wall_minus_mono = int(wall_ns[reads[-1]]) - int(mono_ns[reads[-1]])
 
     def finish(self) -> None:
         """End of stream: every sample seen becomes final."""

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -321,6 +322,7 @@ class TimingPairs:
 
 
 IMU_HOLD = 4096          # /imu stamps held before their steps are counted
+DECODE_HOLD = 4096       # /gps/fix and /time/sync messages held before they are decoded
 
 
 class DriveStats:
@@ -340,6 +342,7 @@ class DriveStats:
         self._fix = Steps()
         self._no_fix = 0
         self._timing = TimingPairs()
+        self._undecoded: dict[str, list[bytes]] = {"/gps/fix": [], "/time/sync": []}   # payloads held
 
     def _span(self, topic: str, lo: int, hi: int) -> None:
         s = self.span.get(topic)
@@ -348,22 +351,25 @@ class DriveStats:
         else:
             s[0], s[1] = min(s[0], lo), max(s[1], hi)
 
-    def observe_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        """One message (``Recorder.write``: raw reads, sentences, outages; cheap for those).
+    def observe_messages(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes]) -> None:
+        """Single messages of one topic (``Recorder.write``, ``write_each``: raw reads, sentences, outages; cheap
+        for those).
 
         Parameters
         ----------
-        topic : its topic
-        log_time_ns : UTC ns
-        data : its CDR payload
+        topic : their topic
+        log_time_ns : UTC ns, one per message
+        msgs : their CDR payloads
         """
         if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
-            self.observe(topic, np.array([log_time_ns], np.int64), messages.Packed.from_list([data]))
+            self.observe(topic, np.array(log_time_ns, np.int64), messages.Packed.from_list(msgs))
         else:
-            self._span(topic, log_time_ns, log_time_ns)
+            self._span(topic, min(log_time_ns), max(log_time_ns))
 
     def observe(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed) -> None:
-        """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times.
+        """A batch of one topic (``Recorder.write_batch``). /imu and /truth/imu stamps are their log times;
+        /gps/fix payloads, and /time/sync ones after the first lock, are held and decoded ``DECODE_HOLD`` at a
+        time (``_decode``).
 
         Parameters
         ----------
@@ -376,10 +382,26 @@ class DriveStats:
             self.imu(log_time_ns)
         elif topic == "/truth/imu":
             self.truth(log_time_ns)
-        elif topic == "/gps/fix":
+        elif topic in self._undecoded:
+            held = self._undecoded[topic]
+            held.extend(p)
+            if len(held) >= DECODE_HOLD or (topic == "/time/sync" and self._first_lock is None):
+                self._decode(topic)
+
+    def _decode(self, topic: str) -> None:
+        """The held /gps/fix or /time/sync payloads into their figures. The pipeline writes them a message or
+        two at a time, and decoding costs most per call, not per message; held, they count the same, since
+        ``fix`` and ``sync`` are batching-independent. /time/sync is decoded as it comes until the first lock,
+        which ``TimingPairs`` waits for with its pairs held."""
+        held = self._undecoded[topic]
+        if not held:
+            return
+        p = messages.Packed.from_list(held)
+        self._undecoded[topic] = []
+        if topic == "/gps/fix":
             d = messages.decode_navsatfix(p)
             self.fix(d["stamp_ns"], d["status"])
-        elif topic == "/time/sync":
+        else:
             d = messages.decode_time_sync(p)
             self.sync(d["stamp_ns"], d["state"], d["rate_ppm"], d["residual_us"])
 
@@ -453,6 +475,8 @@ class DriveStats:
         Quality
         """
         self._fold_imu()
+        for topic in self._undecoded:
+            self._decode(topic)
         q = Quality(first_lock_ns=self._first_lock, gps_no_fix=self._no_fix, timing=self._timing.result())
         q.sync_states = {SYNC_NAMES.get(s, str(s)): self._states[s] / self._n_sync for s in sorted(self._states)}
         if self._first_lock is not None:

@@ -942,8 +942,8 @@ def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: st
     """``fieldlog_msgs/msg/RawBytes``: bytes exactly as read; stamp = host wall clock at read,
     mono_ns = host monotonic clock at read, port = the port's role ("daq" or "gps").
 
-    Every read of the daemon is one: laid out here in one go rather than field by field (``_Cdr``), the same
-    bytes (CDR alignment counts from the end of the encapsulation header).
+    Every read of the daemon is one: laid out here in one struct call rather than field by field (``_Cdr``), the
+    same bytes (CDR alignment counts from the end of the encapsulation header).
 
     Parameters
     ----------
@@ -957,13 +957,19 @@ def encode_raw(stamp_ns: int, mono_ns: int, port: str, data: bytes, frame_id: st
     -------
     bytes : one CDR message
     """
+    head, f, p = _raw_head(port, frame_id)
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return head.pack(CDR_LE_HEADER, sec & 0xFFFFFFFF, nsec, len(f), f, mono_ns, len(p), p, len(data)) + bytes(data)
+
+
+@lru_cache(maxsize=256)
+def _raw_head(port: str, frame_id: str) -> tuple[struct.Struct, bytes, bytes]:
+    """``encode_raw``'s fields before the data, as one struct for a port and frame (padded as CDR aligns them),
+    and the two NUL-terminated strings."""
     f, p = frame_id.encode() + b"\x00", port.encode() + b"\x00"
     pad_mono = -(12 + len(f)) % 8                       # int64 mono_ns after sec, nanosec and the frame id
     pad_data = -len(p) % 4                              # the data's uint32 length after the port string
-    return b"".join((CDR_LE_HEADER, struct.pack("<III", sec & 0xFFFFFFFF, nsec, len(f)), f, bytes(pad_mono),
-                     struct.pack("<qI", mono_ns, len(p)), p, bytes(pad_data), struct.pack("<I", len(data)),
-                     bytes(data)))
+    return struct.Struct(f"<4sIII{len(f)}s{pad_mono}xqI{len(p)}s{pad_data}xI"), f, p
 
 
 def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:

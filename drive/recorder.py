@@ -20,8 +20,10 @@ writes each closed chunk on a thread of its own while the owner goes on; the fil
 
 from __future__ import annotations
 
+import itertools
 import os
 import struct
+from bisect import bisect_left
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -84,21 +86,23 @@ class _OpenChunk:
     end: int = 0
     index: dict[int, list[tuple[np.ndarray | int, np.ndarray | int]]] = field(default_factory=dict)
 
-    def add_one(self, channel_id: int, log_time: int, data: bytes) -> None:
-        """One message record ``data`` logged at ``log_time`` (the single-message path: no arrays).
+    def add_records(self, channel_id: int, log_times: list[int], records: list[bytes]) -> None:
+        """Message records ``records`` logged at ``log_times`` (the path of single messages: no arrays).
 
         Parameters
         ----------
-        channel_id : the record's channel id
-        log_time : its log time, UTC ns
-        data : the whole message record (header and payload)
+        channel_id : the records' channel id
+        log_times : their log times, UTC ns
+        records : the whole message records (header and payload)
         """
-        self.start = log_time if self.count == 0 else min(self.start, log_time)
-        self.end = max(self.end, log_time)
-        self.count += 1
-        self.index.setdefault(channel_id, []).append((log_time, self.size))
-        self.parts.append(data)
-        self.size += len(data)
+        offsets = list(itertools.accumulate(map(len, records), initial=self.size))
+        lo, hi = min(log_times), max(log_times)
+        self.start = lo if self.count == 0 else min(self.start, lo)
+        self.end = max(self.end, hi)
+        self.count += len(records)
+        self.index.setdefault(channel_id, []).extend(zip(log_times, offsets))
+        self.parts.extend(records)
+        self.size = offsets[-1]
 
     def add(self, cid: int, log_t: np.ndarray, pub_t: np.ndarray, p: "messages.Packed", i: int, j: int) -> None:
         """Messages ``i`` to ``j`` of ``p`` as message records of channel ``cid``: equal-length messages
@@ -211,19 +215,19 @@ class _FileWriter:
                 self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
             self._sync()
         elif c.count:
-            data = b"".join(c.parts)
             self._drain()
-            self._pending = self._behind.submit(self._write_behind, data, c.start, c.end, c.index)
+            self._pending = self._behind.submit(self._write_behind, c.parts, c.start, c.end, c.index)
 
     def _sync(self) -> None:
         self._f.flush()
         if self._fsync:
             os.fsync(self._f.fileno())
 
-    def _write_behind(self, data: bytes, start: int, end: int, index: dict) -> None:
-        """``write_chunk`` and ``_sync`` on the behind thread: the owner waits for it (``_drain``) before it
-        touches the file or the chunk bookkeeping."""
-        self._write_data(data, start, end, index)
+    def _write_behind(self, parts: list[bytes], start: int, end: int, index: dict) -> None:
+        """``write_chunk`` of the records ``parts`` joined, and ``_sync``, on the behind thread (the join too: it
+        copies the whole chunk): the owner waits for it (``_drain``) before it touches the file or the chunk
+        bookkeeping."""
+        self._write_data(b"".join(parts), start, end, index)
         self._sync()
 
     def write_chunk(self, data: bytes, start: int, end: int,
@@ -441,39 +445,26 @@ class Recorder(outputs.Closing):
         """
         self._file.add_metadata(name, data)
 
-    def add_schema(self, schema: Schema) -> int:
-        """Register a schema record as it is (keeps its id), written on first use.
+    def register(self, record: Schema | Channel) -> int:
+        """Register a schema or channel record as it is (keeps its id), written on first use.
 
         Parameters
         ----------
-        schema : the record
+        record : the record (a channel's schema registered before it)
 
         Returns
         -------
         int : its id
         """
-        if schema.id not in self._schemas:
-            self._schemas[schema.id] = schema
-            self._schema_ids[schema.name] = schema.id
-            self._file.write_record(schema)
-        return schema.id
-
-    def add_channel(self, channel: Channel) -> int:
-        """Register a channel record as it is (keeps its id), written on first use.
-
-        Parameters
-        ----------
-        channel : the record (its schema registered before)
-
-        Returns
-        -------
-        int : its id
-        """
-        if channel.id not in self._channels:
-            self._channels[channel.id] = channel
-            self._channel_ids[channel.topic] = channel.id
-            self._file.write_record(channel)
-        return channel.id
+        if isinstance(record, Schema):
+            known, ids, name = self._schemas, self._schema_ids, record.name
+        else:
+            known, ids, name = self._channels, self._channel_ids, record.topic
+        if record.id not in known:
+            known[record.id] = record
+            ids[name] = record.id
+            self._file.write_record(record)
+        return record.id
 
     def channel_id(self, topic: str) -> int:
         """Channel id of a contract topic, registering its schema and channel on first use.
@@ -492,7 +483,7 @@ class Recorder(outputs.Closing):
         type_name = messages.topic_type(topic)
         sid = self._schema_ids.get(type_name)
         if sid is None:
-            sid = self.add_schema(
+            sid = self.register(
                 Schema(
                     id=len(self._schemas) + 1,
                     name=type_name,
@@ -500,7 +491,7 @@ class Recorder(outputs.Closing):
                     data=messages.schema_text(type_name).encode(),
                 )
             )
-        return self.add_channel(
+        return self.register(
             Channel(
                 id=len(self._channels) + 1,
                 topic=topic,
@@ -523,15 +514,44 @@ class Recorder(outputs.Closing):
         data : the CDR payload
         publish_time_ns : publish time, UTC ns (None: ``log_time_ns``)
         """
-        log_time_ns = int(log_time_ns)
-        if log_time_ns <= 0:
+        self.write_each(topic, (log_time_ns,), (data,), None if publish_time_ns is None else (publish_time_ns,))
+
+    def write_each(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes],
+                   publish_time_ns: Sequence[int] | None = None) -> None:
+        """``write`` of each message in turn, in one call: the same records and chunks (a chunk is closed after
+        the message that fills it), the flush by ``flush_interval_s`` checked once, at the end. For a writer with
+        many single messages of one topic at once (``Pipeline.feed_reads``: a run of raw reads), which
+        ``write_batch`` would lay out in other chunks (it closes a chunk before the message that overfills it).
+
+        Parameters
+        ----------
+        topic : a topic of the data model (``channel_id``)
+        log_time_ns : log times, UTC ns (> 0)
+        msgs : the CDR payloads, one per log time
+        publish_time_ns : publish times, UTC ns (None: the log times)
+        """
+        times = [int(t) for t in log_time_ns]
+        if len(times) != len(msgs):
+            raise ValueError("log_time_ns and msgs differ in length")
+        if not times:
+            return
+        if min(times) <= 0:
             raise ValueError("log_time must be > 0")
         cid = self.channel_id(topic)
         if self.stats is not None:
-            self.stats.observe_message(topic, log_time_ns, data)
-        pub = log_time_ns if publish_time_ns is None else publish_time_ns
-        self._chunk.add_one(cid, log_time_ns, _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + len(data), cid, 0, log_time_ns,
-                                                                   pub) + data)
+            self.stats.observe_messages(topic, times, msgs)
+        pub = times if publish_time_ns is None else [int(t) for t in publish_time_ns]
+        pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
+        records = [pack(op, 22 + len(d), cid, 0, t, p) + d for t, p, d in zip(times, pub, msgs)]
+        ends = list(itertools.accumulate(map(len, records)))   # bytes from the first record's start
+        i, n = 0, len(records)
+        while i < n:
+            # up to the record that fills the open chunk (or all of them), then close it as write does
+            j = min(bisect_left(ends, (ends[i - 1] if i else 0) + self._chunk_size - self._chunk.size, i), n - 1) + 1
+            self._chunk.add_records(cid, times[i:j], records[i:j])
+            if self._chunk.size >= self._chunk_size:
+                self.flush()
+            i = j
         self.maybe_flush()
 
     def write_batch(
@@ -564,7 +584,7 @@ class Recorder(outputs.Closing):
         msgs: "messages.Packed | Sequence[bytes]",
         publish_time_ns: np.ndarray | None = None,
     ) -> None:
-        """``write_batch`` to a channel already registered (``add_channel``), for any topic and type.
+        """``write_batch`` to a channel already registered (``register``), for any topic and type.
 
         Parameters
         ----------

@@ -90,6 +90,36 @@ def test_write_batch_splits_by_chunk_size_and_rejects_zero_time(tmp_path):
     assert [x[1] for x in _all_messages(path)] == t.tolist()
 
 
+def test_write_each_gives_the_file_of_write_of_each_message(tmp_path):
+    """``write_each`` in batches of any size writes the file ``write`` of each message in turn does: a chunk is
+    closed after the message that fills it, not before the one that would overfill it (``write_batch``)."""
+    rng = np.random.default_rng(5)
+    n = 600
+    t = (T0 + np.arange(n, dtype=np.int64) * DT).tolist()
+    msgs = [m.encode_raw(x, 5, "daq", rng.bytes(int(k))) for x, k in zip(t, rng.integers(0, 900, n))]
+    one, many = tmp_path / "one.mcap", tmp_path / "many.mcap"
+    kw = dict(chunk_size=4096, flush_interval_s=None, compression="")
+    with Recorder(one, **kw) as rec:
+        for x, d in zip(t, msgs):
+            rec.write("/raw/daq", x, d)
+    with Recorder(many, **kw) as rec:
+        cuts = np.unique(np.concatenate(([0, n], rng.integers(0, n, 60)))).tolist()
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            rec.write_each("/raw/daq", t[a:b], msgs[a:b])
+        with pytest.raises(ValueError):
+            rec.write_each("/raw/daq", [0], msgs[:1])
+    assert one.read_bytes() == many.read_bytes()
+    with open(one, "rb") as fh:
+        sizes = [c.uncompressed_size for c in make_reader(fh).get_summary().chunk_indexes]
+    want, size = [], 0          # each chunk closed by the record (31 header bytes + payload) that fills it
+    for d in msgs:
+        size += 31 + len(d)
+        if size >= 4096:
+            want, size = want + [size], 0
+    assert sizes == want + ([size] if size else []) and len(sizes) > 20
+    assert [x[2] for x in _all_messages(one)] == msgs
+
+
 def test_unclosed_file_after_host_time_flush_recovers_everything_written(tmp_path):
     """flush_interval_s=0 flushes after every write: a copy of the file taken while it is
     still open (as after a power cut) recovers every message written so far."""

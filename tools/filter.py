@@ -110,8 +110,8 @@ def filter_drive(src: DriveSpec, out: str | os.PathLike[str], start: str | None 
         for topic in chosen:
             schema, ch = channels[topic]
             if schema is not None:
-                rec.add_schema(schema)
-            rec.add_channel(ch)
+                rec.register(schema)
+            rec.register(ch)
 
         def latched(f: McapFile) -> list[int]:
             return [c for c, ch in f.channels.items() if ch.topic == "/tf_static"]

@@ -984,9 +984,9 @@ def bench_peer(runs: int, tmp: Path, kfgins: Path | None = None, duration_s: flo
 # drive/recorder.py, of its name); a library function's (numpy, zstd ...) to its callers' stages.
 _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and covariance cycles",
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
-_WRITE = {"Recorder", "_OpenChunk", "_FileWriter", "write", "write_batch", "write_channel", "maybe_flush",
-          "flush", "write_chunk", "write_record", "add_metadata", "add_schema", "add_channel", "channel_id",
-          "close", "__enter__", "__exit__", "add"}
+_WRITE = {"Recorder", "_OpenChunk", "_FileWriter", "write", "write_each", "write_batch", "write_channel",
+          "maybe_flush", "flush", "write_chunk", "write_record", "add_metadata", "register", "channel_id", "close",
+          "__enter__", "__exit__", "add", "add_records"}
 _CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_matrices", "discretise"}
 
 

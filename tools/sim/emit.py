@@ -355,12 +355,8 @@ def serial_reads(port: str, byte_start_s: np.ndarray, chunks: list[bytes] | byte
     arrived = np.minimum(np.floor((reads_t - byte_start_s[unit]) / byte_s).astype(np.int64), lens[unit])
     cut = offsets[unit] + arrived
     cut = np.maximum.accumulate(cut)
-    mono = clock.mono_ns(reads_t)
-    wall = clock.wall_ns(reads_t, t0_ns)
-    out = []
-    prev = 0
-    for c, m, w in zip(cut.tolist(), mono.tolist(), wall.tolist()):
-        if c > prev:
-            out.append(RawRead(port, m, w, data[prev:c]))
-            prev = c
-    return out
+    got = np.flatnonzero(np.diff(cut, prepend=0) > 0)            # the reads that return bytes
+    ends = cut[got].tolist()
+    return [RawRead(port, m, w, data[a:b]) for a, b, m, w in zip([0] + ends[:-1], ends,
+                                                                   clock.mono_ns(reads_t[got]).tolist(),
+                                                                   clock.wall_ns(reads_t[got], t0_ns).tolist())]

@@ -29,6 +29,7 @@ NS = 1_000_000_000
 DAQ_BAUD = 921_600
 FRAME_DELAY_S = 150e-6      # ADC conversion and framing before the frame starts on the wire
 TRUTH_NAV_HZ = 100.0
+TRUTH_BLOCK = 8192          # /truth/imu samples encoded and written at a time (_write_imu)
 START_UTC = _dt.datetime(2026, 5, 4, 9, 30, 0, tzinfo=_dt.timezone.utc)
 
 
@@ -154,9 +155,7 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     """``/truth/imu`` at every true sample time, and the true trajectory at TRUTH_NAV_HZ."""
     t0_ns, t_k, ts = truth_data["t0_ns"], truth_data["t_k"], truth_data["ts"]
     t_ns = t0_ns + np.round(t_k * NS).astype(np.int64)
-    zero = np.zeros(9)
-    rec.write_batch("/truth/imu", t_ns, messages.encode_imu(t_ns, ts.omega_ib_b, ts.f_b, zero, zero,
-                                                             frame_id="imu"))
+    _write_imu(rec, "/truth/imu", t_ns, ts.omega_ib_b, ts.f_b)
     t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
     nav = truth_data["truth"].evaluate(t_nav)
     tn_ns = t0_ns + np.round(t_nav * NS).astype(np.int64)
@@ -172,14 +171,24 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     for x, true in zip(("gyro", "accel"), truth_data["sensed"]):
         coloured = r[f"{x}_coloured"][k] if f"{x}_coloured" in r else 0.0
         bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
-    rec.write_batch("/truth/imu_bias", tn_ns, messages.encode_imu(tn_ns, bias["gyro"], bias["accel"], zero, zero,
-                                                                  frame_id="imu"))
+    _write_imu(rec, "/truth/imu_bias", tn_ns, bias["gyro"], bias["accel"])
     vt = truth_data.get("vehicle")
     if vt is not None:   # the rear axle centre's forward speed at each wheel-speed sample instant
         tv_ns = t0_ns + np.round(vt["t_s"] * NS).astype(np.int64)
         lin = np.zeros((len(tv_ns), 3))
         lin[:, 0] = vt["forward"]
         rec.write_batch("/truth/vehicle/twist", tv_ns, messages.encode_twist(tv_ns, lin, frame_id="base_link"))
+
+
+def _write_imu(rec: recorder.Recorder, topic: str, t_ns: np.ndarray, omega_b: np.ndarray, f_b: np.ndarray) -> None:
+    """Imu messages of rates ``omega_b`` (rad/s) and specific forces ``f_b`` (m/s^2), (n, 3), at ``t_ns`` (UTC ns),
+    no covariances, to ``topic``: encoded and written ``TRUTH_BLOCK`` at a time, so the encoder fills memory the
+    allocator hands back rather than a fresh (n, 316)-byte array; ``write_batch`` fills the chunks the same
+    however its messages come."""
+    zero = np.zeros(9)
+    for i in range(0, len(t_ns), TRUTH_BLOCK):
+        s = slice(i, i + TRUTH_BLOCK)
+        rec.write_batch(topic, t_ns[s], messages.encode_imu(t_ns[s], omega_b[s], f_b[s], zero, zero, frame_id="imu"))
 
 
 def fusion_metadata(table: dict) -> dict[str, str]:
