@@ -91,9 +91,9 @@ class GyroTrack:
         angle = start + np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
         every = max(int(round(1e9 / self.HZ / max(float(np.median(np.diff(t))) if len(t) > 1 else 1e9, 1.0))), 1)
         keep = slice(1 if self._last is not None else 0, None, every)
-        self._t.append(t[keep])
-        self._angle.append(angle[keep])
-        self._last = (int(t[-1]), w[-1], angle[-1])
+        self._t.append(t[keep].copy())  # copies: a strided view would keep the block's every sample
+        self._angle.append(angle[keep].copy())
+        self._last = (int(t[-1]), w[-1].copy(), angle[-1].copy())
         self.sum_f += np.asarray(f_m, float).sum(axis=0)
         self.n += len(t_ns)
 

@@ -311,20 +311,27 @@ def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q:
     return lat - dr[:, 1] / rm, lon - dr[:, 0] / (rn * np.cos(lat)), h - dr[:, 2], v_n - e[:, VEL], q2
 
 
-def smooth_solution(sol: Solution, log: SmootherLog) -> Solution:
-    """The forward solution rows of a whole drive, smoothed with the records of the same run.
+def smooth_solution(sol: Solution, log: SmootherLog, rows: int = 10_000) -> Solution:
+    """The forward solution rows of a whole drive, smoothed with the records of the same run, ``rows`` at a time
+    (:func:`smooth_rows` is row by row: the same rows, its temporaries bounded).
 
     Parameters
     ----------
     sol : Solution, the forward solution rows of the drive
     log : SmootherLog, the records of the same forward run
+    rows : int, the rows smoothed at a time
 
     Returns
     -------
     Solution
         The smoothed rows (sigma the smoothed standard deviations).
     """
-    return smooth_rows(sol, rts(log), log)
+    sm = rts(log)
+    if sm is None or len(sol.t_ns) <= rows:
+        return smooth_rows(sol, sm, log)
+    fields = ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")  # what smooth_rows reads of a row
+    return Solution.concat([smooth_rows(Solution(*(getattr(sol, k)[i:i + rows] for k in fields)), sm, log)
+                            for i in range(0, len(sol.t_ns), rows)])
 
 
 def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:

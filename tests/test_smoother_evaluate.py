@@ -190,3 +190,25 @@ def test_verdict_says_whether_the_hybrid_beats_rbfn_and_the_paper_figure():
     assert "not resolved against tdln" in line30 and "worse" not in line30 and "%" not in line30
     assert "9.3" not in line30
     assert verdict({("kf", 60.0): runs([1.0])}) == []
+
+
+def test_a_drive_smoothed_in_row_blocks_equals_it_smoothed_at_once(drive):
+    """``smooth_solution`` smooths ``rows`` at a time (its temporaries bounded on a long drive): the same rows to
+    the bit as all at once, its gaps between blocks included."""
+    from fieldlog.fusion.engine import Engine
+    from fieldlog.fusion.smoother import SmootherLog, smooth_solution
+    from fieldlog.fusion.types import Solution
+    from fieldlog.replay.inputs import InputStream, resolve
+    from fieldlog.tools.fuse import BLOCK_S
+    from fieldlog.tools.fuse_settings import drive_config
+
+    log = SmootherLog()
+    engine = Engine("kf", drive_config(drive), log=log)
+    sol = Solution.concat([engine.process(b.imu, b.gps)[0] for b in InputStream(drive, resolve(drive), BLOCK_S)]
+                          + [engine.finish()[0]])
+    whole, blocks = smooth_solution(sol, log, rows=len(sol.t_ns)), smooth_solution(sol, log, rows=97)
+    assert len(sol.t_ns) > 1000 and len(whole.t_ns) == len(sol.t_ns)
+    for k in ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias"):
+        assert np.array_equal(getattr(whole, k), getattr(blocks, k)), k
+    assert not np.array_equal(whole.lat, sol.lat)  # smoothed
+    log.close()

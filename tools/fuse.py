@@ -142,25 +142,10 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     deg, the values used) and ``mounting_estimate_rpy_deg``, ``mounting_estimate_sigma_deg`` (the drive's own
     estimate, None when it shows none)).
     """
-    start = config.sensor.imu_time_offset_s
-    late_ns = int(round(start * 1e9))
-    gyro = installation.GyroTrack()
-    t_gps, v_gps = [], []
     stream = stream or InputStream(drive, inputs, BLOCK_S, keep=True)
-    for block in stream:
-        gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
-        t_gps.append(block.gps.t_ns)
-        v_gps.append(block.gps.v_n)
-    offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
-    late, late_sigma = (start + offset[0], offset[1]) if offset is not None else (start, None)
+    late, late_sigma = _estimated_offset(stream, config.sensor.imu_time_offset_s)
     config = config.replace(imu_time_offset_s=late)
-    log = SmootherLog()
-    engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
-    parts = [engine.process(block.imu, block.gps)[0] for block in stream]
-    parts.append(engine.finish()[0])
-    mount = installation.mounting(smooth_solution(Solution.concat(parts), log),
-                                  np.asarray(config.aids.odometer_lever_b, float))
-    log.close()
+    mount = _estimated_mounting(stream, config)
     prior = np.array(config.aids.mounting_rpy_deg, float)
     if not prior.any():
         prior = calibration_mounting_rpy(drive_mounting(drive))
@@ -178,6 +163,34 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
                     "mounting_rpy_deg": rounded(used), "mounting_sigma_deg": rounded(used_sigma),
                     "mounting_estimate_rpy_deg": rounded(mount and mount[0]),
                     "mounting_estimate_sigma_deg": rounded(mount and mount[1])}
+
+
+def _estimated_offset(stream: InputStream, start: float) -> tuple[float, float | None]:
+    """The IMU's time offset (s, late against the GPS) from ``stream``'s rate integral against its course, the
+    configured ``start`` added, and its sigma (s); (start, None) where the drive does not show one."""
+    late_ns = int(round(start * 1e9))
+    gyro = installation.GyroTrack()
+    t_gps, v_gps = [], []
+    for block in stream:
+        gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
+        t_gps.append(block.gps.t_ns)
+        v_gps.append(block.gps.v_n)
+    offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
+    return (start + offset[0], offset[1]) if offset is not None else (start, None)
+
+
+def _estimated_mounting(stream: InputStream, config: FusionConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """``installation.mounting`` of ``kf`` over ``stream`` without the vehicle aids and the forced outages,
+    smoothed (deg, their sigmas); the forward rows are let go before the mounting's own arrays are made."""
+    log = SmootherLog()
+    try:
+        engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
+        sol = Solution.concat([engine.process(block.imu, block.gps)[0] for block in stream] + [engine.finish()[0]])
+        smoothed = smooth_solution(sol, log)
+    finally:
+        log.close()
+    del sol
+    return installation.mounting(smoothed, np.asarray(config.aids.odometer_lever_b, float))
 
 
 def calibration_mounting_rpy(mounting: calib.Mounting) -> np.ndarray:
