@@ -313,6 +313,10 @@ class InputStream:
         self.path, self.imap, self.block_s, self.keep = path, imap, block_s, keep
         self._kept: IO[bytes] | None = None  # keep: the engine's blocks of the first pass to the end, pickled
         self.extra = tuple(t for t in extra if t not in imap.topics and t != imap.odom_topic)
+        self._start_counting()
+
+    def _start_counting(self) -> None:
+        """The counters (``_COUNTERS``) as before any sample: each read of the drive counts from here."""
         self.samples = 0
         self.gaps = 0  # steps longer than 1.5 sample periods (exact while the stamps jitter by < 1/4 period)
         self.missing = 0  # samples those steps lack, at the sample period
@@ -353,7 +357,8 @@ class InputStream:
 
     def blocks(self) -> Iterator[reader.Block]:
         """The drive's blocks under fieldlog's names, re-sequenced; a last block (``t0 == t1``, the drive's end)
-        with the rows still held."""
+        with the rows still held. The counters start again (a read left early counts nothing of the next)."""
+        self._start_counting()
         names = dict(zip(self.imap.topics, NATIVE))
         odom = (self.imap.odom_topic,) if self.imap.odom_topic else ()
         if odom:

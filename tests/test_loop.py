@@ -3,6 +3,7 @@ writes (the wheel speeds' too), each the same blocks in the order given; an engi
 and drains the source; progress reaches the end of the span."""
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,10 +92,23 @@ def _same_blocks(x: list[InputBlock], y: list[InputBlock]) -> bool:
         and np.array_equal(a.gps.v_n, b.gps.v_n, equal_nan=True) for a, b in zip(x, y))
 
 
-def test_a_kept_stream_gives_its_blocks_again_without_the_drive(drive: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("in_process", [False, True])
+def test_a_kept_stream_gives_its_blocks_again_without_the_drive(drive: Path, tmp_path: Path, in_process: bool
+                                                                ) -> None:
     """``keep``: the second pass reads the blocks the first pass kept (the drive may be gone by then), the same
     blocks and counters as a fresh stream's; a first pass left early keeps nothing, and the next one reads the
-    drive again."""
+    drive again, counting from the start. ``in_process``: another thread runs, so the reads run here, not in a
+    forked worker (``replay.ahead``)."""
+    done = threading.Event()
+    if in_process:
+        threading.Thread(target=done.wait, daemon=True).start()
+    try:
+        _kept_stream_passes(drive, tmp_path)
+    finally:
+        done.set()
+
+
+def _kept_stream_passes(drive: Path, tmp_path: Path) -> None:
     copy = tmp_path / "drive.mcap"
     copy.write_bytes(drive.read_bytes())
     imap = resolve(copy)
