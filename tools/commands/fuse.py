@@ -49,12 +49,26 @@ def _installation_line(s: dict) -> str:
             + "; ".join(parts))
 
 
+def _fused(a: argparse.Namespace, drive, st, out):
+    """``tools.fuse.fuse`` of the drive with the settings ``st``, after the installation pass where it applies,
+    the drive decoded once for both: (FuseResult, the settings used, the installation's ``--json`` keys)."""
+    from fieldlog.replay.inputs import InputStream
+    from fieldlog.tools.fuse import BLOCK_S, estimate_installation, fuse, installation_applies
+
+    config, installed = st.config, {}
+    install = a.method != INS.name and installation_applies(config, st.inputs)
+    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:
+        if install:
+            config, installed = estimate_installation(drive, config, st.inputs, stream)
+        res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
+                   inputs=st.inputs, force=a.force, installation=installed, stream=stream)
+    return res, config, installed
+
+
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
-    from fieldlog.replay.inputs import InputStream
-    from fieldlog.tools.fuse import (BLOCK_S, NO_ALIGNMENT, estimate_installation, fuse, installation_applies,
-                                     noise_sources)
+    from fieldlog.tools.fuse import NO_ALIGNMENT, noise_sources
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
@@ -67,13 +81,7 @@ def run(a: argparse.Namespace) -> int:
             log.debug(line)
     t0 = time.monotonic()
     out = out_file(a)
-    config, installed = st.config, {}
-    install = a.method != INS.name and installation_applies(config, st.inputs)
-    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:  # decoded once
-        if install:
-            config, installed = estimate_installation(drive, config, st.inputs, stream)
-        res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
-                   inputs=st.inputs, force=a.force, installation=installed, stream=stream)
+    res, config, installed = _fused(a, drive, st, out)
     imap, forced = st.inputs, config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
