@@ -99,7 +99,6 @@ from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
-import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -133,6 +132,8 @@ def _pyarrow_without_pandas() -> None:
     the answer; a list converts the same either way. Contract: in this process pyarrow is not given pandas
     objects to convert (pyarrow's explicit pandas calls, such as ``to_pandas``, still import it).
     """
+    import pyarrow as pa  # rerun's own dependency, imported after it (a core install lacks both: rerun is named)
+
     if "pandas" in sys.modules:
         return
     finder = _WithoutPandas()
