@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import _once, _shared
 
 from fieldlog.drive import chunks
 from fieldlog.acquire.recovery import recover_drive
@@ -33,16 +34,19 @@ def _run(args, cwd, timeout=600):
 
 @pytest.fixture(scope="module")
 def core(tmp_path_factory):
-    """A fresh venv with the wheel installed with its core dependencies only (from the pip cache)."""
-    tmp = tmp_path_factory.mktemp("core")
-    r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", tmp / "dist", ROOT], tmp)
-    assert r.returncode == 0, r.stderr[-2000:]
-    (wheel,) = (tmp / "dist").glob("fieldlog-*.whl")
-    venv.create(tmp / "venv", with_pip=True)
-    bin_ = tmp / "venv" / "bin"
-    r = _run([bin_ / "python", "-m", "pip", "install", "-q", wheel], tmp)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return bin_
+    """A fresh venv with the wheel installed with its core dependencies only (from the pip cache), built once
+    per run (two pytest-xdist workers building the checkout's wheel at once would share its build/)."""
+
+    def build(env: Path) -> None:
+        tmp = env.parent
+        r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", tmp / "dist", ROOT], tmp)
+        assert r.returncode == 0, r.stderr[-2000:]
+        (wheel,) = (tmp / "dist").glob("fieldlog-*.whl")
+        venv.create(env, with_pip=True)
+        r = _run([env / "bin" / "python", "-m", "pip", "install", "-q", wheel], tmp)
+        assert r.returncode == 0, r.stderr[-3000:]
+
+    return _once(_shared(tmp_path_factory, "core_install"), "venv", build) / "bin"
 
 
 @pytest.fixture(scope="module")
