@@ -14,7 +14,7 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence, Union
 
-from fieldlog.drive.bagdir import METADATA, RECOVERED, session_files, stand_in
+from fieldlog.drive.bagdir import METADATA, session_files, stand_in
 from fieldlog.drive.mcapfile import McapFile
 
 DriveSpec = Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]]
