@@ -23,8 +23,8 @@ from __future__ import annotations
 import itertools
 import os
 import struct
-from bisect import bisect_left
 import time
+from bisect import bisect_left
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -113,7 +113,6 @@ from fieldlog.replay.inputs import InputMap
 from fieldlog.replay.viewdata import IMU_DECIMATION, DrivePass, decimate_means, start, topic_names  # noqa: F401
 
 
-
 class _WithoutPandas:
     """An import finder that answers "not installed" for pandas (``_pyarrow_without_pandas``)."""
 
