@@ -70,11 +70,13 @@ class DistributedKF(BatchUpdates):
     models_gps_error = False
     has_locals = True
     feeds_prediction = True
+    keeps_predicted = False  # the paper's fusion keeps them (``predicted``), the federated one does not
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, fusion: str = "paper") -> None:
         if fusion not in FUSIONS:
             raise ValueError(f"dkf_fusion must be one of {FUSIONS}, got {fusion!r}")
         self.federated = fusion == "federated"
+        self.keeps_predicted = not self.federated
         scale = 1.0 / BETA if self.federated else 1.0
         self.kf_vel = KalmanFilter(P0 * scale, q, q_scale=scale)
         self.kf_pos = KalmanFilter(P0 * scale, q, q_scale=scale)
@@ -119,7 +121,8 @@ class DistributedKF(BatchUpdates):
         Returns
         -------
         ndarray (m, 15)
-            diag of the fused estimate's error covariance (``covariance``) after each cycle.
+            diag of the fused estimate's error covariance (``covariance``) after each cycle (paper fusion: the
+            covariance itself after each, ``predicted``).
         """
         m = len(Phi)
         if self.federated:  # between fusions P_i = P / beta each, so the fused P is beta * P_i
@@ -137,6 +140,7 @@ class DistributedKF(BatchUpdates):
             self.kf_vel.x, self.kf_pos.x = xs[-1, 0], xs[-1, 1]
             self.kf_vel.P, self.kf_pos.P, self.P12 = Ps[0, -1].copy(), Ps[1, -1].copy(), Ps[2, -1].copy()
             self.x, self.P4, self.P = x[-1], P4[-1], Pe[-1]
+        self.predicted = Pe
         self.local_states = xs
         self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
         return np.diagonal(Pe, axis1=1, axis2=2).copy()

@@ -382,11 +382,12 @@ def _observe(ms: list[measurements.MeasurementModel], at: measurements.Moment) -
 def _propagate(f, Phi: np.ndarray, Q: np.ndarray, history: bool
                ) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """``f.propagate`` of the filter f over the cycles: diag(P) after each (m, 15); each predicted P (m, 15, 15)
-    when a listener records the ``history`` (one cycle per call), else None; the local states and variances after
-    each cycle ((m, 2, 15) each) of a filter with local filters, else None."""
-    if not history:
+    when a listener records the ``history`` (the filter's ``predicted``, or one cycle per call when it
+    ``keeps_predicted`` not), else None; the local states and variances after each cycle ((m, 2, 15) each) of a
+    filter with local filters, else None."""
+    if not history or f.keeps_predicted:
         diag = f.propagate(Phi, Q)
-        return diag, None, ((f.local_states, f.local_diag) if f.has_locals else None)
+        return diag, (f.predicted if history else None), ((f.local_states, f.local_diag) if f.has_locals else None)
     P = np.empty_like(Phi)
     local = np.empty((2, len(Phi), 2, N_STATES))
     for i in range(len(Phi)):

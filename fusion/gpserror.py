@@ -32,6 +32,7 @@ class GpsErrorKF(KalmanFilter):
 
     wants_cycle_lengths = True
     models_gps_error = True
+    keeps_predicted = False  # its P has the GPS error's states too
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, tau_s: float, white_share: float) -> None:
         super().__init__(P0, q)

@@ -108,7 +108,9 @@ class KalmanFilter(BatchUpdates):
     ``models_gps_error``: the correlated GPS error is in its states (nothing is added to its sigmas);
     ``has_locals``: local filters whose solutions are written too (``locals``, ``local_states``,
     ``local_diag``, ``fusion.dkf``); ``feeds_prediction``: its state prediction between epochs is an estimate,
-    fed back at every epoch without a fix (the distributed filter's fused X(n|n-1)).
+    fed back at every epoch without a fix (the distributed filter's fused X(n|n-1)); ``keeps_predicted`` (True
+    here): each ``propagate`` leaves ``covariance`` after each of its cycles in ``predicted`` (m, 15, 15), so a
+    smoother's record of every cycle needs no call per cycle.
     """
 
     wants_nodes = False
@@ -116,6 +118,7 @@ class KalmanFilter(BatchUpdates):
     models_gps_error = False
     has_locals = False
     feeds_prediction = False
+    keeps_predicted = True
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
         self.x = np.zeros(N_STATES)
@@ -144,10 +147,10 @@ class KalmanFilter(BatchUpdates):
         Returns
         -------
         ndarray (m, 15)
-            diag(P) after each cycle.
+            diag(P) after each cycle (P itself after each: ``predicted``).
         """
         self.x = propagate_state(Phi, self.x)[-1] if len(Phi) else self.x
-        hist = errmodel.propagate_covariance(Phi, Q, self.P, self.q_scale)
+        self.predicted = hist = errmodel.propagate_covariance(Phi, Q, self.P, self.q_scale)
         if len(hist):
             self.P = hist[-1].copy()
         return np.diagonal(hist, axis1=1, axis2=2).copy()

@@ -304,6 +304,7 @@ class CycleFilter(KalmanFilter):
     cycle: the engine queues them (:meth:`queue`) before each ``propagate``, which takes them (:meth:`take`)."""
 
     wants_nodes = True
+    keeps_predicted = False
 
     def __init__(self, P0: np.ndarray, q: np.ndarray, q_scale: float = 1.0) -> None:
         super().__init__(P0, q, q_scale)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from fieldlog.fusion import consider, earth, errmodel, kf
+from fieldlog.fusion.dkf import DistributedKF
 
 
 @functools.lru_cache(maxsize=1)
@@ -298,3 +299,23 @@ def test_compiled_rls_equals_numpy():
         np.testing.assert_allclose(r.P, P, rtol=0, atol=1e-9 * np.abs(P).max())
     with pytest.raises(ValueError, match="needs"):
         batch.update(A[:, :-1], y)
+
+
+@pytest.mark.parametrize("make", [kf.KalmanFilter, DistributedKF], ids=["kf", "dkf-paper"])
+def test_predicted_covariances_of_one_call_equal_one_call_per_cycle(make):
+    """A filter that ``keeps_predicted`` gives, in one ``propagate`` over m cycles, the covariances a call per
+    cycle gives (what a smoother records), to the bit."""
+    rng = np.random.default_rng(11)
+    Phi, Q = errmodel.discrete_cycles(*_cycles(rng, 9)[:5], np.diag(rng.uniform(1e-9, 1e-4, 12)),
+                                      rng.uniform(0.002, 0.5, 9))
+    A = rng.normal(size=(15, 15))
+    P0 = A @ A.T + np.eye(15)
+    one, each = make(P0, 0.0), make(P0, 0.0)
+    assert one.keeps_predicted
+    diag = one.propagate(Phi, Q)
+    covs = []
+    for i in range(len(Phi)):
+        each.propagate(Phi[i:i + 1], Q[i:i + 1])
+        covs.append(each.covariance.copy())
+    assert np.array_equal(one.predicted, np.stack(covs))
+    assert np.array_equal(diag, np.diagonal(np.stack(covs), axis1=1, axis2=2))
