@@ -1,12 +1,13 @@
 /* The filter cycles' matrices of fusion/errmodel.py, the covariance propagation and the updates of fusion/kf.py,
  * and the distributed filter's fusion (fusion/dkf.py), in C.
  *
- * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles,
- * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse and smoother.rts; it needs no Python headers. The cycles
- * (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from the
- * Earth terms on), errmodel.discretise and the P cycle of KalmanFilter.propagate in the order their numpy
- * source writes them, so the results equal numpy's to the bit where numpy's matrix products are the
- * sequential fused multiply-add sums of an optimised BLAS: each product element c_ij is
+ * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
+ * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse and smoother.rts; it needs no Python headers.
+ * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
+ * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
+ * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal
+ * numpy's to the bit where numpy's matrix products are the sequential fused multiply-add sums of an optimised
+ * BLAS: each product element c_ij is
  * fma(a_i,k-1, b_k-1,j, ... fma(a_i0, b_0j, +0.0)), in k order. OpenBLAS on x86-64 sums so for the sizes taken
  * here (15 x 15, 15 x 12, 15 x 9 and 3 x 3 results; not for every size: 18 x 18, for one, differs), which
  * tests/test_cycles_kernel.py checks. Elementwise steps are plain IEEE-754 operations, compiled without
@@ -20,10 +21,13 @@
 #include <string.h>
 
 #if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
-/* fma() is a library call unless the target has the instruction: build a clone for it, chosen at load */
+/* fma() is a library call unless the target has the instruction: build a clone for it, chosen at load, with
+ * every helper inlined into it (a helper compiled apart would call the library's fma() for each element) */
 #define KERNEL __attribute__((target_clones("fma", "default")))
+#define HELPER static inline __attribute__((always_inline))
 #else
 #define KERNEL
+#define HELPER static inline
 #endif
 
 #define N 15  /* error states */
@@ -32,7 +36,7 @@
 enum { T_RM, T_RN, T_SL, T_CL, T_G, T_WIE, T_WEN = T_WIE + 3, T_N = T_WEN + 3 };
 
 /* c (n x p) = a (n x k) @ b (k x p), with row strides lda, ldb, ldc; b read as its transpose when bt */
-static inline void matmul(int n, int k, int p, const double *a, int lda, const double *b, int ldb, int bt,
+HELPER void matmul(int n, int k, int p, const double *a, int lda, const double *b, int ldb, int bt,
                           double *c, int ldc)
 {
     for (int i = 0; i < n; i++) {
@@ -52,7 +56,7 @@ static inline void matmul(int n, int k, int p, const double *a, int lda, const d
 }
 
 /* out = [v x] (3 x 3, row stride ld) with +0.0 off the skew entries, as earth.skew; negated when neg */
-static inline void skew(const double v[3], int neg, double *out, int ld)
+HELPER void skew(const double v[3], int neg, double *out, int ld)
 {
     double s[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
     for (int r = 0; r < 3; r++)
@@ -63,7 +67,7 @@ static inline void skew(const double v[3], int neg, double *out, int ld)
 /* F and G of errmodel.system_matrices for one cycle: omega the Earth rate (rad/s, earth.OMEGA_IE), terms (T_N)
  * from the numpy Earth functions, v (3) m/s,
  * C (3 x 3) C_bn, f (3) the cycle's mean specific force in ENU m/s^2 */
-static void system(double omega, const double *t, const double *v, const double *C, const double *f,
+HELPER void system(double omega, const double *t, const double *v, const double *C, const double *f,
                    double F[N * N], double G[N * W])
 {
     const double rm = t[T_RM], rn = t[T_RN], sl = t[T_SL], cl = t[T_CL], g = t[T_G];
@@ -118,32 +122,113 @@ static void system(double omega, const double *t, const double *v, const double 
     }
 }
 
+/* Phi, Q (15, 15) of one cycle of d s (errmodel.system_matrices then errmodel.discretise): omega, t, v, C, f as
+ * system's, q (12, 12) the noise PSD */
+HELPER void cycle(double omega, const double *t, const double *v, const double *C, const double *f, double d,
+                  const double *q, double *P, double *Qk)
+{
+    double F[N * N], G[N * W], Fdt[N * N], FF[N * N], Gq[N * W], GqG[N * N], FGqG[N * N], FGqGF[N * N];
+    system(omega, t, v, C, f, F, G);
+    for (int i = 0; i < N * N; i++)
+        Fdt[i] = F[i] * d;
+    matmul(N, N, N, Fdt, N, Fdt, N, 0, FF, N);
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            P[i * N + j] = ((i == j ? 1.0 : 0.0) + Fdt[i * N + j]) + 0.5 * FF[i * N + j];
+    matmul(N, W, W, G, W, q, W, 0, Gq, W);
+    matmul(N, W, N, Gq, W, G, W, 1, GqG, N);
+    matmul(N, N, N, F, N, GqG, N, 0, FGqG, N);
+    matmul(N, N, N, FGqG, N, F, N, 1, FGqGF, N);
+    const double d3 = d * d * d / 3.0;
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            Qk[i * N + j] = (GqG[i * N + j] * d + 0.5 * (FGqG[i * N + j] + FGqG[j * N + i]) * d * d)
+                            + FGqGF[i * N + j] * d3;
+}
+
 /* Phi, Q (m, 15, 15) of m cycles (errmodel.system_matrices then errmodel.discretise): omega as system's,
- * terms (m, T_N) as errmodel.cycle_terms gives them, v (m, 3), C (m, 3, 3), f (m, 3), dt (m) s, q (12, 12) the noise PSD */
+ * terms (m, T_N) as errmodel.discrete_cycles gives them, v (m, 3), C (m, 3, 3), f (m, 3), dt (m) s, q (12, 12) the
+ * noise PSD */
 KERNEL void fieldlog_cycle_matrices(int64_t m, double omega, const double *terms, const double *v,
                                     const double *C, const double *f, const double *dt, const double *q,
                                     double *Phi, double *Q)
 {
-    double F[N * N], G[N * W], Fdt[N * N], FF[N * N], Gq[N * W], GqG[N * N], FGqG[N * N], FGqGF[N * N];
+    for (int64_t k = 0; k < m; k++)
+        cycle(omega, terms + k * T_N, v + 3 * k, C + 9 * k, f + 3 * k, dt[k], q, Phi + k * N * N, Q + k * N * N);
+}
+
+enum { EARTH_A, EARTH_E2, EARTH_F, EARTH_M, EARTH_K, EARTH_GAMMA_E, EARTH_OMEGA_IE, EARTH_N };
+
+/* The m cycles of an INS segment (errmodel.segment_cycles), each from sample ends[k - 1] (0 for the first) to
+ * ends[k] (strictly increasing, below n), taken at its middle sample (start + end) / 2. In: the samples' times t
+ * (n) s, bias-corrected rate w and specific force f (n, 3) rad/s and m/s^2 body RFU, the INS solution's q (n, 4)
+ * (of C_bn), h (n) m, v (n, 3) ENU m/s; trig (3, m) numpy's sin, cos and tan of each middle sample's latitude;
+ * e the Earth constants (EARTH_*, from fusion/earth.py); q_psd (12, 12). Out, per cycle: dt (m) s, the mean f and
+ * w over (start, end] (m, 3 each; differences of the running sums from sample 1, numpy's cumsum), the middle
+ * sample's C_bn (m, 3, 3; earth.quat_to_dcm), Phi and Q (m, 15, 15). The Earth terms are those of
+ * errmodel.discrete_cycles (earth.principal_radii, gravity, omega_ie_n, omega_en_n), C_bn f_mean is summed in
+ * np.einsum's order. Returns 1, writing nothing past the cycle found, when the ends are not as stated; else 0. */
+KERNEL int fieldlog_segment_cycles(int64_t n, int64_t m, const int64_t *ends, const double *t, const double *w,
+                                   const double *f, const double *q, const double *h, const double *v,
+                                   const double *trig, const double *e, const double *q_psd, double *dt,
+                                   double *f_mean, double *w_mean, double *C, double *Phi, double *Q)
+{
+    double sw[3] = {0.0, 0.0, 0.0}, sf[3] = {0.0, 0.0, 0.0}, sw0[3], sf0[3];
+    int64_t i = 0, start = 0;
+    memcpy(sw0, sw, sizeof sw);
+    memcpy(sf0, sf, sizeof sf);
     for (int64_t k = 0; k < m; k++) {
-        double *P = Phi + k * N * N, *Qk = Q + k * N * N, d = dt[k];
-        system(omega, terms + k * T_N, v + 3 * k, C + 9 * k, f + 3 * k, F, G);
-        for (int i = 0; i < N * N; i++)
-            Fdt[i] = F[i] * d;
-        matmul(N, N, N, Fdt, N, Fdt, N, 0, FF, N);
-        for (int i = 0; i < N; i++)
-            for (int j = 0; j < N; j++)
-                P[i * N + j] = ((i == j ? 1.0 : 0.0) + Fdt[i * N + j]) + 0.5 * FF[i * N + j];
-        matmul(N, W, W, G, W, q, W, 0, Gq, W);
-        matmul(N, W, N, Gq, W, G, W, 1, GqG, N);
-        matmul(N, N, N, F, N, GqG, N, 0, FGqG, N);
-        matmul(N, N, N, FGqG, N, F, N, 1, FGqGF, N);
-        const double d3 = d * d * d / 3.0;
-        for (int i = 0; i < N; i++)
-            for (int j = 0; j < N; j++)
-                Qk[i * N + j] = (GqG[i * N + j] * d + 0.5 * (FGqG[i * N + j] + FGqG[j * N + i]) * d * d)
-                                + FGqGF[i * N + j] * d3;
+        const int64_t end = ends[k], mid = (start + end) / 2;
+        if (end <= start || end >= n)
+            return 1;
+        for (i = i + 1; i <= end; i++)
+            for (int j = 0; j < 3; j++) {
+                sw[j] = sw[j] + w[3 * i + j];
+                sf[j] = sf[j] + f[3 * i + j];
+            }
+        i = end;
+        dt[k] = t[end] - t[start];
+        for (int j = 0; j < 3; j++) {
+            w_mean[3 * k + j] = (sw[j] - sw0[j]) / (double)(end - start);
+            f_mean[3 * k + j] = (sf[j] - sf0[j]) / (double)(end - start);
+        }
+        memcpy(sw0, sw, sizeof sw);
+        memcpy(sf0, sf, sizeof sf);
+        const double *qm = q + 4 * mid;
+        const double nq = sqrt(((qm[0] * qm[0] + qm[1] * qm[1]) + qm[2] * qm[2]) + qm[3] * qm[3]);
+        const double x = qm[0] / nq, y = qm[1] / nq, z = qm[2] / nq, s = qm[3] / nq;
+        double *c = C + 9 * k, fn[3], terms[T_N];
+        c[0] = 1.0 - 2.0 * (y * y + z * z);
+        c[1] = 2.0 * (x * y - z * s);
+        c[2] = 2.0 * (x * z + y * s);
+        c[3] = 2.0 * (x * y + z * s);
+        c[4] = 1.0 - 2.0 * (x * x + z * z);
+        c[5] = 2.0 * (y * z - x * s);
+        c[6] = 2.0 * (x * z - y * s);
+        c[7] = 2.0 * (y * z + x * s);
+        c[8] = 1.0 - 2.0 * (x * x + y * y);
+        for (int r = 0; r < 3; r++)
+            fn[r] = (c[3 * r] * f_mean[3 * k] + c[3 * r + 2] * f_mean[3 * k + 2]) + c[3 * r + 1] * f_mean[3 * k + 1];
+        const double sl = trig[k], cl = trig[m + k], tl = trig[2 * m + k], hm = h[mid], s2 = sl * sl;
+        const double a = e[EARTH_A], fl = e[EARTH_F], wq = sqrt(1.0 - e[EARTH_E2] * s2);
+        const double r_n = a / wq, r_m = r_n * (1.0 - e[EARTH_E2]) / (wq * wq);
+        const double g0 = e[EARTH_GAMMA_E] * (1.0 + e[EARTH_K] * s2) / sqrt(1.0 - e[EARTH_E2] * s2);
+        const double *vm = v + 3 * mid;
+        terms[T_RM] = r_m + hm;
+        terms[T_RN] = r_n + hm;
+        terms[T_SL] = sl;
+        terms[T_CL] = cl;
+        terms[T_G] = g0 * (1.0 - 2.0 / a * (1.0 + fl + e[EARTH_M] - 2.0 * fl * s2) * hm + 3.0 * hm * hm / (a * a));
+        terms[T_WIE] = 0.0;
+        terms[T_WIE + 1] = e[EARTH_OMEGA_IE] * cl;
+        terms[T_WIE + 2] = e[EARTH_OMEGA_IE] * sl;
+        terms[T_WEN] = -vm[1] / terms[T_RM];
+        terms[T_WEN + 1] = vm[0] / terms[T_RN];
+        terms[T_WEN + 2] = vm[0] * tl / terms[T_RN];
+        cycle(e[EARTH_OMEGA_IE], terms, vm, c, fn, dt[k], q_psd, Phi + k * N * N, Q + k * N * N);
+        start = end;
     }
+    return 0;
 }
 
 /* The covariance cycles of KalmanFilter.propagate: P <- Phi_i P Phi_i^T + q_scale Q_i for i < m, made symmetric
@@ -189,7 +274,7 @@ KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double 
 
 /* B (m x p, row stride p) <- S^-1 B, S (m x m) overwritten: Gaussian elimination with partial pivoting (as
  * LAPACK's gesv). Returns 1 when S is singular (a zero pivot), else 0. */
-static int lu_solve(int m, double *S, int p, double *B)
+HELPER int lu_solve(int m, double *S, int p, double *B)
 {
     for (int c = 0; c < m; c++) {
         int piv = c;
@@ -226,7 +311,7 @@ static int lu_solve(int m, double *S, int p, double *B)
 }
 
 /* out (15 x 15) = 0.5 (S + S^T) of S = a + b, kept in T (T may be a or b, out may be a) */
-static inline void sym_of_sum(const double *a, const double *b, double *T, double *out)
+HELPER void sym_of_sum(const double *a, const double *b, double *T, double *out)
 {
     for (int i = 0; i < N * N; i++)
         T[i] = a[i] + b[i];
@@ -237,7 +322,7 @@ static inline void sym_of_sum(const double *a, const double *b, double *T, doubl
 
 /* K (15 x m) = P H^T (H P H^T + R)^-1 of covariance P (15 x 15), H (m x 15), R (m x m). Returns 1 when the
  * innovation covariance is singular. */
-static int kalman_gain(int m, const double *H, const double *R, const double *P, double *K)
+HELPER int kalman_gain(int m, const double *H, const double *R, const double *P, double *K)
 {
     double HP[MAXM * N], S[MAXM * MAXM];
     matmul(m, N, N, H, N, P, N, 0, HP, N);
@@ -302,7 +387,7 @@ KERNEL int32_t fieldlog_kf_update(int64_t m, const double *z, const double *H, c
 
 /* out (15 x 15) = P^-1 of a symmetric positive definite P through its Cholesky factor L: L^-T L^-1. Returns 1
  * when P is not positive definite. */
-static int inv_spd(const double *P, double *out)
+HELPER int inv_spd(const double *P, double *out)
 {
     double L[N * N] = {0.0}, Li[N * N] = {0.0};
     for (int j = 0; j < N; j++) {

@@ -35,6 +35,8 @@ GAMMA_E = 9.7803253359  # normal gravity at the equator, m/s^2
 GAMMA_P = 9.8321849378  # normal gravity at the poles, m/s^2
 _K_SOMIGLIANA = B * GAMMA_P / (A * GAMMA_E) - 1.0
 _M = OMEGA_IE**2 * A**2 * B / GM
+# the constants the compiled kernels (fusion/_ins.c, fusion/_cycles.c) take, in their EARTH_* order
+KERNEL_CONSTANTS = np.array([A, E2, F, _M, _K_SOMIGLIANA, GAMMA_E, OMEGA_IE])
 
 
 def principal_radii(lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:

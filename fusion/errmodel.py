@@ -38,14 +38,16 @@ but no diagonal, since position has no direct noise), which can cost the covaria
 definiteness. The dT^3 term gives position its diagonal and makes Q positive semi-definite.
 
 Every function is vectorised over leading axes (a stack of filter cycles is built in one call). The filter loop
-builds its cycles with :func:`discrete_cycles`, the same numbers as ``discretise(*system_matrices(...))`` computed
-by a compiled kernel (fusion/_cycles.c); the numpy functions are the reference it is tested against.
+builds its cycles with :func:`segment_cycles`: the cycles' means, attitudes and Earth terms and
+``discretise(*system_matrices(...))`` (:func:`discrete_cycles`) in one compiled call (fusion/_cycles.c), the same
+numbers as the numpy functions, the reference it is tested against.
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,6 +218,7 @@ def cycle_kernel() -> ctypes.CDLL:
     p, i64, f64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int32
     return kernels.load("fieldlog.fusion._cycles", {
         "fieldlog_cycle_matrices": [i64, f64] + [p] * 8,
+        "fieldlog_segment_cycles": ([i64, i64] + [p] * 16, i32),
         "fieldlog_propagate_cov": [i64, p, p, f64, i32, p, p],
         "fieldlog_consider_cycles": [i64, p, p, p, p],
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
@@ -301,6 +304,11 @@ def propagate_covariance(Phi: np.ndarray, Q: np.ndarray, P: np.ndarray, q_scale:
     cycle_kernel().fieldlog_propagate_cov(len(Phi), Phi.ctypes.data, Q.ctypes.data, float(q_scale), int(sym),
                                           work.ctypes.data, hist.ctypes.data)
     return hist
+
+
+_SEGMENT_SHAPES = ((), (3,), (3,), (3, 3), (N_STATES, N_STATES), (N_STATES, N_STATES))  # dt, f_mean, w_mean, C_bn,
+# Phi, Q of a cycle (segment_cycles), and where each starts in a row of them
+_SEGMENT_OFFSETS = tuple(int(x) for x in np.cumsum([0] + [math.prod(s) for s in _SEGMENT_SHAPES]))
 
 
 @dataclass
@@ -396,15 +404,24 @@ def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: n
     Cycles
         The cycles with their Phi and Q.
     """
+    ends = np.ascontiguousarray(ends, dtype=np.int64)
     starts = np.concatenate([[0], ends[:-1]])
     mid = (starts + ends) // 2
-    dt = sol.t[ends] - sol.t[starts]
-    csum = np.cumsum(np.vstack([np.zeros(3), f_b[1:]]), axis=0)
-    f_mean = (csum[ends] - csum[starts]) / (ends - starts)[:, None]
-    wsum = np.cumsum(np.vstack([np.zeros(3), w_b[1:]]), axis=0)
-    w_mean = (wsum[ends] - wsum[starts]) / (ends - starts)[:, None]
-    C = earth.quat_to_dcm(sol.q[mid])
-    Phi, Q = discrete_cycles(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean), q, dt)
+    lat = sol.lat[mid]
+    trig = np.concatenate([np.sin(lat), np.cos(lat), np.tan(lat)])  # the transcendental functions stay numpy's
+    m, n = len(ends), len(sol.t)
+    ins = tuple(np.ascontiguousarray(a, dtype=float) for a in (sol.t, w_b, f_b, sol.q, sol.h, sol.v_n, q))
+    if tuple(a.shape for a in ins) != ((n,), (n, 3), (n, 3), (n, 4), (n,), (n, 3), (N_NOISE, N_NOISE)):
+        raise ValueError(f"segment cycles need a solution of n samples, w_b and f_b (n, 3), q (12, 12): "
+                         f"{[a.shape for a in ins]}")
+    out = np.empty(m * _SEGMENT_OFFSETS[-1])  # one buffer, the cycles' arrays side by side
+    dt, f_mean, w_mean, C, Phi, Q = (out[m * a:m * b].reshape((m, *shape)) for a, b, shape in zip(
+        _SEGMENT_OFFSETS, _SEGMENT_OFFSETS[1:], _SEGMENT_SHAPES))
+    base = out.ctypes.data
+    if cycle_kernel().fieldlog_segment_cycles(n, m, ends.ctypes.data, *(a.ctypes.data for a in ins[:6]),
+                                              trig.ctypes.data, earth.KERNEL_CONSTANTS.ctypes.data, ins[6].ctypes.data,
+                                              *(base + 8 * m * a for a in _SEGMENT_OFFSETS[:-1])):
+        raise ValueError("segment cycles need ends strictly increasing, above 0 and below the number of samples")
     if steps is not None:
         Q = Q + steps.noise(Phi, w_mean, f_mean)
     return Cycles(starts, mid, ends, dt, f_mean, w_mean, C, Phi, Q)

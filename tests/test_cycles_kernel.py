@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from fieldlog.fusion import consider, earth, errmodel, kf
+from fieldlog.fusion import consider, earth, errmodel, ins, kf
 from fieldlog.fusion.dkf import DistributedKF
 
 
@@ -319,3 +319,32 @@ def test_predicted_covariances_of_one_call_equal_one_call_per_cycle(make):
         covs.append(each.covariance.copy())
     assert np.array_equal(one.predicted, np.stack(covs))
     assert np.array_equal(diag, np.diagonal(np.stack(covs), axis1=1, axis2=2))
+
+
+@pytest.mark.parametrize("m", [1, 4, 25])
+def test_segment_cycles_equal_their_numpy_formulas(m):
+    """``errmodel.segment_cycles`` (one compiled call) gives the cycles that numpy's running sums, earth.quat_to_dcm,
+    np.einsum and ``discrete_cycles`` give over the same INS segment."""
+    rng = np.random.default_rng(40 + m)
+    n = 20 * m + 1
+    t = np.cumsum(rng.uniform(0.0015, 0.0025, n))
+    w, f = rng.normal(0.0, 0.2, (n, 3)), rng.normal(0.0, 2.0, (n, 3)) + [0.0, 0.0, 9.8]
+    start = ins.NavState(float(t[0]), 0.7, -1.2, 250.0, np.array([12.0, -3.0, 0.4]),
+                         earth.rotvec_to_quat([0.1, -0.2, 2.0]))
+    sol = ins.integrate(start, t, w, f)
+    ends = np.sort(rng.choice(np.arange(1, n), m, replace=False))
+    q = np.diag(rng.uniform(1e-9, 1e-4, 12))
+    c = errmodel.segment_cycles(sol, ends, w, f, q)
+    starts = np.concatenate([[0], ends[:-1]])
+    mid = (starts + ends) // 2
+    sums = [np.cumsum(np.vstack([np.zeros(3), x[1:]]), axis=0) for x in (w, f)]
+    w_mean, f_mean = ((s[ends] - s[starts]) / (ends - starts)[:, None] for s in sums)
+    C = earth.quat_to_dcm(sol.q[mid])
+    Phi, Q = errmodel.discrete_cycles(sol.lat[mid], sol.h[mid], sol.v_n[mid], C, np.einsum("kij,kj->ki", C, f_mean), q,
+                                      sol.t[ends] - sol.t[starts])
+    for got, want in ((c.w_mean, w_mean), (c.f_mean, f_mean), (c.C_bn, C), (c.dt, sol.t[ends] - sol.t[starts]),
+                      (c.Phi, Phi), (c.Q, Q)):
+        _same(got, want)
+    assert np.array_equal(c.starts, starts) and np.array_equal(c.mid, mid)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        errmodel.segment_cycles(sol, ends[::-1] if m > 1 else np.array([n]), w, f, q)
