@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fieldlog.fusion import errmodel
+from fieldlog.fusion import errmodel, kernels
 from fieldlog.fusion.errmodel import ATT, N_STATES
 
 N_PARAMS = 9
@@ -87,7 +87,7 @@ def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     """
     P, H, R = (np.ascontiguousarray(a, dtype=float) for a in (P, H, R))
     K = np.empty((N_STATES, len(H)))
-    if errmodel.cycle_kernel().fieldlog_kf_gain(len(H), H.ctypes.data, R.ctypes.data, P.ctypes.data, K.ctypes.data):
+    if errmodel.cycle_kernel().fieldlog_kf_gain(len(H), *map(kernels.address, (H, R, P, K))):
         raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
     return K
 
@@ -137,8 +137,7 @@ class GyroConsider:
         S = np.array(self.S, dtype=float, order="C")
         out = np.empty((len(Phi), N_STATES, N_PARAMS))
         # compiled (fusion/_cycles.c): per cycle S <- Phi S + 0.5 (Bdt + Phi Bdt), numpy's numbers (errmodel's note)
-        errmodel.cycle_kernel().fieldlog_consider_cycles(len(Phi), Phi.ctypes.data, Bdt.ctypes.data, S.ctypes.data,
-                                                         out.ctypes.data)
+        errmodel.cycle_kernel().fieldlog_consider_cycles(len(Phi), *map(kernels.address, (Phi, Bdt, S, out)))
         self.S = S
         return out
 

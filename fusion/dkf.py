@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fieldlog.fusion import kernels
 from fieldlog.fusion.errmodel import N_STATES, cycle_kernel, propagate_covariance
 from fieldlog.fusion.kf import (BatchUpdates, KalmanFilter, Measurement, Observation, joseph_update,
                                 propagate_state, stack)
@@ -267,8 +268,9 @@ def fuse(P1: np.ndarray, P2: np.ndarray, P12: np.ndarray | None, x1: np.ndarray,
         raise ValueError(f"fusion needs P1, P2, P12 (m, 15, 15) and x1, x2 (m, 15): {[a.shape for a in arrays]}")
     x, P, Pe = np.empty((m, N_STATES)), np.empty((m, N_STATES, N_STATES)), None if P12 is None else np.empty(
         (m, N_STATES, N_STATES))
-    P1, P2, x1, x2 = (a.ctypes.data for a in arrays)
-    if cycle_kernel().fieldlog_dkf_fuse(m, P1, P2, None if P12 is None else P12.ctypes.data, x1, x2, x.ctypes.data,
-                                        P.ctypes.data, None if Pe is None else Pe.ctypes.data):
+    P1, P2, x1, x2 = map(kernels.address, arrays)
+    if cycle_kernel().fieldlog_dkf_fuse(m, P1, P2, None if P12 is None else kernels.address(P12), x1, x2,
+                                        kernels.address(x), kernels.address(P),
+                                        None if Pe is None else kernels.address(Pe)):
         raise np.linalg.LinAlgError("Matrix is not positive definite: a local or fused covariance")
     return x, P, Pe

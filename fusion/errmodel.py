@@ -265,7 +265,7 @@ def discrete_cycles(lat: np.ndarray, h: np.ndarray, v_n: np.ndarray, C_bn: np.nd
     if tuple(a.shape for a in args) != shapes:
         raise ValueError(f"cycle matrices need lat, h, dt (m,), v_n, f_n (m, 3), C_bn (m, 3, 3), q (12, 12): "
                          f"{[a.shape for a in args[1:]]}")
-    cycle_kernel().fieldlog_cycle_matrices(m, earth.OMEGA_IE, *(a.ctypes.data for a in (*args, Phi, Q)))
+    cycle_kernel().fieldlog_cycle_matrices(m, earth.OMEGA_IE, *map(kernels.address, (*args, Phi, Q)))
     return Phi, Q
 
 
@@ -301,8 +301,8 @@ def propagate_covariance(Phi: np.ndarray, Q: np.ndarray, P: np.ndarray, q_scale:
             work = Phi[i] @ work @ Phi[i].T + q_scale * Q[i]
             hist[i] = work = 0.5 * (work + work.T) if sym else work
         return hist
-    cycle_kernel().fieldlog_propagate_cov(len(Phi), Phi.ctypes.data, Q.ctypes.data, float(q_scale), int(sym),
-                                          work.ctypes.data, hist.ctypes.data)
+    cycle_kernel().fieldlog_propagate_cov(len(Phi), kernels.address(Phi), kernels.address(Q), float(q_scale),
+                                          int(sym), kernels.address(work), kernels.address(hist))
     return hist
 
 
@@ -418,8 +418,9 @@ def segment_cycles(sol, ends: np.ndarray, w_b: np.ndarray, f_b: np.ndarray, q: n
     dt, f_mean, w_mean, C, Phi, Q = (out[m * a:m * b].reshape((m, *shape)) for a, b, shape in zip(
         _SEGMENT_OFFSETS, _SEGMENT_OFFSETS[1:], _SEGMENT_SHAPES))
     base = out.ctypes.data
-    if cycle_kernel().fieldlog_segment_cycles(n, m, ends.ctypes.data, *(a.ctypes.data for a in ins[:6]),
-                                              trig.ctypes.data, earth.KERNEL_CONSTANTS.ctypes.data, ins[6].ctypes.data,
+    if cycle_kernel().fieldlog_segment_cycles(n, m, kernels.address(ends), *map(kernels.address, ins[:6]),
+                                              kernels.address(trig), kernels.address(earth.KERNEL_CONSTANTS),
+                                              kernels.address(ins[6]),
                                               *(base + 8 * m * a for a in _SEGMENT_OFFSETS[:-1])):
         raise ValueError("segment cycles need ends strictly increasing, above 0 and below the number of samples")
     if steps is not None:

@@ -137,8 +137,8 @@ def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.
                              np.asarray(state.q, dtype=float).ravel()))
         if p0.shape != (10,):
             raise ValueError("the state's v_n must have 3 elements and q 4")
-        _kernel().fieldlog_ins_integrate(n, *(a.ctypes.data for a in (t, w, f, earth.KERNEL_CONSTANTS, p0, out.lat,
-                                                                      out.lon, out.h, out.v_n, out.q)))
+        _kernel().fieldlog_ins_integrate(n, *map(kernels.address, (t, w, f, earth.KERNEL_CONSTANTS, p0, out.lat,
+                                                                   out.lon, out.h, out.v_n, out.q)))
     return out
 
 

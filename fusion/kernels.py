@@ -10,6 +10,7 @@ import ctypes
 import importlib.util
 
 _loaded: dict[str, ctypes.CDLL] = {}
+_NO_BYTES = ctypes.c_char * 0
 
 
 def load(module: str, signatures: dict[str, list | tuple[list, type]]) -> ctypes.CDLL:
@@ -40,3 +41,23 @@ def load(module: str, signatures: dict[str, list | tuple[list, type]]) -> ctypes
             fn.argtypes, fn.restype = sig if isinstance(sig, tuple) else (sig, None)
         _loaded[module] = lib
     return _loaded[module]
+
+
+def address(a) -> ctypes.Array | int:
+    """Where a kernel's ``c_void_p`` argument finds the array ``a``'s data: a ctypes view of its buffer (which keeps
+    ``a`` alive through the call), or for an array that gives no writable contiguous buffer its data address.
+    Cheaper than numpy's ``a.ctypes``, which builds Python objects per call: a few calls per filter cycle add up.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        The array, C-contiguous as the kernel reads it.
+
+    Returns
+    -------
+    ctypes.Array or int
+    """
+    try:
+        return _NO_BYTES.from_buffer(a)
+    except (TypeError, ValueError, BufferError):
+        return a.ctypes.data

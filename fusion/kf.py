@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fieldlog.fusion import earth, errmodel
+from fieldlog.fusion import earth, errmodel, kernels
 from fieldlog.fusion.errmodel import ATT, N_STATES, VEL
 from fieldlog.fusion.ins import NavState
 
@@ -238,9 +238,8 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
     x, P = np.array(x, dtype=float), np.array(P, dtype=float, order="C")
     K, dx = np.empty((N_STATES, m)), np.empty(N_STATES)
     P12 = None if P12 is None else np.array(P12, dtype=float, order="C")
-    if errmodel.cycle_kernel().fieldlog_kf_update(m, z.ctypes.data, H.ctypes.data, R.ctypes.data, x.ctypes.data,
-                                                  P.ctypes.data, K.ctypes.data, dx.ctypes.data,
-                                                  None if P12 is None else P12.ctypes.data, side):
+    if errmodel.cycle_kernel().fieldlog_kf_update(m, *map(kernels.address, (z, H, R, x, P, K, dx)),
+                                                  None if P12 is None else kernels.address(P12), side):
         raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
     return x, P, K, dx, P12
 

@@ -84,6 +84,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from fieldlog.fusion import kernels
 from fieldlog.fusion.errmodel import cycle_kernel
 
 N_CHANNELS = 6  # position E, N, U (m), velocity E, N, U (m/s)
@@ -418,8 +419,8 @@ class Rls:
         if Phi.shape != (len(y), len(self.w)):
             raise ValueError(f"RLS of {len(self.w)} weights needs (m, {len(self.w)}) rows and m targets: "
                              f"{Phi.shape}, {y.shape}")
-        cycle_kernel().fieldlog_rls_update(len(y), len(self.w), self.P.ctypes.data, self.w.ctypes.data,
-                                           Phi.ctypes.data, y.ctypes.data, float(self.forget))
+        cycle_kernel().fieldlog_rls_update(len(y), len(self.w), *map(kernels.address, (self.P, self.w, Phi, y)),
+                                           float(self.forget))
         self.updates += len(y)
 
 

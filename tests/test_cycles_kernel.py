@@ -3,13 +3,14 @@ fusion/kf.py and fusion/consider.py): the same numbers to the bit where numpy's 
 sequential fused multiply-adds (OpenBLAS on x86-64 with FMA; the probe below checks the sizes taken); within
 rounding elsewhere. The compiled updates (Joseph form, the consider gain) and the distributed filter's fusion
 against the numpy formulas they replace, to the rounding their conditioning allows."""
+import ctypes
 import functools
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
-from fieldlog.fusion import consider, earth, errmodel, ins, kf
+from fieldlog.fusion import consider, earth, errmodel, ins, kernels, kf
 from fieldlog.fusion.dkf import DistributedKF
 
 
@@ -348,3 +349,14 @@ def test_segment_cycles_equal_their_numpy_formulas(m):
     assert np.array_equal(c.starts, starts) and np.array_equal(c.mid, mid)
     with pytest.raises(ValueError, match="strictly increasing"):
         errmodel.segment_cycles(sol, ends[::-1] if m > 1 else np.array([n]), w, f, q)
+
+
+def test_kernel_address_is_the_data_of_a_writable_array_and_numpys_otherwise():
+    """``kernels.address`` of a contiguous writable array is a view of its buffer at its data; a read-only or a
+    strided array gives its data address as numpy does."""
+    a = np.arange(15.0).reshape(5, 3)
+    view = kernels.address(a)
+    assert ctypes.addressof(view) == a.ctypes.data
+    frozen = np.frombuffer(bytes(24))
+    assert kernels.address(frozen) == frozen.ctypes.data
+    assert kernels.address(a[:, 1]) == a[:, 1].ctypes.data
