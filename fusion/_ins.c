@@ -60,10 +60,10 @@ static void rotate(const double q[4], const double v[3], double out[3])
     out[2] = v[2] + w * t[2] + c[2];
 }
 
-/* (R_M + h, R_N + h), m: earth.principal_radii */
-static void radii(const double *e, double lat, double h, double *rm, double *rn)
+/* (R_M + h, R_N + h), m: earth.principal_radii; s the sine of the latitude */
+static void radii(const double *e, double s, double h, double *rm, double *rn)
 {
-    double s = sin(lat), s2 = s * s;
+    double s2 = s * s;
     double w = sqrt(1.0 - e[EARTH_E2] * s2);
     double r_n = e[EARTH_A] / w;
     double r_m = r_n * (1.0 - e[EARTH_E2]) / (w * w);
@@ -71,10 +71,10 @@ static void radii(const double *e, double lat, double h, double *rm, double *rn)
     *rn = r_n + h;
 }
 
-/* normal gravity, m/s^2: earth.gravity */
-static double gravity(const double *e, double lat, double h)
+/* normal gravity, m/s^2: earth.gravity; s the sine of the latitude */
+static double gravity(const double *e, double s, double h)
 {
-    double a = e[EARTH_A], f = e[EARTH_F], s = sin(lat), s2 = s * s;
+    double a = e[EARTH_A], f = e[EARTH_F], s2 = s * s;
     double g0 = e[EARTH_GAMMA_E] * (1.0 + e[EARTH_K] * s2) / sqrt(1.0 - e[EARTH_E2] * s2);
     return g0 * (1.0 - 2.0 / a * (1.0 + f + e[EARTH_M] - 2.0 * f * s2) * h + 3.0 * h * h / (a * a));
 }
@@ -104,9 +104,8 @@ static void step(const double *e, double dt, const double w0[3], const double f0
     double lat_m = lat, h_m = h, v_m[3] = {v[0], v[1], v[2]};
     double lat1 = lat, lon1 = lon, h1 = h, v1[3] = {v[0], v[1], v[2]}, zeta[3] = {0.0, 0.0, 0.0};
     for (int pass = 0; pass < 2; pass++) {
-        double rm, rn;
-        radii(e, lat_m, h_m, &rm, &rn);
-        double sl = sin(lat_m), cl = cos(lat_m);
+        double rm, rn, sl = sin(lat_m), cl = cos(lat_m);
+        radii(e, sl, h_m, &rm, &rn);
         double w_ie[3] = {0.0, e[EARTH_OMEGA_IE] * cl, e[EARTH_OMEGA_IE] * sl};
         double w_en[3] = {-v_m[1] / rm, v_m[0] / rn, v_m[0] * sl / cl / rn};
         double zr[3], cor[3], w2[3];
@@ -116,7 +115,7 @@ static void step(const double *e, double dt, const double w0[3], const double f0
         }
         cross(zeta, dv_n0, zr);
         cross(w2, v_m, cor);
-        double g = gravity(e, lat_m, h_m);
+        double g = gravity(e, sl, h_m);
         v1[0] = v[0] + dv_n0[0] - 0.5 * zr[0] - cor[0] * dt;
         v1[1] = v[1] + dv_n0[1] - 0.5 * zr[1] - cor[1] * dt;
         v1[2] = v[2] + dv_n0[2] - 0.5 * zr[2] + (-g - cor[2]) * dt;
