@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from fieldlog.fusion import earth, kf, odometer, pseudo
-from fieldlog.fusion.still import GATE, GpsSpeed, ImuSums, StillRun
+from fieldlog.fusion.still import GATE, GpsSpeed, ImuSums, StillRun, gps_moving
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.predictors import PredictorConfig
@@ -285,7 +285,8 @@ class Stationary:
         """
         v_gps = m.epoch.v_n if m.usable else np.full(3, np.nan)
         speed = self.speed.add(m.t_fix, v_gps, m.epoch)
-        if not (math.isfinite(speed[0]) or float(np.linalg.norm(m.nav.v_n)) < self.cfg.still.still_speed_mps):
+        if gps_moving(speed) or not (math.isfinite(speed[0])
+                                     or float(np.linalg.norm(m.nav.v_n)) < self.cfg.still.still_speed_mps):
             self.run.reset()
             return None
         if not self.run.update(m.interval, speed, *_still_references(m.nav, m.bg, m.ba, m.P)):

@@ -202,6 +202,21 @@ def steady(interval: ImuSums, baseline: ImuSums | None) -> bool:
     return True
 
 
+def gps_moving(speed: tuple[float, float]) -> bool:
+    """Whether the GPS speed alone makes :func:`verdict` "moving", whatever the IMU shows: at twice its limit or
+    more.
+
+    Parameters
+    ----------
+    speed : as :func:`still`.
+
+    Returns
+    -------
+    bool
+    """
+    return math.isfinite(speed[0]) and not 0.5 * speed[0] < speed[1]
+
+
 def verdict(cfg: FusionConfig, interval: ImuSums, speed: tuple[float, float], refs: list[tuple],
             baseline: ImuSums | None = None) -> str:
     """The still detector's word on an interval.

@@ -95,3 +95,21 @@ def test_first_pass_finds_the_mounting_and_the_delay(simulated, tmp_path, capsys
         got, sigma = np.array(s["mounting_rpy_deg"]), np.array(s["mounting_sigma_deg"])
         assert np.all(np.abs(got - rpy)[1:] <= 3.0 * sigma[1:]), (got, sigma, rpy)
         assert abs(s["imu_time_offset_s"] - delay) <= 3.0 * s["imu_time_offset_sigma_s"] < 0.09, s
+
+
+def test_a_gps_speed_at_twice_its_limit_is_moving_whatever_the_imu_shows():
+    """``still.gps_moving`` (which spares the ZUPT its references) holds only where ``verdict`` says "moving" for
+    any interval and references, still ones included."""
+    from fieldlog.fusion import still
+    from fieldlog.fusion.config import FusionConfig
+
+    cfg, rng = FusionConfig(), np.random.default_rng(5)
+    w = np.full((301, 3), 1e-5) + rng.normal(0.0, 1e-6, (301, 3))
+    f = np.array([0.0, 0.0, 9.8]) + rng.normal(0.0, 1e-4, (301, 3))
+    interval = still.ImuSums()
+    interval.add(w, f, 0, 300)
+    refs = [(w.mean(axis=0), 1e-4, f.mean(axis=0), 0.01)]
+    for speed in [(v, limit) for v in (0.0, 0.05, 0.1, 0.19, 0.2, 0.21, 0.4, 1.0, np.nan) for limit in (0.1, 0.2)]:
+        said = still.verdict(cfg, interval, speed, refs)
+        assert not still.gps_moving(speed) or said == "moving"
+        assert still.gps_moving(speed) or said != "moving"
