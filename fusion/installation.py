@@ -34,6 +34,8 @@ Times in s, angles in rad inside and degrees in the results; ENU navigation fram
 from __future__ import annotations
 
 import math
+import tempfile
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -56,17 +58,21 @@ def _course(v_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class GyroTrack:
     """The integral of the IMU's rate over a drive, kept at about ``HZ`` (the heading changes ``time_offset``
     reads off it over any interval), and the mean specific force (the IMU frame's up: a car's accelerations
-    average out over a drive). Fed block by block; memory grows by 32 bytes per kept sample."""
+    average out over a drive). Fed block by block; the kept samples (32 bytes each) go to an anonymous temporary
+    file and are read back ``CHUNK`` at a time, so memory is bounded whatever the drive's length."""
 
     HZ = 50.0
+    CHUNK = 1 << 16  # kept samples read back at a time
+    _SAMPLE = np.dtype([("t_ns", "<i8"), ("angle", "<f8", 3)])  # UTC ns; the integral, rad, IMU frame
 
     def __init__(self) -> None:
-        self._t: list[np.ndarray] = []
-        self._angle: list[np.ndarray] = []
+        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the track; close())
+        self._kept = 0  # samples in the file
+        self._first_ns = 0
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
         self.sum_f = np.zeros(3)
         self.n = 0
-        self._about: tuple[int, np.ndarray, np.ndarray] | None = None  # n, stamps, integral about the mean up
+        self._about: tuple[int, np.ndarray, np.ndarray] | None = None  # n, stamps, integral about up: one chunk
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
         """Add IMU samples.
@@ -87,38 +93,71 @@ class GyroTrack:
             start = self._last[2]
         else:
             start = np.zeros(3)
+            self._first_ns = int(t[0])
         steps = 0.5 * (w[1:] + w[:-1]) * (np.diff(t) * 1e-9)[:, None]
         angle = start + np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
         every = max(int(round(1e9 / self.HZ / max(float(np.median(np.diff(t))) if len(t) > 1 else 1e9, 1.0))), 1)
         keep = slice(1 if self._last is not None else 0, None, every)
-        self._t.append(t[keep].copy())  # copies: a strided view would keep the block's every sample
-        self._angle.append(angle[keep].copy())
+        kept = np.empty(len(t[keep]), self._SAMPLE)
+        kept["t_ns"], kept["angle"] = t[keep], angle[keep]
+        self._file.seek(self._kept * self._SAMPLE.itemsize)
+        self._file.write(kept.tobytes())
+        self._kept += len(kept)
         self._last = (int(t[-1]), w[-1].copy(), angle[-1].copy())
         self.sum_f += np.asarray(f_m, float).sum(axis=0)
         self.n += len(t_ns)
 
+    def close(self) -> None:
+        """Delete the file of kept samples."""
+        self._file.close()
+
+    def _chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
+        """The kept samples' (stamps UTC ns, integral about the mean up rad, whether the last chunk), ``CHUNK`` + 1
+        at a time, each chunk beginning at the last sample of the one before; a drive of one chunk is read once
+        per state of the track."""
+        if self._about is not None and self._about[0] == self.n:
+            yield self._about[1], self._about[2], True
+            return
+        up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
+        for i0 in range(0, max(self._kept - 1, 1), self.CHUNK):
+            i1 = min(i0 + self.CHUNK + 1, self._kept)
+            self._file.seek(i0 * self._SAMPLE.itemsize)
+            kept = np.frombuffer(self._file.read((i1 - i0) * self._SAMPLE.itemsize), self._SAMPLE)
+            t, about_up = kept["t_ns"].copy(), np.ascontiguousarray(kept["angle"]) @ up
+            if i0 == 0 and i1 == self._kept:
+                self._about = (self.n, t, about_up)
+            yield t, about_up, i1 == self._kept
+
     def heading_change(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
-        """The heading change over intervals: minus the integrated rate about the mean up.
+        """The heading change over intervals: minus the integrated rate about the mean up; each stamp interpolated
+        in the chunk holding its two neighbouring samples (``np.interp`` over the whole track, to the bit).
 
         Parameters
         ----------
-        a_ns, b_ns : (m,) the intervals' ends, UTC ns.
+        a_ns, b_ns : (m,) the intervals' ends, UTC ns (any shape, the same for both).
 
         Returns
         -------
         (m,) rad, clockwise.
         """
-        if self._about is None or self._about[0] != self.n:  # joined once per state of the track, not per call
-            t = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
-            angle = np.concatenate(self._angle) if self._angle else np.zeros((0, 3))
-            up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
-            self._about = (self.n, t, angle @ up)
-        _, t, about_up = self._about
-        return -(np.interp(b_ns, t, about_up) - np.interp(a_ns, t, about_up))
+        a, b = np.asarray(a_ns), np.asarray(b_ns)
+        at_a, at_b = np.empty(a.shape), np.empty(b.shape)
+        lo = None  # a chunk's stamps: from its first sample (the first chunk: all before) to its last (excluded)
+        for t, about_up, last in self._chunks():
+            for q, out in ((a, at_a), (b, at_b)):
+                if lo is None and last:
+                    out[...] = np.interp(q, t, about_up)
+                    continue
+                inside = np.ones(q.shape, bool) if lo is None else q >= lo
+                if not last:
+                    inside &= q < t[-1]
+                out[inside] = np.interp(q[inside], t, about_up)
+            lo = t[-1]
+        return -(at_b - at_a)
 
     @property
     def span_ns(self) -> tuple[int, int]:
-        return (int(self._t[0][0]), int(self._last[0])) if self._t else (0, 0)
+        return (self._first_ns, int(self._last[0])) if self._kept else (0, 0)
 
 
 _CELLS = 1 << 18  # lag x interval residuals computed at once by time_offset
@@ -177,48 +216,154 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     return d, math.sqrt(float(c1) / max(len(k) - 2, 1) / s2)
 
 
-def mounting(sol: Solution, lever_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-    """The IMU's mounting to the car's body frame (module docstring).
+def mounting(blocks: Iterable[Solution], lever_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The IMU's mounting to the car's body frame (module docstring), reduced block by block (:class:`_Mounting`):
+    the rows of any split of a drive give the same estimate, to the bit.
 
     Parameters
     ----------
-    sol : the aids-off solution, its IMU on the GPS's time (smoothed: its attitude sigma is the estimate's floor).
+    blocks : the aids-off solution's rows in time order, in blocks (a whole solution: ``[sol]``), its IMU on the
+        GPS's time (smoothed: its attitude sigma is the estimate's floor).
     lever_b : (3,) IMU -> the rear axle's centre, IMU axes (taken as the car's), m; None: zero.
 
     Returns
     -------
     ([roll, pitch, yaw], their sigmas), deg (3,) each; None without enough driving.
     """
-    if len(sol.t_ns) < 3:
-        return None
-    ts = (sol.t_ns - sol.t_ns[0]) * 1e-9
-    course, speed = _course(sol.v_n)
-    yaw_rate = np.gradient(np.unwrap(course), ts)
-    sel = (speed >= MIN_SPEED_MPS) & (np.abs(yaw_rate) < MAX_YAW_RATE)
-    if sel.sum() < 20:
-        return None
-    rows = np.flatnonzero(sel)
-    C_mn = earth.quat_to_dcm(sol.q[rows])
-    gamma = np.arctan2(sol.v_n[rows, 2], speed[rows])
-    r_fwd = 0.0 if lever_b is None else float(lever_b[1])
-    heading = course[rows] + np.arctan2(yaw_rate[rows] * r_fwd, speed[rows])  # the IMU's point swings out in turns
-    C_bn = earth.euler_to_dcm(heading, gamma, np.zeros(len(rows)))
-    C_bm = np.einsum("nji,njk->nik", C_bn, C_mn)
-    yaw, pitch, roll = earth.dcm_to_euler(C_bm)
-    rpy = np.stack([roll, pitch, np.remainder(yaw + math.pi, 2.0 * math.pi) - math.pi], axis=1)
-    block = ((ts[rows] - ts[rows][0]) // BLOCK_S).astype(np.int64)
-    n = np.bincount(block)
-    used = n > 0
-    means = np.stack([np.bincount(block, rpy[:, j])[used] / n[used] for j in range(3)], axis=1)
-    spread = (means.std(axis=0, ddof=1) / math.sqrt(len(means)) if len(means) > 1
-              else np.full(3, math.inf))
-    sig = sol.sigma[rows]
-    level = math.sqrt(float(np.mean(0.5 * (sig[:, 6] ** 2 + sig[:, 7] ** 2))))
-    head = math.sqrt(float(np.mean(sig[:, 8] ** 2)))
-    climb = math.sqrt(float(np.mean((sig[:, 5] / speed[rows]) ** 2)))  # the flight-path angle's, from the up velocity
-    sigma = np.sqrt(spread ** 2 + np.array([level, math.hypot(level, climb), head]) ** 2
-                    + np.array([math.radians(ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
-    return np.degrees(means.mean(axis=0)), np.degrees(sigma)
+    sums = _Mounting(0.0 if lever_b is None else float(lever_b[1]))
+    try:
+        for sol in blocks:
+            sums.add(sol.t_ns, sol.v_n, sol.q, sol.sigma)
+        return sums.result()
+    finally:
+        sums.close()
+
+
+def _unwrap_steps(dd: np.ndarray) -> np.ndarray:
+    """``np.unwrap``'s corrections (rad) of the steps ``dd`` (rad) between consecutive angles."""
+    ddmod = np.mod(dd + math.pi, 2.0 * math.pi) - math.pi
+    np.copyto(ddmod, math.pi, where=(ddmod == -math.pi) & (dd > 0))
+    correct = ddmod - dd
+    np.copyto(correct, 0, where=np.abs(dd) < math.pi)
+    return correct
+
+
+class _Mounting:
+    """:func:`mounting`'s reduction of row blocks: per row the yaw rate (``np.gradient`` of the unwrapped course,
+    second-order central differences, one-sided at the drive's ends: each row waits for the next), the selected
+    rows' angles summed per ``BLOCK_S`` block (the open block's sum carried into the next rows' ``np.bincount``, so
+    the sums add in the order of the whole drive's) and the sigma terms per selected row spilled to an anonymous
+    temporary file (24 bytes each) for their means at the end. Memory is bounded by a block and the blocks' means
+    (24 bytes per ``BLOCK_S``)."""
+
+    def __init__(self, r_fwd: float) -> None:
+        self.r_fwd = r_fwd  # m: the IMU ahead of the rear axle
+        self.rows = 0
+        self.t0 = 0  # the first row's stamp, UTC ns
+        self.held: list[np.ndarray] = []  # the last row (its rate waits for the next): ts s, unwrapped course, v_n..
+        self.course = 0.0  # rad: the last row's course, as it is
+        self.turn = 0.0  # rad: the unwrapping's corrections summed to the last row
+        self.before: tuple[float, float] | None = None  # (ts, unwrapped course) of the row before the last
+        self.sel0: float | None = None  # the first selected row's ts
+        self.open: tuple[int, np.ndarray, int] | None = None  # the last block: index, angle sums (3,), rows
+        self.means: list[np.ndarray] = []  # the closed blocks' mean [roll, pitch, yaw], rad
+        self.terms = tempfile.TemporaryFile()  # noqa: SIM115 (closed by close())
+        self.selected = 0
+
+    def close(self) -> None:
+        """Delete the file of sigma terms."""
+        self.terms.close()
+
+    def add(self, t_ns: np.ndarray, v_n: np.ndarray, q: np.ndarray, sigma: np.ndarray) -> None:
+        """Rows (``Solution``'s t_ns, v_n, q, sigma), after those added before."""
+        if not len(t_ns):
+            return
+        if not self.rows:
+            self.t0 = t_ns[0]
+        course = _course(v_n)[0]
+        if self.rows:
+            turn = np.cumsum(np.concatenate([[self.turn], _unwrap_steps(np.diff(np.r_[self.course, course]))]))[1:]
+            f = course + turn
+        else:
+            turn = np.concatenate([[0.0], np.cumsum(_unwrap_steps(np.diff(course)))])
+            f = np.concatenate([course[:1], course[1:] + turn[1:]])
+        self.rows, self.course, self.turn = self.rows + len(t_ns), float(course[-1]), float(turn[-1])
+        rows = [(t_ns - self.t0) * 1e-9, f, v_n, q, sigma]
+        if self.held:
+            rows = [np.concatenate([h, r]) for h, r in zip(self.held, rows)]
+        self.held = [r[-1:] for r in rows]
+        if len(rows[0]) > 1:
+            self._reduce(*(r[:-1] for r in rows), next_row=(float(rows[0][-1]), float(rows[1][-1])))
+
+    def _reduce(self, ts: np.ndarray, f: np.ndarray, v_n: np.ndarray, q: np.ndarray, sigma: np.ndarray,
+                next_row: tuple[float, float] | None) -> None:
+        """Rows with their yaw rate, from their neighbours, ``self.before`` and ``next_row`` (ts, unwrapped course;
+        None: the drive's last row)."""
+        n = len(ts)
+        ext_t, ext_f = [ts], [f]
+        if self.before is not None:
+            ext_t.insert(0, [self.before[0]]), ext_f.insert(0, [self.before[1]])
+        if next_row is not None:
+            ext_t.append([next_row[0]]), ext_f.append([next_row[1]])
+        t, y = np.concatenate(ext_t), np.concatenate(ext_f)
+        dx = np.diff(t)
+        dx1, dx2 = dx[:-1], dx[1:]
+        rate = np.empty(len(t))
+        rate[1:-1] = (-dx2 / (dx1 * (dx1 + dx2)) * y[:-2] + (dx2 - dx1) / (dx1 * dx2) * y[1:-1]
+                      + dx1 / (dx2 * (dx1 + dx2)) * y[2:])
+        rate[0] = (y[1] - y[0]) / dx[0]
+        rate[-1] = (y[-1] - y[-2]) / dx[-1]
+        first = 0 if self.before is None else 1
+        self.before = (float(ts[-1]), float(f[-1]))
+        self._rows(ts, rate[first:first + n], v_n, q, sigma)
+
+    def _rows(self, ts: np.ndarray, yaw_rate: np.ndarray, v_n: np.ndarray, q: np.ndarray, sigma: np.ndarray
+              ) -> None:
+        """The selected rows' angles into their blocks' sums, their sigma terms into ``terms``."""
+        course, speed = _course(v_n)
+        rows = np.flatnonzero((speed >= MIN_SPEED_MPS) & (np.abs(yaw_rate) < MAX_YAW_RATE))
+        if not len(rows):
+            return
+        C_mn = earth.quat_to_dcm(q[rows])
+        gamma = np.arctan2(v_n[rows, 2], speed[rows])
+        heading = course[rows] + np.arctan2(yaw_rate[rows] * self.r_fwd, speed[rows])  # the IMU's point swings out
+        C_bn = earth.euler_to_dcm(heading, gamma, np.zeros(len(rows)))
+        C_bm = np.einsum("nji,njk->nik", C_bn, C_mn)
+        yaw, pitch, roll = earth.dcm_to_euler(C_bm)
+        rpy = np.stack([roll, pitch, np.remainder(yaw + math.pi, 2.0 * math.pi) - math.pi], axis=1)
+        if self.sel0 is None:
+            self.sel0 = float(ts[rows][0])
+        block = ((ts[rows] - self.sel0) // BLOCK_S).astype(np.int64)
+        base, sums, count = self.open if self.open is not None else (int(block[0]), np.zeros(3), 0)
+        at = np.r_[0, block - base]  # the open block's sum first: 0 + sum + rows, as one bincount of every row
+        total = np.stack([np.bincount(at, np.r_[sums[j], rpy[:, j]]) for j in range(3)], axis=1)
+        n = np.bincount(block - base, minlength=len(total))
+        n[0] += count
+        used = n[:-1] > 0
+        self.means.extend(total[:-1][used] / n[:-1][used, None])
+        self.open = (base + len(total) - 1, total[-1], int(n[-1]))
+        sig = sigma[rows]
+        terms = np.stack([0.5 * (sig[:, 6] ** 2 + sig[:, 7] ** 2), sig[:, 8] ** 2, (sig[:, 5] / speed[rows]) ** 2],
+                         axis=1)
+        self.terms.write(terms.tobytes())
+        self.selected += len(rows)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """:func:`mounting`'s return, after the last rows."""
+        if self.rows < 3:
+            return None
+        self._reduce(*self.held, next_row=None)
+        if self.selected < 20:
+            return None
+        means = np.array(self.means + [self.open[1] / self.open[2]])
+        spread = (means.std(axis=0, ddof=1) / math.sqrt(len(means)) if len(means) > 1
+                  else np.full(3, math.inf))
+        self.terms.seek(0)
+        level, head, climb = (math.sqrt(float(np.mean(x)))
+                              for x in np.frombuffer(self.terms.read()).reshape(-1, 3).T.copy())
+        sigma = np.sqrt(spread ** 2 + np.array([level, math.hypot(level, climb), head]) ** 2
+                        + np.array([math.radians(ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
+        return np.degrees(means.mean(axis=0)), np.degrees(sigma)
 
 
 def combine(prior: np.ndarray, prior_sigma: np.ndarray, estimate: np.ndarray, sigma: np.ndarray

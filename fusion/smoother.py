@@ -38,15 +38,16 @@ its variance added to the smoothed accelerometer-bias variance.
 
 Memory: a record is 3 x 15 x 15 + 2 x 15 + 2 x 15 x 9 float64 + the time, 7.8 kB; a 1-hour drive at 10 Hz is
 36 000 records, about 280 MB. :class:`SmootherLog` keeps only the last ``chunk`` records in memory and spills the
-rest to an anonymous temporary file; :func:`rts` reads that file backwards a chunk at a time and keeps, per
-record, only y and the diagonal of Ps (240 bytes). Memory then grows by that and by the forward solution
-rows (about 15 MB per hour in all) rather than 280 MB per hour.
+rest to an anonymous temporary file; :func:`rts` reads that file backwards a chunk at a time and writes, per
+record, y, the diagonal of Ps and dx (360 bytes) to another (:class:`Smoothed`), which :func:`row_errors` reads
+back for the records a block of rows lies between. Memory then grows only by the records' times (8 bytes per
+record); :func:`smoothed_blocks` smooths rows kept out of memory (a spill file) a block at a time.
 """
 
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -193,15 +194,56 @@ class SmootherLog:
         return r["t_ns"], r["phi"], r["pm"], r["pp"], r["dx"]
 
 
-@dataclass
 class Smoothed:
-    """The smoothed error of the forward solution after each record: t_ns (N,), y (N, 15), its covariance
-    diagonal P_diag (N, 15); dx (N, 15) the forward corrections (for the rows stamped before them)."""
+    """The smoothed error of the forward solution after each record (:func:`rts`): the records' times ``t_ns`` (N,)
+    in memory; per record, in an anonymous temporary file, y (15,), its covariance diagonal P_diag (15,) and dx
+    (15,), the forward correction (for the rows stamped before it). ``fusion.errmodel`` order and units."""
 
-    t_ns: np.ndarray
-    y: np.ndarray
-    P_diag: np.ndarray
-    dx: np.ndarray
+    _COLUMNS = 3 * N_STATES  # float64 per record: y, P_diag, dx
+
+    def __init__(self, t_ns: np.ndarray) -> None:
+        self.t_ns = t_ns
+        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as this object; close())
+
+    def write(self, i0: int, y: np.ndarray, P_diag: np.ndarray, dx: np.ndarray) -> None:
+        """Write records [i0, i0 + m).
+
+        Parameters
+        ----------
+        i0 : int, the first record's index
+        y, P_diag, dx : (m, 15) ndarray each, the smoothed error, its variance and the forward correction,
+            ``fusion.errmodel`` order and units (squared for P_diag)
+        """
+        self._file.seek(i0 * self._COLUMNS * 8)
+        self._file.write(np.concatenate([y, P_diag, dx], axis=1).tobytes())
+
+    def read(self, i0: int, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Records [i0, i1).
+
+        Parameters
+        ----------
+        i0, i1 : int, record indices, 0 <= i0 <= i1 <= N
+
+        Returns
+        -------
+        (y, P_diag, dx) : (i1 - i0, 15) ndarray each, ``fusion.errmodel`` order and units (squared for P_diag)
+        """
+        self._file.seek(i0 * self._COLUMNS * 8)
+        a = np.frombuffer(self._file.read((i1 - i0) * self._COLUMNS * 8)).reshape(-1, self._COLUMNS)
+        return a[:, :N_STATES], a[:, N_STATES:2 * N_STATES], a[:, 2 * N_STATES:]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every record, all in memory (small logs, tests).
+
+        Returns
+        -------
+        (y, P_diag, dx) : (N, 15) ndarray each, ``fusion.errmodel`` order and units (squared for P_diag)
+        """
+        return self.read(0, len(self.t_ns))
+
+    def close(self) -> None:
+        """Delete the file."""
+        self._file.close()
 
 
 def rts(log: SmootherLog) -> Smoothed | None:
@@ -216,29 +258,31 @@ def rts(log: SmootherLog) -> Smoothed | None:
     Returns
     -------
     Smoothed or None
+        To be closed by the caller (its temporary file).
     """
     n = len(log)
     if n < 2:
         return None
-    t_ns = np.zeros(n, np.int64)
-    y = np.zeros((n, N_STATES))
-    d = np.zeros((n, N_STATES))
-    dx = np.zeros((n, N_STATES))
+    sm = Smoothed(np.zeros(n, np.int64))
     m_pred, m_upd = _filtered_means(log) if log.bridged else (None, None)
     Ps, Ss = np.zeros((N_STATES, N_STATES)), np.zeros((N_STATES, N_PARAMS))  # record k + 1's, then k's
     var_c = None if log.var_c is None else np.ascontiguousarray(log.var_c, float)
     nxt = None  # the record after the chunk
+    y_next = np.zeros(N_STATES)  # its smoothed error (the kernel reads it after the chunk's rows)
     for i1 in range(n, 0, -log.chunk):
         i0 = max(i1 - log.chunk, 0)
         r = np.ascontiguousarray(log.read(i0, i1))
-        t_ns[i0:i1], dx[i0:i1] = r["t_ns"], r["dx"]
+        y, d = np.zeros((len(r) + 1, N_STATES)), np.zeros((len(r), N_STATES))
+        y[-1] = y_next
         if cycle_kernel().fieldlog_rts_chunk(len(r), r.ctypes.data, RECORD.itemsize, _OFFSETS.ctypes.data,
                                              _address(nxt), Ps.ctypes.data, Ss.ctypes.data, _address(m_pred, i0),
-                                             _address(m_upd, i0), _address(var_c), y[i0:].ctypes.data,
-                                             d[i0:].ctypes.data):
+                                             _address(m_upd, i0), _address(var_c), y.ctypes.data, d.ctypes.data):
+            sm.close()
             raise np.linalg.LinAlgError("Singular matrix: a predicted covariance of the smoother's records")
-        nxt = r[:1].copy()
-    return Smoothed(t_ns, y, d, dx)
+        sm.t_ns[i0:i1] = r["t_ns"]
+        sm.write(i0, y[:-1], d, r["dx"])
+        nxt, y_next = r[:1].copy(), y[0]
+    return sm
 
 
 def _address(a: np.ndarray | None, row: int = 0) -> int | None:
@@ -281,8 +325,11 @@ def row_errors(sm: Smoothed, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k = np.searchsorted(sm.t_ns, t_ns, side="left").clip(1, max(len(sm.t_ns) - 1, 1))
     t0, t1 = sm.t_ns[k - 1], sm.t_ns[k]
     a = np.clip((t_ns - t0) / np.maximum(t1 - t0, 1), 0.0, 1.0)[:, None]
-    e = (1.0 - a) * sm.y[k - 1] + a * (sm.y[k] + sm.dx[k])
-    return e, (1.0 - a) * sm.P_diag[k - 1] + a * sm.P_diag[k]
+    lo = int(k.min()) - 1 if len(k) else 0  # the records the rows lie between, read from sm's file
+    y, P_diag, dx = sm.read(lo, int(k.max()) + 1 if len(k) else 0)
+    k = k - lo
+    e = (1.0 - a) * y[k - 1] + a * (y[k] + dx[k])
+    return e, (1.0 - a) * P_diag[k - 1] + a * P_diag[k]
 
 
 def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q: np.ndarray, e: np.ndarray
@@ -313,7 +360,7 @@ def correct(lat: np.ndarray, lon: np.ndarray, h: np.ndarray, v_n: np.ndarray, q:
 
 def smooth_solution(sol: Solution, log: SmootherLog, rows: int = 10_000) -> Solution:
     """The forward solution rows of a whole drive, smoothed with the records of the same run, ``rows`` at a time
-    (:func:`smooth_rows` is row by row: the same rows, its temporaries bounded).
+    (:func:`smoothed_blocks`: the same rows, its temporaries bounded).
 
     Parameters
     ----------
@@ -326,12 +373,33 @@ def smooth_solution(sol: Solution, log: SmootherLog, rows: int = 10_000) -> Solu
     Solution
         The smoothed rows (sigma the smoothed standard deviations).
     """
-    sm = rts(log)
-    if sm is None or len(sol.t_ns) <= rows:
-        return smooth_rows(sol, sm, log)
     fields = ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")  # what smooth_rows reads of a row
-    return Solution.concat([smooth_rows(Solution(*(getattr(sol, k)[i:i + rows] for k in fields)), sm, log)
-                            for i in range(0, len(sol.t_ns), rows)])
+    parts = (Solution(*(getattr(sol, k)[i:i + rows] for k in fields)) for i in range(0, len(sol.t_ns), rows))
+    return Solution.concat(list(smoothed_blocks(parts, log)))
+
+
+def smoothed_blocks(blocks: Iterable[Solution], log: SmootherLog) -> Iterator[Solution]:
+    """A drive's forward solution rows, given block by block in order, smoothed block by block with the records of
+    the same run (:func:`rts` once, then :func:`smooth_rows` per block); memory bounded by a block and a chunk of
+    records, whatever the drive's length.
+
+    Parameters
+    ----------
+    blocks : iterable of Solution, the forward rows of the run in time order (e.g. read back from a spill file)
+    log : SmootherLog, the records of the same forward run
+
+    Returns
+    -------
+    Iterator of Solution
+        Each block's rows smoothed (sigma the smoothed standard deviations).
+    """
+    sm = rts(log)
+    try:
+        for sol in blocks:
+            yield smooth_rows(sol, sm, log)
+    finally:
+        if sm is not None:
+            sm.close()
 
 
 def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:

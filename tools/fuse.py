@@ -20,9 +20,9 @@ following docs/data-model.md (``replay.solutions``):
 - ``/fusion/outage`` Outage: injected and detected outage windows.
 
 With ``smooth`` (``--smooth``) the solution rows are written after the drive, smoothed by the RTS backward
-pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB per 0.1 s) and the forward rows
-go to temporary files and the rows are smoothed and written back a block at a time, so memory grows only by
-the smoothed errors (about 15 MB per hour).
+pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB per 0.1 s), the forward rows and
+the smoothed errors go to temporary files and the rows are smoothed and written back a block at a time
+(``fusion.smoother.smoothed_blocks``).
 
 The ``fuse`` command decodes the drive once: the first pass keeps its input blocks in an anonymous temporary file
 (``replay.inputs.InputStream(..., keep=True)``; about 100 MB per hour of a 500 Hz IMU) that the installation
@@ -54,13 +54,13 @@ from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.engine import Engine
 from fieldlog.fusion.methods import KF
 from fieldlog.fusion.predictors import OutagePredictor, PredictorConfig
-from fieldlog.fusion.smoother import SmootherLog, smooth_solution
+from fieldlog.fusion.smoother import SmootherLog, smoothed_blocks
 from fieldlog.fusion.types import Solution
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.ahead import Remote
 from fieldlog.replay.inputs import InputMap, InputStream
 from fieldlog.replay.loop import Pace, run
-from fieldlog.tools.fuse_output import FusedOutput
+from fieldlog.tools.fuse_output import FusedOutput, RowSpill
 from fieldlog.tools.fuse_settings import Settings, drive_config, drive_mounting
 
 BLOCK_S = 10.0
@@ -122,8 +122,10 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     and the mounting from its rows. The mounting used is the estimate and the configured one (``[fusion]
     mounting_rpy_deg``, else the drive's calibration record) weighted by their inverse variances, the configured
     sigma ``mounting_sigma_deg`` (all 0: a mounting nobody measured, the estimate alone); where the drive does not
-    show one, the configured value and sigma stay. Memory grows by the rows (10 Hz) and the rate integral (50 Hz);
-    the smoother's records go to a temporary file (5.5 kB per 0.1 s).
+    show one, the configured value and sigma stay. The rate integral (50 Hz, ``installation.GyroTrack``), the
+    forward rows (``tools.fuse_output.RowSpill``) and the smoother's records go to temporary files, and the rows
+    are smoothed and reduced to the mounting a block at a time, so memory does not grow with the drive but for the
+    receiver's epochs (32 bytes each) and the mounting's 10 s block means (24 bytes each).
 
     Parameters
     ----------
@@ -171,26 +173,32 @@ def _estimated_offset(stream: InputStream, start: float) -> tuple[float, float |
     late_ns = int(round(start * 1e9))
     gyro = installation.GyroTrack()
     t_gps, v_gps = [], []
-    for block in stream:
-        gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
-        t_gps.append(block.gps.t_ns)
-        v_gps.append(block.gps.v_n)
-    offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
+    try:
+        for block in stream:
+            gyro.add(block.imu.t_ns - late_ns, block.imu.omega_ib_b, block.imu.f_b)
+            t_gps.append(block.gps.t_ns)
+            v_gps.append(block.gps.v_n)
+        offset = installation.time_offset(gyro, np.concatenate(t_gps), np.concatenate(v_gps).reshape(-1, 3))
+    finally:
+        gyro.close()
     return (start + offset[0], offset[1]) if offset is not None else (start, None)
 
 
 def _estimated_mounting(stream: InputStream, config: FusionConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """``installation.mounting`` of ``kf`` over ``stream`` without the vehicle aids and the forced outages,
-    smoothed (deg, their sigmas); the forward rows are let go before the mounting's own arrays are made."""
-    log = SmootherLog()
+    smoothed (deg, their sigmas): the forward rows spilled as they come (``RowSpill``), smoothed and reduced a block
+    at a time."""
+    log, spill = SmootherLog(), RowSpill()
     try:
         engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
-        sol = Solution.concat([engine.process(block.imu, block.gps)[0] for block in stream] + [engine.finish()[0]])
-        smoothed = smooth_solution(sol, log)
+        for block in stream:
+            spill.add(engine.process(block.imu, block.gps)[0])
+        spill.add(engine.finish()[0])
+        return installation.mounting(smoothed_blocks(spill.blocks(), log),
+                                     np.asarray(config.aids.odometer_lever_b, float))
     finally:
         log.close()
-    del sol
-    return installation.mounting(smoothed, np.asarray(config.aids.odometer_lever_b, float))
+        spill.close()
 
 
 def calibration_mounting_rpy(mounting: calib.Mounting) -> np.ndarray:

@@ -1,6 +1,6 @@
 """What ``fieldlog fuse`` writes (the topics: ``tools.fuse``): ``FusedOutput``, the loop's sink
 (``replay.loop.Sink``) that writes each block's solution rows, their REP-105 frames and the outage windows into a
-Recorder as they come; or, smoothing, the forward rows spilled to a temporary file (``_RowSpill``) and written
+Recorder as they come; or, smoothing, the forward rows spilled to a temporary file (``RowSpill``) and written
 back smoothed by the RTS pass (``fusion.smoother``) a block at a time after the drive.
 """
 from __future__ import annotations
@@ -14,13 +14,13 @@ import numpy as np
 from fieldlog.acquire import calib
 from fieldlog.drive import messages
 from fieldlog.drive.recorder import Recorder
-from fieldlog.fusion.smoother import SmootherLog, rts, smooth_rows
+from fieldlog.fusion.smoother import SmootherLog, smoothed_blocks
 from fieldlog.fusion.types import Outage, Solution
 from fieldlog.replay.inputs import InputBlock
 from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution, write_status
 
 
-class _RowSpill:
+class RowSpill:
     """The forward solution rows of a smoothed run, spilled block by block to an anonymous temporary file as they
     come and read back in the same blocks (``Solution`` without ``local``, which smoothing drops, and ``status``,
     written as it comes)."""
@@ -32,6 +32,7 @@ class _RowSpill:
         self._blocks = 0
 
     def add(self, sol: Solution) -> None:
+        """Spill one block's rows (none: nothing)."""
         if len(sol.t_ns):
             for name in self._FIELDS:
                 np.save(self._file, getattr(sol, name), allow_pickle=False)
@@ -44,6 +45,7 @@ class _RowSpill:
             yield Solution(*(np.load(self._file, allow_pickle=False) for _ in self._FIELDS))
 
     def close(self) -> None:
+        """Delete the file."""
         self._file.close()
 
 
@@ -57,7 +59,7 @@ class FusedOutput:
                  keep: bool = False) -> None:
         self.rec, self.method, self.log, self.keep = rec, method, log, keep
         self.odom = Odometry(method, mounting)
-        self.spill = _RowSpill() if log is not None else None
+        self.spill = RowSpill() if log is not None else None
         self.kept: list[Solution] = []
         self.rows = 0  # forward solution rows
         self.outages = 0  # outage windows written
@@ -91,9 +93,8 @@ class FusedOutput:
     def close(self) -> None:
         """After the drive: the smoothed rows (with ``log``), then the map's datum record (``fusion.map``)."""
         if self.log is not None:
-            sm = rts(self.log)
-            for block in self.spill.blocks():
-                self._write(smooth_rows(block, sm, self.log))
+            for sol in smoothed_blocks(self.spill.blocks(), self.log):
+                self._write(sol)
             self.log.close()
             self.spill.close()
         if self.odom.origin is not None:

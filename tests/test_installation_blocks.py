@@ -1,0 +1,103 @@
+"""The installation pass's bounded-memory reductions equal their whole-drive forms to the bit: the mounting of row
+blocks (``fusion.installation.mounting``) and the rate integral read back a chunk at a time (``GyroTrack``)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fieldlog.fusion import earth, installation
+from fieldlog.fusion.engine import Engine
+from fieldlog.fusion.smoother import SmootherLog, smooth_solution
+from fieldlog.fusion.types import Solution
+from fieldlog.replay.inputs import InputStream, resolve
+from fieldlog.tools.fuse import BLOCK_S
+from fieldlog.tools.fuse_settings import drive_config
+
+
+@pytest.fixture(scope="module")
+def smoothed(figure8_240s_seed3):
+    """The aids-off ``kf`` rows of the figure-8 drive, smoothed (the installation pass's rows)."""
+    drive = figure8_240s_seed3
+    config = drive_config(drive)
+    log = SmootherLog()
+    engine = Engine("kf", config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
+    sol = Solution.concat([engine.process(b.imu, b.gps)[0] for b in InputStream(drive, resolve(drive), BLOCK_S)]
+                          + [engine.finish()[0]])
+    out = smooth_solution(sol, log)
+    log.close()
+    return out
+
+
+def _whole_drive_mounting(sol: Solution, lever_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mounting's formulas on every row at once (the module docstring, numpy's own gradient and unwrap)."""
+    ts = (sol.t_ns - sol.t_ns[0]) * 1e-9
+    course, speed = np.arctan2(sol.v_n[:, 0], sol.v_n[:, 1]), np.hypot(sol.v_n[:, 0], sol.v_n[:, 1])
+    yaw_rate = np.gradient(np.unwrap(course), ts)
+    rows = np.flatnonzero((speed >= installation.MIN_SPEED_MPS) & (np.abs(yaw_rate) < installation.MAX_YAW_RATE))
+    heading = course[rows] + np.arctan2(yaw_rate[rows] * lever_b[1], speed[rows])
+    C_bn = earth.euler_to_dcm(heading, np.arctan2(sol.v_n[rows, 2], speed[rows]), np.zeros(len(rows)))
+    yaw, pitch, roll = earth.dcm_to_euler(np.einsum("nji,njk->nik", C_bn, earth.quat_to_dcm(sol.q[rows])))
+    rpy = np.stack([roll, pitch, np.remainder(yaw + math.pi, 2.0 * math.pi) - math.pi], axis=1)
+    block = ((ts[rows] - ts[rows][0]) // installation.BLOCK_S).astype(np.int64)
+    n = np.bincount(block)
+    means = np.stack([np.bincount(block, rpy[:, j])[n > 0] / n[n > 0] for j in range(3)], axis=1)
+    sig = sol.sigma[rows]
+    level = math.sqrt(float(np.mean(0.5 * (sig[:, 6] ** 2 + sig[:, 7] ** 2))))
+    climb = math.sqrt(float(np.mean((sig[:, 5] / speed[rows]) ** 2)))
+    sigma = np.sqrt((means.std(axis=0, ddof=1) / math.sqrt(len(means))) ** 2
+                    + np.array([level, math.hypot(level, climb), math.sqrt(float(np.mean(sig[:, 8] ** 2)))]) ** 2
+                    + np.array([math.radians(installation.ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
+    return np.degrees(means.mean(axis=0)), np.degrees(sigma)
+
+
+def _blocks(sol: Solution, cuts: np.ndarray) -> list[Solution]:
+    fields = ("t_ns", "lat", "lon", "h", "v_n", "q", "sigma", "bias")
+    edges = np.r_[0, cuts, len(sol.t_ns)]
+    return [Solution(*(getattr(sol, k)[i:j] for k in fields)) for i, j in zip(edges[:-1], edges[1:])]
+
+
+def test_mounting_of_row_blocks_equals_the_whole_drive_formula(smoothed):
+    """Any split of the rows (single rows, empty blocks, the drive's ~10 Hz rows in 10 s blocks) gives the
+    whole-drive estimate to the bit, its yaw rates across the blocks' edges and its 10 s sums included."""
+    lever = np.array([0.0, 1.2, 0.0])
+    want = _whole_drive_mounting(smoothed, lever)
+    n = len(smoothed.t_ns)
+    rng = np.random.default_rng(1)
+    splits = (np.zeros(0, np.int64), np.arange(100, n, 100), np.r_[1, 2, 3, 3, np.sort(rng.integers(4, n, 40))])
+    for cuts in splits:
+        got = installation.mounting(_blocks(smoothed, cuts), lever)
+        assert got is not None
+        for g, w in zip(got, want):
+            assert np.array_equal(g, w), (len(cuts), g - w)
+
+
+def test_mounting_needs_rows(smoothed):
+    assert installation.mounting([], None) is None
+    assert installation.mounting(_blocks(smoothed, np.zeros(0, np.int64))[:0], None) is None
+    few = _blocks(smoothed, np.array([2]))[0]
+    assert installation.mounting([few], None) is None
+
+
+def test_gyro_track_read_back_in_chunks_gives_the_same_time_offset(figure8_240s_seed3):
+    """The rate integral spilled and read back a few samples at a time: the same heading changes and time offset,
+    to the bit, as read back at once."""
+    stream = InputStream(figure8_240s_seed3, resolve(figure8_240s_seed3), BLOCK_S)
+    once, chunked = installation.GyroTrack(), installation.GyroTrack()
+    chunked.CHUNK = 997
+    t_gps, v_gps = [], []
+    for block in stream:
+        for track in (once, chunked):
+            track.add(block.imu.t_ns, block.imu.omega_ib_b, block.imu.f_b)
+        t_gps.append(block.gps.t_ns)
+        v_gps.append(block.gps.v_n)
+    t_gps, v_gps = np.concatenate(t_gps), np.concatenate(v_gps)
+    lo, hi = once.span_ns
+    assert chunked.span_ns == (lo, hi) and once._kept > 5 * chunked.CHUNK
+    q = np.linspace(lo - 10**9, hi + 10**9, 20001).astype(np.int64).reshape(1, -1) + np.array([[0], [7]])
+    assert np.array_equal(once.heading_change(q, q[:, ::-1]), chunked.heading_change(q, q[:, ::-1]))
+    offset = installation.time_offset(once, t_gps, v_gps)
+    assert offset is not None and offset == installation.time_offset(chunked, t_gps, v_gps)
+    once.close()
+    chunked.close()
