@@ -39,6 +39,15 @@ LOCK_WITHIN_S = 15.0  # the time sync locks within this much of the drive start 
 SUBPROTOCOL = "foxglove.sdk.v1"
 
 
+def stacks(pid: int) -> str:
+    """The Python and native stacks of every thread of process pid (py-spy, a dev dependency), or why not."""
+    try:
+        return subprocess.run([Path(sys.executable).with_name("py-spy"), "dump", "--native", "--pid", str(pid)],
+                              capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError) as e:
+        return f"(no stacks: {e})"
+
+
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory, simulated) -> tuple[Path, list[tuple[int, bytes]]]:
     d = tmp_path_factory.mktemp("fox")
@@ -113,7 +122,11 @@ def test_clients_receive_and_decode_and_a_dropped_one_disturbs_nothing(drive) ->
             return await asyncio.gather(client(url), client(url, delay_s=2.0), client(url, stop_after=200))
 
         a, b, dropped = asyncio.run(main())
-        assert p.wait(60) == 0, p.stderr.read()
+        try:
+            _, err = p.communicate(timeout=60)  # both pipes drained: a full one cannot hold the process up
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"replay --foxglove did not exit after its clients; its threads:\n{stacks(p.pid)}")
+        assert p.returncode == 0, err
     finally:
         if p.poll() is None:
             p.kill()
