@@ -152,7 +152,7 @@ class Engine:
         t = (t_ns - self.t_ref_ns) * 1e-9
         if len(t) > 1:
             self._imu_dt = float(np.median(np.diff(t)))
-        out: list[Solution] = []
+        out: list[Solution | output.Segment] = []
         cursor = 0
         while self._gps and self._gps[0].t_ns <= t_ns[-1]:
             ep = self._gps.pop(0)
@@ -177,7 +177,24 @@ class Engine:
         out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
                    else self.status.aligning(t_ns[cursor:held + 1]))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
-        return Solution.concat(out), self.outages.take()
+        return self._solution(out), self.outages.take()
+
+    def _solution(self, parts: list[Solution | output.Segment | None]) -> Solution:
+        """The rows of a block's parts in order: status rows as they are, each run of INS segments made in one
+        pass (``output.rows``) with their status."""
+        out: list[Solution] = []
+        run: list[output.Segment] = []
+        for p in [*parts, None]:
+            if isinstance(p, output.Segment):
+                run.append(p)
+                continue
+            if run:
+                sol, seg = output.rows(run, self.cfg.filter.output_hz)
+                out.append(self.status.of(sol, seg, [g.state for g in run]))
+                run = []
+            if p is not None:
+                out.append(p)
+        return Solution.concat(out)
 
     def _add_interval(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
         """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
@@ -197,7 +214,7 @@ class Engine:
         sol = Solution.concat([])
         if self._carry is not None and self.nav is not None:
             t_ns, w, f = self._carry
-            sol = self._advance((t_ns - self.t_ref_ns) * 1e-9, t_ns, w, f, 0, len(t_ns) - 1)
+            sol = self._solution([self._advance((t_ns - self.t_ref_ns) * 1e-9, t_ns, w, f, 0, len(t_ns) - 1)])
             self._carry = (t_ns[-1:], w[-1:], f[-1:])
         self.outages.finish(int(self._carry[0][-1]) if self._carry else None)
         return sol, self.outages.take()
@@ -331,10 +348,12 @@ class Engine:
 
     # -- INS and covariance between epochs ------------------------------------------------------------
 
-    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> Solution:
-        """INS and covariance from sample i0 (the current state) to sample i1; solution rows in (i0, i1]."""
+    def _advance(self, t: np.ndarray, t_ns: np.ndarray, w: np.ndarray, f: np.ndarray, i0: int, i1: int
+                 ) -> output.Segment | None:
+        """INS and covariance from sample i0 (the current state) to sample i1; the segment whose rows in (i0, i1]
+        are made with the block's (``_solution``), None when there is none."""
         if i1 <= i0:
-            return Solution.concat([])
+            return None
         wc, fc = w[i0:i1 + 1] - self.bg, f[i0:i1 + 1] - self.ba
         sol = ins.integrate(self.nav, t[i0:i1 + 1], wc, fc)
         clip = clipgyro.clipped(w[i0:i1 + 1, 2], self.cfg.sensor.gyro_range_dps * _DEG)
@@ -364,8 +383,8 @@ class Engine:
         diag = diag.copy()
         for x in self.listeners:
             x.cycles(t_ns[i0:i1 + 1][ends], c.Phi, P, c.C_bn, c.w_mean, c.dt, diag)
-        return self.status.of(output.rows(sol, t_ns[i0:i1 + 1], self.cfg.filter.output_hz, ends, diag, np.concatenate(
-            [self.bg, self.ba]), self.gps_errors.var, local, self.gps_errors.var_local))
+        return output.Segment(sol, t_ns[i0:i1 + 1], ends, diag, np.concatenate([self.bg, self.ba]), self.gps_errors.var,
+                              local, self.gps_errors.var_local, self.status.now())
 
 
 

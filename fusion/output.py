@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -72,49 +73,67 @@ def output_rows(t_ns: np.ndarray, output_hz: float) -> np.ndarray:
     return np.flatnonzero(np.diff(bucket) != 0) + 1
 
 
-def rows(sol, t_ns: np.ndarray, output_hz: float, ends: np.ndarray, diag: np.ndarray, bias: np.ndarray,
-         gps_var: np.ndarray | None = None, local: tuple[np.ndarray, np.ndarray] | None = None,
-         gps_var_local: np.ndarray | None = None) -> Solution:
-    """Solution rows of an INS segment: sol a ``fusion.ins.NavSolution`` over samples t_ns (n,); the covariance
-    diagonals diag (m, 15) after the filter cycles ending at samples ends (m,); bias (6,) the segment's gyro
-    (rad/s) and accelerometer (m/s^2) bias estimate, body RFU; local: the distributed filter's
-    local estimates and variances after each cycle, (m, 2, 15) each, or None; gps_var (3,) m^2
-    added to the position variances (``correlated_variance``), gps_var_local (3,) to KF_II's.
+@dataclass
+class Segment:
+    """An INS segment whose solution rows are still to be made (:func:`rows`): the INS solution ``sol``
+    (``fusion.ins.NavSolution``) over samples t_ns (n >= 2,) UTC; the covariance diagonals diag (m, 15) after the
+    filter cycles ending at samples ends (m,); bias (6,) the segment's gyro (rad/s) and accelerometer (m/s^2) bias
+    estimate, body RFU; gps_var (3,) m^2 added to the position variances (``correlated_variance``); local: the
+    distributed filter's local estimates and variances after each cycle, (m, 2, 15) each, or None, gps_var_local
+    (3,) m^2 added to KF_II's; state: the status the ``StatusBook`` gave at the segment's end (``StatusBook.now``)."""
+
+    sol: Any
+    t_ns: np.ndarray
+    ends: np.ndarray
+    diag: np.ndarray
+    bias: np.ndarray
+    gps_var: np.ndarray
+    local: tuple[np.ndarray, np.ndarray] | None
+    gps_var_local: np.ndarray
+    state: tuple[int, int | None, float]
+
+
+def rows(segments: list[Segment], output_hz: float) -> tuple[Solution, np.ndarray]:
+    """Solution rows of consecutive INS segments (each starts at the sample the one before ended at), made in one
+    pass: the rows of each segment's samples after its first, one per output slot started (``output_rows``).
 
     Parameters
     ----------
-    sol : ins.NavSolution, the INS over the segment's samples
-    t_ns : (n,) int64 ndarray, sample times, UTC ns
+    segments : list of Segment, at least one
     output_hz : float, output rate, Hz
-    ends : (m,) int ndarray, sample index at which each filter cycle ends
-    diag : (m, 15) ndarray, covariance diagonal after each cycle, ``fusion.errmodel`` units squared
-    bias : (6,) array_like, gyro (rad/s) then accelerometer (m/s^2) bias estimate, body RFU
-    gps_var : (3,) ndarray or None, ENU variance added to the position, m^2
-    local : tuple of two (m, 2, 15) ndarray or None, local estimates and their variances
-    gps_var_local : (3,) ndarray or None, ENU variance added to KF_II's position, m^2
 
     Returns
     -------
-    Solution
-        One row per output slot started in the segment (``output_rows``).
+    (Solution, (k,) int ndarray)
+        The rows (without status), and the index into ``segments`` of each row's segment.
     """
+    first = segments[0]
+    sizes = np.array([len(g.t_ns) - 1 for g in segments])
+    start = np.cumsum(sizes) - sizes  # each segment's first sample, counted over the segments' samples
+
+    def joined(name: str) -> np.ndarray:  # the segments' samples, each shared first one once
+        arrays = [getattr(g.sol, name) for g in segments]
+        return np.concatenate([arrays[0][:1]] + [a[1:] for a in arrays])
+
+    t_ns = np.concatenate([first.t_ns[:1]] + [g.t_ns[1:] for g in segments])
     r = output_rows(t_ns, output_hz)
-    cyc = np.searchsorted(ends, r)
-    sig = sigmas(diag)[cyc]
-    if gps_var is not None:
-        sig[:, :3] = np.sqrt(sig[:, :3] ** 2 + gps_var)
+    seg = np.searchsorted(start + sizes, r)
+    cyc = np.searchsorted(np.concatenate([g.ends + k for g, k in zip(segments, start)]), r)
+    sig = sigmas(np.concatenate([g.diag for g in segments]))[cyc]
+    sig[:, :3] = np.sqrt(sig[:, :3] ** 2 + np.array([g.gps_var for g in segments])[seg])
+    lat, lon, h, v_n = (joined(name)[r] for name in ("lat", "lon", "h", "v_n"))
     loc = None
-    if local is not None:
-        d = local[1].copy()
-        if gps_var_local is not None:
-            d[:, 1, 0:3] += gps_var_local
-        x, d = local[0][cyc], d[cyc]  # (n, 2, 15)
+    if first.local is not None:
+        x = np.concatenate([g.local[0] for g in segments])[cyc]  # (k, 2, 15)
+        d = np.concatenate([g.local[1] for g in segments])
+        d[:, 1, 0:3] += np.repeat([g.gps_var_local for g in segments], [len(g.ends) for g in segments], axis=0)
+        d = d[cyc]
         loc = np.empty((len(r), 2, 12))
         for i in range(2):
-            loc[:, i, 0:6] = corrected(sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], x[:, i])
+            loc[:, i, 0:6] = corrected(lat, lon, h, v_n, x[:, i])
             loc[:, i, 6:12] = np.sqrt(np.maximum(d[:, i, 0:6], 0.0))
-    return Solution(t_ns[r], sol.lat[r], sol.lon[r], sol.h[r], sol.v_n[r], sol.q[r], sig,
-                    np.tile(np.asarray(bias, float), (len(r), 1)), loc)
+    return Solution(t_ns[r], lat, lon, h, v_n, joined("q")[r], sig,
+                    np.array([np.asarray(g.bias, float) for g in segments])[seg], loc), seg
 
 
 def finite(s: Solution) -> np.ndarray:
@@ -203,29 +222,41 @@ class StatusBook:
         empty.status = Status(t, np.full(len(t), ALIGNING, np.uint8), nan, nan.copy(), nan.copy())
         return empty
 
-    def of(self, s: Solution) -> Solution:
+    def now(self) -> tuple[int, int | None, float]:
+        """What the status of rows made now depends on: their code before the sigma and NIS tests (aligned, aided
+        or coasting), the last update's fix time (UTC ns, None before it) and the mean NIS of the last
+        ``NIS_FIXES`` updates (NaN before as many).
+
+        Returns
+        -------
+        (int, int or None, float)
+        """
+        nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
+        return (ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING), self.last_update_ns, nis
+
+    def of(self, s: Solution, seg: np.ndarray, states: list[tuple[int, int | None, float]]) -> Solution:
         """The solution rows s with their status.
 
         Parameters
         ----------
         s : Solution, rows without status
+        seg : (n,) int ndarray, the index into ``states`` of each row
+        states : list of :meth:`now`'s results, each as it was when its rows were made
 
         Returns
         -------
         Solution
             ``s`` itself, its ``status`` set.
         """
-        n = len(s.t_ns)
-        nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
+        code, last_ns, nis = (np.array(x)[seg] for x in zip(*[(c, t or 0, m) for c, t, m in states]))
+        known = np.array([t is not None for _, t, _ in states], bool)[seg]
+        code = code.astype(np.uint8)
         sigma_h = np.hypot(s.sigma[:, 0], s.sigma[:, 1])
-        code = np.full(n, ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING, np.uint8)
         code[sigma_h > self.cfg.status_max_sigma_m] = DEGRADED
-        if nis > self.cfg.status_diverged_nis:
-            code[:] = DIVERGED
+        code[nis > self.cfg.status_diverged_nis] = DIVERGED
         code[~finite(s)] = DIVERGED
-        since = ((s.t_ns - self.last_update_ns) * 1e-9 if self.last_update_ns is not None
-                 else np.full(n, np.nan))
-        s.status = Status(s.t_ns.copy(), code, since, sigma_h, np.full(n, nis))
+        since = np.where(known, (s.t_ns - last_ns.astype(np.int64)) * 1e-9, np.nan)
+        s.status = Status(s.t_ns.copy(), code, since, sigma_h, nis.astype(float))
         return s
 
 

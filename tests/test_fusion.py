@@ -289,6 +289,10 @@ def test_the_solution_does_not_depend_on_the_block_length(drive, method):
           f"sigma {np.abs(a.sigma - b.sigma).max():.2e}")
     assert d.max() < 1e-9
     assert np.allclose(a.sigma, b.sigma, rtol=1e-9, atol=0.0)
+    # the rows' status, made a block's segments at a time, as each segment's own moment gave it
+    assert np.array_equal(a.status.t_ns, b.status.t_ns) and np.array_equal(a.status.code, b.status.code)
+    assert np.array_equal(a.status.since_update_s, b.status.since_update_s, equal_nan=True)
+    assert np.allclose(a.status.nis, b.status.nis, rtol=1e-9, atol=0.0, equal_nan=True)
 
 
 def test_the_imu_time_offset_puts_a_late_imu_back_on_the_gps_time(drive):
