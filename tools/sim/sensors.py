@@ -63,6 +63,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from fieldlog.drive import native
+from fieldlog.acquire import rows
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.fusion import earth, imugrade
@@ -293,7 +294,7 @@ class Installation:
         """The rate (rad/s) and specific force (m/s^2), (n, 3) in the car's body frame at the delayed times, as the
         IMU's axes see them through its filter."""
         C = self.C_bm()
-        out = np.concatenate([omega_b @ C, f_b @ C], axis=1)
+        out = np.concatenate([rows.dot(omega_b, C), rows.dot(f_b, C)], axis=1)
         phi = self._phi(rate_hz)
         if phi > 0.0:
             out = lowpass(out, phi)
@@ -386,7 +387,7 @@ def imu_counts(
     for j, (name, m) in enumerate(mag.items()):
         cols = slice(3 * j, 3 * j + 3)
         bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * flicker[:, cols]
-        measured[name] = np.dot(x_true[name], gain(realised, name).T) + bias + m["noise_density"] * white[:, cols]
+        measured[name] = rows.dot(x_true[name], gain(realised, name).T) + bias + m["noise_density"] * white[:, cols]
         if coloured is not None:
             realised[f"{name}_coloured"] = m["gm_sigma"] * coloured[:, cols]
             measured[name] += realised[f"{name}_coloured"]

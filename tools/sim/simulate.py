@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, timesync
+from fieldlog.acquire import calib, daq, rows, timesync
 from fieldlog.drive import messages, metavalue, outputs, recorder
 from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
 from fieldlog.tools.sim import clock as simclock
@@ -170,7 +170,7 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     bias = {}
     for x, true in zip(("gyro", "accel"), truth_data["sensed"]):
         coloured = r[f"{x}_coloured"][k] if f"{x}_coloured" in r else 0.0
-        bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
+        bias[x] = r[f"{x}_bias"][k] + coloured + rows.dot(true[k], (sensors.gain(r, x) - np.eye(3)).T)
     _write_imu(rec, "/truth/imu_bias", tn_ns, bias["gyro"], bias["accel"])
     vt = truth_data.get("vehicle")
     if vt is not None:   # the rear axle centre's forward speed at each wheel-speed sample instant

@@ -71,6 +71,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldlog.acquire import rows
 from fieldlog.drive import tables
 from fieldlog.fusion import earth
 
@@ -448,8 +449,8 @@ class _Stand:
             env = np.exp(-(x / self.bump_s) ** 2)
             wb = 2.0 * np.pi * self.bump_hz
             sb, cb = np.sin(wb * x), np.cos(wb * x)
-            a = a + (env * sb / wb) @ self.bump_amp
-            da = da + (env * (cb - 2.0 * x / self.bump_s ** 2 * sb / wb)) @ self.bump_amp
+            a = a + rows.dot(env * sb / wb, self.bump_amp)
+            da = da + rows.dot(env * (cb - 2.0 * x / self.bump_s ** 2 * sb / wb), self.bump_amp)
         return g[:, None] * a, dg[:, None] * a + g[:, None] * da
 
     def _gate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -612,7 +613,7 @@ class Truth:
         if t.size and (t.min() < self.t_min or t.max() > self.t_max):
             raise ValueError(f"times outside the truth's span [{self.t_min}, {self.t_max}] s")
         k = _kinematics_t(self._pr, t)
-        r_e = self._r0_e + self.local_position(t) @ self._C_et
+        r_e = self._r0_e + rows.dot(self.local_position(t), self._C_et)
         lat, lon, h = earth.ecef_to_lla(r_e)
         C_tn = earth.C_en(lat, lon) @ self._C_et.T
         v_n = np.einsum("nij,nj->ni", C_tn, k["v_t"])
