@@ -617,12 +617,14 @@ class Truth:
             raise ValueError(f"times outside the truth's span [{self.t_min}, {self.t_max}] s")
         if len(t) <= EVAL_BLOCK:
             return self._evaluate(t)
-        out: dict[str, np.ndarray] = {}
+        out: dict[str, np.ndarray] = {"t": t}
         for i in range(0, len(t), EVAL_BLOCK):
             block = self._evaluate(t[i:i + EVAL_BLOCK])
-            for f in fields(TruthSample):
+            for f in fields(TruthSample)[1:]:      # all but t
                 x = getattr(block, f.name)
-                out.setdefault(f.name, np.empty((len(t),) + x.shape[1:], x.dtype))[i:i + EVAL_BLOCK] = x
+                if i == 0:
+                    out[f.name] = np.empty((len(t),) + x.shape[1:], x.dtype)
+                out[f.name][i:i + EVAL_BLOCK] = x
         return TruthSample(**out)
 
     def _evaluate(self, t: np.ndarray) -> TruthSample:
