@@ -14,7 +14,9 @@ def test_dot_keeps_numpys_bits_across_block_edges(k, p):
     rng = np.random.default_rng(k * 10 + p)
     step = max(4, rows.SERIAL_MULADDS // (k * p))
     m = rng.normal(size=(k, p))
-    for n in (0, 1, 2, 5, step - 1, step, step + 1, step + 2, 3 * step + 1, 5 * step + 7):
+    # a last block of 8, 16 or 32 rows: the sizes OpenBLAS may hand to its small-matrix kernels
+    for n in (0, 1, 2, 5, step - 1, step, step + 1, step + 2, 3 * step + 1, 5 * step + 7, 2 * step + 8,
+              2 * step + 16, 2 * step + 32):
         x = rng.normal(size=(n, k)) * 10.0 ** rng.uniform(-6, 6, size=(1, k))
         want = np.dot(x, m)
         got = rows.dot(x, m)
