@@ -12,6 +12,7 @@ scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key ea
 from __future__ import annotations
 
 import datetime as _dt
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -77,9 +78,11 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
 
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
-    ts = truth.evaluate(t_k)
-    w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
-    counts, realised = sensors.imu_counts(t_k, w_sensed, f_sensed, imu_cfg, cal, rng_imu)
+    with ThreadPoolExecutor(1) as pool:   # the sensor errors' draws need no truth: drawn beside it
+        draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
+        ts = truth.evaluate(t_k)
+        w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
+        counts, realised = sensors.apply_errors(draws.result(), w_sensed, f_sensed, imu_cfg, cal)
     qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
     pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
     if not gps_cfg.pps_in_outage:
