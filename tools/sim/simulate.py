@@ -78,46 +78,57 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
 
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
-    with ThreadPoolExecutor(1) as pool:   # the sensor errors' draws need no truth: drawn beside it
+    qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
+    with ThreadPoolExecutor(3) as pool:   # the sensor errors' draws, the GPS and CAN reads need no IMU truth
         draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
+        gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, (rng_gps, rng_nmea,
+                                                                                      rng_gps_reads))
+        bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
         ts = truth.evaluate(t_k)
         w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
         counts, realised = sensors.apply_errors(draws.result(), w_sensed, f_sensed, imu_cfg, cal)
-    qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
-    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
-    if not gps_cfg.pps_in_outage:
-        valid, _ = gps_cfg.windows(t_k)
-        pps &= valid
-    k = np.arange(n, dtype=np.int64)
-    temp_c = 25.0 + 3.0 * t_k / max(duration_s, 1.0)
-    frames = daq.encode_frames(k, counts, pps, latch if ccfg.pps_mode == "latch" else None, temp_c)
-    reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
-                         t0_ns, rng_daq_reads)
+        pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
+        if not gps_cfg.pps_in_outage:
+            valid, _ = gps_cfg.windows(t_k)
+            pps &= valid
+        k = np.arange(n, dtype=np.int64)
+        temp_c = 25.0 + 3.0 * t_k / max(duration_s, 1.0)
+        frames = daq.encode_frames(k, counts, pps, latch if ccfg.pps_mode == "latch" else None, temp_c)
+        reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
+                             t0_ns, rng_daq_reads)
+        gps_reads, sol, utc_ns = gps.result()
+        can_reads, vehicle_truth = bus.result() if bus is not None else ([], None)
+    reads += gps_reads + can_reads
+    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
+    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
+                      gps=sol, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
+                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install)
+    return reads, truth_data, t0_ns, ccfg, cal
 
-    period_ns = gps_cfg.epoch_period_ns()
+
+def _gps_reads(truth: trajectory.Truth, duration_s: float, ccfg: simclock.ClockConfig, gps_cfg: GpsConfig,
+               qerr_s: np.ndarray, host: HostClock,
+               rngs: tuple[np.random.Generator, ...]) -> tuple[list[RawRead], dict | None, np.ndarray]:
+    """The GPS port's reads of a drive of ``duration_s`` s (``make_reads``), the receiver's solutions at its
+    epochs (``gps_solution``; None without an epoch) and the epochs' UTC times (ns). ``qerr_s``: the pulses'
+    quantisation errors (s, ``pulse_errors``); ``rngs``: the solutions', the sentences' and the reads' draws."""
+    rng_gps, rng_nmea, rng_reads = rngs
+    t0_ns, period_ns = ccfg.start_utc_ns, gps_cfg.epoch_period_ns()
     first_ns = ccfg.first_utc_s() * NS
     n_epochs = max(int((t0_ns + duration_s * NS - first_ns) // period_ns) + 1, 0)
     utc_ns = first_ns + period_ns * np.arange(n_epochs, dtype=np.int64)
     rel_s = (utc_ns // NS - t0_ns / NS) + (utc_ns % NS) / NS
-    if len(utc_ns):
-        sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
-        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s,
-                                        utc_ns + gps_cfg.clock_offset_ns(rel_s))
-        starts = starts + rel_s[0]
-        keep = starts < duration_s
-        sentences = [s for s, kk in zip(sentences, keep) if kk]
-        if sentences:
-            reads += serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
-                                  rng_gps_reads)
-    vehicle_truth = None
-    if can:
-        can_reads, vehicle_truth = vehicle.can_reads(truth, duration_s, host, t0_ns, rng_can, car)
-        reads += can_reads
-    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
-    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
-                      gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
-                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install)
-    return reads, truth_data, t0_ns, ccfg, cal
+    if not len(utc_ns):
+        return [], None, utc_ns
+    sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
+    starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s, utc_ns + gps_cfg.clock_offset_ns(rel_s))
+    starts = starts + rel_s[0]
+    keep = starts < duration_s
+    sentences = [s for s, kk in zip(sentences, keep) if kk]
+    if not sentences:
+        return [], sol, utc_ns
+    return serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
+                        rng_reads), sol, utc_ns
 
 
 def sensed(truth: trajectory.Truth, t_k: np.ndarray, ts: trajectory.TruthSample, install: sensors.Installation,
