@@ -52,7 +52,8 @@ def drive_start_ns(seed: int) -> int:
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
                receiver: str | None = None, can: bool = False) -> tuple[list[RawRead], dict, int,
                                                                         simclock.ClockConfig, calib.Calibration]:
-    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it.
+    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it
+    and to write ``/truth/*`` (``write_truth``: ``nav`` is the truth at the times ``t_nav``, TRUTH_NAV_HZ).
     ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``; ``can``: the car's
     CAN bus on an SLCAN adapter too (port ``can``, ``sim.vehicle``)."""
     seeds = np.random.SeedSequence(seed).spawn(9)     # spawn(n)'s first children do not depend on n
@@ -79,8 +80,10 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
     qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
+    t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
     with ThreadPoolExecutor(3) as pool:   # the sensor errors' draws, the GPS and CAN reads need no IMU truth
         draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
+        nav = pool.submit(truth.evaluate, t_nav)
         gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, (rng_gps, rng_nmea,
                                                                                       rng_gps_reads))
         bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
@@ -102,7 +105,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
     truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
                       gps=sol, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
-                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install)
+                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install,
+                      t_nav=t_nav, nav=nav.result())
     return reads, truth_data, t0_ns, ccfg, cal
 
 
@@ -165,13 +169,13 @@ def truth_metadata(truth_data: dict, scenario: trajectory.Scenario) -> dict[str,
     return {k: metavalue.dump(v) for k, v in out.items()}
 
 
-def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> None:
-    """``/truth/imu`` at every true sample time, and the true trajectory at TRUTH_NAV_HZ."""
+def write_truth(rec: recorder.Recorder, truth_data: dict) -> None:
+    """``/truth/imu`` at every true sample time, and the true trajectory at TRUTH_NAV_HZ, of ``make_reads``'
+    truth."""
     t0_ns, t_k, ts = truth_data["t0_ns"], truth_data["t_k"], truth_data["ts"]
     t_ns = t0_ns + np.round(t_k * NS).astype(np.int64)
     _write_imu(rec, "/truth/imu", t_ns, ts.omega_ib_b, ts.f_b)
-    t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
-    nav = truth_data["truth"].evaluate(t_nav)
+    t_nav, nav = truth_data["t_nav"], truth_data["nav"]
     tn_ns = t0_ns + np.round(t_nav * NS).astype(np.int64)
     rec.write_batch("/truth/fix", tn_ns, messages.encode_navsatfix(
         tn_ns, np.degrees(nav.lat), np.degrees(nav.lon), nav.h, frame_id="imu"))
@@ -252,7 +256,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
         sim_truth = truth_metadata(truth_data, scenario)
         if sim_truth:
             rec.add_metadata("sim.truth", sim_truth)
-        write_truth(rec, truth_data, duration_s)   # before /imu: drivestats pairs /imu with it as /imu comes
+        write_truth(rec, truth_data)   # before /imu: drivestats pairs /imu with it as /imu comes
         pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())
