@@ -12,7 +12,8 @@ scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key ea
 from __future__ import annotations
 
 import datetime as _dt
-from concurrent.futures import ThreadPoolExecutor
+import os
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -49,6 +50,26 @@ def drive_start_ns(seed: int) -> int:
     return int(START_UTC.timestamp()) * NS + int(frac * NS)
 
 
+class _InTurn(Executor):
+    """An executor that runs each call at once, on the caller's thread (``_beside`` on one CPU)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        out: Future = Future()
+        try:
+            out.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # noqa: BLE001 - raised by result(), as a thread pool's future does
+            out.set_exception(e)
+        return out
+
+
+def _beside() -> Executor:
+    """Where ``make_reads`` runs what needs no IMU truth: threads beside the caller when the process may use more
+    than one CPU (numpy and the compiled kernels release the GIL, so they run at once), else in turn on the
+    caller's thread (threads taking turns on one CPU only add their switches)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return ThreadPoolExecutor(3) if cpus > 1 else _InTurn()
+
+
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
                receiver: str | None = None, can: bool = False) -> tuple[list[RawRead], dict, int,
                                                                         simclock.ClockConfig, calib.Calibration]:
@@ -81,7 +102,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     t_k = simclock.sample_times(n, ccfg, rng_clock)
     qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
     t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
-    with ThreadPoolExecutor(3) as pool:   # the sensor errors' draws, the GPS and CAN reads need no IMU truth
+    with _beside() as pool:   # the sensor errors' draws, the nav truth, the GPS and CAN reads need no IMU truth
         draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
         nav = pool.submit(truth.evaluate, t_nav)
         gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, (rng_gps, rng_nmea,
