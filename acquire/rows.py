@@ -6,8 +6,8 @@ threads, which then spin waiting for more work after the product: for a product 
 more CPU than it saves, and takes the second core from the work that runs beside it (a writer's compression
 thread). A block of at most ``SERIAL_MULADDS`` multiply-adds runs on the calling thread, and each row's result is
 the same whichever block it is in (the kernel sums over k alike for every row), so the result keeps its bits.
-No block is a single row of a longer ``x``: numpy takes a vector-matrix product for one row, whose kernel may
-round otherwise.
+No block is a single row of a longer ``x`` (``blocks``): numpy takes a vector-matrix product for one row,
+whose kernel rounds otherwise; a caller that splits rows before they reach ``dot`` splits them the same way.
 """
 from __future__ import annotations
 
@@ -31,12 +31,26 @@ def dot(x: np.ndarray, m: np.ndarray) -> np.ndarray:
     x, m = np.asarray(x, np.float64), np.asarray(m, np.float64)
     if x.ndim != 2 or m.ndim != 2 or x.shape[1] != m.shape[0]:
         raise ValueError(f"rows.dot: expected (n, k) and (k, p), got {x.shape} and {m.shape}")
-    n = x.shape[0]
-    out = np.empty((n, m.shape[1]))
-    step = max(4, SERIAL_MULADDS // max(1, m.size))
-    starts = list(range(0, n, step))
-    if len(starts) > 1 and n - starts[-1] == 1:
-        starts[-1] -= 1
-    for i, j in zip(starts, starts[1:] + [n]):
+    out = np.empty((x.shape[0], m.shape[1]))
+    for i, j in blocks(x.shape[0], SERIAL_MULADDS // max(1, m.size)):
         np.dot(x[i:j], m, out=out[i:j])
     return out
+
+
+def blocks(n: int, step: int) -> list[tuple[int, int]]:
+    """Row ranges [i, j) covering n rows in order, ``step`` rows each but the last two: none is a single row
+    unless n is 1 (the last range of one row takes the row before it).
+
+    Parameters
+    ----------
+    n : the number of rows
+    step : rows a range holds (at least 4 are taken)
+
+    Returns
+    -------
+    list of (i, j) : the ranges, first row and one past the last
+    """
+    starts = list(range(0, n, max(4, step)))
+    if len(starts) > 1 and n - starts[-1] == 1:
+        starts[-1] -= 1
+    return list(zip(starts, starts[1:] + [n]))

@@ -41,3 +41,12 @@ def test_dot_refuses_mismatched_shapes():
         rows.dot(np.zeros((4, 3)), np.zeros((2, 3)))
     with pytest.raises(ValueError, match="rows.dot"):
         rows.dot(np.zeros(3), np.zeros((3, 3)))
+
+
+def test_blocks_cover_the_rows_in_order_and_leave_no_row_alone():
+    for n, step in [(0, 8), (1, 8), (2, 8), (8, 8), (9, 8), (10, 8), (17, 8), (100, 3), (5, 1000)]:
+        b = rows.blocks(n, step)
+        starts, ends = [i for i, _ in b], [j for _, j in b]
+        assert (starts == [0] + ends[:-1] and ends[-1] == n) if n else b == []
+        assert all(j - i <= max(4, step) for i, j in b)
+        assert n == 1 or all(j - i > 1 for i, j in b)

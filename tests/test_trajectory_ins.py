@@ -165,3 +165,7 @@ def test_evaluate_in_blocks_keeps_every_bit(name):
         got = getattr(whole, name_)
         want = np.concatenate([getattr(p, name_) for p in pieces])
         assert got.shape == want.shape and np.array_equal(got.view(np.uint64), want.view(np.uint64)), name_
+    for n in (tj.EVAL_BLOCK + 1, 2 * tj.EVAL_BLOCK + 1):     # a last block of one time is not left alone
+        blocked, at_once = truth.evaluate(t[:n]), truth._evaluate(t[:n])
+        for name_ in ("lat", "lon", "h", "v_n", "r_e", "C_bn", "f_b", "omega_ib_b"):
+            assert np.array_equal(getattr(blocked, name_).view(np.uint64), getattr(at_once, name_).view(np.uint64))

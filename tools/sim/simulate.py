@@ -105,8 +105,8 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
     with _beside() as pool:   # the sensor errors' draws, the nav truth, the GPS and CAN reads need no IMU truth
         draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
         nav = pool.submit(truth.evaluate, t_nav)
-        gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, (rng_gps, rng_nmea,
-                                                                                      rng_gps_reads))
+        gps_rngs = (rng_gps, rng_nmea, rng_gps_reads)
+        gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, gps_rngs)
         bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
         ts = truth.evaluate(t_k)
         w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)

@@ -610,21 +610,21 @@ class Truth:
 
     def evaluate(self, t_s: np.ndarray) -> TruthSample:
         """True state and error-free IMU output at times t_s (n,) in s since the drive start, ``EVAL_BLOCK``
-        times at a time into arrays of all n (each time's state depends on that time alone, so the values are
-        the same however the times are split)."""
+        times at a time into arrays of all n (``rows.blocks``: each time's state depends on that time alone and
+        no block is a lone time, so the values are the same however the times are split)."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if t.size and (t.min() < self.t_min or t.max() > self.t_max):
             raise ValueError(f"times outside the truth's span [{self.t_min}, {self.t_max}] s")
         if len(t) <= EVAL_BLOCK:
             return self._evaluate(t)
         out: dict[str, np.ndarray] = {"t": t}
-        for i in range(0, len(t), EVAL_BLOCK):
-            block = self._evaluate(t[i:i + EVAL_BLOCK])
-            for f in fields(TruthSample)[1:]:      # all but t
-                x = getattr(block, f.name)
+        for i, j in rows.blocks(len(t), EVAL_BLOCK):
+            block = self._evaluate(t[i:j])
+            for name in (f.name for f in fields(TruthSample) if f.name != "t"):
+                x = getattr(block, name)
                 if i == 0:
-                    out[f.name] = np.empty((len(t),) + x.shape[1:], x.dtype)
-                out[f.name][i:i + EVAL_BLOCK] = x
+                    out[name] = np.empty((len(t),) + x.shape[1:], x.dtype)
+                out[name][i:j] = x
         return TruthSample(**out)
 
     def _evaluate(self, t: np.ndarray) -> TruthSample:
