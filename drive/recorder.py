@@ -75,7 +75,7 @@ _MSG_HDR_STRUCT = struct.Struct("<BQHIQQ")
 _MSG_INDEX_HDR = struct.Struct("<BQHI")
 # Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
 # uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one.
-BEHIND_CHUNKS = 8
+BEHIND_CHUNKS = 16
 
 
 @dataclass
