@@ -22,7 +22,7 @@ import numpy as np
 
 from fieldlog.acquire import calib, daq, rows, timesync
 from fieldlog.drive import messages, metavalue, outputs, recorder
-from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, in_read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle, vibration
 from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, pulse_errors, serial_reads
@@ -123,7 +123,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
         gps_reads, sol, utc_ns = gps.result()
         can_reads, vehicle_truth = bus.result() if bus is not None else ([], None)
     reads += gps_reads + can_reads
-    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
+    reads = in_read_order(reads)
     truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
                       gps=sol, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
                       temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install,
