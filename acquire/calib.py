@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldlog.acquire import rows
 from fieldlog.drive import tables
 
 G0 = 9.80665  # standard gravity, m/s^2 (used to convert g and ug)
@@ -100,7 +101,7 @@ class SensorTriadCal:
 
     def to_volts(self, x_si: np.ndarray) -> np.ndarray:
         """(n,3) SI values -> (n,3) volts (exact inverse of ``to_si``)."""
-        return np.dot(np.asarray(x_si, np.float64), np.linalg.inv(self.misalignment).T) * self.sensitivity + self.bias_V
+        return rows.dot(x_si, np.linalg.inv(self.misalignment).T) * self.sensitivity + self.bias_V
 
 
 _MOUNTING_KEYS = ("imu_position_m", "imu_rpy_deg", "antenna_m")

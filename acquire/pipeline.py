@@ -12,6 +12,7 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
+from operator import attrgetter
 from typing import Protocol
 
 import numpy as np
@@ -46,6 +47,18 @@ def read_order(port: str, mono_ns: int) -> tuple[int, int]:
     """The order reads are processed in: host monotonic time, DAQ first on a tie. The daemon, the
     simulator and ``rebuild`` all use it, so they feed the pipeline identically."""
     return (mono_ns, PORT_ORDER.get(port, 3))
+
+
+def in_read_order(reads: Iterable[RawRead]) -> list[RawRead]:
+    """``reads`` (``RawRead``-like) sorted by ``read_order``, reads of equal order as they came: grouped by port
+    in ``PORT_ORDER`` (each group as it came), then sorted by host monotonic time alone, a stable sort that keeps
+    a tie in that port order. The same list as sorting by ``read_order``, with a key of one attribute."""
+    groups: dict[int, list[RawRead]] = {}
+    for r in reads:
+        groups.setdefault(PORT_ORDER.get(r.port, 3), []).append(r)
+    out = [r for rank in sorted(groups) for r in groups[rank]]
+    out.sort(key=attrgetter("mono_ns"))
+    return out
 
 
 class Sink(Protocol):

@@ -25,6 +25,7 @@ import os
 import struct
 import time
 from bisect import bisect_left
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,9 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_STRUCT = struct.Struct("<BQHIQQ")
 _MSG_INDEX_HDR = struct.Struct("<BQHI")
+# Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
+# uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one.
+BEHIND_CHUNKS = 16
 
 
 @dataclass
@@ -184,7 +188,7 @@ class _FileWriter:
         self._msg_start = 0
         self._msg_end = 0
         self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
-        self._pending: Future | None = None   # the chunk being compressed and written behind
+        self._pending: deque[Future] = deque()   # the chunks being compressed and written behind, in order
         self._f.write(MAGIC)
         self.write_record(Header(PROFILE, LIBRARY))
 
@@ -215,8 +219,9 @@ class _FileWriter:
                 self.write_chunk(b"".join(c.parts), c.start, c.end, c.index)
             self._sync()
         elif c.count:
-            self._drain()
-            self._pending = self._behind.submit(self._write_behind, c.parts, c.start, c.end, c.index)
+            while len(self._pending) >= BEHIND_CHUNKS:
+                self._pending.popleft().result()
+            self._pending.append(self._behind.submit(self._write_behind, c.parts, c.start, c.end, c.index))
 
     def _sync(self) -> None:
         self._f.flush()
@@ -226,7 +231,7 @@ class _FileWriter:
     def _write_behind(self, parts: list[bytes], start: int, end: int, index: dict) -> None:
         """``write_chunk`` of the records ``parts`` joined, and ``_sync``, on the behind thread (the join too: it
         copies the whole chunk): the owner waits for it (``_drain``) before it touches the file or the chunk
-        bookkeeping."""
+        bookkeeping; chunks are written in the order they were handed over (one thread)."""
         self._write_data(b"".join(parts), start, end, index)
         self._sync()
 
@@ -249,13 +254,14 @@ class _FileWriter:
         return compressed, crc32(data)
 
     def _drain(self) -> None:
-        """Wait for the chunk written behind, if there is one (its error is raised here)."""
-        if self._pending is not None:
-            future, self._pending = self._pending, None
-            future.result()
+        """Wait for the chunks written behind, if there are any (the first one's error is raised here)."""
+        pending, self._pending = self._pending, deque()
+        errors = [e for e in (f.exception() for f in pending) if e is not None]
+        if errors:
+            raise errors[0]
 
     def settle(self) -> None:
-        """Wait for the chunk written behind (its error is raised here), then stop the thread."""
+        """Wait for the chunks written behind (the first one's error is raised here), then stop the thread."""
         try:
             self._drain()
         finally:
@@ -385,9 +391,9 @@ class Recorder(outputs.Closing):
         record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``)
     force : replace a regular file at ``path``
     root : the output folder ``path`` lies in, walked without following a link
-    behind : compress and write each closed chunk on a thread while the caller goes on (at most one chunk in
-        flight), for offline writers: a chunk is sure to be in the file only when the next one closes, at the
-        next record outside chunks, or at ``close``, so ``flush`` does not bound what a power cut loses
+    behind : compress and write each closed chunk on a thread while the caller goes on (at most
+        ``BEHIND_CHUNKS`` chunks in flight), for offline writers: a chunk is sure to be in the file only at the
+        next record outside chunks or at ``close``, so ``flush`` does not bound what a power cut loses
     """
 
     def __init__(

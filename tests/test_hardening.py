@@ -14,7 +14,7 @@ import pytest
 
 from fieldlog.acquire import gnss, nmea, recovery, timesync
 from fieldlog.drive import messages, recorder
-from fieldlog.acquire.pipeline import Pipeline, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, RawRead, in_read_order, read_order
 from fieldlog.drive import reader
 from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
@@ -445,3 +445,15 @@ def test_recover_after_kill9_gives_imu_to_the_cut_and_a_full_disk_leaves_the_ori
     assert f"could not recover unfinished {cut.name}" in logs[0] and "Traceback" not in logs[0], logs[0]
     assert f"recovered unfinished {cut.name}" in logs[1] and is_finished(rec)
     assert np.array_equal(reader.read_topic(rec, "/imu")["log_time_ns"], imu)
+
+
+def test_in_read_order_is_a_sort_by_read_order():
+    """Ties of time across ports and within one, unknown ports, any input order: the list sorting by
+    ``read_order`` gives, each read the same object."""
+    rng = np.random.default_rng(4)
+    ports = np.array(["daq", "gps", "can", "aux", "zz"])
+    reads = [RawRead(str(p), int(m), i, bytes([i % 256])) for i, (p, m) in
+             enumerate(zip(rng.choice(ports, 3000), rng.integers(0, 400, 3000)))]
+    for case in (reads, sorted(reads, key=lambda r: r.mono_ns), reads[::-1], []):
+        got, want = in_read_order(case), sorted(case, key=lambda r: read_order(r.port, r.mono_ns))
+        assert len(got) == len(want) and all(a is b for a, b in zip(got, want))

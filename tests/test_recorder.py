@@ -376,3 +376,30 @@ def test_behind_writes_the_same_bytes_and_raises_its_errors(tmp_path, monkeypatc
     with pytest.raises(MemoryError, match="no room"):
         rec.add_metadata("after", {"k": "v"})
     rec.close()
+
+
+def test_behind_holds_several_chunks_and_raises_the_first_error(tmp_path, monkeypatch):
+    """More closed chunks than ``BEHIND_CHUNKS`` in a row: the owner waits only for the oldest; a failed chunk
+    among those in flight raises its own error (the first) at the next record, whatever the later ones do."""
+    from fieldlog.drive import recorder
+
+    rec = Recorder(tmp_path / "d.mcap", chunk_size=1024, flush_interval_s=None, fsync=False, behind=True)
+    calls = []
+    compress = rec._file._compress
+
+    def second_fails(data: bytes) -> tuple[bytes, int]:
+        calls.append(len(data))
+        if len(calls) == 2:
+            raise MemoryError("chunk 2")
+        if len(calls) > 2:
+            raise ValueError("a later chunk")
+        return compress(data)
+
+    monkeypatch.setattr(rec._file, "_compress", second_fails)
+    n = 3 * recorder.BEHIND_CHUNKS
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    with pytest.raises((MemoryError, ValueError)) as raised:
+        for i in range(n):        # a chunk a message; the owner meets an error once chunk 2 leaves the queue
+            rec.write("/gps/nmea", int(t[i]), m.encode_sentence(int(t[i]), "$GPGGA," + "1" * 1100 + "*00"))
+    assert raised.type is MemoryError
+    rec.discard()

@@ -1,11 +1,12 @@
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
 from fieldlog.acquire.calib import G0, LSB_V, apply, default_calibration
 from fieldlog.tools import allan
-from fieldlog.tools.sim.sensors import ImuErrorConfig, flicker_noise, imu_counts
+from fieldlog.tools.sim.sensors import ImuErrorConfig, apply_errors, draw_errors, flicker_noise, imu_counts
 
 FS = 500.0
 _QUIET = dict(
@@ -114,6 +115,22 @@ def test_same_seed_same_counts():
     assert a.dtype == np.int32 and a.shape == (5000, 6)
     assert np.array_equal(a, b) and np.array_equal(ra["gyro_bias"], rb["gyro_bias"])
     assert not np.array_equal(a, c)
+
+
+
+def test_errors_drawn_apart_from_the_signal_give_the_same_counts():
+    """``draw_errors`` (here on another thread, as ``sim`` draws them beside the truth) then ``apply_errors``:
+    the counts and realised errors of ``imu_counts`` with the same seed, for any true signal, coloured noise
+    included."""
+    t_s, omega_ib_b, f_b = _static(3000)
+    cfg, cal = ImuErrorConfig(gyro_gm_sigma_dps=0.01, accel_gm_sigma_ug=30.0, gm_tau_s=2.0), default_calibration()
+    with ThreadPoolExecutor(1) as pool:
+        draws = pool.submit(draw_errors, t_s, cfg, np.random.default_rng(11)).result()
+    for w, f in ((omega_ib_b, f_b), (omega_ib_b + 0.2, f_b * 1.5)):
+        want, want_r = imu_counts(t_s, w, f, cfg, cal, np.random.default_rng(11))
+        got, got_r = apply_errors(draws, w, f, cfg, cal)
+        assert np.array_equal(got, want) and list(got_r) == list(want_r)
+        assert all(np.array_equal(got_r[k], want_r[k]) for k in want_r)
 
 
 def test_deterministic_errors_are_applied_as_modelled():

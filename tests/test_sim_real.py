@@ -12,7 +12,7 @@ from fieldlog.drive import metavalue
 from fieldlog.fusion import earth
 from fieldlog.drive import reader
 from fieldlog.tools.cli import main as fieldlog
-from fieldlog.tools.sim import vehicle, vibration
+from fieldlog.tools.sim import simulate, trajectory, vehicle, vibration
 
 DURATION_S = 150.0
 SEEDS = (1, 2, 3)
@@ -149,3 +149,28 @@ def test_bad_mounting_option_is_one_line(tmp_path, capsys):
         fieldlog(["sim", "--scenario", "figure8-real", "--mounting", "2,-4", "--out", str(tmp_path / "x.mcap")])
     assert e.value.code == 2
     assert "ROLL,PITCH,YAW" in capsys.readouterr().err
+
+
+def _same(a, b) -> bool:
+    """Equal to the bit, through dicts, lists, tuples, arrays and dataclasses (a truth sample)."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, np.ndarray):
+        return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    if hasattr(a, "__dataclass_fields__") and not isinstance(a, simulate.RawRead):
+        return all(_same(getattr(a, k), getattr(b, k)) for k in a.__dataclass_fields__ if k != "scenario")
+    return a == b
+
+
+def test_make_reads_beside_or_in_turn_alike(monkeypatch):
+    """``make_reads`` runs what needs no IMU truth on threads when it may use two CPUs and in turn on one: the
+    reads and every truth array are the same (the rough car, CAN and a NovAtel receiver included)."""
+    sc = trajectory.load_scenario("figure8-real")
+    beside = simulate.make_reads(sc, 20.0, 7, None, "novatel", can=True)
+    monkeypatch.setattr(simulate.os, "sched_getaffinity", lambda pid: {0})
+    in_turn = simulate.make_reads(sc, 20.0, 7, None, "novatel", can=True)
+    assert isinstance(simulate._beside(), simulate._InTurn)
+    assert beside[0] == in_turn[0] and len(beside[0]) > 1000
+    assert _same(beside[1], in_turn[1])

@@ -149,3 +149,23 @@ def test_step_and_blocks_match_integrate(figure8):
     np.testing.assert_array_equal(st.v_n, whole.v_n[49])
     with pytest.raises(ValueError):
         ins.integrate(state, t[::-1], s.omega_ib_b, s.f_b)
+
+
+@pytest.mark.parametrize("name", ["figure8", "figure8-real", "urban"])
+def test_evaluate_in_blocks_keeps_every_bit(name):
+    """``Truth.evaluate`` of more than ``EVAL_BLOCK`` times, in blocks, equals its evaluation of each time on its
+    own footing: the same bits as evaluating any slice of them (a standing car's bumps and idle included)."""
+    truth = tj.generate(tj.load_scenario(name), 120.0, seed=4)
+    rng = np.random.default_rng(9)
+    t = np.sort(rng.uniform(truth.t_min, truth.t_max, 2 * tj.EVAL_BLOCK + 77))
+    whole = truth.evaluate(t)
+    cuts = [0, 5, tj.EVAL_BLOCK - 3, tj.EVAL_BLOCK + 40, len(t)]
+    pieces = [truth.evaluate(t[a:b]) for a, b in zip(cuts, cuts[1:])]
+    for name_ in ("t", "lat", "lon", "h", "v_n", "r_e", "C_bn", "f_b", "omega_ib_b"):
+        got = getattr(whole, name_)
+        want = np.concatenate([getattr(p, name_) for p in pieces])
+        assert got.shape == want.shape and np.array_equal(got.view(np.uint64), want.view(np.uint64)), name_
+    for n in (tj.EVAL_BLOCK + 1, 2 * tj.EVAL_BLOCK + 1):     # a last block of one time is not left alone
+        blocked, at_once = truth.evaluate(t[:n]), truth._evaluate(t[:n])
+        for name_ in ("lat", "lon", "h", "v_n", "r_e", "C_bn", "f_b", "omega_ib_b"):
+            assert np.array_equal(getattr(blocked, name_).view(np.uint64), getattr(at_once, name_).view(np.uint64))

@@ -40,7 +40,7 @@ import numpy as np
 
 from fieldlog.acquire import can, canbus, counterjudge, daq, gnss, gpsport, nmea, novatel, sbf, timesync, ubx
 from fieldlog.drive import outputs, recorder
-from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, in_read_order
 from fieldlog.tools.rebuild import RebuildResult
 
 log = logging.getLogger(__name__)
@@ -278,7 +278,7 @@ def import_captures(gps: str | Path | None, daq_path: str | Path | None, out: st
             reads += daq_reads(Path(daq_path).read_bytes(), fs_hz, first_epoch)
         except ValueError as e:
             raise ValueError(f"{daq_path}: {e}: give a byte capture of the DAQ board") from None
-    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
+    reads = in_read_order(reads)
     sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": pps_mode, "fs_hz": fs_hz})
     meta = {"source": "fieldlog import", "gps": str(gps or ""), "daq": str(daq_path or ""), "can": str(can_log or "")}
     with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,

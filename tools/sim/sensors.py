@@ -63,6 +63,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from fieldlog.drive import native
+from fieldlog.acquire import rows
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
 from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.fusion import earth, imugrade
@@ -293,7 +294,7 @@ class Installation:
         """The rate (rad/s) and specific force (m/s^2), (n, 3) in the car's body frame at the delayed times, as the
         IMU's axes see them through its filter."""
         C = self.C_bm()
-        out = np.concatenate([omega_b @ C, f_b @ C], axis=1)
+        out = np.concatenate([rows.dot(omega_b, C), rows.dot(f_b, C)], axis=1)
         phi = self._phi(rate_hz)
         if phi > 0.0:
             out = lowpass(out, phi)
@@ -337,6 +338,46 @@ def gain(realised: dict[str, np.ndarray], name: str) -> np.ndarray:
     return (np.eye(3) + np.diag(realised[f"{name}_scale_factor"])) @ (np.eye(3) + realised[f"{name}_misalignment"])
 
 
+@dataclass(frozen=True)
+class ImuErrorDraws:
+    """The random part of ``imu_counts``, drawn before the true signal is known (``draw_errors``): the constant
+    errors (``realised``' gyro_/accel_ turn_on_bias, scale_factor, misalignment, zero_bias_V) and, at the n sample
+    times, the unit flicker (n, 6), the white noise scaled to each sample interval (n, 6) and the unit coloured
+    noise (n, 6), None when both its sigmas are 0; columns gyro x, y, z then accel x, y, z."""
+
+    t_s: np.ndarray
+    realised: dict[str, np.ndarray]
+    flicker: np.ndarray
+    white: np.ndarray
+    coloured: np.ndarray | None
+
+
+def draw_errors(t_s: np.ndarray, cfg: ImuErrorConfig, rng: np.random.Generator) -> ImuErrorDraws:
+    """``imu_counts``' draws at the true sample times t_s (n,), s, strictly increasing, in its order: the same
+    seed gives the same draws. They need no true signal, so a caller may draw them while it computes that."""
+    t_s = np.asarray(t_s, dtype=np.float64)
+    n = t_s.shape[0]
+    if n < 2:
+        raise ValueError("imu_counts: need t_s (n,), omega_ib_b (n,3), f_b (n,3) with n >= 2")
+    dt = np.diff(t_s)
+    if np.any(dt <= 0.0):
+        raise ValueError("imu_counts: t_s must be strictly increasing")
+    dt = np.concatenate([dt[:1], dt])
+    mag = _si_magnitudes(cfg)
+    realised: dict[str, np.ndarray] = {}
+    for name, m in mag.items():
+        realised[f"{name}_turn_on_bias"] = rng.normal(0.0, m["turn_on_bias"], 3)
+        realised[f"{name}_scale_factor"] = rng.normal(0.0, m["scale_factor"], 3)
+        realised[f"{name}_misalignment"] = _misalignment_error(rng, m["misalignment"])
+        realised[f"{name}_zero_bias_V"] = rng.normal(0.0, m["zero_bias_V"], 3)
+    flicker = flicker_noise(t_s - t_s[0], 6, cfg.bias_corr_time_min_s, cfg.bias_corr_time_max_s, rng)
+    white = rng.standard_normal((n, 6)) / np.sqrt(dt)[:, None]
+    coloured = None
+    if mag["gyro"]["gm_sigma"] > 0.0 or mag["accel"]["gm_sigma"] > 0.0:
+        coloured = gauss_markov(t_s, cfg.gm_tau_s, rng.standard_normal((n, 6)))
+    return ImuErrorDraws(t_s, realised, flicker, white, coloured)
+
+
 def imu_counts(
     t_s: np.ndarray,
     omega_ib_b: np.ndarray,
@@ -357,38 +398,28 @@ def imu_counts(
       with coloured noise also gyro_coloured (n,3) rad/s and accel_coloured (n,3) m/s^2.
     The draws come from rng in a fixed order: the same seed gives identical counts.
     """
-    t_s = np.asarray(t_s, dtype=np.float64)
-    omega_ib_b, f_b = np.asarray(omega_ib_b, np.float64), np.asarray(f_b, np.float64)
-    n = t_s.shape[0]
-    if n < 2 or omega_ib_b.shape != (n, 3) or f_b.shape != (n, 3):
-        raise ValueError("imu_counts: need t_s (n,), omega_ib_b (n,3), f_b (n,3) with n >= 2")
-    dt = np.diff(t_s)
-    if np.any(dt <= 0.0):
-        raise ValueError("imu_counts: t_s must be strictly increasing")
-    dt = np.concatenate([dt[:1], dt])
+    return apply_errors(draw_errors(t_s, cfg, rng), omega_ib_b, f_b, cfg, cal)
 
+
+def apply_errors(draws: ImuErrorDraws, omega_ib_b: np.ndarray, f_b: np.ndarray, cfg: ImuErrorConfig,
+                 cal: Calibration) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``imu_counts`` of the true rate omega_ib_b (n, 3), rad/s, and specific force f_b (n, 3), m/s^2, at the
+    sample times of ``draws`` (``draw_errors`` with the same ``cfg``): counts (n, 6) int32 and realised."""
+    n = draws.t_s.shape[0]
+    omega_ib_b, f_b = np.asarray(omega_ib_b, np.float64), np.asarray(f_b, np.float64)
+    if omega_ib_b.shape != (n, 3) or f_b.shape != (n, 3):
+        raise ValueError("imu_counts: need t_s (n,), omega_ib_b (n,3), f_b (n,3) with n >= 2")
     x_true = {"gyro": omega_ib_b, "accel": f_b}
     nominal = {"gyro": cal.gyro, "accel": cal.accel}
-    mag = _si_magnitudes(cfg)
-    realised: dict[str, np.ndarray] = {}
-    for name, m in mag.items():
-        realised[f"{name}_turn_on_bias"] = rng.normal(0.0, m["turn_on_bias"], 3)
-        realised[f"{name}_scale_factor"] = rng.normal(0.0, m["scale_factor"], 3)
-        realised[f"{name}_misalignment"] = _misalignment_error(rng, m["misalignment"])
-        realised[f"{name}_zero_bias_V"] = rng.normal(0.0, m["zero_bias_V"], 3)
-    flicker = flicker_noise(t_s - t_s[0], 6, cfg.bias_corr_time_min_s, cfg.bias_corr_time_max_s, rng)
-    white = rng.standard_normal((n, 6)) / np.sqrt(dt)[:, None]
-    coloured = None
-    if mag["gyro"]["gm_sigma"] > 0.0 or mag["accel"]["gm_sigma"] > 0.0:
-        coloured = gauss_markov(t_s, cfg.gm_tau_s, rng.standard_normal((n, 6)))
-
+    realised = dict(draws.realised)
     measured, true_cal = {}, {}
-    for j, (name, m) in enumerate(mag.items()):
+    for j, (name, m) in enumerate(_si_magnitudes(cfg).items()):
         cols = slice(3 * j, 3 * j + 3)
-        bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * flicker[:, cols]
-        measured[name] = np.dot(x_true[name], gain(realised, name).T) + bias + m["noise_density"] * white[:, cols]
-        if coloured is not None:
-            realised[f"{name}_coloured"] = m["gm_sigma"] * coloured[:, cols]
+        bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * draws.flicker[:, cols]
+        noise = m["noise_density"] * draws.white[:, cols]
+        measured[name] = rows.dot(x_true[name], gain(realised, name).T) + bias + noise
+        if draws.coloured is not None:
+            realised[f"{name}_coloured"] = m["gm_sigma"] * draws.coloured[:, cols]
             measured[name] += realised[f"{name}_coloured"]
         nom = nominal[name]
         bias_V = nom.bias_V + realised[f"{name}_zero_bias_V"]

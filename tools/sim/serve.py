@@ -486,7 +486,7 @@ class Server:
                                metadata={"source": "fieldlog sim --serve", "scenario": self.scenario,
                                          "seed": str(self.seed)}) as rec:
             rec.add_metadata("serve", self.sent_metadata())
-            simulate.write_truth(rec, self.truth, self.duration_s)
+            simulate.write_truth(rec, self.truth)
 
     def close(self) -> None:
         if self.board is not None:

@@ -12,15 +12,17 @@ scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key ea
 from __future__ import annotations
 
 import datetime as _dt
+import os
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from fieldlog.acquire import calib, daq, timesync
+from fieldlog.acquire import calib, daq, rows, timesync
 from fieldlog.drive import messages, metavalue, outputs, recorder
-from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, in_read_order
 from fieldlog.tools.sim import clock as simclock
 from fieldlog.tools.sim import sensors, trajectory, vehicle, vibration
 from fieldlog.tools.sim.emit import GpsConfig, HostClock, gps_solution, nmea_bursts, pulse_errors, serial_reads
@@ -48,10 +50,31 @@ def drive_start_ns(seed: int) -> int:
     return int(START_UTC.timestamp()) * NS + int(frac * NS)
 
 
+class _InTurn(Executor):
+    """An executor that runs each call at once, on the caller's thread (``_beside`` on one CPU)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        out: Future = Future()
+        try:
+            out.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # noqa: BLE001 - raised by result(), as a thread pool's future does
+            out.set_exception(e)
+        return out
+
+
+def _beside() -> Executor:
+    """Where ``make_reads`` runs what needs no IMU truth: threads beside the caller when the process may use more
+    than one CPU (numpy and the compiled kernels release the GIL, so they run at once), else in turn on the
+    caller's thread (threads taking turns on one CPU only add their switches)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return ThreadPoolExecutor(3) if cpus > 1 else _InTurn()
+
+
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
                receiver: str | None = None, can: bool = False) -> tuple[list[RawRead], dict, int,
                                                                         simclock.ClockConfig, calib.Calibration]:
-    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it.
+    """All raw reads of a simulated drive, sorted in host-monotonic order, plus the truth needed to score it
+    and to write ``/truth/*`` (``write_truth``: ``nav`` is the truth at the times ``t_nav``, TRUTH_NAV_HZ).
     ``receiver`` ('nmea', 'ublox', 'novatel') overrides the scenario's ``[gps] receiver``; ``can``: the car's
     CAN bus on an SLCAN adapter too (port ``can``, ``sim.vehicle``)."""
     seeds = np.random.SeedSequence(seed).spawn(9)     # spawn(n)'s first children do not depend on n
@@ -77,44 +100,60 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
 
     n = int(round(duration_s * ccfg.fs_hz))
     t_k = simclock.sample_times(n, ccfg, rng_clock)
-    ts = truth.evaluate(t_k)
-    w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
-    counts, realised = sensors.imu_counts(t_k, w_sensed, f_sensed, imu_cfg, cal, rng_imu)
     qerr_s = pulse_errors(int(duration_s) + 2, gps_cfg, rng_pulse)
-    pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
-    if not gps_cfg.pps_in_outage:
-        valid, _ = gps_cfg.windows(t_k)
-        pps &= valid
-    k = np.arange(n, dtype=np.int64)
-    temp_c = 25.0 + 3.0 * t_k / max(duration_s, 1.0)
-    frames = daq.encode_frames(k, counts, pps, latch if ccfg.pps_mode == "latch" else None, temp_c)
-    reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
-                         t0_ns, rng_daq_reads)
+    t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
+    with _beside() as pool:   # the sensor errors' draws, the nav truth, the GPS and CAN reads need no IMU truth
+        draws = pool.submit(sensors.draw_errors, t_k, imu_cfg, rng_imu)
+        nav = pool.submit(truth.evaluate, t_nav)
+        gps_rngs = (rng_gps, rng_nmea, rng_gps_reads)
+        gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, gps_rngs)
+        bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
+        ts = truth.evaluate(t_k)
+        w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
+        counts, realised = sensors.apply_errors(draws.result(), w_sensed, f_sensed, imu_cfg, cal)
+        pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
+        if not gps_cfg.pps_in_outage:
+            valid, _ = gps_cfg.windows(t_k)
+            pps &= valid
+        k = np.arange(n, dtype=np.int64)
+        temp_c = 25.0 + 3.0 * t_k / max(duration_s, 1.0)
+        frames = daq.encode_frames(k, counts, pps, latch if ccfg.pps_mode == "latch" else None, temp_c)
+        reads = serial_reads("daq", t_k + FRAME_DELAY_S, frames, daq.FRAME_SIZE, DAQ_BAUD, (0.002, 0.012), host,
+                             t0_ns, rng_daq_reads)
+        gps_reads, sol, utc_ns = gps.result()
+        can_reads, vehicle_truth = bus.result() if bus is not None else ([], None)
+    reads += gps_reads + can_reads
+    reads = in_read_order(reads)
+    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
+                      gps=sol, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
+                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install,
+                      t_nav=t_nav, nav=nav.result())
+    return reads, truth_data, t0_ns, ccfg, cal
 
-    period_ns = gps_cfg.epoch_period_ns()
+
+def _gps_reads(truth: trajectory.Truth, duration_s: float, ccfg: simclock.ClockConfig, gps_cfg: GpsConfig,
+               qerr_s: np.ndarray, host: HostClock,
+               rngs: tuple[np.random.Generator, ...]) -> tuple[list[RawRead], dict | None, np.ndarray]:
+    """The GPS port's reads of a drive of ``duration_s`` s (``make_reads``), the receiver's solutions at its
+    epochs (``gps_solution``; None without an epoch) and the epochs' UTC times (ns). ``qerr_s``: the pulses'
+    quantisation errors (s, ``pulse_errors``); ``rngs``: the solutions', the sentences' and the reads' draws."""
+    rng_gps, rng_nmea, rng_reads = rngs
+    t0_ns, period_ns = ccfg.start_utc_ns, gps_cfg.epoch_period_ns()
     first_ns = ccfg.first_utc_s() * NS
     n_epochs = max(int((t0_ns + duration_s * NS - first_ns) // period_ns) + 1, 0)
     utc_ns = first_ns + period_ns * np.arange(n_epochs, dtype=np.int64)
     rel_s = (utc_ns // NS - t0_ns / NS) + (utc_ns % NS) / NS
-    if len(utc_ns):
-        sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
-        starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s,
-                                        utc_ns + gps_cfg.clock_offset_ns(rel_s))
-        starts = starts + rel_s[0]
-        keep = starts < duration_s
-        sentences = [s for s, kk in zip(sentences, keep) if kk]
-        if sentences:
-            reads += serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
-                                  rng_gps_reads)
-    vehicle_truth = None
-    if can:
-        can_reads, vehicle_truth = vehicle.can_reads(truth, duration_s, host, t0_ns, rng_can, car)
-        reads += can_reads
-    reads.sort(key=lambda r: read_order(r.port, r.mono_ns))
-    truth_data = dict(truth=truth, t_k=t_k, ts=ts, t0_ns=t0_ns, realised=realised, edges=edges_truth,
-                      gps=sol if len(utc_ns) else None, gps_utc_ns=utc_ns, counts=counts, pps=pps, latch=latch,
-                      temp_c=temp_c, vehicle=vehicle_truth, sensed=(w_sensed, f_sensed), install=install)
-    return reads, truth_data, t0_ns, ccfg, cal
+    if not len(utc_ns):
+        return [], None, utc_ns
+    sol = gps_solution(truth, rel_s, gps_cfg, rng_gps)
+    starts, sentences = nmea_bursts(sol, utc_ns, gps_cfg, rng_nmea, qerr_s, utc_ns + gps_cfg.clock_offset_ns(rel_s))
+    starts = starts + rel_s[0]
+    keep = starts < duration_s
+    sentences = [s for s, kk in zip(sentences, keep) if kk]
+    if not sentences:
+        return [], sol, utc_ns
+    return serial_reads("gps", starts[keep], sentences, None, gps_cfg.baud, (0.001, 0.004), host, t0_ns,
+                        rng_reads), sol, utc_ns
 
 
 def sensed(truth: trajectory.Truth, t_k: np.ndarray, ts: trajectory.TruthSample, install: sensors.Installation,
@@ -151,13 +190,13 @@ def truth_metadata(truth_data: dict, scenario: trajectory.Scenario) -> dict[str,
     return {k: metavalue.dump(v) for k, v in out.items()}
 
 
-def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> None:
-    """``/truth/imu`` at every true sample time, and the true trajectory at TRUTH_NAV_HZ."""
+def write_truth(rec: recorder.Recorder, truth_data: dict) -> None:
+    """``/truth/imu`` at every true sample time, and the true trajectory at TRUTH_NAV_HZ, of ``make_reads``'
+    truth."""
     t0_ns, t_k, ts = truth_data["t0_ns"], truth_data["t_k"], truth_data["ts"]
     t_ns = t0_ns + np.round(t_k * NS).astype(np.int64)
     _write_imu(rec, "/truth/imu", t_ns, ts.omega_ib_b, ts.f_b)
-    t_nav = np.arange(0.0, duration_s, 1.0 / TRUTH_NAV_HZ)
-    nav = truth_data["truth"].evaluate(t_nav)
+    t_nav, nav = truth_data["t_nav"], truth_data["nav"]
     tn_ns = t0_ns + np.round(t_nav * NS).astype(np.int64)
     rec.write_batch("/truth/fix", tn_ns, messages.encode_navsatfix(
         tn_ns, np.degrees(nav.lat), np.degrees(nav.lon), nav.h, frame_id="imu"))
@@ -170,7 +209,7 @@ def write_truth(rec: recorder.Recorder, truth_data: dict, duration_s: float) -> 
     bias = {}
     for x, true in zip(("gyro", "accel"), truth_data["sensed"]):
         coloured = r[f"{x}_coloured"][k] if f"{x}_coloured" in r else 0.0
-        bias[x] = r[f"{x}_bias"][k] + coloured + true[k] @ (sensors.gain(r, x) - np.eye(3)).T
+        bias[x] = r[f"{x}_bias"][k] + coloured + rows.dot(true[k], (sensors.gain(r, x) - np.eye(3)).T)
     _write_imu(rec, "/truth/imu_bias", tn_ns, bias["gyro"], bias["accel"])
     vt = truth_data.get("vehicle")
     if vt is not None:   # the rear axle centre's forward speed at each wheel-speed sample instant
@@ -238,7 +277,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
         sim_truth = truth_metadata(truth_data, scenario)
         if sim_truth:
             rec.add_metadata("sim.truth", sim_truth)
-        write_truth(rec, truth_data, duration_s)   # before /imu: drivestats pairs /imu with it as /imu comes
+        write_truth(rec, truth_data)   # before /imu: drivestats pairs /imu with it as /imu comes
         pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
         pipe.finish()
         rec.add_metadata("acquire.counters", pipe.counters_metadata())

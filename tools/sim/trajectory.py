@@ -65,18 +65,20 @@ Times are seconds since the drive start (t = 0 at the start of the static period
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
+from fieldlog.acquire import rows
 from fieldlog.drive import tables
 from fieldlog.fusion import earth
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 GRID_STEP_S = 0.1
 MARGIN_S = 10.0  # the truth is defined this far before 0 and after the drive's duration
+EVAL_BLOCK = 8192  # sample times a Truth evaluates at a time: its temporaries stay small and are reused
 _G_ROLL = 9.80665  # g used only to scale the roll: the car's gradient, the aircraft's bank angle
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 
@@ -448,8 +450,8 @@ class _Stand:
             env = np.exp(-(x / self.bump_s) ** 2)
             wb = 2.0 * np.pi * self.bump_hz
             sb, cb = np.sin(wb * x), np.cos(wb * x)
-            a = a + (env * sb / wb) @ self.bump_amp
-            da = da + (env * (cb - 2.0 * x / self.bump_s ** 2 * sb / wb)) @ self.bump_amp
+            a = a + rows.dot(env * sb / wb, self.bump_amp)
+            da = da + rows.dot(env * (cb - 2.0 * x / self.bump_s ** 2 * sb / wb), self.bump_amp)
         return g[:, None] * a, dg[:, None] * a + g[:, None] * da
 
     def _gate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -607,12 +609,28 @@ class Truth:
     _C_et: np.ndarray = field(repr=False)  # ECEF -> tangent frame at the origin
 
     def evaluate(self, t_s: np.ndarray) -> TruthSample:
-        """True state and error-free IMU output at times t_s (n,) in s since the drive start."""
+        """True state and error-free IMU output at times t_s (n,) in s since the drive start, ``EVAL_BLOCK``
+        times at a time into arrays of all n (``rows.blocks``: each time's state depends on that time alone and
+        no block is a lone time, so the values are the same however the times are split)."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if t.size and (t.min() < self.t_min or t.max() > self.t_max):
             raise ValueError(f"times outside the truth's span [{self.t_min}, {self.t_max}] s")
+        if len(t) <= EVAL_BLOCK:
+            return self._evaluate(t)
+        out: dict[str, np.ndarray] = {"t": t}
+        for i, j in rows.blocks(len(t), EVAL_BLOCK):
+            block = self._evaluate(t[i:j])
+            for name in (f.name for f in fields(TruthSample) if f.name != "t"):
+                x = getattr(block, name)
+                if i == 0:
+                    out[name] = np.empty((len(t),) + x.shape[1:], x.dtype)
+                out[name][i:j] = x
+        return TruthSample(**out)
+
+    def _evaluate(self, t: np.ndarray) -> TruthSample:
+        """``evaluate`` at the times t (n,), s, in the truth's span."""
         k = _kinematics_t(self._pr, t)
-        r_e = self._r0_e + self.local_position(t) @ self._C_et
+        r_e = self._r0_e + rows.dot(self.local_position(t), self._C_et)
         lat, lon, h = earth.ecef_to_lla(r_e)
         C_tn = earth.C_en(lat, lon) @ self._C_et.T
         v_n = np.einsum("nij,nj->ni", C_tn, k["v_t"])
