@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from fieldlog.fusion.types import Solution, Status
 
 if TYPE_CHECKING:
     from fieldlog.fusion.config import FilterConfig
+    from fieldlog.fusion.ins import NavSolution
 
 NS = 1_000_000_000
 STATUS = ("aligning", "aligned", "aided", "coasting", "degraded", "diverged")  # the codes 0..5 of Status.code
@@ -82,7 +83,7 @@ class Segment:
     distributed filter's local estimates and variances after each cycle, (m, 2, 15) each, or None, gps_var_local
     (3,) m^2 added to KF_II's; state: the status the ``StatusBook`` gave at the segment's end (``StatusBook.now``)."""
 
-    sol: Any
+    sol: NavSolution
     t_ns: np.ndarray
     ends: np.ndarray
     diag: np.ndarray
