@@ -154,7 +154,8 @@ class Engine:
         t = (t_ns - self.t_ref_ns) * 1e-9
         if len(t) > 1:
             self._imu_dt = float(np.median(np.diff(t)))
-        out: list[Solution | output.Segment] = []
+        aligning: list[Solution] = []  # status rows before the alignment, then the INS's segments
+        segments: list[output.Segment | None] = []
         cursor = 0
         while self._gps and self._gps[0].t_ns <= t_ns[-1]:
             ep = self._gps.pop(0)
@@ -164,11 +165,11 @@ class Engine:
                 continue
             self._add_interval(w, f, cursor, k)
             if self.nav is None:
-                out.append(self.status.aligning(t_ns[cursor:k + 1]))
+                aligning.append(self.status.aligning(t_ns[cursor:k + 1]))
                 cursor = k
                 self._pre_init_epoch(ep, float(t[k]), int(t_ns[k]))
             else:
-                out.append(self._advance(t, t_ns, w, f, cursor, k))
+                segments.append(self._advance(t, t_ns, w, f, cursor, k))
                 cursor = k
                 self._epoch(ep, w[k] - self.bg)
                 self._anchor = float(t[k])
@@ -176,27 +177,21 @@ class Engine:
         held = (_cycle_start(t, cursor, len(t) - 1, self._anchor, self.cfg.filter.cov_step_s)
                 if self.nav is not None else len(t) - 1)
         self._add_interval(w, f, cursor, held)
-        out.append(self._advance(t, t_ns, w, f, cursor, held) if self.nav is not None
-                   else self.status.aligning(t_ns[cursor:held + 1]))
+        if self.nav is not None:
+            segments.append(self._advance(t, t_ns, w, f, cursor, held))
+        else:
+            aligning.append(self.status.aligning(t_ns[cursor:held + 1]))
         self._carry = (t_ns[held:].copy(), w[held:].copy(), f[held:].copy())
-        return self._solution(out), self.outages.take()
+        return self._solution(aligning, segments), self.outages.take()
 
-    def _solution(self, parts: list[Solution | output.Segment | None]) -> Solution:
-        """The rows of a block's parts in order: status rows as they are, each run of INS segments made in one
-        pass (``output.rows``) with their status."""
-        out: list[Solution] = []
-        run: list[output.Segment] = []
-        for p in [*parts, None]:
-            if isinstance(p, output.Segment):
-                run.append(p)
-                continue
-            if run:
-                sol, seg = output.rows(run, self.cfg.filter.output_hz)
-                out.append(self.status.of(sol, seg, [g.state for g in run]))
-                run = []
-            if p is not None:
-                out.append(p)
-        return Solution.concat(out)
+    def _solution(self, aligning: list[Solution], segments: list[output.Segment | None]) -> Solution:
+        """A block's rows: the status rows before the alignment, then the rows of its INS segments (the INS runs
+        from the alignment on), made in one pass (``output.rows``) with their status."""
+        run = [g for g in segments if g is not None]
+        if not run:
+            return Solution.concat(aligning)
+        sol, seg = output.rows(run, self.cfg.filter.output_hz)
+        return Solution.concat([*aligning, self.status.of(sol, seg, [g.state for g in run])])
 
     def _add_interval(self, w: np.ndarray, f: np.ndarray, i0: int, i1: int) -> None:
         """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
@@ -216,7 +211,7 @@ class Engine:
         sol = Solution.concat([])
         if self._carry is not None and self.nav is not None:
             t_ns, w, f = self._carry
-            sol = self._solution([self._advance((t_ns - self.t_ref_ns) * 1e-9, t_ns, w, f, 0, len(t_ns) - 1)])
+            sol = self._solution([], [self._advance((t_ns - self.t_ref_ns) * 1e-9, t_ns, w, f, 0, len(t_ns) - 1)])
             self._carry = (t_ns[-1:], w[-1:], f[-1:])
         self.outages.finish(int(self._carry[0][-1]) if self._carry else None)
         return sol, self.outages.take()
