@@ -34,12 +34,12 @@ Times in s, angles in rad inside and degrees in the results; ENU navigation fram
 from __future__ import annotations
 
 import math
-import tempfile
 from typing import Iterable, Iterator
 
 import numpy as np
 
 from fieldlog.fusion import earth
+from fieldlog.fusion.rowfile import RowFile
 from fieldlog.fusion.types import Solution
 
 MIN_SPEED_MPS = 3.0  # the course is the car's heading from this speed
@@ -58,16 +58,15 @@ def _course(v_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class GyroTrack:
     """The integral of the IMU's rate over a drive, kept at about ``HZ`` (the heading changes ``time_offset``
     reads off it over any interval), and the mean specific force (the IMU frame's up: a car's accelerations
-    average out over a drive). Fed block by block; the kept samples (32 bytes each) go to an anonymous temporary
-    file and are read back ``CHUNK`` at a time, so memory is bounded whatever the drive's length."""
+    average out over a drive). Fed block by block; the kept samples (32 bytes each) go to a temporary file
+    (``fusion.rowfile.RowFile``) and are read back ``CHUNK`` at a time, so memory is bounded whatever the drive's length."""
 
     HZ = 50.0
     CHUNK = 1 << 16  # kept samples read back at a time
     _SAMPLE = np.dtype([("t_ns", "<i8"), ("angle", "<f8", 3)])  # UTC ns; the integral, rad, IMU frame
 
     def __init__(self) -> None:
-        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the track; close())
-        self._kept = 0  # samples in the file
+        self._kept = RowFile(self._SAMPLE)
         self._first_ns = 0
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
         self.sum_f = np.zeros(3)
@@ -100,16 +99,14 @@ class GyroTrack:
         keep = slice(1 if self._last is not None else 0, None, every)
         kept = np.empty(len(t[keep]), self._SAMPLE)
         kept["t_ns"], kept["angle"] = t[keep], angle[keep]
-        self._file.seek(self._kept * self._SAMPLE.itemsize)
-        self._file.write(kept.tobytes())
-        self._kept += len(kept)
+        self._kept.append(kept)
         self._last = (int(t[-1]), w[-1].copy(), angle[-1].copy())
         self.sum_f += np.asarray(f_m, float).sum(axis=0)
         self.n += len(t_ns)
 
     def close(self) -> None:
         """Delete the file of kept samples."""
-        self._file.close()
+        self._kept.close()
 
     def _chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
         """The kept samples' (stamps UTC ns, integral about the mean up rad, whether the last chunk), ``CHUNK`` + 1
@@ -119,14 +116,14 @@ class GyroTrack:
             yield self._about[1], self._about[2], True
             return
         up = self.sum_f / max(np.linalg.norm(self.sum_f), 1e-12)
-        for i0 in range(0, max(self._kept - 1, 1), self.CHUNK):
-            i1 = min(i0 + self.CHUNK + 1, self._kept)
-            self._file.seek(i0 * self._SAMPLE.itemsize)
-            kept = np.frombuffer(self._file.read((i1 - i0) * self._SAMPLE.itemsize), self._SAMPLE)
+        n = len(self._kept)
+        for i0 in range(0, max(n - 1, 1), self.CHUNK):
+            i1 = min(i0 + self.CHUNK + 1, n)
+            kept = self._kept.read(i0, i1)
             t, about_up = kept["t_ns"].copy(), np.ascontiguousarray(kept["angle"]) @ up
-            if i0 == 0 and i1 == self._kept:
+            if i0 == 0 and i1 == n:
                 self._about = (self.n, t, about_up)
-            yield t, about_up, i1 == self._kept
+            yield t, about_up, i1 == n
 
     def heading_change(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
         """The heading change over intervals: minus the integrated rate about the mean up; each stamp interpolated
@@ -157,7 +154,7 @@ class GyroTrack:
 
     @property
     def span_ns(self) -> tuple[int, int]:
-        return (self._first_ns, int(self._last[0])) if self._kept else (0, 0)
+        return (self._first_ns, int(self._last[0])) if len(self._kept) else (0, 0)
 
 
 _CELLS = 1 << 18  # lag x interval residuals computed at once by time_offset
@@ -252,8 +249,8 @@ class _Mounting:
     """:func:`mounting`'s reduction of row blocks: per row the yaw rate (``np.gradient`` of the unwrapped course,
     second-order central differences, one-sided at the drive's ends: each row waits for the next), the selected
     rows' angles summed per ``BLOCK_S`` block (the open block's sum carried into the next rows' ``np.bincount``, so
-    the sums add in the order of the whole drive's) and the sigma terms per selected row spilled to an anonymous
-    temporary file (24 bytes each) for their means at the end. Memory is bounded by a block and the blocks' means
+    the sums add in the order of the whole drive's) and the sigma terms per selected row spilled to a temporary
+    file (``fusion.rowfile.RowFile``, 24 bytes each) for their means at the end. Memory is bounded by a block and the blocks' means
     (24 bytes per ``BLOCK_S``)."""
 
     def __init__(self, r_fwd: float) -> None:
@@ -267,8 +264,7 @@ class _Mounting:
         self.sel0: float | None = None  # the first selected row's ts
         self.open: tuple[int, np.ndarray, int] | None = None  # the last block: index, angle sums (3,), rows
         self.means: list[np.ndarray] = []  # the closed blocks' mean [roll, pitch, yaw], rad
-        self.terms = tempfile.TemporaryFile()  # noqa: SIM115 (closed by close())
-        self.selected = 0
+        self.terms = RowFile(("<f8", 3))  # per selected row: level, heading and climb variances
 
     def close(self) -> None:
         """Delete the file of sigma terms."""
@@ -345,22 +341,19 @@ class _Mounting:
         sig = sigma[rows]
         terms = np.stack([0.5 * (sig[:, 6] ** 2 + sig[:, 7] ** 2), sig[:, 8] ** 2, (sig[:, 5] / speed[rows]) ** 2],
                          axis=1)
-        self.terms.write(terms.tobytes())
-        self.selected += len(rows)
+        self.terms.append(terms)
 
     def result(self) -> tuple[np.ndarray, np.ndarray] | None:
         """:func:`mounting`'s return, after the last rows."""
         if self.rows < 3:
             return None
         self._reduce(*self.held, next_row=None)
-        if self.selected < 20:
+        if len(self.terms) < 20:
             return None
         means = np.array(self.means + [self.open[1] / self.open[2]])
         spread = (means.std(axis=0, ddof=1) / math.sqrt(len(means)) if len(means) > 1
                   else np.full(3, math.inf))
-        self.terms.seek(0)
-        level, head, climb = (math.sqrt(float(np.mean(x)))
-                              for x in np.frombuffer(self.terms.read()).reshape(-1, 3).T.copy())
+        level, head, climb = (math.sqrt(float(np.mean(x))) for x in self.terms.read(0, len(self.terms)).T.copy())
         sigma = np.sqrt(spread ** 2 + np.array([level, math.hypot(level, climb), head]) ** 2
                         + np.array([math.radians(ROLL_ROAD_DEG), 0.0, 0.0]) ** 2)
         return np.degrees(means.mean(axis=0)), np.degrees(sigma)

@@ -46,7 +46,6 @@ record); :func:`smoothed_blocks` smooths rows kept out of memory (a spill file) 
 
 from __future__ import annotations
 
-import tempfile
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -54,6 +53,7 @@ import numpy as np
 from fieldlog.fusion import earth
 from fieldlog.fusion.consider import N_PARAMS
 from fieldlog.fusion.errmodel import ATT, N_STATES, POS, VEL, cycle_kernel
+from fieldlog.fusion.rowfile import RowFile
 from fieldlog.fusion.types import Solution
 
 RECORD = np.dtype([("t_ns", "<i8"), ("phi", "<f8", (N_STATES, N_STATES)), ("pm", "<f8", (N_STATES, N_STATES)),
@@ -69,8 +69,7 @@ class SmootherLog:
 
     def __init__(self, chunk: int = 1024) -> None:
         self.chunk = int(chunk)
-        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the log; close())
-        self._spilled = 0
+        self._spill = RowFile(RECORD)
         self._pending: list[np.ndarray] = []  # record arrays not yet spilled, in order
         self._n_pending = 0
         self.bridged = False
@@ -78,11 +77,11 @@ class SmootherLog:
         self.var_c: np.ndarray | None = None  # the consider parameters' variances (fusion.consider), None: none
 
     def __len__(self) -> int:
-        return self._spilled + self._n_pending
+        return len(self._spill) + self._n_pending
 
     def close(self) -> None:
         """Delete the spill file."""
-        self._file.close()
+        self._spill.close()
 
     def start(self, t_ns: int, P0: np.ndarray) -> None:
         """The filter's initial covariance at t_ns (alignment).
@@ -108,10 +107,8 @@ class SmootherLog:
         r = np.zeros(len(t_ns), RECORD)
         r["t_ns"], r["phi"], r["pm"], r["pp"] = t_ns, Phi, P_pred, P_pred
         if self._n_pending >= self.chunk:  # spill all but the last array: an update may still come to its end
-            self._file.seek(self._spilled * RECORD.itemsize)
             for a in self._pending[:-1]:
-                self._file.write(a.tobytes())
-                self._spilled += len(a)
+                self._spill.append(a)
             self._pending = self._pending[-1:]
             self._n_pending = len(self._pending[0])
         self._pending.append(r)
@@ -171,14 +168,12 @@ class SmootherLog:
         -------
         (i1 - i0,) ndarray of ``RECORD``
         """
-        parts = []
-        if i0 < self._spilled:
-            n = min(i1, self._spilled) - i0
-            self._file.seek(i0 * RECORD.itemsize)
-            parts.append(np.frombuffer(self._file.read(n * RECORD.itemsize), RECORD))
-        if i1 > self._spilled:
+        parts, spilled = [], len(self._spill)
+        if i0 < spilled:
+            parts.append(self._spill.read(i0, min(i1, spilled)))
+        if i1 > spilled:
             tail = np.concatenate(self._pending)
-            parts.append(tail[max(i0 - self._spilled, 0):i1 - self._spilled])
+            parts.append(tail[max(i0 - spilled, 0):i1 - spilled])
         return np.concatenate(parts)
 
     def arrays(self) -> tuple[np.ndarray, ...]:
@@ -199,11 +194,9 @@ class Smoothed:
     in memory; per record, in an anonymous temporary file, y (15,), its covariance diagonal P_diag (15,) and dx
     (15,), the forward correction (for the rows stamped before it). ``fusion.errmodel`` order and units."""
 
-    _COLUMNS = 3 * N_STATES  # float64 per record: y, P_diag, dx
-
     def __init__(self, t_ns: np.ndarray) -> None:
         self.t_ns = t_ns
-        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as this object; close())
+        self._rows = RowFile(("<f8", 3 * N_STATES))  # per record: y, P_diag, dx
 
     def write(self, i0: int, y: np.ndarray, P_diag: np.ndarray, dx: np.ndarray) -> None:
         """Write records [i0, i0 + m).
@@ -214,8 +207,7 @@ class Smoothed:
         y, P_diag, dx : (m, 15) ndarray each, the smoothed error, its variance and the forward correction,
             ``fusion.errmodel`` order and units (squared for P_diag)
         """
-        self._file.seek(i0 * self._COLUMNS * 8)
-        self._file.write(np.concatenate([y, P_diag, dx], axis=1).tobytes())
+        self._rows.write(i0, np.concatenate([y, P_diag, dx], axis=1))
 
     def read(self, i0: int, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Records [i0, i1).
@@ -228,8 +220,7 @@ class Smoothed:
         -------
         (y, P_diag, dx) : (i1 - i0, 15) ndarray each, ``fusion.errmodel`` order and units (squared for P_diag)
         """
-        self._file.seek(i0 * self._COLUMNS * 8)
-        a = np.frombuffer(self._file.read((i1 - i0) * self._COLUMNS * 8)).reshape(-1, self._COLUMNS)
+        a = self._rows.read(i0, i1)
         return a[:, :N_STATES], a[:, N_STATES:2 * N_STATES], a[:, 2 * N_STATES:]
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -243,7 +234,7 @@ class Smoothed:
 
     def close(self) -> None:
         """Delete the file."""
-        self._file.close()
+        self._rows.close()
 
 
 def rts(log: SmootherLog) -> Smoothed | None:
