@@ -21,8 +21,8 @@ from __future__ import annotations
 import re
 import struct
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Any, Callable, Iterator, Sequence
+from functools import lru_cache, wraps
+from typing import Any, Callable, Collection, Iterator, Sequence
 
 import numpy as np
 from mcap.records import Schema
@@ -1106,7 +1106,8 @@ def encode_outage(stamp_ns: int, start_ns: int, end_ns: int, reason: str, frame_
 
 
 def _decode_fixed(type_name: str, msgs: "Packed | Sequence[bytes]") -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Numeric fields by name (rows that are not valid are zero), and a valid mask (n,)."""
+    """Numeric fields by name (rows that are not valid are zero), and a valid mask (n,). A batch of one layout
+    gives views into its payloads (strided): ``_batch_decoder`` copies the fields a caller keeps."""
     p = as_packed(msgs)
     n = len(p)
     common = _common_dtype(type_name)
@@ -1137,7 +1138,7 @@ def _decode_fixed(type_name: str, msgs: "Packed | Sequence[bytes]") -> tuple[dic
         rows = rows[fits]
         part = _gather(p, rows, dt)
         if len(rows) == n:
-            return {k: np.ascontiguousarray(part[k]) for k in common.names}, ok
+            return {k: part[k] for k in common.names}, ok
         if out is None:
             out = {k: np.zeros(n, dtype=common.fields[k][0]) for k in common.names}
         for k in common.names:
@@ -1175,6 +1176,22 @@ def _common_dtype(type_name: str) -> np.dtype:
     return np.dtype([(name, fmt, shape) if shape else (name, fmt) for name, fmt, shape in fields])
 
 
+BatchDecoder = Callable[..., dict[str, np.ndarray]]
+
+
+def _batch_decoder(decoder: Callable[["Packed | Sequence[bytes]"], dict[str, np.ndarray]]) -> BatchDecoder:
+    """A decoder over ``_decode_fixed``'s fields as a public one, ``decode_x(msgs, fields=None)``: the keys in
+    ``fields`` (all: None) as contiguous arrays; the others are never copied out of the payloads (a reader that
+    wants three of an Imu's seven saves copying its covariances)."""
+
+    @wraps(decoder)
+    def decode(msgs: "Packed | Sequence[bytes]", fields: Collection[str] | None = None) -> dict[str, np.ndarray]:
+        return {k: np.ascontiguousarray(v) for k, v in decoder(msgs).items() if fields is None or k in fields}
+
+    return decode
+
+
+@_batch_decoder
 def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """Imu batch -> stamp_ns (n,) int64, omega_ib_b (n,3), f_b (n,3), orientation_xyzw (n,4),
     gyro_cov / accel_cov / orientation_cov (n,9), valid (n,) bool.
@@ -1182,6 +1199,7 @@ def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     Parameters
     ----------
     msgs : n Imu messages
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1200,6 +1218,7 @@ def decode_imu(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     }
 
 
+@_batch_decoder
 def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """NavSatFix batch -> stamp_ns, lat_deg, lon_deg, alt_m, position_covariance (n,9) ENU m^2,
     covariance_type, status, service, valid.
@@ -1207,6 +1226,7 @@ def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     Parameters
     ----------
     msgs : the NavSatFix batch, n messages in CDR
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1226,6 +1246,7 @@ def decode_navsatfix(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     }
 
 
+@_batch_decoder
 def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """TwistWithCovarianceStamped batch -> stamp_ns, v_n (n,3) ENU m/s, omega (n,3),
     covariance (n,36), valid.
@@ -1233,6 +1254,7 @@ def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     Parameters
     ----------
     msgs : n twists (CDR)
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1248,12 +1270,14 @@ def decode_twist(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     }
 
 
+@_batch_decoder
 def decode_quaternion(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """QuaternionStamped batch -> stamp_ns, q_xyzw (n,4), valid.
 
     Parameters
     ----------
     msgs : QuaternionStamped messages
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1263,12 +1287,14 @@ def decode_quaternion(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]
     return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "q_xyzw": a["quaternion"], "valid": ok}
 
 
+@_batch_decoder
 def decode_vector3(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """Vector3Stamped batch -> stamp_ns, xyz (n,3), valid.
 
     Parameters
     ----------
     msgs : a batch of n Vector3Stamped
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1278,12 +1304,14 @@ def decode_vector3(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     return {"stamp_ns": join_stamp(a["sec"], a["nanosec"]), "xyz": a["vector"], "valid": ok}
 
 
+@_batch_decoder
 def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """TimeReference batch -> stamp_ns (the edge in UTC), time_ref_ns (the edge on the DAQ clock), valid.
 
     Parameters
     ----------
     msgs : n /pps messages
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1297,6 +1325,7 @@ def decode_time_reference(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndar
     }
 
 
+@_batch_decoder
 def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """TimeSyncState batch -> stamp_ns, state, rate_ppm, residual_us, edges_used,
     edges_rejected, valid.
@@ -1304,6 +1333,7 @@ def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     Parameters
     ----------
     msgs : the /time/sync batch
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1316,12 +1346,14 @@ def decode_time_sync(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     return out
 
 
+@_batch_decoder
 def decode_solution_status(msgs: "Packed | Sequence[bytes]") -> dict[str, np.ndarray]:
     """SolutionStatus batch -> stamp_ns, status, since_update_s, sigma_h_m, nis, valid.
 
     Parameters
     ----------
     msgs : n SolutionStatus messages, as written by ``encode_solution_status``
+    fields : the keys to return (all: None); the others are not copied
 
     Returns
     -------
@@ -1334,7 +1366,7 @@ def decode_solution_status(msgs: "Packed | Sequence[bytes]") -> dict[str, np.nda
     return out
 
 
-BATCH_DECODERS: dict[str, Callable[["Packed | Sequence[bytes]"], dict[str, np.ndarray]]] = {
+BATCH_DECODERS: dict[str, BatchDecoder] = {
     IMU: decode_imu,
     NAVSATFIX: decode_navsatfix,
     TWIST: decode_twist,

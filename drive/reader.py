@@ -20,7 +20,7 @@ generic types carry ``msgs`` (a list of decoded message objects).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Collection, Iterator, Sequence
+from typing import TYPE_CHECKING, Callable, Collection, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -51,7 +51,8 @@ class Block:
     data: dict[str, dict[str, object]]
 
 
-def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -> dict[str, object]:
+def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed,
+           fields: Collection[str] | None = None) -> dict[str, object]:
     """Decode a batch of one type; rows are sorted by log_time (stable).
 
     Parameters
@@ -59,6 +60,7 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
     type_name : the messages' type
     log_time_ns : (n,) int64 UTC ns
     payloads : the n CDR payloads
+    fields : the decoded keys to keep, for a type of ``drive.messages.BATCH_DECODERS`` (all: None)
 
     Returns
     -------
@@ -68,7 +70,7 @@ def decode(type_name: str, log_time_ns: np.ndarray, payloads: messages.Packed) -
     batch = messages.BATCH_DECODERS.get(type_name)
     if batch is not None:
         out: dict[str, object] = {"log_time_ns": log_time_ns}
-        out.update(batch(payloads))
+        out.update(batch(payloads, fields))
         return out
     if type_name not in messages.MSG_DEFS:
         raise ValueError(f"messages of type {type_name[:80]!r}: not a type fieldlog decodes")
@@ -338,13 +340,16 @@ def read_metadata(path: DriveSpec) -> dict[str, dict[str, str]]:
 
 
 def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
-                undecoded: Collection[str] = ()) -> Iterator[Block]:
+                undecoded: Collection[str] = (), fields: Mapping[str, Collection[str]] | None = None
+                ) -> Iterator[Block]:
     """Stream a drive in consecutive blocks of ``block_s`` seconds of log_time.
 
     Blocks start at the first message of the selected topics and follow each other without
     gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
     messages outside chunks) that overlap the block being built. Several files are one drive: their
-    pieces are read in one log-time order, across the file boundaries.
+    pieces are read in one log-time order, across the file boundaries. The topics of a type with a batch
+    decoder (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their
+    decoded rows wait for their block.
 
     Parameters
     ----------
@@ -353,6 +358,7 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
     block_s : block length, s of log time
     undecoded : topics of ``topics`` whose rows are left as they are stored (``log_time_ns`` and ``payloads``,
         sorted by log_time), for a reader that decodes only the few it wants
+    fields : topic -> the decoded keys to keep (``decode``); a topic not named keeps all
 
     Returns
     -------
@@ -362,8 +368,10 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
     if step <= 0:
         raise ValueError("block_s must be > 0")
     files = open_drive(path)
+    fields = fields or {}
     types: dict[str, str] = {}
-    pending: dict[str, list[tuple[np.ndarray, messages.Packed]]] = {}
+    early: set[str] = set()  # topics decoded as their pieces are read: pending holds their decoded rows
+    pending: dict[str, list] = {}  # topic -> (log_time_ns, payloads) batches, or decoded rows (early)
     t0: int | None = None
 
     def emit(t_end: int | None) -> Iterator[Block]:
@@ -373,6 +381,14 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
             data: dict[str, dict[str, object]] = {}
             left = 0
             for topic, parts in pending.items():
+                if topic in early:
+                    d = _joined(parts, types[topic], fields.get(topic))
+                    inside = d["log_time_ns"] < t1
+                    idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
+                    data[topic] = _log_time_order(_row_take(d, idx_in))
+                    pending[topic] = [_row_take(d, idx_out)] if len(idx_out) else []
+                    left += len(idx_out)
+                    continue
                 t, p = concat(parts) if parts else (np.zeros(0, np.int64), messages.Packed.from_list([]))
                 inside = t < t1
                 idx_in, idx_out = np.flatnonzero(inside), np.flatnonzero(~inside)
@@ -398,11 +414,41 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
             if topic not in types:
                 types[topic] = f.type_of(cids[0])
                 pending[topic] = []
+                if topic not in undecoded and types[topic] in messages.BATCH_DECODERS:
+                    early.add(topic)
             t, _, p = _select(cm, cids)
             if len(t):
-                pending[topic].append((t, p))
+                pending[topic].append(decode(types[topic], t, p, fields.get(topic)) if topic in early else (t, p))
                 t0 = int(t.min()) if t0 is None else min(t0, int(t.min()))
     yield from emit(None)
+
+
+def _joined(parts: list[dict[str, np.ndarray]], type_name: str, fields: Collection[str] | None
+            ) -> dict[str, np.ndarray]:
+    """Decoded batches of one topic as one (in the order given; none: an empty batch of the type)."""
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        return decode(type_name, np.zeros(0, np.int64), messages.Packed.from_list([]), fields)
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _row_take(d: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarray]:
+    """Rows ``idx`` of a decoded batch (views when they are contiguous)."""
+    n = len(d["log_time_ns"])
+    if len(idx) == n:
+        return d
+    if len(idx) and idx[-1] - idx[0] + 1 == len(idx):
+        return {k: v[idx[0] : idx[-1] + 1] for k, v in d.items()}
+    return {k: v[idx] for k, v in d.items()}
+
+
+def _log_time_order(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A decoded batch sorted by log_time (stable), as ``decode`` sorts its rows."""
+    order = np.argsort(d["log_time_ns"], kind="stable")
+    if np.all(order == np.arange(len(order))):
+        return d
+    return {k: v[order] for k, v in d.items()}
 
 
 def _take(p: messages.Packed, idx: np.ndarray) -> messages.Packed:

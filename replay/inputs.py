@@ -44,6 +44,7 @@ if TYPE_CHECKING:
     from fieldlog.fusion.types import GpsBlock, ImuBlock, OdomBlock
 
 NATIVE = ("/imu", "/gps/fix", "/gps/vel")  # fieldlog's own topics (body RFU)
+ENGINE_IMU_FIELDS = ("stamp_ns", "omega_ib_b", "f_b", "valid")  # the decoded Imu keys the engine's blocks read
 _COUNTERS = ("samples", "gaps", "missing", "repeated", "_last_t", "_period_ns", "_first_t", "_dev_sq", "_steps",
              "longest_gap_ns", "longest_gap_at_ns")  # InputStream's
 ODOM = "/vehicle/twist"  # fieldlog's own wheel-speed odometry (forward speed in base_link, linear.x)
@@ -355,9 +356,10 @@ class InputStream:
             out.append(f"IMU rate {rate:.5g} Hz is outside {lo:g}-{hi:g} Hz")
         return out
 
-    def blocks(self) -> Iterator[reader.Block]:
+    def blocks(self, engine_only: bool = False) -> Iterator[reader.Block]:
         """The drive's blocks under fieldlog's names, re-sequenced; a last block (``t0 == t1``, the drive's end)
-        with the rows still held. The counters start again (a read left early counts nothing of the next)."""
+        with the rows still held. The counters start again (a read left early counts nothing of the next).
+        ``engine_only``: the IMU's rows with the fields the engine reads (``ENGINE_IMU_FIELDS``) alone."""
         self._start_counting()
         names = dict(zip(self.imap.topics, NATIVE))
         odom = (self.imap.odom_topic,) if self.imap.odom_topic else ()
@@ -366,7 +368,9 @@ class InputStream:
         wheels = (WHEEL_SPEEDS,) if odom == (ODOM,) and WHEEL_SPEEDS not in self.extra else ()
         seq = Resequencer()
         t1 = None
-        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *wheels, *self.extra), self.block_s):
+        fields = {self.imap.imu_topic: ENGINE_IMU_FIELDS} if engine_only else None
+        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *wheels, *self.extra), self.block_s,
+                                    fields=fields):
             t1 = b.t1_ns
             data = dict(b.data)
             w = data.pop(WHEEL_SPEEDS, {}) if wheels else None
@@ -403,7 +407,7 @@ class InputStream:
     def inputs(self, keep_data: bool = False) -> Iterator[InputBlock]:
         """The engine's blocks, read in this process (``blocks()`` as ``input_block``s); ``keep_data``: each
         with its rows per topic, for a viewer."""
-        return (input_block(b, keep_data) for b in self.blocks())
+        return (input_block(b, keep_data) for b in self.blocks(engine_only=not keep_data))
 
     def _input_blocks(self) -> Generator[InputBlock, None, dict]:
         yield from self.inputs()

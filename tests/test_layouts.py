@@ -419,6 +419,25 @@ def test_one_pass_reads_give_what_the_topic_reads_give(layout, original, corpus)
     assert all("payloads" not in b.data["/imu"] for b in blocks)
 
 
+@pytest.mark.parametrize("layout", ["original", *LAYOUTS, "rosbag2-split"])
+def test_blocks_decode_what_the_topic_read_decodes(layout, original, corpus):
+    """The decoded topics of ``iter_blocks`` (decoded as their pieces are read) join, block after block, into what
+    ``read_topic`` decodes, in every layout and at any block length; with ``fields`` each block has those keys
+    alone, the same values, as contiguous arrays."""
+    src = original if layout == "original" else corpus[layout]
+    keys = ("stamp_ns", "f_b", "valid")
+    for block_s, fields in ((7.0, None), (0.3, {"/imu": keys})):
+        blocks = list(reader.iter_blocks(src, ["/imu", "/gps/fix"], block_s, fields=fields))
+        for topic in ("/imu", "/gps/fix"):
+            one = reader.read_topic(src, topic)
+            rows = [b.data[topic] for b in blocks if topic in b.data]
+            kept = keys if fields and topic in fields else tuple(one)
+            assert all(set(r) == {"log_time_ns", *kept} for r in rows)
+            assert all(v.flags.c_contiguous for r in rows for v in r.values())
+            for key in ("log_time_ns", *kept):
+                np.testing.assert_array_equal(np.concatenate([r[key] for r in rows]), one[key])
+
+
 def test_threads_reading_at_once_read_what_one_reads(original, corpus):
     """The compiled read releases the GIL: two threads reading the 4 KiB-chunk file at once (each with its own
     zstd context and buffers) get the messages one thread gets."""

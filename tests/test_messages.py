@@ -81,6 +81,10 @@ def test_imu_encode_matches_mcap_ros2_and_decoders_agree():
     np.testing.assert_array_equal(ours["omega_ib_b"], [[d.angular_velocity.x, d.angular_velocity.y, d.angular_velocity.z] for d in dec])
     np.testing.assert_array_equal(ours["f_b"], f)
     np.testing.assert_array_equal(ours["gyro_cov"], gcov)
+    some = m.decode_imu(p, ("omega_ib_b", "valid"))  # the keys asked for alone, the same values, contiguous
+    assert sorted(some) == ["omega_ib_b", "valid"]
+    assert all(v.flags.c_contiguous for v in ours.values()) and some["omega_ib_b"].flags.c_contiguous
+    np.testing.assert_array_equal(some["omega_ib_b"], ours["omega_ib_b"])
 
 
 def test_imu_with_orientation():
