@@ -217,6 +217,9 @@ def cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     c : (..., 3) ndarray, a x b in that frame, unit of a times unit of b
     """
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if a.shape == b.shape == (3,):  # one pair: the same products and differences in floats
+        (a0, a1, a2), (b0, b1, b2) = a.tolist(), b.tolist()
+        return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
@@ -234,6 +237,9 @@ def skew(v: ArrayLike) -> np.ndarray:
     V : (..., 3, 3) ndarray, with ``V @ w = v x w``
     """
     v = np.asarray(v, dtype=float)
+    if v.shape == (3,):  # one vector: built from floats
+        x, y, z = v.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     out = np.zeros(v.shape + (3,))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]

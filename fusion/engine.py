@@ -274,7 +274,9 @@ class Engine:
             obs = _observe(fixes, at)
         if self.adapt is not None:
             obs = self.adapt.before(obs, self.filter.state, self.filter.covariance)
-        self._update(self.status.fix(ep.t_ns, obs, self.filter))
+        m = kf.stack(*(o.m for o in obs))
+        self.status.fix(ep.t_ns, m, self.filter)
+        self._update(obs, m)
         if self.adapt is not None:
             self.adapt.after(self.filter.state, self.filter.covariance)
             self.q = self.adapt.q
@@ -287,11 +289,12 @@ class Engine:
         self._feedback(self.filter.state)
         self.updates += 1
 
-    def _update(self, obs: list[kf.Observation]) -> bool:
-        """One filter update with the observations (the listeners told first); False when there are none."""
+    def _update(self, obs: list[kf.Observation], m: kf.Measurement | None = None) -> bool:
+        """One filter update with the observations (the listeners told first, of ``m``: them stacked, when the
+        caller has it); False when there are none."""
         if not obs:
             return False
-        m = kf.stack(*(o.m for o in obs))
+        m = kf.stack(*(o.m for o in obs)) if m is None else m
         for x in self.listeners:
             x.update(self.filter.covariance, m[1], m[2])
         self.filter.update_batch(obs)

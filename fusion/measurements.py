@@ -32,6 +32,9 @@ from fieldlog.fusion.predictors import PredictorConfig
 from fieldlog.fusion.ins import NavState
 from fieldlog.fusion.types import Epoch, OdomBlock
 
+_I3 = np.eye(3)
+_I3.flags.writeable = False
+
 _DEG = math.pi / 180.0
 
 
@@ -669,10 +672,9 @@ def position_measurement(nav: NavState, t_gps: float, lat: float, lon: float, h:
     arm_n = C @ lever_b
     z = kf.enu_offset(nav.lat, nav.lon, nav.h, lat, lon, h) + arm_n + nav.v_n * (t_gps - nav.t)
     H = np.zeros((3, N_STATES))
-    H[:, POS] = np.eye(3)
+    H[:, POS] = _I3
     H[:, ATT] = earth.skew(arm_n)
-    keep = np.flatnonzero(np.isfinite(z))
-    return z[keep], H[keep], np.asarray(cov_enu, dtype=float)[np.ix_(keep, keep)]
+    return _rows(z, H, np.asarray(cov_enu, dtype=float), np.flatnonzero(np.isfinite(z)))
 
 
 def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omega_ib_b: np.ndarray,
@@ -693,17 +695,25 @@ def velocity_measurement(nav: NavState, v_gps: np.ndarray, cov: np.ndarray, omeg
     (z (k,) m/s, H (k, 15), R (k, k) (m/s)^2), or None when nothing is left.
     """
     cov = np.asarray(cov, dtype=float)
-    keep = np.flatnonzero((np.diag(cov) <= max_var) & np.isfinite(v_gps) & np.isfinite(np.diag(cov)))
+    var = cov.diagonal()
+    keep = np.flatnonzero((var <= max_var) & np.isfinite(v_gps) & np.isfinite(var))
     if len(keep) == 0:
         return None
     C = nav.C_bn
     arm_v = C @ earth.cross(omega_ib_b, lever_b)
     z = nav.v_n + arm_v - v_gps
     H = np.zeros((3, N_STATES))
-    H[:, VEL] = np.eye(3)
+    H[:, VEL] = _I3
     H[:, ATT] = earth.skew(arm_v)
     H[:, BG] = -C @ earth.skew(lever_b)
-    return z[keep], H[keep], cov[np.ix_(keep, keep)]
+    return _rows(z, H, cov, keep)
+
+
+def _rows(z: np.ndarray, H: np.ndarray, R: np.ndarray, keep: np.ndarray) -> kf.Measurement:
+    """The rows ``keep`` (indexes, ascending) of a measurement (z, H, R); R a copy."""
+    if len(keep) == len(z):
+        return z, H, R.copy()
+    return z[keep], H[keep], R[np.ix_(keep, keep)]
 
 
 def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame()) -> kf.Measurement:
@@ -729,8 +739,9 @@ def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame())
     H = np.zeros((2, N_STATES))
     H[:, VEL] = A
     H[:, ATT] = -A @ earth.skew(nav.v_n)
-    extra = car.extra_var(float(C_cn[1] @ nav.v_n))
-    return A @ nav.v_n, H, np.eye(2) * sigma_mps ** 2 + np.diag(extra[[0, 2]])
+    lateral, _, vertical = car.extra_var(float(C_cn[1] @ nav.v_n)).tolist()
+    var = sigma_mps ** 2
+    return A @ nav.v_n, H, np.array([[var + lateral, 0.0], [0.0, var + vertical]])
 
 
 def stationary_measurement(nav: NavState, mean_omega_b: np.ndarray, sigma_v: np.ndarray,

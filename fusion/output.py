@@ -178,23 +178,18 @@ class StatusBook:
         self.aided = False
         return usable
 
-    def fix(self, t_ns: int, obs: list[kf.Observation], filt: kf.KalmanFilter) -> list[kf.Observation]:
+    def fix(self, t_ns: int, m: kf.Measurement, filt: kf.KalmanFilter) -> None:
         """The fix of the epoch at t_ns UTC updates the filter ``filt`` (any of ``fusion.filters``; called before
-        the update: its state and covariance are the prior) with the observations obs: their NIS is kept;
-        returns obs.
+        the update: its state and covariance are the prior) with the epoch's observations, stacked as m: their NIS
+        is kept.
 
         Parameters
         ----------
         t_ns : int, fix time, UTC ns
-        obs : list of kf.Observation, the epoch's observations
+        m : kf.Measurement, the epoch's observations stacked (``kf.stack``)
         filt : kf.KalmanFilter, the filter before the update
-
-        Returns
-        -------
-        list of kf.Observation
-            ``obs``.
         """
-        z, H, R = kf.stack(*(o.m for o in obs))
+        z, H, R = m
         y = z - H @ filt.state
         try:
             if len(z):  # (a fix whose measurements kept no row has no innovation to test)
@@ -202,7 +197,6 @@ class StatusBook:
         except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
             self.nis.append(math.inf)
         self.last_update_ns, self.aided = t_ns, True
-        return obs
 
     def aligning(self, t_ns: np.ndarray) -> Solution:
         """No solution rows, the status rows of samples t_ns (n,) UTC before the alignment: ``aligning`` at each
