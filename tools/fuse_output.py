@@ -5,8 +5,6 @@ back smoothed by the RTS pass (``fusion.smoother``) a block at a time after the 
 """
 from __future__ import annotations
 
-import tempfile
-from dataclasses import fields
 from typing import Iterator
 
 import numpy as np
@@ -14,6 +12,7 @@ import numpy as np
 from fieldlog.acquire import calib
 from fieldlog.drive import messages
 from fieldlog.drive.recorder import Recorder
+from fieldlog.fusion.rowfile import RowFile
 from fieldlog.fusion.smoother import SmootherLog, smoothed_blocks
 from fieldlog.fusion.types import Outage, Solution
 from fieldlog.replay.inputs import InputBlock
@@ -22,31 +21,34 @@ from fieldlog.replay.solutions import OUTAGE, Odometry, write_solution, write_st
 
 class RowSpill:
     """The forward solution rows of a smoothed run, spilled block by block to an anonymous temporary file as they
-    come and read back in the same blocks (``Solution`` without ``local``, which smoothing drops, and ``status``,
-    written as it comes)."""
+    come (``fusion.rowfile.RowFile``) and read back in the same blocks (``Solution`` without ``local``, which
+    smoothing drops, and ``status``, written as it comes)."""
 
-    _FIELDS = [f.name for f in fields(Solution) if f.name not in ("local", "status")]
+    ROW = np.dtype([("t_ns", "<i8"), ("lat", "<f8"), ("lon", "<f8"), ("h", "<f8"), ("v_n", "<f8", 3),
+                    ("q", "<f8", 4), ("sigma", "<f8", 15), ("bias", "<f8", 6)])
 
     def __init__(self) -> None:
-        self._file = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as the spill; close())
-        self._blocks = 0
+        self._rows = RowFile(self.ROW)
+        self._ends: list[int] = []  # one past each block's last row
 
     def add(self, sol: Solution) -> None:
         """Spill one block's rows (none: nothing)."""
         if len(sol.t_ns):
-            for name in self._FIELDS:
-                np.save(self._file, getattr(sol, name), allow_pickle=False)
-            self._blocks += 1
+            rows = np.empty(len(sol.t_ns), self.ROW)
+            for name in self.ROW.names:
+                rows[name] = getattr(sol, name)
+            self._rows.append(rows)
+            self._ends.append(len(self._rows))
 
     def blocks(self) -> Iterator[Solution]:
         """The blocks added, in order."""
-        self._file.seek(0)
-        for _ in range(self._blocks):
-            yield Solution(*(np.load(self._file, allow_pickle=False) for _ in self._FIELDS))
+        for i0, i1 in zip([0, *self._ends[:-1]], self._ends):
+            rows = self._rows.read(i0, i1)
+            yield Solution(**{name: np.ascontiguousarray(rows[name]) for name in self.ROW.names})
 
     def close(self) -> None:
         """Delete the file."""
-        self._file.close()
+        self._rows.close()
 
 
 class FusedOutput:
