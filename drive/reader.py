@@ -19,6 +19,8 @@ generic types carry ``msgs`` (a list of decoded message objects).
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Collection, Iterator, Mapping, Sequence
 
@@ -346,10 +348,11 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
 
     Blocks start at the first message of the selected topics and follow each other without
     gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
-    messages outside chunks) that overlap the block being built. Several files are one drive: their
-    pieces are read in one log-time order, across the file boundaries. The topics of a type with a batch
-    decoder (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their
-    decoded rows wait for their block.
+    messages outside chunks) that overlap the block being built, and the next group of pieces, read on a
+    thread meanwhile (``_read_ahead``). Several files are one drive: their pieces are read in one log-time
+    order, across the file boundaries. The topics of a type with a batch decoder
+    (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their decoded rows
+    wait for their block.
 
     Parameters
     ----------
@@ -404,23 +407,77 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
             if t_end is None and left == 0:
                 t0 = None
 
-    for f, group in piece_groups(files, topics):
-        yield from emit(int(f.pieces.start_ns[group].min()))
-        cm = f.read(group, topics)
-        for topic in topics:
-            cids = _cids(f, topic)
-            if not cids:
-                continue
+    for start_ns, read in _read_ahead(_group_reads(files, topics)):
+        yield from emit(start_ns)
+        for topic, type_name, t, p in read:
             if topic not in types:
-                types[topic] = f.type_of(cids[0])
+                types[topic] = type_name
                 pending[topic] = []
-                if topic not in undecoded and types[topic] in messages.BATCH_DECODERS:
+                if topic not in undecoded and type_name in messages.BATCH_DECODERS:
                     early.add(topic)
-            t, _, p = _select(cm, cids)
             if len(t):
                 pending[topic].append(decode(types[topic], t, p, fields.get(topic)) if topic in early else (t, p))
                 t0 = int(t.min()) if t0 is None else min(t0, int(t.min()))
     yield from emit(None)
+
+
+GroupRead = tuple[int, list[tuple[str, str, np.ndarray, messages.Packed]]]
+
+
+def _group_reads(files: list[McapFile], topics: Sequence[str]) -> Iterator[GroupRead]:
+    """Each group of ``piece_groups``, read: its first piece's start (log time, ns) and, per topic of ``topics``
+    on a channel of its file, (topic, the channel's type, log_time_ns, payloads), the payloads copied out of the
+    thread's read buffer (``McapFile.read``)."""
+    for f, group in piece_groups(files, topics):
+        cm = f.read(group, topics)
+        read = []
+        for topic in topics:
+            cids = _cids(f, topic)
+            if cids:
+                t, _, p = _select(cm, cids)
+                read.append((topic, f.type_of(cids[0]), t, p))
+        yield int(f.pieces.start_ns[group].min()), read
+
+
+def _read_ahead(items: Iterator[GroupRead]) -> Iterator[GroupRead]:
+    """``items`` made on a thread of their own, one ahead of the caller's: the next group is decompressed and
+    walked (compiled, without the GIL) while the caller decodes this one. Its exceptions are raised here, in
+    order; a caller that stops early stops the thread, and the files are not read once this generator is
+    closed."""
+    q: queue.Queue = queue.Queue(maxsize=1)
+    stop = threading.Event()
+
+    def put(item: tuple) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put((True, item)):
+                    return
+            put((False, None))
+        except BaseException as e:  # noqa: BLE001 - handed to the caller, raised there
+            put((False, e))
+
+    thread = threading.Thread(target=produce, name="fieldlog-read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            more, item = q.get()
+            if not more:
+                if item is not None:
+                    raise item
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _joined(parts: list[dict[str, np.ndarray]], type_name: str, fields: Collection[str] | None

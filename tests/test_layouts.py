@@ -15,6 +15,7 @@ import dataclasses
 import heapq
 import re
 import shutil
+import threading
 import zlib
 from collections import Counter
 from pathlib import Path
@@ -475,6 +476,21 @@ def test_a_damaged_chunk_is_reported_never_read(layout, read_path, original, cor
     assert fieldlog(["allan", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{bad}: damaged chunk at byte {int(p.offset[i])}" in err[0], err
+    threads = threading.active_count()  # the block reader reads ahead on a thread: the error still comes here
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: damaged chunk at byte {int(p.offset[i])}: chunk ")):
+        list(reader.iter_blocks(bad, ["/imu"], 1.0))
+    assert threading.active_count() == threads
+
+
+def test_a_block_read_left_early_leaves_no_thread(original):
+    """The block reader's read-ahead thread ends with the read: read to its end, or closed after one block."""
+    threads = threading.active_count()
+    blocks = reader.iter_blocks(original, ["/imu", "/gps/fix"], 1.0)
+    first = next(blocks)
+    assert len(first.data["/imu"]["log_time_ns"]) and threading.active_count() == threads + 1
+    blocks.close()
+    assert threading.active_count() == threads
+    assert len(list(reader.iter_blocks(original, ["/imu"], 5.0))) > 1 and threading.active_count() == threads
 
 
 def test_a_bad_record_inside_a_chunk_is_one_line(read_path, corpus, tmp_path, capsys):
