@@ -713,7 +713,7 @@ def _rows(z: np.ndarray, H: np.ndarray, R: np.ndarray, keep: np.ndarray) -> kf.M
     """The rows ``keep`` (indexes, ascending) of a measurement (z, H, R); R a copy."""
     if len(keep) == len(z):
         return z, H, R.copy()
-    return z[keep], H[keep], R[np.ix_(keep, keep)]
+    return z[keep], H[keep], R[keep][:, keep]
 
 
 def nhc_measurement(nav: NavState, sigma_mps: float, car: CarFrame = CarFrame()) -> kf.Measurement:

@@ -878,7 +878,9 @@ def _run_s(cmd: list[str], cwd: Path, pin: bool = False) -> float:
 def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     """fieldlog against the rerun CLI on one simulated 600 s figure8 drive: fuse kf / dkf-rbfn, view --rrd, sim,
     info, each as a ratio to `rerun mcap convert` (`rerun mcap info` for info) run just before it, as is and with
-    both commands pinned to one core (`taskset -c 0`), and a warm fuse of a 60 s drive."""
+    both commands pinned to one core (`taskset -c 0`), and a warm fuse of a 60 s drive. `fuse --method ins` (one
+    read of the drive, the strapdown INS and the same writing, no filter and no installation pass) is the floor
+    of every fuse: what no filter can go below."""
     fl, rr = [sys.executable, "-m", "fieldlog"], _rerun_exe()
     drive, short = tmp / "rr_drive.mcap", tmp / "rr_short.mcap"
     _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
@@ -888,6 +890,8 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     cmds = {  # name: (fieldlog command, reference command, target as is, target pinned to one core)
         "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×0.5", "≤ ×0.8"),
+        "fuse --method ins": ([*fl, "fuse", str(drive), "--method", INS.name, "--out", str(tmp / "rr_ins.mcap"),
+                               "--force", "-q"], convert, "", ""),
         "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
                                     str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×0.8", ""),
         "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
