@@ -45,7 +45,7 @@ Stamping rule for sample k (i = last knot at or before k, j = first knot after k
 A sample is final once nothing that can still arrive can change it: about window_s/2 + 1 s after it is read
 when locked (window_s for the first knots of a stream), up to holdover_s + window_s/2 in a PPS gap, and
 window_s/2 after the last pending lock candidate before the first lock. Memory is bounded: edges, knots and envelope bins older than
-window_s + retain_s are dropped.
+window_s + retain_s are dropped, and final stamps older than retain_s.
 """
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ from bisect import bisect_left, bisect_right, insort
 from collections import deque
 from dataclasses import dataclass
 from enum import IntEnum
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -63,6 +64,7 @@ from fieldlog.drive.tables import from_table
 FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
 PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is
 PPS_BURST = 4                # implausible (a true PPS and a glitch or two never come that close together)
+_first = itemgetter(0)
 
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:
@@ -674,7 +676,9 @@ class ClockFit:
 
 class Finaliser:
     """Final stamps: the knots fitted when their windows are complete, the samples they decide stamped, clamped
-    forward and reported in /time/sync records, and memory pruned (module docstring, end).
+    forward and reported in /time/sync records, and memory pruned (module docstring, end). The final stamps and
+    states are kept as made, for ``stamp``, until they fall below the retained range: nothing that comes later
+    changes them (that is what final means).
 
     Parameters
     ----------
@@ -693,7 +697,8 @@ class Finaliser:
         self.final = 0                                           # samples before this one are final
         self.floor = 0                                           # ... and retained from this one
         self._pmax: int | None = None                            # max over final samples of raw(k) - k
-        self._clamps: list[tuple[int, int, int]] = []            # [k0, k1) stamped P + k
+        # the final samples' stamps (int64 UTC ns) and states (uint8) in consecutive blocks, each from sample k0
+        self._kept: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
         self._status: list[SyncStatus] = []
         self._status_sec: int | None = None
 
@@ -751,16 +756,10 @@ class Finaliser:
     def _finalise(self, f0: int, f1: int) -> None:
         k = np.arange(f0, f1, dtype=np.int64)
         raw, state, gov = self._clock.stamps(k)
-        r = raw - k
-        cm = forward_clamp(r, self._pmax)
-        clamped = cm > r
-        if clamped.any():
-            starts = np.flatnonzero(clamped & ~np.concatenate(([False], clamped[:-1])))
-            ends = np.flatnonzero(clamped & ~np.concatenate((clamped[1:], [False]))) + 1
-            for s, e in zip(starts.tolist(), ends.tolist()):
-                self._clamps.append((f0 + s, f0 + e, int(cm[s])))
+        cm = forward_clamp(raw - k, self._pmax)
         self._pmax = int(cm[-1])
         stamp = cm + k
+        self._kept.append((f0, stamp, state))
         sec = stamp // 1_000_000_000
         first = np.flatnonzero(np.diff(sec, prepend=sec[0] - 1) > 0)
         rej = np.asarray(self._edges.rej_k)
@@ -784,19 +783,25 @@ class Finaliser:
         self.floor = floor
         keep_from = self._clock.prune(floor)
         self._clock.n_knotted -= self._edges.prune(floor, keep_from, self._clock.n_knotted)
-        self._clamps = [c for c in self._clamps if c[1] > floor]
+        while len(self._kept) > 1 and self._kept[1][0] <= floor:
+            self._kept.popleft()
         self._host.prune(floor)
 
     def stamp(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """UTC (int64 ns) and SyncState (uint8) of final samples ``k``: see ``TimeSync.stamp``."""
         k = np.asarray(k, np.int64)
-        if k.size and (k.min() < self.floor or k.max() >= self.final):
+        if not k.size:
+            return np.zeros(0, np.int64), np.zeros(0, np.uint8)
+        lo, hi = int(k.min()), int(k.max())
+        if lo < self.floor or hi >= self.final:
             raise ValueError(f"stamp: k outside the final, retained range [{self.floor}, {self.final})")
-        raw, state, _ = self._clock.stamps(k)
-        for k0, k1, p in self._clamps:
-            m = (k >= k0) & (k < k1)
-            raw[m] = p + k[m]
-        return raw, state
+        kept = self._kept
+        i, j = bisect_right(kept, lo, key=_first) - 1, bisect_right(kept, hi, key=_first)
+        k0, stamp, state = kept[i]
+        if j - i > 1:
+            stamp, state = (np.concatenate([kept[x][y] for x in range(i, j)]) for y in (1, 2))
+        at = k - k0
+        return stamp[at], state[at]
 
     def pop_status(self) -> list[SyncStatus]:
         """The /time/sync records of the samples made final since the last call."""
