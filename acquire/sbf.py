@@ -18,15 +18,13 @@ Time: GPS week and TOW to UTC with ReceiverTime's DeltaLS when the receiver sent
 table. Do-not-use values (-2e10 for floats, all ones for integers) fail the range checks and count as missing.
 
 pysbf2 (by pyubx2's author, maintained) decodes the block bodies, unscaled (``scaling=False``: its scaling
-rounds to 1e-12, a nanosecond pulse offset would lose its digits); the framing is ours (``gpsport``).
+rounds to 1e-12, a nanosecond pulse offset would lose its digits); the framing is ours (``gpsport``). pysbf2 is
+imported at the first SBF block: a drive without one never loads it.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-
-from pysbf2 import SBFReader
-from pysbf2.sbftypes_core import SBF_MSGIDS
 
 from fieldlog.acquire import gnss, gpsport, novatel, numbers
 from fieldlog.acquire.ubx import Pulse
@@ -65,6 +63,8 @@ def block_number(frame: bytes) -> int:
 
 def block_name(frame: bytes) -> str:
     """pysbf2's name of the frame's block, 'unknown' for a number it does not list (the counters stay bounded)."""
+    from pysbf2.sbftypes_core import SBF_MSGIDS
+
     entry = SBF_MSGIDS.get(block_number(frame))
     return entry[0] if entry else "unknown"
 
@@ -84,6 +84,8 @@ class SbfDecoder:
         self.stats.by_type[name] = self.stats.by_type.get(name, 0) + 1
         if name not in DECODED:
             return name, []
+        from pysbf2 import SBFReader
+
         t = numbers.Tally()
         try:
             msg = SBFReader.parse(frame, validate=0, scaling=False)

@@ -21,15 +21,13 @@ decoded to solutions too; they replace NAV-PVT only with ``use_hnr`` (``[gps] us
 not independent of that IMU (a filter fusing them with ours counts the receiver's inertial information twice).
 
 pyubx2 (maintained, covers every u-blox generation) does the payload decoding; the framing is ours, because
-UBX shares the port with NMEA and NovAtel and must resynchronise byte by byte (``gpsport``).
+UBX shares the port with NMEA and NovAtel and must resynchronise byte by byte (``gpsport``). pyubx2 is imported
+at the first UBX frame: a drive without one (an NMEA receiver's) never loads it.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-
-from pyubx2 import UBXReader
-from pyubx2.ubxtypes_core import UBX_MSGIDS
 
 from fieldlog.acquire import gnss, gpsport, novatel, numbers
 
@@ -77,6 +75,9 @@ class UbxDecoder:
 
     def decode(self, frame: bytes, mono_ns: int) -> tuple[str, list]:
         """(message name, records) of one checked frame."""
+        from pyubx2 import UBXReader
+        from pyubx2.ubxtypes_core import UBX_MSGIDS
+
         try:
             msg = UBXReader.parse(frame, validate=0)
             name = msg.identity if frame[2:4] in UBX_MSGIDS else "unknown"     # the counters stay bounded
