@@ -13,7 +13,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
 from operator import attrgetter
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -30,9 +30,10 @@ MAX_HDOP = 99.0             # NMEA's largest HDOP; a larger, missing or non-posi
 MAX_SIGMA_M = 1e6           # a GST standard deviation beyond this (or NaN) falls back on HDOP
 
 
-@dataclass(frozen=True)
-class RawRead:
-    """One read() from a serial port: host monotonic and wall-clock time at return, and the bytes."""
+class RawRead(NamedTuple):
+    """One read() from a serial port: host monotonic and wall-clock time at return, and the bytes. A named tuple:
+    a drive's reads number in the hundreds of thousands (``sim``, ``rebuild``), and a tuple is made in one step,
+    where a frozen dataclass sets its fields one by one."""
 
     port: str
     mono_ns: int

@@ -117,8 +117,6 @@ RUN_VARIANTS = {  # name: (PPS mode, seconds, GPS settings, damaged reads)
 
 def _damaged(reads: list, seed: int) -> list:
     """Reads with bits flipped (2 %) and dropped (0.5 %)."""
-    from dataclasses import replace
-
     rng = np.random.default_rng(seed)
     out = []
     for r in reads:
@@ -128,7 +126,7 @@ def _damaged(reads: list, seed: int) -> list:
         if u < 0.025 and r.data:
             d = bytearray(r.data)
             d[rng.integers(len(d))] ^= 1 << int(rng.integers(8))
-            r = replace(r, data=bytes(d))
+            r = r._replace(data=bytes(d))
         out.append(r)
     return out
 
@@ -337,7 +335,7 @@ def test_jumped_epochs_a_late_read_holds_together_keep_their_order(tmp_path):
     gps = [i for i, r in enumerate(reads) if r.port == "gps" and 44 * NS < r.mono_ns - reads[0].mono_ns]
     late = gps[0]                 # from this GPS read on, 1.5 s of the port come in one late read
     nxt = [i for i in gps if reads[i].mono_ns - reads[late].mono_ns < 1.5 * NS][-1]
-    merged = replace(reads[nxt], data=b"".join(r.data for r in reads[late:nxt + 1] if r.port == "gps"))
+    merged = reads[nxt]._replace(data=b"".join(r.data for r in reads[late:nxt + 1] if r.port == "gps"))
     reads = [r for i, r in enumerate(reads) if not (late <= i <= nxt and r.port == "gps")]
     reads.insert(next(i for i, r in enumerate(reads) if r.mono_ns > merged.mono_ns), merged)
     with recorder.Recorder(tmp_path / "late.mcap", flush_interval_s=None, fsync=False) as rec:

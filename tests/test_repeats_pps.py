@@ -181,7 +181,7 @@ def test_a_counter_that_stops_advancing_mid_drive_is_logged_as_stuck(tmp_path: P
     fed, end = [], 0
     for r in reads:                       # the same reads, the DAQ ones carrying the stuck stream's bytes
         if r.port == "daq":
-            r = dataclasses.replace(r, data=stuck[end:end + len(r.data)])
+            r = r._replace(data=stuck[end:end + len(r.data)])
             end += len(r.data)
         fed.append(r)
     with caplog.at_level("WARNING", logger="fieldlog.acquire.pipeline"):
