@@ -101,7 +101,10 @@ class SensorTriadCal:
 
     def to_volts(self, x_si: np.ndarray) -> np.ndarray:
         """(n,3) SI values -> (n,3) volts (exact inverse of ``to_si``)."""
-        return rows.dot(x_si, np.linalg.inv(self.misalignment).T) * self.sensitivity + self.bias_V
+        out = rows.dot(x_si, np.linalg.inv(self.misalignment).T)
+        out *= self.sensitivity
+        out += self.bias_V
+        return out
 
 
 _MOUNTING_KEYS = ("imu_position_m", "imu_rpy_deg", "antenna_m")
@@ -224,7 +227,8 @@ def to_counts(cal: Calibration, omega_ib_b: np.ndarray, f_b: np.ndarray) -> tupl
     Counts are rounded to nearest and clipped to the signed 24-bit range; ``saturated`` holds
     the number of clipped samples per channel.
     """
-    volts = np.concatenate([cal.gyro.to_volts(omega_ib_b), cal.accel.to_volts(f_b)], axis=1)
-    counts = np.rint(volts / LSB_V)
+    counts = np.concatenate([cal.gyro.to_volts(omega_ib_b), cal.accel.to_volts(f_b)], axis=1)
+    counts /= LSB_V                 # in place, as each step below: these are a whole drive's samples
+    np.rint(counts, out=counts)
     saturated = np.count_nonzero((counts < COUNTS_MIN) | (counts > COUNTS_MAX), axis=0).astype(np.int64)
-    return np.clip(counts, COUNTS_MIN, COUNTS_MAX).astype(np.int32), saturated
+    return np.clip(counts, COUNTS_MIN, COUNTS_MAX, out=counts).astype(np.int32), saturated

@@ -415,15 +415,19 @@ def apply_errors(draws: ImuErrorDraws, omega_ib_b: np.ndarray, f_b: np.ndarray, 
     measured, true_cal = {}, {}
     for j, (name, m) in enumerate(_si_magnitudes(cfg).items()):
         cols = slice(3 * j, 3 * j + 3)
-        bias = realised[f"{name}_turn_on_bias"] + m["bias_instability"] * draws.flicker[:, cols]
-        noise = m["noise_density"] * draws.white[:, cols]
-        measured[name] = rows.dot(x_true[name], gain(realised, name).T) + bias + noise
+        # summed in place, each term in its turn: these are a whole drive's samples
+        bias = m["bias_instability"] * draws.flicker[:, cols]
+        bias += realised[f"{name}_turn_on_bias"]
+        measured[name] = rows.dot(x_true[name], gain(realised, name).T)
+        measured[name] += bias
+        measured[name] += m["noise_density"] * draws.white[:, cols]
         if draws.coloured is not None:
             realised[f"{name}_coloured"] = m["gm_sigma"] * draws.coloured[:, cols]
             measured[name] += realised[f"{name}_coloured"]
         nom = nominal[name]
         bias_V = nom.bias_V + realised[f"{name}_zero_bias_V"]
         true_cal[name] = SensorTriadCal(nom.sensitivity, bias_V, nom.misalignment)
-        realised[f"{name}_bias"] = bias + nom.to_si(bias_V)  # as seen through the nominal calibration
+        bias += nom.to_si(bias_V)
+        realised[f"{name}_bias"] = bias  # as seen through the nominal calibration
     counts, realised["saturated"] = to_counts(Calibration(**true_cal), measured["gyro"], measured["accel"])
     return counts, realised
