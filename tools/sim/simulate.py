@@ -31,7 +31,7 @@ NS = 1_000_000_000
 DAQ_BAUD = 921_600
 FRAME_DELAY_S = 150e-6      # ADC conversion and framing before the frame starts on the wire
 TRUTH_NAV_HZ = 100.0
-TRUTH_BLOCK = 8192          # /truth/imu samples encoded and written at a time (_write_imu)
+TRUTH_BLOCK = 8192          # /truth/* messages encoded and written at a time (_write_blocks)
 START_UTC = _dt.datetime(2026, 5, 4, 9, 30, 0, tzinfo=_dt.timezone.utc)
 
 
@@ -198,12 +198,13 @@ def write_truth(rec: recorder.Recorder, truth_data: dict) -> None:
     _write_imu(rec, "/truth/imu", t_ns, ts.omega_ib_b, ts.f_b)
     t_nav, nav = truth_data["t_nav"], truth_data["nav"]
     tn_ns = t0_ns + np.round(t_nav * NS).astype(np.int64)
-    rec.write_batch("/truth/fix", tn_ns, messages.encode_navsatfix(
-        tn_ns, np.degrees(nav.lat), np.degrees(nav.lon), nav.h, frame_id="imu"))
+    lat_deg, lon_deg = np.degrees(nav.lat), np.degrees(nav.lon)
+    _write_blocks(rec, "/truth/fix", tn_ns, lambda s: messages.encode_navsatfix(
+        tn_ns[s], lat_deg[s], lon_deg[s], nav.h[s], frame_id="imu"))
     # ENU vectors in a drive: the frame of the point they belong to (local ENU axes), as ROS GPS drivers do
-    rec.write_batch("/truth/vel", tn_ns, messages.encode_twist(tn_ns, nav.v_n, frame_id="imu"))
-    rec.write_batch("/truth/attitude", tn_ns, messages.encode_quaternion(
-        tn_ns, nav.q, frame_id="imu"))
+    _write_blocks(rec, "/truth/vel", tn_ns, lambda s: messages.encode_twist(tn_ns[s], nav.v_n[s], frame_id="imu"))
+    _write_blocks(rec, "/truth/attitude", tn_ns, lambda s: messages.encode_quaternion(
+        tn_ns[s], nav.q[s], frame_id="imu"))
     r = truth_data["realised"]  # the sensor error less its white noise, at the nav rate (sim.sensors.imu_counts)
     k = np.clip(np.searchsorted(t_k, t_nav), 0, len(t_k) - 1)
     bias = {}
@@ -216,18 +217,26 @@ def write_truth(rec: recorder.Recorder, truth_data: dict) -> None:
         tv_ns = t0_ns + np.round(vt["t_s"] * NS).astype(np.int64)
         lin = np.zeros((len(tv_ns), 3))
         lin[:, 0] = vt["forward"]
-        rec.write_batch("/truth/vehicle/twist", tv_ns, messages.encode_twist(tv_ns, lin, frame_id="base_link"))
+        _write_blocks(rec, "/truth/vehicle/twist", tv_ns, lambda s: messages.encode_twist(
+            tv_ns[s], lin[s], frame_id="base_link"))
 
 
 def _write_imu(rec: recorder.Recorder, topic: str, t_ns: np.ndarray, omega_b: np.ndarray, f_b: np.ndarray) -> None:
     """Imu messages of rates ``omega_b`` (rad/s) and specific forces ``f_b`` (m/s^2), (n, 3), at ``t_ns`` (UTC ns),
-    no covariances, to ``topic``: encoded and written ``TRUTH_BLOCK`` at a time, so the encoder fills memory the
-    allocator hands back rather than a fresh (n, 316)-byte array; ``write_batch`` fills the chunks the same
-    however its messages come."""
+    no covariances, to ``topic`` (``_write_blocks``)."""
     zero = np.zeros(9)
+    _write_blocks(rec, topic, t_ns, lambda s: messages.encode_imu(t_ns[s], omega_b[s], f_b[s], zero, zero,
+                                                                  frame_id="imu"))
+
+
+def _write_blocks(rec: recorder.Recorder, topic: str, t_ns: np.ndarray,
+                  encode: Callable[[slice], messages.Packed]) -> None:
+    """Messages of ``topic`` at ``t_ns`` (UTC ns), ``encode(s)`` the payloads of ``t_ns[s]``: encoded and written
+    ``TRUTH_BLOCK`` at a time, so the encoder fills memory the allocator hands back rather than a fresh array of
+    all of them; ``write_batch`` fills the chunks the same however its messages come."""
     for i in range(0, len(t_ns), TRUTH_BLOCK):
         s = slice(i, i + TRUTH_BLOCK)
-        rec.write_batch(topic, t_ns[s], messages.encode_imu(t_ns[s], omega_b[s], f_b[s], zero, zero, frame_id="imu"))
+        rec.write_batch(topic, t_ns[s], encode(s))
 
 
 def fusion_metadata(table: dict) -> dict[str, str]:
