@@ -2,9 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import ctypes
 import time
 
 from fieldlog.tools.commands.common import Progress, command_parser, log, needs_extras
+
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3     # glibc's mallopt parameters (malloc.h)
+MMAP_THRESHOLD = 32 << 20                       # bytes: the largest glibc takes
 
 
 def add_parser(sub) -> None:
@@ -74,6 +78,7 @@ def run(a: argparse.Namespace) -> int:
         return serve(a)
     if not a.out:
         raise ValueError("--out is required (or --serve)")
+    _reuse_freed_memory()
     from fieldlog.tools.sim.simulate import simulate
 
     t0 = time.monotonic()
@@ -83,6 +88,21 @@ def run(a: argparse.Namespace) -> int:
     log.info(f"wrote {res.path}: {res.imu_samples} IMU samples, {res.gps_epochs} GPS epochs, {res.reads} serial "
              f"reads in {time.monotonic() - t0:.1f} s")
     return 0
+
+
+def _reuse_freed_memory() -> None:
+    """Have glibc's malloc keep the memory of freed arrays for the next ones. A simulation makes and drops
+    whole-drive numpy arrays one after another; by default each one at or above the mmap threshold (which slides
+    up to the largest array freed, so an array of that size is mapped again) gets fresh pages of its own, which
+    the kernel clears at first touch and takes back when it is freed. The thresholds are fixed where glibc's own
+    rule takes them once an array of ``MMAP_THRESHOLD`` bytes is freed (trimming at twice it). A C library without
+    mallopt is left as it is."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+    mallopt(M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD)
 
 
 def serve(a: argparse.Namespace) -> int:
