@@ -209,3 +209,18 @@ def test_fuse_config_through_a_pipe_takes_effect(figure8_150s_seed3, tmp_path, h
     assert fused_config["nhc"] is False
     drive_record = reader.read_metadata(figure8_150s_seed3).get("fusion.config", {})
     assert ast.literal_eval(drive_record.get("nhc", "True")) is True
+
+
+@pytest.mark.parametrize("command, threads", [("sim", None), ("fuse", "1")])
+def test_the_entry_sets_numpy_and_openblas_before_numpy_loads(command, threads):
+    """The entry's environment for numpy, set before it loads (``tools.cli``): no huge-page advice for its arrays,
+    one OpenBLAS thread for the commands that write no drive; a setting in the environment wins."""
+    probe = ("import sys, os; sys.argv = ['fieldlog', %r, '--help']; import fieldlog.tools.cli; import numpy; "
+             "from numpy._core import multiarray; "
+             "print(multiarray._get_madvise_hugepage(), os.environ.get('OPENBLAS_NUM_THREADS'))" % command)
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMPY_MADVISE_HUGEPAGE", "OPENBLAS_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", str(threads)]
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "NUMPY_MADVISE_HUGEPAGE": "1"},
+                         capture_output=True, text=True, check=True).stdout
+    assert out.split()[0] == "True"

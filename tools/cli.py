@@ -21,6 +21,11 @@ import sys
 DRIVE_WRITERS = ("acquire", "sim", "rebuild", "recover", "import", "filter")
 if sys.argv[1:2] and sys.argv[1] not in DRIVE_WRITERS:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# No transparent huge pages for numpy's arrays, also set before numpy loads: numpy advises them for every large
+# array, and where the kernel then compacts memory at the first touch (transparent_hugepage/defrag "madvise", a
+# common default), each whole-drive array a command makes and drops (``sim`` makes dozens) can stall on it. The
+# arrays are walked in order, so the larger pages gain little. A setting in the environment wins.
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 from fieldlog.tools.commands import COMMANDS  # noqa: E402
 from fieldlog.tools.commands.common import KERNELS, METHODS, HelpFormatter  # noqa: E402
