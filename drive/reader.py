@@ -19,6 +19,7 @@ generic types carry ``msgs`` (a list of decoded message objects).
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from dataclasses import dataclass
@@ -349,7 +350,7 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
     Blocks start at the first message of the selected topics and follow each other without
     gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
     messages outside chunks) that overlap the block being built, and the next group of pieces, read on a
-    thread meanwhile (``_read_ahead``). Several files are one drive: their pieces are read in one log-time
+    thread meanwhile when the process has a second CPU (``_read_ahead``). Several files are one drive: their pieces are read in one log-time
     order, across the file boundaries. The topics of a type with a batch decoder
     (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their decoded rows
     wait for their block.
@@ -407,7 +408,8 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
             if t_end is None and left == 0:
                 t0 = None
 
-    for start_ns, read in _read_ahead(_group_reads(files, topics)):
+    reads = _group_reads(files, topics)
+    for start_ns, read in _read_ahead(reads) if _cpus() > 1 else reads:
         yield from emit(start_ns)
         for topic, type_name, t, p in read:
             if topic not in types:
@@ -437,6 +439,11 @@ def _group_reads(files: list[McapFile], topics: Sequence[str]) -> Iterator[Group
                 t, _, p = _select(cm, cids)
                 read.append((topic, f.type_of(cids[0]), t, p))
         yield int(f.pieces.start_ns[group].min()), read
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on: with one, a read-ahead thread would only take turns with its caller."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _read_ahead(items: Iterator[GroupRead]) -> Iterator[GroupRead]:
