@@ -350,10 +350,10 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
     Blocks start at the first message of the selected topics and follow each other without
     gaps (a block may be empty for some topics). Memory holds only the pieces (chunks, runs of
     messages outside chunks) that overlap the block being built, and the next group of pieces, read on a
-    thread meanwhile when the process has a second CPU (``_read_ahead``). Several files are one drive: their pieces are read in one log-time
-    order, across the file boundaries. The topics of a type with a batch decoder
-    (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their decoded rows
-    wait for their block.
+    thread meanwhile when the process has a second CPU (``_read_ahead``). Several files are one drive: their
+    pieces are read in one log-time order, across the file boundaries. The topics of a type with a batch
+    decoder (``drive.messages.BATCH_DECODERS``) are decoded as each group of pieces is read, and only their
+    decoded rows wait for their block.
 
     Parameters
     ----------
