@@ -12,11 +12,13 @@ scenario's ``[fusion]`` table goes into the ``fusion.config`` record (one key ea
 from __future__ import annotations
 
 import datetime as _dt
+import gc
 import os
+from contextlib import contextmanager
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -250,6 +252,22 @@ def fusion_metadata(table: dict) -> dict[str, str]:
     return {k: metavalue.dump(v) for k, v in table.items()}
 
 
+@contextmanager
+def _older_objects_frozen() -> Iterator[None]:
+    """The objects alive on entry (the modules' functions, classes and tables) moved into the collector's
+    permanent generation (``gc.freeze``) until exit. A simulation allocates enough objects to set off full
+    collections, which would walk all of those every time and find no garbage among them: each collection
+    walks only the objects made since. On exit they are collectable again, unless the caller froze objects
+    itself (``gc.unfreeze`` cannot tell its objects from ours)."""
+    caller_froze = gc.get_freeze_count() > 0
+    gc.freeze()
+    try:
+        yield
+    finally:
+        if not caller_froze:
+            gc.unfreeze()
+
+
 def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str | Path,
              pps_mode: str | None = None, progress: Callable[[float], None] | None = None,
              receiver: str | None = None, sync_settings: dict | None = None, can: bool = False,
@@ -260,36 +278,37 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
     bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``; also when the scenario's ``[vehicle] can``);
     ``mounting_rpy_deg`` (deg) and ``imu_delay_s`` (s) replace the scenario's ``[imu]`` ones. ``out`` must be new,
     unless ``force`` (``drive.outputs``)."""
-    outputs.check_new(out, force)
-    scenario = trajectory.load_scenario(scenario_name)
-    over = {k: v for k, v in (("mounting_rpy_deg", mounting_rpy_deg), ("delay_s", imu_delay_s)) if v is not None}
-    if over:
-        scenario = replace(scenario, imu={**scenario.imu, **over})
-    can = can or vehicle.from_scenario(scenario.vehicle)[0]
-    duration_s = float(duration_s or scenario.duration_s)
-    fusion_meta = fusion_metadata(scenario.fusion)
-    reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver, can)
-    gps_cfg = GpsConfig.from_dict({**scenario.gps, **({"receiver": receiver} if receiver else {})})
-    meta = {"source": "fieldlog sim", "scenario": scenario.name, "seed": str(seed),
-            "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
-            "drive_start_utc_ns": str(t0_ns), "imu_rate_hz": repr(float(ccfg.fs_hz)),
-            "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
-    sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
-                                                  **(sync_settings or {})})
-    with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,
-                           behind=True) as rec:
-        pipe = Pipeline(rec, cal, sync_cfg, PipelineConfig(can=vehicle.bus_config() if can else None))
-        for name, d in pipe.metadata().items():
-            rec.add_metadata(name, d)
-        if fusion_meta:
-            rec.add_metadata("fusion.config", fusion_meta)
-        sim_truth = truth_metadata(truth_data, scenario)
-        if sim_truth:
-            rec.add_metadata("sim.truth", sim_truth)
-        write_truth(rec, truth_data)   # before /imu: drivestats pairs /imu with it as /imu comes
-        pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
-        pipe.finish()
-        rec.add_metadata("acquire.counters", pipe.counters_metadata())
-    if progress:
-        progress(1.0)
-    return SimResult(Path(out), pipe.counters.imu_samples, pipe.counters.gps_epochs, len(reads), pipe.counters)
+    with _older_objects_frozen():
+        outputs.check_new(out, force)
+        scenario = trajectory.load_scenario(scenario_name)
+        over = {k: v for k, v in (("mounting_rpy_deg", mounting_rpy_deg), ("delay_s", imu_delay_s)) if v is not None}
+        if over:
+            scenario = replace(scenario, imu={**scenario.imu, **over})
+        can = can or vehicle.from_scenario(scenario.vehicle)[0]
+        duration_s = float(duration_s or scenario.duration_s)
+        fusion_meta = fusion_metadata(scenario.fusion)
+        reads, truth_data, t0_ns, ccfg, cal = make_reads(scenario, duration_s, seed, pps_mode, receiver, can)
+        gps_cfg = GpsConfig.from_dict({**scenario.gps, **({"receiver": receiver} if receiver else {})})
+        meta = {"source": "fieldlog sim", "scenario": scenario.name, "seed": str(seed),
+                "duration_s": repr(duration_s), "pps_mode": ccfg.pps_mode,
+                "drive_start_utc_ns": str(t0_ns), "imu_rate_hz": repr(float(ccfg.fs_hz)),
+                "gps_rate_hz": repr(float(gps_cfg.rate_hz)), "gps_receiver": gps_cfg.receiver}
+        sync_cfg = timesync.TimeSyncConfig.from_dict({"pps_mode": ccfg.pps_mode, "fs_hz": ccfg.fs_hz,
+                                                      **(sync_settings or {})})
+        with recorder.Recorder(out, flush_interval_s=None, fsync=False, metadata=meta, force=force,
+                               behind=True) as rec:
+            pipe = Pipeline(rec, cal, sync_cfg, PipelineConfig(can=vehicle.bus_config() if can else None))
+            for name, d in pipe.metadata().items():
+                rec.add_metadata(name, d)
+            if fusion_meta:
+                rec.add_metadata("fusion.config", fusion_meta)
+            sim_truth = truth_metadata(truth_data, scenario)
+            if sim_truth:
+                rec.add_metadata("sim.truth", sim_truth)
+            write_truth(rec, truth_data)   # before /imu: drivestats pairs /imu with it as /imu comes
+            pipe.feed_reads(reads, (lambda i: progress(i / len(reads))) if progress else None)
+            pipe.finish()
+            rec.add_metadata("acquire.counters", pipe.counters_metadata())
+        if progress:
+            progress(1.0)
+        return SimResult(Path(out), pipe.counters.imu_samples, pipe.counters.gps_epochs, len(reads), pipe.counters)
