@@ -7,7 +7,7 @@ import time
 
 from fieldlog.tools.commands.common import Progress, command_parser, log, needs_extras
 
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3     # glibc's mallopt parameters (malloc.h)
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8   # glibc's mallopt parameters (malloc.h)
 MMAP_THRESHOLD = 32 << 20                       # bytes: the largest glibc takes
 
 
@@ -95,14 +95,17 @@ def _reuse_freed_memory() -> None:
     whole-drive numpy arrays one after another; by default each one at or above the mmap threshold (which slides
     up to the largest array freed, so an array of that size is mapped again) gets fresh pages of its own, which
     the kernel clears at first touch and takes back when it is freed. The thresholds are fixed where glibc's own
-    rule takes them once an array of ``MMAP_THRESHOLD`` bytes is freed (trimming at twice it). A C library without
-    mallopt is left as it is."""
+    rule takes them once an array of ``MMAP_THRESHOLD`` bytes is freed (trimming at twice it). All threads share
+    one arena: the arrays that the threads beside the simulation's main thread free (its sensor errors' draws) are
+    then reused by the next arrays of any thread, where a thread's own arena would keep them from the others, so
+    the main thread's next arrays would take fresh pages. A C library without mallopt is left as it is."""
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return
     mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
     mallopt(M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD)
+    mallopt(M_ARENA_MAX, 1)
 
 
 def serve(a: argparse.Namespace) -> int:
