@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_left, bisect_right, insort
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import IntEnum
 from operator import itemgetter
@@ -294,10 +295,13 @@ class HostClock:
         self.wall_minus_mono: int | None = None
         self.offsets: deque[int] = deque(maxlen=16)              # label - edge mono (ns), accepted edges only
 
-    def put(self, b: int, v: int) -> None:
-        """Host offset ``v`` (wall ns - k * ns per sample) seen in envelope bin ``b``: the bin keeps the least."""
-        old = self.bins.get(b)
-        self.bins[b] = v if old is None else min(old, v)
+    def put(self, bins: Iterable[int], offsets: Iterable[int]) -> None:
+        """Host offsets (wall ns - k * ns per sample) seen in envelope bins ``bins``, in turn: each bin keeps the
+        least."""
+        kept = self.bins
+        for b, v in zip(bins, offsets):
+            old = kept.get(b)
+            kept[b] = v if old is None or v < old else old
 
     def add_read(self, k: np.ndarray, wall_ns: int) -> None:
         """The frames ``k`` (sample indices) of one read at host wall time ``wall_ns`` (ns) into the bins."""
@@ -306,8 +310,7 @@ class HostClock:
             last = [k.size - 1]
         else:
             last = np.flatnonzero(np.diff(b, append=b[-1] + 1)).tolist()   # last frame of each bin in this read
-        for i in last:
-            self.put(int(b[i]), wall_ns - round(int(k[i]) * self.ns_per_sample))
+        self.put(b[last].tolist(), [wall_ns - round(x * self.ns_per_sample) for x in k[last].tolist()])
 
     def _offset(self, b: int) -> int:
         vals = [self.bins[x] for x in range(b - self._bin_half, b + self._bin_half + 1) if x in self.bins]
@@ -895,7 +898,9 @@ class TimeSync:
             return
         kl = k.tolist()
         r0 = 0                                 # the first read not added yet
-        for i in sorted(set(np.searchsorted(ends, np.flatnonzero(pps), "right").tolist())):   # reads with a flag
+        flags = np.flatnonzero(pps)            # most runs have none
+        with_flag = sorted(set(np.searchsorted(ends, flags, "right").tolist())) if flags.size else []   # their reads
+        for i in with_flag:
             a, b = (ends[i - 1] if i else 0), ends[i]
             if i > r0:
                 self._add_quiet(kl, ends, r0, i, mono_ns, wall_ns)
@@ -915,7 +920,10 @@ class TimeSync:
         (``Finaliser.due`` is monotonic in ``k_max`` while nothing else changes), so the reads where one is due
         are found by bisection rather than by asking after every read."""
         bn, ns_per_sample = self._s.bin, self.host.ns_per_sample
-        host: list[tuple[int, int, int]] = []     # read, bin and host offset of each bin's last frame in a read
+        # read, bin and host offset of each bin's last frame in a read
+        host_r: list[int] = []
+        host_b: list[int] = []
+        host_v: list[int] = []
         reads, ks = [], []                         # each read with frames and its last sample
         for r in range(r0, r1):
             a, b = (ends[r - 1] if r else 0), ends[r]
@@ -923,7 +931,9 @@ class TimeSync:
                 continue
             while a < b:
                 j = bisect_left(k, (k[a] // bn + 1) * bn, a, b)      # past the last frame of k[a]'s bin
-                host.append((r, k[j - 1] // bn, wall_ns[r] - round(k[j - 1] * ns_per_sample)))
+                host_r.append(r)
+                host_b.append(k[j - 1] // bn)
+                host_v.append(wall_ns[r] - round(k[j - 1] * ns_per_sample))
                 a = j
             reads.append(r)
             ks.append(k[b - 1])
@@ -933,9 +943,9 @@ class TimeSync:
 
         def bins_until(i: float) -> None:   # the host times of the reads up to i into the bins
             nonlocal h
-            while h < len(host) and host[h][0] <= i:
-                self.host.put(*host[h][1:])
-                h += 1
+            e = bisect_right(host_r, i, h)
+            self.host.put(host_b[h:e], host_v[h:e])
+            h = e
 
         def due(e: int) -> bool:
             return self._final.due(e, self._finished)
