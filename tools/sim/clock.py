@@ -66,13 +66,27 @@ def sample_times(n: int, cfg: ClockConfig, rng: np.random.Generator) -> np.ndarr
     phase0 = rng.uniform(0, 2 * np.pi)
     r, a = cfg.rate_offset_ppm * 1e-6, cfg.wander_ppm * 1e-6
 
-    def ticks(t: np.ndarray) -> np.ndarray:
-        return cfg.fs_hz * (t * (1 + r) - a / w * (np.cos(w * t + phase0) - np.cos(phase0)))
-
     k = np.arange(n, dtype=np.float64)
     t = k / (cfg.fs_hz * (1 + r))
+    phase, step, scaled = np.empty(n), np.empty(n), np.empty(n)
     for _ in range(3):
-        t -= (ticks(t) - k) / (cfg.fs_hz * (1 + r + a * np.sin(w * t + phase0)))
+        # t -= (ticks(t) - k) / ticks'(t), ticks(t) = fs (t (1 + r) - a / w (cos(w t + phase0) - cos(phase0))),
+        # ticks'(t) = fs (1 + r + a sin(w t + phase0)): each operation in that order, in place in three arrays
+        np.multiply(w, t, out=phase)
+        phase += phase0
+        np.cos(phase, out=step)
+        step -= np.cos(phase0)
+        step *= a / w
+        np.multiply(t, 1 + r, out=scaled)
+        np.subtract(scaled, step, out=step)
+        step *= cfg.fs_hz
+        step -= k
+        np.sin(phase, out=phase)
+        phase *= a
+        phase += 1 + r
+        phase *= cfg.fs_hz
+        step /= phase
+        t -= step
     return t
 
 

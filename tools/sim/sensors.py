@@ -227,7 +227,9 @@ def flicker_noise(
             z = rng.standard_normal((grid.size, n_channels))
             x_prev = rng.standard_normal(n_channels)  # stationary start
             acc += _ar1(math.sqrt(1.0 - phi * phi), phi, z, x_prev)
-    return _lerp_uniform(acc, h0, t_rel_s) * math.sqrt(s2)
+    out = _lerp_uniform(acc, h0, t_rel_s)
+    out *= math.sqrt(s2)
+    return out
 
 
 def lowpass(x: np.ndarray, phi: float, start: np.ndarray | None = None) -> np.ndarray:
