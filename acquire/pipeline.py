@@ -273,7 +273,8 @@ class Pipeline:
         judge takes all their frames as they are (``CounterJudge.usual``; time sync then takes them as one,
         ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
         self._write_tf_static(run[0].wall_ns)
-        self.sink.write_each("/raw/daq", [r.wall_ns for r in run],
+        wall_ns = [r.wall_ns for r in run]
+        self.sink.write_each("/raw/daq", wall_ns,
                              [messages.encode_raw(r.wall_ns, r.mono_ns, "daq", r.data) for r in run])
         self.counters.reads["daq"] = self.counters.reads.get("daq", 0) + len(run)
         last = run[-1]
@@ -286,7 +287,7 @@ class Pipeline:
             if usual is not None:
                 self._last_daq_read = (last.mono_ns, last.wall_ns)
                 self.sync.add_run(usual.k, usual.pps, usual.latch, usual.latch_valid, ends,
-                                  [r.mono_ns for r in run], [r.wall_ns for r in run])
+                                  [r.mono_ns for r in run], wall_ns)
                 self.output.pending.append((usual.k, usual.counts))
                 self._emit_due(last.mono_ns)
                 return
