@@ -1182,7 +1182,7 @@ BatchDecoder = Callable[..., dict[str, np.ndarray]]
 def _batch_decoder(decoder: Callable[["Packed | Sequence[bytes]"], dict[str, np.ndarray]]) -> BatchDecoder:
     """A decoder over ``_decode_fixed``'s fields as a public one, ``decode_x(msgs, fields=None)``: the keys in
     ``fields`` (all: None) as contiguous arrays; the others are never copied out of the payloads (a reader that
-    wants three of an Imu's seven saves copying its covariances)."""
+    wants an Imu's rates and forces saves copying its covariances)."""
 
     @wraps(decoder)
     def decode(msgs: "Packed | Sequence[bytes]", fields: Collection[str] | None = None) -> dict[str, np.ndarray]:
