@@ -135,14 +135,16 @@ class Engine:
             for p in self._parts():
                 if hasattr(p, "feed"):
                     p.feed(odom)
-        w, f = np.asarray(imu.omega_ib_b, float), np.asarray(imu.f_b, float)
-        # finite rows, tested a column at a time (numpy's all() over rows of three elements is slow)
-        ok = np.logical_and.reduce([np.isfinite(a[:, i]) for a in (w, f) for i in range(3)])
-        t_ns = np.asarray(imu.t_ns, np.int64)[ok] - self._imu_late_ns  # on the GPS's time
-        w, f = w[ok], f[ok]
+        w, f = np.ascontiguousarray(imu.omega_ib_b, float), np.ascontiguousarray(imu.f_b, float)
+        t_ns = np.asarray(imu.t_ns, np.int64) - self._imu_late_ns  # on the GPS's time
+        if not (np.isfinite(w).all() and np.isfinite(f).all()):
+            # finite rows, tested a column at a time (numpy's all() over rows of three elements is slow)
+            ok = np.logical_and.reduce([np.isfinite(a[:, i]) for a in (w, f) for i in range(3)])
+            t_ns, w, f = t_ns[ok], w[ok], f[ok]
         if self._carry is not None:
             keep = t_ns > self._carry[0][-1]
-            t_ns, w, f = (np.concatenate([c, x[keep]]) for c, x in zip(self._carry, (t_ns, w, f)))
+            rows = slice(None) if keep.all() else keep
+            t_ns, w, f = (np.concatenate([c, x[rows]]) for c, x in zip(self._carry, (t_ns, w, f)))
         if self.t_ref_ns is None and len(t_ns):
             self.t_ref_ns = int(t_ns[0])
             self.outages.force(self.t_ref_ns, self.cfg.gps.outages)
