@@ -1,8 +1,9 @@
 /* The filter cycles' matrices of fusion/errmodel.py, the covariance propagation and the updates of fusion/kf.py,
- * and the distributed filter's fusion (fusion/dkf.py), in C.
+ * the distributed filter's fusion (fusion/dkf.py) and the still detector's interval sums (fusion/still.py), in C.
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
- * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse and smoother.rts; it needs no Python headers.
+ * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse, smoother.rts and still.ImuSums.add; it needs
+ * no Python headers.
  * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
  * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
  * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal
@@ -264,6 +265,25 @@ KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double 
             S[i] = A[i] + 0.5 * (Bk[i] + B[i]);
         memcpy(hist + k * N * K, S, sizeof(double) * N * K);
     }
+}
+
+/* The interval sums of fusion/still.ImuSums.add: sums (4 x 3: rate, specific force, their squares) += the sums
+ * over the n rows of w and f (n x 3). Each column is summed from its first row on, one row after the other, and
+ * the squares from +0.0: numpy's order for a sum over the rows of a C-contiguous array and for
+ * einsum("ij,ij->j"), so the sums equal numpy's to the bit. */
+void fieldlog_sample_sums(int64_t n, const double *w, const double *f, double *sums)
+{
+    const double *x[2] = {w, f};
+    for (int a = 0; a < 2; a++)
+        for (int j = 0; j < 3; j++) {
+            double s = n > 0 ? x[a][j] : 0.0, sq = 0.0;
+            for (int64_t i = 1; i < n; i++)
+                s += x[a][i * 3 + j];
+            for (int64_t i = 0; i < n; i++)
+                sq += x[a][i * 3 + j] * x[a][i * 3 + j];
+            sums[a * 3 + j] += s;
+            sums[6 + a * 3 + j] += sq;
+        }
 }
 
 /* ---- the per-epoch updates: KalmanFilter.update (Joseph form) and DistributedKF's fusion (fusion/dkf.py) ----

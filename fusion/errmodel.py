@@ -207,8 +207,8 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
 
 @functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices, covariance cycles, updates, fusion, smoothing and the predictors' RLS step
-    (fusion/_cycles.c), loaded once.
+    """The compiled cycle matrices, covariance cycles, updates, fusion, smoothing, the predictors' RLS step and the
+    still detector's interval sums (fusion/_cycles.c), loaded once.
 
     Returns
     -------
@@ -221,6 +221,7 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_segment_cycles": ([i64, i64] + [p] * 16, i32),
         "fieldlog_propagate_cov": [i64, p, p, f64, i32, p, p],
         "fieldlog_consider_cycles": [i64, p, p, p, p],
+        "fieldlog_sample_sums": [i64, p, p, p],
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
         "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),

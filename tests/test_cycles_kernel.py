@@ -10,7 +10,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from fieldlog.fusion import consider, earth, errmodel, ins, kernels, kf
+from fieldlog.fusion import consider, earth, errmodel, ins, kernels, kf, still
 from fieldlog.fusion.dkf import DistributedKF
 
 
@@ -126,6 +126,21 @@ def test_compiled_consider_cycles_equal_numpy():
         S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
         _same(out[i], S)
     _same(c.S, S)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 500, 12_000])
+def test_compiled_interval_sums_equal_numpy(n):
+    """The still detector's interval sums (``still.ImuSums.add``) are numpy's sums over the rows and
+    einsum("ij,ij->j"), added to what the interval held, to the bit."""
+    rng = np.random.default_rng(n)
+    w, f = rng.normal(0.0, 0.5, (n + 3, 3)) * [1e-3, 1.0, 1e3], rng.normal(9.8, 0.3, (n + 3, 3))
+    sums, want = still.ImuSums(), np.zeros((4, 3))
+    for i0, i1 in ((-1, 2), (2, n + 2)):
+        sums.add(w, f, i0, i1)
+        ws, fs = w[i0 + 1:i1 + 1], f[i0 + 1:i1 + 1]
+        want += [ws.sum(axis=0), fs.sum(axis=0), np.einsum("ij,ij->j", ws, ws), np.einsum("ij,ij->j", fs, fs)]
+    _same(sums.sums, want)
+    assert sums.n == n + 3
 
 
 def _spd(rng: np.random.Generator, n: int, cond: float) -> np.ndarray:
