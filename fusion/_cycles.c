@@ -252,13 +252,22 @@ KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q
 }
 
 /* The consider sensitivity of fusion/consider.GyroConsider.propagate: S <- Phi_i S + 1/2 (Bdt_i + Phi_i Bdt_i) for
- * i < m, S (15, 9) in place, Bdt (m, 15, 9); hist (m, 15, 9) gets S after each cycle */
-KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double *Bdt, double *S, double *hist)
+ * i < m, S (15, 9) in place; hist (m, 15, 9) gets S after each cycle. Bdt_i, the error-state change per unit of c
+ * over cycle i, is formed from the cycle's C_bn (m, 3, 3), mean rate omega (m, 3, rad/s, body RFU) and length dt
+ * (m, s): its attitude rows, column p, are -C_bn[:, axis_p] times rate_p, times dt (consider.py's order of c) */
+KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double *C_bn, const double *omega,
+                                     const double *dt, double *S, double *hist)
 {
-    enum { K = 9 };
-    double A[N * K], B[N * K];
+    enum { K = 9, ATT0 = 6 };
+    static const int axis[K] = {0, 1, 2, 0, 0, 1, 1, 2, 2}, rate[K] = {0, 1, 2, 1, 2, 0, 2, 0, 1};
+    double A[N * K], B[N * K], Bk[N * K];
     for (int64_t k = 0; k < m; k++) {
-        const double *F = Phi + k * N * N, *Bk = Bdt + k * N * K;
+        const double *F = Phi + k * N * N, *C = C_bn + k * 9, *w = omega + k * 3;
+        for (int i = 0; i < N * K; i++)
+            Bk[i] = 0.0 * dt[k];
+        for (int r = 0; r < 3; r++)
+            for (int p = 0; p < K; p++)
+                Bk[(ATT0 + r) * K + p] = (-C[r * 3 + axis[p]] * w[rate[p]]) * dt[k];
         matmul(N, N, K, F, N, S, K, 0, A, K);
         matmul(N, N, K, F, N, Bk, K, 0, B, K);
         for (int i = 0; i < N * K; i++)

@@ -38,34 +38,9 @@ from __future__ import annotations
 import numpy as np
 
 from fieldlog.fusion import errmodel, kernels
-from fieldlog.fusion.errmodel import ATT, N_STATES
+from fieldlog.fusion.errmodel import N_STATES
 
-N_PARAMS = 9
-_MA = [(i, j) for i in range(3) for j in range(3) if i != j]  # misalignment m_ij: rate j read on axis i
-_AXIS = np.array([0, 1, 2] + [i for i, _ in _MA])  # per parameter of c: the axis i that reads rate j
-_RATE = np.array([0, 1, 2] + [j for _, j in _MA])
-
-
-def gyro_sensitivity(C_bn: np.ndarray, omega_b: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """B dt: the error-state change over each cycle per unit of c (module docstring).
-
-    Parameters
-    ----------
-    C_bn : ndarray (m, 3, 3)
-        Each cycle's attitude, body RFU -> ENU.
-    omega_b : ndarray (m, 3)
-        Each cycle's mean bias-corrected rate, rad/s, body RFU.
-    dt : ndarray (m,)
-        Cycle lengths, s.
-
-    Returns
-    -------
-    ndarray (m, 15, 9)
-        B dt per cycle (``fusion.errmodel`` state order; c as the module docstring orders it).
-    """
-    B = np.zeros((len(dt), N_STATES, N_PARAMS))
-    B[:, ATT] = -C_bn[:, :, _AXIS] * omega_b[:, None, _RATE]  # column p: -C_bn[:, i] times rate j (one pass)
-    return B * np.asarray(dt, float)[:, None, None]
+N_PARAMS = 9  # c: 3 scale factors, then the misalignments m_ij (rate j read on axis i) in row order
 
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -116,28 +91,37 @@ class GyroConsider:
         S = self.S if S is None else S
         return (S * S) @ self.var_c
 
-    def propagate(self, Phi: np.ndarray, Bdt: np.ndarray) -> np.ndarray:
-        """S through cycles, compiled (fusion/_cycles.c): S <- Phi S + 0.5 (Bdt + Phi Bdt) per cycle.
+    def propagate(self, Phi: np.ndarray, C_bn: np.ndarray, omega_b: np.ndarray, dt: np.ndarray) -> np.ndarray:
+        """S through cycles, compiled (fusion/_cycles.c): S <- Phi S + 0.5 (B dt + Phi B dt) per cycle, with
+        B dt = d(x')/dc dt: its attitude rows, column p, -C_bn[:, i] times rate j (the axis i that reads rate j
+        for parameter p of c), times dt; its other rows zero.
 
         Parameters
         ----------
         Phi : ndarray (m, 15, 15)
             The cycles' transition matrices.
-        Bdt : ndarray (m, 15, 9)
-            Their :func:`gyro_sensitivity`.
+        C_bn : ndarray (m, 3, 3)
+            Each cycle's attitude, body RFU -> ENU.
+        omega_b : ndarray (m, 3)
+            Each cycle's mean bias-corrected rate, rad/s, body RFU.
+        dt : ndarray (m,)
+            Cycle lengths, s.
 
         Returns
         -------
         ndarray (m, 15, 9)
             S after each cycle.
         """
-        Phi, Bdt = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Bdt, dtype=float)
-        if Phi.shape[1:] != (N_STATES, N_STATES) or Bdt.shape != (len(Phi), N_STATES, N_PARAMS):
-            raise ValueError(f"consider cycles need Phi (m, 15, 15) and Bdt (m, 15, 9): {Phi.shape}, {Bdt.shape}")
+        m = len(Phi)
+        Phi, C_bn, omega_b, dt = (np.ascontiguousarray(a, dtype=float) for a in (Phi, C_bn, omega_b, dt))
+        if (Phi.shape, C_bn.shape, omega_b.shape, dt.shape) != ((m, N_STATES, N_STATES), (m, 3, 3), (m, 3), (m,)):
+            raise ValueError(f"consider cycles need Phi (m, 15, 15), C_bn (m, 3, 3), omega_b (m, 3) and dt (m,): "
+                             f"{Phi.shape}, {C_bn.shape}, {omega_b.shape}, {dt.shape}")
         S = np.array(self.S, dtype=float, order="C")
-        out = np.empty((len(Phi), N_STATES, N_PARAMS))
-        # compiled (fusion/_cycles.c): per cycle S <- Phi S + 0.5 (Bdt + Phi Bdt), numpy's numbers (errmodel's note)
-        errmodel.cycle_kernel().fieldlog_consider_cycles(len(Phi), *map(kernels.address, (Phi, Bdt, S, out)))
+        out = np.empty((m, N_STATES, N_PARAMS))
+        # compiled (fusion/_cycles.c): B dt, then S <- Phi S + 0.5 (Bdt + Phi Bdt) per cycle, numpy's numbers
+        # (errmodel's note)
+        errmodel.cycle_kernel().fieldlog_consider_cycles(m, *map(kernels.address, (Phi, C_bn, omega_b, dt, S, out)))
         self.S = S
         return out
 

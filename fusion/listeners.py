@@ -159,7 +159,7 @@ class GyroConsider(Listener):
         ----------
         t_end_ns, Phi, P, C_bn, omega_b, dt, diag : as :meth:`Listener.cycles`
         """
-        S = self.analysis.propagate(Phi, consider.gyro_sensitivity(C_bn, omega_b, dt))
+        S = self.analysis.propagate(Phi, C_bn, omega_b, dt)
         diag[:, BA] += self.analysis.variance(S)[:, BA]
         if self.log is not None:
             self.log.sensitivity(S)

@@ -94,7 +94,7 @@ def test_the_kernels_refuse_shapes_they_do_not_take():
         errmodel.discrete_cycles(lat, h, v[:3], C, f_n, np.eye(12), dt)
     Phi, Q = errmodel.discrete_cycles(lat, h, v, C, f_n, np.eye(12), dt)
     with pytest.raises(ValueError):
-        consider.GyroConsider(1e-3, 1e-3).propagate(Phi, np.zeros((4, 15, 8)))
+        consider.GyroConsider(1e-3, 1e-3).propagate(Phi, C, np.zeros((4, 2)), dt)
 
 
 def test_the_filter_cycles_keep_a_zero_state_zero_and_move_a_nonzero_one():
@@ -117,11 +117,16 @@ def test_compiled_consider_cycles_equal_numpy():
     rng = np.random.default_rng(11)
     lat, h, v, C, f_n, dt = _cycles(rng, 9)
     Phi, _ = errmodel.discrete_cycles(lat, h, v, C, f_n, np.eye(12) * 1e-6, dt)
-    Bdt = consider.gyro_sensitivity(C, rng.normal(0.0, 0.3, (9, 3)), dt)
+    w = rng.normal(0.0, 0.3, (9, 3))
+    # B dt in numpy: column p of the attitude rows is -C_bn[:, i] times rate j, c = [s_x s_y s_z m_xy m_xz ... m_zy]
+    axis, rate = [0, 1, 2, 0, 0, 1, 1, 2, 2], [0, 1, 2, 1, 2, 0, 2, 0, 1]
+    Bdt = np.zeros((9, 15, 9))
+    Bdt[:, 6:9] = -C[:, :, axis] * w[:, None, rate]
+    Bdt = Bdt * dt[:, None, None]
     c = consider.GyroConsider(1e-3, 1e-3)
     c.S = rng.normal(size=(15, 9))
     S = c.S.copy()
-    out = c.propagate(Phi, Bdt)
+    out = c.propagate(Phi, C, w, dt)
     for i in range(len(Phi)):
         S = Phi[i] @ S + 0.5 * (Bdt[i] + Phi[i] @ Bdt[i])
         _same(out[i], S)
