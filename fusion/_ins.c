@@ -146,10 +146,14 @@ static void step(const double *e, double dt, const double w0[3], const double f0
 
 /* The INS over n samples at times t (s), rates w (n x 3, rad/s) and specific forces f (n x 3, m/s^2), from the
  * state p0 = lat, lon (rad), h (m), v_n[3] (m/s), q[4] at t[0]; e: the Earth constants (EARTH_*). Element k
- * of lat, lon, h (n), v (n x 3) and q (n x 4) is the state at t[k]; element 0 is p0's. */
-void fieldlog_ins_integrate(int64_t n, const double *t, const double *w, const double *f, const double *e,
-                            const double *p0, double *lat, double *lon, double *h, double *v, double *q)
+ * of lat, lon, h (n), v (n x 3) and q (n x 4) is the state at t[k]; element 0 is p0's. Returns 1, having
+ * written nothing, when the times are not strictly increasing (a NaN among them included); else 0. */
+int32_t fieldlog_ins_integrate(int64_t n, const double *t, const double *w, const double *f, const double *e,
+                               const double *p0, double *lat, double *lon, double *h, double *v, double *q)
 {
+    for (int64_t k = 1; k < n; k++)
+        if (!(t[k] > t[k - 1]))
+            return 1;
     double p[10];
     for (int i = 0; i < 10; i++)
         p[i] = p0[i];
@@ -164,4 +168,5 @@ void fieldlog_ins_integrate(int64_t n, const double *t, const double *w, const d
         for (int i = 0; i < 4; i++)
             q[4 * k + i] = p[6 + i];
     }
+    return 0;
 }

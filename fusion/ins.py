@@ -25,6 +25,7 @@ first pass's result. Every error term is then third order in dt per step.
 from __future__ import annotations
 
 import ctypes
+import functools
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -91,9 +92,11 @@ class NavSolution:
         return earth.dcm_to_euler(earth.quat_to_dcm(self.q))
 
 
+@functools.cache
 def _kernel() -> ctypes.CDLL:
     """The compiled step (fusion/_ins.c)."""
-    return kernels.load("fieldlog.fusion._ins", {"fieldlog_ins_integrate": [ctypes.c_int64] + [ctypes.c_void_p] * 10})
+    return kernels.load("fieldlog.fusion._ins", {"fieldlog_ins_integrate": ([ctypes.c_int64] + [ctypes.c_void_p] * 10,
+                                                                            ctypes.c_int32)})
 
 
 def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.ndarray) -> NavSolution:
@@ -127,8 +130,6 @@ def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.
     n = t.shape[0]
     if w.shape != (n, 3) or f.shape != (n, 3):
         raise ValueError("omega_ib_b and f_b must be (n, 3) with n = len(t_s)")
-    if n > 1 and not np.all(np.diff(t) > 0.0):
-        raise ValueError("t_s must be strictly increasing")
     if n and abs(t[0] - state.t) > 1e-9:
         raise ValueError("the first sample must be at the state's time")
     out = NavSolution(t.copy(), np.empty(n), np.empty(n), np.empty(n), np.empty((n, 3)), np.empty((n, 4)))
@@ -137,8 +138,9 @@ def integrate(state: NavState, t_s: np.ndarray, omega_ib_b: np.ndarray, f_b: np.
                              np.asarray(state.q, dtype=float).ravel()))
         if p0.shape != (10,):
             raise ValueError("the state's v_n must have 3 elements and q 4")
-        _kernel().fieldlog_ins_integrate(n, *map(kernels.address, (t, w, f, earth.KERNEL_CONSTANTS, p0, out.lat,
-                                                                   out.lon, out.h, out.v_n, out.q)))
+        if _kernel().fieldlog_ins_integrate(n, *map(kernels.address, (t, w, f, earth.KERNEL_CONSTANTS, p0, out.lat,
+                                                                      out.lon, out.h, out.v_n, out.q))):
+            raise ValueError("t_s must be strictly increasing")
     return out
 
 

@@ -81,14 +81,15 @@ def test_an_install_without_its_kernels_says_to_reinstall(simulated, monkeypatch
     import importlib.util
 
     from fieldlog.drive import native
-    from fieldlog.fusion import errmodel, kernels
+    from fieldlog.fusion import errmodel, ins, kernels
     from fieldlog.tools.cli import main
 
     drive = simulated("figure8", 60, 1)
     find = importlib.util.find_spec
     monkeypatch.setattr(native, "_libs", {})
     monkeypatch.setattr(kernels, "_loaded", {})
-    errmodel.cycle_kernel.cache_clear()  # its functions' types are set once per process; loaded again here
+    for loader in (errmodel.cycle_kernel, ins._kernel):  # their functions' types are set once per process
+        loader.cache_clear()
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == kernel else find(name, *a))
     capsys.readouterr()
     rc = main([argv[0], str(drive), *(x.format(tmp=tmp_path) for x in argv[1:])])

@@ -149,6 +149,11 @@ def test_step_and_blocks_match_integrate(figure8):
     np.testing.assert_array_equal(st.v_n, whole.v_n[49])
     with pytest.raises(ValueError):
         ins.integrate(state, t[::-1], s.omega_ib_b, s.f_b)
+    for bad in (t[5], np.nan):  # a repeated stamp, a NaN: refused, starting at the state's time
+        tb = t.copy()
+        tb[6] = bad
+        with pytest.raises(ValueError, match="strictly increasing"):
+            ins.integrate(state, tb, s.omega_ib_b, s.f_b)
 
 
 @pytest.mark.parametrize("name", ["figure8", "figure8-real", "urban"])
