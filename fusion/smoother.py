@@ -385,23 +385,26 @@ def smoothed_blocks(blocks: Iterable[Solution], log: SmootherLog) -> Iterator[So
         Each block's rows smoothed (sigma the smoothed standard deviations).
     """
     sm = rts(log)
+    gps_var = ((np.array([t for t, _ in log.gps_var], np.int64), np.array([v for _, v in log.gps_var]))
+               if log.gps_var else None)
     try:
         for sol in blocks:
-            yield smooth_rows(sol, sm, log)
+            yield smooth_rows(sol, sm, gps_var)
     finally:
         if sm is not None:
             sm.close()
 
 
-def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solution:
-    """Forward solution rows (any block of them) smoothed with ``sm`` (``rts`` of ``log``, None: too few records
-    to smooth: the rows as they are); row by row, so a drive's rows can be smoothed a block at a time.
+def smooth_rows(sol: Solution, sm: Smoothed | None, gps_var: tuple[np.ndarray, np.ndarray] | None) -> Solution:
+    """Forward solution rows (any block of them) smoothed with ``sm`` (``rts`` of a run's ``SmootherLog``, None:
+    too few records to smooth: the rows as they are); row by row, so a drive's rows can be smoothed a block at a
+    time.
 
     Parameters
     ----------
     sol : Solution, forward solution rows
-    sm : Smoothed or None, :func:`rts` of ``log``
-    log : SmootherLog, the records of the same forward run (its GPS variances)
+    sm : Smoothed or None, :func:`rts` of the run's log
+    gps_var : the log's ``gps_var`` as arrays, fix times (k,) UTC ns and variances (k, 3) m^2 E N U; None: none
 
     Returns
     -------
@@ -413,8 +416,8 @@ def smooth_rows(sol: Solution, sm: Smoothed | None, log: SmootherLog) -> Solutio
     e, var = row_errors(sm, sol.t_ns)
     lat, lon, h, v_n, q = correct(sol.lat, sol.lon, sol.h, sol.v_n, sol.q, e)
     var = np.maximum(var, 0.0)
-    if log.gps_var:  # the correlated GPS error no smoothing removes either
-        t = np.array([g[0] for g in log.gps_var])
+    if gps_var is not None:  # the correlated GPS error no smoothing removes either
+        t, gv = gps_var
         k = np.searchsorted(t, sol.t_ns, side="right") - 1
-        var[:, :3] += np.where((k >= 0)[:, None], np.array([g[1] for g in log.gps_var])[np.maximum(k, 0)], 0.0)
+        var[:, :3] += np.where((k >= 0)[:, None], gv[np.maximum(k, 0)], 0.0)
     return Solution(sol.t_ns, lat, lon, h, v_n, q, np.sqrt(var), sol.bias + e[:, 9:15])  # e 9:15: true - estimate
