@@ -65,7 +65,7 @@ class ImuSums:
 
     @property
     def sum_ww(self) -> np.ndarray:
-        """(3,) the rates' sum of squares: the interval's variances."""
+        """(3,) the rates' sum of squares, for the interval's variances."""
         return self.sums[2]
 
     @property
