@@ -1159,7 +1159,7 @@ def main() -> None:
     # the commands are timed as an installed wheel runs them, with their bytecode compiled (pip compiles it at
     # install); a checkout with PYTHONDONTWRITEBYTECODE set would otherwise compile every module in every run
     root = Path(__file__).resolve().parents[2]
-    for folder in ("acquire", "fusion", "replay", "tools", "src"):
+    for folder in ("acquire", "drive", "fusion", "replay", "tools", "src"):
         compileall.compile_dir(root / folder, quiet=1)
     full = contextlib.redirect_stdout(sys.stderr) if a.markdown else contextlib.nullcontext()
     with tempfile.TemporaryDirectory() as d, full:
