@@ -15,7 +15,8 @@ it and ``acquire.recovery.recover`` can rebuild a valid file from the complete c
 is ``drive.chunks``.
 
 Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses and
-writes each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
+writes each closed chunk, and the schema and channel records between them, on a thread of its own while the owner
+goes on; the file's bytes are the same as without.
 """
 
 from __future__ import annotations
@@ -188,16 +189,21 @@ class _FileWriter:
         self._msg_start = 0
         self._msg_end = 0
         self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
-        self._pending: deque[Future] = deque()   # the chunks being compressed and written behind, in order
+        self._pending: deque[Future] = deque()   # the chunks and records being written behind, in order
         self._f.write(MAGIC)
-        self.write_record(Header(PROFILE, LIBRARY))
+        self._put_record(Header(PROFILE, LIBRARY))
 
-    def write_record(self, record) -> int:
-        """Write one record to the data section (after the chunk written behind); return its length in bytes."""
-        self._drain()
-        return self._put_record(record)
+    def write_record(self, record) -> None:
+        """Write one record to the data section after the chunks handed over before it; with ``behind``, on that
+        thread too, so that a schema or channel first used mid-stream does not hold the owner up until the chunks
+        in flight are written."""
+        if self._behind is None:
+            self._put_record(record)
+        else:
+            self._pending.append(self._behind.submit(self._put_record, record))
 
     def _put_record(self, record) -> int:
+        """Write one record at the file's end now; return its length in bytes."""
         rb = RecordBuilder()
         record.write(rb)
         data = rb.end()
@@ -208,7 +214,7 @@ class _FileWriter:
         """``Recorder.add_metadata``."""
         self._drain()
         offset = self._f.tell()
-        length = self.write_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
+        length = self._put_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
 
     def flush(self, c: _OpenChunk) -> None:
@@ -254,14 +260,16 @@ class _FileWriter:
         return compressed, crc32(data)
 
     def _drain(self) -> None:
-        """Wait for the chunks written behind, if there are any (the first one's error is raised here)."""
+        """Wait for the chunks and records written behind, if there are any (the first one's error is raised
+        here)."""
         pending, self._pending = self._pending, deque()
         errors = [e for e in (f.exception() for f in pending) if e is not None]
         if errors:
             raise errors[0]
 
     def settle(self) -> None:
-        """Wait for the chunks written behind (the first one's error is raised here), then stop the thread."""
+        """Wait for the chunks and records written behind (the first one's error is raised here), then stop the
+        thread."""
         try:
             self._drain()
         finally:
@@ -313,8 +321,9 @@ class _FileWriter:
 
     def close(self, schemas: Mapping[int, Schema], channels: Mapping[int, Channel]) -> None:
         """Write DataEnd, the summary (``schemas``, ``channels``, statistics, chunk and metadata indexes, summary
-        offsets), the footer and the closing magic; flush, fsync (if enabled) and close the file."""
-        self.write_record(DataEnd(0))
+        offsets), the footer and the closing magic; flush, fsync (if enabled) and close the file. After ``settle``:
+        nothing is written behind any more."""
+        self._put_record(DataEnd(0))
         summary_start = self._f.tell()
         sb = RecordBuilder()
         offsets: list[SummaryOffset] = []
@@ -354,7 +363,7 @@ class _FileWriter:
         crc = crc32(summary)
         crc = crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._f.write(summary)
-        self.write_record(Footer(summary_start, summary_offset_start, crc))
+        self._put_record(Footer(summary_start, summary_offset_start, crc))
         self._f.write(MAGIC)
         self._f.flush()
         if self._fsync:
@@ -391,9 +400,10 @@ class Recorder(outputs.Closing):
         record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``)
     force : replace a regular file at ``path``
     root : the output folder ``path`` lies in, walked without following a link
-    behind : compress and write each closed chunk on a thread while the caller goes on (at most
-        ``BEHIND_CHUNKS`` chunks in flight), for offline writers: a chunk is sure to be in the file only at the
-        next record outside chunks or at ``close``, so ``flush`` does not bound what a power cut loses
+    behind : compress and write each closed chunk (and the schema and channel records after it) on a thread
+        while the caller goes on (at most ``BEHIND_CHUNKS`` chunks in flight), for offline writers: a chunk is
+        sure to be in the file only at the next metadata record, copied chunk or ``close``, so ``flush`` does not
+        bound what a power cut loses
     """
 
     def __init__(
