@@ -74,6 +74,9 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_STRUCT = struct.Struct("<BQHIQQ")
 _MSG_INDEX_HDR = struct.Struct("<BQHI")
+# A batch of at most this many messages is laid out a record at a time (``Recorder.write_channel``): below it, the
+# batch's arrays cost more than the records' struct calls.
+FEW = 8
 # Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
 # uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one.
 BEHIND_CHUNKS = 16
@@ -622,6 +625,9 @@ class Recorder(outputs.Closing):
         cid = channel_id
         if self.stats is not None:
             self.stats.observe(self._channels[cid].topic, log_time_ns, p)
+        if n <= FEW:
+            self._add_few(cid, log_time_ns.tolist(), pub.tolist(), p)
+            return
         lens = p.lengths
         rec_lens = lens + 31
         ends = np.cumsum(rec_lens)
@@ -638,6 +644,19 @@ class Recorder(outputs.Closing):
             self._chunk.add(cid, log_time_ns[i:j], pub[i:j], p, i, j)
             self.maybe_flush()
             i = j
+
+    def _add_few(self, cid: int, log_times: list[int], pub_times: list[int], p: "messages.Packed") -> None:
+        """``write_channel`` of a few messages (the pipeline writes /gps/fix, /gps/vel, /pps and /time/sync a
+        message or two at a time), a record at a time with the same layout: a message that would overfill the
+        open chunk closes it first (unless it is empty), and the open chunk is flushed once full."""
+        pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
+        o = p.offsets.tolist()
+        for t, pt, a, b in zip(log_times, pub_times, o, o[1:]):
+            record = pack(op, 22 + b - a, cid, 0, t, pt) + p.buf[a:b].tobytes()
+            if self._chunk.count and self._chunk.size + len(record) > self._chunk_size:
+                self.flush()
+            self._chunk.add_records(cid, [t], [record])
+            self.maybe_flush()
 
     def maybe_flush(self) -> None:
         """Flush if the open chunk is full or flush_interval_s of host time has passed (also from an idle loop)."""

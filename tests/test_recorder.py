@@ -169,6 +169,33 @@ def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
                                                                   else [])
 
 
+def test_a_few_messages_are_laid_out_as_a_batch_of_them(tmp_path, monkeypatch):
+    """``write_batch`` of at most ``FEW`` messages, laid out a record at a time, gives the file the batch's
+    arrays give: the same records, message indexes and chunks (a chunk closed before the message that would
+    overfill it, an oversized message alone in its chunk), with batches of one size and of mixed sizes."""
+    from fieldlog.drive import recorder
+
+    rng = np.random.default_rng(9)
+    n = 400
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    cuts = np.unique(np.concatenate(([0, n], rng.integers(0, n, 150)))).tolist()
+    fixed = m.encode_imu(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+    mixed = [m.encode_sentence(int(x), "$GPGGA," + "1" * int(k)) for x, k in zip(t, rng.integers(0, 5000, n))]
+
+    def write(path: Path) -> bytes:
+        with Recorder(path, chunk_size=4096, flush_interval_s=None, compression="") as rec:
+            for a, b in zip(cuts[:-1], cuts[1:]):
+                rec.write_batch("/imu", t[a:b], m.Packed.from_list(fixed.to_list()[a:b]), t[a:b] - 7)
+                rec.write_batch("/gps/nmea", t[a:b], mixed[a:b])
+        return path.read_bytes()
+
+    sizes = np.diff(cuts)
+    assert sizes.min() <= recorder.FEW < sizes.max()
+    few = write(tmp_path / "few.mcap")
+    monkeypatch.setattr(recorder, "FEW", 0)
+    assert few == write(tmp_path / "arrays.mcap")
+
+
 def test_recover_file_from_mcap_writer(tmp_path):
     """Files from other writers keep schemas and channels inside chunks; recover handles them."""
     src = tmp_path / "w.mcap"
