@@ -110,7 +110,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
         gps_rngs = (rng_gps, rng_nmea, rng_gps_reads)
         gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, gps_rngs)
         bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
-        ts = truth.evaluate(t_k)
+        ts = truth.evaluate(t_k, pool)
         w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
         counts, realised = sensors.apply_errors(draws.result(), w_sensed, f_sensed, imu_cfg, cal)
         pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
