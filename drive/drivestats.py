@@ -361,9 +361,10 @@ class DriveStats:
         else:
             s[0], s[1] = min(s[0], lo), max(s[1], hi)
 
-    def observe_messages(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes]) -> None:
-        """Single messages of one topic (``Recorder.write``, ``write_each``: raw reads, sentences, outages; cheap
-        for those).
+    def observe_messages(self, topic: str, log_time_ns: Sequence[int],
+                         msgs: "messages.Packed | Sequence[bytes]") -> None:
+        """Single messages of one topic (``Recorder.write``, ``write_each``, ``write_records``: raw reads,
+        sentences, outages; cheap for those).
 
         Parameters
         ----------
@@ -372,7 +373,7 @@ class DriveStats:
         msgs : their CDR payloads
         """
         if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
-            self.observe(topic, np.array(log_time_ns, np.int64), messages.Packed.from_list(msgs))
+            self.observe(topic, np.array(log_time_ns, np.int64), messages.as_packed(msgs))
         else:
             self._span(topic, min(log_time_ns), max(log_time_ns))
 

@@ -94,23 +94,25 @@ class _OpenChunk:
     end: int = 0
     index: dict[int, list[tuple[np.ndarray | int, np.ndarray | int]]] = field(default_factory=dict)
 
-    def add_records(self, channel_id: int, log_times: list[int], records: list[bytes]) -> None:
-        """Message records ``records`` logged at ``log_times`` (the path of single messages: no arrays).
+    def add_block(self, channel_id: int, log_times: list[int], block: "bytes | memoryview", starts: list[int]) -> None:
+        """Whole message records laid out in ``block``, record k from ``starts[k]`` bytes into it, logged at
+        ``log_times[k]`` (the path of single messages and of records laid out ahead: no arrays).
 
         Parameters
         ----------
         channel_id : the records' channel id
         log_times : their log times, UTC ns
-        records : the whole message records (header and payload)
+        block : the records (header and payload each), back to back
+        starts : where each record starts in ``block``, bytes
         """
-        offsets = list(itertools.accumulate(map(len, records), initial=self.size))
         lo, hi = min(log_times), max(log_times)
         self.start = lo if self.count == 0 else min(self.start, lo)
         self.end = max(self.end, hi)
-        self.count += len(records)
-        self.index.setdefault(channel_id, []).extend(zip(log_times, offsets))
-        self.parts.extend(records)
-        self.size = offsets[-1]
+        self.count += len(log_times)
+        base = self.size
+        self.index.setdefault(channel_id, []).extend(zip(log_times, [base + x for x in starts]))
+        self.parts.append(block)
+        self.size = base + len(block)
 
     def add(self, cid: int, log_t: np.ndarray, pub_t: np.ndarray, p: "messages.Packed", i: int, j: int) -> None:
         """Messages ``i`` to ``j`` of ``p`` as message records of channel ``cid``: equal-length messages
@@ -124,13 +126,8 @@ class _OpenChunk:
         i, j : the messages of ``p`` to add, ``p[i:j]``
         """
         m = j - i
-        hdr = np.zeros(m, dtype=_MSG_HDR)
         lens = p.offsets[i + 1 : j + 1] - p.offsets[i:j]
-        hdr["op"] = Opcode.MESSAGE
-        hdr["length"] = lens + 22
-        hdr["channel"] = cid
-        hdr["log_time"] = log_t
-        hdr["publish_time"] = pub_t
+        hdr = _headers(cid, lens, log_t, pub_t)
         payload = p.buf[p.offsets[i] : p.offsets[j]]
         if np.all(lens == lens[0]):
             w = int(lens[0])
@@ -157,6 +154,18 @@ class _OpenChunk:
         self.size += int(lens.sum()) + 31 * m
 
 
+def _headers(cid: int, lens: np.ndarray, log_t: np.ndarray, pub_t: np.ndarray) -> np.ndarray:
+    """The message record headers (``_MSG_HDR``) of payloads of ``lens`` bytes on channel ``cid``, logged and
+    published at ``log_t`` and ``pub_t`` (UTC ns)."""
+    hdr = np.zeros(len(lens), dtype=_MSG_HDR)
+    hdr["op"] = Opcode.MESSAGE
+    hdr["length"] = lens + 22
+    hdr["channel"] = cid
+    hdr["log_time"] = log_t
+    hdr["publish_time"] = pub_t
+    return hdr
+
+
 def _index_column(pieces: list, i: int) -> np.ndarray:
     """Column ``i`` of a channel's index pieces (``_OpenChunk.index``) as one uint64 array, in order."""
     out, run = [], []
@@ -172,6 +181,20 @@ def _index_column(pieces: list, i: int) -> np.ndarray:
     if run:
         out.append(np.array(run, np.uint64))
     return np.concatenate(out)
+
+
+@dataclass
+class Records:
+    """Message records of one channel laid out ahead (``Recorder.records``), to be written in pieces
+    (``Recorder.write_records``): record k is ``buf[starts[k]:starts[k + 1]]``, logged at ``log_times[k]``.
+    ``payloads``: the messages without their headers, for the drive's statistics."""
+
+    topic: str
+    channel_id: int
+    log_times: list[int]
+    buf: memoryview
+    starts: list[int]
+    payloads: "messages.Packed | Sequence[bytes]"
 
 
 class _FileWriter:
@@ -557,20 +580,61 @@ class Recorder(outputs.Closing):
         if min(times) <= 0:
             raise ValueError("log_time must be > 0")
         cid = self.channel_id(topic)
-        if self.stats is not None:
-            self.stats.observe_messages(topic, times, msgs)
         pub = times if publish_time_ns is None else [int(t) for t in publish_time_ns]
         pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
         records = [pack(op, 22 + len(d), cid, 0, t, p) + d for t, p, d in zip(times, pub, msgs)]
-        ends = list(itertools.accumulate(map(len, records)))   # bytes from the first record's start
-        i, n = 0, len(records)
-        while i < n:
+        starts = list(itertools.accumulate(map(len, records), initial=0))
+        self.write_records(Records(topic, cid, times, memoryview(b"".join(records)), starts, msgs), 0, len(times))
+
+    def records(self, topic: str, log_time_ns: np.ndarray, msgs: "messages.Packed") -> Records:
+        """The message records of ``msgs``, laid out ahead in one vectorised step (``Packed.prefixed``), for a
+        writer that writes many messages of one topic in pieces as ``write_each`` would
+        (``Pipeline.feed_reads``: a block's raw DAQ reads, written a run of reads at a time).
+
+        Parameters
+        ----------
+        topic : a topic of the data model (``channel_id``)
+        log_time_ns : (n,) int64 log times, UTC ns (> 0)
+        msgs : the n CDR payloads, published at their log times (the channel is registered even for none, as by
+            ``channel_id``)
+
+        Returns
+        -------
+        Records : for ``write_records``
+        """
+        log_time_ns = np.asarray(log_time_ns, np.int64)
+        n = len(msgs)
+        if len(log_time_ns) != n:
+            raise ValueError("log_time_ns and msgs differ in length")
+        if n and log_time_ns.min() <= 0:
+            raise ValueError("log_time must be > 0")
+        cid = self.channel_id(topic)
+        hdr = _headers(cid, msgs.lengths, log_time_ns, log_time_ns)
+        laid = msgs.prefixed(hdr.view(np.uint8).reshape(n, 31))
+        return Records(topic, cid, log_time_ns.tolist(), memoryview(laid.buf), laid.offsets.tolist(), msgs)
+
+    def write_records(self, recs: Records, i: int, j: int) -> None:
+        """``write_each`` of records ``i`` to ``j - 1`` of ``recs``: the same records and chunks (a chunk is
+        closed after the record that fills it), the flush by ``flush_interval_s`` checked once, at the end.
+
+        Parameters
+        ----------
+        recs : records laid out ahead (``records``)
+        i, j : the records to write, ``recs``' i..j-1
+        """
+        if i >= j:
+            return
+        times, starts = recs.log_times, recs.starts
+        if self.stats is not None:
+            self.stats.observe_messages(recs.topic, times[i:j], recs.payloads[i:j])
+        while i < j:
             # up to the record that fills the open chunk (or all of them), then close it as write does
-            j = min(bisect_left(ends, (ends[i - 1] if i else 0) + self._chunk_size - self._chunk.size, i), n - 1) + 1
-            self._chunk.add_records(cid, times[i:j], records[i:j])
+            a = starts[i]
+            k = min(bisect_left(starts, a + self._chunk_size - self._chunk.size, i + 1, j + 1), j)
+            self._chunk.add_block(recs.channel_id, times[i:k], recs.buf[a:starts[k]], [x - a for x in starts[i:k]])
             if self._chunk.size >= self._chunk_size:
                 self.flush()
-            i = j
+            i = k
         self.maybe_flush()
 
     def write_batch(
@@ -655,7 +719,7 @@ class Recorder(outputs.Closing):
             record = pack(op, 22 + b - a, cid, 0, t, pt) + p.buf[a:b].tobytes()
             if self._chunk.count and self._chunk.size + len(record) > self._chunk_size:
                 self.flush()
-            self._chunk.add_records(cid, [t], [record])
+            self._chunk.add_block(cid, [t], record, [0])
             self.maybe_flush()
 
     def maybe_flush(self) -> None:
