@@ -78,8 +78,9 @@ _MSG_INDEX_HDR = struct.Struct("<BQHI")
 # batch's arrays cost more than the records' struct calls.
 FEW = 8
 # Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
-# uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one.
-BEHIND_CHUNKS = 16
+# uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one (a simulated
+# drive writes all of its /truth/* first, the thread compressing it while the pipeline starts).
+BEHIND_CHUNKS = 32
 
 
 @dataclass
