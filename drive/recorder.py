@@ -563,8 +563,9 @@ class Recorder(outputs.Closing):
                    publish_time_ns: Sequence[int] | None = None) -> None:
         """``write`` of each message in turn, in one call: the same records and chunks (a chunk is closed after
         the message that fills it), the flush by ``flush_interval_s`` checked once, at the end. For a writer with
-        many single messages of one topic at once (``Pipeline.feed_reads``: a run of raw reads), which
-        ``write_batch`` would lay out in other chunks (it closes a chunk before the message that overfills it).
+        many single messages of one topic at once, which ``write_batch`` would lay out in other chunks (it closes
+        a chunk before the message that overfills it); ``records`` lays them out ahead for one that writes many
+        in pieces.
 
         Parameters
         ----------

@@ -623,9 +623,11 @@ class Truth:
         ranges = iter(rows.blocks(len(t), EVAL_BLOCK))   # a list's iterator: each range taken by one thread
         i, j = next(ranges)
         first = self._evaluate(t[i:j])
-        out = {name: np.empty((len(t),) + x.shape[1:], x.dtype)
-               for name, x in ((f.name, getattr(first, f.name)) for f in fields(TruthSample))}
-        names = list(out)
+        names = [f.name for f in fields(TruthSample) if f.name != "t"]
+        out = {"t": t}
+        for name in names:
+            x = getattr(first, name)
+            out[name] = np.empty((len(t),) + x.shape[1:], x.dtype)
 
         def fill(block: TruthSample, i: int, j: int) -> None:
             for name in names:
