@@ -12,16 +12,15 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
+from functools import cached_property
 from operator import attrgetter
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from fieldlog.acquire import calib, canbus, counterjudge, daq, frames, gnss, gpsport, nmea, novatel, sbf, timesync, ubx
 from fieldlog.drive import messages, metavalue
-
-if TYPE_CHECKING:
-    from fieldlog.drive.recorder import Records
+from fieldlog.drive.recorder import Records
 
 log = logging.getLogger(__name__)
 
@@ -70,10 +69,7 @@ class Sink(Protocol):
 
     def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None: ...
 
-    # feed_reads only: records laid out ahead, written in pieces as ``write`` of each would (``drive.recorder``)
-    def records(self, topic: str, log_time_ns: np.ndarray, msgs: messages.Packed) -> Records: ...
-
-    def write_records(self, recs: Records, i: int, j: int) -> None: ...
+    def write_records(self, recs: Records, i: int, j: int) -> None: ...   # feed_reads only
 
 
 @dataclass
@@ -130,17 +126,15 @@ class _Ahead:
     starts: list[int]
     base: int
     reads: list[RawRead]
-    _raw: Records | None = None
 
-    def raw(self, sink: Sink) -> Records:
-        """The reads' /raw/daq records (what ``Pipeline.record`` writes of each), laid out in one step on first
-        use: then, so that the channel is registered where ``record`` of the first of them would register it."""
-        if self._raw is None:
-            wall_ns = np.array([r.wall_ns for r in self.reads], np.int64)
-            mono_ns = np.array([r.mono_ns for r in self.reads], np.int64)
-            data = messages.Packed.from_list([r.data for r in self.reads])
-            self._raw = sink.records("/raw/daq", wall_ns, messages.encode_raws(wall_ns, mono_ns, "daq", data))
-        return self._raw
+    @cached_property
+    def raw(self) -> Records:
+        """The reads' /raw/daq messages (what ``Pipeline.record`` writes of each), encoded in one step
+        (``messages.encode_raws``) and laid out as records in one more at their first write."""
+        wall_ns = np.array([r.wall_ns for r in self.reads], np.int64)
+        mono_ns = np.array([r.mono_ns for r in self.reads], np.int64)
+        data = messages.Packed.from_list([r.data for r in self.reads])
+        return Records("/raw/daq", wall_ns, messages.encode_raws(wall_ns, mono_ns, "daq", data))
 
     def span(self, i: int, j: int) -> tuple[daq.DaqFrames, int]:
         """Reads i..j-1's frames (end offsets from read i's first byte) and the decoder's byte count before
@@ -212,7 +206,7 @@ class Pipeline:
         """``feed`` each read (``RawRead``-like: port, mono_ns, wall_ns, data) in turn, with the same outputs,
         ``READ_BLOCK`` reads at a time: each block's DAQ reads are decoded ahead in one call of the decoder (the
         frames it finds, and its counts, do not depend on how the bytes are split into reads) and their /raw/daq
-        records laid out in one step (``_Ahead.raw``), and the DAQ reads between two reads of another port or two
+        messages encoded in one step (``_Ahead.raw``), and the DAQ reads between two reads of another port or two
         emits are recorded in one ``Sink.write_records`` and processed as one where the counter judge and time
         sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``, ``import``);
         the daemon feeds each read as it comes. ``progress``: called with the reads fed so far
@@ -293,7 +287,7 @@ class Pipeline:
         one when the counter judge takes all their frames as they are (``CounterJudge.usual``; time sync then
         takes them as one, ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
         self._write_tf_static(run[0].wall_ns)
-        self.sink.write_records(ahead.raw(self.sink), i, i + len(run))
+        self.sink.write_records(ahead.raw, i, i + len(run))
         wall_ns = [r.wall_ns for r in run]
         self.counters.reads["daq"] = self.counters.reads.get("daq", 0) + len(run)
         last = run[-1]

@@ -363,8 +363,8 @@ class DriveStats:
 
     def observe_messages(self, topic: str, log_time_ns: Sequence[int],
                          msgs: "messages.Packed | Sequence[bytes]") -> None:
-        """Single messages of one topic (``Recorder.write``, ``write_each``, ``write_records``: raw reads,
-        sentences, outages; cheap for those).
+        """Single messages of one topic (``Recorder.write``, ``write_records``: raw reads, sentences, outages;
+        cheap for those).
 
         Parameters
         ----------

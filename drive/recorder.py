@@ -31,7 +31,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import mcap
@@ -74,8 +74,9 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_STRUCT = struct.Struct("<BQHIQQ")
 _MSG_INDEX_HDR = struct.Struct("<BQHI")
-# A batch of at most this many messages is laid out a record at a time (``Recorder.write_channel``): below it, the
-# batch's arrays cost more than the records' struct calls.
+# A batch of at most this many messages is laid out a record at a time (``Recorder.write_channel``; the pipeline
+# writes /gps/fix, /gps/vel, /pps and /time/sync a message or two at a time): below it, the batch's arrays cost
+# more than the records' struct calls.
 FEW = 8
 # Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
 # uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one (a simulated
@@ -184,18 +185,69 @@ def _index_column(pieces: list, i: int) -> np.ndarray:
     return np.concatenate(out)
 
 
-@dataclass
-class Records:
-    """Message records of one channel laid out ahead (``Recorder.records``), to be written in pieces
-    (``Recorder.write_records``): record k is ``buf[starts[k]:starts[k + 1]]``, logged at ``log_times[k]``.
-    ``payloads``: the messages without their headers, for the drive's statistics."""
+def _ints(values: Sequence[int] | np.ndarray) -> list[int]:
+    """``values`` as a list of Python ints (an array's in one call, a sequence's one by one)."""
+    return values.astype(np.int64).tolist() if isinstance(values, np.ndarray) else [int(v) for v in values]
 
-    topic: str
+
+class _Laid(NamedTuple):
+    """Message records laid out (``Records.laid_out``): record k is ``buf[starts[k]:starts[k + 1]]``, logged at
+    ``log_times[k]`` (UTC ns) on channel ``channel_id``."""
+
     channel_id: int
     log_times: list[int]
     buf: memoryview
     starts: list[int]
+
+
+@dataclass(slots=True)
+class Records:
+    """Messages of one topic to write in pieces as ``Recorder.write`` of each in turn would
+    (``Recorder.write_records``): their log times (UTC ns, > 0), payloads (a list, or a ``messages.Packed``
+    batch) and publish times (None: the log times). Their message records are laid out once, at the first
+    write."""
+
+    topic: str
+    log_time_ns: Sequence[int] | np.ndarray
     payloads: "messages.Packed | Sequence[bytes]"
+    publish_time_ns: Sequence[int] | np.ndarray | None = None
+    _laid: _Laid | None = field(default=None, init=False, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.payloads)
+
+    def laid_out(self, channel_id: Callable[[str], int]) -> _Laid:
+        """The message records, laid out on the first call: a batch in one vectorised step (``Packed.prefixed``),
+        a list a record at a time (ValueError when the times and the payloads differ in length, or a log time is
+        not > 0).
+
+        Parameters
+        ----------
+        channel_id : the recorder's ``channel_id``, asked for the topic's once the times check out
+
+        Returns
+        -------
+        _Laid : the records, where each starts, their log times and channel
+        """
+        if self._laid is None:
+            times = _ints(self.log_time_ns)
+            pub = times if self.publish_time_ns is None else _ints(self.publish_time_ns)
+            if len(times) != len(self.payloads) or len(pub) != len(times):
+                raise ValueError("log_time_ns and msgs differ in length")
+            if times and min(times) <= 0:
+                raise ValueError("log_time must be > 0")
+            cid = channel_id(self.topic)
+            if isinstance(self.payloads, messages.Packed):
+                p = self.payloads
+                hdr = _headers(cid, p.lengths, np.array(times, np.int64), np.array(pub, np.int64))
+                laid = p.prefixed(hdr.view(np.uint8).reshape(len(p), 31))
+                self._laid = _Laid(cid, times, memoryview(laid.buf), laid.offsets.tolist())
+            else:
+                pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
+                records = [pack(op, 22 + len(d), cid, 0, t, q) + d for t, q, d in zip(times, pub, self.payloads)]
+                starts = list(itertools.accumulate(map(len, records), initial=0))
+                self._laid = _Laid(cid, times, memoryview(b"".join(records)), starts)
+        return self._laid
 
 
 class _FileWriter:
@@ -557,83 +609,34 @@ class Recorder(outputs.Closing):
         data : the CDR payload
         publish_time_ns : publish time, UTC ns (None: ``log_time_ns``)
         """
-        self.write_each(topic, (log_time_ns,), (data,), None if publish_time_ns is None else (publish_time_ns,))
+        self.write_records(Records(topic, (log_time_ns,), (data,),
+                                   None if publish_time_ns is None else (publish_time_ns,)))
 
-    def write_each(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes],
-                   publish_time_ns: Sequence[int] | None = None) -> None:
-        """``write`` of each message in turn, in one call: the same records and chunks (a chunk is closed after
-        the message that fills it), the flush by ``flush_interval_s`` checked once, at the end. For a writer with
-        many single messages of one topic at once, which ``write_batch`` would lay out in other chunks (it closes
-        a chunk before the message that overfills it); ``records`` lays them out ahead for one that writes many
-        in pieces.
-
-        Parameters
-        ----------
-        topic : a topic of the data model (``channel_id``)
-        log_time_ns : log times, UTC ns (> 0)
-        msgs : the CDR payloads, one per log time
-        publish_time_ns : publish times, UTC ns (None: the log times)
-        """
-        times = [int(t) for t in log_time_ns]
-        if len(times) != len(msgs):
-            raise ValueError("log_time_ns and msgs differ in length")
-        if not times:
-            return
-        if min(times) <= 0:
-            raise ValueError("log_time must be > 0")
-        cid = self.channel_id(topic)
-        pub = times if publish_time_ns is None else [int(t) for t in publish_time_ns]
-        pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
-        records = [pack(op, 22 + len(d), cid, 0, t, p) + d for t, p, d in zip(times, pub, msgs)]
-        starts = list(itertools.accumulate(map(len, records), initial=0))
-        self.write_records(Records(topic, cid, times, memoryview(b"".join(records)), starts, msgs), 0, len(times))
-
-    def records(self, topic: str, log_time_ns: np.ndarray, msgs: "messages.Packed") -> Records:
-        """The message records of ``msgs``, laid out ahead in one vectorised step (``Packed.prefixed``), for a
-        writer that writes many messages of one topic in pieces as ``write_each`` would
-        (``Pipeline.feed_reads``: a block's raw DAQ reads, written a run of reads at a time).
+    def write_records(self, recs: Records, i: int = 0, j: int | None = None) -> None:
+        """``write`` of each of messages ``i`` to ``j - 1`` of ``recs`` in turn, in one call: the same records and
+        chunks (a chunk is closed after the message that fills it), the flush by ``flush_interval_s`` checked
+        once, at the end. For a writer with many single messages of one topic at once, which ``write_batch``
+        would lay out in other chunks (it closes a chunk before the message that overfills it); ``recs`` is laid
+        out at its first write, so a writer that writes many in pieces (``Pipeline.feed_reads``: a block's raw
+        DAQ reads, a run of reads at a time) lays them out once.
 
         Parameters
         ----------
-        topic : a topic of the data model (``channel_id``)
-        log_time_ns : (n,) int64 log times, UTC ns (> 0)
-        msgs : the n CDR payloads, published at their log times (the channel is registered even for none, as by
-            ``channel_id``)
-
-        Returns
-        -------
-        Records : for ``write_records``
+        recs : the messages
+        i, j : the ones to write, ``recs``' i..j-1 (None: to the last)
         """
-        log_time_ns = np.asarray(log_time_ns, np.int64)
-        n = len(msgs)
-        if len(log_time_ns) != n:
-            raise ValueError("log_time_ns and msgs differ in length")
-        if n and log_time_ns.min() <= 0:
-            raise ValueError("log_time must be > 0")
-        cid = self.channel_id(topic)
-        hdr = _headers(cid, msgs.lengths, log_time_ns, log_time_ns)
-        laid = msgs.prefixed(hdr.view(np.uint8).reshape(n, 31))
-        return Records(topic, cid, log_time_ns.tolist(), memoryview(laid.buf), laid.offsets.tolist(), msgs)
-
-    def write_records(self, recs: Records, i: int, j: int) -> None:
-        """``write_each`` of records ``i`` to ``j - 1`` of ``recs``: the same records and chunks (a chunk is
-        closed after the record that fills it), the flush by ``flush_interval_s`` checked once, at the end.
-
-        Parameters
-        ----------
-        recs : records laid out ahead (``records``)
-        i, j : the records to write, ``recs``' i..j-1
-        """
+        j = len(recs) if j is None else j
         if i >= j:
             return
-        times, starts = recs.log_times, recs.starts
+        laid = recs.laid_out(self.channel_id)
+        times, starts = laid.log_times, laid.starts
         if self.stats is not None:
             self.stats.observe_messages(recs.topic, times[i:j], recs.payloads[i:j])
         while i < j:
             # up to the record that fills the open chunk (or all of them), then close it as write does
             a = starts[i]
             k = min(bisect_left(starts, a + self._chunk_size - self._chunk.size, i + 1, j + 1), j)
-            self._chunk.add_block(recs.channel_id, times[i:k], recs.buf[a:starts[k]], [x - a for x in starts[i:k]])
+            self._chunk.add_block(laid.channel_id, times[i:k], laid.buf[a:starts[k]], [x - a for x in starts[i:k]])
             if self._chunk.size >= self._chunk_size:
                 self.flush()
             i = k
@@ -691,8 +694,14 @@ class Recorder(outputs.Closing):
         cid = channel_id
         if self.stats is not None:
             self.stats.observe(self._channels[cid].topic, log_time_ns, p)
-        if n <= FEW:
-            self._add_few(cid, log_time_ns.tolist(), pub.tolist(), p)
+        if n <= FEW:   # a record at a time, closing the open chunk before a message that would overfill it
+            o = p.offsets.tolist()
+            for t, q, a, b in zip(log_time_ns.tolist(), pub.tolist(), o, o[1:]):
+                record = _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + b - a, cid, 0, t, q) + p.buf[a:b].tobytes()
+                if self._chunk.count and self._chunk.size + len(record) > self._chunk_size:
+                    self.flush()
+                self._chunk.add_block(cid, [t], record, [0])
+                self.maybe_flush()
             return
         lens = p.lengths
         rec_lens = lens + 31
@@ -710,19 +719,6 @@ class Recorder(outputs.Closing):
             self._chunk.add(cid, log_time_ns[i:j], pub[i:j], p, i, j)
             self.maybe_flush()
             i = j
-
-    def _add_few(self, cid: int, log_times: list[int], pub_times: list[int], p: "messages.Packed") -> None:
-        """``write_channel`` of a few messages (the pipeline writes /gps/fix, /gps/vel, /pps and /time/sync a
-        message or two at a time), a record at a time with the same layout: a message that would overfill the
-        open chunk closes it first (unless it is empty), and the open chunk is flushed once full."""
-        pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
-        o = p.offsets.tolist()
-        for t, pt, a, b in zip(log_times, pub_times, o, o[1:]):
-            record = pack(op, 22 + b - a, cid, 0, t, pt) + p.buf[a:b].tobytes()
-            if self._chunk.count and self._chunk.size + len(record) > self._chunk_size:
-                self.flush()
-            self._chunk.add_block(cid, [t], record, [0])
-            self.maybe_flush()
 
     def maybe_flush(self) -> None:
         """Flush if the open chunk is full or flush_interval_s of host time has passed (also from an idle loop)."""

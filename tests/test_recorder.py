@@ -18,7 +18,7 @@ from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
 from fieldlog.drive import messages as m
-from fieldlog.drive.recorder import Recorder
+from fieldlog.drive.recorder import Recorder, Records
 from fieldlog.acquire.recovery import recover
 from fieldlog.drive import reader
 
@@ -90,10 +90,10 @@ def test_write_batch_splits_by_chunk_size_and_rejects_zero_time(tmp_path):
     assert [x[1] for x in _all_messages(path)] == t.tolist()
 
 
-def test_write_each_gives_the_file_of_write_of_each_message(tmp_path):
-    """``write_each`` in batches of any size, and ``write_records`` of records laid out ahead (``records``) in the
-    same pieces, write the file ``write`` of each message in turn does: a chunk is closed after the message that
-    fills it, not before the one that would overfill it (``write_batch``)."""
+def test_write_records_gives_the_file_of_write_of_each_message(tmp_path):
+    """``write_records`` of messages in pieces of any size, given as lists or as one batch laid out at the first
+    write, writes the file ``write`` of each message in turn does: a chunk is closed after the message that fills
+    it, not before the one that would overfill it (``write_batch``)."""
     rng = np.random.default_rng(5)
     n = 600
     t = (T0 + np.arange(n, dtype=np.int64) * DT).tolist()
@@ -106,16 +106,16 @@ def test_write_each_gives_the_file_of_write_of_each_message(tmp_path):
     with Recorder(many, **kw) as rec:
         cuts = np.unique(np.concatenate(([0, n], rng.integers(0, n, 60)))).tolist()
         for a, b in zip(cuts[:-1], cuts[1:]):
-            rec.write_each("/raw/daq", t[a:b], msgs[a:b])
+            rec.write_records(Records("/raw/daq", t[a:b], msgs[a:b]))
         with pytest.raises(ValueError):
-            rec.write_each("/raw/daq", [0], msgs[:1])
+            rec.write_records(Records("/raw/daq", [0], msgs[:1]))
     ahead = tmp_path / "ahead.mcap"
-    with Recorder(ahead, **kw) as rec:          # laid out ahead in one go, written in the same pieces
-        recs = rec.records("/raw/daq", np.array(t), m.Packed.from_list(msgs))
+    with Recorder(ahead, **kw) as rec:          # one batch, laid out at the first write, written in the same pieces
+        recs = Records("/raw/daq", np.array(t), m.Packed.from_list(msgs))
         for a, b in zip(cuts[:-1], cuts[1:]):
             rec.write_records(recs, a, b)
         with pytest.raises(ValueError):
-            rec.records("/raw/daq", np.array([0]), m.Packed.from_list(msgs[:1]))
+            rec.write_records(Records("/raw/daq", np.array([0]), m.Packed.from_list(msgs[:1])))
     assert one.read_bytes() == many.read_bytes() == ahead.read_bytes()
     with open(one, "rb") as fh:
         sizes = [c.uncompressed_size for c in make_reader(fh).get_summary().chunk_indexes]
