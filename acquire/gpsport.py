@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import binascii
 import datetime as _dt
+import re
 import zlib
 from dataclasses import dataclass, field
 
@@ -36,6 +37,7 @@ OEM_SYNC = b"\xaa\x44\x12"
 SBF_SYNC = b"$@"
 _STARTS = frozenset(b"$!#\xb5\xaa")
 _EOL = frozenset(b"\r\n")
+_LINE_STOP = re.compile(rb"[\r\n$!#\xb5\xaa]")   # what ends an ASCII line: its CR/LF, or another frame's start
 # what each [gps] protocol setting decodes (NMEA always: u-blox and NovAtel ports send it too)
 ACCEPTS = {"auto": {"nmea", "ubx", "novatel", "novatel_bin", "sbf"}, "nmea": {"nmea"}, "ubx": {"nmea", "ubx"},
            "novatel": {"nmea", "novatel", "novatel_bin"}, "septentrio": {"nmea", "sbf"}}
@@ -158,12 +160,11 @@ class Framer:
             return self._sbf_at(buf, pos, n)
         # ASCII: up to the first CR/LF; another frame start inside means this one was cut off
         limit = nmea.MAX_LINE if c != 0x23 else MAX_ASCII
-        end = pos + 1
         stop = min(n, pos + limit + 1)
-        while end < stop and buf[end] not in _EOL:
-            if buf[end] in _STARTS:       # another frame starts: this line was cut off (the last '$' wins)
-                return "skip", end - pos
-            end += 1
+        m = _LINE_STOP.search(buf, pos + 1, stop)
+        end = stop if m is None else m.start()
+        if end < stop and buf[end] in _STARTS:   # another frame starts: this line was cut off (the last '$' wins)
+            return "skip", end - pos
         if end - pos > limit:
             st.overlong += 1
             return "skip", end - pos

@@ -12,6 +12,7 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
+from functools import cached_property
 from operator import attrgetter
 from typing import NamedTuple, Protocol
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from fieldlog.acquire import calib, canbus, counterjudge, daq, frames, gnss, gpsport, nmea, novatel, sbf, timesync, ubx
 from fieldlog.drive import messages, metavalue
+from fieldlog.drive.recorder import Records
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +69,7 @@ class Sink(Protocol):
 
     def write_batch(self, topic: str, log_time_ns: np.ndarray, data) -> None: ...
 
-    def write_each(self, topic: str, log_time_ns: list[int], msgs: list[bytes]) -> None: ...   # feed_reads only
+    def write_records(self, recs: Records, i: int, j: int) -> None: ...   # feed_reads only
 
 
 @dataclass
@@ -115,14 +117,24 @@ SPARSE_COUNTERS = ("daq.repeated", "pps_implausible")   # in the counters record
 
 @dataclass
 class _Ahead:
-    """The frames of consecutive DAQ reads from one decoder call: read i's are ``fr``'s ``cuts[i]:cuts[i + 1]``,
-    and begin ``starts[i]`` bytes after the first read's first byte; ``base``: the decoder's byte count before
-    the first read."""
+    """The frames of consecutive DAQ reads (``reads``) from one decoder call: read i's are ``fr``'s
+    ``cuts[i]:cuts[i + 1]``, and begin ``starts[i]`` bytes after the first read's first byte; ``base``: the
+    decoder's byte count before the first read."""
 
     fr: daq.DaqFrames
     cuts: list[int]
     starts: list[int]
     base: int
+    reads: list[RawRead]
+
+    @cached_property
+    def raw(self) -> Records:
+        """The reads' /raw/daq messages (what ``Pipeline.record`` writes of each), encoded in one step
+        (``messages.encode_raws``) and laid out as records in one more at their first write."""
+        wall_ns = np.array([r.wall_ns for r in self.reads], np.int64)
+        mono_ns = np.array([r.mono_ns for r in self.reads], np.int64)
+        data = messages.Packed.from_list([r.data for r in self.reads])
+        return Records("/raw/daq", wall_ns, messages.encode_raws(wall_ns, mono_ns, "daq", data))
 
     def span(self, i: int, j: int) -> tuple[daq.DaqFrames, int]:
         """Reads i..j-1's frames (end offsets from read i's first byte) and the decoder's byte count before
@@ -133,11 +145,12 @@ class _Ahead:
         return piece, self.base + s
 
     @classmethod
-    def decode(cls, dec: daq.DaqDecoder, datas: list[bytes]) -> "_Ahead | None":
+    def decode(cls, dec: daq.DaqDecoder, reads: list[RawRead]) -> "_Ahead | None":
         """The frames of these consecutive DAQ reads from one decoder call over their bytes; None (each read
         then decoded as it is fed) if there are none or that call fails, the decoder put back as it was."""
-        if not datas:
+        if not reads:
             return None
+        datas = [r.data for r in reads]
         saved, stats = dict(vars(dec)), asdict(dec.stats)
         base = dec.stats.bytes_in
         try:
@@ -151,7 +164,7 @@ class _Ahead:
         ends = np.cumsum(lengths)
         read_of = np.searchsorted(ends, fr.end_offset, side="left")  # the read each frame's last byte is in
         cuts = np.searchsorted(read_of, np.arange(len(datas) + 1), side="left")
-        return cls(fr, cuts.tolist(), (ends - lengths).tolist(), base)
+        return cls(fr, cuts.tolist(), (ends - lengths).tolist(), base, reads)
 
 
 class Pipeline:
@@ -192,14 +205,15 @@ class Pipeline:
     def feed_reads(self, reads: Iterable[RawRead], progress: Callable[[int], None] | None = None) -> int:
         """``feed`` each read (``RawRead``-like: port, mono_ns, wall_ns, data) in turn, with the same outputs,
         ``READ_BLOCK`` reads at a time: each block's DAQ reads are decoded ahead in one call of the decoder (the
-        frames it finds, and its counts, do not depend on how the bytes are split into reads), and the DAQ reads
-        between two reads of another port or two emits are recorded in one ``Sink.write_each`` and processed as
-        one where the counter judge and time sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``,
-        ``import``); the daemon feeds each read as it comes. ``progress``: called with the reads fed so far
+        frames it finds, and its counts, do not depend on how the bytes are split into reads) and their /raw/daq
+        messages encoded in one step (``_Ahead.raw``), and the DAQ reads between two reads of another port or two
+        emits are recorded in one ``Sink.write_records`` and processed as one where the counter judge and time
+        sync take them so (``_feed_run``). For a recorded or simulated stream (``sim``, ``rebuild``, ``import``);
+        the daemon feeds each read as it comes. ``progress``: called with the reads fed so far
         after each block. Returns the number of reads."""
         n, it = 0, iter(reads)
         while block := list(itertools.islice(it, READ_BLOCK)):
-            ahead = _Ahead.decode(self._daq, [r.data for r in block if r.port == "daq"])
+            ahead = _Ahead.decode(self._daq, [r for r in block if r.port == "daq"])
             run: list[RawRead] = []       # DAQ reads in a row, not recorded or processed yet
             d = 0                         # the block's DAQ reads so far
             for r in block:
@@ -268,14 +282,13 @@ class Pipeline:
             self.output.emit_imu(final=False)
 
     def _feed_run(self, run: list[RawRead], ahead: "_Ahead", i: int) -> None:
-        """Record DAQ reads in a row, reads ``i..`` of ``ahead``, in one write (``Sink.write_each``: what
-        ``record`` of each gives), then process them; only the last can be due an emit. As one when the counter
-        judge takes all their frames as they are (``CounterJudge.usual``; time sync then takes them as one,
-        ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
+        """Record DAQ reads in a row, reads ``i..`` of ``ahead``, in one write (``Sink.write_records`` of
+        ``_Ahead.raw``: what ``record`` of each gives), then process them; only the last can be due an emit. As
+        one when the counter judge takes all their frames as they are (``CounterJudge.usual``; time sync then
+        takes them as one, ``TimeSync.add_run``), else read by read, each under ``feed``'s guard."""
         self._write_tf_static(run[0].wall_ns)
+        self.sink.write_records(ahead.raw, i, i + len(run))
         wall_ns = [r.wall_ns for r in run]
-        self.sink.write_each("/raw/daq", wall_ns,
-                             [messages.encode_raw(r.wall_ns, r.mono_ns, "daq", r.data) for r in run])
         self.counters.reads["daq"] = self.counters.reads.get("daq", 0) + len(run)
         last = run[-1]
         fr, base = ahead.span(i, i + len(run))

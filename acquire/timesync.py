@@ -66,6 +66,7 @@ FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9
 PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is
 PPS_BURST = 4                # implausible (a true PPS and a glitch or two never come that close together)
 _first = itemgetter(0)
+_sum = np.add.reduce
 
 
 def forward_clamp(r: np.ndarray, floor: int | None) -> np.ndarray:
@@ -238,22 +239,28 @@ def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
                min_inliers: int) -> tuple[_Fit, np.ndarray] | None:
-    """Theil-Sen, then least squares on the edges within ``tol`` samples of it. None if too few inliers."""
+    """Theil-Sen, then least squares on the edges within ``tol`` samples of it. None if too few inliers.
+
+    Each mean is a sum (``np.add.reduce``) over the count, the float ``np.mean`` gives without its own steps,
+    which cost more than the sums on the few hundred edges of a fit."""
     x = (label - lr).astype(np.float64)
     y = k_edge - kr - fs * x
-    if len(x) < min_inliers or np.ptp(x) == 0:
+    if len(x) < min_inliers or x.min() == x.max():
         return None
     slope, intercept = theil_sen(x, y)
     inl = np.abs(y - intercept - slope * x) <= tol
-    if inl.sum() < min_inliers or np.ptp(x[inl]) == 0:
-        return None
     xi, yi = x[inl], y[inl]
-    xm, ym = xi.mean(), yi.mean()
-    sxx = float(((xi - xm) ** 2).sum())
-    e = float(((xi - xm) * (yi - ym)).sum() / sxx)
+    n = len(xi)
+    if n < min_inliers or xi.min() == xi.max():
+        return None
+    xm, ym = _sum(xi) / n, _sum(yi) / n
+    dx = xi - xm
+    sxx = float(_sum(dx * dx))
+    e = float(_sum(dx * (yi - ym)) / sxx)
     c = float(ym - e * xm)
-    rms = float(np.sqrt(np.mean((yi - c - e * xi) ** 2)))
-    return _Fit(lr, kr, c, e, int(inl.sum()), rms, float(xm), sxx), inl
+    r = yi - c - e * xi
+    rms = math.sqrt(_sum(r * r) / n)
+    return _Fit(lr, kr, c, e, n, rms, float(xm), sxx), inl
 
 
 @dataclass(frozen=True)
@@ -554,7 +561,6 @@ class ClockFit:
         # knots: (label, d_s = knot UTC - label, s per sample of the knot fit, ppm, rms_us, n) at knot_k
         self.knot_k: list[float] = []
         self.knot: list[tuple[int, float, float, float, float, int]] = []
-        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # knot_k, knot, labels (stamps)
         self._trail: dict[float, float] = {}                    # knot k_edge -> s/sample of the trailing fit
 
     def _window(self, idx: int, finished: bool) -> tuple[float, float]:
@@ -602,7 +608,6 @@ class ClockFit:
         d = (ke - kr - fc.c) / (fs + fc.e)
         self.knot_k.append(ke)
         self.knot.append((lab, d, 1.0 / rate, f.e / fs * 1e6, f.rms / rate * 1e6, f.n))
-        self._arrays = None
 
     def _trail_slope(self, j: int) -> float:
         """s/sample of the fit over the window_s before knot j (holdover extrapolation)."""
@@ -623,16 +628,19 @@ class ClockFit:
         state = np.full(n, SyncState.FREE, np.uint8)
         gov = np.full(n, -1, np.int64)
         kk = k.astype(np.float64)
-        if self._arrays is None:   # the knots as arrays, made again only when they change (every second or so)
-            self._arrays = (np.asarray(self.knot_k, np.float64), np.asarray(self.knot, np.float64).reshape(-1, 6),
-                            np.asarray([kn_[0] for kn_ in self.knot], np.int64))
-        K, kn, lab = self._arrays
-        nk = len(K)
-        if nk:
+        nk = len(self.knot_k)
+        if nk and n:
+            # the knots samples k can take, as arrays (indexes below from knot lo on): the last one at or before
+            # the first sample to the first one after the last sample
+            lo = max(bisect_right(self.knot_k, float(kk.min())) - 1, 0)
+            hi = min(bisect_right(self.knot_k, float(kk.max())) + 1, nk)
+            K = np.asarray(self.knot_k[lo:hi], np.float64)
+            kn = np.asarray(self.knot[lo:hi], np.float64).reshape(-1, 6)
+            lab = np.asarray([kn_[0] for kn_ in self.knot[lo:hi]], np.int64)
             HO = self._s.HO
             i = np.searchsorted(K, kk, "right") - 1
-            ii, jj = np.maximum(i, 0), np.minimum(i + 1, nk - 1)
-            has_i, has_j = i >= 0, i + 1 < nk
+            ii, jj = np.maximum(i, 0), np.minimum(i + 1, hi - lo - 1)
+            has_i, has_j = i + lo >= 0, i + lo + 1 < nk
             interp = has_i & has_j & (K[jj] - K[ii] <= HO)
             extrap = has_i & ~interp
             back = ~has_i & has_j & (K[jj] - kk <= self._s.H)
@@ -644,15 +652,15 @@ class ClockFit:
                 raw[interp] = lab[a] * 1_000_000_000 + np.round((d[a] + frac * span) * 1e9).astype(np.int64)
             if extrap.any():
                 a = ii[extrap]
-                slope = np.array([self._trail_slope(j) for j in a.tolist()])
+                slope = np.array([self._trail_slope(lo + j) for j in a.tolist()])
                 raw[extrap] = lab[a] * 1_000_000_000 + np.round((d[a] + (kk[extrap] - K[a]) * slope) * 1e9).astype(
                     np.int64)
             if back.any():
                 b = jj[back]
                 raw[back] = lab[b] * 1_000_000_000 + np.round((d[b] + (kk[back] - K[b]) * kn[b, 2]) * 1e9).astype(
                     np.int64)
-            gov[interp | extrap] = ii[interp | extrap]
-            gov[back] = jj[back]
+            gov[interp | extrap] = lo + ii[interp | extrap]
+            gov[back] = lo + jj[back]
             A = np.asarray(self._edges.acc_k)
             a = np.searchsorted(A, kk, "right") - 1
             age = np.where(a >= 0, kk - A[np.maximum(a, 0)], np.inf)
@@ -673,7 +681,6 @@ class ClockFit:
             for ke in self.knot_k[:nk]:
                 self._trail.pop(ke, None)
             del self.knot_k[:nk], self.knot[:nk]
-            self._arrays = None
         return (self.knot_k[0] if self.knot_k else floor) - 2 * self._s.H - 1
 
 

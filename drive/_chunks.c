@@ -1,5 +1,5 @@
-/* Reading MCAP records in C: the record walk of drive/chunks.py and the chunk reader of drive/native.py
- * (their docstrings give the contracts). Built with the package (setup.py) and called through ctypes; it needs
+/* Reading MCAP records in C: the record walk of drive/chunks.py and the chunk reader of drive/native.py; and
+ * the byte layout of messages.Packed.prefixed, for writing them (their docstrings give the contracts). Built with the package (setup.py) and called through ctypes; it needs
  * no Python headers. libzstd and zlib-ng are not linked: the caller passes the addresses of the functions the
  * installed zstandard and zlib_ng packages export, so the kernels use the very builds python-zstandard and
  * zlib_ng use.
@@ -120,4 +120,18 @@ void fieldlog_read_chunks(zstd_decompress_fn decompress, zstd_is_error_fn is_err
     res[2] = o;
     res[3] = k;
     res[4] = nd;
+}
+
+/* out = head 0, message 0, head 1, message 1, ...: the n heads of k bytes (back to back in heads) each in front of
+ * its message, message i being src[offsets[i]:offsets[i + 1]] (messages.Packed.prefixed) */
+void fieldlog_prefix(int64_t n, int64_t k, const uint8_t *heads, const uint8_t *src, const int64_t *offsets,
+                     uint8_t *out)
+{
+    for (int64_t i = 0; i < n; i++) {
+        int64_t len = offsets[i + 1] - offsets[i];
+        memcpy(out, heads + i * k, (size_t)k);
+        out += k;
+        memcpy(out, src + offsets[i], (size_t)len);
+        out += len;
+    }
 }

@@ -240,6 +240,7 @@ class TimingPairs:
         self._truth_q: deque[np.ndarray] = deque()
         self._q_len = [0, 0]
         self._window = np.empty(0, np.int64)
+        self._window_new: list[np.ndarray] = []   # truth times not in _window yet (``_join_window``)
         self._near_pending: deque[np.ndarray] = deque()
         self.one, self.near = _ErrorSums(), _ErrorSums()
 
@@ -266,7 +267,7 @@ class TimingPairs:
         self.n_truth += len(t)
         self._truth_q.append(t)
         self._q_len[1] += len(t)
-        self._window = np.concatenate((self._window, t))
+        self._window_new.append(t)
         self._pair()
 
     def imu(self, t_ns: np.ndarray) -> None:
@@ -296,6 +297,7 @@ class TimingPairs:
             self.one.add(a, a - b)
         if not self._near_pending:
             return
+        self._join_window()
         imu = np.concatenate(self._near_pending)
         ready = imu <= self._window[-1]
         self._near_pending = deque([imu[~ready]] if not ready.all() else [])
@@ -304,6 +306,13 @@ class TimingPairs:
             j = _nearest(self._window, t)
             self.near.add(t, t - self._window[j])
             self._window = self._window[max(int(j.min()) - self.MARGIN, 0):]
+
+    def _join_window(self) -> None:
+        """The truth times that came since the last pairing onto the nearest pairing's window: joined when /imu
+        needs them, once, rather than at each /truth/imu batch (a whole drive's truth comes before its /imu)."""
+        if self._window_new:
+            self._window = np.concatenate([self._window, *self._window_new])
+            self._window_new = []
 
     def result(self) -> TimingError | None:
         """The stamps' error against the truth: the one-to-one pairing when the counts agree, else the nearest.
@@ -317,6 +326,7 @@ class TimingPairs:
         if self.n_imu == self.n_truth:
             return self.one.result()
         # /imu stamps after the last truth sample: that one is the nearest
+        self._join_window()
         t = np.concatenate(self._near_pending) if self._near_pending else np.empty(0, np.int64)
         return self.near.result((t, t - self._window[_nearest(self._window, t)]) if len(t) else None)
 
@@ -351,9 +361,10 @@ class DriveStats:
         else:
             s[0], s[1] = min(s[0], lo), max(s[1], hi)
 
-    def observe_messages(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes]) -> None:
-        """Single messages of one topic (``Recorder.write``, ``write_each``: raw reads, sentences, outages; cheap
-        for those).
+    def observe_messages(self, topic: str, log_time_ns: Sequence[int],
+                         msgs: "messages.Packed | Sequence[bytes]") -> None:
+        """Single messages of one topic (``Recorder.write``, ``write_records``: raw reads, sentences, outages;
+        cheap for those).
 
         Parameters
         ----------
@@ -362,7 +373,7 @@ class DriveStats:
         msgs : their CDR payloads
         """
         if topic in ("/imu", "/truth/imu", "/gps/fix", "/time/sync"):
-            self.observe(topic, np.array(log_time_ns, np.int64), messages.Packed.from_list(msgs))
+            self.observe(topic, np.array(log_time_ns, np.int64), messages.as_packed(msgs))
         else:
             self._span(topic, min(log_time_ns), max(log_time_ns))
 

@@ -7,7 +7,8 @@ encoding ``cdr``, so rerun, Foxglove and ROS 2 tools read the files as they are.
 Fixed-layout types (every field has a fixed size once ``frame_id`` and other per-call strings are
 fixed) are built for a whole batch at once through a numpy structured dtype with explicit byte
 offsets. A batch is a :class:`Packed`: one contiguous ``uint8`` buffer plus ``n + 1`` offsets.
-Variable-length types (NMEA sentences, raw bytes, outages) are low rate and encoded per message.
+Variable-length types (NMEA sentences, raw bytes, outages) are low rate and encoded per message; raw bytes of
+many reads also at once (``encode_raws``), for the offline writers' blocks of DAQ reads.
 
 Times: stamps are int64 UTC ns since the Unix epoch, split into ``sec`` (floor) and ``nanosec`` (uint32,
 0..999_999_999) as ``builtin_interfaces/Time`` requires. Its ``sec`` field is 32 bits wide (``int32``); it holds
@@ -27,6 +28,8 @@ from typing import Any, Callable, Collection, Iterator, Sequence
 import numpy as np
 from mcap.records import Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
+
+from fieldlog.drive import native
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 STAMP_END_NS = 2**32 * 1_000_000_000      # the first time a header stamp cannot carry (2106-02-07T06:28:16Z)
@@ -315,7 +318,13 @@ class Packed:
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
-    def __getitem__(self, i: int) -> bytes:
+    def __getitem__(self, i: int | slice) -> "bytes | Packed":
+        """Message ``i``, or messages ``i`` as a batch sharing this one's buffer (a slice of step 1)."""
+        if isinstance(i, slice):
+            lo, hi, step = i.indices(len(self))
+            if step != 1:
+                raise ValueError("a Packed slice takes every message")
+            return Packed(self.buf, self.offsets[lo : max(hi, lo) + 1])
         return self.buf[self.offsets[i] : self.offsets[i + 1]].tobytes()
 
     def __iter__(self) -> Iterator[bytes]:
@@ -380,6 +389,27 @@ class Packed:
         # byte j of output message i comes from buf[offsets_in[idx[i]] + j]
         src = np.repeat(self.offsets[idx] - offsets[:-1], lens) + np.arange(offsets[-1], dtype=np.int64)
         return Packed(self.buf[src], offsets)
+
+    def prefixed(self, heads: np.ndarray) -> "Packed":
+        """Each message with ``heads[i]`` in front of it, as a new batch, laid out by one compiled loop of two
+        copies a message (drive/_chunks.c): no per-message Python.
+
+        Parameters
+        ----------
+        heads : (n, k) uint8, one head a message
+
+        Returns
+        -------
+        Packed : n messages, each k bytes longer
+        """
+        n, k = heads.shape
+        heads = np.ascontiguousarray(heads, np.uint8)
+        src = np.ascontiguousarray(self.buf)
+        offsets = np.ascontiguousarray(self.offsets, np.int64)
+        out = np.empty(int(offsets[-1] - offsets[0]) + n * k, np.uint8)
+        native.library("fieldlog.drive._chunks", native.CHUNKS).fieldlog_prefix(
+            n, k, heads.ctypes.data, src.ctypes.data, offsets.ctypes.data, out.ctypes.data)
+        return Packed(out, offsets - offsets[0] + k * np.arange(n + 1, dtype=np.int64))
 
     @classmethod
     def from_matrix(cls, mat: np.ndarray) -> "Packed":
@@ -970,6 +1000,43 @@ def _raw_head(port: str, frame_id: str) -> tuple[struct.Struct, bytes, bytes]:
     pad_mono = -(12 + len(f)) % 8                       # int64 mono_ns after sec, nanosec and the frame id
     pad_data = -len(p) % 4                              # the data's uint32 length after the port string
     return struct.Struct(f"<4sIII{len(f)}s{pad_mono}xqI{len(p)}s{pad_data}xI"), f, p
+
+
+def encode_raws(stamp_ns: np.ndarray, mono_ns: np.ndarray, port: str, data: Packed, frame_id: str = "") -> Packed:
+    """``encode_raw`` of many reads of one port at once, the same bytes: read i's ``data[i]``, read at host wall
+    clock ``stamp_ns[i]`` and monotonic clock ``mono_ns[i]`` (ns), its fields before the data laid out as rows of
+    one structured array (``_raw_rows``) and put in front of the data in one step (``Packed.prefixed``).
+
+    Parameters
+    ----------
+    stamp_ns : (n,) int64 host wall clock at each read, UTC ns
+    mono_ns : (n,) int64 host monotonic clock at each read, ns
+    port : the port's role
+    data : the n reads' bytes
+    frame_id : the headers' frame
+
+    Returns
+    -------
+    Packed : n CDR messages
+    """
+    dtype, template = _raw_rows(port, frame_id)
+    rows = np.empty(len(data), dtype)
+    rows.view(np.uint8).reshape(len(data), dtype.itemsize)[:] = np.frombuffer(template, np.uint8)
+    rows["sec"], rows["nanosec"] = split_stamp(stamp_ns)
+    rows["mono_ns"] = mono_ns
+    rows["length"] = data.lengths
+    return data.prefixed(rows.view(np.uint8).reshape(len(data), dtype.itemsize))
+
+
+@lru_cache(maxsize=256)
+def _raw_rows(port: str, frame_id: str) -> tuple[np.dtype, bytes]:
+    """``encode_raw``'s fields before the data as a structured dtype of the fields that differ between reads
+    (sec, nanosec, mono_ns and the data's length, at their CDR offsets), and those bytes with the others set."""
+    head, f, p = _raw_head(port, frame_id)
+    mono_at = 16 + len(f) + -(12 + len(f)) % 8          # after the encapsulation header, sec, nanosec, frame id
+    dtype = np.dtype({"names": ["sec", "nanosec", "mono_ns", "length"], "formats": ["<i4", "<u4", "<i8", "<u4"],
+                      "offsets": [4, 8, mono_at, head.size - 4], "itemsize": head.size})
+    return dtype, head.pack(CDR_LE_HEADER, 0, 0, len(f), f, 0, len(p), p, 0)
 
 
 def decode_raw(data: bytes) -> tuple[int, int, str, bytes]:

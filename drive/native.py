@@ -37,7 +37,8 @@ _thread = threading.local()  # each thread's zstd context: a ctypes call release
 _libs: dict[str, ctypes.CDLL] = {}
 P, I64 = ctypes.c_void_p, ctypes.c_int64  # a pointer (an array's ``ctypes.data``), an int64_t
 CHUNKS = {"fieldlog_walk": (I64, [P, I64, I64, I64, P, P, P, P]),  # drive/_chunks.c: name -> (restype, argtypes)
-          "fieldlog_read_chunks": (None, [P] * 6 + [I64] + [P] * 11)}
+          "fieldlog_read_chunks": (None, [P] * 6 + [I64] + [P] * 11),
+          "fieldlog_prefix": (None, [I64, I64, P, P, P, P])}
 
 
 def library(module: str, signatures: dict[str, tuple[object, list]]) -> ctypes.CDLL:

@@ -15,7 +15,8 @@ it and ``acquire.recovery.recover`` can rebuild a valid file from the complete c
 is ``drive.chunks``.
 
 Not thread-safe: one thread owns a Recorder. With ``behind`` (offline writers) the recorder itself compresses and
-writes each closed chunk on a thread of its own while the owner goes on; the file's bytes are the same as without.
+writes each closed chunk, and the schema and channel records between them, on a thread of its own while the owner
+goes on; the file's bytes are the same as without.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import mcap
@@ -73,9 +74,14 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_STRUCT = struct.Struct("<BQHIQQ")
 _MSG_INDEX_HDR = struct.Struct("<BQHI")
+# A batch of at most this many messages is laid out a record at a time (``Recorder.write_channel``; the pipeline
+# writes /gps/fix, /gps/vel, /pps and /time/sync a message or two at a time): below it, the batch's arrays cost
+# more than the records' struct calls.
+FEW = 8
 # Closed chunks a ``behind`` recorder holds while its thread compresses and writes them (chunk_size bytes each,
-# uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one.
-BEHIND_CHUNKS = 16
+# uncompressed): enough that the owner goes on through a burst of chunks rather than wait at each one (a simulated
+# drive writes all of its /truth/* first, the thread compressing it while the pipeline starts).
+BEHIND_CHUNKS = 32
 
 
 @dataclass
@@ -90,23 +96,25 @@ class _OpenChunk:
     end: int = 0
     index: dict[int, list[tuple[np.ndarray | int, np.ndarray | int]]] = field(default_factory=dict)
 
-    def add_records(self, channel_id: int, log_times: list[int], records: list[bytes]) -> None:
-        """Message records ``records`` logged at ``log_times`` (the path of single messages: no arrays).
+    def add_block(self, channel_id: int, log_times: list[int], block: "bytes | memoryview", starts: list[int]) -> None:
+        """Whole message records laid out in ``block``, record k from ``starts[k]`` bytes into it, logged at
+        ``log_times[k]`` (the path of single messages and of records laid out ahead: no arrays).
 
         Parameters
         ----------
         channel_id : the records' channel id
         log_times : their log times, UTC ns
-        records : the whole message records (header and payload)
+        block : the records (header and payload each), back to back
+        starts : where each record starts in ``block``, bytes
         """
-        offsets = list(itertools.accumulate(map(len, records), initial=self.size))
         lo, hi = min(log_times), max(log_times)
         self.start = lo if self.count == 0 else min(self.start, lo)
         self.end = max(self.end, hi)
-        self.count += len(records)
-        self.index.setdefault(channel_id, []).extend(zip(log_times, offsets))
-        self.parts.extend(records)
-        self.size = offsets[-1]
+        self.count += len(log_times)
+        base = self.size
+        self.index.setdefault(channel_id, []).extend(zip(log_times, [base + x for x in starts]))
+        self.parts.append(block)
+        self.size = base + len(block)
 
     def add(self, cid: int, log_t: np.ndarray, pub_t: np.ndarray, p: "messages.Packed", i: int, j: int) -> None:
         """Messages ``i`` to ``j`` of ``p`` as message records of channel ``cid``: equal-length messages
@@ -120,13 +128,8 @@ class _OpenChunk:
         i, j : the messages of ``p`` to add, ``p[i:j]``
         """
         m = j - i
-        hdr = np.zeros(m, dtype=_MSG_HDR)
         lens = p.offsets[i + 1 : j + 1] - p.offsets[i:j]
-        hdr["op"] = Opcode.MESSAGE
-        hdr["length"] = lens + 22
-        hdr["channel"] = cid
-        hdr["log_time"] = log_t
-        hdr["publish_time"] = pub_t
+        hdr = _headers(cid, lens, log_t, pub_t)
         payload = p.buf[p.offsets[i] : p.offsets[j]]
         if np.all(lens == lens[0]):
             w = int(lens[0])
@@ -153,6 +156,18 @@ class _OpenChunk:
         self.size += int(lens.sum()) + 31 * m
 
 
+def _headers(cid: int, lens: np.ndarray, log_t: np.ndarray, pub_t: np.ndarray) -> np.ndarray:
+    """The message record headers (``_MSG_HDR``) of payloads of ``lens`` bytes on channel ``cid``, logged and
+    published at ``log_t`` and ``pub_t`` (UTC ns)."""
+    hdr = np.zeros(len(lens), dtype=_MSG_HDR)
+    hdr["op"] = Opcode.MESSAGE
+    hdr["length"] = lens + 22
+    hdr["channel"] = cid
+    hdr["log_time"] = log_t
+    hdr["publish_time"] = pub_t
+    return hdr
+
+
 def _index_column(pieces: list, i: int) -> np.ndarray:
     """Column ``i`` of a channel's index pieces (``_OpenChunk.index``) as one uint64 array, in order."""
     out, run = [], []
@@ -168,6 +183,71 @@ def _index_column(pieces: list, i: int) -> np.ndarray:
     if run:
         out.append(np.array(run, np.uint64))
     return np.concatenate(out)
+
+
+def _ints(values: Sequence[int] | np.ndarray) -> list[int]:
+    """``values`` as a list of Python ints (an array's in one call, a sequence's one by one)."""
+    return values.astype(np.int64).tolist() if isinstance(values, np.ndarray) else [int(v) for v in values]
+
+
+class _Laid(NamedTuple):
+    """Message records laid out (``Records.laid_out``): record k is ``buf[starts[k]:starts[k + 1]]``, logged at
+    ``log_times[k]`` (UTC ns) on channel ``channel_id``."""
+
+    channel_id: int
+    log_times: list[int]
+    buf: memoryview
+    starts: list[int]
+
+
+@dataclass(slots=True)
+class Records:
+    """Messages of one topic to write in pieces as ``Recorder.write`` of each in turn would
+    (``Recorder.write_records``): their log times (UTC ns, > 0), payloads (a list, or a ``messages.Packed``
+    batch) and publish times (None: the log times). Their message records are laid out once, at the first
+    write."""
+
+    topic: str
+    log_time_ns: Sequence[int] | np.ndarray
+    payloads: "messages.Packed | Sequence[bytes]"
+    publish_time_ns: Sequence[int] | np.ndarray | None = None
+    _laid: _Laid | None = field(default=None, init=False, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.payloads)
+
+    def laid_out(self, channel_id: Callable[[str], int]) -> _Laid:
+        """The message records, laid out on the first call: a batch in one vectorised step (``Packed.prefixed``),
+        a list a record at a time (ValueError when the times and the payloads differ in length, or a log time is
+        not > 0).
+
+        Parameters
+        ----------
+        channel_id : the recorder's ``channel_id``, asked for the topic's once the times check out
+
+        Returns
+        -------
+        _Laid : the records, where each starts, their log times and channel
+        """
+        if self._laid is None:
+            times = _ints(self.log_time_ns)
+            pub = times if self.publish_time_ns is None else _ints(self.publish_time_ns)
+            if len(times) != len(self.payloads) or len(pub) != len(times):
+                raise ValueError("log_time_ns and msgs differ in length")
+            if times and min(times) <= 0:
+                raise ValueError("log_time must be > 0")
+            cid = channel_id(self.topic)
+            if isinstance(self.payloads, messages.Packed):
+                p = self.payloads
+                hdr = _headers(cid, p.lengths, np.array(times, np.int64), np.array(pub, np.int64))
+                laid = p.prefixed(hdr.view(np.uint8).reshape(len(p), 31))
+                self._laid = _Laid(cid, times, memoryview(laid.buf), laid.offsets.tolist())
+            else:
+                pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
+                records = [pack(op, 22 + len(d), cid, 0, t, q) + d for t, q, d in zip(times, pub, self.payloads)]
+                starts = list(itertools.accumulate(map(len, records), initial=0))
+                self._laid = _Laid(cid, times, memoryview(b"".join(records)), starts)
+        return self._laid
 
 
 class _FileWriter:
@@ -188,16 +268,21 @@ class _FileWriter:
         self._msg_start = 0
         self._msg_end = 0
         self._behind = ThreadPoolExecutor(1, thread_name_prefix="recorder") if behind else None
-        self._pending: deque[Future] = deque()   # the chunks being compressed and written behind, in order
+        self._pending: deque[Future] = deque()   # the chunks and records being written behind, in order
         self._f.write(MAGIC)
-        self.write_record(Header(PROFILE, LIBRARY))
+        self._put_record(Header(PROFILE, LIBRARY))
 
-    def write_record(self, record) -> int:
-        """Write one record to the data section (after the chunk written behind); return its length in bytes."""
-        self._drain()
-        return self._put_record(record)
+    def write_record(self, record) -> None:
+        """Write one record to the data section after the chunks handed over before it; with ``behind``, on that
+        thread too, so that a schema or channel first used mid-stream does not hold the owner up until the chunks
+        in flight are written."""
+        if self._behind is None:
+            self._put_record(record)
+        else:
+            self._pending.append(self._behind.submit(self._put_record, record))
 
     def _put_record(self, record) -> int:
+        """Write one record at the file's end now; return its length in bytes."""
         rb = RecordBuilder()
         record.write(rb)
         data = rb.end()
@@ -208,7 +293,7 @@ class _FileWriter:
         """``Recorder.add_metadata``."""
         self._drain()
         offset = self._f.tell()
-        length = self.write_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
+        length = self._put_record(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
 
     def flush(self, c: _OpenChunk) -> None:
@@ -254,14 +339,16 @@ class _FileWriter:
         return compressed, crc32(data)
 
     def _drain(self) -> None:
-        """Wait for the chunks written behind, if there are any (the first one's error is raised here)."""
+        """Wait for the chunks and records written behind, if there are any (the first one's error is raised
+        here)."""
         pending, self._pending = self._pending, deque()
         errors = [e for e in (f.exception() for f in pending) if e is not None]
         if errors:
             raise errors[0]
 
     def settle(self) -> None:
-        """Wait for the chunks written behind (the first one's error is raised here), then stop the thread."""
+        """Wait for the chunks and records written behind (the first one's error is raised here), then stop the
+        thread."""
         try:
             self._drain()
         finally:
@@ -313,8 +400,9 @@ class _FileWriter:
 
     def close(self, schemas: Mapping[int, Schema], channels: Mapping[int, Channel]) -> None:
         """Write DataEnd, the summary (``schemas``, ``channels``, statistics, chunk and metadata indexes, summary
-        offsets), the footer and the closing magic; flush, fsync (if enabled) and close the file."""
-        self.write_record(DataEnd(0))
+        offsets), the footer and the closing magic; flush, fsync (if enabled) and close the file. After ``settle``:
+        nothing is written behind any more."""
+        self._put_record(DataEnd(0))
         summary_start = self._f.tell()
         sb = RecordBuilder()
         offsets: list[SummaryOffset] = []
@@ -354,7 +442,7 @@ class _FileWriter:
         crc = crc32(summary)
         crc = crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._f.write(summary)
-        self.write_record(Footer(summary_start, summary_offset_start, crc))
+        self._put_record(Footer(summary_start, summary_offset_start, crc))
         self._f.write(MAGIC)
         self._f.flush()
         if self._fsync:
@@ -391,9 +479,10 @@ class Recorder(outputs.Closing):
         record (``drive.drivestats``); off for files whose chunks are copied as they are (``recover``)
     force : replace a regular file at ``path``
     root : the output folder ``path`` lies in, walked without following a link
-    behind : compress and write each closed chunk on a thread while the caller goes on (at most
-        ``BEHIND_CHUNKS`` chunks in flight), for offline writers: a chunk is sure to be in the file only at the
-        next record outside chunks or at ``close``, so ``flush`` does not bound what a power cut loses
+    behind : compress and write each closed chunk (and the schema and channel records after it) on a thread
+        while the caller goes on (at most ``BEHIND_CHUNKS`` chunks in flight), for offline writers: a chunk is
+        sure to be in the file only at the next metadata record, copied chunk or ``close``, so ``flush`` does not
+        bound what a power cut loses
     """
 
     def __init__(
@@ -520,44 +609,37 @@ class Recorder(outputs.Closing):
         data : the CDR payload
         publish_time_ns : publish time, UTC ns (None: ``log_time_ns``)
         """
-        self.write_each(topic, (log_time_ns,), (data,), None if publish_time_ns is None else (publish_time_ns,))
+        self.write_records(Records(topic, (log_time_ns,), (data,),
+                                   None if publish_time_ns is None else (publish_time_ns,)))
 
-    def write_each(self, topic: str, log_time_ns: Sequence[int], msgs: Sequence[bytes],
-                   publish_time_ns: Sequence[int] | None = None) -> None:
-        """``write`` of each message in turn, in one call: the same records and chunks (a chunk is closed after
-        the message that fills it), the flush by ``flush_interval_s`` checked once, at the end. For a writer with
-        many single messages of one topic at once (``Pipeline.feed_reads``: a run of raw reads), which
-        ``write_batch`` would lay out in other chunks (it closes a chunk before the message that overfills it).
+    def write_records(self, recs: Records, i: int = 0, j: int | None = None) -> None:
+        """``write`` of each of messages ``i`` to ``j - 1`` of ``recs`` in turn, in one call: the same records and
+        chunks (a chunk is closed after the message that fills it), the flush by ``flush_interval_s`` checked
+        once, at the end. For a writer with many single messages of one topic at once, which ``write_batch``
+        would lay out in other chunks (it closes a chunk before the message that overfills it); ``recs`` is laid
+        out at its first write, so a writer that writes many in pieces (``Pipeline.feed_reads``: a block's raw
+        DAQ reads, a run of reads at a time) lays them out once.
 
         Parameters
         ----------
-        topic : a topic of the data model (``channel_id``)
-        log_time_ns : log times, UTC ns (> 0)
-        msgs : the CDR payloads, one per log time
-        publish_time_ns : publish times, UTC ns (None: the log times)
+        recs : the messages
+        i, j : the ones to write, ``recs``' i..j-1 (None: to the last)
         """
-        times = [int(t) for t in log_time_ns]
-        if len(times) != len(msgs):
-            raise ValueError("log_time_ns and msgs differ in length")
-        if not times:
+        j = len(recs) if j is None else j
+        if i >= j:
             return
-        if min(times) <= 0:
-            raise ValueError("log_time must be > 0")
-        cid = self.channel_id(topic)
+        laid = recs.laid_out(self.channel_id)
+        times, starts = laid.log_times, laid.starts
         if self.stats is not None:
-            self.stats.observe_messages(topic, times, msgs)
-        pub = times if publish_time_ns is None else [int(t) for t in publish_time_ns]
-        pack, op = _MSG_HDR_STRUCT.pack, Opcode.MESSAGE
-        records = [pack(op, 22 + len(d), cid, 0, t, p) + d for t, p, d in zip(times, pub, msgs)]
-        ends = list(itertools.accumulate(map(len, records)))   # bytes from the first record's start
-        i, n = 0, len(records)
-        while i < n:
+            self.stats.observe_messages(recs.topic, times[i:j], recs.payloads[i:j])
+        while i < j:
             # up to the record that fills the open chunk (or all of them), then close it as write does
-            j = min(bisect_left(ends, (ends[i - 1] if i else 0) + self._chunk_size - self._chunk.size, i), n - 1) + 1
-            self._chunk.add_records(cid, times[i:j], records[i:j])
+            a = starts[i]
+            k = min(bisect_left(starts, a + self._chunk_size - self._chunk.size, i + 1, j + 1), j)
+            self._chunk.add_block(laid.channel_id, times[i:k], laid.buf[a:starts[k]], [x - a for x in starts[i:k]])
             if self._chunk.size >= self._chunk_size:
                 self.flush()
-            i = j
+            i = k
         self.maybe_flush()
 
     def write_batch(
@@ -612,6 +694,15 @@ class Recorder(outputs.Closing):
         cid = channel_id
         if self.stats is not None:
             self.stats.observe(self._channels[cid].topic, log_time_ns, p)
+        if n <= FEW:   # a record at a time, closing the open chunk before a message that would overfill it
+            o = p.offsets.tolist()
+            for t, q, a, b in zip(log_time_ns.tolist(), pub.tolist(), o, o[1:]):
+                record = _MSG_HDR_STRUCT.pack(Opcode.MESSAGE, 22 + b - a, cid, 0, t, q) + p.buf[a:b].tobytes()
+                if self._chunk.count and self._chunk.size + len(record) > self._chunk_size:
+                    self.flush()
+                self._chunk.add_block(cid, [t], record, [0])
+                self.maybe_flush()
+            return
         lens = p.lengths
         rec_lens = lens + 31
         ends = np.cumsum(rec_lens)

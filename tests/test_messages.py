@@ -252,6 +252,32 @@ def test_tf_rows_are_encode_tf_row_by_row():
     assert packed.to_list() == want
 
 
+def test_raw_bytes_of_many_reads_at_once_equal_each_reads():
+    """``encode_raws`` gives ``encode_raw``'s bytes for every read (ports and frame ids of every padding, empty
+    reads, stamps before 1970 and past 2038), from a batch and from a slice of one (``Packed[i:j]``)."""
+    rng = np.random.default_rng(8)
+    for frame_id in ("", "a", "gps", "imu_link", "x" * 13):
+        for port in ("daq", "gps", "p", "portname"):
+            n = 60
+            stamp = rng.integers(-2**40, 2**62, n)
+            mono = rng.integers(-2**62, 2**62, n)
+            data = [rng.bytes(int(k)) for k in rng.integers(0, 200, n)]
+            data[3] = b""
+            want = [m.encode_raw(int(a), int(b), port, d, frame_id) for a, b, d in zip(stamp, mono, data)]
+            assert m.encode_raws(stamp, mono, port, m.Packed.from_list(data), frame_id).to_list() == want
+            piece = m.Packed.from_list(data)[7:40]
+            assert m.encode_raws(stamp[7:40], mono[7:40], port, piece, frame_id).to_list() == want[7:40]
+
+
+def test_prefixed_puts_each_head_in_front_of_its_message():
+    rng = np.random.default_rng(2)
+    msgs = [rng.bytes(int(k)) for k in rng.integers(0, 50, 40)]
+    heads = rng.integers(0, 256, (40, 5), dtype=np.uint8)
+    got = m.Packed.from_list(msgs).prefixed(heads).to_list()
+    assert got == [h.tobytes() + x for h, x in zip(heads, msgs)]
+    assert m.Packed.from_list(msgs)[3:3].prefixed(heads[:0]).to_list() == []
+
+
 def test_raw_bytes_laid_out_in_one_go_equal_the_field_by_field_writer():
     for frame_id in ("", "a", "gps", "imu_link", "x" * 13):
         for port in ("daq", "gps", "can", "p", "portname"):

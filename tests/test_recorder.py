@@ -18,7 +18,7 @@ from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
 from fieldlog.drive import messages as m
-from fieldlog.drive.recorder import Recorder
+from fieldlog.drive.recorder import Recorder, Records
 from fieldlog.acquire.recovery import recover
 from fieldlog.drive import reader
 
@@ -90,9 +90,10 @@ def test_write_batch_splits_by_chunk_size_and_rejects_zero_time(tmp_path):
     assert [x[1] for x in _all_messages(path)] == t.tolist()
 
 
-def test_write_each_gives_the_file_of_write_of_each_message(tmp_path):
-    """``write_each`` in batches of any size writes the file ``write`` of each message in turn does: a chunk is
-    closed after the message that fills it, not before the one that would overfill it (``write_batch``)."""
+def test_write_records_gives_the_file_of_write_of_each_message(tmp_path):
+    """``write_records`` of messages in pieces of any size, given as lists or as one batch laid out at the first
+    write, writes the file ``write`` of each message in turn does: a chunk is closed after the message that fills
+    it, not before the one that would overfill it (``write_batch``)."""
     rng = np.random.default_rng(5)
     n = 600
     t = (T0 + np.arange(n, dtype=np.int64) * DT).tolist()
@@ -105,10 +106,17 @@ def test_write_each_gives_the_file_of_write_of_each_message(tmp_path):
     with Recorder(many, **kw) as rec:
         cuts = np.unique(np.concatenate(([0, n], rng.integers(0, n, 60)))).tolist()
         for a, b in zip(cuts[:-1], cuts[1:]):
-            rec.write_each("/raw/daq", t[a:b], msgs[a:b])
+            rec.write_records(Records("/raw/daq", t[a:b], msgs[a:b]))
         with pytest.raises(ValueError):
-            rec.write_each("/raw/daq", [0], msgs[:1])
-    assert one.read_bytes() == many.read_bytes()
+            rec.write_records(Records("/raw/daq", [0], msgs[:1]))
+    ahead = tmp_path / "ahead.mcap"
+    with Recorder(ahead, **kw) as rec:          # one batch, laid out at the first write, written in the same pieces
+        recs = Records("/raw/daq", np.array(t), m.Packed.from_list(msgs))
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            rec.write_records(recs, a, b)
+        with pytest.raises(ValueError):
+            rec.write_records(Records("/raw/daq", np.array([0]), m.Packed.from_list(msgs[:1])))
+    assert one.read_bytes() == many.read_bytes() == ahead.read_bytes()
     with open(one, "rb") as fh:
         sizes = [c.uncompressed_size for c in make_reader(fh).get_summary().chunk_indexes]
     want, size = [], 0          # each chunk closed by the record (31 header bytes + payload) that fills it
@@ -167,6 +175,33 @@ def test_recover_at_random_cuts_keeps_exactly_the_complete_chunks(tmp_path):
             names = [md.name for md in make_reader(fh).iter_metadata()]
         assert names == (["drive"] if cut >= md_end else []) + (["fieldlog.info"] if cut >= info.offset + info.length
                                                                   else [])
+
+
+def test_a_few_messages_are_laid_out_as_a_batch_of_them(tmp_path, monkeypatch):
+    """``write_batch`` of at most ``FEW`` messages, laid out a record at a time, gives the file the batch's
+    arrays give: the same records, message indexes and chunks (a chunk closed before the message that would
+    overfill it, an oversized message alone in its chunk), with batches of one size and of mixed sizes."""
+    from fieldlog.drive import recorder
+
+    rng = np.random.default_rng(9)
+    n = 400
+    t = T0 + np.arange(n, dtype=np.int64) * DT
+    cuts = np.unique(np.concatenate(([0, n], rng.integers(0, n, 150)))).tolist()
+    fixed = m.encode_imu(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+    mixed = [m.encode_sentence(int(x), "$GPGGA," + "1" * int(k)) for x, k in zip(t, rng.integers(0, 5000, n))]
+
+    def write(path: Path) -> bytes:
+        with Recorder(path, chunk_size=4096, flush_interval_s=None, compression="") as rec:
+            for a, b in zip(cuts[:-1], cuts[1:]):
+                rec.write_batch("/imu", t[a:b], m.Packed.from_list(fixed.to_list()[a:b]), t[a:b] - 7)
+                rec.write_batch("/gps/nmea", t[a:b], mixed[a:b])
+        return path.read_bytes()
+
+    sizes = np.diff(cuts)
+    assert sizes.min() <= recorder.FEW < sizes.max()
+    few = write(tmp_path / "few.mcap")
+    monkeypatch.setattr(recorder, "FEW", 0)
+    assert few == write(tmp_path / "arrays.mcap")
 
 
 def test_recover_file_from_mcap_writer(tmp_path):

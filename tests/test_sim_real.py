@@ -174,3 +174,13 @@ def test_make_reads_beside_or_in_turn_alike(monkeypatch):
     assert isinstance(simulate._beside(), simulate._InTurn)
     assert beside[0] == in_turn[0] and len(beside[0]) > 1000
     assert _same(beside[1], in_turn[1])
+
+
+def test_simulate_leaves_the_collector_as_it_found_it(tmp_path):
+    """``simulate`` freezes the objects alive on entry and collects the youngest generation less often while it
+    runs; afterwards the thresholds are the caller's and nothing is left frozen."""
+    import gc
+
+    thresholds, frozen = gc.get_threshold(), gc.get_freeze_count()
+    simulate.simulate("figure8", 3.0, 1, tmp_path / "d.mcap")
+    assert gc.get_threshold() == thresholds and gc.get_freeze_count() == frozen

@@ -281,3 +281,36 @@ def test_median_is_numpys():
                 a[rng.integers(n)] = np.nan
             want = np.median(a)
             assert _median(a) == want or (np.isnan(want) and np.isnan(_median(a)))
+
+
+def test_robust_fit_gives_the_floats_of_numpys_means():
+    """robust_fit's least squares (means as sums over the count) gives the floats of the same fit written with
+    np.mean, on edge-like inputs: labels with gaps, outliers, windows of a few to a few hundred edges."""
+    from fieldlog.acquire.timesync import robust_fit, theil_sen
+    rng = np.random.default_rng(6)
+    fs, tol, fitted = 500.0, 0.5, 0
+    for n in (5, 17, 121, 300):
+        for rep in range(20):
+            label = np.sort(rng.choice(np.arange(10_000, 10_000 + 2 * n), n, replace=False))
+            k_edge = 3e6 + (label - label[0]) * (fs + rng.normal(0, 0.05)) + rng.normal(0, 0.2, n)
+            k_edge[rng.random(n) < 0.05] += 40.0
+            lr, kr = int(label[-1]), int(np.floor(k_edge[-1]))
+            x = (label - lr).astype(np.float64)
+            y = k_edge - kr - fs * x
+            slope, intercept = theil_sen(x, y)
+            inl = np.abs(y - intercept - slope * x) <= tol
+            got = robust_fit(label, k_edge, lr, kr, fs, tol, 3)
+            if got is None:
+                assert inl.sum() < 3
+                continue
+            fit, got_inl = got
+            fitted += 1
+            xi, yi = x[inl], y[inl]
+            xm, ym = xi.mean(), yi.mean()
+            e = float(((xi - xm) * (yi - ym)).sum() / float(((xi - xm) ** 2).sum()))
+            c = float(ym - e * xm)
+            assert (got_inl == inl).all()
+            assert (fit.c, fit.e, fit.n, fit.x_mean, fit.sxx) == (c, e, int(inl.sum()), float(xm),
+                                                                   float(((xi - xm) ** 2).sum()))
+            assert fit.rms == float(np.sqrt(np.mean((yi - c - e * xi) ** 2)))
+    assert fitted > 60

@@ -1,3 +1,5 @@
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -174,3 +176,7 @@ def test_evaluate_in_blocks_keeps_every_bit(name):
         blocked, at_once = truth.evaluate(t[:n]), truth._evaluate(t[:n])
         for name_ in ("lat", "lon", "h", "v_n", "r_e", "C_bn", "f_b", "omega_ib_b"):
             assert np.array_equal(getattr(blocked, name_).view(np.uint64), getattr(at_once, name_).view(np.uint64))
+    with ThreadPoolExecutor(1) as beside:                  # blocks shared with a thread beside: the same bits
+        shared = truth.evaluate(t, beside)
+    for name_ in ("t", "lat", "lon", "h", "v_n", "r_e", "C_bn", "f_b", "omega_ib_b"):
+        assert np.array_equal(getattr(shared, name_).view(np.uint64), getattr(whole, name_).view(np.uint64))

@@ -990,7 +990,7 @@ _STAGES = ("reading and decoding", "input mapping and resequencing", "INS and co
            "measurement updates", "predictors", "fusion loop (engine)", "output encoding and writing", "other")
 _WRITE = {"Recorder", "_OpenChunk", "_FileWriter", "write", "write_each", "write_batch", "write_channel",
           "maybe_flush", "flush", "write_chunk", "write_record", "add_metadata", "register", "channel_id", "close",
-          "__enter__", "__exit__", "add", "add_records"}
+          "__enter__", "__exit__", "add", "add_block", "records", "write_records", "_add_few"}
 _CYCLE = {"predict", "propagate", "cycle_matrices", "segment_cycles", "system_matrices", "discretise"}
 
 

@@ -34,6 +34,7 @@ DAQ_BAUD = 921_600
 FRAME_DELAY_S = 150e-6      # ADC conversion and framing before the frame starts on the wire
 TRUTH_NAV_HZ = 100.0
 TRUTH_BLOCK = 8192          # /truth/* messages encoded and written at a time (_write_blocks)
+YOUNG_COLLECT = 10_000      # allocations between collections of the youngest generation (_collector_eased)
 START_UTC = _dt.datetime(2026, 5, 4, 9, 30, 0, tzinfo=_dt.timezone.utc)
 
 
@@ -110,7 +111,7 @@ def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_
         gps_rngs = (rng_gps, rng_nmea, rng_gps_reads)
         gps = pool.submit(_gps_reads, truth, duration_s, ccfg, gps_cfg, qerr_s, host, gps_rngs)
         bus = pool.submit(vehicle.can_reads, truth, duration_s, host, t0_ns, rng_can, car) if can else None
-        ts = truth.evaluate(t_k)
+        ts = truth.evaluate(t_k, pool)
         w_sensed, f_sensed = sensed(truth, t_k, ts, install, scenario.vibration, ccfg.fs_hz, rng_vib)
         counts, realised = sensors.apply_errors(draws.result(), w_sensed, f_sensed, imu_cfg, cal)
         pps, latch, latch_valid, edges_truth = simclock.pps_frames(t_k, ccfg, rng_clock, pulse_late_s=qerr_s)
@@ -253,17 +254,24 @@ def fusion_metadata(table: dict) -> dict[str, str]:
 
 
 @contextmanager
-def _older_objects_frozen() -> Iterator[None]:
-    """The objects alive on entry (the modules' functions, classes and tables) moved into the collector's
-    permanent generation (``gc.freeze``) until exit. A simulation allocates enough objects to set off full
-    collections, which would walk all of those every time and find no garbage among them: each collection
-    walks only the objects made since. On exit they are collectable again, unless the caller froze objects
-    itself (``gc.unfreeze`` cannot tell its objects from ours)."""
+def _collector_eased() -> Iterator[None]:
+    """Until exit, the objects alive on entry (the modules' functions, classes and tables) moved into the
+    collector's permanent generation (``gc.freeze``), and the youngest generation collected after
+    ``YOUNG_COLLECT`` allocations rather than the default's few hundred. A simulation allocates enough objects
+    to set off full collections, which would walk all of those every time and find no garbage among them: each
+    collection walks only the objects made since. And most of what it allocates lives to the end (its reads,
+    hundreds of thousands of tuples), so each young collection finds little to free and moves the rest on,
+    whose walks set off the older generations'. On exit the thresholds are the caller's again, and the frozen
+    objects collectable, unless the caller froze objects itself (``gc.unfreeze`` cannot tell its objects from
+    ours)."""
     caller_froze = gc.get_freeze_count() > 0
+    thresholds = gc.get_threshold()
     gc.freeze()
+    gc.set_threshold(max(YOUNG_COLLECT, thresholds[0]), *thresholds[1:])
     try:
         yield
     finally:
+        gc.set_threshold(*thresholds)
         if not caller_froze:
             gc.unfreeze()
 
@@ -278,7 +286,7 @@ def simulate(scenario_name: str, duration_s: float | None, seed: int, out: str |
     bus (``/raw/can``, ``/vehicle/*``, ``/truth/vehicle/twist``; also when the scenario's ``[vehicle] can``);
     ``mounting_rpy_deg`` (deg) and ``imu_delay_s`` (s) replace the scenario's ``[imu]`` ones. ``out`` must be new,
     unless ``force`` (``drive.outputs``)."""
-    with _older_objects_frozen():
+    with _collector_eased():
         outputs.check_new(out, force)
         scenario = trajectory.load_scenario(scenario_name)
         over = {k: v for k, v in (("mounting_rpy_deg", mounting_rpy_deg), ("delay_s", imu_delay_s)) if v is not None}

@@ -65,6 +65,7 @@ Times are seconds since the drive start (t = 0 at the start of the static period
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 from pathlib import Path
@@ -608,23 +609,39 @@ class Truth:
     _r0_e: np.ndarray = field(repr=False)
     _C_et: np.ndarray = field(repr=False)  # ECEF -> tangent frame at the origin
 
-    def evaluate(self, t_s: np.ndarray) -> TruthSample:
+    def evaluate(self, t_s: np.ndarray, beside: Executor | None = None) -> TruthSample:
         """True state and error-free IMU output at times t_s (n,) in s since the drive start, ``EVAL_BLOCK``
         times at a time into arrays of all n (``rows.blocks``: each time's state depends on that time alone and
-        no block is a lone time, so the values are the same however the times are split)."""
+        no block is a lone time, so the values are the same however the times are split). ``beside``: an
+        executor whose thread takes blocks too while the caller's does (numpy releases the GIL in its loops), so
+        that a thread of it which comes free shares the work (None: the caller's thread alone)."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if t.size and (t.min() < self.t_min or t.max() > self.t_max):
             raise ValueError(f"times outside the truth's span [{self.t_min}, {self.t_max}] s")
         if len(t) <= EVAL_BLOCK:
             return self._evaluate(t)
-        out: dict[str, np.ndarray] = {"t": t}
-        for i, j in rows.blocks(len(t), EVAL_BLOCK):
-            block = self._evaluate(t[i:j])
-            for name in (f.name for f in fields(TruthSample) if f.name != "t"):
-                x = getattr(block, name)
-                if i == 0:
-                    out[name] = np.empty((len(t),) + x.shape[1:], x.dtype)
-                out[name][i:j] = x
+        ranges = iter(rows.blocks(len(t), EVAL_BLOCK))   # a list's iterator: each range taken by one thread
+        i, j = next(ranges)
+        first = self._evaluate(t[i:j])
+        names = [f.name for f in fields(TruthSample) if f.name != "t"]
+        out = {"t": t}
+        for name in names:
+            x = getattr(first, name)
+            out[name] = np.empty((len(t),) + x.shape[1:], x.dtype)
+
+        def fill(block: TruthSample, i: int, j: int) -> None:
+            for name in names:
+                out[name][i:j] = getattr(block, name)
+
+        def take_ranges() -> None:
+            for i, j in ranges:
+                fill(self._evaluate(t[i:j]), i, j)
+
+        fill(first, i, j)
+        helper = beside.submit(take_ranges) if beside is not None else None
+        take_ranges()
+        if helper is not None:
+            helper.result()
         return TruthSample(**out)
 
     def _evaluate(self, t: np.ndarray) -> TruthSample:
