@@ -1,8 +1,8 @@
 /* Reading MCAP records in C: the record walk of drive/chunks.py and the chunk reader of drive/native.py; and
- * the byte layout of messages.Packed.prefixed, for writing them (their docstrings give the contracts). Built with the package (setup.py) and called through ctypes; it needs
- * no Python headers. libzstd and zlib-ng are not linked: the caller passes the addresses of the functions the
- * installed zstandard and zlib_ng packages export, so the kernels use the very builds python-zstandard and
- * zlib_ng use.
+ * the byte layout of messages.Packed.prefixed, for writing them (their docstrings give the contracts). Built
+ * with the package (setup.py) and called through ctypes; it needs no Python headers. libzstd and zlib-ng are not
+ * linked: the caller passes the addresses of the functions the installed zstandard and zlib_ng packages export,
+ * so the kernels use the very builds python-zstandard and zlib_ng use.
  *
  * A record is an opcode byte, a little-endian u64 body length and the body (MCAP). Every read is bounds-checked
  * against the buffer; a length that does not fit (or has its top bit set) ends the walk there.
