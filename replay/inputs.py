@@ -384,21 +384,14 @@ class InputStream:
         """The engine's blocks, read on the second core (``replay.ahead``); the counters are this object's
         again once the drive has been read to its end. With ``keep``, the first pass to the end also pickles the
         blocks into an anonymous temporary file (about 1.2 times the IMU's rows as float64), and each later pass
-        reads them back from it instead of decoding the drive again (the same blocks; :meth:`close` deletes it).
-        That first pass reads in this process: it pickles the blocks here anyway, which a worker would have
-        pickled once more to send them, and its caller (the installation's time-offset pass) does less per
-        block than the read, so it would only wait for the worker (the reader's own read-ahead thread still
-        overlaps the decompression)."""
+        reads them back from it instead of decoding the drive again (the same blocks; :meth:`close` deletes it)."""
         if self._kept is not None:
             self._kept.seek(0)
             return (yield from _unpickled(self._kept))
         kept = tempfile.TemporaryFile() if self.keep else None  # noqa: SIM115 (lives as long as this stream)
         try:
-            if kept is not None:
-                yield from _pickled(self._input_blocks(), kept)
-            else:
-                with Ahead(self._input_blocks) as blocks:
-                    self.__dict__.update((yield from blocks))
+            with Ahead(self._input_blocks) as blocks:
+                self.__dict__.update((yield from _pickled(iter(blocks), kept) if kept else blocks))
         except BaseException:
             if kept is not None:
                 kept.close()
