@@ -25,6 +25,7 @@ from fieldlog.replay.inputs import InputMap
 
 IMU_DECIMATION = 10  # 500 Hz -> 50 Hz by block means
 IMU_BLOCK_S = 60.0
+IMU_FIELDS = ("omega_ib_b", "f_b", "valid")  # the decoded /imu keys the pass reads (its covariances are not copied)
 NMEA = "/gps/nmea"  # read undecoded in the pass: only its GGA sentences are decoded
 
 LOW_RATE = {  # drive topics kept whole (fields needed), read in the same pass as /imu
@@ -116,7 +117,8 @@ def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Gene
     imu_t, imu_x = [carry_t], [carry_x]
     gga: list[tuple[int, list[float]]] = []
     read = wanted + ([NMEA] if nmea_in_pass else [])
-    blocks = (reader.iter_blocks(drive, read, IMU_BLOCK_S, undecoded=(NMEA,)) if native else
+    kept = {"/imu": IMU_FIELDS, **{t: ("valid", *keep) for t, keep in LOW_RATE.items()}}
+    blocks = (reader.iter_blocks(drive, read, IMU_BLOCK_S, undecoded=(NMEA,), fields=kept) if native else
               inputs.canonical_blocks(drive, imap, IMU_BLOCK_S, tuple(wanted)))
     for block in blocks:
         sentences = block.data.get(NMEA)
