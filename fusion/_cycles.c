@@ -276,13 +276,15 @@ KERNEL void fieldlog_consider_cycles(int64_t m, const double *Phi, const double 
     }
 }
 
-/* The interval sums of fusion/still.ImuSums.add: sums (4 x 3: rate, specific force, their squares) += the sums
- * over the n rows of w and f (n x 3). Each column is summed from its first row on, one row after the other, and
- * the squares from +0.0: numpy's order for a sum over the rows of a C-contiguous array and for
+/* The interval sums of fusion/still.ImuSums.add: sum_w, sum_f (3 each) += the sums over the n rows of w and f
+ * (n x 3), sum_ww, sum_ff += their sums of squares. Each column is summed from its first row on, one row after the
+ * other, and the squares from +0.0: numpy's order for a sum over the rows of a C-contiguous array and for
  * einsum("ij,ij->j"), so the sums equal numpy's to the bit. */
-void fieldlog_sample_sums(int64_t n, const double *w, const double *f, double *sums)
+void fieldlog_sample_sums(int64_t n, const double *w, const double *f, double *sum_w, double *sum_f,
+                          double *sum_ww, double *sum_ff)
 {
     const double *x[2] = {w, f};
+    double *sums[2] = {sum_w, sum_f}, *squares[2] = {sum_ww, sum_ff};
     for (int a = 0; a < 2; a++)
         for (int j = 0; j < 3; j++) {
             double s = n > 0 ? x[a][j] : 0.0, sq = 0.0;
@@ -290,8 +292,8 @@ void fieldlog_sample_sums(int64_t n, const double *w, const double *f, double *s
                 s += x[a][i * 3 + j];
             for (int64_t i = 0; i < n; i++)
                 sq += x[a][i * 3 + j] * x[a][i * 3 + j];
-            sums[a * 3 + j] += s;
-            sums[6 + a * 3 + j] += sq;
+            sums[a][j] += s;
+            squares[a][j] += sq;
         }
 }
 

@@ -221,7 +221,7 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_segment_cycles": ([i64, i64] + [p] * 16, i32),
         "fieldlog_propagate_cov": [i64, p, p, f64, i32, p, p],
         "fieldlog_consider_cycles": [i64, p, p, p, p, p, p],
-        "fieldlog_sample_sums": [i64, p, p, p],
+        "fieldlog_sample_sums": [i64] + [p] * 6,
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
         "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),

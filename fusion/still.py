@@ -50,28 +50,11 @@ GATE = 4.0  # sigmas: a bias's flicker gives the interval means heavier tails th
 class ImuSums:
     """Sums of IMU samples over an interval: rate (rad/s) and specific force (m/s^2), body RFU, and squares."""
 
+    sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
     n: int = 0
-    sums: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))  # rows: sum_w, sum_f, sum_ww, sum_ff
-
-    @property
-    def sum_w(self) -> np.ndarray:
-        """(3,) the rates' sum, rad/s."""
-        return self.sums[0]
-
-    @property
-    def sum_f(self) -> np.ndarray:
-        """(3,) the specific forces' sum, m/s^2."""
-        return self.sums[1]
-
-    @property
-    def sum_ww(self) -> np.ndarray:
-        """(3,) the rates' sum of squares, for the interval's variances."""
-        return self.sums[2]
-
-    @property
-    def sum_ff(self) -> np.ndarray:
-        """(3,) the specific forces' sum of squares."""
-        return self.sums[3]
+    sum_ww: np.ndarray = field(default_factory=lambda: np.zeros(3))  # squares: the interval's variances
+    sum_ff: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def std(self, total: np.ndarray, squares: np.ndarray) -> float:
         """Root of the summed per-axis variances of the samples, e.g. std(sum_f, sum_ff).
@@ -99,7 +82,8 @@ class ImuSums:
         """
         ws, fs = (np.ascontiguousarray(a[i0 + 1:i1 + 1], float) for a in (w, f))
         # compiled (fusion/_cycles.c): numpy's sums over the rows and einsum("ij,ij->j"), to the bit
-        errmodel.cycle_kernel().fieldlog_sample_sums(len(ws), *map(kernels.address, (ws, fs, self.sums)))
+        errmodel.cycle_kernel().fieldlog_sample_sums(len(ws), *map(kernels.address, (ws, fs, self.sum_w, self.sum_f,
+                                                                                     self.sum_ww, self.sum_ff)))
         self.n += max(i1 - i0, 0)
 
     def merge(self, other: ImuSums) -> None:
@@ -109,7 +93,10 @@ class ImuSums:
         ----------
         other : the interval whose samples join these.
         """
-        self.sums += other.sums
+        self.sum_w += other.sum_w
+        self.sum_f += other.sum_f
+        self.sum_ww += other.sum_ww
+        self.sum_ff += other.sum_ff
         self.n += other.n
 
 

@@ -144,7 +144,7 @@ def test_compiled_interval_sums_equal_numpy(n):
         sums.add(w, f, i0, i1)
         ws, fs = w[i0 + 1:i1 + 1], f[i0 + 1:i1 + 1]
         want += [ws.sum(axis=0), fs.sum(axis=0), np.einsum("ij,ij->j", ws, ws), np.einsum("ij,ij->j", fs, fs)]
-    _same(sums.sums, want)
+    _same(np.array([sums.sum_w, sums.sum_f, sums.sum_ww, sums.sum_ff]), want)
     assert sums.n == n + 3
 
 
