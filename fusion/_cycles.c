@@ -2,8 +2,8 @@
  * the distributed filter's fusion (fusion/dkf.py) and the still detector's interval sums (fusion/still.py), in C.
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
- * KalmanFilter.propagate, kf.joseph_update, consider.gain, dkf.fuse, smoother.rts and still.ImuSums.add; it needs
- * no Python headers.
+ * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update, consider.gain, dkf.fuse,
+ * smoother.rts and still.ImuSums.add; it needs no Python headers.
  * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
  * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
  * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal
@@ -249,6 +249,32 @@ KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q
                 P[i * N + j] = sym ? 0.5 * (B[i * N + j] + B[j * N + i]) : B[i * N + j];
         memcpy(hist + k * N * N, P, sizeof(double) * N * N);
     }
+}
+
+/* The error state through the cycles of KalmanFilter.propagate (kf.propagate_state): x <- Phi_i x for i < m, x (15)
+ * in place; hist (m, 15) gets x after each cycle */
+KERNEL void fieldlog_propagate_state(int64_t m, const double *Phi, double *x, double *hist)
+{
+    double y[N];
+    for (int64_t k = 0; k < m; k++) {
+        matmul(N, N, 1, Phi + k * N * N, N, x, 1, 0, y, 1);
+        memcpy(x, y, sizeof y);
+        memcpy(hist + k * N, y, sizeof y);
+    }
+}
+
+/* The covariance cycles' slots (engine._slot_starts): out gets each k in [1, n) whose slot floor((t_k - anchor) /
+ * step) (t in s, strictly increasing) differs from sample k - 1's, in order; returns their number */
+int64_t fieldlog_slot_starts(int64_t n, const double *t, double anchor, double step, int64_t *out)
+{
+    int64_t count = 0, prev = 0;
+    for (int64_t k = 0; k < n; k++) {
+        int64_t slot = (int64_t)floor((t[k] - anchor) / step);
+        if (k > 0 && slot != prev)
+            out[count++] = k;
+        prev = slot;
+    }
+    return count;
 }
 
 /* The consider sensitivity of fusion/consider.GyroConsider.propagate: S <- Phi_i S + 1/2 (Bdt_i + Phi_i Bdt_i) for

@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from fieldlog.fusion import (adaptive, align, clipgyro, errmodel, ins, kf, listeners, measurements, methods, output,
-                            still, ukf)
+from fieldlog.fusion import (adaptive, align, clipgyro, errmodel, ins, kernels, kf, listeners, measurements, methods,
+                            output, still, ukf)
 from fieldlog.fusion.config import GPS_ERROR_MODELS, FusionConfig
 from fieldlog.fusion.errmodel import BA, BG, N_STATES, POS, VEL
 from fieldlog.fusion.outages import OutageTracker, PredictorBridge, Silence
@@ -420,11 +420,13 @@ def _propagate(f, Phi: np.ndarray, Q: np.ndarray, history: bool
 
 
 def _slot_starts(t: np.ndarray, anchor: float | None, step_s: float) -> np.ndarray:
-    """Indexes into t (s) of the samples that start a ``step_s`` slot counted from the anchor (s, the last GPS
-    epoch; t[0] when None), after t[0]."""
-    anchor = t[0] if anchor is None else anchor
-    slot = np.floor((t - anchor) / step_s).astype(np.int64)
-    return np.flatnonzero(np.diff(slot) != 0) + 1
+    """Indexes into t (s, strictly increasing) of the samples that start a ``step_s`` slot counted from the anchor
+    (s, the last GPS epoch; t[0] when None), after t[0]: where floor((t - anchor) / step_s) steps (compiled)."""
+    t = np.ascontiguousarray(t, dtype=float)
+    out = np.empty(len(t), np.int64)
+    start = float(t[0] if anchor is None else anchor)
+    n = errmodel.cycle_kernel().fieldlog_slot_starts(len(t), kernels.address(t), start, step_s, kernels.address(out))
+    return out[:n]
 
 
 def _cycle_start(t: np.ndarray, i0: int, i1: int, anchor: float | None, step_s: float) -> int:

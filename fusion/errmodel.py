@@ -207,8 +207,8 @@ def discretise(F: np.ndarray, G: np.ndarray, q: np.ndarray, dt: ArrayLike) -> tu
 
 @functools.cache
 def cycle_kernel() -> ctypes.CDLL:
-    """The compiled cycle matrices, covariance cycles, updates, fusion, smoothing, the predictors' RLS step and the
-    still detector's interval sums (fusion/_cycles.c), loaded once.
+    """The compiled cycle matrices, covariance and state cycles, the cycles' slots, updates, fusion, smoothing, the
+    predictors' RLS step and the still detector's interval sums (fusion/_cycles.c), loaded once.
 
     Returns
     -------
@@ -220,6 +220,8 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_cycle_matrices": [i64, f64] + [p] * 8,
         "fieldlog_segment_cycles": ([i64, i64] + [p] * 16, i32),
         "fieldlog_propagate_cov": [i64, p, p, f64, i32, p, p],
+        "fieldlog_propagate_state": [i64, p, p, p],
+        "fieldlog_slot_starts": ([i64, p, f64, f64, p], i64),
         "fieldlog_consider_cycles": [i64, p, p, p, p, p, p],
         "fieldlog_sample_sums": [i64] + [p] * 6,
         "fieldlog_kf_gain": ([i64] + [p] * 4, i32),

@@ -245,24 +245,28 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
 
 
 def propagate_state(Phi: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """The error state through the cycles. A zero state (the closed loop's, between updates) stays zero without a
-    product.
+    """The error state through the cycles (15 states compiled, fusion/_cycles.c; an augmented state in numpy). A
+    zero state (the closed loop's, between updates) stays zero without a product.
 
     Parameters
     ----------
-    Phi : ndarray (m, 15, 15)
+    Phi : ndarray (m, n, n)
         The cycles' transition matrices.
-    x : ndarray (15,)
+    x : ndarray (n,)
         The state before the first.
 
     Returns
     -------
-    ndarray (m, 15)
+    ndarray (m, n)
         x after each cycle.
     """
     if not x.any():
         return np.zeros((len(Phi), len(x)))
     out = np.empty((len(Phi), len(x)))
+    if x.shape == (N_STATES,) and Phi.shape[1:] == (N_STATES, N_STATES):
+        errmodel.cycle_kernel().fieldlog_propagate_state(len(Phi), kernels.address(np.ascontiguousarray(Phi, float)),
+                                                         kernels.address(np.array(x, float)), kernels.address(out))
+        return out
     for i in range(len(Phi)):
         x = Phi[i] @ x
         out[i] = x

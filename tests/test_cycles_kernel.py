@@ -10,28 +10,29 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from fieldlog.fusion import consider, earth, errmodel, ins, kernels, kf, still
+from fieldlog.fusion import consider, earth, engine, errmodel, ins, kernels, kf, still
 from fieldlog.fusion.dkf import DistributedKF
+
+
+def _fma_chain(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b, each element the exact fused multiply-add chain over the inner index from +0 (in rationals)."""
+    out = np.empty((a.shape[0], b.shape[1]))
+    for i in range(a.shape[0]):
+        for j in range(b.shape[1]):
+            acc = 0.0
+            for k in range(a.shape[1]):
+                acc = float(Fraction(a[i, k]) * Fraction(b[k, j]) + Fraction(acc))  # one rounding: an FMA
+            out[i, j] = acc
+    return out
 
 
 @functools.lru_cache(maxsize=1)
 def _blas_is_sequential_fma() -> bool:
     """Whether numpy's products of the sizes the kernel takes (15 x 15 by 15 x 15 and 3 x 3) are, element by
-    element, the exact fused multiply-add chain over the inner index from +0 (computed here in rationals)."""
+    element, the exact fused multiply-add chain over the inner index from +0."""
     rng = np.random.default_rng(0)
-
-    def chain(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        out = np.empty((a.shape[0], b.shape[1]))
-        for i in range(a.shape[0]):
-            for j in range(b.shape[1]):
-                acc = 0.0
-                for k in range(a.shape[1]):
-                    acc = float(Fraction(a[i, k]) * Fraction(b[k, j]) + Fraction(acc))  # one rounding: an FMA
-                out[i, j] = acc
-        return out
-
     pairs = [(rng.normal(size=(n, n)), rng.normal(size=(n, n))) for n in (15, 3)]
-    return all(np.array_equal(a @ b, chain(a, b)) for a, b in pairs)
+    return all(np.array_equal(a @ b, _fma_chain(a, b)) for a, b in pairs)
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> None:
@@ -107,10 +108,12 @@ def test_the_filter_cycles_keep_a_zero_state_zero_and_move_a_nonzero_one():
     x0 = rng.normal(size=15)
     f.x = x0
     f.propagate(Phi, Q)
-    want = x0
+    want, blas = x0, x0
     for P in Phi:
-        want = P @ want
-    assert np.array_equal(f.x, want)
+        want, blas = _fma_chain(P, want[:, None])[:, 0], P @ blas
+    assert np.array_equal(f.x, want)  # the fused multiply-add chain in k order, on any machine
+    np.testing.assert_allclose(f.x, blas, rtol=0, atol=1e-14 * np.abs(blas).max())  # BLAS sums in another order
+    assert not np.array_equal(f.x, x0)
 
 
 def test_compiled_consider_cycles_equal_numpy():
@@ -371,6 +374,20 @@ def test_segment_cycles_equal_their_numpy_formulas(m):
     assert np.array_equal(c.starts, starts) and np.array_equal(c.mid, mid)
     with pytest.raises(ValueError, match="strictly increasing"):
         errmodel.segment_cycles(sol, ends[::-1] if m > 1 else np.array([n]), w, f, q)
+
+
+@pytest.mark.parametrize("anchor", [None, 0.0, 0.05, -0.3])
+def test_compiled_slot_starts_equal_numpy(anchor):
+    """The engine's covariance-cycle slots (compiled) start where numpy's floor((t - anchor) / step) steps, samples
+    on a slot's edge (t = anchor + k step in floating point) included."""
+    rng = np.random.default_rng(7)
+    step = 0.1
+    t = np.sort(np.concatenate([np.cumsum(rng.uniform(0.0015, 0.0025, 3000)), np.arange(1, 60) * step]))
+    t = t[np.concatenate([[True], np.diff(t) > 0])]
+    a = t[0] if anchor is None else anchor
+    want = np.flatnonzero(np.diff(np.floor((t - a) / step).astype(np.int64)) != 0) + 1
+    assert np.array_equal(engine._slot_starts(t, anchor, step), want) and len(want) > 50
+    assert len(engine._slot_starts(t[:1], anchor, step)) == 0
 
 
 def test_kernel_address_is_the_data_of_a_writable_array_and_numpys_otherwise():
