@@ -9,7 +9,7 @@ is at most about one message ahead of its caller, so memory holds about two.
 - :class:`Ahead`: a generator in the worker, its items consumed here (``fuse``'s input blocks, ``view``'s
   drive pass).
 - :class:`Remote`: an object in the worker, its methods called from here, without waiting or for an answer
-  (``fuse``'s outage predictor).
+  (``fuse``'s outage predictor); the calls sent without waiting go down the pipe in batches.
 
 Both pass exceptions back (as the same type where they pickle, else ``RuntimeError`` with their text), ignore
 SIGINT in the worker (the caller decides), end the worker through ``os._exit`` (nothing of the caller's, no
@@ -137,15 +137,19 @@ def _receive(pipe) -> tuple[int, object]:
 class Remote:
     """An object made by ``make()`` in a forked worker: ``send`` calls one of its methods there without waiting,
     ``ask`` calls one and returns its result, both in the order given (so an answer reflects every call sent
-    before it). A call that raises in the worker ends it; its exception is raised here by the next ``send`` or
-    ``ask``. ``close`` ends the worker. Without ``os.fork``, or with other threads running, the object lives in
-    this process and each call runs at once."""
+    before it). Sent calls are held here until ``SEND_BATCH`` of them, or an ``ask``, go down the pipe together:
+    one message, not one per call. A call that raises in the worker ends it; its exception is raised here by a
+    later ``send`` or ``ask``. ``close`` ends the worker (calls still held are dropped). Without ``os.fork``, or
+    with other threads running, the object lives in this process and each call runs at once."""
+
+    SEND_BATCH = 32
 
     def __init__(self, make: Callable[[], object]) -> None:
         self._obj: object | None = None
         self._pid = 0
         self._calls = -1
         self._results = None
+        self._held: list[tuple[str, tuple]] = []
         if not _can_fork():
             self._obj = make()
             return
@@ -165,13 +169,16 @@ class Remote:
         if self._obj is not None:
             getattr(self._obj, name)(*args)
             return
-        self._put(_ITEM, (name, args))
+        self._held.append((name, args))
+        if len(self._held) >= self.SEND_BATCH:
+            self._put(_ITEM)
 
     def ask(self, name: str, *args: object) -> object:
         """``obj.name(*args)``, after every call sent before it; its result."""
         if self._obj is not None:
             return getattr(self._obj, name)(*args)
-        self._put(_RETURN, (name, args))
+        self._held.append((name, args))
+        self._put(_RETURN)
         return self._answer()
 
     def close(self) -> None:
@@ -181,11 +188,13 @@ class Remote:
             os.close(self._calls)
             self._results.close()
 
-    def _put(self, kind: int, call: tuple) -> None:
+    def _put(self, kind: int) -> None:
+        """The held calls down the pipe, as one message (``_RETURN``: the last one's result is wanted)."""
         if not self._pid:
             raise RuntimeError("the worker has been closed")
+        calls, self._held = self._held, []
         try:
-            _send(self._calls, kind, call)
+            _send(self._calls, kind, calls)
         except BrokenPipeError:  # the worker ended on an error: raise it
             self._answer()
             raise RuntimeError("the worker ended early") from None
@@ -208,7 +217,8 @@ class Remote:
 
 
 def _host(make: Callable[[], object], calls: int, results: int) -> None:
-    """The worker of a :class:`Remote`: make the object, then run the calls as they come until the pipe ends."""
+    """The worker of a :class:`Remote`: make the object, then run the calls as they come until the pipe ends; a
+    message of kind ``_RETURN`` is answered with its last call's result."""
     code = 0
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -218,19 +228,21 @@ def _host(make: Callable[[], object], calls: int, results: int) -> None:
             except BaseException as e:  # noqa: BLE001 - reported at the first call
                 _send(results, _ERROR, _picklable(e))
                 raise SystemExit(1) from None
-            while True:
+            while code == 0:
                 try:
-                    kind, (name, args) = _receive(pipe)
+                    kind, batch = _receive(pipe)
                 except RuntimeError:  # the caller has gone
                     break
-                try:
-                    value = getattr(obj, name)(*args)
-                except BaseException as e:  # noqa: BLE001 - every failure goes to the caller
-                    _send(results, _ERROR, _picklable(e))
-                    code = 1
-                    break
-                if kind == _RETURN:
-                    _send(results, _RETURN, value)
+                for name, args in batch:
+                    try:
+                        value = getattr(obj, name)(*args)
+                    except BaseException as e:  # noqa: BLE001 - every failure goes to the caller
+                        _send(results, _ERROR, _picklable(e))
+                        code = 1
+                        break
+                else:
+                    if kind == _RETURN:
+                        _send(results, _RETURN, value)
     except BaseException:  # noqa: BLE001 - nothing may unwind into the parent's code in this process
         code = 1
     finally:
