@@ -162,6 +162,7 @@ class StatusBook:
         self.last_update_ns: int | None = None
         self.aided = False
         self.nis: deque[float] = deque(maxlen=NIS_FIXES)
+        self._nis_mean = math.nan  # of the last NIS_FIXES NIS, NaN before as many
 
     def epoch(self, usable: bool) -> bool:
         """A GPS epoch after the alignment (usable or not: its fix may update the filter); returns usable.
@@ -196,6 +197,11 @@ class StatusBook:
                 self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
         except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
             self.nis.append(math.inf)
+        if len(self.nis) == NIS_FIXES:
+            total = 0.0
+            for x in self.nis:  # one after the other, numpy's order for so few (sum() may compensate)
+                total += x
+            self._nis_mean = total / NIS_FIXES
         self.last_update_ns, self.aided = t_ns, True
 
     def aligning(self, t_ns: np.ndarray) -> Solution:
@@ -226,8 +232,8 @@ class StatusBook:
         -------
         (int, int or None, float)
         """
-        nis = float(np.mean(self.nis)) if len(self.nis) == NIS_FIXES else math.nan
-        return (ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING), self.last_update_ns, nis
+        code = ALIGNED if self.last_update_ns is None else AIDED if self.aided else COASTING
+        return code, self.last_update_ns, self._nis_mean
 
     def of(self, s: Solution, seg: np.ndarray, states: list[tuple[int, int | None, float]]) -> Solution:
         """The solution rows s with their status.
@@ -298,9 +304,11 @@ def correlated_variance(r: np.ndarray, p: np.ndarray, period_s: float, tau_s: fl
     (3,) ndarray
         Variance to add per ENU axis, m^2.
     """
-    r = np.where(np.isfinite(r), r, 0.0)
+    # per axis in floats, each step the IEEE operation numpy's would be; the exponential numpy's own
+    r = [v if math.isfinite(v) else 0.0 for v in r.tolist()]
     if tau_s <= 0.0:
-        return np.zeros_like(r)
-    x = np.maximum(r / np.maximum(p, 1e-12), 1.0) * period_s / tau_s
-    f = np.where(x < 1e-4, 1.0 - x / 3.0, 2.0 * (x - 1.0 + np.exp(-x)) / np.maximum(x, 1e-4) ** 2)
-    return r * f
+        return np.zeros(len(r))
+    x = [max(a / max(b, 1e-12), 1.0) * period_s / tau_s for a, b in zip(r, p.tolist())]
+    decay = np.exp(-np.array(x)).tolist()
+    f = [1.0 - v / 3.0 if v < 1e-4 else 2.0 * (v - 1.0 + d) / (max(v, 1e-4) * max(v, 1e-4)) for v, d in zip(x, decay)]
+    return np.array([a * b for a, b in zip(r, f)])

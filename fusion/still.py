@@ -110,7 +110,7 @@ class GpsSpeed:
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.floor = cfg.still.still_gps_speed_mps
-        self.recent: list[tuple[float, np.ndarray, float]] = []  # t (s), horizontal velocity (2,), sigma per axis
+        self.recent: list[tuple[float, float, float, float]] = []  # t (s), velocity east, north (m/s), sigma per axis
 
     def add(self, t: float, v: np.ndarray, ep: Epoch) -> tuple[float, float]:
         """The GPS speed the still detector tests at an epoch, and its limit.
@@ -130,13 +130,15 @@ class GpsSpeed:
             self.recent = []
             return math.nan, self.floor
         keep = [r for r in self.recent if r[0] >= t - _SPEED_SPAN_S - 1e-6]
-        self.recent = (keep or self.recent[-1:]) + [(t, np.asarray(v[:2], float), vel_sigma(ep))]
+        self.recent = (keep or self.recent[-1:]) + [(t, float(v[0]), float(v[1]), vel_sigma(ep))]
         if len(self.recent) < 2:
             return math.nan, self.floor
         n = len(self.recent)
-        mean = sum(r[1] for r in self.recent) / n
-        sigma = math.sqrt(sum(r[2] ** 2 for r in self.recent)) / n
-        return float(np.hypot(mean[0], mean[1])), max(self.floor, SPEED_K * sigma)
+        east = north = 0
+        for _, v_east, v_north, _ in self.recent:  # one after the other, from 0 (sum() may compensate)
+            east, north = east + v_east, north + v_north
+        sigma = math.sqrt(sum(r[3] ** 2 for r in self.recent)) / n
+        return float(np.hypot(east / n, north / n)), max(self.floor, SPEED_K * sigma)
 
 
 _MIN_SAMPLES = 10  # per GPS interval, for its spread: 20 at 200 Hz with a 10 Hz receiver (aircraft)
