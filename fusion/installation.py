@@ -9,8 +9,9 @@ car's heading d after the car when the IMU's samples are stamped d late; the rec
 its horizontal velocity, at speeds of ``MIN_SPEED_MPS`` or more) is the car's at its epoch. The course changes
 between consecutive epochs are compared with the gyro's heading changes over the same intervals shifted by d
 (the mounting's constant yaw cancels in a difference; a constant rate, the gyro bias, is fitted out), d searched
-over +-``MAX_OFFSET_S`` and refined by a parabola through the least squares; sigma from the residuals and the
-cost's curvature (the summed squared changes of yaw rate across the intervals): turns that begin and end carry
+over +-``MAX_OFFSET_S`` and refined by a parabola fitted to the least squares around their minimum; sigma from the
+residuals and the parabola's curvature (the summed squared changes of yaw rate across the intervals), over a span
+wider than the kept samples' spacing, whose interpolation kinks the cost: turns that begin and end carry
 the offset, straights and steady turns do not. The gyro's own heading, not the INS's: the GPS updates turn the
 INS heading at the epochs. The yaw rate only: the receiver's acceleration is noisier at 1 Hz.
 
@@ -48,6 +49,7 @@ BLOCK_S = 10.0  # s: the mounting's averaging blocks
 ROLL_ROAD_DEG = 1.0  # deg: a road's crossfall, the roll's floor
 MAX_OFFSET_S = 0.5  # s: the time offsets searched
 _STEP_S = 0.001
+_FIT_S = 0.02  # s: the parabola through the least squares is fitted over +-this (one GyroTrack spacing)
 
 
 def _course(v_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,12 +71,15 @@ class GyroTrack:
         self._kept = RowFile(self._SAMPLE)
         self._first_ns = 0
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # t_ns, rate (3,), integral (3,)
+        self._every = 0  # every how many samples one is kept (0: not yet known), from the first steps
         self.sum_f = np.zeros(3)
         self.n = 0
         self._about: tuple[int, np.ndarray, np.ndarray] | None = None  # n, stamps, integral about up: one chunk
 
     def add(self, t_ns: np.ndarray, omega_m: np.ndarray, f_m: np.ndarray) -> None:
-        """Add IMU samples.
+        """Add IMU samples. The track does not depend on how the drive is cut into blocks: the integral runs on
+        from the last sample, and a sample is kept every ``HZ``-th of a second counted from the drive's first (the
+        IMU's rate from the first 100 steps).
 
         Parameters
         ----------
@@ -94,9 +99,15 @@ class GyroTrack:
             start = np.zeros(3)
             self._first_ns = int(t[0])
         steps = 0.5 * (w[1:] + w[:-1]) * (np.diff(t) * 1e-9)[:, None]
-        angle = start + np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-        every = max(int(round(1e9 / self.HZ / max(float(np.median(np.diff(t))) if len(t) > 1 else 1e9, 1.0))), 1)
-        keep = slice(1 if self._last is not None else 0, None, every)
+        angle = np.cumsum(np.concatenate([start[None], steps]), axis=0)  # one running sum over the drive
+        if not self._every and len(t) > 1:
+            self._every = max(int(round(1e9 / self.HZ / max(float(np.median(np.diff(t[:101]))), 1.0))), 1)
+        every = self._every or 1
+        first = self.n - 1 if self._last is not None else 0  # the drive's index of t[0]
+        start = (-first) % every
+        if self._last is not None and start == 0:
+            start = every  # t[0] is the block before's last sample
+        keep = slice(start, None, every)
         kept = np.empty(len(t[keep]), self._SAMPLE)
         kept["t_ns"], kept["angle"] = t[keep], angle[keep]
         self._kept.append(kept)
@@ -201,16 +212,19 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     per = max(1, _CELLS // len(k))  # lags at a time: memory bounded on a long drive
     cost = np.concatenate([_cost(lags[i:i + per]) for i in range(0, len(lags), per)])
     i = int(np.argmin(cost))
-    if not 0 < i < len(lags) - 1:  # at the edge of the search: the turns do not show the offset
+    w = int(round(_FIT_S / _STEP_S))
+    if not w <= i < len(lags) - w:  # at the edge of the search: the turns do not show the offset
         return None
-    c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
-    curv = c0 - 2.0 * c1 + c2
-    if not curv > 0:
+    # cost(d) ~ c_min + S (d - d_hat)^2, S the sum of squared sensitivities: the parabola fitted over +-_FIT_S
+    x = lags[i - w:i + w + 1] - lags[i]
+    c2, c1, c0 = np.polyfit(x, cost[i - w:i + w + 1], 2)
+    if not c2 > 0:
         return None
-    d = float(lags[i] + 0.5 * _STEP_S * (c0 - c2) / curv)
-    # cost(d) ~ c_min + S (d - d_hat)^2 with S = sum of squared sensitivities: curv = 2 S step^2
-    s2 = curv / (2.0 * _STEP_S ** 2)
-    return d, math.sqrt(float(c1) / max(len(k) - 2, 1) / s2)
+    d_hat = -c1 / (2.0 * c2)
+    if abs(d_hat) > _FIT_S:
+        return None
+    c_min = c0 - c1 * c1 / (4.0 * c2)
+    return float(lags[i] + d_hat), math.sqrt(max(float(c_min), 0.0) / max(len(k) - 2, 1) / float(c2))
 
 
 def mounting(blocks: Iterable[Solution], lever_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:

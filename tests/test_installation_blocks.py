@@ -1,5 +1,6 @@
 """The installation pass's bounded-memory reductions equal their whole-drive forms to the bit: the mounting of row
-blocks (``fusion.installation.mounting``) and the rate integral read back a chunk at a time (``GyroTrack``)."""
+blocks (``fusion.installation.mounting``) and the rate integral read back a chunk at a time (``GyroTrack``), fed in
+blocks that end anywhere."""
 from __future__ import annotations
 
 import math
@@ -101,3 +102,25 @@ def test_gyro_track_read_back_in_chunks_gives_the_same_time_offset(figure8_240s_
     assert offset is not None and offset == installation.time_offset(chunked, t_gps, v_gps)
     once.close()
     chunked.close()
+
+
+@pytest.mark.parametrize("cuts", [[1], [5000], [1, 2, 3, 4999, 12345], [7, 17, 1707, 9999, 10000, 10001]])
+def test_gyro_track_does_not_depend_on_where_the_blocks_end(cuts):
+    """The samples kept, their stamps and the rate integral at them: the same to the bit whatever the blocks the
+    samples come in (a jittery 500 Hz IMU; a first block of one sample included)."""
+    rng = np.random.default_rng(4)
+    n = 20000
+    t = 10**18 + np.arange(n, dtype=np.int64) * 2_000_000 + rng.integers(-20_000, 20_000, n)
+    w, f = rng.normal(0.0, 0.2, (n, 3)), rng.normal(0.0, 1.0, (n, 3))
+
+    def kept(ends):
+        track = installation.GyroTrack()
+        for a, b in zip([0, *ends], [*ends, n]):
+            track.add(t[a:b], w[a:b], f[a:b])
+        rows = track._kept.read(0, len(track._kept))
+        track.close()
+        return rows
+
+    whole, split = kept([]), kept(cuts)
+    assert len(whole) == n // 10 and np.array_equal(split["t_ns"], whole["t_ns"])
+    assert np.array_equal(split["angle"], whole["angle"])
