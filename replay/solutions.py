@@ -165,8 +165,8 @@ class Odometry:
     ``map -> odom`` (a translation) absorbs the corrections: map -> odom -> base_link equals the fused pose at
     every row. Pose covariance: position ENU and attitude error (phi E, N, U) of the filter, diagonal. Twist in
     base_link: the IMU point's velocity rotated into base_link (with its covariance rotated too; the lever-arm
-    term w x r is left out); the angular rate from consecutive attitudes, with the variance
-    ``messages.UNKNOWN_VARIANCE`` because the filter does not estimate it.
+    term w x r is left out); the angular rate from the row's attitude and the one before it (0 at the first row),
+    with the variance ``messages.UNKNOWN_VARIANCE`` because the filter does not estimate it.
     """
 
     def __init__(self, method: str, mounting: calib.Mounting) -> None:
@@ -176,7 +176,7 @@ class Odometry:
         self.C_imu_base = frames.C_imu_base(mounting)
         self.imu_position_m = np.asarray(mounting.imu_position_m, float)
         self.origin: tuple[float, float, float] | None = None
-        self._last: tuple[int, np.ndarray, np.ndarray] | None = None   # t_ns, v_n, odom position of the last row
+        self._last: tuple | None = None   # the last row's t_ns, v_n, odom position and C_base_n
 
     def _start(self, rec: Recorder, s: Solution) -> None:
         """The origin of map from the first row: datum, /tf_static."""
@@ -211,18 +211,16 @@ class Odometry:
         q_base = earth.dcm_to_quat(C_base_n)
         C_n_base = np.swapaxes(C_base_n, 1, 2)
         v_base = np.einsum("nij,nj->ni", C_n_base, s.v_n)
-        if n > 1:
-            dt = np.diff(s.t_ns) / 1e9
-            w = earth.dcm_to_rotvec(C_n_base[:-1] @ C_base_n[1:]) / dt[:, None]
-            omega = np.vstack([w, w[-1:]])
-        else:
-            omega = np.zeros((1, 3))
         t = s.t_ns
-        t_prev, v_prev, p_prev = self._last or (int(t[0]), s.v_n[0], p_base[0])
+        # the row before each (the drive's first row: itself), carried over from the last block, so the rows do
+        # not depend on where the blocks end
+        t_prev, v_prev, p_prev, C_prev = self._last or (int(t[0]), s.v_n[0], p_base[0], C_base_n[0])
         dt_s = np.diff(np.concatenate(([t_prev], t))) / 1e9
+        C_before = np.concatenate([C_prev[None], C_base_n[:-1]])
+        omega = earth.dcm_to_rotvec(np.swapaxes(C_before, 1, 2) @ C_base_n) / np.where(dt_s > 0, dt_s, np.inf)[:, None]
         v_before = np.vstack([v_prev[None], s.v_n[:-1]])
-        p_odom = p_prev + np.cumsum(0.5 * (v_before + s.v_n) * dt_s[:, None], axis=0)
-        self._last = (int(t[-1]), s.v_n[-1].copy(), p_odom[-1].copy())
+        p_odom = np.cumsum(np.concatenate([p_prev[None], 0.5 * (v_before + s.v_n) * dt_s[:, None]]), axis=0)[1:]
+        self._last = (int(t[-1]), s.v_n[-1].copy(), p_odom[-1].copy(), C_base_n[-1].copy())
         p_map_odom = p_base - p_odom
         var = s.sigma ** 2
         pose_cov = np.zeros((n, 6, 6))

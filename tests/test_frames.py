@@ -141,3 +141,49 @@ def test_quaternions_and_mounting_are_scipy_s_floats() -> None:
         m = calib.Mounting(imu_rpy_deg=rpy)
         assert np.array_equal(frames.C_imu_base(m),
                               frames.C_RFU_FLU @ Rotation.from_euler("xyz", rpy, degrees=True).as_matrix()), rpy
+
+
+def test_odometry_does_not_depend_on_where_the_blocks_end(tmp_path: Path) -> None:
+    """/fusion/kf/odom and /tf written from the same rows at once and in blocks of 1 to 9 rows: the same messages
+    (to the rounding of the matrix products over a block's rows); each angular rate is the turn from the row before
+    (0 at the first row), in base_link."""
+    from fieldlog.drive.recorder import Recorder
+    from fieldlog.fusion.types import Solution
+    from fieldlog.replay.solutions import Odometry
+
+    n = 200
+    t_ns = 10**18 + np.arange(n, dtype=np.int64) * 100_000_000
+    yaw = 0.3 * np.sin(np.arange(n) / 15.0)
+    q = np.column_stack([np.zeros(n), np.zeros(n), np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
+    v_n = np.column_stack([10.0 * np.sin(yaw), 10.0 * np.cos(yaw), np.zeros(n)])
+    sol = Solution(t_ns, 0.7 + np.arange(n) * 1e-7, 0.2 + np.arange(n) * 1e-7, np.full(n, 50.0), v_n, q,
+                   np.full((n, 15), 0.1), np.zeros((n, 6)))
+    mounting = calib.Mounting(imu_rpy_deg=(0.0, 0.0, 90.0), imu_position_m=(0.5, -0.2, 0.3))
+    cuts = np.cumsum(np.random.default_rng(5).integers(1, 10, n))
+    cuts = [0, *cuts[cuts < n], n]
+    files = {}
+    for name, spans in (("once", [(0, n)]), ("blocks", list(zip(cuts, cuts[1:])))):
+        files[name] = tmp_path / f"{name}.mcap"
+        odom = Odometry("kf", mounting)
+        with Recorder(files[name]) as rec:
+            for a, b in spans:
+                odom.write(rec, Solution(*(getattr(sol, k)[a:b] for k in ("t_ns", "lat", "lon", "h", "v_n", "q",
+                                                                           "sigma", "bias"))))
+    assert len(cuts) > 30
+    once, blocks = ([(tp, t, m) for tp, t, m in decoded(files[k]) if tp in ("/fusion/kf/odom", "/tf")]
+                    for k in ("once", "blocks"))
+    assert len(once) == len(blocks) == 2 * n and [x[:2] for x in once] == [x[:2] for x in blocks]
+
+    def numbers(m) -> list[float]:  # the poses, twists and covariances of an Odometry or a TFMessage
+        xyz = lambda v: [v.x, v.y, v.z] + ([v.w] if hasattr(v, "w") else [])  # noqa: E731
+        if hasattr(m, "transforms"):
+            return [x for tr in m.transforms for v in (tr.transform.translation, tr.transform.rotation) for x in xyz(v)]
+        p, tw = m.pose, m.twist
+        return (xyz(p.pose.position) + xyz(p.pose.orientation) + xyz(tw.twist.linear) + xyz(tw.twist.angular)
+                + list(p.covariance) + list(tw.covariance))
+
+    a, b = (np.concatenate([numbers(m) for _, _, m in x]) for x in (once, blocks))
+    np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)  # the products of a block's rows, to rounding
+    w_z = np.array([m.twist.twist.angular.z for tp, _, m in once if tp == "/fusion/kf/odom"])
+    assert w_z[0] == 0.0  # base_link's z is the IMU's up here: its yaw rate
+    np.testing.assert_allclose(w_z[1:], np.diff(yaw) / 0.1, rtol=1e-9)
