@@ -2,7 +2,8 @@
 
 Streaming: :meth:`Engine.process` takes consecutive blocks (any length) and keeps only the navigation state, the
 filter and the samples of the covariance cycle still open (their rows come with the next block, or
-:meth:`Engine.finish`): memory does not grow with the drive, and the rows do not depend on where blocks end.
+:meth:`Engine.finish`): memory does not grow with the drive, and the rows do not depend on where blocks end (but for
+the rounding of sums that a block end splits).
 
 Per block: the INS (``fusion.ins.integrate``) runs over the bias-corrected samples up to each GPS epoch, the yaw
 rate rebuilt where the gyro clipped (``fusion.clipgyro``); the error covariance is propagated in filter cycles of
@@ -82,7 +83,7 @@ class Engine:
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
         self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
         self._interval = still.ImuSums()  # IMU sums since the last GPS epoch
-        self._imu_dt = 0.002  # median IMU sample period, s
+        self._period = ins.SamplePeriod()  # the IMU's
         self._imu_late_ns = int(round(self.cfg.sensor.imu_time_offset_s * 1e9))  # taken off every IMU stamp
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
@@ -141,6 +142,7 @@ class Engine:
             # finite rows, tested a column at a time (numpy's all() over rows of three elements is slow)
             ok = np.logical_and.reduce([np.isfinite(a[:, i]) for a in (w, f) for i in range(3)])
             t_ns, w, f = t_ns[ok], w[ok], f[ok]
+        carried = len(self._carry[0]) if self._carry is not None else 0  # samples of the block before, seen
         if self._carry is not None:
             keep = t_ns > self._carry[0][-1]
             rows = slice(None) if keep.all() else keep
@@ -154,8 +156,7 @@ class Engine:
         if self.t_ref_ns is None or len(t_ns) == 0:
             return Solution.concat([]), self.outages.take()
         t = (t_ns - self.t_ref_ns) * 1e-9
-        if len(t) > 1:
-            self._imu_dt = float(np.median(np.diff(t)))
+        self._period.add(t, carried)
         aligning: list[Solution] = []  # status rows before the alignment, then the INS's segments
         segments: list[output.Segment | None] = []
         cursor = 0
@@ -199,7 +200,7 @@ class Engine:
         """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
         self._interval.add(w, f, i0, i1)
         for p in self._imu_readers:
-            p.feed_imu(w, f, i0, i1, self._imu_dt)
+            p.feed_imu(w, f, i0, i1, self._period.s)
 
     def finish(self) -> tuple[Solution, list[Outage]]:
         """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed).
@@ -251,7 +252,7 @@ class Engine:
         interval, self._interval = self._interval, still.ImuSums()
         v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
         t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
-        at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._imu_dt, self.bg, self.ba,
+        at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._period.s, self.bg, self.ba,
                                  self.filter.covariance)
         for m in self.measurements:
             if m.stage == "aid" and self._update(_observe([m], at)):

@@ -92,6 +92,37 @@ class NavSolution:
         return earth.dcm_to_euler(earth.quat_to_dcm(self.q))
 
 
+PERIOD_STEPS = 1000  # an IMU's sample period is the median of a drive's first this many sample steps
+
+
+class SamplePeriod:
+    """An IMU's sample period ``s`` (s): the median of the drive's first ``PERIOD_STEPS`` sample steps, so that the
+    blocks the drive comes in do not change it (0.002 before the first step)."""
+
+    def __init__(self) -> None:
+        self.s = 0.002
+        self._first: list[np.ndarray] | None = []  # the steps (s) while fewer than PERIOD_STEPS have been seen
+
+    def add(self, t: np.ndarray, carried: int) -> None:
+        """Take a block's sample steps.
+
+        Parameters
+        ----------
+        t : ndarray (n,)
+            The block's sample times, s, strictly increasing.
+        carried : int
+            How many of its first samples are those held from the block before (their steps were taken then).
+        """
+        if self._first is None:
+            return
+        self._first.append(np.diff(t[max(carried - 1, 0):]))
+        steps = np.concatenate(self._first)[:PERIOD_STEPS]
+        if len(steps):
+            self.s = float(np.median(steps))
+        if len(steps) == PERIOD_STEPS:
+            self._first = None
+
+
 @functools.cache
 def _kernel() -> ctypes.CDLL:
     """The compiled step (fusion/_ins.c)."""
