@@ -382,19 +382,22 @@ class InputStream:
 
     def __iter__(self) -> Iterator[InputBlock]:
         """The engine's blocks, read on the second core (``replay.ahead``); the counters are this object's
-        again once the drive has been read to its end. With ``keep``, the first pass to the end also pickles the
-        blocks into an anonymous temporary file (about 1.2 times the IMU's rows as float64), and each later pass
-        reads them back from it instead of decoding the drive again (the same blocks; :meth:`close` deletes it)."""
+        again once the drive has been read to its end. With ``keep``, the first pass to the end reads in this
+        process and pickles the blocks into an anonymous temporary file (about 1.2 times the IMU's rows as
+        float64; a worker would pickle each block once more to hand it over), and each later pass reads them back
+        from it instead of decoding the drive again (the same blocks; :meth:`close` deletes it)."""
         if self._kept is not None:
             self._kept.seek(0)
             return (yield from _unpickled(self._kept))
-        kept = tempfile.TemporaryFile() if self.keep else None  # noqa: SIM115 (lives as long as this stream)
-        try:
+        if not self.keep:
             with Ahead(self._input_blocks) as blocks:
-                self.__dict__.update((yield from _pickled(iter(blocks), kept) if kept else blocks))
+                self.__dict__.update((yield from blocks))
+            return
+        kept = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as this stream)
+        try:
+            self.__dict__.update((yield from _pickled(self._input_blocks(), kept)))
         except BaseException:
-            if kept is not None:
-                kept.close()
+            kept.close()
             raise
         self._kept = kept
 

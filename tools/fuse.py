@@ -24,9 +24,9 @@ pass (``fusion.smoother``) under the same topics; the filter's records (5.5 kB p
 the smoothed errors go to temporary files and the rows are smoothed and written back a block at a time
 (``fusion.smoother.smoothed_blocks``).
 
-The ``fuse`` command decodes the drive once: the first pass keeps its input blocks in an anonymous temporary file
-(``replay.inputs.InputStream(..., keep=True)``; about 100 MB per hour of a 500 Hz IMU) that the installation
-pass's second read and the fusion read back.
+The ``fuse`` command decodes the drive once, in its own process: the first pass keeps its input blocks in an
+anonymous temporary file (``replay.inputs.InputStream(..., keep=True)``; about 100 MB per hour of a 500 Hz IMU)
+that the installation pass's second read and the fusion read back.
 
 Settings: ``tools.fuse_settings`` (``--config FILE``, the drive's own record, the defaults); the writing:
 ``tools.fuse_output``.
