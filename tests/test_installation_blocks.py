@@ -3,6 +3,7 @@ blocks (``fusion.installation.mounting``) and the rate integral read back a chun
 blocks that end anywhere."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -72,6 +73,15 @@ def test_mounting_of_row_blocks_equals_the_whole_drive_formula(smoothed):
         assert got is not None
         for g, w in zip(got, want):
             assert np.array_equal(g, w), (len(cuts), g - w)
+
+
+def test_mounting_reads_no_bias_sigma(smoothed):
+    """The mounting reads the rows' attitude and vertical-velocity sigmas, not the bias ones: so the installation
+    pass runs without the gyro's consider analysis, which adds to the accelerometer-bias sigma alone."""
+    other = dataclasses.replace(smoothed, sigma=smoothed.sigma.copy())
+    other.sigma[:, 9:15] *= 7.0
+    want, got = installation.mounting([smoothed], None), installation.mounting([other], None)
+    assert want is not None and all(np.array_equal(g, w) for g, w in zip(got, want))
 
 
 def test_mounting_needs_rows(smoothed):

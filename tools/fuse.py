@@ -187,12 +187,15 @@ def _estimated_offset(stream: InputStream, start: float) -> tuple[float, float |
 
 
 def _estimated_mounting(stream: InputStream, config: FusionConfig) -> tuple[np.ndarray, np.ndarray] | None:
-    """``installation.mounting`` of ``kf`` over ``stream`` without the vehicle aids and the forced outages,
-    smoothed (deg, their sigmas): the forward rows spilled as they come (``RowSpill``), smoothed and reduced a block
-    at a time."""
+    """``installation.mounting`` of ``kf`` over ``stream`` without the vehicle aids and the forced outages (nor the
+    gyro's consider analysis, whose sigma the mounting does not read), smoothed (deg, their sigmas): the forward
+    rows spilled as they come (``RowSpill``), smoothed and reduced a block at a time."""
     log, spill = SmootherLog(), RowSpill()
+    off = {"nhc": False, "zupt": False, "odometer": False, "outages": ()}
+    if config.sensor.scale_factor_model == "consider":  # its analysis adds to the accelerometer-bias sigma alone,
+        off.update(gyro_scale_factor_ppm=0.0, gyro_misalignment_mrad=0.0)  # which the mounting does not read
     try:
-        engine = Engine(KF.name, config.replace(nhc=False, zupt=False, odometer=False, outages=()), log=log)
+        engine = Engine(KF.name, config.replace(**off), log=log)
         for block in stream:
             spill.add(engine.process(block.imu, block.gps)[0])
         spill.add(engine.finish()[0])
