@@ -2,8 +2,8 @@
  * the distributed filter's fusion (fusion/dkf.py) and the still detector's interval sums (fusion/still.py), in C.
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
- * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update, consider.gain, dkf.fuse,
- * smoother.rts and still.ImuSums.add; it needs no Python headers.
+ * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update and kf.nis,
+ * consider.gain, dkf.fuse, smoother.rts and still.ImuSums.add; it needs no Python headers.
  * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
  * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
  * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal
@@ -398,6 +398,35 @@ HELPER int kalman_gain(int m, const double *H, const double *R, const double *P,
 KERNEL int32_t fieldlog_kf_gain(int64_t m, const double *H, const double *R, const double *P, double *K)
 {
     return m < 0 || m > MAXM ? 1 : kalman_gain((int)m, H, R, P, K);
+}
+
+/* The normalised innovation squared of output.StatusBook.fix, (z - H x)^T S^-1 (z - H x) / m with S = H P H^T + R,
+ * of an update with z (m), H (m x 15), R (m x m) on x (15) and P (15 x 15), into *nis. Returns 1 when S is
+ * singular (or m is not in 1..MAXM). */
+KERNEL int32_t fieldlog_nis(int64_t m, const double *z, const double *H, const double *R, const double *x,
+                            const double *P, double *nis)
+{
+    double HP[MAXM * N], S[MAXM * MAXM], y[MAXM], b[MAXM];
+    if (m < 1 || m > MAXM)
+        return 1;
+    const int mm = (int)m;
+    matmul(mm, N, N, H, N, P, N, 0, HP, N);
+    matmul(mm, N, mm, HP, N, H, N, 1, S, mm);
+    for (int i = 0; i < mm * mm; i++)
+        S[i] += R[i];
+    for (int i = 0; i < mm; i++) {
+        double s = 0.0;
+        for (int k = 0; k < N; k++)
+            s = fma(H[i * N + k], x[k], s);
+        y[i] = b[i] = z[i] - s;
+    }
+    if (lu_solve(mm, S, 1, b))
+        return 1;
+    double q = 0.0;
+    for (int i = 0; i < mm; i++)
+        q = fma(y[i], b[i], q);
+    *nis = q / mm;
+    return 0;
 }
 
 /* KalmanFilter.update: x (15) and P (15 x 15) in place through the update with z (m), H (m x 15), R (m x m):

@@ -244,6 +244,38 @@ def joseph_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R:
     return x, P, K, dx, P12
 
 
+def nis(x: np.ndarray, P: np.ndarray, m: Measurement) -> float:
+    """The normalised innovation squared of an update, y^T (H P H^T + R)^-1 y / k with y = z - H x: compiled for 15
+    states and at most 32 rows (fusion/_cycles.c), numpy otherwise.
+
+    Parameters
+    ----------
+    x : ndarray (n,)
+        Error state before the update (``fusion.errmodel`` order and units).
+    P : ndarray (n, n)
+        Its covariance.
+    m : Measurement
+        (z (k,), H (k, n), R (k, k)), k >= 1.
+
+    Returns
+    -------
+    float
+        The NIS; inf when H P H^T + R is singular (the covariance has collapsed or blown up).
+    """
+    z, H, R = (np.ascontiguousarray(a, dtype=float) for a in m)
+    if len(x) != N_STATES or len(z) > MAX_ROWS:
+        y = z - H @ x
+        try:
+            return float(y @ np.linalg.solve(H @ P @ H.T + R, y)) / len(z)
+        except np.linalg.LinAlgError:
+            return math.inf
+    out = np.empty(1)
+    x, P = np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(P, dtype=float)
+    if errmodel.cycle_kernel().fieldlog_nis(len(z), *map(kernels.address, (z, H, R, x, P, out))):
+        return math.inf
+    return float(out[0])
+
+
 def propagate_state(Phi: np.ndarray, x: np.ndarray) -> np.ndarray:
     """The error state through the cycles (15 states compiled, fusion/_cycles.c; an augmented state in numpy). A
     zero state (the closed loop's, between updates) stays zero without a product.

@@ -190,13 +190,8 @@ class StatusBook:
         m : kf.Measurement, the epoch's observations stacked (``kf.stack``)
         filt : kf.KalmanFilter, the filter before the update
         """
-        z, H, R = m
-        y = z - H @ filt.state
-        try:
-            if len(z):  # (a fix whose measurements kept no row has no innovation to test)
-                self.nis.append(float(y @ np.linalg.solve(H @ filt.covariance @ H.T + R, y)) / len(z))
-        except np.linalg.LinAlgError:  # a singular S: the covariance has collapsed or blown up
-            self.nis.append(math.inf)
+        if len(m[0]):  # (a fix whose measurements kept no row has no innovation to test)
+            self.nis.append(kf.nis(filt.state, filt.covariance, m))
         if len(self.nis) == NIS_FIXES:
             total = 0.0
             for x in self.nis:  # one after the other, numpy's order for so few (sum() may compensate)

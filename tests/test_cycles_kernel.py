@@ -204,6 +204,23 @@ def test_the_compiled_update_refuses_what_numpy_would():
         kf.joseph_update(x, P, np.zeros(2), np.zeros((2, 14)), np.eye(2))
 
 
+@pytest.mark.parametrize("rows", [1, 3, 6, 40])
+def test_compiled_nis_equals_numpy(rows):
+    """The status book's NIS, y^T (H P H^T + R)^-1 y / k: compiled (up to 32 rows, 15 states) equal to numpy's
+    formula to rounding, numpy's beyond; inf for a singular innovation covariance."""
+    rng = np.random.default_rng(20 + rows)
+    for n in (15, 17):
+        for _ in range(20):
+            P, x = _spd(rng, n, 1e6), rng.normal(size=n) * rng.integers(0, 2)
+            z, H, R = rng.normal(size=rows), rng.normal(size=(rows, n)), np.diag(rng.uniform(0.01, 5.0, rows))
+            y = z - H @ x
+            want = float(y @ np.linalg.solve(H @ P @ H.T + R, y)) / rows
+            assert kf.nis(x, P, (z, H, R)) == pytest.approx(want, rel=1e-10)
+    H = np.zeros((2, 15))
+    H[:, 0] = 1.0
+    assert kf.nis(np.zeros(15), np.diag(np.diag(P[:15, :15])), (np.ones(2), H, np.zeros((2, 2)))) == np.inf
+
+
 @pytest.mark.parametrize("cross", [True, False])
 def test_compiled_fusion_equals_numpy(cross):
     """The distributed filter's eqs. 3-4 and the error covariance with the cross-covariance, per cycle."""
