@@ -2,8 +2,9 @@
  * the distributed filter's fusion (fusion/dkf.py) and the still detector's interval sums (fusion/still.py), in C.
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
- * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update and kf.nis,
- * consider.gain, dkf.fuse, smoother.rts and still.ImuSums.add; it needs no Python headers.
+ * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update and kf.nis, the
+ * consider analysis's cycles and updates, dkf.fuse, smoother.rts and still.ImuSums.add; it needs no Python
+ * headers.
  * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
  * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
  * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal
@@ -394,10 +395,20 @@ HELPER int kalman_gain(int m, const double *H, const double *R, const double *P,
     return 0;
 }
 
-/* consider.gain: K (15 x m) of an update of covariance P with H (m x 15), R (m x m); 1 when singular */
-KERNEL int32_t fieldlog_kf_gain(int64_t m, const double *H, const double *R, const double *P, double *K)
+/* consider.GyroConsider.update: S (15 x 9) <- S - K (H S) in place, K = P H^T (H P H^T + R)^-1 the gain of an
+ * update of covariance P (15 x 15) with H (m x 15), R (m x m). Returns 1 (S unchanged) when H P H^T + R is
+ * singular. */
+KERNEL int32_t fieldlog_consider_update(int64_t m, const double *H, const double *R, const double *P, double *S)
 {
-    return m < 0 || m > MAXM ? 1 : kalman_gain((int)m, H, R, P, K);
+    enum { C = 9 };
+    double K[N * MAXM], HS[MAXM * C], KHS[N * C];
+    if (m < 0 || m > MAXM || kalman_gain((int)m, H, R, P, K))
+        return 1;
+    matmul((int)m, N, C, H, N, S, C, 0, HS, C);
+    matmul(N, (int)m, C, K, (int)m, HS, C, 0, KHS, C);
+    for (int i = 0; i < N * C; i++)
+        S[i] -= KHS[i];
+    return 0;
 }
 
 /* The normalised innovation squared of output.StatusBook.fix, (z - H x)^T S^-1 (z - H x) / m with S = H P H^T + R,

@@ -29,8 +29,9 @@ this error, and their sigmas cover it; the simulator's truth of the gyro bias (`
 
 Smoothing (``fusion.smoother``) carries S back as it carries the error: Ss_k = S+_k + C_k (Ss_{k+1} - S-_{k+1}).
 
-K is the gain of a linear KF update with the filter's covariance before the update (``gain``): kf's own gain;
-for the other methods the gain a KF with their (fused) covariance would use, an approximation of theirs.
+K is the gain of a linear KF update with the filter's covariance before the update (``GyroConsider.update``,
+compiled): kf's own gain; for the other methods the gain a KF with their (fused) covariance would use, an
+approximation of theirs.
 """
 
 from __future__ import annotations
@@ -41,30 +42,6 @@ from fieldlog.fusion import errmodel, kernels
 from fieldlog.fusion.errmodel import N_STATES
 
 N_PARAMS = 9  # c: 3 scale factors, then the misalignments m_ij (rate j read on axis i) in row order
-
-
-def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """K (15, m) of a linear KF update, compiled (fusion/_cycles.c): K = P H^T (H P H^T + R)^-1.
-
-    Parameters
-    ----------
-    P : ndarray (15, 15)
-        The filter's covariance before the update (``fusion.errmodel`` order and units).
-    H : ndarray (m, 15)
-        The measurement's sensitivity to the error state (m <= 32).
-    R : ndarray (m, m)
-        Its noise covariance.
-
-    Returns
-    -------
-    ndarray (15, m)
-        The gain.
-    """
-    P, H, R = (np.ascontiguousarray(a, dtype=float) for a in (P, H, R))
-    K = np.empty((N_STATES, len(H)))
-    if errmodel.cycle_kernel().fieldlog_kf_gain(len(H), *map(kernels.address, (H, R, P, K))):
-        raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
-    return K
 
 
 class GyroConsider:
@@ -125,14 +102,26 @@ class GyroConsider:
         self.S = S
         return out
 
-    def update(self, K: np.ndarray, H: np.ndarray) -> None:
-        """The update x <- x + K (z - H x) leaves the error (I - K H) times the one before it: S likewise.
+    def update(self, P: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
+        """The update x <- x + K (z - H x), K = P H^T (H P H^T + R)^-1, leaves the error (I - K H) times the one
+        before it: S likewise, compiled (fusion/_cycles.c).
 
         Parameters
         ----------
-        K : ndarray (15, m)
-            The update's gain (:func:`gain`).
+        P : ndarray (15, 15)
+            The filter's covariance before the update (``fusion.errmodel`` order and units).
         H : ndarray (m, 15)
-            Its measurement sensitivity.
+            The update's measurement sensitivity (m <= 32).
+        R : ndarray (m, m)
+            Its noise covariance.
+
+        Raises
+        ------
+        numpy.linalg.LinAlgError
+            When H P H^T + R is singular (S is left as it was).
         """
-        self.S = self.S - K @ (H @ self.S)
+        P, H, R = (np.ascontiguousarray(a, dtype=float) for a in (P, H, R))
+        S = np.array(self.S, dtype=float, order="C")
+        if errmodel.cycle_kernel().fieldlog_consider_update(len(H), *map(kernels.address, (H, R, P, S))):
+            raise np.linalg.LinAlgError("Singular matrix: the innovation covariance H P H^T + R")
+        self.S = S

@@ -224,7 +224,7 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_slot_starts": ([i64, p, f64, f64, p], i64),
         "fieldlog_consider_cycles": [i64, p, p, p, p, p, p],
         "fieldlog_sample_sums": [i64] + [p] * 6,
-        "fieldlog_kf_gain": ([i64] + [p] * 4, i32),
+        "fieldlog_consider_update": ([i64] + [p] * 4, i32),
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
         "fieldlog_nis": ([i64] + [p] * 6, i32),
         "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),

@@ -165,13 +165,13 @@ class GyroConsider(Listener):
             self.log.sensitivity(S)
 
     def update(self, P: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
-        """Update the sensitivity with the filter's gain.
+        """Update the sensitivity with the update's gain.
 
         Parameters
         ----------
         P, H, R : as :meth:`Listener.update`
         """
-        self.analysis.update(consider.gain(P, H, R), H)
+        self.analysis.update(P, H, R)
         if self.log is not None:
             self.log.sensitivity_update(self.analysis.S)
 

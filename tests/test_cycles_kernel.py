@@ -1,7 +1,7 @@
 """The compiled filter cycles (fusion/_cycles.c) against their numpy reference (fusion/errmodel.py, the loops of
 fusion/kf.py and fusion/consider.py): the same numbers to the bit where numpy's BLAS sums a matrix product as
 sequential fused multiply-adds (OpenBLAS on x86-64 with FMA; the probe below checks the sizes taken); within
-rounding elsewhere. The compiled updates (Joseph form, the consider gain) and the distributed filter's fusion
+rounding elsewhere. The compiled updates (Joseph form, the consider update) and the distributed filter's fusion
 against the numpy formulas they replace, to the rounding their conditioning allows."""
 import ctypes
 import functools
@@ -180,7 +180,11 @@ def test_compiled_update_equals_numpy_joseph_form(m, seed):
         _close(P1, 0.5 * (want + want.T), 1e6)
         assert np.array_equal(P1, P1.T)
         _close(P12_1, P12_want, 1e6)
-        _close(consider.gain(P, H, R), K, 1e6)
+        c = consider.GyroConsider(1e-3, 1e-3)
+        c.S = rng.normal(size=(15, 9))
+        S0 = c.S.copy()
+        c.update(P, H, R)
+        _close(c.S, S0 - K @ (H @ S0), 1e6)
     f = kf.KalmanFilter(P, np.eye(12))
     f.x = x.copy()
     dx = f.update(z, H, R)
