@@ -29,11 +29,14 @@ def clipped(wz: np.ndarray, limit: float) -> np.ndarray:
     (n,) bool ndarray
         True where the sample is saturated.
     """
+    at = np.abs(wz) >= limit * (1.0 - 1e-3)
+    if not at.any():  # (most segments: nothing near the limit)
+        return at
     flat = np.zeros(len(wz), bool)
     same = wz[1:] == wz[:-1]
     flat[1:] |= same
     flat[:-1] |= same
-    return flat & (np.abs(wz) >= limit * (1.0 - 1e-3))
+    return flat & at
 
 
 def turn_rate(wz: np.ndarray, f_b: np.ndarray, sol: ins.NavSolution, clip: np.ndarray) -> np.ndarray:

@@ -126,17 +126,18 @@ class GpsSpeed:
         (the horizontal speed of the mean velocity of the last second and the epoch before it, m/s, NaN without two
         velocities in a row; the limit, m/s: max(``still_gps_speed_mps``, SPEED_K x the mean's per-axis sigma)).
         """
-        if not np.isfinite(v[:2]).all():
+        v_east, v_north = float(v[0]), float(v[1])
+        if not (math.isfinite(v_east) and math.isfinite(v_north)):
             self.recent = []
             return math.nan, self.floor
         keep = [r for r in self.recent if r[0] >= t - _SPEED_SPAN_S - 1e-6]
-        self.recent = (keep or self.recent[-1:]) + [(t, float(v[0]), float(v[1]), vel_sigma(ep))]
+        self.recent = (keep or self.recent[-1:]) + [(t, v_east, v_north, vel_sigma(ep))]
         if len(self.recent) < 2:
             return math.nan, self.floor
         n = len(self.recent)
         east = north = 0
-        for _, v_east, v_north, _ in self.recent:  # one after the other, from 0 (sum() may compensate)
-            east, north = east + v_east, north + v_north
+        for r in self.recent:  # one after the other, from 0 (sum() may compensate)
+            east, north = east + r[1], north + r[2]
         sigma = math.sqrt(sum(r[3] ** 2 for r in self.recent)) / n
         return float(np.hypot(east / n, north / n)), max(self.floor, SPEED_K * sigma)
 
