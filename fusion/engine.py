@@ -83,7 +83,7 @@ class Engine:
         self._anchor: float | None = None  # s from t_ref_ns: the sample the covariance cycles count from
         self._gps: list[Epoch] = []  # epochs not yet reached by the IMU
         self._interval = still.ImuSums()  # IMU sums since the last GPS epoch
-        self._period = ins.SamplePeriod()  # the IMU's
+        self._period = ins.SamplePeriod()  # the IMU's sample period
         self._imu_late_ns = int(round(self.cfg.sensor.imu_time_offset_s * 1e9))  # taken off every IMU stamp
         self._check: align.HeadingCheck | None = None
         self._history = any(x.records_history for x in self.listeners)
@@ -142,7 +142,7 @@ class Engine:
             # finite rows, tested a column at a time (numpy's all() over rows of three elements is slow)
             ok = np.logical_and.reduce([np.isfinite(a[:, i]) for a in (w, f) for i in range(3)])
             t_ns, w, f = t_ns[ok], w[ok], f[ok]
-        carried = len(self._carry[0]) if self._carry is not None else 0  # samples of the block before, seen
+        carried = len(self._carry[0]) if self._carry is not None else 0  # the last block's tail, held
         if self._carry is not None:
             keep = t_ns > self._carry[0][-1]
             rows = slice(None) if keep.all() else keep
@@ -200,7 +200,7 @@ class Engine:
         """Raw samples (i0, i1] into the interval's sums and to the measurements that read them."""
         self._interval.add(w, f, i0, i1)
         for p in self._imu_readers:
-            p.feed_imu(w, f, i0, i1, self._period.s)
+            p.feed_imu(w, f, i0, i1, self._period.dt_s)
 
     def finish(self) -> tuple[Solution, list[Outage]]:
         """End of the drive: the rows held back for their covariance cycle, the outages not yet returned (closed).
@@ -252,7 +252,7 @@ class Engine:
         interval, self._interval = self._interval, still.ImuSums()
         v = ep.v_n if usable and np.isfinite(ep.v_n[:2]).all() else np.full(3, np.nan)
         t_g = (ep.t_ns - self.t_ref_ns) * 1e-9
-        at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._period.s, self.bg, self.ba,
+        at = measurements.Moment(ep, usable, t_g, v, self.nav, omega_k, interval, self._period.dt_s, self.bg, self.ba,
                                  self.filter.covariance)
         for m in self.measurements:
             if m.stage == "aid" and self._update(_observe([m], at)):

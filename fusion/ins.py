@@ -96,11 +96,11 @@ PERIOD_STEPS = 1000  # an IMU's sample period is the median of a drive's first t
 
 
 class SamplePeriod:
-    """An IMU's sample period ``s`` (s): the median of the drive's first ``PERIOD_STEPS`` sample steps, so that the
-    blocks the drive comes in do not change it (0.002 before the first step)."""
+    """An IMU's sample period ``dt_s`` (s): the median of the drive's first ``PERIOD_STEPS`` sample steps, so that
+    the blocks the drive comes in do not change it (0.002 before the first step)."""
 
     def __init__(self) -> None:
-        self.s = 0.002
+        self.dt_s = 0.002
         self._first: list[np.ndarray] | None = []  # the steps (s) while fewer than PERIOD_STEPS have been seen
 
     def add(self, t: np.ndarray, carried: int) -> None:
@@ -118,7 +118,7 @@ class SamplePeriod:
         self._first.append(np.diff(t[max(carried - 1, 0):]))
         steps = np.concatenate(self._first)[:PERIOD_STEPS]
         if len(steps):
-            self.s = float(np.median(steps))
+            self.dt_s = float(np.median(steps))
         if len(steps) == PERIOD_STEPS:
             self._first = None
 

@@ -150,11 +150,11 @@ def test_the_imu_period_does_not_depend_on_where_the_blocks_end() -> None:
     t = np.cumsum(0.002 + rng.normal(0.0, 2e-6, 3 * PERIOD_STEPS))
     whole = SamplePeriod()
     whole.add(t, 0)
-    assert whole.s == float(np.median(np.diff(t[:PERIOD_STEPS + 1])))
+    assert whole.dt_s == float(np.median(np.diff(t[:PERIOD_STEPS + 1])))
     for ends in ([1, 2, 700, 1500], [999, 1000, 1001], [3]):
         split, start = SamplePeriod(), 0
         for k, end in enumerate([*ends, len(t)]):
             held = 0 if k == 0 else int(rng.integers(1, min(4, start) + 1))
             split.add(t[start - held:end], held)
             start = end
-        assert split.s == whole.s
+        assert split.dt_s == whole.dt_s
