@@ -63,9 +63,9 @@ from fieldlog.replay.loop import Pace, run
 from fieldlog.tools.fuse_output import FusedOutput, RowSpill
 from fieldlog.tools.fuse_settings import Settings, drive_config, drive_mounting
 
-BLOCK_S = 60.0  # s of log time per input block: the rows do not depend on it (the engine, the installation's rate
-# integral and the odometry carry over block ends), and longer blocks spread each block's fixed costs (reading,
-# passing it between processes, encoding the rows) over more rows
+BLOCK_S = 60.0  # s of log time per input block: the rows do not depend on it but for rounding (the engine, the
+# installation's rate integral and the odometry carry over block ends), and longer blocks spread each block's fixed
+# costs (reading, passing it between processes, encoding the rows) over more rows
 
 NO_ALIGNMENT = ("no solution: the filter never aligned, which needs a GPS speed of align_speed_mps ([fusion]) for "
                 "the heading; a drive that never moves cannot be aligned with a MEMS IMU")
