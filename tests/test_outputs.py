@@ -132,6 +132,27 @@ def test_an_existing_output_is_kept_unless_force(drive, tmp_path, capsys) -> Non
     assert out.read_bytes()[:8] == b"\x89MCAP0\r\n"
 
 
+@pytest.mark.parametrize("command, first_work", [("fuse", ("fieldlog.tools.fuse", "estimate_installation")),
+                                                    ("view", ("fieldlog.replay.viewdata", "start"))])
+def test_an_existing_output_is_refused_before_the_work(drive, tmp_path, capsys, monkeypatch, command,
+                                                       first_work) -> None:
+    """fuse's installation pass, view's read of the drive (seconds to minutes on a long drive) come after the
+    refusal, not before it."""
+    import importlib
+
+    from fieldlog.tools.cli import main
+
+    def not_before_the_check(*a, **k):
+        raise AssertionError(f"{first_work[1]} ran before the output was checked")
+
+    monkeypatch.setattr(importlib.import_module(first_work[0]), first_work[1], not_before_the_check)
+    out = tmp_path / "out"
+    out.write_bytes(PRECIOUS)
+    assert main(WRITERS[command](str(drive), str(out))) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists" in err[0] and "--force" in err[0] and out.read_bytes() == PRECIOUS
+
+
 def test_export_refuses_a_link_planted_as_a_folder_inside_out(drive, tmp_path, capsys) -> None:
     from fieldlog.tools.cli import main
 

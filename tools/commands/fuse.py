@@ -68,11 +68,14 @@ def _fused(a: argparse.Namespace, drive, st, out):
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
+    from fieldlog.drive.outputs import check_new
     from fieldlog.tools.fuse import NO_ALIGNMENT, noise_sources
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
     drive = open_drive(a.drive, a, conf)  # checked before the work
+    out = out_file(a)
+    check_new(out, a.force)  # refused before the installation pass, not after it
     st = settings(drive, conf, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):
@@ -80,7 +83,6 @@ def run(a: argparse.Namespace) -> int:
         else:
             log.debug(line)
     t0 = time.monotonic()
-    out = out_file(a)
     res, config, installed = _fused(a, drive, st, out)
     imap, forced = st.inputs, config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,

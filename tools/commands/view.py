@@ -96,6 +96,7 @@ def run(a: argparse.Namespace) -> int:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
     from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.outputs import check_new
     from fieldlog.tools.fuse_settings import input_map, load_input_spec
 
     conf = TomlFile.read(a.config)
@@ -111,6 +112,8 @@ def run(a: argparse.Namespace) -> int:
             return None  # nothing to map (e.g. a GPS-only drive): show what the drive has
 
     output_parent(a.rrd)
+    if a.rrd is not None:
+        check_new(a.rrd, a.force)  # refused before the drive is read and rerun-sdk imported
     with viewdata.start(drive, inputs) as early:  # the drive is resolved and read while rerun-sdk is imported
         from fieldlog.replay.view import view
 
