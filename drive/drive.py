@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 import numpy as np
 
-from fieldlog.drive import reader
+from fieldlog.drive import messages, reader
 from fieldlog.drive.files import DriveSpec, drive_files, label, open_drive
 from fieldlog.fusion import earth
 
@@ -63,11 +63,16 @@ def file_transforms(path: Path) -> dict[str, Transform]:
     dict[str, Transform] : by child frame
     """
     out: dict[str, Transform] = {}
-    for msg in reader.iter_decoded(path, TF_STATIC):
-        for tr in msg.transforms:
-            t, r = tr.transform.translation, tr.transform.rotation
-            out[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), np.array([t.x, t.y, t.z]),
-                                                  earth.quat_to_dcm(np.array([r.x, r.y, r.z, r.w])))
+    for type_name, data in reader.iter_payloads(path, TF_STATIC):
+        if type_name != messages.TFMESSAGE:
+            continue  # not transforms
+        try:
+            transforms = messages.decode_tf(data)
+        except ValueError as e:
+            raise ValueError(f"{path}: a {TF_STATIC} message does not decode ({e}): the file is damaged there and "
+                             "its static transforms cannot be read") from None
+        for parent, child, t, q_xyzw in transforms:
+            out[child.lstrip("/")] = (parent.lstrip("/"), t, earth.quat_to_dcm(q_xyzw))
     return out
 
 

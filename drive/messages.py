@@ -952,6 +952,74 @@ class _Cdr:
         return b"".join(self.parts)
 
 
+class _CdrReader:
+    """Minimal little-endian CDR reader for the few types read field by field (``_Cdr``'s inverse); another
+    encapsulation, a message too short or a string not UTF-8 raises ValueError."""
+
+    def __init__(self, data: bytes) -> None:
+        if bytes(data[:4]) != CDR_LE_HEADER:
+            raise ValueError("not little-endian CDR")
+        self.data, self.pos = bytes(data), 0
+
+    def get(self, fmt: str) -> tuple:
+        self.pos += -self.pos % struct.calcsize("<" + fmt[0])
+        try:
+            values = struct.unpack_from("<" + fmt, self.data, 4 + self.pos)
+        except struct.error:
+            raise ValueError("the message ends early") from None
+        self.pos += struct.calcsize("<" + fmt)
+        return values
+
+    def string(self) -> str:
+        (n,) = self.get("I")
+        start = 4 + self.pos
+        if n < 1 or start + n > len(self.data):
+            raise ValueError("a string runs past the message's end")
+        self.pos += n
+        try:
+            return self.data[start:start + n - 1].decode()
+        except UnicodeDecodeError:
+            raise ValueError("a string is not UTF-8") from None
+
+
+def header_frame_id(data: bytes) -> str:
+    """The ``frame_id`` of a message whose first field is a ``std_msgs/Header`` (Imu, NavSatFix, any ``*Stamped``).
+
+    Parameters
+    ----------
+    data : one CDR message
+
+    Returns
+    -------
+    str : the header's frame (ValueError when the bytes do not hold one)
+    """
+    r = _CdrReader(data)
+    r.get("iI")
+    return r.string()
+
+
+def decode_tf(data: bytes) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """``tf2_msgs/msg/TFMessage`` -> its transforms as ``encode_tf`` takes them (the inverse, stamps left out).
+
+    Parameters
+    ----------
+    data : one CDR message
+
+    Returns
+    -------
+    list of (parent frame, child frame, translation (3,) m in the parent frame, rotation (4,) x, y, z, w of
+    child -> parent) (ValueError when the bytes are not one)
+    """
+    r = _CdrReader(data)
+    (n,) = r.get("I")
+    out = []
+    for _ in range(n):  # each takes 64 bytes or more: a count too large ends early
+        r.get("iI")
+        parent, child = r.string(), r.string()
+        out.append((parent, child, np.array(r.get("ddd")), np.array(r.get("dddd"))))
+    return out
+
+
 def encode_sentence(stamp_ns: int, sentence: str, frame_id: str = "gps") -> bytes:
     """``nmea_msgs/msg/Sentence``: one NMEA line without CR/LF, stamp = read time mapped to UTC.
 

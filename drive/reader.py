@@ -37,10 +37,14 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
-class TopicInfo:
+class TopicCount:
     topic: str
     type: str
     count: int
+
+
+@dataclass(frozen=True)
+class TopicInfo(TopicCount):
     first_ns: int  # first log_time, int64 UTC ns
     last_ns: int  # last log_time
 
@@ -206,6 +210,52 @@ def topics(path: DriveSpec) -> list[TopicInfo]:
     return [TopicInfo(t, typ, n, lo, hi) for t, (typ, n, lo, hi) in out.items()]
 
 
+def topic_counts(path: DriveSpec) -> list[TopicCount]:
+    """Topics in a drive with their types and message counts, the times not read: the message indexes' lengths
+    where every message of a file is in an indexed chunk (``McapFile.message_counts``), else as :func:`topics`
+    counts them. Several files: summed per topic.
+
+    Parameters
+    ----------
+    path : the drive
+
+    Returns
+    -------
+    list[TopicCount] : by topic name
+    """
+    out: dict[str, list] = {}
+    for f in open_drive(path):
+        counts = f.message_counts()
+        if counts is None:
+            counts = {cid: stats[0] for cid, stats in f.channel_stats().items()}
+        for cid, ch in sorted(f.channels.items()):
+            out.setdefault(ch.topic, [f.type_of(cid), 0])[1] += counts.get(cid, 0)
+    return [TopicCount(t, typ, n) for t, (typ, n) in out.items()]
+
+
+def span(path: DriveSpec, topics: Collection[str]) -> tuple[int, int] | None:
+    """The log-time span (first, last; UTC ns) of the pieces (chunks, runs of loose messages) that may hold
+    ``topics``, from the drive's layout alone: it holds theirs and may be wider (a chunk shared with other
+    topics). For progress, not for data; None when no piece may hold them.
+
+    Parameters
+    ----------
+    path : the drive
+    topics : the topics
+
+    Returns
+    -------
+    tuple[int, int] | None
+    """
+    lo, hi = [], []
+    for f in open_drive(path):
+        mask = f.may_hold({cid for cid, ch in f.channels.items() if ch.topic in topics})
+        if mask.any():
+            lo.append(int(f.pieces.start_ns[mask].min()))
+            hi.append(int(f.pieces.end_ns[mask].max()))
+    return (min(lo), max(hi)) if lo else None
+
+
 def read_payloads(path: DriveSpec, topic: str, file_order: bool = False
                   ) -> tuple[np.ndarray, np.ndarray, messages.Packed]:
     """All messages of one topic, undecoded: (log_time_ns, publish_time_ns, payloads), sorted by log_time
@@ -281,9 +331,10 @@ def read_topics(path: DriveSpec, wanted: Sequence[str]) -> dict[str, dict[str, o
     return {t: decode(types[t], *concat(ps)) for t, ps in parts.items() if types[t] is not None}
 
 
-def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
-    """The messages of one topic decoded one by one with mcap_ros2 from the file's own schema (any type; slow:
-    for low-rate topics such as /tf_static), in log-time order.
+def iter_payloads(path: DriveSpec, topic: str) -> Iterator[tuple[str, bytes]]:
+    """The messages of one topic one by one, in log-time order, as (type name, CDR bytes): for a low-rate topic
+    read field by field (``/tf_static``: ``messages.decode_tf``) or a message's header alone
+    (``messages.header_frame_id``). Channels of another message encoding than CDR are left out.
 
     Parameters
     ----------
@@ -292,25 +343,17 @@ def iter_decoded(path: DriveSpec, topic: str) -> Iterator[object]:
 
     Returns
     -------
-    Iterator[object] : mcap_ros2 message objects
+    Iterator[tuple[str, bytes]] : the channel's schema name (e.g. "tf2_msgs/msg/TFMessage") and one message
     """
-    from mcap_ros2.decoder import DecoderFactory
-
-    factory = DecoderFactory()
     for f, group in piece_groups(open_drive(path), [topic]):
         cm = f.read(group, [topic])  # first: it defines the channels written only inside chunks
-        cids = _cids(f, topic)
+        cids = [c for c in _cids(f, topic) if f.channels[c].message_encoding == messages.MESSAGE_ENCODING]
         if not cids:
             continue
         t, _, p = _select(cm, cids)
-        ch = f.channels[cids[0]]
-        try:
-            dec = factory.decoder_for(ch.message_encoding, f.schemas.get(ch.schema_id))
-        except Exception as e:  # a damaged schema record
-            raise ValueError(f"{f.path}: the schema of {topic} does not parse ({e}): the file is damaged; "
-                             f"`fieldlog recover {f.path}` rewrites what is sound") from None
+        type_name = f.type_of(cids[0])
         for i in np.argsort(t, kind="stable").tolist():
-            yield dec(p[i])
+            yield type_name, p[i]
 
 
 def read_metadata_records(path: DriveSpec) -> list[tuple[str, dict[str, str]]]:

@@ -37,7 +37,7 @@ from fieldlog.drive import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
 from fieldlog.drive import reader
 from fieldlog.drive.drive import Drive, file_transforms
-from fieldlog.drive.files import DriveSpec, open_drive
+from fieldlog.drive.files import DriveSpec, label, open_drive
 from fieldlog.replay.ahead import Ahead
 
 if TYPE_CHECKING:
@@ -109,14 +109,14 @@ class InputMap:
                 f"fixes {self.fix_topic} ({s['fix_topic']}), velocity {vel}{odom}")
 
 
-def detect(infos: list[reader.TopicInfo], type_name: str, native: str) -> str | None:
+def detect(infos: list[reader.TopicCount], type_name: str, native: str) -> str | None:
     """The topic of one input without an option: fieldlog's own (``native``), else the only one of ``type_name``
     with messages; None when there is none or several."""
     of_type = [t.topic for t in infos if t.type == type_name and t.count]
     return native if native in of_type else of_type[0] if len(of_type) == 1 else None
 
 
-def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, native: str, option: str,
+def _pick(spec: str | None, infos: list[reader.TopicCount], type_name: str, native: str, option: str,
           path: str | os.PathLike[str]) -> tuple[str, str]:
     """(topic, source) of one input."""
     of_type = [t.topic for t in infos if t.type == type_name]
@@ -135,9 +135,14 @@ def _pick(spec: str | None, infos: list[reader.TopicInfo], type_name: str, nativ
     raise ValueError(f"{path}: several {type_name} topics ({', '.join(of_type)}): choose one with {option}")
 
 
-def _first_frame_id(path: str | os.PathLike[str], topic: str) -> str:
-    for msg in reader.iter_decoded(path, topic):
-        return str(msg.header.frame_id)
+def _first_frame_id(path: DriveSpec, topic: str) -> str:
+    """The header's frame of ``topic``'s first message ("" when it has none)."""
+    for _, data in reader.iter_payloads(path, topic):
+        try:
+            return messages.header_frame_id(data)
+        except ValueError as e:
+            raise ValueError(f"{label(path)}: the first {topic} message does not decode ({e}): the file is "
+                             "damaged there; give the IMU's axes instead (--imu-frame, or [input] imu_frame)") from None
     return ""
 
 
@@ -177,7 +182,7 @@ def resolve(path: str | os.PathLike[str], spec: InputSpec | None = None, given: 
     field of ``spec`` was given, for the sources (e.g. a config's ``[input]`` table; default: its option)."""
     spec = spec or InputSpec()
     where = {k: (given or {}).get(k, "--" + k.replace("_", "-")) for k in FIELDS}
-    infos = [t for t in reader.topics(path) if t.count]
+    infos = [t for t in reader.topic_counts(path) if t.count]
     imu, s_imu = _pick(spec.imu_topic, infos, messages.IMU, NATIVE[0], where["imu_topic"], path)
     fix, s_fix = _pick(spec.fix_topic, infos, messages.NAVSATFIX, NATIVE[1], where["fix_topic"], path)
     if spec.vel_topic is not None and spec.vel_topic.lower() in ("", "none"):

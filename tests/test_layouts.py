@@ -250,6 +250,10 @@ def test_every_layout_has_the_original_counts_and_kf_solution(layout, original, 
     want = {t.topic: (t.type, t.count, t.first_ns, t.last_ns) for t in reader.topics(original)}
     got = {t.topic: (t.type, t.count, t.first_ns, t.last_ns) for t in reader.topics(path)}
     assert got == {k: want[k] for k in corpus_topics(original)}
+    assert {t.topic: (t.type, t.count) for t in reader.topic_counts(path)} == {k: v[:2] for k, v in got.items()}
+    for k, (*_, first, last) in got.items():  # the layout's span holds the topic's messages
+        lo, hi = reader.span(path, [k])
+        assert lo <= first <= last <= hi
     a, b = drive_info(original), drive_info(path)
     assert (b.imu_gaps, b.gps_missing_epochs, b.gps_no_fix, b.sync_states) == \
         (a.imu_gaps, a.gps_missing_epochs, a.gps_no_fix, a.sync_states)

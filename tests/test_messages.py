@@ -252,6 +252,36 @@ def test_tf_rows_are_encode_tf_row_by_row():
     assert packed.to_list() == want
 
 
+def test_tf_and_header_frames_read_as_mcap_ros2_writes_them():
+    """decode_tf and header_frame_id against mcap_ros2's encoder: frames of every length mod 8 (the alignment
+    before the doubles), any values; each cut of a message and junk raise ValueError, nothing else."""
+    frames = ["", "a", "base_link", "imu_link_12", "/gps_antenna"]
+    tfs = [[("/" + p, c, RNG.normal(size=3), RNG.normal(size=4)) for p, c in zip(frames[k:], frames[:len(frames) - k])]
+           for k in range(3)]
+    objs = [{"transforms": [{"header": {"stamp": {"sec": 1_700_000_000 + i, "nanosec": 5}, "frame_id": p},
+                             "child_frame_id": c, "transform": {"translation": dict(zip("xyz", xyz.tolist())),
+                                                                "rotation": dict(zip("xyzw", q.tolist()))}}
+                            for p, c, xyz, q in tf]} for i, tf in enumerate(tfs)]
+    payloads = _mcap_ros2_bytes(m.TFMESSAGE, objs)
+    for tf, data in zip(tfs, payloads):
+        got = m.decode_tf(data)
+        assert [(p, c) for p, c, *_ in got] == [(p, c) for p, c, *_ in tf]
+        for (*_, xyz, q), (*_, xyz0, q0) in zip(got, tf):
+            np.testing.assert_array_equal(xyz, xyz0)
+            np.testing.assert_array_equal(q, q0)
+        for cut in range(len(data)):
+            with pytest.raises(ValueError):
+                m.decode_tf(data[:cut])
+    for frame in frames:
+        imu = _mcap_ros2_bytes(m.IMU, [{"header": {"frame_id": frame}}])[0]
+        assert m.header_frame_id(imu) == m.header_frame_id(m.encode_imu(np.array([T0]), np.zeros((1, 3)), np.zeros(
+            (1, 3)), frame_id=frame).to_list()[0]) == frame
+    for junk in (b"", b"\x00\x00\x00\x00" + payloads[0][4:], b"\x00\x01\x00\x00" + b"\xff" * 40):
+        for decode in (m.decode_tf, m.header_frame_id):
+            with pytest.raises(ValueError):
+                decode(junk)
+
+
 def test_raw_bytes_of_many_reads_at_once_equal_each_reads():
     """``encode_raws`` gives ``encode_raw``'s bytes for every read (ports and frame ids of every padding, empty
     reads, stamps before 1970 and past 2038), from a batch and from a slice of one (``Packed[i:j]``)."""

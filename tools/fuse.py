@@ -44,9 +44,8 @@ from typing import Callable
 
 import numpy as np
 
-from fieldlog.drive import outputs
+from fieldlog.drive import outputs, reader
 from fieldlog.drive.files import DriveSpec, label
-from fieldlog.drive.reader import topics as reader_topics
 from fieldlog.drive.recorder import Recorder
 from fieldlog.acquire import calib
 from fieldlog.fusion import adaptive, earth, hinf, installation, measurements, odometer
@@ -269,8 +268,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     outputs.check_new(out, force)
     cfg = config or drive_config(drive)
     imap = inputs or inputs_mod.resolve(drive)
-    span = [t for t in reader_topics(drive) if t.topic in imap.topics and t.count]
-    pace = Pace(0.0, (min(t.first_ns for t in span), max(t.last_ns for t in span)), progress)
+    pace = Pace(0.0, reader.span(drive, imap.topics), progress)
     log = SmootherLog() if smooth else None
     mounting = fused_mounting(drive_mounting(drive), cfg)
     stream = stream or InputStream(drive, imap, BLOCK_S)
