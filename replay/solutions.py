@@ -56,7 +56,7 @@ def has(fused: DriveSpec | Solution, method: str, name: str) -> bool:
         if name == STATUS:
             return fused.status is not None and len(fused.status.t_ns) > 0
         return len(fused.t_ns) > 0 and (name in SOLUTION or (name in LOCALS and fused.local is not None))
-    return any(t.topic == topic(method, name) and t.count for t in reader.topics(fused))
+    return any(t.topic == topic(method, name) and t.count for t in reader.topic_counts(fused))
 
 
 def read(fused: DriveSpec | Solution, method: str, name: str) -> dict[str, object]:

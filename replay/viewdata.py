@@ -53,7 +53,7 @@ class DrivePass:
 
 def topic_names(path: DriveSpec) -> dict[str, int]:
     """Topic -> message count of a drive or file."""
-    return {t.topic: t.count for t in reader.topics(path)}
+    return {t.topic: t.count for t in reader.topic_counts(path)}
 
 
 def split_fused(paths: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -109,9 +109,7 @@ def drive_pass(drive: DriveSpec, resolve: Callable[[], InputMap | None]) -> Gene
     native = imap is None or imap.native
     wanted = [t for t in ("/imu", *LOW_RATE) if names.get(t)]
     nmea_in_pass = native and bool(names.get(NMEA))
-    span = [t for t in reader.topics(drive) if t.topic in wanted and t.count]
-    t_first = min((t.first_ns for t in span), default=0)
-    t_last = max((t.last_ns for t in span), default=1)
+    t_first, t_last = reader.span(drive, wanted) or (0, 1)
     parts: dict[str, list[dict[str, np.ndarray]]] = {t: [] for t in LOW_RATE if names.get(t)}
     carry_t, carry_x = np.zeros(0, np.int64), np.zeros((0, 6))
     imu_t, imu_x = [carry_t], [carry_x]

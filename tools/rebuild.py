@@ -52,7 +52,7 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
         raise ValueError(f"{label(src)}: {e}: the drive's recorded settings are damaged") from None
     if calibration is not None:
         cal = calib.load_calibration(calibration)
-    total = max(sum(t.count for t in reader.topics(src) if t.topic.startswith("/raw/")), 1)
+    total = max(sum(t.count for t in reader.topic_counts(src) if t.topic.startswith("/raw/")), 1)
     with recorder.Recorder(dst, flush_interval_s=None, fsync=False, force=force, behind=True) as rec:
         for name, d in records:
             if name not in ("calibration", "timesync", "acquire.counters", "fieldlog.info"):
@@ -61,7 +61,7 @@ def rebuild(src: DriveSpec, dst: str | Path, calibration: str | Path | None = No
         pipe = Pipeline(rec, cal, sync_cfg, pipe_cfg)
         for name, d in pipe.metadata().items():
             rec.add_metadata(name, d)
-        for topic in (t.topic for t in reader.topics(src) if t.topic.startswith("/truth/") and t.count):
+        for topic in (t.topic for t in reader.topic_counts(src) if t.topic.startswith("/truth/") and t.count):
             t, pub, p = reader.read_payloads(src, topic, file_order=True)   # first: drivestats pairs /imu with it
             rec.write_batch(topic, t, p, pub)
         merged = heapq.merge(*(iter_raw(src, port) for port in RAW_PORTS), key=lambda r: read_order(r.port, r.mono_ns))

@@ -600,7 +600,7 @@ def discover(fused: Sequence[str | os.PathLike[str]]) -> list[FusedMethod]:
     out: list[FusedMethod] = []
     seen: set[str] = set()
     for p in fused:
-        tops = [t for t in reader.topics(p) if t.count]
+        tops = [t for t in reader.topic_counts(p) if t.count]
         windows, injected = [], []
         if any(t.topic == solutions.OUTAGE for t in tops):
             for m in reader.read_topic(p, solutions.OUTAGE)["msgs"]:
@@ -624,7 +624,7 @@ def discover(fused: Sequence[str | os.PathLike[str]]) -> list[FusedMethod]:
 def method_section(d: Drive, m: FusedMethod, findings: list[Finding]) -> Section:
     sid = "fusion-" + re.sub(r"[^A-Za-z0-9_-]", "-", m.label)
     s = Section(sid, f"{m.label} ({m.path.name})")
-    names = {t.topic for t in reader.topics(m.path) if t.count}
+    names = {t.topic for t in reader.topic_counts(m.path) if t.count}
     has = {n: solutions.topic(m.method, n) in names for n in (solutions.STATUS, "std", "attitude_std")}
     rows = max(1, sum(has.values()))
     fig, axes = _figure(rows)

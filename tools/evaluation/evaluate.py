@@ -176,7 +176,7 @@ def outage_error_series(drive: Path, fused: Path | Solution, method: str, window
     v = solutions.read(fused, method, "vel")
     a = solutions.read(fused, method, "attitude")
     ts = s["log_time_ns"]
-    names = {t.topic for t in reader.topics(drive) if t.count}
+    names = {t.topic for t in reader.topic_counts(drive) if t.count}
     truth = "/truth/fix" in names
     ref = reader.read_topic(drive, "/truth/fix") if truth else by_stamp(reader.read_topic(drive, fix_topic))
     tr = ref["log_time_ns"]
@@ -228,7 +228,7 @@ def consistency(drive: Path, fused: Path | Solution, method: str) -> dict[str, f
     3 sigma (0.997): keys ``in1_e``, ``in3_e``, ...; on a simulated drive the same shares of the IMU bias
     estimate's errors (``bias_errors``, every axis): ``in1_bg``, ``in3_bg`` (gyro), ``in1_ba``, ``in3_ba``
     (accelerometer)."""
-    if not any(t.topic == "/truth/fix" and t.count for t in reader.topics(drive)):
+    if not any(t.topic == "/truth/fix" and t.count for t in reader.topic_counts(drive)):
         return None
     e, sd = position_errors(drive, fused, method)
     z = e / np.maximum(sd, 1e-9)
@@ -254,7 +254,7 @@ def bias_errors(drive: Path, fused: Path | Solution, method: str, sensor: str = 
     flicker too) and the estimate's printed sigma, body RFU, (n, 3) each, at the rows of
     ``/fusion/<method>/imu_bias`` from ``mean_s`` into the truth to its end. None when either topic is missing (a
     drive not simulated, a fused file written before the estimate was published)."""
-    if not (any(t.topic == "/truth/imu_bias" and t.count for t in reader.topics(drive))
+    if not (any(t.topic == "/truth/imu_bias" and t.count for t in reader.topic_counts(drive))
             and solutions.has(fused, method, "imu_bias")):
         return None
     value, cov = BIAS_FIELDS[sensor]
@@ -311,7 +311,7 @@ def heading_at_starts(drive: Path, fused: Path | Solution, method: str, windows_
     err, sig = np.full(len(windows_ns), np.nan), np.full(len(windows_ns), np.nan)
     a = solutions.read(fused, method, "attitude")
     sd = solutions.read(fused, method, "attitude_std") if solutions.has(fused, method, "attitude_std") else None
-    truth = "/truth/attitude" in {t.topic for t in reader.topics(drive) if t.count}
+    truth = "/truth/attitude" in {t.topic for t in reader.topic_counts(drive) if t.count}
     ta = reader.read_topic(drive, "/truth/attitude") if truth else None
     ts = a["log_time_ns"]
     for i, (w0, w1) in enumerate(windows_ns):
