@@ -401,6 +401,8 @@ class Odometer:
         (speed m/s, its variance (m/s)^2 with ``sigma_mps`` added, the four wheels' speeds m/s (None: not all
         given)), or None without enough recent rows.
         """
+        if len(self._t) < self.min_samples:  # too few rows at all (a drive without wheel speeds: every epoch)
+            return None
         keep = self._t > t_ns - int(self.window_s * 1e9)
         if not keep.all():
             self._t, self._v, self._var, self._w = self._t[keep], self._v[keep], self._var[keep], self._w[keep]
