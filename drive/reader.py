@@ -452,7 +452,7 @@ def iter_blocks(path: DriveSpec, topics: Sequence[str], block_s: float,
                 t0 = None
 
     reads = _group_reads(files, topics)
-    for start_ns, read in _read_ahead(reads) if _cpus() > 1 else reads:
+    for start_ns, read in _read_ahead(reads) if cpus() > 1 else reads:
         yield from emit(start_ns)
         for topic, type_name, t, p in read:
             if topic not in types:
@@ -484,8 +484,14 @@ def _group_reads(files: list[McapFile], topics: Sequence[str]) -> Iterator[Group
         yield int(f.pieces.start_ns[group].min()), read
 
 
-def _cpus() -> int:
-    """The CPUs this process may run on: with one, a read-ahead thread would only take turns with its caller."""
+def cpus() -> int:
+    """The CPUs this process may run on (its affinity, e.g. one under ``taskset -c 0``): with one, work beside
+    the caller (a read-ahead thread, a worker process) would only take turns with it.
+
+    Returns
+    -------
+    int
+    """
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 

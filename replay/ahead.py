@@ -13,9 +13,9 @@ is at most about one message ahead of its caller, so memory holds about two.
 
 Both pass exceptions back (as the same type where they pickle, else ``RuntimeError`` with their text), ignore
 SIGINT in the worker (the caller decides), end the worker through ``os._exit`` (nothing of the caller's, no
-buffer and no atexit handler, runs twice) and reap it. Without ``os.fork``, or with other threads running
-(forking them is unsafe: a batch worker, the live player), the work runs in the caller's process instead,
-with the same results, on one core.
+buffer and no atexit handler, runs twice) and reap it. Without ``os.fork``, with other threads running
+(forking them is unsafe: a batch worker, the live player), or with one CPU to run on, the work runs in the
+caller's process instead, with the same results, on one core.
 """
 from __future__ import annotations
 
@@ -25,6 +25,8 @@ import signal
 import struct
 import threading
 from typing import Callable, Generator, Generic, TypeVar
+
+from fieldlog.drive.reader import cpus
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -250,10 +252,11 @@ def _host(make: Callable[[], object], calls: int, results: int) -> None:
 
 
 def _can_fork() -> bool:
-    """Whether a worker may be forked: the platform has fork and no other Python thread runs (forking one is
-    unsafe). A library's native threads are not seen here: a caller that starts them (a WebSocket server,
-    ``tools.foxglove_live.serve``) reads in its own process."""
-    return hasattr(os, "fork") and threading.active_count() == 1
+    """Whether a worker is forked: the platform has fork, no other Python thread runs (forking one is unsafe), and
+    the process may run on a second CPU (on one, a worker would only take turns with its caller, and pickle what
+    crosses between them: ``taskset -c 0``). A library's native threads are not seen here: a caller that starts
+    them (a WebSocket server, ``tools.foxglove_live.serve``) reads in its own process."""
+    return hasattr(os, "fork") and threading.active_count() == 1 and cpus() > 1
 
 
 def _end(pid: int, kill: bool) -> int:

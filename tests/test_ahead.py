@@ -123,6 +123,22 @@ def test_with_other_threads_running_it_runs_in_place():
     assert out == "True"
 
 
+def test_on_one_cpu_it_runs_in_place():
+    """With one CPU to run on (``taskset -c 0``) a worker would only take turns with its caller: the generator and
+    the remote object run in place, with the same items and answers."""
+    out = run("""
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        with Ahead(lambda: numbers(3)) as it:
+            items = [(i, p) for i, p, _ in it]
+        with Remote(lambda: Tally(10)) as r:
+            for x in range(5):
+                r.send("add", x)
+            state = r.ask("state")
+        print(items == [(i, os.getpid()) for i in range(3)], state == (20, 5, os.getpid()))
+    """)
+    assert out == "True True"
+
+
 def test_it_is_iterated_once():
     def gen():
         yield 1
@@ -152,7 +168,8 @@ def test_a_remote_object_answers_after_every_call_sent_before_and_passes_its_fai
 
 
 def test_fuse_with_its_workers_writes_the_file_it_writes_in_place(simulated, tmp_path: Path):
-    """dkf-rbfn reads ahead and trains its predictor in workers; with a thread running here both run in place."""
+    """dkf-rbfn reads ahead and trains its predictor in workers; with a thread running here, or on one CPU
+    (``taskset -c 0``), both run in place."""
     drive = simulated("figure8", 400.0, 1)
     args = ["fuse", str(drive), "--method", "dkf-rbfn", "--outage", "150:40", "--outage", "300:30", "-q", "--out"]
     r = subprocess.run([sys.executable, "-m", "fieldlog", *args, str(tmp_path / "workers.mcap")], capture_output=True,
@@ -167,6 +184,11 @@ def test_fuse_with_its_workers_writes_the_file_it_writes_in_place(simulated, tmp
         stop.set()
         busy.join()
     assert (tmp_path / "workers.mcap").read_bytes() == (tmp_path / "here.mcap").read_bytes()
+    one_cpu = [sys.executable, "-c", "import os, sys; from fieldlog.tools.cli import main; "
+               "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); sys.exit(main(sys.argv[1:]))"]
+    r = subprocess.run([*one_cpu, *args, str(tmp_path / "one.mcap")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "one.mcap").read_bytes() == (tmp_path / "here.mcap").read_bytes()
 
 
 def test_view_reports_a_bad_input_option_its_worker_found_in_one_line(simulated, tmp_path: Path):

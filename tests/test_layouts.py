@@ -490,7 +490,7 @@ def test_a_damaged_chunk_is_reported_never_read(layout, read_path, original, cor
 def test_a_block_read_left_early_leaves_no_thread(original, cpus, monkeypatch):
     """The block reader's read-ahead thread (with a second CPU; none with one) ends with the read: read to its
     end, or closed after one block; the blocks are the same either way."""
-    monkeypatch.setattr(reader, "_cpus", lambda: cpus)
+    monkeypatch.setattr(reader, "cpus", lambda: cpus)
     threads = threading.active_count()
     blocks = reader.iter_blocks(original, ["/imu", "/gps/fix"], 1.0)
     first = next(blocks)

@@ -169,7 +169,7 @@ def test_make_reads_beside_or_in_turn_alike(monkeypatch):
     reads and every truth array are the same (the rough car, CAN and a NovAtel receiver included)."""
     sc = trajectory.load_scenario("figure8-real")
     beside = simulate.make_reads(sc, 20.0, 7, None, "novatel", can=True)
-    monkeypatch.setattr(simulate.os, "sched_getaffinity", lambda pid: {0})
+    monkeypatch.setattr(reader, "cpus", lambda: 1)
     in_turn = simulate.make_reads(sc, 20.0, 7, None, "novatel", can=True)
     assert isinstance(simulate._beside(), simulate._InTurn)
     assert beside[0] == in_turn[0] and len(beside[0]) > 1000

@@ -849,7 +849,9 @@ def machine_line() -> str:
         libs = [f"{i['internal_api']} {i.get('version') or ''} {i.get('architecture') or ''}".strip()
                 for i in threadpoolctl.threadpool_info() if i.get("user_api") == "blas"]
         blas += f" (loaded: {', '.join(libs)})" if libs else ""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    from fieldlog.drive import reader
+
+    cores = reader.cpus()
     load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     return f"machine: {model}, {cores} cores, numpy {np.__version__}, BLAS {blas}, load {load} (1 / 5 / 15 min)"
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import gc
-import os
 from contextlib import contextmanager
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -69,8 +68,9 @@ def _beside() -> Executor:
     """Where ``make_reads`` runs what needs no IMU truth: threads beside the caller when the process may use more
     than one CPU (numpy and the compiled kernels release the GIL, so they run at once), else in turn on the
     caller's thread (threads taking turns on one CPU only add their switches)."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return ThreadPoolExecutor(3) if cpus > 1 else _InTurn()
+    from fieldlog.drive import reader
+
+    return ThreadPoolExecutor(3) if reader.cpus() > 1 else _InTurn()
 
 
 def make_reads(scenario: trajectory.Scenario, duration_s: float, seed: int, pps_mode: str | None = None,
