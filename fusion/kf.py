@@ -183,7 +183,7 @@ class KalmanFilter(BatchUpdates):
         obs : list of Observation
             One epoch's observations; none: no update.
         """
-        m = stack(*(o.m for o in obs))
+        m = obs[0].m if len(obs) == 1 else stack(*(o.m for o in obs))  # one: as it is (update copies nothing in)
         if m is not None:
             self.update(*m)
 
