@@ -161,6 +161,40 @@ def test_a_config_of_the_wrong_types_names_the_file_and_the_key(tmp_path: Path, 
 
 # ------------------------------------------------------------------------------------------- failures leave nothing
 
+@pytest.mark.parametrize("topic", ["/tf_static", "/imu"])
+def test_a_damaged_transform_or_first_imu_message_is_one_line(drive: Path, tmp_path: Path, capsys, topic) -> None:
+    """The drive copied by mcap's own writer with the first message of ``topic`` cut to 18 bytes: /tf_static's
+    transforms and the IMU's frame are read field by field (``drive.messages.decode_tf``, ``header_frame_id``),
+    and a message cut short is one line naming the file."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    bad = tmp_path / "bad.mcap"
+    with open(drive, "rb") as src, open(bad, "wb") as out:
+        r, w = make_reader(src), Writer(out)
+        w.start(profile="ros2")
+        summary, schemas, channels, cut = r.get_summary(), {}, {}, False
+        for sid, sc in summary.schemas.items():
+            schemas[sid] = w.register_schema(sc.name, sc.encoding, sc.data)
+        for cid, ch in summary.channels.items():
+            channels[cid] = w.register_channel(ch.topic, ch.message_encoding, schemas[ch.schema_id])
+        for _, ch, m in r.iter_messages(log_time_order=False):
+            data = m.data
+            if ch.topic == topic and not cut:
+                data, cut = data[:18], True  # cut inside its first header
+            w.add_message(channels[ch.id], m.log_time, data, m.publish_time)
+        w.finish()
+    code, err = cli(capsys, "fuse", str(bad), "--out", str(tmp_path / "kf.mcap"))
+    assert code == 2 and len(err) == 1 and str(bad) in err[0] and "does not decode" in err[0], err
+    assert not (tmp_path / "kf.mcap").exists()
+    # view: /tf_static is read as the drive is opened; without the IMU's frame it shows the drive as it is
+    code, err = cli(capsys, "view", str(bad), "--rrd", str(tmp_path / "v.rrd"))
+    if topic == "/tf_static":
+        assert code == 2 and len(err) == 1 and str(bad) in err[0] and "does not decode" in err[0], err
+    else:
+        assert code == 0 and (tmp_path / "v.rrd").stat().st_size > 0
+
+
 @pytest.fixture
 def small_disk(tmp_path: Path):
     """A 256 kB tmpfs (root only; skipped in one line where mounting is not permitted)."""
