@@ -153,6 +153,27 @@ def test_an_existing_output_is_refused_before_the_work(drive, tmp_path, capsys, 
     assert len(err) == 1 and "exists" in err[0] and "--force" in err[0] and out.read_bytes() == PRECIOUS
 
 
+@pytest.mark.parametrize("existing", ["table.md", "fused/s_kf_5s.mcap"])
+def test_evaluate_refuses_an_existing_output_before_its_first_run(tmp_path, capsys, existing) -> None:
+    """evaluate fuses every drive with every method at every outage length (here ins, then kf) before it writes
+    its tables: an existing table, or a later run's fused file, (without --force) is refused before the first
+    run, and nothing is written."""
+    from fieldlog.tools.cli import main
+
+    drive = tmp_path / "s.mcap"
+    simulate.simulate("figure8", 60.0, 2, drive)
+    out = tmp_path / "study"
+    (out / "fused").mkdir(parents=True)
+    (out / existing).write_bytes(PRECIOUS)
+    args = ["evaluate", str(drive), "--out-dir", str(out), "--methods", "ins,kf", "--outages", "5",
+            "--first-outage", "20"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and existing.split("/")[-1] in err[0] and "--force" in err[0], err
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == sorted(["fused", existing])
+    assert main([*args, "--force"]) == 0 and (out / existing).read_bytes() != PRECIOUS
+
+
 def test_export_refuses_a_link_planted_as_a_folder_inside_out(drive, tmp_path, capsys) -> None:
     from fieldlog.tools.cli import main
 

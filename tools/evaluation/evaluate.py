@@ -461,13 +461,23 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
     outputs.out_dir(report, "fused")
     runs = [(m, sm, True, mode) for m in methods for sm in ((False, True) if smooth and m != INS.name else (False,))
             for mode in (predictor_modes if m == DKF_RBFN.name else ("paper",))]
-    acc = _Study(total=len(drives) * len(lengths) * len(runs), progress=progress or (lambda fraction: None),
-                 say=say, note=note or say)
+    plans = []
     for path, drive in zip(map(Path, drives), opened):
         base = config or drive_config(drive)
-        if paper:
-            base = paper_config(base)
-        _study_drive(acc, path, drive, base, runs, lengths, study, spec, report, force)
+        base = paper_config(base) if paper else base
+        imap = resolve_inputs(drive, spec)
+        plans.append((path, drive, base, imap, runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
+                                                      if imap.odom_topic and base.aids.odometer else [])))
+    for name in ("table.csv", "heading.csv", "table.md", *(f"errors_{L:g}s.png" for L in lengths)):
+        outputs.check_new(report / name, force)  # every output refused before the first run, not after them all
+    for path, _, _, _, drive_runs in plans:
+        for L in lengths:
+            for run in drive_runs:
+                outputs.check_new(_fused_path(report, path, run, L), force)
+    acc = _Study(total=len(lengths) * sum(len(p[-1]) for p in plans), progress=progress or (lambda fraction: None),
+                 say=say, note=note or say)
+    for plan in plans:
+        _study_drive(acc, *plan, lengths, study, report, force)
     table = acc.table()
     with outputs.create(report / "table.csv", force, root=report) as f:
         table.write_csv(f)
@@ -522,15 +532,24 @@ class _Study:
                                                    "heading_sigma_deg": pl.Float64})
 
 
-def _study_drive(acc: _Study, path: Path, drive: Drive, base: FusionConfig, runs: list[tuple[str, bool, bool, str]],
-                 lengths: list[float], study: StudyConfig, spec: InputSpec | None, report: Path, force: bool
-                 ) -> None:
-    """Every run of one drive (opened from ``path``) at every outage length, scored into ``acc``."""
-    imap = resolve_inputs(drive, spec)
+def _run_name(run: tuple[str, bool, bool, str]) -> str:
+    """A run's column: method (predictor mode), ``+rts`` when smoothed, ``-no-odometer`` without the odometer."""
+    m, sm, odo, mode = run
+    return run_label(m, mode) + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
+
+
+def _fused_path(report: Path, path: Path, run: tuple[str, bool, bool, str], L: float) -> Path:
+    """Where a run of the drive ``path`` at outage length L (s) writes its solution."""
+    file_name = _run_name(run).replace(" (", "-").replace(")", "")
+    return report / "fused" / f"{path.stem}_{file_name}_{L:g}s.mcap"
+
+
+def _study_drive(acc: _Study, path: Path, drive: Drive, base: FusionConfig, imap: InputMap,
+                 drive_runs: list[tuple[str, bool, bool, str]], lengths: list[float], study: StudyConfig,
+                 report: Path, force: bool) -> None:
+    """Every run of one drive (opened from ``path``, its inputs ``imap``) at every outage length, scored into
+    ``acc``."""
     t_fix, good, t0 = fix_quality(drive, base.gps.max_fix_sigma_m, imap.imu_topic, imap.fix_topic)
-    drive_runs = runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
-                         if imap.odom_topic and base.aids.odometer else [])
-    acc.total += len(lengths) * (len(drive_runs) - len(runs))
     for L in lengths:
         win = place_outages(t_fix, good, L, study)
         if not win:
@@ -539,12 +558,12 @@ def _study_drive(acc: _Study, path: Path, drive: Drive, base: FusionConfig, runs
             continue
         win_ns = [(t0 + int(round(s * 1e9)), t0 + int(round((s + n) * 1e9))) for s, n in win]
         cfg = base.replace(outages=tuple(win))
-        for m, sm, odo, mode in drive_runs:
-            name = run_label(m, mode) + ("+rts" if sm else "") + ("" if odo else "-no-odometer")
-            file_name = name.replace(" (", "-").replace(")", "")
-            out = report / "fused" / f"{path.stem}_{file_name}_{L:g}s.mcap"
+        for run in drive_runs:
+            m, sm, odo, mode = run
+            name = _run_name(run)
             run_cfg = (cfg if odo else cfg.replace(odometer=False)).replace(predictor_mode=mode)
-            res = fuse(drive, m, out, run_cfg, smooth=sm, inputs=imap, force=force, keep=True)
+            res = fuse(drive, m, _fused_path(report, path, run, L), run_cfg, smooth=sm, inputs=imap, force=force,
+                       keep=True)
             if res.rows == 0:
                 acc.step()
                 acc.note(f"[{acc.done}/{acc.total}] {path.name} {name:8s} {L:g} s: not scored, {NO_ALIGNMENT}")
