@@ -133,11 +133,12 @@ def test_an_existing_output_is_kept_unless_force(drive, tmp_path, capsys) -> Non
 
 
 @pytest.mark.parametrize("command, first_work", [("fuse", ("fieldlog.tools.fuse", "estimate_installation")),
-                                                    ("view", ("fieldlog.replay.viewdata", "start"))])
+                                                    ("view", ("fieldlog.replay.viewdata", "start")),
+                                                    ("replay", ("fieldlog.replay.player", "replay"))])
 def test_an_existing_output_is_refused_before_the_work(drive, tmp_path, capsys, monkeypatch, command,
                                                        first_work) -> None:
-    """fuse's installation pass, view's read of the drive (seconds to minutes on a long drive) come after the
-    refusal, not before it."""
+    """fuse's installation pass, view's and replay's read of the drive (seconds to minutes on a long drive) come
+    after the refusal, not before it."""
     import importlib
 
     from fieldlog.tools.cli import main
@@ -148,7 +149,8 @@ def test_an_existing_output_is_refused_before_the_work(drive, tmp_path, capsys, 
     monkeypatch.setattr(importlib.import_module(first_work[0]), first_work[1], not_before_the_check)
     out = tmp_path / "out"
     out.write_bytes(PRECIOUS)
-    assert main(WRITERS[command](str(drive), str(out))) == 2
+    args = ["replay", str(drive), "--rrd", str(out)] if command == "replay" else WRITERS[command](str(drive), str(out))
+    assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "exists" in err[0] and "--force" in err[0] and out.read_bytes() == PRECIOUS
 

@@ -32,6 +32,7 @@ def add_parser(sub) -> None:
 
 def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.outputs import check_new
     from fieldlog.replay.player import replay
     from fieldlog.tools.fuse_settings import settings
 
@@ -46,6 +47,8 @@ def run(a: argparse.Namespace) -> int:
                  f"-> {res.address}")
         return 0
     output_parent(a.rrd)
+    if a.rrd is not None:
+        check_new(a.rrd, a.force)  # refused before rerun-sdk is imported and the drive read
     res = replay(drive, a.method, a.speed, rrd=a.rrd, connect=a.connect, config=st.config,
                  progress=Progress(f"replay {a.method}"), imap=st.inputs, force=a.force)
     log.info(f"played {res.data_s:.1f} s of {' '.join(a.drive)} in {res.wall_s:.1f} s "
