@@ -276,16 +276,17 @@ def export(path: DriveSpec, out: str | os.PathLike[str], fmt: str = "parquet",
         return export_tracks(path, out, fmt, [t for t, type_name in todo if type_name == messages.NAVSATFIX],
                              progress, force)
     out = outputs.out_dir(out)
+    dests: list[Path] = []
+    for topic, _ in todo:
+        dest, n = table_path(out, topic, fmt), 1
+        while dest in dests:                      # two topics cleaned to the same name: number the later ones
+            n += 1
+            dest = table_path(out, f"{topic}~{n}", fmt)
+        outputs.check_new(dest, force)            # every table refused before the first is written
+        dests.append(dest)
     written: dict[str, tuple[Path, int]] = {}
-    taken: set[Path] = set()
     try:
-        for i, (topic, type_name) in enumerate(todo):
-            dest = table_path(out, topic, fmt)
-            n = 1
-            while dest in taken:                  # two topics cleaned to the same name: number the later ones
-                n += 1
-                dest = table_path(out, f"{topic}~{n}", fmt)
-            taken.add(dest)
+        for i, ((topic, type_name), dest) in enumerate(zip(todo, dests)):
             with outputs.create(dest, force, root=out) as f:
                 written[topic] = (dest, _write(topic_batches(path, topic, type_name), f, fmt,
                                                lambda: topic_frame(path, topic, type_name)))

@@ -176,6 +176,27 @@ def test_evaluate_refuses_an_existing_output_before_its_first_run(tmp_path, caps
     assert main([*args, "--force"]) == 0 and (out / existing).read_bytes() != PRECIOUS
 
 
+def test_export_refuses_an_existing_table_before_the_first_is_written(drive, tmp_path, capsys) -> None:
+    """An existing table (without --force), the last of the drive's topics here, is refused before any table is
+    read or written: one line, and nothing else in the folder."""
+    from fieldlog.tools.cli import main
+
+    first = tmp_path / "first"
+    assert main(["export", str(drive), "--out-dir", str(first), "--format", "csv"]) == 0
+    tables = sorted(first.rglob("*.csv"), key=lambda p: p.stat().st_mtime_ns)
+    last = tables[-1].relative_to(first)
+    out = tmp_path / "tables"
+    (out / last).parent.mkdir(parents=True)
+    (out / last).write_bytes(PRECIOUS)
+    capsys.readouterr()
+    assert main(["export", str(drive), "--out-dir", str(out), "--format", "csv"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(tables) > 3 and len(err) == 1 and str(last) in err[0] and "--force" in err[0], err
+    assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file()) == [last]
+    assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_dir()) == sorted(
+        p.relative_to(out) for p in (out / last).parents if p != out and out in p.parents)
+
+
 def test_export_refuses_a_link_planted_as_a_folder_inside_out(drive, tmp_path, capsys) -> None:
     from fieldlog.tools.cli import main
 
