@@ -176,6 +176,25 @@ def test_evaluate_refuses_an_existing_output_before_its_first_run(tmp_path, caps
     assert main([*args, "--force"]) == 0 and (out / existing).read_bytes() != PRECIOUS
 
 
+def test_batch_refuses_an_existing_fused_file_before_its_cluster_starts(drive, tmp_path, capsys, monkeypatch) -> None:
+    """A fused file batch would write exists (without --force): one line and exit 2 before the cluster starts,
+    not a failed row per drive from its workers."""
+    from fieldlog.tools import batch
+    from fieldlog.tools.cli import main
+
+    def not_before_the_check(*a, **k):
+        raise AssertionError("the cluster started before the outputs were checked")
+
+    monkeypatch.setattr(batch, "client_for", not_before_the_check)
+    out = tmp_path / "fleet"
+    (out / "fused").mkdir(parents=True)
+    (out / "fused" / f"{drive.stem}_kf_30s.mcap").write_bytes(PRECIOUS)
+    assert main(["batch", str(drive), "--methods", "kf", "--outages", "30", "--out-dir", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{drive.stem}_kf_30s.mcap" in err[0] and "--force" in err[0], err
+    assert sorted(p.name for p in out.rglob("*")) == ["d_kf_30s.mcap", "fused"]
+
+
 def test_export_refuses_an_existing_table_before_the_first_is_written(drive, tmp_path, capsys) -> None:
     """An existing table (without --force), the last of the drive's topics here, is refused before any table is
     read or written: one line, and nothing else in the folder."""

@@ -87,7 +87,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     path, out = Path(drive), Path(out)
     drive = Drive.open(path)  # its files opened once and checked as one drive
     cfg = config or drive_config(drive)
-    fused_dir = outputs.out_dir(out, "fused")
+    outputs.out_dir(out, "fused")
     info = drive_info(drive)
     span = [t for t in info.topics if t.topic in IN_TOPICS and t.count]
     if not any(t.topic == "/imu" for t in span):
@@ -102,7 +102,7 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
     whole = [(min(t.first_ns for t in span), max(t.last_ns for t in span) + 1)]
     rows = []
     for m in methods:
-        res = fuse(drive, m, fused_dir / f"{path.stem}_{m}.mcap", cfg, force=force, keep=True)
+        res = fuse(drive, m, fused_path(out, path, m), cfg, force=force, keep=True)
         _, err = outage_error_series(drive, res.solution, m, whole)
         rows.append({**base, "method": m, "outage_s": None, "windows": 0, "solutions": res.rows, **_metrics(err)})
     if lengths:
@@ -115,11 +115,17 @@ def drive_rows(drive: str | Path, methods: Sequence[str], lengths: Sequence[floa
                 if not win:  # no room for an outage of this length in good GPS
                     rows.append({**row, "solutions": 0, **_metrics(np.zeros((0, len(QUANTITIES))))})
                     continue
-                res = fuse(drive, m, fused_dir / f"{path.stem}_{m}_{L:g}s.mcap", cfg.replace(outages=tuple(win)),
-                           force=force, keep=True)
+                res = fuse(drive, m, fused_path(out, path, m, L), cfg.replace(outages=tuple(win)), force=force,
+                           keep=True)
                 _, err = outage_error_series(drive, res.solution, m, win_ns)
                 rows.append({**row, "solutions": res.rows, **_metrics(err)})
     return rows
+
+
+def fused_path(out: Path, drive: Path, method: str, outage_s: float | None = None) -> Path:
+    """Where a drive's run by ``method`` (over the whole drive, or with outages of ``outage_s``) is written."""
+    return out / "fused" / (f"{drive.stem}_{method}.mcap" if outage_s is None else
+                            f"{drive.stem}_{method}_{outage_s:g}s.mcap")
 
 
 def failed_row(drive: str | Path, error: str) -> dict:
@@ -198,6 +204,10 @@ def run_batch(drives: Sequence[str | Path], methods: Sequence[str], lengths: Seq
     check_drive_names(drives)
     out = outputs.out_dir(Path(out).absolute())
     outputs.check_new(out / "results.parquet", force)
+    for d in drives:  # every fused file too, before the first drive is read
+        for m in methods:
+            for L in (None, *lengths):
+                outputs.check_new(fused_path(out, Path(d), m, L), force)
     paths = [str(Path(d).resolve()) for d in drives]
     t0 = time.monotonic()
     rows: list[dict] = []
