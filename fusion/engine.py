@@ -297,7 +297,7 @@ class Engine:
         caller has it); False when there are none."""
         if not obs:
             return False
-        m = (obs[0].m if len(obs) == 1 else kf.stack(*(o.m for o in obs))) if m is None else m
+        m = kf.stack(*(o.m for o in obs)) if m is None else m
         for x in self.listeners:
             x.update(self.filter.covariance, m[1], m[2])
         self.filter.update_batch(obs)

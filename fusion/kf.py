@@ -183,7 +183,7 @@ class KalmanFilter(BatchUpdates):
         obs : list of Observation
             One epoch's observations; none: no update.
         """
-        m = obs[0].m if len(obs) == 1 else stack(*(o.m for o in obs))  # one: as it is (update copies nothing in)
+        m = stack(*(o.m for o in obs))
         if m is not None:
             self.update(*m)
 
@@ -336,11 +336,12 @@ def stack(*ms: Measurement | None) -> Measurement | None:
     Returns
     -------
     Measurement or None
-        z and H stacked in order, R block-diagonal; None when there is none.
+        z and H stacked in order, R block-diagonal; a single one as it is (its readers, the updates, the listeners
+        and the tests on it, write nothing into it); None when there is none.
     """
     ms = tuple(m for m in ms if m is not None)
     if len(ms) <= 1:
-        return tuple(a.copy() for a in ms[0]) if ms else None
+        return ms[0] if ms else None
     return np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms]), _block_diag([m[2] for m in ms])
 
 
