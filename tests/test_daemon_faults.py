@@ -70,9 +70,9 @@ def sentences(path: Path) -> list[str]:
 
 
 def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame_recorded(tmp_path: Path) -> None:
-    """At x4: the time sync's host gates (a fix's age, an edge's disagreement with the fixes' host times) are
-    data seconds, so at x20 they left 20 ms of host latency, which a loaded machine exceeds; with the PPS flags
-    the corrupt frames lose (16 edges in 20 s) the sync then never locked. x4 leaves 100 ms."""
+    """Served at x4: the time sync's host gates (a fix's age, an edge's disagreement with the fixes' host times)
+    are data seconds, so at xS they allow 0.4 / S s of host latency, and with the PPS flags the corrupt frames lose
+    every remaining edge counts for the lock: x4 allows 100 ms, which a loaded host keeps to; x20 would allow 20 ms."""
     f, truth, _ = record(tmp_path, "--corrupt", "0.01", duration=20, seed=7, speed=4)
     clean = expected_bytes(truth, "figure8", 20.0, 7)
     sent = {p: corrupt_stream(clean[p], 0.01, 7, p) for p in PORTS}
