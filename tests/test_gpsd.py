@@ -220,4 +220,9 @@ def test_lost_gpsd_is_survived_as_an_unplugged_port(tmp_path: Path, gpsd_factory
     _, mono = raw_stream(f, "gps")
     assert np.any(mono < lost) and np.any(mono > back) and not np.any((mono > lost) & (mono < back))
     assert "gps port lost" in log and "gps port back" in log
-    assert reader.read_topic(f, "/time/sync")["state"][-1] == LOCKED      # locked again after the gap
+    # locked, lost in the gap, locked again after it (not necessarily at the last second: at x20 a loaded host
+    # delays a fix past the sync's host gates, and an edge near the end may be refused)
+    state = reader.read_topic(f, "/time/sync")["state"]
+    locked = np.flatnonzero(state == LOCKED)
+    lost = np.flatnonzero(state[locked[0]:] != LOCKED) + locked[0]
+    assert len(lost) and locked[-1] > lost[0]
