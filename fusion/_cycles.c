@@ -235,8 +235,8 @@ KERNEL int fieldlog_segment_cycles(int64_t n, int64_t m, const int64_t *ends, co
 
 /* The covariance cycles of KalmanFilter.propagate: P <- Phi_i P Phi_i^T + q_scale Q_i for i < m, made symmetric
  * (0.5 (P + P^T)) when sym; P (15, 15) in place, hist (m, 15, 15) gets P after each cycle */
-KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q, double q_scale, int32_t sym,
-                                   double *P, double *hist)
+HELPER void propagate_cov(int64_t m, const double *Phi, const double *Q, double q_scale, int sym, double *P,
+                          double *hist)
 {
     double A[N * N], B[N * N];
     for (int64_t k = 0; k < m; k++) {
@@ -250,6 +250,12 @@ KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q
                 P[i * N + j] = sym ? 0.5 * (B[i * N + j] + B[j * N + i]) : B[i * N + j];
         memcpy(hist + k * N * N, P, sizeof(double) * N * N);
     }
+}
+
+KERNEL void fieldlog_propagate_cov(int64_t m, const double *Phi, const double *Q, double q_scale, int32_t sym,
+                                   double *P, double *hist)
+{
+    propagate_cov(m, Phi, Q, q_scale, sym, P, hist);
 }
 
 /* The error state through the cycles of KalmanFilter.propagate (kf.propagate_state): x <- Phi_i x for i < m, x (15)
@@ -518,56 +524,138 @@ HELPER int inv_spd(const double *P, double *out)
     return 0;
 }
 
-/* The distributed filter's fusion (paper eqs. 3-4) of m cycles' local estimates x1, x2 (m, 15) with covariances
- * P1, P2 (m, 15, 15): P4 = (P1^-1 + P2^-1)^-1 and x = P4 (P1^-1 x1 + P2^-1 x2) (m, 15); with the cross-covariance
- * P12 (m, 15, 15; NULL: none), Pe (m, 15, 15) the covariance of that estimate's error, sym(W1 P1 W1^T + W2 P2 W2^T
- * + C + C^T), C = W1 P12 W2^T, W_i = P4 P_i^-1. Returns 1 when a covariance is not positive definite. */
-KERNEL int32_t fieldlog_dkf_fuse(int64_t m, const double *P1, const double *P2, const double *P12, const double *x1,
-                                 const double *x2, double *x, double *P4, double *Pe)
+/* One cycle's distributed-filter fusion (paper eqs. 3-4) of local estimates x1, x2 (15) with covariances P1, P2
+ * (15 x 15): P4 = (P1^-1 + P2^-1)^-1 and x = P4 (P1^-1 x1 + P2^-1 x2); with the cross-covariance P12 (15 x 15;
+ * NULL: none), the covariance of that estimate's error sym(W1 P1 W1^T + W2 P2 W2^T + C + C^T), C = W1 P12 W2^T,
+ * W_i = P4 P_i^-1, into Pe (15 x 15), or, with Pe NULL, its diagonal alone into d (15) and no x (x NULL): the same
+ * sums element by element, so d equals Pe's diagonal to the bit. Returns 1 when a covariance is not positive
+ * definite. */
+HELPER int fuse_one(const double *P1, const double *P2, const double *P12, const double *x1, const double *x2,
+                    double *x, double *P, double *Pe, double *d)
 {
     double I1[N * N], I2[N * N], Is[N * N], W1[N * N], W2[N * N], T[N * N], U[N * N], V[N * N];
-    for (int64_t k = 0; k < m; k++) {
-        const size_t o = (size_t)k * N * N;
-        double *P = P4 + o, *xk = x + k * N;
-        if (inv_spd(P1 + o, I1) || inv_spd(P2 + o, I2))
-            return 1;
-        for (int i = 0; i < N * N; i++)
-            Is[i] = I1[i] + I2[i];
-        if (inv_spd(Is, P))
-            return 1;
+    if (inv_spd(P1, I1) || inv_spd(P2, I2))
+        return 1;
+    for (int i = 0; i < N * N; i++)
+        Is[i] = I1[i] + I2[i];
+    if (inv_spd(Is, P))
+        return 1;
+    if (x) {
         double vec[N];
         for (int i = 0; i < N; i++) {
             double s = 0.0;
             for (int j = 0; j < N; j++)
-                s = fma(I1[i * N + j], x1[k * N + j], s);
+                s = fma(I1[i * N + j], x1[j], s);
             for (int j = 0; j < N; j++)
-                s = fma(I2[i * N + j], x2[k * N + j], s);
+                s = fma(I2[i * N + j], x2[j], s);
             vec[i] = s;
         }
         for (int i = 0; i < N; i++) {
             double s = 0.0;
             for (int j = 0; j < N; j++)
                 s = fma(P[i * N + j], vec[j], s);
-            xk[i] = s;
+            x[i] = s;
         }
-        if (!P12)
-            continue;
-        matmul(N, N, N, P, N, I1, N, 0, W1, N);
-        matmul(N, N, N, P, N, I2, N, 0, W2, N);
-        matmul(N, N, N, W1, N, P1 + o, N, 0, T, N);
-        matmul(N, N, N, T, N, W1, N, 1, U, N);        /* W1 P1 W1^T */
-        matmul(N, N, N, W2, N, P2 + o, N, 0, T, N);
-        matmul(N, N, N, T, N, W2, N, 1, V, N);        /* W2 P2 W2^T */
-        for (int i = 0; i < N * N; i++)
-            U[i] += V[i];
-        matmul(N, N, N, W1, N, P12 + o, N, 0, T, N);
-        matmul(N, N, N, T, N, W2, N, 1, V, N);        /* C */
-        for (int i = 0; i < N; i++)
-            for (int j = 0; j < N; j++)
-                T[i * N + j] = U[i * N + j] + V[i * N + j] + V[j * N + i];
-        for (int i = 0; i < N; i++)
-            for (int j = 0; j < N; j++)
-                Pe[o + i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    }
+    if (!P12)
+        return 0;
+    matmul(N, N, N, P, N, I1, N, 0, W1, N);
+    matmul(N, N, N, P, N, I2, N, 0, W2, N);
+    if (!Pe) {  /* the diagonals of the products below: row i of the left factor times row i of W_i */
+        double u[N], c[N];
+        matmul(N, N, N, W1, N, P1, N, 0, T, N);
+        matmul(N, N, N, W2, N, P2, N, 0, U, N);
+        matmul(N, N, N, W1, N, P12, N, 0, V, N);
+        for (int i = 0; i < N; i++) {
+            double s1 = 0.0, s2 = 0.0, s3 = 0.0;
+            for (int l = 0; l < N; l++) {
+                s1 = fma(T[i * N + l], W1[i * N + l], s1);
+                s2 = fma(U[i * N + l], W2[i * N + l], s2);
+                s3 = fma(V[i * N + l], W2[i * N + l], s3);
+            }
+            u[i] = s1 + s2;
+            c[i] = s3;
+        }
+        for (int i = 0; i < N; i++) {
+            const double t = u[i] + c[i] + c[i];
+            d[i] = 0.5 * (t + t);
+        }
+        return 0;
+    }
+    matmul(N, N, N, W1, N, P1, N, 0, T, N);
+    matmul(N, N, N, T, N, W1, N, 1, U, N);        /* W1 P1 W1^T */
+    matmul(N, N, N, W2, N, P2, N, 0, T, N);
+    matmul(N, N, N, T, N, W2, N, 1, V, N);        /* W2 P2 W2^T */
+    for (int i = 0; i < N * N; i++)
+        U[i] += V[i];
+    matmul(N, N, N, W1, N, P12, N, 0, T, N);
+    matmul(N, N, N, T, N, W2, N, 1, V, N);        /* C */
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            T[i * N + j] = U[i * N + j] + V[i * N + j] + V[j * N + i];
+    for (int i = 0; i < N; i++)
+        for (int j = 0; j < N; j++)
+            Pe[i * N + j] = 0.5 * (T[i * N + j] + T[j * N + i]);
+    return 0;
+}
+
+/* The distributed filter's fusion (fuse_one) of m cycles' local estimates x1, x2 (m, 15) with covariances P1, P2
+ * and cross-covariance P12 (m, 15, 15; NULL: none) into x (m, 15), P4 and Pe (m, 15, 15; Pe unused without P12).
+ * Returns 1 when a covariance is not positive definite. */
+KERNEL int32_t fieldlog_dkf_fuse(int64_t m, const double *P1, const double *P2, const double *P12, const double *x1,
+                                 const double *x2, double *x, double *P4, double *Pe)
+{
+    for (int64_t k = 0; k < m; k++) {
+        const size_t o = (size_t)k * N * N;
+        if (fuse_one(P1 + o, P2 + o, P12 ? P12 + o : NULL, x1 + k * N, x2 + k * N, x + k * N, P4 + o,
+                     P12 ? Pe + o : NULL, NULL))
+            return 1;
+    }
+    return 0;
+}
+
+/* One local filter's state through the cycles, as kf.propagate_state: x (15) in place, its value after each of
+ * the m cycles into hist at row stride ld; a zero state stays zero without a product */
+HELPER void local_states(int64_t m, const double *Phi, double *x, double *hist, int ld)
+{
+    int any = 0;
+    for (int i = 0; i < N; i++)
+        any |= x[i] != 0.0;
+    double y[N];
+    for (int64_t k = 0; k < m; k++) {
+        if (any) {
+            matmul(N, N, 1, Phi + k * N * N, N, x, 1, 0, y, 1);
+            memcpy(x, y, sizeof y);
+        }
+        memcpy(hist + k * ld, x, sizeof y);
+    }
+}
+
+/* DistributedKF.propagate of the paper's fusion in one call: the local states x1, x2 (15) and covariances P1, P2
+ * (15 x 15, q_scale Q added) and their cross-covariance P12 (Q added) through the m cycles Phi, Q (m, 15, 15), in
+ * place, as kf.propagate_state and fieldlog_propagate_cov give them; xs (m, 2, 15) and hist (3, m, 15, 15) get
+ * the states and P1, P2, P12 after each cycle; d (m, 15) the diagonal of the fused estimate's error covariance
+ * after each (fuse_one); x (15), P4 and Pe (15 x 15) the whole fusion after the last. Returns 1 when a covariance
+ * is not positive definite. */
+KERNEL int32_t fieldlog_dkf_propagate(int64_t m, const double *Phi, const double *Q, double q_scale, double *x1,
+                                      double *x2, double *P1, double *P2, double *P12, double *xs, double *hist,
+                                      double *d, double *x, double *P4, double *Pe)
+{
+    const size_t s = (size_t)m * N * N;
+    local_states(m, Phi, x1, xs, 2 * N);
+    local_states(m, Phi, x2, xs + N, 2 * N);
+    propagate_cov(m, Phi, Q, q_scale, 1, P1, hist);
+    propagate_cov(m, Phi, Q, q_scale, 1, P2, hist + s);
+    propagate_cov(m, Phi, Q, 1.0, 0, P12, hist + 2 * s);
+    for (int64_t k = 0; k < m; k++) {
+        const size_t o = (size_t)k * N * N;
+        const double *p1 = hist + o, *p2 = hist + s + o, *p12 = hist + 2 * s + o, *y = xs + k * 2 * N;
+        const int last = k == m - 1;
+        if (fuse_one(p1, p2, p12, y, y + N, last ? x : NULL, P4, last ? Pe : NULL, d + k * N))
+            return 1;
+        if (last)
+            for (int i = 0; i < N; i++)
+                d[k * N + i] = Pe[i * N + i];
     }
     return 0;
 }

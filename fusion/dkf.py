@@ -50,9 +50,8 @@ from __future__ import annotations
 import numpy as np
 
 from fieldlog.fusion import kernels
-from fieldlog.fusion.errmodel import N_STATES, cycle_kernel, propagate_covariance
-from fieldlog.fusion.kf import (BatchUpdates, KalmanFilter, Measurement, Observation, joseph_update,
-                                propagate_state, stack)
+from fieldlog.fusion.errmodel import N_STATES, cycle_kernel
+from fieldlog.fusion.kf import BatchUpdates, KalmanFilter, Measurement, Observation, joseph_update, stack
 
 BETA = 0.5  # information share of each local filter (federated)
 FUSIONS = ("paper", "federated")
@@ -84,6 +83,7 @@ class DistributedKF(BatchUpdates):
         self.q = self.kf_vel.q  # the noise PSD (12, 12) of one filter cycle (``predict``)
         self.P12 = None if self.federated else np.array(P0, dtype=float)
         self.innovations = (np.zeros(N_STATES), np.zeros(N_STATES))  # K_i nu_i of the last GPS update
+        self._cycles = (np.empty((3, 0, N_STATES, N_STATES)), np.empty((0, 2, N_STATES)))  # propagate's last
         self._fuse()
 
     @property
@@ -109,8 +109,9 @@ class DistributedKF(BatchUpdates):
 
     def propagate(self, Phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Both local filters (and, paper fusion, their cross-covariance) over a sequence of cycles, fused after
-        each (compiled, :func:`fuse`); ``local_states`` and ``local_diag`` (m, 2, 15) get the local estimates and
-        variances after each cycle.
+        each (paper fusion: all in one compiled call, fusion/_cycles.c; the fused estimate and its covariance are
+        made whole after the last cycle, its variances after each); ``local_states`` and ``local_diag`` (m, 2,
+        15) get the local estimates and variances after each cycle.
 
         Parameters
         ----------
@@ -133,18 +134,30 @@ class DistributedKF(BatchUpdates):
             self.local_states = np.zeros((m, 2, N_STATES))
             self.local_diag = np.stack([d1, d1], axis=1)
             return BETA * d1
-        xs = np.stack([propagate_state(Phi, self.kf_vel.x), propagate_state(Phi, self.kf_pos.x)], axis=1)
-        Ps = np.stack([propagate_covariance(Phi, Q, self.kf_vel.P), propagate_covariance(Phi, Q, self.kf_pos.P),
-                       propagate_covariance(Phi, Q, self.P12, sym=False)])  # P1, P2, P12 after each cycle
-        x, P4, Pe = fuse(Ps[0], Ps[1], Ps[2], xs[:, 0], xs[:, 1])  # every cycle's fusion, for its variances
+        Phi, Q = np.ascontiguousarray(Phi, dtype=float), np.ascontiguousarray(Q, dtype=float)
+        if Phi.shape != (m, N_STATES, N_STATES) or Q.shape != Phi.shape:
+            raise ValueError(f"the cycles need Phi and Q (m, 15, 15): {Phi.shape}, {Q.shape}")
+        x1, x2 = np.array(self.kf_vel.x, dtype=float), np.array(self.kf_pos.x, dtype=float)
+        P1, P2, P12 = (np.array(a, dtype=float) for a in (self.kf_vel.P, self.kf_pos.P, self.P12))
+        xs, hist, d = np.empty((m, 2, N_STATES)), np.empty((3, m, N_STATES, N_STATES)), np.empty((m, N_STATES))
+        x, P4, Pe = np.empty(N_STATES), np.empty((N_STATES, N_STATES)), np.empty((N_STATES, N_STATES))
+        if cycle_kernel().fieldlog_dkf_propagate(m, *map(kernels.address, (Phi, Q)), self.kf_vel.q_scale,
+                                                 *map(kernels.address, (x1, x2, P1, P2, P12, xs, hist, d, x, P4, Pe))):
+            raise np.linalg.LinAlgError("Matrix is not positive definite: a local or fused covariance")
         if m:
-            self.kf_vel.x, self.kf_pos.x = xs[-1, 0], xs[-1, 1]
-            self.kf_vel.P, self.kf_pos.P, self.P12 = Ps[0, -1].copy(), Ps[1, -1].copy(), Ps[2, -1].copy()
-            self.x, self.P4, self.P = x[-1], P4[-1], Pe[-1]
-        self.predicted = Pe
+            self.kf_vel.x, self.kf_pos.x, self.kf_vel.P, self.kf_pos.P, self.P12 = x1, x2, P1, P2, P12
+            self.x, self.P4, self.P = x, P4, Pe
+        self._cycles = (hist, xs)
         self.local_states = xs
-        self.local_diag = np.diagonal(Ps[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
-        return np.diagonal(Pe, axis1=1, axis2=2).copy()
+        self.local_diag = np.diagonal(hist[:2], axis1=2, axis2=3).transpose(1, 0, 2).copy()
+        return d
+
+    @property
+    def predicted(self) -> np.ndarray:
+        """The fused estimate's error covariance after each cycle of the last :meth:`propagate` (m, 15, 15), the
+        paper's fusion (made when asked: its diagonal is what ``propagate`` returns)."""
+        hist, xs = self._cycles
+        return fuse(hist[0], hist[1], hist[2], xs[:, 0], xs[:, 1])[2]
 
     def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """A measurement of the shared interface: to KF_II when it observes position, else to KF_I; then fusion.

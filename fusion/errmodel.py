@@ -228,6 +228,7 @@ def cycle_kernel() -> ctypes.CDLL:
         "fieldlog_kf_update": ([i64] + [p] * 8 + [i32], i32),
         "fieldlog_nis": ([i64] + [p] * 6, i32),
         "fieldlog_dkf_fuse": ([i64] + [p] * 8, i32),
+        "fieldlog_dkf_propagate": ([i64, p, p, f64] + [p] * 11, i32),
         "fieldlog_rts_chunk": ([i64, p, i64] + [p] * 9, i32),
         "fieldlog_rls_update": [i64, i64, p, p, p, p, f64]})
 

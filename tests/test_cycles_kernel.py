@@ -254,6 +254,41 @@ def test_compiled_fusion_equals_numpy(cross):
         dkf.fuse(P1, P2, P12, x1, x2)
 
 
+@pytest.mark.parametrize("m, seed", [(0, 0), (1, 1), (7, 2)])
+def test_distributed_propagation_in_one_call_equals_its_parts(m, seed):
+    """DistributedKF.propagate (paper fusion, one compiled call) gives, to the bit, the local states and
+    covariances of kf.propagate_state and errmodel.propagate_covariance, and per cycle the variances and, after
+    the last, the estimate and covariances of dkf.fuse; ``predicted`` is fuse's covariance after each cycle."""
+    from fieldlog.fusion import dkf
+
+    rng = np.random.default_rng(30 + seed)
+    f = DistributedKF(_spd(rng, 15, 1e6), np.eye(12))
+    f.kf_vel.x, f.kf_pos.x = rng.normal(size=15), np.zeros(15)  # a zero state stays zero without a product
+    f.kf_vel.P, f.kf_pos.P = _spd(rng, 15, 1e6), _spd(rng, 15, 1e6)
+    f.P12 = 0.01 * rng.normal(size=(15, 15))
+    f._fuse()
+    Phi = np.eye(15) + 0.01 * rng.normal(size=(m, 15, 15))
+    Q = np.array([_spd(rng, 15, 1e3) * 1e-4 for _ in range(m)]).reshape(m, 15, 15)
+    before = f.state.copy(), f.covariance.copy()
+    x1, x2 = kf.propagate_state(Phi, f.kf_vel.x), kf.propagate_state(Phi, f.kf_pos.x)
+    P1, P2 = (errmodel.propagate_covariance(Phi, Q, g.P) for g in f.locals)
+    P12 = errmodel.propagate_covariance(Phi, Q, f.P12, sym=False)
+    x, P4, Pe = dkf.fuse(P1, P2, P12, x1, x2)
+    d = f.propagate(Phi, Q)
+    same = lambda a, b: a.shape == b.shape and np.array_equal(a.view(np.int64), b.view(np.int64))  # noqa: E731
+    assert same(d, np.diagonal(Pe, axis1=1, axis2=2)) and same(f.predicted, Pe)
+    assert same(f.local_states, np.stack([x1, x2], axis=1))
+    assert same(f.local_diag, np.stack([np.diagonal(P1, axis1=1, axis2=2), np.diagonal(P2, axis1=1, axis2=2)], 1))
+    if m:
+        assert same(f.state, x[-1]) and same(f.fused_covariance, P4[-1]) and same(f.covariance, Pe[-1])
+        assert same(f.P12, P12[-1]) and same(f.kf_pos.x, np.zeros(15)) and same(f.kf_vel.P, P1[-1])
+    else:
+        assert same(f.state, before[0]) and same(f.covariance, before[1])
+    f.kf_vel.P = -f.kf_vel.P
+    with pytest.raises(np.linalg.LinAlgError):
+        f.propagate(np.eye(15)[None], np.zeros((1, 15, 15)))
+
+
 def _numpy_rts(log) -> tuple[np.ndarray, np.ndarray]:
     """The RTS backward pass as numpy writes it (fusion/smoother.py's module docstring): y and diag(Ps), (N, 15)."""
     from fieldlog.fusion.smoother import _filtered_means
