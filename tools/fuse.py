@@ -274,7 +274,7 @@ def fuse(drive: DriveSpec, method: str, out: str | os.PathLike[str],
     stream = stream or InputStream(drive, imap, BLOCK_S)
     with contextlib.ExitStack() as workers:  # the predictor's worker, if the method has one; then the file
         engine = Engine(method, cfg, log=log, make_predictor=worker_predictors(workers))
-        rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force))
+        rec = workers.enter_context(Recorder(out, flush_interval_s=None, fsync=False, force=force, behind=True))
         rec.add_metadata("fusion", run_record(drive, method, cfg, imap, smooth))
         if installation:
             rec.add_metadata("fusion.installation", {k: json.dumps(v) for k, v in installation.items()})
