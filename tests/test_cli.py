@@ -4,6 +4,7 @@ a real terminal only."""
 from __future__ import annotations
 
 import ast
+import gc
 import json
 import os
 import pty
@@ -209,6 +210,22 @@ def test_fuse_config_through_a_pipe_takes_effect(figure8_150s_seed3, tmp_path, h
     assert fused_config["nhc"] is False
     drive_record = reader.read_metadata(figure8_150s_seed3).get("fusion.config", {})
     assert ast.literal_eval(drive_record.get("nhc", "True")) is True
+
+
+def test_the_program_exits_with_the_commands_code_and_main_keeps_the_collector(figure8_150s_seed3, tmp_path,
+                                                                               capsys):
+    """``run`` (the ``fieldlog`` program, ``python -m fieldlog``) freezes the heap before the interpreter's exit
+    and exits with the command's code; ``main`` called in a process that goes on leaves the collector alone."""
+    frozen = gc.get_freeze_count()
+    assert main(["info", str(figure8_150s_seed3)]) == 0
+    assert gc.get_freeze_count() == frozen
+    capsys.readouterr()
+    exe = Path(sys.executable).parent / "fieldlog"
+    for argv, code in ((["info", str(tmp_path / "missing.mcap")], 2), (["info", str(figure8_150s_seed3)], 0)):
+        for program in ([str(exe)], [sys.executable, "-m", "fieldlog"]):
+            r = subprocess.run([*program, *argv], capture_output=True, text=True, cwd=ROOT, timeout=120)
+            assert r.returncode == code, (program, r.stderr)
+            assert (len(r.stderr.splitlines()), bool(r.stdout)) == ((1, False) if code else (0, True)), r.stderr
 
 
 @pytest.mark.parametrize("command, threads", [("sim", None), ("fuse", "1")])

@@ -1,6 +1,4 @@
 """``python -m fieldlog``: the same as the ``fieldlog`` command."""
-import sys
+from fieldlog.tools.cli import run
 
-from fieldlog.tools.cli import main
-
-sys.exit(main())
+run()
