@@ -202,9 +202,12 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     a, b, span = tg[k], tg[k + 1], dt[k]
 
     def _cost(d: np.ndarray) -> np.ndarray:
-        """The squared residuals' sum at each lag of d (s), less the best constant rate."""
-        shift = np.round(d * 1e9).astype(np.int64)[:, None]
-        r = d_course - gyro.heading_change(a + shift, b + shift)
+        """The squared residuals' sum at each lag of d (s), less the best constant rate. Each interval's lags are
+        one row of the stamps interpolated: ``np.interp`` starts each search from the point the last one found,
+        a step away (the values do not depend on the order)."""
+        shift = np.round(d * 1e9).astype(np.int64)
+        turned = gyro.heading_change(a[:, None] + shift, b[:, None] + shift)
+        r = d_course - np.ascontiguousarray(turned.T)
         r = r - span * (np.sum(r * span, axis=1, keepdims=True) / np.sum(span * span))
         return np.sum(r ** 2, axis=1)
 
