@@ -1297,11 +1297,15 @@ def _gather(p: Packed, rows: np.ndarray, dt: np.ndarray) -> np.ndarray:
 
 
 def _u32_at(buf: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """Little-endian uint32 at each byte position (int64 result; positions clipped in range)."""
+    """Little-endian uint32 at each byte position (int64 result; positions clipped in range): its four bytes
+    gathered a byte column at a time (no index matrix)."""
     if len(buf) < 4:
         return np.zeros(len(pos), dtype=np.int64)
     pos = np.clip(np.asarray(pos, dtype=np.int64), 0, len(buf) - 4)
-    return buf[pos[:, None] + np.arange(4)].view("<u4").ravel().astype(np.int64)
+    out = np.empty((len(pos), 4), np.uint8)
+    for i in range(4):
+        np.take(buf, pos + i, out=out[:, i])
+    return out.view("<u4").ravel().astype(np.int64)
 
 
 @lru_cache(maxsize=None)
