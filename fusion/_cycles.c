@@ -3,8 +3,8 @@
  *
  * Built with the package (setup.py) and called through ctypes by errmodel.segment_cycles and discrete_cycles,
  * KalmanFilter.propagate and kf.propagate_state, the engine's cycle slots, kf.joseph_update and kf.nis, the
- * consider analysis's cycles and updates, dkf.fuse, smoother.rts and still.ImuSums.add; it needs no Python
- * headers.
+ * consider analysis's cycles and updates, dkf.fuse and DistributedKF.propagate, smoother.rts and still.ImuSums.add;
+ * it needs no Python headers.
  * The cycles (the updates, fusion and smoothing below say what they keep) evaluate errmodel.system_matrices (from
  * the Earth terms on, which errmodel.segment_cycles's kernel also forms from numpy's sines), errmodel.discretise
  * and the P cycle of KalmanFilter.propagate in the order their numpy source writes them, so the results equal

@@ -164,5 +164,6 @@ def run() -> NoReturn:
     gc.freeze()
     sys.exit(code)
 
+
 if __name__ == "__main__":
     run()
