@@ -1298,7 +1298,7 @@ def _gather(p: Packed, rows: np.ndarray, dt: np.ndarray) -> np.ndarray:
 
 def _u32_at(buf: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Little-endian uint32 at each byte position (int64 result; positions clipped in range): its four bytes
-    gathered a byte column at a time (no index matrix)."""
+    gathered a byte column at a time."""
     if len(buf) < 4:
         return np.zeros(len(pos), dtype=np.int64)
     pos = np.clip(np.asarray(pos, dtype=np.int64), 0, len(buf) - 4)

@@ -75,7 +75,7 @@ def run(a: argparse.Namespace) -> int:
     conf = TomlFile.read(a.config)
     drive = open_drive(a.drive, a, conf)  # checked before the work
     out = out_file(a)
-    check_new(out, a.force)  # refused before the installation pass, not after it
+    check_new(out, a.force)  # refused before the time-offset and installation passes
     st = settings(drive, conf, input_spec(a), tuple(parse_outage(o) for o in a.outage or ()))
     for line in st.lines(drive):
         if line.startswith("warning: "):

@@ -469,7 +469,7 @@ def evaluate(drives: list[Path], lengths: list[float], methods: list[str], repor
         plans.append((path, drive, base, imap, runs + ([(m, sm, False, mode) for m, sm, _, mode in runs if m != INS.name]
                                                       if imap.odom_topic and base.aids.odometer else [])))
     for name in ("table.csv", "heading.csv", "table.md", *(f"errors_{L:g}s.png" for L in lengths)):
-        outputs.check_new(report / name, force)  # every output refused before the first run, not after them all
+        outputs.check_new(report / name, force)  # every output refused before the first run
     for path, _, _, _, drive_runs in plans:
         for L in lengths:
             for run in drive_runs:
