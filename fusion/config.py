@@ -160,7 +160,7 @@ class AidConfig:
     # odometer's lateral (yaw) and vertical (pitch) variance; all 0 to `fuse`: nobody measured it (the estimate alone)
     estimate_installation: bool = True  # `fuse` estimates the mounting and the IMU time offset from the drive
     # first and uses them, with a car aid on (the NHC, or the odometer with wheel speeds: its estimators assume a
-    # car, heading = course; tools.fuse.installation_applies);
+    # car, heading = course; tools.fuse_settings.installation_applies);
     # false: the configured values as they are
     odometer_track_m: float = 1.6  # the car's track (left to right wheel centres) and wheelbase, m: the per-wheel
     odometer_wheelbase_m: float = 2.7  # slip test's kinematics (fusion.odometer, "Per-wheel slip")

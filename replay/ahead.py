@@ -4,7 +4,7 @@ Reading a drive (zstd, the CDR decode, the input mapping), training an outage pr
 (the fusion loop, the viewer's logging) are each Python-bound, so threads would take turns on one core under
 the GIL; a forked worker runs beside the caller instead. What crosses between them is pickled (protocol 5)
 down a pipe, each message after an 8-byte little-endian length. A blocking pipe is the flow control: a worker
-is at most about one message ahead of its caller, so memory holds about two.
+is at most about one message and the pipe's ``PIPE_BYTES`` ahead of its caller, so memory holds about two.
 
 - :class:`Ahead`: a generator in the worker, its items consumed here (``fuse``'s input blocks, ``view``'s
   drive pass).
@@ -32,6 +32,7 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 _HEADER = struct.Struct("<Q")
+PIPE_BYTES = 1 << 20  # the read-ahead pipe's size: Linux's default largest (/proc/sys/fs/pipe-max-size)
 _ITEM, _RETURN, _ERROR = 0, 1, 2
 
 
@@ -45,6 +46,7 @@ class Ahead(Generic[T, R]):
         self._pipe = None
         if _can_fork():
             r, w = os.pipe()
+            _widen(w)
             pid = os.fork()
             if pid == 0:  # the worker: never returns
                 os.close(r)
@@ -108,6 +110,17 @@ def _work(produce: Callable[[], Generator], fd: int) -> None:
         code = 1
     finally:
         os._exit(code)
+
+
+def _widen(fd: int) -> None:
+    """Make the pipe of ``fd`` hold ``PIPE_BYTES`` where the system allows (Linux; else it stays as it is, 64 KiB
+    on Linux by default): an input block of a few MB then crosses in a few writes and reads, not a hundred."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+    except (ImportError, AttributeError, OSError):  # not Linux, or above /proc/sys/fs/pipe-max-size
+        pass
 
 
 def _picklable(e: BaseException) -> BaseException:

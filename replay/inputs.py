@@ -318,6 +318,7 @@ class InputStream:
                  extra: tuple[str, ...] = (), keep: bool = False) -> None:
         self.path, self.imap, self.block_s, self.keep = path, imap, block_s, keep
         self._kept: IO[bytes] | None = None  # keep: the engine's blocks of the first pass to the end, pickled
+        self._ahead: Ahead | None = None  # the worker :meth:`start` began, not yet iterated
         self.extra = tuple(t for t in extra if t not in imap.topics and t != imap.odom_topic)
         self._start_counting()
 
@@ -395,7 +396,8 @@ class InputStream:
             self._kept.seek(0)
             return (yield from _unpickled(self._kept))
         if not self.keep:
-            with Ahead(self._input_blocks) as blocks:
+            ahead, self._ahead = self._ahead or Ahead(self._input_blocks), None
+            with ahead as blocks:
                 self.__dict__.update((yield from blocks))
             return
         kept = tempfile.TemporaryFile()  # noqa: SIM115 (lives as long as this stream)
@@ -406,8 +408,20 @@ class InputStream:
             raise
         self._kept = kept
 
+    def start(self) -> None:
+        """Begin reading the drive on the second core now, not at the first iteration (without ``keep``): the
+        worker decodes the first blocks while the caller gets ready (its imports, its output file), and the
+        next iteration takes them. Before any other thread starts: a worker is forked only then
+        (``replay.ahead``)."""
+        if not self.keep and self._ahead is None:
+            self._ahead = Ahead(self._input_blocks)
+
     def close(self) -> None:
-        """Delete the kept blocks (``keep``); a later pass reads the drive again."""
+        """Delete the kept blocks (``keep``), a later pass reads the drive again; end a worker :meth:`start`
+        began that was not iterated."""
+        if self._ahead is not None:
+            self._ahead.close()
+            self._ahead = None
         if self._kept is not None:
             self._kept.close()
             self._kept = None

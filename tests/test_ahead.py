@@ -198,3 +198,32 @@ def test_view_reports_a_bad_input_option_its_worker_found_in_one_line(simulated,
                         str(tmp_path / "x.rrd")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert "no topic /nope (--imu-topic)" in r.stderr and not (tmp_path / "x.rrd").exists()
+
+
+def test_a_stream_started_early_reads_the_same_blocks_and_its_close_ends_the_worker(simulated):
+    """``InputStream.start`` forks the reading worker before the first iteration (the fuse command's modules
+    load meanwhile): the same blocks as a stream started by its iteration; closing a started stream that was
+    never iterated reaps the worker. The read-ahead pipe holds ``PIPE_BYTES`` (Linux)."""
+    drive = simulated("figure8", 150.0, 1)
+    out = run(f"""
+        import fcntl
+        from fieldlog.replay.ahead import PIPE_BYTES
+        from fieldlog.replay.inputs import InputStream, resolve
+        imap = resolve({str(drive)!r})
+        early = InputStream({str(drive)!r}, imap, 30.0)
+        early.start()
+        pid, pipe = early._ahead._pid, early._ahead._pipe.fileno()
+        print(pid != 0, fcntl.fcntl(pipe, fcntl.F_GETPIPE_SZ) >= PIPE_BYTES)
+        a = list(early)
+        b = list(InputStream({str(drive)!r}, imap, 30.0))
+        same = len(a) == len(b) > 3 and all(
+            np.array_equal(x.imu.t_ns, y.imu.t_ns) and np.array_equal(x.imu.f_b, y.imu.f_b)
+            and np.array_equal(x.gps.t_ns, y.gps.t_ns) for x, y in zip(a, b))
+        print(same, early.samples == sum(len(x.imu.t_ns) for x in a) > 0, reaped(pid))
+        idle = InputStream({str(drive)!r}, imap, 30.0)
+        idle.start()
+        pid = idle._ahead._pid
+        idle.close()
+        print(reaped(pid))
+    """)
+    assert out == "True True\nTrue True reaped\nreaped"

@@ -60,11 +60,7 @@ from fieldlog.replay.ahead import Remote
 from fieldlog.replay.inputs import InputMap, InputStream
 from fieldlog.replay.loop import Pace, run
 from fieldlog.tools.fuse_output import FusedOutput, RowSpill
-from fieldlog.tools.fuse_settings import Settings, drive_config, drive_mounting
-
-BLOCK_S = 60.0  # s of log time per input block: the rows do not depend on it but for rounding (the engine, the
-# installation's rate integral and the odometry carry over block ends), and longer blocks spread each block's fixed
-# costs (reading, passing it between processes, encoding the rows) over more rows
+from fieldlog.tools.fuse_settings import BLOCK_S, Settings, drive_config, drive_mounting
 
 NO_ALIGNMENT = ("no solution: the filter never aligned, which needs a GPS speed of align_speed_mps ([fusion]) for "
                 "the heading; a drive that never moves cannot be aligned with a MEMS IMU")
@@ -93,24 +89,6 @@ class FuseResult:
     imu_warnings: tuple[str, ...] = ()  # what is wrong with the IMU's timing (replay.inputs.InputStream.warnings)
     virtual_odometer: dict | None = None  # dkf-rbfn, predictor_mode "pseudo": its held-out score and whether it ran
     noise: dict[str, tuple[float, str]] | None = None  # adapt_noise: the figures the drive set (Adaptation.figures)
-
-
-def installation_applies(config: FusionConfig, inputs: InputMap) -> bool:
-    """Whether ``fuse`` estimates the installation first: ``[fusion] estimate_installation`` and a car aid that
-    uses it, the NHC or the odometer with a wheel-speed topic (its estimators assume a car, heading = course; an
-    aircraft's is not).
-
-    Parameters
-    ----------
-    config : the settings of the run.
-    inputs : the drive's topics.
-
-    Returns
-    -------
-    bool
-    """
-    a = config.aids
-    return a.estimate_installation and (a.nhc or (a.odometer and inputs.odom_topic is not None))
 
 
 def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputMap,

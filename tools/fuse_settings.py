@@ -32,6 +32,10 @@ from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.replay import inputs as inputs_mod
 from fieldlog.replay.inputs import InputMap, InputSpec
 
+BLOCK_S = 60.0  # s of log time per input block: the rows do not depend on it but for rounding (the engine, the
+# installation's rate integral and the odometry carry over block ends), and longer blocks spread each block's fixed
+# costs (reading, passing it between processes, encoding the rows) over more rows
+
 
 def parse_outage(text: str) -> tuple[float, float]:
     """``START:LEN`` in seconds from the drive's first IMU sample -> (start_s, length_s)."""
@@ -164,6 +168,24 @@ def settings(drive: DriveSpec, config: TomlFile | None = None,
         cfg = cfg.replace(outages=tuple(outages))
         sources["outages"] = "--outage"
     return Settings(cfg, imap, sources)
+
+
+def installation_applies(config: FusionConfig, inputs: InputMap) -> bool:
+    """Whether ``fuse`` estimates the installation first: ``[fusion] estimate_installation`` and a car aid that
+    uses it, the NHC or the odometer with a wheel-speed topic (its estimators assume a car, heading = course; an
+    aircraft's is not).
+
+    Parameters
+    ----------
+    config : the settings of the run.
+    inputs : the drive's topics.
+
+    Returns
+    -------
+    bool
+    """
+    a = config.aids
+    return a.estimate_installation and (a.nhc or (a.odometer and inputs.odom_topic is not None))
 
 
 def drive_config(drive: DriveSpec) -> FusionConfig:

@@ -53,11 +53,14 @@ def _fused(a: argparse.Namespace, drive, st, out):
     """``tools.fuse.fuse`` of the drive with the settings ``st``, after the installation pass where it applies,
     the drive decoded once for both: (FuseResult, the settings used, the installation's ``--json`` keys)."""
     from fieldlog.replay.inputs import InputStream
-    from fieldlog.tools.fuse import BLOCK_S, estimate_installation, fuse, installation_applies
+    from fieldlog.tools.fuse_settings import BLOCK_S, installation_applies
 
     config, installed = st.config, {}
     install = a.method != INS.name and installation_applies(config, st.inputs)
     with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:
+        stream.start()  # one pass: the drive is read on the second core while the fusion's modules load
+        from fieldlog.tools.fuse import estimate_installation, fuse
+
         if install:
             config, installed = estimate_installation(drive, config, st.inputs, stream)
         res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
@@ -69,7 +72,6 @@ def run(a: argparse.Namespace) -> int:
     from fieldlog.acquire.config import TomlFile
     from fieldlog.drive.files import label
     from fieldlog.drive.outputs import check_new
-    from fieldlog.tools.fuse import NO_ALIGNMENT, noise_sources
     from fieldlog.tools.fuse_settings import parse_outage, settings
 
     conf = TomlFile.read(a.config)
@@ -84,6 +86,8 @@ def run(a: argparse.Namespace) -> int:
             log.debug(line)
     t0 = time.monotonic()
     res, config, installed = _fused(a, drive, st, out)
+    from fieldlog.tools.fuse import NO_ALIGNMENT, noise_sources
+
     imap, forced = st.inputs, config.get("outages")
     summary = dict(drive=label(drive), out=str(res.path), method=a.method, smooth=a.smooth,
                    imu_topic=imap.imu_topic, imu_frame=imap.imu_frame, fix_topic=imap.fix_topic,
