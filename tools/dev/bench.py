@@ -261,13 +261,13 @@ _CLI_CHILD = ("import re, sys\n"
               "sys.exit(rc)\n")
 
 
-def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> dict:
-    """``fieldlog fuse --json`` as a user runs it (the installation pass included) in a fresh Python process:
-    seconds (wall, start-up included), IMU samples and the process's peak RSS (MB)."""
+def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False, config: Path | None = None) -> dict:
+    """``fieldlog fuse --json`` as a user runs it (the installation pass included, unless ``config`` turns it off)
+    in a fresh Python process: seconds (wall, start-up included), IMU samples and the process's peak RSS (MB)."""
     import json
 
     cmd = [sys.executable, "-c", _CLI_CHILD, "fuse", str(drive), "--method", method, "--out", str(out), "--force",
-           "--json", "-q", *(["--smooth"] if smooth else [])]
+           "--json", "-q", *(["--smooth"] if smooth else []), *(["--config", str(config)] if config else [])]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     s = time.perf_counter() - t0
@@ -277,6 +277,21 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False) -> di
 
 
 _LONG_TARGETS = {KF.name: "≤ 2 s; RSS equal", DKF_RBFN.name: "≤ 4 s; RSS equal"}  # the 1-hour drive
+ONE_PASS = ", one pass"  # the name's suffix of a fuse without the installation's first pass (_one_pass_config)
+
+
+def _one_pass_config(tmp: Path, drive: Path) -> Path:
+    """A ``fuse --config`` that makes the command one engine pass, the fusion alone: ``[fusion]
+    estimate_installation = false`` (no time-offset and mounting passes before it). ``--config`` replaces the
+    drive's own settings, so the drive must have none (a simulated figure8 drive has no ``fusion.config``
+    record): the run differs from the default one by the installation passes alone."""
+    from fieldlog.tools.fuse_settings import drive_table
+
+    if drive_table(drive):
+        raise SystemExit(f"{drive}: has a fusion.config record; the one-pass run would not compare with the default")
+    path = tmp / "one_pass.toml"
+    path.write_text("[fusion]\nestimate_installation = false\n")
+    return path
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
@@ -296,9 +311,11 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
     _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
-    for method, smooth in ((KF.name, False), (DKF_RBFN.name, False), (KF.name, True)):
-        name = method + (" --smooth" if smooth else "")
-        r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth) for d in drives]
+    one_pass = _one_pass_config(tmp, drives[0])
+    for method, smooth, config in ((KF.name, False, None), (DKF_RBFN.name, False, None), (KF.name, True, None),
+                                   (KF.name, False, one_pass)):
+        name = method + (" --smooth" if smooth else "") + (ONE_PASS if config else "")
+        r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth, config) for d in drives]
         h0 = hours[0]
         print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
@@ -882,7 +899,8 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     info, each as a ratio to `rerun mcap convert` (`rerun mcap info` for info) run just before it, as is and with
     both commands pinned to one core (`taskset -c 0`), and a warm fuse of a 60 s drive. `fuse --method ins` (one
     read of the drive, the strapdown INS and the same writing, no filter and no installation pass) is the floor
-    of every fuse: what no filter can go below."""
+    of every fuse: what no filter can go below. `fuse --method kf, one pass` is the same kf without the
+    installation's time-offset and mounting passes (:func:`_one_pass_config`): the fusion pass alone."""
     fl, rr = [sys.executable, "-m", "fieldlog"], _rerun_exe()
     drive, short = tmp / "rr_drive.mcap", tmp / "rr_short.mcap"
     _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
@@ -892,6 +910,9 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     cmds = {  # name: (fieldlog command, reference command, target as is, target pinned to one core)
         "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×0.5", "≤ ×0.8"),
+        "fuse --method kf" + ONE_PASS: ([*fl, "fuse", str(drive), "--method", KF.name, "--config",
+                                         str(_one_pass_config(tmp, drive)), "--out", str(tmp / "rr_kf1.mcap"),
+                                         "--force", "-q"], convert, "", ""),
         "fuse --method ins": ([*fl, "fuse", str(drive), "--method", INS.name, "--out", str(tmp / "rr_ins.mcap"),
                                "--force", "-q"], convert, "", ""),
         "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
@@ -936,7 +957,7 @@ def _rerun_ratios(cmds: dict, runs: int, tmp: Path, pin: bool, drive: str) -> No
         q, target = statistics.median(ratios[name]), target_pinned if pin else target
         wall = [w for w, _ in secs[name]]
         cpu, ref_cpu = (statistics.median(c for _, c in x) for x in (secs[name], refs[name]))
-        print(f"fieldlog {name:24s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
+        print(f"fieldlog {name:26s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
               f"CPU {cpu:.2f} s; rerun {fmt_times([w for w, _ in refs[name]])} s, CPU {ref_cpu:.2f} s)  "
               f"target {target or '-'}")
         row(f"`fieldlog {name}`, {drive.split(' (')[0]}, against `rerun {' '.join(ref[1:3])}` of the same drive"
