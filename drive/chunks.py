@@ -413,7 +413,7 @@ def read_chunks(buf, names: Sequence[str], comp: Sequence[int], at: Sequence[int
     """
     comp, size = np.asarray(comp, np.int64), np.asarray(size, np.int64)
     check_sizes(size)
-    used = {names[c] for c in np.unique(comp).tolist()}
+    used = {names[c] for c in set(comp.tolist())}  # not np.unique, whose first call imports numpy.ma
     if "zstd" in used and used <= {"", "zstd"} and (size < 1 << 32).all() and native.ready():
         stage, out = scratch(int(size.max()), int(size.sum()))
         j, what, n, rec, ch, defs = native.read_chunks(

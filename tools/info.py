@@ -144,7 +144,7 @@ def drive_info(path: DriveSpec, scan: bool = False, progress: Callable[[float], 
     last = max((t.last_ns for t in tops if t.count), default=0)
     given = Path(path) if isinstance(path, (str, os.PathLike)) else Path(path[0])
     opened = open_drive(path)
-    comps = sorted({f.compressions[i] for f in opened for i in np.unique(f.pieces.comp[f.pieces.chunk])})
+    comps = sorted({f.compressions[i] for f in opened for i in set(f.pieces.comp[f.pieces.chunk].tolist())})
     return DriveInfo(**asdict(quality) | {"timing": quality.timing}, path=given, duration_s=(last - first) / NS,
                      topics=tops, counters=meta.get("acquire.counters", {}), drive=meta.get("drive", {}),
                      port_events=[d for name, d in records if name == "acquire.port_event"], scanned=scanned,
