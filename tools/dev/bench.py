@@ -278,6 +278,7 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False, confi
 
 _LONG_TARGETS = {KF.name: "≤ 2 s; RSS equal", DKF_RBFN.name: "≤ 4 s; RSS equal"}  # the 1-hour drive
 ONE_PASS = ", one pass"  # the name's suffix of a fuse without the installation's first pass (_one_pass_config)
+_ONE_PASS_SHOWN = " without the installation passes (`estimate_installation = false`)"  # that suffix in a row
 
 
 def _one_pass_config(tmp: Path, drive: Path) -> Path:
@@ -320,7 +321,7 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
         print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
-        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {name}: time; peak RSS {h0:g} h / {hours[1]:g} h "
+        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {name.replace(ONE_PASS, _ONE_PASS_SHOWN)}: time; peak RSS {h0:g} h / {hours[1]:g} h "
             "[fuse-long]", f"{r[0]['s']:.1f} s (×{3600.0 * h0 / r[0]['s']:.0f}); {r[0]['rss_mb']:.0f} / "
             f"{r[1]['rss_mb']:.0f} MB", _LONG_TARGETS.get(name, ""))
 
@@ -960,7 +961,8 @@ def _rerun_ratios(cmds: dict, runs: int, tmp: Path, pin: bool, drive: str) -> No
         print(f"fieldlog {name:26s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
               f"CPU {cpu:.2f} s; rerun {fmt_times([w for w, _ in refs[name]])} s, CPU {ref_cpu:.2f} s)  "
               f"target {target or '-'}")
-        row(f"`fieldlog {name}`, {drive.split(' (')[0]}, against `rerun {' '.join(ref[1:3])}` of the same drive"
+        shown = f"`fieldlog {name.removesuffix(ONE_PASS)}`" + (_ONE_PASS_SHOWN if name.endswith(ONE_PASS) else "")
+        row(f"{shown}, {drive.split(' (')[0]}, against `rerun {' '.join(ref[1:3])}` of the same drive"
             f"{', both on one core' if pin else ''} [rerun]",
             f"×{q:.2f} ({statistics.median(wall):.2f} s against {statistics.median(w for w, _ in refs[name]):.2f}"
             f" s; {load})", target)
