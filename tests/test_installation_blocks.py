@@ -4,6 +4,7 @@ blocks that end anywhere."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -134,3 +135,37 @@ def test_gyro_track_does_not_depend_on_where_the_blocks_end(cuts):
     whole, split = kept([]), kept(cuts)
     assert len(whole) == n // 10 and np.array_equal(split["t_ns"], whole["t_ns"])
     assert np.array_equal(split["angle"], whole["angle"])
+
+
+def test_the_printed_installation_given_back_fuses_the_same_in_one_pass(figure8_240s_seed3, tmp_path, capsys):
+    """The README's way to fuse a drive again: the values ``fuse --json`` printed (time offset, mounting and its
+    sigma) in ``[fusion]`` with ``estimate_installation = false`` give the first run's solution to the printed
+    digits, with no estimate of their own (one pass); the same setting without the values gives another."""
+    from fieldlog.drive.reader import read_topic
+    from fieldlog.tools.cli import main
+    from fieldlog.tools.fuse_settings import drive_table
+
+    drive = str(figure8_240s_seed3)
+    assert not drive_table(drive)  # --config replaces the drive's own settings: it has none
+
+    def fused(name: str, table: str = "") -> tuple[dict, np.ndarray]:
+        args = ["fuse", drive, "--method", "kf", "--json", "-q", "--out", str(tmp_path / f"{name}.mcap")]
+        if table:
+            (tmp_path / f"{name}.toml").write_text("[fusion]\n" + table)
+            args += ["--config", str(tmp_path / f"{name}.toml")]
+        assert main(args) == 0
+        fix = read_topic(tmp_path / f"{name}.mcap", "/fusion/kf/fix")
+        lat = np.radians(fix["lat_deg"])
+        enu = np.column_stack([(np.radians(fix["lon_deg"]) - np.radians(fix["lon_deg"][0])) * np.cos(lat) * 6.378e6,
+                               (lat - lat[0]) * 6.378e6, fix["alt_m"]])
+        return json.loads(capsys.readouterr().out), enu
+
+    first, enu = fused("first")
+    assert first["mounting_estimate_rpy_deg"] is not None  # the drive shows its mounting
+    given = "".join(f"{k} = {first[k]!r}\n" for k in ("imu_time_offset_s", "mounting_rpy_deg", "mounting_sigma_deg"))
+    again, enu_again = fused("again", "estimate_installation = false\n" + given)
+    _, enu_without = fused("without", "estimate_installation = false\n")
+    assert "mounting_estimate_rpy_deg" not in again  # no installation pass ran
+    same = np.abs(enu_again - enu).max()
+    other = np.abs(enu_without - enu).max()
+    assert same < 1e-3 and other > 100 * same, (same, other)
