@@ -58,7 +58,8 @@ def _fused(a: argparse.Namespace, drive, st, out):
     config, installed = st.config, {}
     install = a.method != INS.name and installation_applies(config, st.inputs)
     with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:
-        stream.start()  # one pass: the drive is read on the second core while the fusion's modules load
+        stream.start()  # without the installation pass, the drive is read on the second core while the fusion's
+        # modules load (a kept stream reads its one pass in place: start leaves it)
         from fieldlog.tools.fuse import estimate_installation, fuse
 
         if install:

@@ -321,7 +321,8 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
         print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
-        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {name.replace(ONE_PASS, _ONE_PASS_SHOWN)}: time; peak RSS {h0:g} h / {hours[1]:g} h "
+        shown = name.replace(ONE_PASS, _ONE_PASS_SHOWN)
+        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {shown}: time; peak RSS {h0:g} h / {hours[1]:g} h "
             "[fuse-long]", f"{r[0]['s']:.1f} s (×{3600.0 * h0 / r[0]['s']:.0f}); {r[0]['rss_mb']:.0f} / "
             f"{r[1]['rss_mb']:.0f} MB", _LONG_TARGETS.get(name, ""))
 
