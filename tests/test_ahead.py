@@ -227,3 +227,24 @@ def test_a_stream_started_early_reads_the_same_blocks_and_its_close_ends_the_wor
         print(reaped(pid))
     """)
     assert out == "True True\nTrue True reaped\nreaped"
+
+
+def test_a_damaged_chunk_the_early_worker_reads_is_one_line_and_no_file(simulated, tmp_path: Path):
+    """``fuse --method ins`` (one pass: its reading worker started before the fusion is set up) of a drive with an
+    IMU chunk overwritten mid-body: the worker's error comes back as one line, exit 2, and no fused file."""
+    from fieldlog.drive.files import open_drive
+
+    drive = simulated("figure8", 150.0, 1)
+    f = open_drive(drive)[0]
+    imu = list(f.pieces.cids).index(next(c for c, ch in f.channels.items() if ch.topic == "/imu"))
+    j = np.flatnonzero(f.pieces.has[:, imu])[1]
+    data = bytearray(drive.read_bytes())
+    at = int(f.pieces.body[j]) + int(f.pieces.body_len[j]) // 2
+    data[at:at + 512] = b"\x55" * 512
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "ins.mcap"
+    r = subprocess.run([sys.executable, "-m", "fieldlog", "fuse", str(bad), "--method", "ins", "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "damaged chunk" in r.stderr and bad.name in r.stderr and not out.exists()
