@@ -296,8 +296,9 @@ def _one_pass_config(tmp: Path, drive: Path) -> Path:
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
-    """``fieldlog fuse`` of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth), each a
-    command in a child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
+    """``fieldlog fuse`` of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth; both
+    in one pass too, :func:`_one_pass_config`), each a command in a child process: samples/s, real-time factor,
+    peak RSS (streaming: the same for both lengths)."""
     from fieldlog.tools.sim.simulate import simulate
 
     drives = []
@@ -314,11 +315,11 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
     one_pass = _one_pass_config(tmp, drives[0])
     for method, smooth, config in ((KF.name, False, None), (DKF_RBFN.name, False, None), (KF.name, True, None),
-                                   (KF.name, False, one_pass)):
+                                   (KF.name, False, one_pass), (DKF_RBFN.name, False, one_pass)):
         name = method + (" --smooth" if smooth else "") + (ONE_PASS if config else "")
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth, config) for d in drives]
         h0 = hours[0]
-        print(f"fuse {name:14s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
+        print(f"fuse {name:18s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
         shown = name.replace(ONE_PASS, _ONE_PASS_SHOWN)
@@ -901,8 +902,8 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     info, each as a ratio to `rerun mcap convert` (`rerun mcap info` for info) run just before it, as is and with
     both commands pinned to one core (`taskset -c 0`), and a warm fuse of a 60 s drive. `fuse --method ins` (one
     read of the drive, the strapdown INS and the same writing, no filter and no installation pass) is the floor
-    of every fuse: what no filter can go below. `fuse --method kf, one pass` is the same kf without the
-    installation's time-offset and mounting passes (:func:`_one_pass_config`): the fusion pass alone."""
+    of every fuse: what no filter can go below. `fuse --method kf, one pass` (and dkf-rbfn's) is the same method
+    without the installation's time-offset and mounting passes (:func:`_one_pass_config`): the fusion pass alone."""
     fl, rr = [sys.executable, "-m", "fieldlog"], _rerun_exe()
     drive, short = tmp / "rr_drive.mcap", tmp / "rr_short.mcap"
     _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
@@ -919,6 +920,9 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
                                "--force", "-q"], convert, "", ""),
         "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
                                     str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×0.8", ""),
+        "fuse --method dkf-rbfn" + ONE_PASS: ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--config",
+                                               str(_one_pass_config(tmp, drive)), "--out", str(tmp / "rr_rbfn1.mcap"),
+                                               "--force", "-q"], convert, "", ""),
         "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
                                     "--force", "-q"], convert, "≤ ×0.8", ""),
         f"sim --duration {duration_s:g}": ([*fl, "sim", "--duration", str(duration_s), "--seed", "3", "--out",
@@ -959,7 +963,7 @@ def _rerun_ratios(cmds: dict, runs: int, tmp: Path, pin: bool, drive: str) -> No
         q, target = statistics.median(ratios[name]), target_pinned if pin else target
         wall = [w for w, _ in secs[name]]
         cpu, ref_cpu = (statistics.median(c for _, c in x) for x in (secs[name], refs[name]))
-        print(f"fieldlog {name:26s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
+        print(f"fieldlog {name:32s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
               f"CPU {cpu:.2f} s; rerun {fmt_times([w for w, _ in refs[name]])} s, CPU {ref_cpu:.2f} s)  "
               f"target {target or '-'}")
         shown = f"`fieldlog {name.removesuffix(ONE_PASS)}`" + (_ONE_PASS_SHOWN if name.endswith(ONE_PASS) else "")
