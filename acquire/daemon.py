@@ -410,10 +410,13 @@ class BusServer:
     (``BUS_PROVISIONAL``, ``BUS_HOST_CLOCK``), i64 read_mono_ns (host monotonic time of the serial read whose
     processing published the frame), u16 topic length, topic (UTF-8), u32 n, n x i64 log_time_ns, n x u8
     sync state (SyncState, or ``BUS_STATE_FINAL``), (n + 1) x i64 payload offsets, the CDR payloads
-    (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It runs in the derived path's
-    thread without blocking it: sockets are non-blocking, each client has an output buffer, and a client more than
-    ``max_buffer`` bytes behind is disconnected (counted in ``dropped_clients``). Clients only read: bytes a client
-    sends are read and dropped (``pump``), counted in ``ignored_bytes`` and logged once per client.
+    (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It never blocks its callers: sockets
+    are non-blocking, each client has an output buffer, and a client more than ``max_buffer`` bytes behind is
+    disconnected (counted in ``dropped_clients``). Clients only read: bytes a client sends are read and dropped
+    (``pump``), counted in ``ignored_bytes`` and logged once per client. Both paths call it (the derived path
+    publishes and pumps; the raw path writes ``/tf_static`` at a file's start): one lock holds the clients and
+    their buffers, so no buffer is cut while another thread's send holds it and frames go out whole, in the order
+    published.
     """
 
     def __init__(self, path: str, max_buffer: int = 16 << 20) -> None:
@@ -432,16 +435,18 @@ class BusServer:
         self.dropped_clients = 0
         self.ignored_bytes = 0
         self._noisy: set[socket.socket] = set()
+        self._lock = threading.Lock()  # the clients, their buffers and the listening socket (class docstring)
 
     def active(self) -> bool:
         """Accept waiting clients; True if any is connected (otherwise publishing is a no-op)."""
-        self._accept()
-        return bool(self.clients)
+        with self._lock:
+            self._accept()
+            return bool(self.clients)
 
     def publish(self, topic: str, log_time_ns: np.ndarray, p: messages.Packed, *, flags: int = 0,
                 state: np.ndarray | None = None, read_mono_ns: int = 0) -> None:
         """One frame to every client: ``p``, stamped ``log_time_ns`` (UTC ns), ``state`` per message."""
-        if not self.active() or len(p) == 0:
+        if len(p) == 0 or not self.active():
             return
         t = topic.encode()
         st = np.full(len(p), BUS_STATE_FINAL, np.uint8) if state is None else np.asarray(state, np.uint8)
@@ -450,9 +455,10 @@ class BusServer:
                          (p.offsets - p.offsets[0]).astype("<i8").tobytes(),
                          p.buf[p.offsets[0]:p.offsets[-1]].tobytes()))
         frame = struct.pack("<I", len(body)) + body
-        for c, buf in list(self.clients.items()):
-            buf += frame
-            self._send(c, buf)
+        with self._lock:
+            for c, buf in list(self.clients.items()):
+                buf += frame
+                self._send(c, buf)
 
     def _accept(self) -> None:
         while True:
@@ -503,23 +509,25 @@ class BusServer:
     def pump(self) -> None:
         """Accept new clients, drop what they sent (``_ignore_input``) and send what is buffered (call when
         idle)."""
-        self._accept()
-        for c, buf in list(self.clients.items()):
-            self._ignore_input(c)
-            if buf and c in self.clients:
-                self._send(c, buf)
+        with self._lock:
+            self._accept()
+            for c, buf in list(self.clients.items()):
+                self._ignore_input(c)
+                if buf and c in self.clients:
+                    self._send(c, buf)
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Send what is buffered (at most ``timeout_s`` per client), then close."""
-        for c, buf in list(self.clients.items()):
-            try:
-                c.settimeout(timeout_s)
-                c.sendall(buf)
-            except OSError:
-                pass
-            self._drop(c)
-        self.sock.close()
-        Path(self.path).unlink(missing_ok=True)
+        with self._lock:
+            for c, buf in list(self.clients.items()):
+                try:
+                    c.settimeout(timeout_s)
+                    c.sendall(buf)
+                except OSError:
+                    pass
+                self._drop(c)
+            self.sock.close()
+            Path(self.path).unlink(missing_ok=True)
 
 
 class ProvisionalImu:
