@@ -17,7 +17,7 @@ from fieldlog.drive import bagdir
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.tools.sim.simulate import simulate
 from test_daemon import run, start_daemon
-from test_serve import start_serve
+from test_serve import start_serve, wait_served
 
 rosbags = pytest.importorskip("rosbags.rosbag2")
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
@@ -87,7 +87,7 @@ def test_daemon_session_is_a_rosbag2_directory_rotation_by_rotation(tmp_path: Pa
         assert closed and all(is_finished(f) for f in closed)
         mid, _, mid_total = read_bag(session)
         assert mid == counts_in_files(closed) and mid_total == sum(mid.values())
-        assert serve.wait(60) == 0
+        wait_served(serve, d, 60)
     finally:
         if serve.poll() is None:
             serve.kill()

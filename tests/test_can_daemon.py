@@ -19,6 +19,7 @@ from fieldlog.tools.rebuild import iter_raw, rebuild
 from fieldlog.tools.sim import vehicle
 from fieldlog.tools.sim.serve import corrupt_stream, delivered, simulated_streams
 from test_daemon import wait_caught_up
+from test_serve import wait_served
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEED = 10
@@ -58,7 +59,7 @@ def test_daemon_records_every_slcan_byte_decodes_rebuilds_and_survives_an_unplug
                        f"slcan://{ports / 'can'}@500000", "--dbc", str(vehicle.DBC_PATH), "--config", str(cfg),
                        "--time-scale", str(SPEED), "--out", str(tmp_path / "drives"), "--quiet"], "recording")
         serve.send_signal(signal.SIGUSR1)
-        assert serve.wait(60) == 0
+        wait_served(serve, d, 60)
         wait_caught_up(d)
         d.send_signal(signal.SIGTERM)
         assert d.wait(30) == 0, d.stderr.read()

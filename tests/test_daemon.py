@@ -18,7 +18,7 @@ from fieldlog.drive import messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.drive import reader
 from fieldlog.replay import live
-from test_serve import ROOT, expected_bytes, start_serve
+from test_serve import ROOT, expected_bytes, start_serve, wait_served
 from fieldlog.drive.reader import read_metadata
 
 
@@ -127,7 +127,7 @@ def test_live_capture_at_speed_20_loses_nothing_across_rotations_and_on_the_bus(
     client.start()
     wait_for_clients(bus, 1)
     serve.send_signal(signal.SIGUSR1)
-    assert serve.wait(300) == 0                         # the drive ended and the daemon drained the ptys
+    wait_served(serve, d, 300)                          # the drive ended and the daemon drained the ptys
     wait_caught_up(d)
     d.send_signal(signal.SIGTERM)
     assert d.wait(300) == 0, d.stderr.read()

@@ -15,7 +15,7 @@ from fieldlog.drive import messages
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.drive import reader
 from test_daemon import byte_difference, gps_frames, raw_stream, run, start_daemon, wait_caught_up
-from test_serve import expected_bytes, start_serve
+from test_serve import expected_bytes, start_serve, wait_served
 from fieldlog.drive.reader import read_metadata, read_metadata_records
 from fieldlog.tools.sim.serve import PORTS, corrupt_stream
 
@@ -44,7 +44,7 @@ def record(tmp_path: Path, *serve_args: str, duration: float, seed: int, daemon_
         serve.send_signal(signal.SIGUSR1)
         if during is not None:
             during()
-        assert serve.wait(300) == 0                  # the drive ended and the daemon drained the ptys
+        wait_served(serve, d, 300)                   # the drive ended and the daemon drained the ptys
     finally:
         if serve.poll() is None:
             serve.kill()

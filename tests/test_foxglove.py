@@ -25,7 +25,7 @@ from fieldlog.tools.cli import main as cli_main
 from fieldlog.tools.fuse import fuse
 from fieldlog.drive.reader import read_metadata
 from test_daemon import start_daemon, wait_for_clients, wait_until
-from test_serve import start_serve
+from test_serve import stacks, start_serve, wait_served
 
 pytest.importorskip("foxglove")
 websockets = pytest.importorskip("websockets")
@@ -37,15 +37,6 @@ LOCK_WITHIN_S = 15.0  # the time sync locks within this much of the drive start 
 # foxglove-sdk 0.30 speaks the Foxglove WebSocket protocol under this name (the successor of
 # foxglove.websocket.v1: the same advertise / subscribe / message data framing)
 SUBPROTOCOL = "foxglove.sdk.v1"
-
-
-def stacks(pid: int) -> str:
-    """The Python and native stacks of every thread of process pid (py-spy, a dev dependency), or why not."""
-    try:
-        return subprocess.run([Path(sys.executable).with_name("py-spy"), "dump", "--native", "--pid", str(pid)],
-                              capture_output=True, text=True, timeout=30).stdout
-    except (OSError, subprocess.SubprocessError) as e:
-        return f"(no stacks: {e})"
 
 
 @pytest.fixture(scope="module")
@@ -185,7 +176,7 @@ def test_acquire_serves_the_car_live_and_records_everything(tmp_path: Path) -> N
         wait_until(subscribed.is_set, "the client's subscriptions")
         wait_for_clients(bus, 1)                             # the server reads the bus before the drive starts
         serve.send_signal(signal.SIGUSR1)
-        assert serve.wait(LIVE_DURATION_S + 300) == 0
+        wait_served(serve, d, LIVE_DURATION_S + 300)
         d.send_signal(signal.SIGTERM)
         assert d.wait(300) == 0, d.stderr.read()            # the daemon waits for its server to finish
         ws.join(120)                                         # the server closes the connection when it stops

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from test_daemon import start_daemon
-from test_serve import start_serve
+from test_serve import start_serve, wait_served
 from test_view_export import _rerun, _rows
 
 from fieldlog.drive import reader
@@ -40,7 +40,7 @@ def test_acquire_view_live_to_rrd(tmp_path: Path) -> None:
             assert time.monotonic() < end and d.poll() is None, "the live view did not connect"
             time.sleep(0.1)
         serve.send_signal(signal.SIGUSR1)
-        assert serve.wait(60) == 0
+        wait_served(serve, d, 60)
         d.send_signal(signal.SIGTERM)
         assert d.wait(60) == 0, d.stderr.read()          # the daemon waits for its view to finish
     finally:

@@ -17,7 +17,7 @@ from fieldlog.acquire.config import NAME_FORMAT
 from fieldlog.acquire.daemon import is_finished
 from fieldlog.tools.sim import simulate
 from test_daemon import raw_stream, start_daemon
-from test_serve import expected_bytes, start_serve
+from test_serve import expected_bytes, start_serve, wait_served
 
 PRECIOUS = b"precious bytes, not an MCAP file\n"
 
@@ -277,7 +277,7 @@ def test_a_live_daemon_skips_planted_links_under_its_next_names_and_loses_nothin
             planted[name] = ("link", target)
     made = sorted(os.listdir(targets))
     serve.send_signal(signal.SIGUSR1)
-    assert serve.wait(300) == 0
+    wait_served(serve, d, 300)
     d.send_signal(signal.SIGTERM)
     assert d.wait(300) == 0
     log += d.stderr.read()

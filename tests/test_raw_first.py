@@ -19,7 +19,7 @@ from fieldlog.drive import reader
 from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim import simulate, trajectory
 from test_daemon import raw_stream, wait_until
-from test_serve import ROOT, start_serve
+from test_serve import ROOT, start_serve, wait_served
 
 NS = 1_000_000_000
 SECONDS = 25.0
@@ -77,7 +77,7 @@ def run_and_interrupt(tmp_path: Path, argv: list[str], scenario: Path, seed: int
         wait_until(lambda: "recording" in err.read_text() or d.poll() is not None, "the daemon's ports open")
         assert d.poll() is None, err.read_text()
         serve.send_signal(signal.SIGUSR1)
-        assert serve.wait(300) == 0
+        wait_served(serve, d, 300)
     finally:
         if serve.poll() is None:
             serve.kill()

@@ -11,12 +11,40 @@ import tty
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fieldlog.drive import reader
 from fieldlog.drive.reader import read_metadata
 from fieldlog.tools.sim.serve import corrupt_stream, simulated_streams
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def stacks(pid: int) -> str:
+    """The Python and native stacks of every thread of process pid (py-spy, a dev dependency), or why not."""
+    try:
+        return subprocess.run([Path(sys.executable).with_name("py-spy"), "dump", "--native", "--pid", str(pid)],
+                              capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError) as e:
+        return f"(no stacks: {e})"
+
+
+def wait_served(serve: subprocess.Popen, reader_proc: subprocess.Popen, timeout_s: float) -> None:
+    """Until ``serve`` (``start_serve``) has ended with exit code 0: its drive streamed and ``reader_proc`` (the
+    daemon or gpsd reading its ports) drained the ptys. One still running after ``timeout_s`` fails the test with
+    the stacks of both processes (``stacks``) and their logs, both then killed: an intermittent hang says where
+    each waited."""
+    try:
+        rc = serve.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        report = []
+        for name, p in (("sim --serve", serve), ("its reader", reader_proc)):
+            state = f"exited {p.returncode}" if p.poll() is not None else f"running; its threads:\n{stacks(p.pid)}"
+            p.kill()
+            p.wait()
+            report.append(f"{name} (pid {p.pid}), {state}\nits log:\n{p.stderr.read() if p.stderr else ''}")
+        pytest.fail(f"sim --serve had not ended after {timeout_s:g} s\n" + "\n".join(report))
+    assert rc == 0, serve.stderr.read()
 
 
 def start_serve(*args: str) -> tuple[subprocess.Popen, dict[str, str]]:
