@@ -413,11 +413,16 @@ class BusServer:
     (``replay/live.py`` decodes them into the blocks the MCAP reader yields). It never blocks its callers: sockets
     are non-blocking, each client has an output buffer, and a client more than ``max_buffer`` bytes behind is
     disconnected (counted in ``dropped_clients``). Clients only read: bytes a client sends are read and dropped
-    (``pump``), counted in ``ignored_bytes`` and logged once per client. Both paths call it (the derived path
+    (``pump``), counted in ``ignored_bytes`` and logged once per client. Recording never depends on a client: at
+    most ``MAX_CLIENTS`` are served (one more is closed at once, counted in ``refused_clients``), so clients cannot
+    take the file descriptors the recorder needs, and a client the daemon cannot take (out of descriptors or
+    memory) is left waiting, counted in ``accept_errors``; both logged once. Both paths call it (the derived path
     publishes and pumps; the raw path writes ``/tf_static`` at a file's start): one lock holds the clients and
     their buffers, so no buffer is cut while another thread's send holds it and frames go out whole, in the order
     published.
     """
+
+    MAX_CLIENTS = 16
 
     def __init__(self, path: str, max_buffer: int = 16 << 20) -> None:
         self.path = path
@@ -433,6 +438,8 @@ class BusServer:
         self.max_buffer = max_buffer
         self.clients: dict[socket.socket, bytearray] = {}
         self.dropped_clients = 0
+        self.refused_clients = 0
+        self.accept_errors = 0
         self.ignored_bytes = 0
         self._noisy: set[socket.socket] = set()
         self._lock = threading.Lock()  # the clients, their buffers and the listening socket (class docstring)
@@ -461,11 +468,25 @@ class BusServer:
                 self._send(c, buf)
 
     def _accept(self) -> None:
+        """Take the clients waiting to connect, up to ``MAX_CLIENTS`` (class docstring)."""
         while True:
             try:
                 c, _ = self.sock.accept()
             except (BlockingIOError, InterruptedError):
                 return
+            except OSError as e:
+                self.accept_errors += 1
+                if self.accept_errors == 1:
+                    log.warning(f"live bus {self.path}: cannot take a client ({e.strerror or e}): it is left waiting "
+                                f"and recording goes on (counted in bus.accept_errors)")
+                return
+            if len(self.clients) >= self.MAX_CLIENTS:
+                c.close()
+                self.refused_clients += 1
+                if self.refused_clients == 1:
+                    log.warning(f"live bus {self.path}: {self.MAX_CLIENTS} clients already; another is closed at "
+                                f"once (counted in bus.refused_clients)")
+                continue
             c.setblocking(False)
             self.clients[c] = bytearray()
 
@@ -807,6 +828,8 @@ class Daemon:
         out["daemon.names_skipped"] = str(self.sink.skipped if self.sink is not None else 0)
         if self.bus is not None:
             out["bus.dropped_clients"] = str(self.bus.dropped_clients)
+            out["bus.refused_clients"] = str(self.bus.refused_clients)
+            out["bus.accept_errors"] = str(self.bus.accept_errors)
             out["bus.ignored_bytes"] = str(self.bus.ignored_bytes)
         return out
 

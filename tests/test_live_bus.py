@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import itertools
 import os
+import resource
 import signal
+import socket
 import stat
 import threading
 import time
@@ -16,8 +18,8 @@ from fieldlog.acquire.daemon import BusServer
 from fieldlog.acquire.timesync import SyncState
 from fieldlog.drive import messages, reader
 from fieldlog.replay import live
-from test_daemon import start_daemon, wait_for_clients
-from test_serve import start_serve, wait_served
+from test_daemon import raw_stream, start_daemon, wait_for_clients
+from test_serve import expected_bytes, start_serve, wait_served
 
 # real time: the stamps of the live path are the time sync's verdict on host read times, so a faster playback
 # would ask the host for a latency the car never needs (at x10, a 0.1 s delay on a loaded host is a second of data)
@@ -185,3 +187,59 @@ def test_frames_published_from_both_paths_at_once_arrive_whole_and_in_order(tmp_
         mine = [b for b in got if b.topic == topic]
         assert [int(b.log_time_ns[0]) for b in mine] == list(range(n))
         assert all(b.payloads[0] == int(b.log_time_ns[0]).to_bytes(4, "little") * (size // 4) for b in mine)
+
+
+def test_clients_over_the_cap_are_closed_at_once_and_the_others_served(tmp_path: Path, caplog) -> None:
+    path = str(tmp_path / "bus.sock")
+    bus = BusServer(path)
+    cs = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(BusServer.MAX_CLIENTS + 2)]
+    try:
+        for c in cs:                                    # one at a time: the listen queue holds a few
+            c.settimeout(10)
+            c.connect(path)
+            bus.pump()
+        assert len(bus.clients) == BusServer.MAX_CLIENTS and bus.refused_clients == 2
+        assert [c.recv(1) for c in cs[-2:]] == [b"", b""]          # the last two: closed at once
+        assert len([r for r in caplog.records if "bus.refused_clients" in r.getMessage()]) == 1
+        bus.publish("/gps/nmea", np.array([1], np.int64), messages.Packed.from_list([b"$GPGGA"]))
+        n = int.from_bytes(live._read_exact(cs[0], 4), "little")
+        assert live.parse_frame(live._read_exact(cs[0], n)).topic == "/gps/nmea"    # the first ones: served
+    finally:
+        for c in cs:
+            c.close()
+        bus.close()
+
+
+def test_a_client_the_daemon_has_no_descriptor_for_waits_and_recording_goes_on(tmp_path: Path) -> None:
+    """The daemon's file descriptors limited to a few more than it holds, then more clients than that: those it
+    cannot take wait, and every byte of the drive is recorded."""
+    truth, bus = tmp_path / "truth.mcap", tmp_path / "bus.sock"
+    cfg = tmp_path / "acquire.toml"
+    cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
+    serve, paths = start_serve("--scenario", "figure8", "--duration", "20", "--seed", "5", "--speed", "20",
+                               "--hold", "--truth", str(truth))
+    clients = []
+    try:
+        d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
+        held = len(os.listdir(f"/proc/{d.pid}/fd"))
+        resource.prlimit(d.pid, resource.RLIMIT_NOFILE, (held + 3, resource.prlimit(d.pid, resource.RLIMIT_NOFILE)[1]))
+        for _ in range(6):
+            c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            c.connect(str(bus))
+            clients.append(c)
+        serve.send_signal(signal.SIGUSR1)
+        wait_served(serve, d, 300)
+        d.send_signal(signal.SIGTERM)
+        _, err = d.communicate(timeout=300)
+        assert d.returncode == 0 and "Traceback" not in err, err
+        assert err.count("bus.accept_errors") == 1, err
+    finally:
+        for c in clients:
+            c.close()
+        for p in (serve, d):
+            if p.poll() is None:
+                p.kill()
+    (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
+    c = reader.read_metadata(f)["acquire.counters"]
+    assert int(c["bus.accept_errors"]) > 0 and int(c["bus.refused_clients"]) == 0
+    assert raw_stream(f, "daq")[0] == expected_bytes(truth, "figure8", 20.0, 5)["daq"]    # every DAQ byte recorded
