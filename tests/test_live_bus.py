@@ -218,11 +218,12 @@ def test_a_client_the_daemon_has_no_descriptor_for_waits_and_recording_goes_on(t
     cfg.write_text(f'[daemon]\nbus = "{bus}"\n')
     serve, paths = start_serve("--scenario", "figure8", "--duration", "20", "--seed", "5", "--speed", "20",
                                "--hold", "--truth", str(truth))
-    clients = []
+    clients, d = [], None
     try:
         d, _ = start_daemon(tmp_path / "drives", paths, "--config", str(cfg))
         held = len(os.listdir(f"/proc/{d.pid}/fd"))
-        resource.prlimit(d.pid, resource.RLIMIT_NOFILE, (held + 3, resource.prlimit(d.pid, resource.RLIMIT_NOFILE)[1]))
+        hard = resource.prlimit(d.pid, resource.RLIMIT_NOFILE)[1]
+        resource.prlimit(d.pid, resource.RLIMIT_NOFILE, (held + 3, hard))
         for _ in range(6):
             c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             c.connect(str(bus))
@@ -237,7 +238,7 @@ def test_a_client_the_daemon_has_no_descriptor_for_waits_and_recording_goes_on(t
         for c in clients:
             c.close()
         for p in (serve, d):
-            if p.poll() is None:
+            if p is not None and p.poll() is None:
                 p.kill()
     (f,) = sorted((tmp_path / "drives").glob("*/*.mcap"))
     c = reader.read_metadata(f)["acquire.counters"]
