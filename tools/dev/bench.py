@@ -909,19 +909,19 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
     _run_s([*fl, "sim", "--duration", "60", "--seed", "2", "--out", str(short), "-q"], tmp)
     convert = [rr, "mcap", "convert", str(drive), "-o", str(tmp / "rr_convert.rrd")]
-    fused = tmp / "rr_kf.mcap"
+    fused, one_pass = tmp / "rr_kf.mcap", _one_pass_config(tmp, drive)
     cmds = {  # name: (fieldlog command, reference command, target as is, target pinned to one core)
         "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×0.5", "≤ ×0.8"),
         "fuse --method kf" + ONE_PASS: ([*fl, "fuse", str(drive), "--method", KF.name, "--config",
-                                         str(_one_pass_config(tmp, drive)), "--out", str(tmp / "rr_kf1.mcap"),
+                                         str(one_pass), "--out", str(tmp / "rr_kf1.mcap"),
                                          "--force", "-q"], convert, "", ""),
         "fuse --method ins": ([*fl, "fuse", str(drive), "--method", INS.name, "--out", str(tmp / "rr_ins.mcap"),
                                "--force", "-q"], convert, "", ""),
         "fuse --method dkf-rbfn": ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--out",
                                     str(tmp / "rr_rbfn.mcap"), "--force", "-q"], convert, "≤ ×0.8", ""),
         "fuse --method dkf-rbfn" + ONE_PASS: ([*fl, "fuse", str(drive), "--method", DKF_RBFN.name, "--config",
-                                               str(_one_pass_config(tmp, drive)), "--out", str(tmp / "rr_rbfn1.mcap"),
+                                               str(one_pass), "--out", str(tmp / "rr_rbfn1.mcap"),
                                                "--force", "-q"], convert, "", ""),
         "view DRIVE FUSED --rrd": ([*fl, "view", str(drive), str(fused), "--rrd", str(tmp / "rr_view.rrd"),
                                     "--force", "-q"], convert, "≤ ×0.8", ""),
