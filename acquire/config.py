@@ -49,19 +49,17 @@ standard baud rate``.
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import os
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any
 
 from fieldlog.acquire import timesync
-from fieldlog.drive.tables import ConfigError, from_table, load_toml, read_text
+from fieldlog.drive.tables import ConfigError, read_toml, typed_value
 
 if TYPE_CHECKING:
     from fieldlog.acquire import canbus
 
-T = TypeVar("T")
 
 # termios rates pyserial can set on Linux; anything else is a typo.
 STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
@@ -242,54 +240,6 @@ def bus_config(c: CanConfig, wire: str) -> "canbus.BusConfig":
     return bus
 
 
-def typed_value(where: str, key: str, value: Any, like: Any) -> Any:
-    """``value`` of the TOML table ``[where]`` converted to the type of the default ``like``; ConfigError naming
-    the key when it does not fit (int accepted for float, lists for tuples, a table for a dataclass)."""
-    def bad(what: str) -> ConfigError:
-        return ConfigError(f"[{where}] {key}: expected {what}, got {value!r}")
-
-    if is_dataclass(like):
-        if not isinstance(value, dict):
-            raise bad("a table")
-        return typed_table(type(like), f"{where}.{key}", value)
-    if isinstance(like, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(like, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("an integer")
-        return value
-    if isinstance(like, float) or like is None:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise bad("a finite number")
-        return float(value)
-    if isinstance(like, tuple):
-        def tup(v: Any) -> Any:
-            if isinstance(v, list):
-                return tuple(tup(x) for x in v)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise bad("an array of numbers")
-            return float(v)
-
-        out = tup(value) if isinstance(value, list) else None
-        if out is None or (like and len(out) != len(like)):
-            raise bad(f"an array of {len(like)} numbers" if like else "an array")
-        return out
-    if not isinstance(value, type(like)):
-        raise bad(type(like).__name__)
-    return value
-
-
-def typed_table(cls: type[T], where: str, table: dict[str, Any]) -> T:
-    """Dataclass ``cls`` from the TOML table ``[where]``, each value converted by ``typed_value`` against the
-    field's default; ConfigError naming an unknown key or a bad value."""
-    defaults = cls()
-    known = {f.name for f in fields(cls)}
-    d = {k: typed_value(where, k, v, getattr(defaults, k)) if k in known else v for k, v in table.items()}
-    return from_table(cls, where, d)  # names an unknown key
-
-
 def _section(d: dict[str, Any], name: str, obj: Any) -> None:
     """Copy table ``name`` of ``d`` onto dataclass ``obj`` with type checks; unknown keys are errors."""
     table = d.get(name, {})
@@ -330,12 +280,6 @@ def from_dict(d: dict[str, Any]) -> AcquireConfig:
     return c
 
 
-def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A TOML file as a dict; ConfigError with one line when it is missing, not valid TOML or out of bounds
-    (``tables.load_toml``)."""
-    return load_toml(read_text(path, "config file"), f"config file {path}")
-
-
 def from_file(path: str | os.PathLike[str]) -> AcquireConfig:
     """``from_dict`` of the TOML file ``path``; a ConfigError names the file and the key."""
     d = read_toml(path)
@@ -343,24 +287,6 @@ def from_file(path: str | os.PathLike[str]) -> AcquireConfig:
         return from_dict(d)
     except ConfigError as e:
         raise ConfigError(f"config file {path}: {e}") from None
-
-
-@dataclass(frozen=True)
-class TomlFile:
-    """A TOML file read once: its tables, and its name for messages. A command reads ``--config`` once into one
-    of these and hands it on, so a pipe (``--config <(...)``) or ``/dev/stdin``, which give their bytes once,
-    work as a file does."""
-
-    path: str
-    tables: dict[str, Any]
-
-    @classmethod
-    def read(cls, path: str | os.PathLike[str] | None) -> "TomlFile | None":
-        """``read_toml`` of path kept with its name; None for no path."""
-        return None if path is None else cls(str(path), read_toml(path))
-
-    def __str__(self) -> str:
-        return self.path
 
 
 def load(path: str | Path | None, overrides: dict[str, Any] | None = None) -> AcquireConfig:

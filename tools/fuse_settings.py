@@ -23,10 +23,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from fieldlog.acquire import calib
-from fieldlog.acquire.config import ConfigError, TomlFile, from_table, typed_value
 from fieldlog.drive import metavalue
 from fieldlog.drive.files import DriveSpec, label
 from fieldlog.drive.reader import read_metadata
+from fieldlog.drive.tables import ConfigError, TomlFile, from_table, typed_value
 from fieldlog.fusion import imugrade
 from fieldlog.fusion.config import FLAT_KEYS, FusionConfig, known_keys
 from fieldlog.replay import inputs as inputs_mod
@@ -51,7 +51,7 @@ def parse_outage(text: str) -> tuple[float, float]:
 
 def fusion_config(table: dict[str, Any]) -> FusionConfig:
     """``FusionConfig`` from a ``[fusion]`` table of flat keys (``fusion.config``), each value converted by
-    ``acquire.config.typed_value`` and the whole checked by ``FusionConfig.validate``; a bad key or value raises
+    ``drive.tables.typed_value`` and the whole checked by ``FusionConfig.validate``; a bad key or value raises
     ConfigError naming it, e.g. ``[fusion] gyro_nosie_dps_rthz: unknown key; known keys: ...``."""
     try:
         table = imugrade.settings(table)

@@ -124,7 +124,7 @@ def add_tf_from_arg(s: argparse.ArgumentParser) -> None:
 def open_drive(paths: str | list[str], a: argparse.Namespace, config=None):
     """``drive.drive.Drive.open`` of the drive positional(s) (or one path), checked as one drive before the work:
     with ``--tf-from`` when the command has it, the IMU's axes given when ``--imu-frame`` or the ``[input]``
-    table of ``config`` (an ``acquire.config.TomlFile``) gives them."""
+    table of ``config`` (a ``drive.tables.TomlFile``) gives them."""
     from fieldlog.drive.drive import Drive
     from fieldlog.tools.fuse_settings import load_input_spec
 

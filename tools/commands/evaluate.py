@@ -87,7 +87,7 @@ def run(a: argparse.Namespace) -> int:
         if not d.exists():
             raise FileNotFoundError(f"{d} does not exist")
     t0 = time.monotonic()
-    from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.tables import TomlFile
     from fieldlog.tools.fuse_settings import load_fusion_config, load_input_spec
 
     conf = TomlFile.read(a.config)

@@ -70,7 +70,7 @@ def _fused(a: argparse.Namespace, drive, st, out):
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.tables import TomlFile
     from fieldlog.drive.files import label
     from fieldlog.drive.outputs import check_new
     from fieldlog.tools.fuse_settings import parse_outage, settings

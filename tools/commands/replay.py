@@ -31,7 +31,7 @@ def add_parser(sub) -> None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.tables import TomlFile
     from fieldlog.drive.outputs import check_new
     from fieldlog.replay.player import replay
     from fieldlog.tools.fuse_settings import settings

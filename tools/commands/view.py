@@ -95,7 +95,7 @@ def run(a: argparse.Namespace) -> int:
     if a.connect:
         raise ValueError("--connect is for --live (and `fieldlog replay`)")
     t0 = time.monotonic()
-    from fieldlog.acquire.config import TomlFile
+    from fieldlog.drive.tables import TomlFile
     from fieldlog.drive.outputs import check_new
     from fieldlog.tools.fuse_settings import input_map, load_input_spec
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldlog.acquire.config import from_table
+from fieldlog.drive.tables import from_table
 
 
 @dataclass

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from fieldlog.acquire import gpsport, nmea, novatel, sbf
-from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.acquire.pipeline import RawRead
+from fieldlog.drive.tables import ConfigError, from_table
 from fieldlog.fusion import earth
 from fieldlog.tools.sim.sensors import gauss_markov
 

@@ -65,7 +65,7 @@ import numpy as np
 from fieldlog.drive import native
 from fieldlog.acquire import rows
 from fieldlog.acquire.calib import G0, Calibration, SensorTriadCal, to_counts
-from fieldlog.acquire.config import ConfigError, from_table
+from fieldlog.drive.tables import ConfigError, from_table
 from fieldlog.fusion import earth, imugrade
 
 _DEG = math.pi / 180.0

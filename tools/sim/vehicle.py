@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from fieldlog.acquire import can, canbus
-from fieldlog.acquire.config import ConfigError, from_table
 from fieldlog.acquire.pipeline import RawRead
+from fieldlog.drive.tables import ConfigError, from_table
 from fieldlog.fusion import earth
 from fieldlog.fusion.odometer import WHEELS
 from fieldlog.tools.sim.emit import HostClock, serial_reads

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fieldlog.acquire.config import from_table
+from fieldlog.drive.tables import from_table
 from fieldlog.tools.sim import sensors, vehicle
 
 _DEG = math.pi / 180.0
