@@ -43,6 +43,11 @@ SIGXFSZ is ignored so that a ``ulimit -f`` gives the error rather than a kill) s
 message naming the file and exit code 2 (the storage given is the problem, as with any bad output); the file
 keeps every chunk flushed before (``fieldlog recover`` or the next start rescues it if the summary could not be
 written).
+The derived path never stops the recording: an exception it raises outside ``Pipeline.process`` (which
+already counts and logs its own; a live-bus or finishing failure, say) is logged once as an error, the live bus is
+closed, and the raw path records on and queues nothing more for it (``daemon.derived_error``; the reads are counted
+in ``daemon.derived_dropped_reads/bytes``; ``acquire.stop`` ``derived`` = ``failed``); only a full disk met there
+stops the daemon as above.
 SIGINT/SIGTERM finish the file (summary and index) and exit 0 within ``STOP_S`` whatever the derived path is
 doing: the readers stop, the raw path records what they had read, and the derived path gets until
 ``DERIVED_STOP_S`` after the signal to process what is queued and write its pending tail (``Pipeline.finish``);
@@ -95,7 +100,7 @@ from fieldlog.drive import bagdir, messages, outputs, recorder
 from fieldlog.acquire.config import (AcquireConfig, CanConfig, GpsPortConfig, PortConfig, RecorderConfig, file_name,
                                      session_name)
 from fieldlog.acquire.gpsd import BACKOFF_MAX_S, GpsdLink
-from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, read_order
+from fieldlog.acquire.pipeline import Pipeline, PipelineConfig, RawRead, raised_at, read_order
 
 NS = 1_000_000_000
 PORTS = ("daq", "gps")
@@ -443,6 +448,7 @@ class BusServer:
         self.ignored_bytes = 0
         self._noisy: set[socket.socket] = set()
         self._lock = threading.Lock()  # the clients, their buffers and the listening socket (class docstring)
+        self._closed = False
 
     def active(self) -> bool:
         """Accept waiting clients; True if any is connected (otherwise publishing is a no-op)."""
@@ -468,8 +474,8 @@ class BusServer:
                 self._send(c, buf)
 
     def _accept(self) -> None:
-        """Take the clients waiting to connect, up to ``MAX_CLIENTS`` (class docstring)."""
-        while True:
+        """Take the clients waiting to connect, up to ``MAX_CLIENTS`` (class docstring); none once closed."""
+        while not self._closed:
             try:
                 c, _ = self.sock.accept()
             except (BlockingIOError, InterruptedError):
@@ -538,8 +544,10 @@ class BusServer:
                     self._send(c, buf)
 
     def close(self, timeout_s: float = 2.0) -> None:
-        """Send what is buffered (at most ``timeout_s`` per client), then close."""
+        """Send what is buffered (at most ``timeout_s`` per client), then close; publishing after it does
+        nothing, and closing again nothing more."""
         with self._lock:
+            self._closed = True
             for c, buf in list(self.clients.items()):
                 try:
                     c.settimeout(timeout_s)
@@ -694,7 +702,8 @@ class StatusLine:
         dq, n = c.daq, c.nmea
         drop = sum(r.stats.dropped_reads for r in d.readers.values())
         lag = d.derived_lag_s()
-        derived = (f"derived {lag:.1f} s behind, {d.derived_dropped_reads} reads not processed | "
+        derived = (f"derived FAILED, {d.derived_dropped_reads} reads not processed | " if d.derive_failure else
+                   f"derived {lag:.1f} s behind, {d.derived_dropped_reads} reads not processed | "
                    if lag >= 1.0 or d.derived_dropped_reads else "")
         bus = ""
         if "can" in d.readers and d.pipe.vehicle is not None:
@@ -741,7 +750,8 @@ class Daemon:
         self.deriver: threading.Thread | None = None
         self.derive_end = threading.Event()      # set by the raw path: nothing more is queued
         self.derive_cut = threading.Event()      # set by the raw path: stop processing at once
-        self.derive_error: BaseException | None = None
+        self.derive_error: BaseException | None = None   # the raw path stops on it (a full disk)
+        self.derive_failure = ""                 # why the derived path ended early; the raw path records on
         self.derive_done = False                 # the derived path processed every read queued and finished
         self.derived_mono = 0                    # host mono of the last read processed
         self.recorded_mono = 0                   # host mono of the last read recorded
@@ -825,6 +835,8 @@ class Daemon:
         out["daemon.merge_timeouts"] = str(self.merge_timeouts)
         out["daemon.derived_dropped_reads"] = str(self.derived_dropped_reads)
         out["daemon.derived_dropped_bytes"] = str(self.derived_dropped_bytes)
+        if self.derive_failure:
+            out["daemon.derived_error"] = self.derive_failure
         out["daemon.names_skipped"] = str(self.sink.skipped if self.sink is not None else 0)
         if self.bus is not None:
             out["bus.dropped_clients"] = str(self.bus.dropped_clients)
@@ -926,23 +938,19 @@ class Daemon:
         self.pipe.record(h.port, h.mono_ns, h.wall_ns, h.data)
         self.recorded_mono = h.mono_ns
         queued = self.derived_put_bytes - self.derived_got_bytes
-        if self._dropping and queued > self.derived_max_bytes // 2:
-            self._drop(h)
-            return
-        if queued + len(h.data) > self.derived_max_bytes:
+        if self.derive_failure or (self._dropping and queued > self.derived_max_bytes // 2):
+            pass  # not processed: the derived path failed, or its queue is still half full
+        elif queued + len(h.data) > self.derived_max_bytes:
             self.log(f"the derived path is {self.derived_lag_s():.1f} s behind and its queue full: reads are "
                      f"recorded and not processed until it has caught up half of it (their derived topics have a gap; "
                      f"`fieldlog rebuild` fills it from the raw bytes)", logging.WARNING)
-            self._drop(h)
+        else:
+            self.derived_put_bytes += len(h.data)
+            self.derived.put(h)
+            if self._dropping:
+                self.log(f"the derived path takes reads again: {self._dropping} reads not processed", logging.WARNING)
+                self._dropping = 0
             return
-        self.derived_put_bytes += len(h.data)
-        self.derived.put(h)
-        if self._dropping:
-            self.log(f"the derived path takes reads again: {self._dropping} reads not processed", logging.WARNING)
-            self._dropping = 0
-
-    def _drop(self, h: RawRead) -> None:
-        """A recorded read the derived path will not process (its queue is full, or still half full)."""
         self.derived_dropped_reads += 1
         self.derived_dropped_bytes += len(h.data)
         self._dropping += 1
@@ -980,10 +988,25 @@ class Daemon:
                 self.provisional.flush()
             self.pipe.finish()
             self.derive_done = True
-        except BaseException as e:  # noqa: BLE001 - handed to the raw path, which stops on it
+        except BaseException as e:  # noqa: BLE001 - the recording goes on without it, or stops (_derived_ended)
+            self._derived_ended(e)
+
+    def _derived_ended(self, e: BaseException) -> None:
+        """The derived path raised ``e``. A full disk (or what is no ``Exception``) goes to the raw path, which
+        stops the daemon on it. Anything else ends the derived path alone: one error line (where it was raised),
+        the live bus closed (its clients see the end at once), and the raw path records every read on and queues
+        none (``_process``)."""
+        if not isinstance(e, Exception) or (isinstance(e, OSError) and e.errno in STORAGE_FULL):
             self.derive_error = e
             self.stop.set()
             self.wake.set()
+            return
+        self.derive_failure = f"{type(e).__name__}: {e} at {raised_at(e)}"
+        self.log(f"the derived path failed ({self.derive_failure}): recording goes on, the reads are recorded "
+                 f"and no longer processed, so the derived topics end here; `fieldlog rebuild` derives them from "
+                 f"the raw bytes", logging.ERROR)
+        if self.bus is not None:
+            self.bus.close(timeout_s=0.0)
 
     def derive_read(self, h: RawRead) -> None:
         """Process one recorded read (the derived path's step)."""
@@ -1010,8 +1033,9 @@ class Daemon:
         complete = self.derive_done
         unprocessed = self.derived.qsize() + self.derived_dropped_reads
         stop = {"signal_mono_ns": str(self.stop_mono_ns or 0), "close_mono_ns": str(time.monotonic_ns()),
-                "derived": "complete" if complete else "cut", "reads_not_processed": str(unprocessed)}
-        if not complete:
+                "derived": "complete" if complete else "failed" if self.derive_failure else "cut",
+                "reads_not_processed": str(unprocessed)}
+        if not complete and not self.derive_failure:
             self.log(f"stopping with the derived path {self.derived_lag_s():.1f} s behind the raw bytes: the derived "
                      f"topics end there ({unprocessed} reads recorded and not processed); `fieldlog rebuild` "
                      f"re-derives them all", logging.WARNING)

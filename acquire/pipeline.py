@@ -52,6 +52,25 @@ def read_order(port: str, mono_ns: int) -> tuple[int, int]:
     return (mono_ns, PORT_ORDER.get(port, 3))
 
 
+def raised_at(e: BaseException) -> str:
+    """Where ``e`` was raised: "FILE:LINE" of its traceback's last frame ("?" without one), for the one line an
+    error that recording survives is logged with.
+
+    Parameters
+    ----------
+    e : BaseException
+        A caught exception.
+
+    Returns
+    -------
+    str
+    """
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return f"{tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}" if tb is not None else "?"
+
+
 def in_read_order(reads: Iterable[RawRead]) -> list[RawRead]:
     """``reads`` (``RawRead``-like) sorted by ``read_order``, reads of equal order as they came: grouped by port
     in ``PORT_ORDER`` (each group as it came), then sorted by host monotonic time alone, a stable sort that keeps
@@ -320,10 +339,7 @@ class Pipeline:
 
     def _processing_error(self, e: Exception, port: str, mono_ns: int, wall_ns: int) -> None:
         self.counters.processing_errors += 1
-        tb = e.__traceback__
-        while tb is not None and tb.tb_next is not None:
-            tb = tb.tb_next
-        where = f"{tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}" if tb is not None else "?"
+        where = raised_at(e)
         kind = (type(e).__name__, where)
         if kind in self._errors_logged:
             return

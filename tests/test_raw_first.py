@@ -1,15 +1,19 @@
 """The daemon's raw path never waits for its derived path (acquire/daemon.py), as a real subprocess on
 ``fieldlog sim --serve`` ptys: a PPS line flagged on every frame, and a derived path made slow on purpose (a
 subclass of the Daemon whose derived step sleeps), each for 25 s at real speed, then SIGINT. Every DAQ byte
-written to the pty is recorded, and the file is finished within the daemon's stop bound."""
+written to the pty is recorded, and the file is finished within the daemon's stop bound. A derived path that
+fails (a subclass whose derived step raises) is logged, closes the live bus and leaves the recording going."""
 from __future__ import annotations
 
 import dataclasses
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import pytest
 
@@ -42,6 +46,28 @@ cfg.daemon.derived_queue_mb = float(queue_mb)
 sys.exit(daemon.run_daemon(cfg, daemon_class=SlowDerived))
 """
 
+# the daemon with a live bus and a derived path that raises, outside the Pipeline's own guard, at read FAIL_AT
+FAILING_DAEMON = """
+import sys
+from fieldlog.acquire import config, daemon
+
+daq, gps, out, bus, fail_at = sys.argv[1:6]
+
+class FailingDerived(daemon.Daemon):
+    taken = 0
+
+    def derive_read(self, h):
+        self.taken += 1
+        if self.taken == int(fail_at):
+            raise RuntimeError("injected")
+        super().derive_read(h)
+
+daemon.setup_logging(0)
+cfg = config.load(None, {"daq": daq, "gps": gps, "out": out})
+cfg.daemon.bus = bus
+sys.exit(daemon.run_daemon(cfg, daemon_class=FailingDerived))
+"""
+
 
 def floating_pps_scenario(tmp_path: Path) -> Path:
     """figure8 with the PPS flag set on every DAQ frame (a floating PPS input)."""
@@ -50,7 +76,7 @@ def floating_pps_scenario(tmp_path: Path) -> Path:
     return p
 
 
-def sent_daq(truth: Path, scenario: Path) -> tuple[bytes, dict[str, str]]:
+def sent_daq(truth: Path, scenario: str | Path) -> tuple[bytes, dict[str, str]]:
     """The DAQ bytes the serve process wrote to its pty (none were lost: no unplug), and its metadata."""
     meta = read_metadata(truth)["serve"]
     assert meta["completed"] == "True" and meta["daq_lost_bytes"] == "0"
@@ -62,12 +88,13 @@ def sent_daq(truth: Path, scenario: Path) -> tuple[bytes, dict[str, str]]:
     return stream, meta
 
 
-def run_and_interrupt(tmp_path: Path, argv: list[str], scenario: Path, seed: int) -> tuple[Path, str, float, Path]:
-    """Serve ``scenario`` for SECONDS at real speed to the daemon started by ``argv`` (it prints 'recording'
-    once its ports are open), SIGINT it as soon as the serve has ended; returns the one drive file, the daemon's
-    log, the host seconds from SIGINT to its exit, and the truth file."""
+def run_and_interrupt(tmp_path: Path, argv: list[str], scenario: str | Path, seed: int, seconds: float = SECONDS,
+                      on_recording: Callable[[], None] = lambda: None) -> tuple[Path, str, float, Path]:
+    """Serve ``scenario`` for ``seconds`` at real speed to the daemon started by ``argv`` (it prints 'recording'
+    once its ports are open; then ``on_recording`` is called), SIGINT it as soon as the serve has ended; returns
+    the one drive file, the daemon's log, the host seconds from SIGINT to its exit, and the truth file."""
     truth = tmp_path / "truth.mcap"
-    serve, paths = start_serve("--scenario", str(scenario), "--duration", str(SECONDS), "--seed", str(seed),
+    serve, paths = start_serve("--scenario", str(scenario), "--duration", str(seconds), "--seed", str(seed),
                                "--speed", "1", "--hold", "--truth", str(truth))
     try:
         ports = {f"{{{name}}}": path for name, path in paths.items()}
@@ -76,6 +103,7 @@ def run_and_interrupt(tmp_path: Path, argv: list[str], scenario: Path, seed: int
                              stderr=err.open("w"), text=True)
         wait_until(lambda: "recording" in err.read_text() or d.poll() is not None, "the daemon's ports open")
         assert d.poll() is None, err.read_text()
+        on_recording()
         serve.send_signal(signal.SIGUSR1)
         wait_served(serve, d, 300)
     finally:
@@ -92,7 +120,7 @@ def run_and_interrupt(tmp_path: Path, argv: list[str], scenario: Path, seed: int
     return f, log, exit_s, truth
 
 
-def check_raw_kept_and_stop_bounded(f: Path, truth: Path, scenario: Path, exit_s: float) -> dict[str, str]:
+def check_raw_kept_and_stop_bounded(f: Path, truth: Path, scenario: str | Path, exit_s: float) -> dict[str, str]:
     """Every DAQ byte written is recorded, in order; the file was closed within ``daemon.STOP_S`` of the signal
     (the daemon's own record of it); returns the ``acquire.stop`` record."""
     sent, _ = sent_daq(truth, scenario)
@@ -144,3 +172,45 @@ def test_a_slow_derived_path_lags_and_drops_while_every_raw_byte_is_kept_and_the
     assert "the derived topics end there" in log
     # the derived path decoded part of the frames: those of the reads it processed
     assert 0 < int(c["daq.frames"]) < SECONDS * 500 * 0.9
+
+
+@pytest.mark.slow
+def test_a_failing_derived_path_closes_the_bus_and_recording_goes_on(tmp_path: Path) -> None:
+    # the derived step raises at its 300th read (~2 s in): one error line, the bus's client sees its end then,
+    # and the raw path records the rest of the drive; rebuild derives the whole of it from the raw bytes
+    seconds, bus = 8.0, tmp_path / "bus.sock"
+    scenario = "figure8"
+    argv = [sys.executable, "-c", FAILING_DAEMON, "{daq}", "{gps}", str(tmp_path / "drives"), str(bus), "300"]
+    client: dict[str, int] = {"bytes": 0}
+
+    def listen() -> None:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+            c.connect(str(bus))
+            client["connected_ns"] = time.monotonic_ns()
+            while data := c.recv(1 << 16):
+                client["bytes"] += len(data)
+            client["end_ns"] = time.monotonic_ns()
+
+    listener = threading.Thread(target=listen, daemon=True)
+    f, log, exit_s, truth = run_and_interrupt(tmp_path, argv, scenario, seed=10, seconds=seconds,
+                                              on_recording=listener.start)
+    listener.join(30)
+    stop = check_raw_kept_and_stop_bounded(f, truth, scenario, exit_s)
+    assert "Traceback" not in log
+    failed = [line for line in log.splitlines() if "the derived path failed" in line]
+    assert len(failed) == 1 and "RuntimeError: injected" in failed[0] and "fieldlog rebuild" in failed[0], log
+    assert any("derived FAILED" in line for line in log.splitlines() if "fr/s" in line)   # the status line
+    c = read_metadata(f)["acquire.counters"]
+    assert c["daemon.derived_error"].startswith("RuntimeError: injected")
+    reads = int(c["reads.daq"]) + int(c["reads.gps"])
+    dropped = int(c["daemon.derived_dropped_reads"])
+    # every read after the one that raised is recorded and not processed: queued before the failure, or not queued
+    assert stop["derived"] == "failed" and int(stop["reads_not_processed"]) == reads - 300 and dropped > 0
+    # the bus sent frames, then ended at the failure, well before the SIGINT
+    assert client["bytes"] > 0 and client["connected_ns"] < client["end_ns"] < int(stop["signal_mono_ns"])
+    assert 0 < int(c["daq.frames"]) < 0.9 * seconds * 500      # the frames of the reads before the failure
+    rebuilt = tmp_path / "rebuilt.mcap"
+    r = subprocess.run([sys.executable, "-m", "fieldlog", "rebuild", str(f), "--out", str(rebuilt)], cwd=ROOT,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert len(reader.read_topic(rebuilt, "/imu")["log_time_ns"]) == seconds * 500
