@@ -853,12 +853,18 @@ def _rerun_exe() -> str:
 
 
 def machine_line() -> str:
-    """The CPU model, its cores (those this process may run on), numpy's version and BLAS (numpy's build
-    configuration, and the library loaded at run time when threadpoolctl can tell), and the load average."""
+    """The CPU model (with its family and model numbers: a virtual machine may name only the vendor's line), its
+    cores (those this process may run on), numpy's version and BLAS (numpy's build configuration, and the library
+    loaded at run time when threadpoolctl can tell), the per-call costs (:func:`call_costs`) and the load
+    average."""
     model = "unknown CPU"
     with contextlib.suppress(OSError):
-        model = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")),
-                     model)
+        info = dict(ln.split(":", 1) for ln in open("/proc/cpuinfo").read().split("\n\n")[0].splitlines()
+                    if ":" in ln)
+        info = {k.strip(): v.strip() for k, v in info.items()}
+        model = info.get("model name", model)
+        if "cpu family" in info:
+            model += f" (family {info['cpu family']}, model {info.get('model', '?')})"
     blas = "unknown BLAS"
     with contextlib.suppress(Exception):
         b = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
@@ -873,7 +879,21 @@ def machine_line() -> str:
 
     cores = reader.cpus()
     load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
-    return f"machine: {model}, {cores} cores, numpy {np.__version__}, BLAS {blas}, load {load} (1 / 5 / 15 min)"
+    return (f"machine: {model}, {cores} cores, numpy {np.__version__}, BLAS {blas}, {call_costs()}, load {load} "
+            "(1 / 5 / 15 min)")
+
+
+def call_costs() -> str:
+    """What one interpreted step and one small numpy call cost here, the best of 5 runs each: a pure-Python loop
+    of 10^6 additions, and the product of two 15 x 15 matrices (the filter's size). A fieldlog command is mostly
+    such steps and the rerun CLI none, so its ratio to rerun rises on a machine where they are slow: with these
+    figures beside them, ratios measured on different machines can be compared."""
+    import timeit
+
+    loop = min(timeit.repeat("for i in r: s += i", setup="r = range(10 ** 6); s = 0", number=1, repeat=5))
+    a = np.eye(15)
+    product = min(timeit.repeat(lambda: a @ a, number=10_000, repeat=5)) / 10_000
+    return f"Python 10^6 additions {loop * 1e3:.0f} ms, numpy 15x15 product {product * 1e6:.2f} us"
 
 
 def _run_cpu(cmd: list[str], cwd: Path, pin: bool = False) -> tuple[float, float]:
