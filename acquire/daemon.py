@@ -702,9 +702,10 @@ class StatusLine:
         dq, n = c.daq, c.nmea
         drop = sum(r.stats.dropped_reads for r in d.readers.values())
         lag = d.derived_lag_s()
-        derived = (f"derived FAILED, {d.derived_dropped_reads} reads not processed | " if d.derive_failure else
-                   f"derived {lag:.1f} s behind, {d.derived_dropped_reads} reads not processed | "
-                   if lag >= 1.0 or d.derived_dropped_reads else "")
+        derived = ""
+        if d.derive_failure or lag >= 1.0 or d.derived_dropped_reads:
+            state = "FAILED" if d.derive_failure else f"{lag:.1f} s behind"
+            derived = f"derived {state}, {d.derived_dropped_reads} reads not processed | "
         bus = ""
         if "can" in d.readers and d.pipe.vehicle is not None:
             cs = d.pipe.vehicle.stats
