@@ -162,6 +162,9 @@ class AidConfig:
     # first and uses them, with a car aid on (the NHC, or the odometer with wheel speeds: its estimators assume a
     # car, heading = course; tools.fuse_settings.installation_applies);
     # false: the configured values as they are
+    installation_span_s: float = 0.0  # s: estimate it from the drive's first this many seconds (whole 60 s reading
+    # blocks) and fuse the whole drive with it, the estimate's passes a fraction of a long drive's time and
+    # its sigmas those of the span; 0: from the whole drive
     odometer_track_m: float = 1.6  # the car's track (left to right wheel centres) and wheelbase, m: the per-wheel
     odometer_wheelbase_m: float = 2.7  # slip test's kinematics (fusion.odometer, "Per-wheel slip")
 
@@ -312,6 +315,8 @@ class FusionConfig:
         for key in ("odometer_track_m", "odometer_wheelbase_m"):
             if not getattr(a, key) > 0:
                 raise ValueError(f"[fusion] {key}: must be > 0")
+        if not (math.isfinite(a.installation_span_s) and a.installation_span_s >= 0):
+            raise ValueError("[fusion] installation_span_s: must be >= 0 (0: the whole drive)")
         if not abs(self.sensor.imu_time_offset_s) < 10.0:
             raise ValueError("[fusion] imu_time_offset_s: must be within +-10 s")
         for n, o in enumerate(g.outages):

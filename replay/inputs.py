@@ -24,6 +24,7 @@ passes it; ``fuse``, ``replay`` and ``view`` all read a drive through it (``cano
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import pickle
@@ -312,11 +313,13 @@ class InputStream:
     (``/imu`` in body RFU, ``/gps/fix``, ``/gps/vel``) re-sequenced on their stamps (``Resequencer``), IMU rows
     with a repeated stamp dropped; counts the IMU's gaps as it goes. ``blocks()`` gives them as
     ``reader.Block``s (for the viewer and the player, plus the ``extra`` topics), iterating gives the engine's
-    ``ImuBlock`` and ``GpsBlock``."""
+    ``ImuBlock`` and ``GpsBlock``. ``span_s`` > 0: the drive's first blocks alone, those that begin less than
+    ``span_s`` after the first (a span rounded up to whole blocks), the rows held for re-sequencing at the
+    cut given with the last."""
 
     def __init__(self, path: str | os.PathLike[str], imap: InputMap, block_s: float,
-                 extra: tuple[str, ...] = (), keep: bool = False) -> None:
-        self.path, self.imap, self.block_s, self.keep = path, imap, block_s, keep
+                 extra: tuple[str, ...] = (), keep: bool = False, span_s: float = 0.0) -> None:
+        self.path, self.imap, self.block_s, self.keep, self.span_s = path, imap, block_s, keep, span_s
         self._kept: IO[bytes] | None = None  # keep: the engine's blocks of the first pass to the end, pickled
         self._ahead: Ahead | None = None  # the worker :meth:`start` began, not yet iterated
         self.extra = tuple(t for t in extra if t not in imap.topics and t != imap.odom_topic)
@@ -340,6 +343,11 @@ class InputStream:
     def rate_hz(self) -> float:
         """The IMU's sample rate, Hz (NaN before it is known)."""
         return 1e9 / self._period_ns if self._period_ns else float("nan")
+
+    @property
+    def imu_span_s(self) -> float:
+        """From the first IMU sample read to the last, s (0 before two are read)."""
+        return (self._last_t - self._first_t) * 1e-9 if self._first_t is not None and self._last_t is not None else 0.0
 
     def warnings(self) -> list[str]:
         """What is wrong with the IMU's timing, one line each (none for a good IMU): gaps (how many, the samples
@@ -375,14 +383,21 @@ class InputStream:
         seq = Resequencer()
         t1 = None
         fields = {self.imap.imu_topic: ENGINE_IMU_FIELDS} if engine_only else None
-        for b in reader.iter_blocks(self.path, (*self.imap.topics, *odom, *wheels, *self.extra), self.block_s,
-                                    fields=fields):
-            t1 = b.t1_ns
-            data = dict(b.data)
-            w = data.pop(WHEEL_SPEEDS, {}) if wheels else None
-            if odom and odom[0] in data:
-                data[odom[0]] = odom_rows(data[odom[0]], w)
-            yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, data), names))
+        end = None  # log time (ns) the span's blocks begin before
+        read = reader.iter_blocks(self.path, (*self.imap.topics, *odom, *wheels, *self.extra), self.block_s,
+                                  fields=fields)
+        with contextlib.closing(read):  # closed at the span's end: its read-ahead thread stops
+            for b in read:
+                if end is None and self.span_s > 0:
+                    end = b.t0_ns + int(round(self.span_s * 1e9))
+                if end is not None and b.t0_ns >= end:
+                    break
+                t1 = b.t1_ns
+                data = dict(b.data)
+                w = data.pop(WHEEL_SPEEDS, {}) if wheels else None
+                if odom and odom[0] in data:
+                    data[odom[0]] = odom_rows(data[odom[0]], w)
+                yield reader.Block(b.t0_ns, b.t1_ns, self._canonical(seq.push(b.t1_ns, data), names))
         if t1 is not None:
             yield reader.Block(t1, t1, self._canonical(seq.flush(), names))
 

@@ -137,35 +137,58 @@ def test_gyro_track_does_not_depend_on_where_the_blocks_end(cuts):
     assert np.array_equal(split["angle"], whole["angle"])
 
 
+def _fused(drive: str, folder, capsys, name: str, table: str = "") -> tuple[dict, np.ndarray]:
+    """``fieldlog fuse DRIVE --method kf --json`` (``[fusion]`` ``table`` given as ``--config``): its summary and
+    its /fusion/kf/fix rows as local ENU, m."""
+    from fieldlog.drive.reader import read_topic
+    from fieldlog.tools.cli import main
+
+    args = ["fuse", drive, "--method", "kf", "--json", "-q", "--out", str(folder / f"{name}.mcap")]
+    if table:
+        (folder / f"{name}.toml").write_text("[fusion]\n" + table)
+        args += ["--config", str(folder / f"{name}.toml")]
+    assert main(args) == 0
+    fix = read_topic(folder / f"{name}.mcap", "/fusion/kf/fix")
+    lat = np.radians(fix["lat_deg"])
+    enu = np.column_stack([(np.radians(fix["lon_deg"]) - np.radians(fix["lon_deg"][0])) * np.cos(lat) * 6.378e6,
+                           (lat - lat[0]) * 6.378e6, fix["alt_m"]])
+    return json.loads(capsys.readouterr().out), enu
+
+
 def test_the_printed_installation_given_back_fuses_the_same_in_one_pass(figure8_240s_seed3, tmp_path, capsys):
     """The README's way to fuse a drive again: the values ``fuse --json`` printed (time offset, mounting and its
     sigma) in ``[fusion]`` with ``estimate_installation = false`` give the first run's solution to the printed
     digits, with no estimate of their own (one pass); the same setting without the values gives another."""
-    from fieldlog.drive.reader import read_topic
-    from fieldlog.tools.cli import main
     from fieldlog.tools.fuse_settings import drive_table
 
     drive = str(figure8_240s_seed3)
     assert not drive_table(drive)  # --config replaces the drive's own settings: it has none
-
-    def fused(name: str, table: str = "") -> tuple[dict, np.ndarray]:
-        args = ["fuse", drive, "--method", "kf", "--json", "-q", "--out", str(tmp_path / f"{name}.mcap")]
-        if table:
-            (tmp_path / f"{name}.toml").write_text("[fusion]\n" + table)
-            args += ["--config", str(tmp_path / f"{name}.toml")]
-        assert main(args) == 0
-        fix = read_topic(tmp_path / f"{name}.mcap", "/fusion/kf/fix")
-        lat = np.radians(fix["lat_deg"])
-        enu = np.column_stack([(np.radians(fix["lon_deg"]) - np.radians(fix["lon_deg"][0])) * np.cos(lat) * 6.378e6,
-                               (lat - lat[0]) * 6.378e6, fix["alt_m"]])
-        return json.loads(capsys.readouterr().out), enu
-
-    first, enu = fused("first")
+    first, enu = _fused(drive, tmp_path, capsys, "first")
     assert first["mounting_estimate_rpy_deg"] is not None  # the drive shows its mounting
     given = "".join(f"{k} = {first[k]!r}\n" for k in ("imu_time_offset_s", "mounting_rpy_deg", "mounting_sigma_deg"))
-    again, enu_again = fused("again", "estimate_installation = false\n" + given)
-    _, enu_without = fused("without", "estimate_installation = false\n")
+    again, enu_again = _fused(drive, tmp_path, capsys, "again", "estimate_installation = false\n" + given)
+    _, enu_without = _fused(drive, tmp_path, capsys, "without", "estimate_installation = false\n")
     assert "mounting_estimate_rpy_deg" not in again  # no installation pass ran
     same = np.abs(enu_again - enu).max()
     other = np.abs(enu_without - enu).max()
     assert same < 1e-3 and other > 100 * same, (same, other)
+
+
+def test_a_span_past_the_drive_is_the_whole_drive_and_a_shorter_one_its_first_blocks(figure8_240s_seed3, tmp_path,
+                                                                                      capsys):
+    """``installation_span_s``: the installation read from its own stream over the span, the fusion from the
+    drive's. A span past the drive's end reads every block: the whole drive's installation and solution, to the
+    bit. 120 s reads the first two 60 s blocks alone and gives another installation (the drive's first 28 s are
+    still), which the whole drive's fusion then uses."""
+    drive = str(figure8_240s_seed3)
+    keys = ("installation_read_s", "imu_time_offset_s", "imu_time_offset_sigma_s", "mounting_rpy_deg",
+            "mounting_sigma_deg", "mounting_estimate_rpy_deg", "mounting_estimate_sigma_deg")
+    whole, enu = _fused(drive, tmp_path, capsys, "whole")
+    past, enu_past = _fused(drive, tmp_path, capsys, "past", "installation_span_s = 1000.0\n")
+    short, enu_short = _fused(drive, tmp_path, capsys, "short", "installation_span_s = 120.0\n")
+    assert {k: past[k] for k in keys} == {k: whole[k] for k in keys}
+    assert np.array_equal(enu_past, enu)
+    assert 239.0 < whole["installation_read_s"] <= 240.0 and 119.0 < short["installation_read_s"] <= 120.0
+    assert short["imu_time_offset_s"] != whole["imu_time_offset_s"]
+    assert short["mounting_estimate_rpy_deg"] != whole["mounting_estimate_rpy_deg"]
+    assert short["imu_samples"] == whole["imu_samples"] and short["solutions"] == whole["solutions"]

@@ -124,6 +124,8 @@ def test_explicit_config_wins_and_bad_keys_are_named(aircraft, tmp_path, capsys)
         fusion_config({"outages": [[10.0, -1.0]]})
     with pytest.raises(ConfigError, match=r"\[fusion\] odometer_track_m: must be > 0"):
         fusion_config({"odometer_track_m": -1.6})  # a negative track would swap the left and right wheels
+    with pytest.raises(ConfigError, match=r"\[fusion\] installation_span_s: must be >= 0"):
+        fusion_config({"installation_span_s": -60.0})
 
 
 def test_bad_fusion_key_in_a_scenario_fails_the_sim(tmp_path):

@@ -111,22 +111,28 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     drive : the drive.
     config : the settings of the run (its aids, noise, start values).
     inputs : the drive's topics.
-    stream : the drive's input blocks over ``inputs`` (``BLOCK_S``); None: an ``InputStream`` that keeps them
-        (``keep``), so the drive is decoded once for both passes. Given one that keeps them, :func:`fuse` of the
-        same stream reads them back too.
+    stream : the drive's input blocks over ``inputs`` (``BLOCK_S``), read as given; None: an ``InputStream`` of
+        its own that keeps them (``keep``), so they are decoded once for both passes, over the first ``[fusion]
+        installation_span_s`` of the drive when that is set. Given one that keeps them, :func:`fuse` of the same
+        stream reads them back too.
 
     Returns
     -------
     (config with ``imu_time_offset_s``, ``mounting_rpy_deg`` and ``mounting_sigma_deg`` replaced by what is used,
-    the ``fuse --json`` keys: ``imu_time_offset_s``, ``imu_time_offset_sigma_s`` (s, the IMU's stamps late against
-    the GPS's; the sigma None when not estimated), ``mounting_rpy_deg``, ``mounting_sigma_deg`` (IMU -> base_link,
-    deg, the values used) and ``mounting_estimate_rpy_deg``, ``mounting_estimate_sigma_deg`` (the drive's own
-    estimate, None when it shows none)).
+    the ``fuse --json`` keys: ``installation_read_s`` (s, from the first IMU sample the estimates read to the
+    last), ``imu_time_offset_s``, ``imu_time_offset_sigma_s`` (s, the IMU's stamps late against the GPS's; the
+    sigma None when not estimated), ``mounting_rpy_deg``, ``mounting_sigma_deg`` (IMU -> base_link, deg, the
+    values used) and ``mounting_estimate_rpy_deg``, ``mounting_estimate_sigma_deg`` (the drive's own estimate,
+    None when it shows none)).
     """
-    stream = stream or InputStream(drive, inputs, BLOCK_S, keep=True)
-    late, late_sigma = _estimated_offset(stream, config.sensor.imu_time_offset_s)
-    config = config.replace(imu_time_offset_s=late)
-    mount = _estimated_mounting(stream, config)
+    with contextlib.ExitStack() as own:
+        if stream is None:
+            stream = own.enter_context(contextlib.closing(
+                InputStream(drive, inputs, BLOCK_S, keep=True, span_s=config.aids.installation_span_s)))
+        late, late_sigma = _estimated_offset(stream, config.sensor.imu_time_offset_s)
+        config = config.replace(imu_time_offset_s=late)
+        mount = _estimated_mounting(stream, config)
+        read_s = stream.imu_span_s
     prior = np.array(config.aids.mounting_rpy_deg, float)
     if not prior.any():
         prior = calibration_mounting_rpy(drive_mounting(drive))
@@ -140,7 +146,8 @@ def estimate_installation(drive: DriveSpec, config: FusionConfig, inputs: InputM
     def rounded(a) -> list[float] | None:
         return None if a is None else [round(float(x), 4) for x in a]
 
-    return config, {"imu_time_offset_s": late, "imu_time_offset_sigma_s": late_sigma,
+    return config, {"installation_read_s": round(read_s, 3),
+                    "imu_time_offset_s": late, "imu_time_offset_sigma_s": late_sigma,
                     "mounting_rpy_deg": rounded(used), "mounting_sigma_deg": rounded(used_sigma),
                     "mounting_estimate_rpy_deg": rounded(mount and mount[0]),
                     "mounting_estimate_sigma_deg": rounded(mount and mount[1])}

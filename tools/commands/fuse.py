@@ -35,8 +35,9 @@ def add_parser(sub) -> None:
     s.set_defaults(func=needs_extras(run))
 
 
-def _installation_line(s: dict) -> str:
-    """The summary line of ``tools.fuse.estimate_installation``'s keys in ``s``."""
+def _installation_line(s: dict, span_s: float) -> str:
+    """The summary line of ``tools.fuse.estimate_installation``'s keys in ``s``; ``span_s``: ``[fusion]
+    installation_span_s``."""
     parts = []
     if s.get("mounting_rpy_deg"):
         parts.append("mounting roll, pitch, yaw " + ", ".join(
@@ -45,7 +46,8 @@ def _installation_line(s: dict) -> str:
         sigma = s.get("imu_time_offset_sigma_s")
         parts.append(f"IMU late by {s['imu_time_offset_s'] * 1e3:.1f}"
                      + (f" ± {sigma * 1e3:.1f} ms" if sigma is not None else " ms (configured)"))
-    return ("installation (estimated from the drive, used by the NHC, the odometer and the IMU's stamps): "
+    source = f"the first {s['installation_read_s']:.0f} s of the drive" if span_s else "the drive"
+    return (f"installation (estimated from {source}, used by the NHC, the odometer and the IMU's stamps): "
             + "; ".join(parts))
 
 
@@ -57,13 +59,14 @@ def _fused(a: argparse.Namespace, drive, st, out):
 
     config, installed = st.config, {}
     install = a.method != INS.name and installation_applies(config, st.inputs)
-    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=install)) as stream:
-        stream.start()  # without the installation pass, the drive is read on the second core while the fusion's
-        # modules load (a kept stream reads its one pass in place: start leaves it)
+    whole = install and not config.aids.installation_span_s  # the installation passes read the whole drive
+    with contextlib.closing(InputStream(drive, st.inputs, BLOCK_S, keep=whole)) as stream:
+        stream.start()  # but for a kept stream (read in place in its one pass: start leaves it), the drive is read
+        # on the second core while the fusion's modules load and the installation's span is estimated
         from fieldlog.tools.fuse import estimate_installation, fuse
 
         if install:
-            config, installed = estimate_installation(drive, config, st.inputs, stream)
+            config, installed = estimate_installation(drive, config, st.inputs, stream if whole else None)
         res = fuse(drive, a.method, out, config, progress=Progress(f"fuse {a.method}"), smooth=a.smooth,
                    inputs=st.inputs, force=a.force, installation=installed, stream=stream)
     return res, config, installed
@@ -123,7 +126,7 @@ def run(a: argparse.Namespace) -> int:
                      else "")
             log.info(f"alignment: {how.get('method', '?')}{where}, {res.alignment}")
         if summary.get("mounting_rpy_deg") or summary.get("imu_time_offset_s") is not None:
-            log.info(_installation_line(summary))
+            log.info(_installation_line(summary, config.aids.installation_span_s))
         if res.hinf:
             log.info(f"hinf: {res.hinf['note']}")
         if res.odometer:

@@ -277,27 +277,39 @@ def _fuse_child(drive: Path, method: str, out: Path, smooth: bool = False, confi
 
 
 _LONG_TARGETS = {KF.name: "≤ 2 s; RSS equal", DKF_RBFN.name: "≤ 4 s; RSS equal"}  # the 1-hour drive
-ONE_PASS = ", one pass"  # the name's suffix of a fuse without the installation's first pass (_one_pass_config)
-_ONE_PASS_SHOWN = " without the installation passes (`estimate_installation = false`)"  # that suffix in a row
+ONE_PASS = ", one pass"  # the name's suffix of a fuse without the installation's first pass
+SPAN = ", first 600 s"  # ... of a fuse with the installation from the drive's first 600 s
+_VARIANTS = {  # suffix: (its [fusion] table, its words in a row)
+    ONE_PASS: ("estimate_installation = false", " without the installation passes (`estimate_installation = false`)"),
+    SPAN: ("installation_span_s = 600.0", " with the installation from the first 600 s (`installation_span_s = 600`)")}
 
 
-def _one_pass_config(tmp: Path, drive: Path) -> Path:
-    """A ``fuse --config`` that makes the command one engine pass, the fusion alone: ``[fusion]
-    estimate_installation = false`` (no time-offset and mounting passes before it). ``--config`` replaces the
-    drive's own settings, so the drive must have none (a simulated figure8 drive has no ``fusion.config``
-    record): the run differs from the default one by the installation passes alone."""
+def _variant_config(tmp: Path, drive: Path, suffix: str) -> Path:
+    """A ``fuse --config`` of the variant ``suffix`` (``_VARIANTS``): ``ONE_PASS`` makes the command one engine
+    pass, the fusion alone (no time-offset and mounting passes before it); ``SPAN`` estimates the installation
+    from the drive's first 600 s. ``--config`` replaces the drive's own settings, so the drive must have none (a
+    simulated figure8 drive has no ``fusion.config`` record): the run differs from the default one by that
+    setting alone."""
     from fieldlog.tools.fuse_settings import drive_table
 
     if drive_table(drive):
-        raise SystemExit(f"{drive}: has a fusion.config record; the one-pass run would not compare with the default")
-    path = tmp / "one_pass.toml"
-    path.write_text("[fusion]\nestimate_installation = false\n")
+        raise SystemExit(f"{drive}: has a fusion.config record; the variant's run would not compare with the default")
+    path = tmp / f"variant{list(_VARIANTS).index(suffix)}.toml"
+    path.write_text(f"[fusion]\n{_VARIANTS[suffix][0]}\n")
     return path
+
+
+def _shown(name: str) -> tuple[str, str]:
+    """A run's ``name`` for a row: (the name without its variant's suffix, that suffix in words)."""
+    for suffix, (_, words) in _VARIANTS.items():
+        if name.endswith(suffix):
+            return name.removesuffix(suffix), words
+    return name, ""
 
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
     """``fieldlog fuse`` of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth; both
-    in one pass too, :func:`_one_pass_config`), each a command in a child process: samples/s, real-time factor,
+    in one pass and with the installation from the first 600 s too, :func:`_variant_config`), each a command in a child process: samples/s, real-time factor,
     peak RSS (streaming: the same for both lengths)."""
     from fieldlog.tools.sim.simulate import simulate
 
@@ -313,17 +325,17 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
     _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
-    one_pass = _one_pass_config(tmp, drives[0])
-    for method, smooth, config in ((KF.name, False, None), (DKF_RBFN.name, False, None), (KF.name, True, None),
-                                   (KF.name, False, one_pass), (DKF_RBFN.name, False, one_pass)):
-        name = method + (" --smooth" if smooth else "") + (ONE_PASS if config else "")
+    for method, smooth, variant in ((KF.name, False, ""), (DKF_RBFN.name, False, ""), (KF.name, True, ""),
+                                    (KF.name, False, ONE_PASS), (DKF_RBFN.name, False, ONE_PASS),
+                                    (KF.name, False, SPAN), (DKF_RBFN.name, False, SPAN)):
+        name = method + (" --smooth" if smooth else "") + variant
+        config = _variant_config(tmp, drives[0], variant) if variant else None
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth, config) for d in drives]
         h0 = hours[0]
         print(f"fuse {name:18s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
-        shown = name.replace(ONE_PASS, _ONE_PASS_SHOWN)
-        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {shown}: time; peak RSS {h0:g} h / {hours[1]:g} h "
+        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {''.join(_shown(name))}: time; peak RSS {h0:g} h / {hours[1]:g} h "
             "[fuse-long]", f"{r[0]['s']:.1f} s (×{3600.0 * h0 / r[0]['s']:.0f}); {r[0]['rss_mb']:.0f} / "
             f"{r[1]['rss_mb']:.0f} MB", _LONG_TARGETS.get(name, ""))
 
@@ -923,13 +935,13 @@ def bench_rerun(runs: int, tmp: Path, duration_s: float = 600.0) -> None:
     both commands pinned to one core (`taskset -c 0`), and a warm fuse of a 60 s drive. `fuse --method ins` (one
     read of the drive, the strapdown INS and the same writing, no filter and no installation pass) is the floor
     of every fuse: what no filter can go below. `fuse --method kf, one pass` (and dkf-rbfn's) is the same method
-    without the installation's time-offset and mounting passes (:func:`_one_pass_config`): the fusion pass alone."""
+    without the installation's time-offset and mounting passes (:func:`_variant_config`): the fusion pass alone."""
     fl, rr = [sys.executable, "-m", "fieldlog"], _rerun_exe()
     drive, short = tmp / "rr_drive.mcap", tmp / "rr_short.mcap"
     _run_s([*fl, "sim", "--duration", str(duration_s), "--seed", "1", "--out", str(drive), "-q"], tmp)
     _run_s([*fl, "sim", "--duration", "60", "--seed", "2", "--out", str(short), "-q"], tmp)
     convert = [rr, "mcap", "convert", str(drive), "-o", str(tmp / "rr_convert.rrd")]
-    fused, one_pass = tmp / "rr_kf.mcap", _one_pass_config(tmp, drive)
+    fused, one_pass = tmp / "rr_kf.mcap", _variant_config(tmp, drive, ONE_PASS)
     cmds = {  # name: (fieldlog command, reference command, target as is, target pinned to one core)
         "fuse --method kf": ([*fl, "fuse", str(drive), "--method", KF.name, "--out", str(fused), "--force", "-q"],
                              convert, "≤ ×0.5", "≤ ×0.8"),
@@ -986,7 +998,7 @@ def _rerun_ratios(cmds: dict, runs: int, tmp: Path, pin: bool, drive: str) -> No
         print(f"fieldlog {name:32s} median x{q:5.2f} of `rerun {' '.join(ref[1:3])}` (fieldlog {fmt_times(wall)} s, "
               f"CPU {cpu:.2f} s; rerun {fmt_times([w for w, _ in refs[name]])} s, CPU {ref_cpu:.2f} s)  "
               f"target {target or '-'}")
-        shown = f"`fieldlog {name.removesuffix(ONE_PASS)}`" + (_ONE_PASS_SHOWN if name.endswith(ONE_PASS) else "")
+        shown = "`fieldlog {}`{}".format(*_shown(name))
         row(f"{shown}, {drive.split(' (')[0]}, against `rerun {' '.join(ref[1:3])}` of the same drive"
             f"{', both on one core' if pin else ''} [rerun]",
             f"×{q:.2f} ({statistics.median(wall):.2f} s against {statistics.median(w for w, _ in refs[name]):.2f}"
