@@ -61,6 +61,7 @@ from typing import Any
 import numpy as np
 
 from fieldlog.drive.tables import from_table
+from fieldlog.fusion.median import median
 
 FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
 PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is
@@ -214,17 +215,6 @@ class _Fit:
         return self.kr + self.c + (fs + self.e) * (label - self.lr)
 
 
-def _median(a: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-d array, the same float (NaN if the array holds one) from one partition:
-    ``np.median``'s own steps cost more than the partition on the few hundred values of the fits."""
-    n = len(a)
-    h = n // 2
-    p = np.partition(a, (h - 1, h, n - 1) if n % 2 == 0 else (h, n - 1))
-    if p.dtype.kind == "f" and np.isnan(p[-1]):
-        return math.nan
-    return float(p[h]) if n % 2 else (float(p[h - 1]) + float(p[h])) / 2
-
-
 def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """(slope, intercept) of the Theil-Sen line: the median of the slopes over pairs with x_j > x_i, and
     median(y) - slope median(x). The same floats as ``scipy.stats.theilslopes(y, x)`` (method "separate"),
@@ -233,8 +223,8 @@ def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     dx = x[:, None] - x
     dy = y[:, None] - y
     pos = dx > 0
-    slope = _median(dy[pos] / dx[pos])
-    return slope, _median(y) - slope * _median(x)
+    slope = median(dy[pos] / dx[pos])
+    return slope, median(y) - slope * median(x)
 
 
 def robust_fit(label: np.ndarray, k_edge: np.ndarray, lr: int, kr: int, fs: float, tol: float,
@@ -457,7 +447,7 @@ class EdgeLabeller:
         e.label = fix_utc + 1
         e.k_edge -= self._pulse_late.pop(e.label, 0.0) * s.fs
         off = e.label * 1_000_000_000 - int(self._host.scaled(e.mono_ns))
-        ref = _median(np.array(self._offsets)) if self._offsets else off
+        ref = median(np.array(self._offsets)) if self._offsets else off
         self._offsets.append(off)
         if abs(off - ref) > c.max_disagree_s * 1e9:
             return self._reject(e, "disagree")

@@ -31,6 +31,7 @@ from functools import cached_property
 
 import numpy as np
 from fieldlog.fusion import earth, kernels
+from fieldlog.fusion.median import median
 
 
 @dataclass
@@ -118,7 +119,7 @@ class SamplePeriod:
         self._first.append(np.diff(t[max(carried - 1, 0):]))
         steps = np.concatenate(self._first)[:PERIOD_STEPS]
         if len(steps):
-            self.dt_s = float(np.median(steps))
+            self.dt_s = median(steps)
         if len(steps) == PERIOD_STEPS:
             self._first = None
 

@@ -40,6 +40,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from fieldlog.fusion import earth
+from fieldlog.fusion.median import median
 from fieldlog.fusion.rowfile import RowFile
 from fieldlog.fusion.types import Solution
 
@@ -101,7 +102,7 @@ class GyroTrack:
         steps = 0.5 * (w[1:] + w[:-1]) * (np.diff(t) * 1e-9)[:, None]
         angle = np.cumsum(np.concatenate([start[None], steps]), axis=0)  # one running sum over the drive
         if not self._every and len(t) > 1:
-            self._every = max(int(round(1e9 / self.HZ / max(float(np.median(np.diff(t[:101]))), 1.0))), 1)
+            self._every = max(int(round(1e9 / self.HZ / max(median(np.diff(t[:101])), 1.0))), 1)
         every = self._every or 1
         first = self.n - 1 if self._last is not None else 0  # the drive's index of t[0]
         start = (-first) % every
@@ -194,7 +195,7 @@ def time_offset(gyro: GyroTrack, t_gps_ns: np.ndarray, v_gps_n: np.ndarray) -> t
     lo, hi = gyro.span_ns
     margin = int(MAX_OFFSET_S * 1e9)
     dt = np.diff(tg) * 1e-9
-    pair = ok[:-1] & ok[1:] & (dt < 1.5 * float(np.median(dt))) & (tg[:-1] - margin > lo) & (tg[1:] + margin < hi)
+    pair = ok[:-1] & ok[1:] & (dt < 1.5 * median(dt)) & (tg[:-1] - margin > lo) & (tg[1:] + margin < hi)
     k = np.flatnonzero(pair)
     if len(k) < 10:
         return None

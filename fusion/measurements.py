@@ -28,6 +28,7 @@ from fieldlog.fusion import earth, kf, odometer, pseudo
 from fieldlog.fusion.still import GATE, GpsSpeed, ImuSums, StillRun, gps_moving
 from fieldlog.fusion.config import FusionConfig
 from fieldlog.fusion.errmodel import ATT, BA, BG, N_STATES, POS, VEL
+from fieldlog.fusion.median import median
 from fieldlog.fusion.predictors import PredictorConfig
 from fieldlog.fusion.ins import NavState
 from fieldlog.fusion.types import Epoch, OdomBlock
@@ -414,7 +415,7 @@ class Odometer:
         A = np.stack([np.ones_like(dt), dt], axis=1)
         coef = np.linalg.lstsq(A, v, rcond=None)[0] if np.ptp(dt) > 0 else np.array([v.mean(), 0.0])
         var = self._var[sel]
-        var = float(np.median(var[np.isfinite(var)])) if np.isfinite(var).any() else 0.0
+        var = median(var[np.isfinite(var)]) if np.isfinite(var).any() else 0.0
         w = self._w[sel]
         wheels = (np.linalg.lstsq(A, w, rcond=None)[0][0] if np.ptp(dt) > 0 else w.mean(axis=0)
                   ) if np.isfinite(w).all() else None

@@ -25,6 +25,7 @@ import numpy as np
 from fieldlog.fusion import kf, predictors
 from fieldlog.fusion.errmodel import N_STATES, POS, VEL
 from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.median import median
 from fieldlog.fusion.methods import Bridge
 from fieldlog.fusion.types import Epoch, Outage
 
@@ -138,7 +139,7 @@ class Silence:
             if self.real_ns is not None and t > self.real_ns:
                 if not self._fill(queue, t, t - 0.5 * (self.period_ns or 0.0)) and len(self.spacings) < self.SPACINGS:
                     self.spacings.append(t - self.real_ns)
-                    self.period_ns = float(np.median(self.spacings))
+                    self.period_ns = median(self.spacings)
             queue.append(ep)
             self.real_ns = max(t, self.real_ns or t)
             self.last_ns = max(t, self.last_ns or t)

@@ -53,6 +53,7 @@ import numpy as np
 
 from fieldlog.fusion import earth
 from fieldlog.fusion.ins import NavState
+from fieldlog.fusion.median import median
 from fieldlog.fusion.predictors import PredictorConfig, SpeedNetwork
 
 FEATURE_S = 1.0  # s of IMU samples the means and the turn speed are taken over
@@ -115,7 +116,7 @@ class ImuWindow:
             return None
         x = imu_features(self.w, self.f, imu_dt, nav)
         self.lines.append(float(x[-1]))
-        x[-1] = float(np.median(self.lines))
+        x[-1] = median(self.lines)
         return x
 
 
@@ -371,7 +372,7 @@ class SpeedModel:
         f_line = float(x[-1])
         if y > LINE_MIN_SPEED and f_line > 0.0 and math.isfinite(y):
             self.ratios.append(y / f_line)
-            self.k = float(np.median(self.ratios))
+            self.k = median(self.ratios)
         self.net.train(x, y)
 
     def predict_each(self, x: np.ndarray) -> np.ndarray:

@@ -36,6 +36,7 @@ import numpy as np
 
 from fieldlog.drive import messages
 from fieldlog.fusion import earth  # numpy only: reading a drive never loads the fusion stack
+from fieldlog.fusion.median import median
 from fieldlog.drive import reader
 from fieldlog.drive.drive import Drive, file_transforms
 from fieldlog.drive.files import DriveSpec, label, open_drive
@@ -429,6 +430,8 @@ class InputStream:
         next iteration takes them. Before any other thread starts: a worker is forked only then
         (``replay.ahead``)."""
         if not self.keep and self._ahead is None:
+            import fieldlog.fusion.types  # noqa: F401 - before the fork: the worker's blocks are made of its
+            # classes, and the caller, unpickling them, loads it anyway
             self._ahead = Ahead(self._input_blocks)
 
     def close(self) -> None:
@@ -474,7 +477,7 @@ class InputStream:
         t = imu["log_time_ns"]
         steps = np.diff(t if self._last_t is None else np.concatenate([[self._last_t], t]))
         if self._period_ns is None and len(steps) >= 100:
-            med = np.median(steps)  # the mean of the steps near it: less noisy, and no gap or jitter biases it
+            med = median(steps)  # the mean of the steps near it: less noisy, and no gap or jitter biases it
             self._period_ns = float(np.mean(steps[(steps >= 0.5 * med) & (steps <= 1.5 * med)]))
         if self._period_ns is not None:
             long = steps > 1.5 * self._period_ns

@@ -267,22 +267,6 @@ def test_theil_sen_gives_scipys_floats():
             assert theil_sen(x, y) == (ref.slope, ref.intercept)
 
 
-def test_median_is_numpys():
-    """The median the fits and the label gate take is np.median's float to the bit: int64 host offsets near
-    1e18 ns (summed as floats), floats with ties, a NaN, odd and even counts."""
-    from fieldlog.acquire.timesync import _median
-    rng = np.random.default_rng(4)
-    for n in (1, 2, 3, 8, 9, 120, 7141):
-        for rep in range(10):
-            a = 1_780_000_000 * 10**9 + rng.integers(-10**9, 10**9, n) if rep % 2 else rng.normal(size=n)
-            if rep == 4:
-                a = np.round(a, 1)
-            if rep == 6:
-                a[rng.integers(n)] = np.nan
-            want = np.median(a)
-            assert _median(a) == want or (np.isnan(want) and np.isnan(_median(a)))
-
-
 def test_robust_fit_gives_the_floats_of_numpys_means():
     """robust_fit's least squares (means as sums over the count) gives the floats of the same fit written with
     np.mean, on edge-like inputs: labels with gaps, outliers, windows of a few to a few hundred edges."""
