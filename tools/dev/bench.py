@@ -309,8 +309,8 @@ def _shown(name: str) -> tuple[str, str]:
 
 def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0)) -> None:
     """``fieldlog fuse`` of 1-hour and 2-hour 500 Hz figure8 drives by kf and dkf-rbfn (and kf --smooth; both
-    in one pass and with the installation from the first 600 s too, :func:`_variant_config`), each a command in a child process: samples/s, real-time factor,
-    peak RSS (streaming: the same for both lengths)."""
+    in one pass and with the installation from the first 600 s too, :func:`_variant_config`), each a command in
+    a child process: samples/s, real-time factor, peak RSS (streaming: the same for both lengths)."""
     from fieldlog.tools.sim.simulate import simulate
 
     drives = []
@@ -335,7 +335,8 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
         print(f"fuse {name:18s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
               f"real-time factor x{3600.0 * h0 / r[0]['s']:.0f}; peak RSS {h0:g} h {r[0]['rss_mb']:6.0f} MB, "
               f"{hours[1]:g} h {r[1]['rss_mb']:6.0f} MB (ratio {r[1]['rss_mb'] / r[0]['rss_mb']:.2f})")
-        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {''.join(_shown(name))}: time; peak RSS {h0:g} h / {hours[1]:g} h "
+        shown = "".join(_shown(name))
+        row(f"`fieldlog fuse` of a {h0:g}-hour 500 Hz drive, {shown}: time; peak RSS {h0:g} h / {hours[1]:g} h "
             "[fuse-long]", f"{r[0]['s']:.1f} s (×{3600.0 * h0 / r[0]['s']:.0f}); {r[0]['rss_mb']:.0f} / "
             f"{r[1]['rss_mb']:.0f} MB", _LONG_TARGETS.get(name, ""))
 
