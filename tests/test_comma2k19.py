@@ -218,3 +218,22 @@ def test_the_mounting_is_estimated_and_lets_the_nhc_help(segment, drive, tmp_pat
             worst[name] = float(np.nanmax(e[w]))
         print(a, worst)
         assert worst["nhc"] < 0.5 * worst["nhc-phone-axes"] and worst["nhc"] <= 1.25 * worst["aids-off"], (a, worst)
+
+
+def test_a_span_past_the_segment_reads_it_through_its_own_stream_as_the_whole(drive, tmp_path, capsys):
+    """``installation_span_s`` on a drive another writer made, under its own topic names: the installation's own
+    stream (the span longer than the segment) maps the topics as the fusion's does, and gives the segment's
+    installation and solution to the bit."""
+    runs = {}
+    (tmp_path / "span.toml").write_text("[fusion]\ninstallation_span_s = 600.0\n")
+    for name, extra in (("whole", ()), ("span", ("--config", str(tmp_path / "span.toml")))):
+        capsys.readouterr()
+        t, e = _fused_error(drive, tmp_path, name, "kf", False, *extra)
+        runs[name] = (json.loads(capsys.readouterr().out), t, e)
+    keys = ("installation_read_s", "imu_time_offset_s", "imu_time_offset_sigma_s", "mounting_rpy_deg",
+            "mounting_sigma_deg", "mounting_estimate_rpy_deg", "mounting_estimate_sigma_deg")
+    whole, span = runs["whole"][0], runs["span"][0]
+    assert whole["mounting_estimate_rpy_deg"] is not None and whole["installation_read_s"] > 30.0, whole
+    assert {k: span[k] for k in keys} == {k: whole[k] for k in keys}
+    assert np.array_equal(runs["span"][1], runs["whole"][1])
+    assert np.array_equal(runs["span"][2], runs["whole"][2], equal_nan=True)
