@@ -1,13 +1,16 @@
 """GPS time sync: UTC (int64 ns) of every DAQ sample from the PPS edges and the NMEA seconds.
 
 Records from both ports are fed in host-monotonic order: ``add_fix`` for each NMEA epoch, ``add_frames`` for
-each read of decoded DAQ frames. Every result is a deterministic function of the fed records, whatever way the
-frames of a read are split across calls and whenever the outputs are polled, so ``fieldlog rebuild``
-reproduces a live drive bit for bit.
+each read of decoded DAQ frames. Every result is a deterministic function of the fed records, whenever the
+outputs are polled, so ``fieldlog rebuild`` reproduces a live drive bit for bit. Splitting a read's frames
+across calls moves only its edges' host times (below), which the gates read.
 
 Edges. A flagged frame k gives the edge position k_edge = k - 1 + latch/65536 (latch valid) or k - 0.5
-(flag only), in sample-index units. Each edge is labelled as gpsd does: the UTC second of the last fix
-received before it, plus 1. It is rejected when there was no fix (``no_fix``), that fix is older than
+(flag only), in sample-index units. Its host time is that of the read that brought it, less the samples that
+came after it in the same call (k_last - k) at the DAQ rate: a read late on the host (a stalled reader, a
+loaded machine) returns the frames the port buffered meanwhile, and only its last frame is as late as the
+read. Each edge is labelled as gpsd does: the UTC second of the last fix received before that host time,
+plus 1. It is rejected when there was no fix (``no_fix``), that fix is older than
 ``max_fix_age_s`` (``stale_fix``), the label minus the edge's host time disagrees by more than
 ``max_disagree_s`` with the same offset of the previous edges (``disagree``: a glitch mid-second), its label
 was already used (``duplicate``) or it is off the running clock fit (``outlier``). Before the first lock,
@@ -66,6 +69,7 @@ from fieldlog.fusion.median import median
 FINALISE_BLOCK = 1 << 18     # samples stamped per step when finalising (about 9 min at 500 Hz)
 PPS_BURST_S = 2.0            # a flag with PPS_BURST others within this many seconds of samples before it is
 PPS_BURST = 4                # implausible (a true PPS and a glitch or two never come that close together)
+FIXES_KEPT = 64              # recent fixes (host mono, UTC second) an edge's label is looked up in
 _first = itemgetter(0)
 _sum = np.add.reduce
 
@@ -135,7 +139,7 @@ class TimeSyncConfig:
 
 @dataclass
 class PpsEdge:
-    """A processed PPS edge: position on the DAQ clock (sample units), host read time, GPS second or -1."""
+    """A processed PPS edge: position on the DAQ clock (sample units), host time of its frame, GPS second or -1."""
 
     k_edge: float
     mono_ns: int
@@ -161,7 +165,7 @@ class EdgeBatch:
     """Processed edges as arrays (what ``pop_edges`` returns)."""
 
     k_edge: np.ndarray        # float64, sample-index units
-    mono_ns: np.ndarray       # int64 host read time
+    mono_ns: np.ndarray       # int64 host time of the edge's frame
     label_s: np.ndarray       # int64 GPS second, -1 if none
     accepted: np.ndarray      # bool
     reason: np.ndarray        # str, '' when accepted
@@ -322,6 +326,10 @@ class HostClock:
         off = np.array([self._offset(b) for b in bins.tolist()], np.int64)[inv]
         return np.round(k * self.ns_per_sample).astype(np.int64) + off
 
+    def host_ns(self, samples: int) -> int:
+        """The host duration (ns) of ``samples`` DAQ samples (``host_time_scale``)."""
+        return round(samples * self.ns_per_sample / self.cfg.host_time_scale)
+
     def scaled(self, mono_ns: int | np.ndarray) -> int | np.ndarray:
         """Host time ``mono_ns`` (ns) in data ns (``host_time_scale``; the identity at 1)."""
         x = self.cfg.host_time_scale
@@ -376,7 +384,8 @@ class EdgeLabeller:
 
     def __init__(self, cfg: TimeSyncConfig, s: _Samples, host: HostClock) -> None:
         self.cfg, self._s, self._host = cfg, s, host
-        self._fix: tuple[int, int] | None = None                 # (utc_s, mono_ns) of the last fix
+        self._fix_mono: deque[int] = deque(maxlen=FIXES_KEPT)   # host mono (ns) of the recent fixes, in order
+        self._fix_utc: deque[int] = deque(maxlen=FIXES_KEPT)    # and their UTC seconds
         self._pulse_late: dict[int, float] = {}                  # utc_s -> receiver's pulse error (s)
         self._flags = np.zeros(0, np.int64)                      # the last PPS_BURST flagged samples
         self.implausible_edges = 0
@@ -392,8 +401,10 @@ class EdgeLabeller:
         self.rej_dropped = 0
 
     def add_fix(self, utc_s: int, mono_ns: int) -> None:
-        """An NMEA epoch of the whole UTC second ``utc_s`` read at host ``mono_ns`` (ns): the next edges' label."""
-        self._fix = (int(utc_s), int(mono_ns))
+        """An NMEA epoch of the whole UTC second ``utc_s`` read at host ``mono_ns`` (ns): the label of the edges
+        after it."""
+        self._fix_mono.append(int(mono_ns))
+        self._fix_utc.append(int(utc_s))
 
     def add_pulse_error(self, utc_s: int, late_s: float) -> None:
         """The receiver's time pulse of UTC second ``utc_s`` comes ``late_s`` (s) late: see
@@ -407,10 +418,12 @@ class EdgeLabeller:
     def add_flags(self, k: np.ndarray, pps: np.ndarray, latch: np.ndarray, latch_valid: np.ndarray,
                   mono_ns: int) -> None:
         """The PPS flags of one read's frames (sample index ``k``, flag, latch in 1/65536 sample) read at host
-        ``mono_ns`` (ns): each plausible flag is an edge, labelled and judged."""
+        ``mono_ns`` (ns): each plausible flag is an edge, labelled and judged, at the host time of its frame
+        (``mono_ns`` less the host duration of the samples after it in ``k``)."""
+        last = int(k[-1])
         for i in self._plausible(k, np.flatnonzero(pps)).tolist():
             ke = float(k[i] - 1) + (float(latch[i]) / 65536.0 if latch_valid[i] else 0.5)
-            self._on_edge(PpsEdge(ke, mono_ns))
+            self._on_edge(PpsEdge(ke, mono_ns - self._host.host_ns(last - int(k[i]))))
 
     def _plausible(self, k: np.ndarray, flagged: np.ndarray) -> np.ndarray:
         """The flagged frames (indices into k) that may be PPS edges: not preceded by ``PPS_BURST`` flags within
@@ -439,9 +452,10 @@ class EdgeLabeller:
     def _on_edge(self, e: PpsEdge) -> None:
         self._edges.append(e)
         c, s = self.cfg, self._s
-        if self._fix is None:
+        j = bisect_right(self._fix_mono, e.mono_ns) - 1            # the last fix received before the edge
+        if j < 0:
             return self._reject(e, "no_fix")
-        fix_utc, fix_mono = self._fix
+        fix_utc, fix_mono = self._fix_utc[j], self._fix_mono[j]
         if int(self._host.scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
             return self._reject(e, "stale_fix")
         e.label = fix_utc + 1
@@ -1012,7 +1026,7 @@ class TimeSync:
     def mono_to_utc(self, mono_ns: np.ndarray) -> np.ndarray:
         """Host monotonic time -> UTC (int64 ns), with the data fed so far.
 
-        Locked: the largest (label - host read time) of the last 16 accepted edges (the read with the least
+        Locked: the largest (label - host time) of the last 16 accepted edges (the one read with the least
         latency). Before that: the host wall clock of the latest read or fix.
         """
         return self.host.mono_to_utc(mono_ns)

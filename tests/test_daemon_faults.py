@@ -70,10 +70,11 @@ def sentences(path: Path) -> list[str]:
 
 
 def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame_recorded(tmp_path: Path) -> None:
-    """Served at x4: the time sync's host gates (a fix's age, an edge's disagreement with the fixes' host times)
-    are data seconds, so at xS they allow 0.4 / S s of host latency, and with the PPS flags the corrupt frames lose
-    every remaining edge counts for the lock: x4 allows 100 ms, which a loaded host keeps to; x20 would allow 20 ms."""
-    f, truth, _ = record(tmp_path, "--corrupt", "0.01", duration=20, seed=7, speed=4)
+    """Served at x2: the time sync's host gates (a fix's age, an edge's disagreement with the fixes' host times)
+    are data seconds, so at xS they allow about 0.4 / S s of latency on the GPS port's reads (an edge is at its
+    frame's host time, which a late DAQ read does not move), and with the PPS flags the corrupt frames lose every
+    remaining edge counts for the lock: x2 allows 200 ms, which a loaded host keeps to; x20 would allow 20 ms."""
+    f, truth, _ = record(tmp_path, "--corrupt", "0.01", duration=20, seed=7, speed=2)
     clean = expected_bytes(truth, "figure8", 20.0, 7)
     sent = {p: corrupt_stream(clean[p], 0.01, 7, p) for p in PORTS}
     meta = read_metadata(truth)["serve"]
@@ -102,7 +103,7 @@ def test_one_percent_corruption_is_resynchronised_counted_and_every_intact_frame
     assert int(c["daq.lost_frames"]) == intact[-1] - intact[0] + 1 - intact.size
     assert int(c["daq.bad_crc"]) == want_bad_crc > 0
     assert int(c["daq.resyncs"]) == want_resyncs > 0
-    # every intact frame is on /imu, in order, with its own sample's stamp (sync locks at x20 with the scale)
+    # every intact frame is on /imu, in order, with its own sample's stamp (the sync locks with the scale)
     imu = reader.read_topic(f, "/imu")
     tru = reader.read_topic(truth, "/truth/imu")
     assert len(imu["log_time_ns"]) == intact.size
