@@ -384,8 +384,7 @@ class EdgeLabeller:
 
     def __init__(self, cfg: TimeSyncConfig, s: _Samples, host: HostClock) -> None:
         self.cfg, self._s, self._host = cfg, s, host
-        self._fix_mono: deque[int] = deque(maxlen=FIXES_KEPT)   # host mono (ns) of the recent fixes, in order
-        self._fix_utc: deque[int] = deque(maxlen=FIXES_KEPT)    # and their UTC seconds
+        self._fixes: deque[tuple[int, int]] = deque(maxlen=FIXES_KEPT)   # (host mono ns, UTC s) of recent fixes
         self._pulse_late: dict[int, float] = {}                  # utc_s -> receiver's pulse error (s)
         self._flags = np.zeros(0, np.int64)                      # the last PPS_BURST flagged samples
         self.implausible_edges = 0
@@ -403,8 +402,7 @@ class EdgeLabeller:
     def add_fix(self, utc_s: int, mono_ns: int) -> None:
         """An NMEA epoch of the whole UTC second ``utc_s`` read at host ``mono_ns`` (ns): the label of the edges
         after it."""
-        self._fix_mono.append(int(mono_ns))
-        self._fix_utc.append(int(utc_s))
+        self._fixes.append((int(mono_ns), int(utc_s)))
 
     def add_pulse_error(self, utc_s: int, late_s: float) -> None:
         """The receiver's time pulse of UTC second ``utc_s`` comes ``late_s`` (s) late: see
@@ -452,10 +450,10 @@ class EdgeLabeller:
     def _on_edge(self, e: PpsEdge) -> None:
         self._edges.append(e)
         c, s = self.cfg, self._s
-        j = bisect_right(self._fix_mono, e.mono_ns) - 1            # the last fix received before the edge
+        j = bisect_right(self._fixes, e.mono_ns, key=_first) - 1    # the last fix received before the edge
         if j < 0:
             return self._reject(e, "no_fix")
-        fix_utc, fix_mono = self._fix_utc[j], self._fix_mono[j]
+        fix_mono, fix_utc = self._fixes[j]
         if int(self._host.scaled(e.mono_ns - fix_mono)) > c.max_fix_age_s * 1e9:
             return self._reject(e, "stale_fix")
         e.label = fix_utc + 1

@@ -7,9 +7,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 
-def median(a) -> float:
+def median(a: npt.ArrayLike) -> float:
     """``np.median`` of a 1-d sequence, the same float, from one partition.
 
     Parameters

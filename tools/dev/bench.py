@@ -325,11 +325,12 @@ def bench_fuse_long(runs: int, tmp: Path, hours: tuple[float, float] = (1.0, 2.0
     if not warm.exists():
         simulate("figure8", 30.0, 2, warm)
     _fuse_child(warm, KF.name, tmp / "fused_warm.mcap")  # a warm run outside the figures
+    configs = {v: _variant_config(tmp, drives[0], v) for v in _VARIANTS}
     for method, smooth, variant in ((KF.name, False, ""), (DKF_RBFN.name, False, ""), (KF.name, True, ""),
                                     (KF.name, False, ONE_PASS), (DKF_RBFN.name, False, ONE_PASS),
                                     (KF.name, False, SPAN), (DKF_RBFN.name, False, SPAN)):
         name = method + (" --smooth" if smooth else "") + variant
-        config = _variant_config(tmp, drives[0], variant) if variant else None
+        config = configs.get(variant)
         r = [_fuse_child(d, method, tmp / f"long_{method}.mcap", smooth, config) for d in drives]
         h0 = hours[0]
         print(f"fuse {name:18s} {h0:g} h: {r[0]['s']:6.1f} s, {r[0]['n'] / r[0]['s'] / 1e3:7.1f} k samples/s, "
